@@ -1,0 +1,56 @@
+"""Closed-loop performance measures of the paper: actual cost, its ratio, overshoot, rise time, ITAE."""
+from __future__ import annotations
+
+import numpy as np
+
+from ocpkit.ocp import OCP
+from ocpkit.simulate import Trajectory
+
+
+def actual_cost(traj: Trajectory, ocp: OCP) -> float:
+    """The MPC objective evaluated on the states and inputs actually applied (paper eq. actual_cost).
+
+    Σ_{i=0}^{H} J(x_i, u_i) with J the OCP's stage cost: every recorded state x_0 … x_H against the
+    goal and every applied input u_0 … u_{H−1} against u_goal.
+    """
+    ex = traj.x - traj.goal
+    eu = traj.u - ocp.u_goal
+    return float(np.einsum("ij,jk,ik->", ex, ocp.Q, ex) + np.einsum("ij,jk,ik->", eu, ocp.R, eu))
+
+
+def actual_cost_ratio(traj: Trajectory, reference: Trajectory, ocp: OCP) -> float:
+    """Actual cost of ``traj`` over that of ``reference`` (paper eq. actual_cost_ratio)."""
+    return actual_cost(traj, ocp) / actual_cost(reference, ocp)
+
+
+def step_metrics(traj: Trajectory, joints=None) -> dict:
+    """Percent overshoot and rise time (10–90 %) per joint via python-control's ``step_info``.
+
+    Joint i is measured on its position (state i) moving from x_0 to the goal; a joint whose start
+    equals its goal has no step and gets NaN.
+    """
+    import control
+
+    n_q = traj.x.shape[1] // 2
+    joints = range(n_q) if joints is None else joints
+    overshoot, rise = [], []
+    for i in joints:
+        q, q0, qg = traj.x[:, i], traj.x[0, i], traj.goal[i]
+        if abs(qg - q0) < 1e-9:
+            overshoot.append(np.nan)
+            rise.append(np.nan)
+            continue
+        # Normalize to a unit step from 0 so the sign of the move does not matter.
+        info = control.step_info((q - q0) / (qg - q0), T=traj.t, yfinal=1.0)
+        overshoot.append(info["Overshoot"])
+        rise.append(info["RiseTime"])
+    return {"overshoot": np.array(overshoot), "rise_time": np.array(rise)}
+
+
+def itae(traj: Trajectory, joints=None) -> float:
+    """Integral of time-weighted absolute position error, Σ t |q_goal − q| dt summed over joints."""
+    n_q = traj.x.shape[1] // 2
+    joints = list(range(n_q)) if joints is None else list(joints)
+    err = np.abs(traj.goal[joints] - traj.x[:, joints])
+    dt = traj.t[1] - traj.t[0]
+    return float(np.sum(traj.t[:, None] * err) * dt)

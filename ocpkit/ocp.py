@@ -1,0 +1,77 @@
+"""The optimal control problem: model, time step, horizon, quadratic cost, bounds and parameterization.
+
+The paper's MPC problem (eq. mpc_problem) with a zero-order-hold discrete model:
+
+    min  Σ_{k=0}^{T-1} (u_k − u_goal)ᵀ R (u_k − u_goal) + Σ_{k=1}^{T-1} (x_k − x_goal)ᵀ Q (x_k − x_goal)
+         + (x_T − x_goal)ᵀ Q_T (x_T − x_goal)
+    s.t. x_{k+1} = F(x_k, u_k),  u = φ U (the parameterization),  u_min ≤ u_k ≤ u_max,  x_min ≤ x_k ≤ x_max.
+
+x_0 is the measured state, so its cost term is a constant and is left out. Every solver reads this one
+description: the QPs through its affine model, IPOPT through F, EMPC through the translated kernels.
+"""
+from __future__ import annotations
+
+import casadi as ca
+import numpy as np
+
+from ocpkit._checks import array, bounds, integer, positive, weight
+from ocpkit.model import Model
+from ocpkit.parameterization import Parameterization
+
+
+class OCP:
+    """A validated MPC problem; see the module docstring for the objective and constraints."""
+
+    def __init__(self, model: Model, dt: float, horizon: int, Q, R, *, Q_terminal=None, u_goal=None,
+                 u_min=None, u_max=None, x_min=None, x_max=None, parameterization: Parameterization | None = None,
+                 substeps: int = 1):
+        if not isinstance(model, Model):
+            raise TypeError(f"model must be an ocpkit Model, got {type(model).__name__}")
+        n, m = model.nx, model.nu
+        self.model = model
+        self.dt = positive(dt, "dt")
+        self.horizon = integer(horizon, "horizon", 1)
+        self.substeps = integer(substeps, "substeps", 1)
+        self.nx, self.nu = n, m
+        self.Q = weight(Q, "Q", n, definite=False)
+        self.R = weight(R, "R", m, definite=True)
+        self.Q_terminal = self.Q if Q_terminal is None else weight(Q_terminal, "Q_terminal", n, definite=False)
+        self.u_goal = np.zeros(m) if u_goal is None else bounds(u_goal, u_goal, "u_goal", "u_goal", m)[0]
+        if not np.all(np.isfinite(self.u_goal)):
+            raise ValueError(f"u_goal must be finite, got {self.u_goal.tolist()}")
+        self.u_min, self.u_max = bounds(u_min, u_max, "u_min", "u_max", m)
+        self.x_min, self.x_max = bounds(x_min, x_max, "x_min", "x_max", n)
+        if parameterization is None:
+            parameterization = Parameterization.identity(self.horizon)
+        if not isinstance(parameterization, Parameterization):
+            raise TypeError(f"parameterization must be a Parameterization, got {type(parameterization).__name__}")
+        if parameterization.horizon != self.horizon:
+            raise ValueError(f"parameterization has horizon {parameterization.horizon}, the OCP {self.horizon}")
+        self.parameterization = parameterization
+        self.knots = parameterization.knots
+        x, u, xg = ca.SX.sym("x", n), ca.SX.sym("u", m), ca.SX.sym("x_goal", n)
+        ex, eu = x - xg, u - ca.DM(self.u_goal)
+        self.stage_cost = ca.Function("stage_cost", [x, u, xg], [ca.bilin(ca.DM(self.Q), ex, ex)
+                                      + ca.bilin(ca.DM(self.R), eu, eu)], ["x", "u", "x_goal"], ["l"])
+        self.terminal_cost = ca.Function("terminal_cost", [x, xg], [ca.bilin(ca.DM(self.Q_terminal), ex, ex)],
+                                         ["x", "x_goal"], ["l_T"])
+
+    def __repr__(self):
+        return (f"OCP({self.model.name!r}, dt={self.dt}, horizon={self.horizon}, "
+                f"{self.parameterization.kind} knots={self.knots})")
+
+    @property
+    def has_state_bounds(self) -> bool:
+        return bool(np.isfinite(self.x_min).any() or np.isfinite(self.x_max).any())
+
+    def discrete(self) -> ca.Function:
+        """The discrete model F(x, u) -> x⁺ every solver predicts with."""
+        return self.model.discrete(self.dt, self.substeps)
+
+    def affine(self) -> ca.Function:
+        """The affine model (x̄, ū) -> (A_d, B_d, w_d) of :meth:`discrete`."""
+        return self.model.affine(self.dt, self.substeps)
+
+    def check_state(self, x, name: str = "x") -> np.ndarray:
+        """x as a finite float64 vector of length nx, or a ValueError naming ``name``."""
+        return array(x, name, (self.nx,))

@@ -1,0 +1,194 @@
+"""LinearMPC: re-linearized convex MPC, sparse or condensed, with any input parameterization (paper Section V).
+
+Each control step linearizes the model about the current state and the input the previous plan
+expected now, builds the chosen transcription from the affine model (A_d, B_d, w_d), and solves the QP
+with ProxQP (dense backend for the condensed form, sparse for the sparse form) or OSQP, the paper's own
+solver. Input bounds are imposed on the knots, which keeps the whole piecewise-linear (or
+zero-order-hold) input trajectory within bounds because every u_k is a convex combination of knots.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+from ocpkit._checks import integer, positive
+from ocpkit.controller import EXCEPTION, INFEASIBLE, LIMITED, NAN, SUCCESS, Controller, Solution
+from ocpkit.ocp import OCP
+from ocpkit.transcription import QP, TRANSCRIPTIONS
+
+QP_SOLVERS = ("proxqp", "osqp")
+
+
+@dataclass
+class _Result:
+    z: np.ndarray
+    duals: tuple
+    status: str
+    raw_status: str
+    iterations: int
+
+
+class _ProxQP:
+    """ProxQP, dense or sparse backend, re-initialized with each step's data and warm-started."""
+
+    def __init__(self, sparse: bool, max_iter: int, eps: float):
+        import proxsuite
+
+        self._module = proxsuite.proxqp.sparse if sparse else proxsuite.proxqp.dense
+        self._proxqp = proxsuite.proxqp
+        self.max_iter, self.eps = max_iter, eps
+
+    def solve(self, qp: QP, warm: tuple | None) -> _Result:
+        px = self._proxqp
+        solver = self._module.QP(qp.n, qp.b.size, qp.l.size)
+        s = solver.settings
+        s.eps_abs, s.eps_rel, s.max_iter, s.verbose = self.eps, 0.0, self.max_iter, False
+        s.initial_guess = px.InitialGuess.WARM_START if warm is not None else px.InitialGuess.NO_INITIAL_GUESS
+        solver.init(qp.P, qp.q, qp.A, qp.b, qp.C, qp.l, qp.u)
+        if warm is None:
+            solver.solve()
+        else:
+            solver.solve(*warm)
+        r = solver.results
+        out = px.QPSolverOutput
+        status = {out.PROXQP_SOLVED: SUCCESS, out.PROXQP_MAX_ITER_REACHED: LIMITED,
+                  out.PROXQP_PRIMAL_INFEASIBLE: INFEASIBLE, out.PROXQP_DUAL_INFEASIBLE: INFEASIBLE,
+                  out.PROXQP_SOLVED_CLOSEST_PRIMAL_FEASIBLE: INFEASIBLE}.get(r.info.status, EXCEPTION)
+        return _Result(np.array(r.x), (np.array(r.x), np.array(r.y), np.array(r.z)), status,
+                       str(r.info.status).rsplit(".", 1)[-1], int(r.info.iter))
+
+
+class _OSQP:
+    """OSQP on the stacked form (P, q, [A; C], lb, ub), set up once; each step updates its numbers."""
+
+    def __init__(self, max_iter: int, eps: float):
+        import osqp
+
+        self._osqp = osqp
+        self.max_iter, self.eps = max_iter, eps
+        self.solver = None
+
+    def reset(self):
+        self.solver = None
+
+    def solve(self, qp: QP, warm: tuple | None) -> _Result:
+        P, q, A, lb, ub = qp.stacked()
+        P = _upper_csc(P)
+        A = _full_csc(A)
+        if self.solver is None or (P.nnz, A.nnz) != self._nnz:
+            self.solver = self._osqp.OSQP()
+            self.solver.setup(P=P, q=q, A=A, l=lb, u=ub, verbose=False, eps_abs=self.eps, eps_rel=self.eps,
+                              max_iter=self.max_iter, polish=False, warm_starting=True)
+            self._nnz = (P.nnz, A.nnz)
+        else:
+            self.solver.update(Px=P.data, Ax=A.data, q=q, l=lb, u=ub)
+        if warm is not None:
+            self.solver.warm_start(x=warm[0], y=warm[1])
+        r = self.solver.solve()
+        S = self._osqp.SolverStatus
+        status = {S.OSQP_SOLVED: SUCCESS, S.OSQP_MAX_ITER_REACHED: LIMITED, S.OSQP_TIME_LIMIT_REACHED: LIMITED,
+                  S.OSQP_SOLVED_INACCURATE: LIMITED, S.OSQP_PRIMAL_INFEASIBLE: INFEASIBLE,
+                  S.OSQP_PRIMAL_INFEASIBLE_INACCURATE: INFEASIBLE, S.OSQP_DUAL_INFEASIBLE: INFEASIBLE,
+                  S.OSQP_DUAL_INFEASIBLE_INACCURATE: INFEASIBLE}.get(r.info.status_val, EXCEPTION)
+        z = np.array(r.x, dtype=float) if r.x is not None else np.full(qp.n, np.nan)
+        y = np.array(r.y, dtype=float) if r.y is not None else np.zeros(lb.size)
+        return _Result(z, (z, y), status, r.info.status, int(r.info.iter))
+
+
+def _upper_csc(P):
+    """Upper triangle of P as CSC with a pattern that depends only on the shape (dense) or on P's pattern."""
+    if sp.issparse(P):
+        return sp.triu(P, format="csc")
+    n = P.shape[0]
+    cols = np.arange(n)
+    indptr = np.r_[0, np.cumsum(cols + 1)]
+    indices = np.concatenate([np.arange(j + 1) for j in cols]) if n else np.zeros(0, int)
+    # Column j of the upper triangle holds P[0..j, j] = P[j, 0..j] (P symmetric): the lower triangle row-major.
+    return sp.csc_matrix((P[np.tril_indices(n)], indices, indptr), shape=P.shape)
+
+
+def _full_csc(A):
+    """A as CSC; dense matrices keep every entry (zeros included) so the pattern never changes."""
+    if sp.issparse(A):
+        return A.tocsc()
+    r, c = A.shape
+    indptr = np.arange(0, r * c + 1, r)
+    indices = np.tile(np.arange(r), c)
+    return sp.csc_matrix((A.ravel(order="F"), indices, indptr), shape=A.shape)
+
+
+class LinearMPC(Controller):
+    """Re-linearized MPC through a QP: ``form`` "sparse" (large matrix) or "condensed" (small matrix),
+    ``qp`` "proxqp" or "osqp", any parameterization of the OCP. Warm-starts from the previous solution.
+    """
+
+    def __init__(self, ocp: OCP, *, form: str = "condensed", qp: str = "proxqp", max_iter: int = 10_000,
+                 eps: float = 1e-9, warm_start: bool = True, raise_on_fail: bool = False):
+        if form not in TRANSCRIPTIONS:
+            raise ValueError(f"form must be one of {tuple(TRANSCRIPTIONS)}, got {form!r}")
+        if qp not in QP_SOLVERS:
+            raise ValueError(f"qp must be one of {QP_SOLVERS}, got {qp!r}")
+        self.form, self.qp_name = form, qp
+        self.max_iter = integer(max_iter, "max_iter", 1)
+        self.eps = positive(eps, "eps")
+        self.warm_start = bool(warm_start)
+        self.transcription = TRANSCRIPTIONS[form](ocp)
+        self._affine = ocp.affine()
+        self._backend = (_ProxQP(form == "sparse", self.max_iter, self.eps) if qp == "proxqp"
+                         else _OSQP(self.max_iter, self.eps))
+        super().__init__(ocp, raise_on_fail=raise_on_fail)
+
+    def __repr__(self):
+        return f"LinearMPC({self.form}, {self.qp_name}, {self.ocp!r})"
+
+    def reset(self) -> None:
+        super().reset()
+        self._warm = None
+        if isinstance(self._backend, _OSQP):
+            self._backend.reset()
+
+    def _solve(self, x: np.ndarray, goal: np.ndarray) -> Solution:
+        ocp, times = self.ocp, {"model": 0.0, "build": 0.0, "solve": 0.0}
+        t0 = time.perf_counter()
+        u_bar = ocp.u_goal if self.plan is None else ocp.parameterization.u_at(ocp.parameterization.shift(self.plan), 0)
+        Ad, Bd, wd = (np.asarray(M, dtype=float) for M in self._affine(x, u_bar))
+        t1 = time.perf_counter()
+        times["model"] = t1 - t0
+        if not (np.isfinite(Ad).all() and np.isfinite(Bd).all() and np.isfinite(wd).all()):
+            return self._fail(NAN, f"non-finite affine model at x = {x.tolist()}", times)
+        qp = self.transcription.build(Ad, Bd, wd.ravel(), x, goal)
+        t2 = time.perf_counter()
+        times["build"] = t2 - t1
+        problem = qp.check()
+        if problem is not None:
+            return self._fail(INFEASIBLE if "above" in problem else NAN, problem, times)
+        try:
+            res = self._backend.solve(qp, self._warm if self.warm_start else None)
+        except Exception as exc:  # a backend that throws must not stop the control loop
+            times["solve"] = time.perf_counter() - t2
+            return self._fail(EXCEPTION, f"{type(exc).__name__}: {exc}", times)
+        times["solve"] = time.perf_counter() - t2
+        if res.status == SUCCESS and not np.isfinite(res.z).all():
+            res.status = NAN
+        if res.status != SUCCESS:
+            return self._fail(res.status, res.raw_status, times, res.iterations)
+        self._warm = res.duals
+        knots = self.transcription.knots(res.z).copy()
+        x_pred = (self.transcription.states(res.z) if self.form == "sparse"
+                  else self.transcription.states(res.z, x))
+        u = ocp.parameterization.u_at(knots, 0)
+        return Solution(u=u, knots=knots, status=SUCCESS, raw_status=res.raw_status, iterations=res.iterations,
+                        x_pred=x_pred, times=times)
+
+    def _fail(self, status, raw, times, iterations=0) -> Solution:
+        """Fallback solution and a clean workspace for the next step (no stale warm start)."""
+        self._warm = None
+        if isinstance(self._backend, _OSQP):
+            self._backend.reset()
+        return self.fallback(status, raw, times, iterations)
+
+
+SOLVERS = {"qp": LinearMPC}
