@@ -81,13 +81,13 @@ class _OSQP:
         if self.solver is None or (P.nnz, A.nnz) != self._nnz:
             self.solver = self._osqp.OSQP()
             self.solver.setup(P=P, q=q, A=A, l=lb, u=ub, verbose=False, eps_abs=self.eps, eps_rel=self.eps,
-                              max_iter=self.max_iter, polish=False, warm_starting=True)
+                              max_iter=self.max_iter, polishing=False, warm_starting=True)
             self._nnz = (P.nnz, A.nnz)
         else:
             self.solver.update(Px=P.data, Ax=A.data, q=q, l=lb, u=ub)
         if warm is not None:
             self.solver.warm_start(x=warm[0], y=warm[1])
-        r = self.solver.solve()
+        r = self.solver.solve(raise_error=False)
         S = self._osqp.SolverStatus
         status = {S.OSQP_SOLVED: SUCCESS, S.OSQP_MAX_ITER_REACHED: LIMITED, S.OSQP_TIME_LIMIT_REACHED: LIMITED,
                   S.OSQP_SOLVED_INACCURATE: LIMITED, S.OSQP_PRIMAL_INFEASIBLE: INFEASIBLE,
@@ -132,14 +132,24 @@ class LinearMPC(Controller):
         if qp not in QP_SOLVERS:
             raise ValueError(f"qp must be one of {QP_SOLVERS}, got {qp!r}")
         self.form, self.qp_name = form, qp
-        self.max_iter = integer(max_iter, "max_iter", 1)
-        self.eps = positive(eps, "eps")
         self.warm_start = bool(warm_start)
         self.transcription = TRANSCRIPTIONS[form](ocp)
         self._affine = ocp.affine()
-        self._backend = (_ProxQP(form == "sparse", self.max_iter, self.eps) if qp == "proxqp"
-                         else _OSQP(self.max_iter, self.eps))
+        self._backend = (_ProxQP(form == "sparse", 1, positive(eps, "eps")) if qp == "proxqp"
+                         else _OSQP(1, positive(eps, "eps")))
+        self.max_iter = max_iter
         super().__init__(ocp, raise_on_fail=raise_on_fail)
+
+    @property
+    def max_iter(self) -> int:
+        """The QP solver's iteration limit (settable between steps)."""
+        return self._backend.max_iter
+
+    @max_iter.setter
+    def max_iter(self, value: int) -> None:
+        self._backend.max_iter = integer(value, "max_iter", 1)
+        if isinstance(self._backend, _OSQP):
+            self._backend.reset()
 
     def __repr__(self):
         return f"LinearMPC({self.form}, {self.qp_name}, {self.ocp!r})"

@@ -1,0 +1,168 @@
+"""The `ocpkit` command line: solve, simulate, demo and bench."""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from ocpkit import problems, solvers
+from ocpkit.controller import Controller
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with our one-line errors (exit code 2)."""
+
+    def error(self, message):
+        self.exit(2, f"ocpkit: error: {message}\n")
+
+
+def _add_controller_args(p):
+    p.add_argument("problem", help="registered problem, e.g. pendulum, pendulum:linear")
+    p.add_argument("--solver", default="qp", help="solver name (default qp)")
+    p.add_argument("--form", default="condensed", choices=("sparse", "condensed"), help="QP transcription")
+    p.add_argument("--qp", default="proxqp", choices=("proxqp", "osqp"), help="QP backend")
+    p.add_argument("--knots", type=int, default=None, help="knot points p (default: traditional MPC, p = T)")
+    p.add_argument("--parameterization", default="linear", choices=("linear", "zoh", "identity"))
+    p.add_argument("--horizon", type=int, default=None, help="horizon T in steps (default: the problem's)")
+    p.add_argument("--error", type=float, default=1.0, help="model error multiplier of the controller's model")
+    p.add_argument("--seed", type=int, default=0, help="seed of the random start and goal")
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog="ocpkit", description="Parameterized and GPU-parallelized real-time MPC.")
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+    solve = sub.add_parser("solve", help="one MPC solve from a seeded random state and goal")
+    _add_controller_args(solve)
+    solve.add_argument("--json", action="store_true", help="print one JSON object")
+    sim = sub.add_parser("simulate", help="closed loop: actual cost, solve times, a figure")
+    _add_controller_args(sim)
+    sim.add_argument("--duration", type=float, default=None, help="seconds (default: the problem's)")
+    sim.add_argument("--out", default="results/simulate.png", help="figure path")
+    sim.add_argument("--json", action="store_true", help="print one JSON object")
+    demo = sub.add_parser("demo", help="closed-loop pendulum with every available controller")
+    demo.add_argument("--problem", default="pendulum")
+    demo.add_argument("--seed", type=int, default=0)
+    demo.add_argument("--out", default="results/demo", help="folder for the figure")
+    bench = sub.add_parser("bench", help="benchmarks that print medians and ratios")
+    bench.add_argument("what", choices=("qp",))
+    bench.add_argument("--samples", type=int, default=50)
+    return parser
+
+
+def _controller(args) -> tuple:
+    problem = problems.make(args.problem)
+    ocp = problem.ocp(knots=args.knots, horizon=args.horizon, error=args.error,
+                      parameterization=args.parameterization)
+    options = {"form": args.form, "qp": args.qp} if args.solver == "qp" else {}
+    return problem, ocp, solvers.make(args.solver, ocp, **options)
+
+
+def _solve(args):
+    problem, ocp, ctrl = _controller(args)
+    x0, goal = problem.sample(args.seed)
+    sol = ctrl.solve(x0, goal)
+    if args.json:
+        print(json.dumps({"problem": args.problem, "solver": args.solver, "x0": x0.tolist(), "goal": goal.tolist(),
+                          **sol.to_dict()}))
+    else:
+        print(f"{ctrl!r}\nx0 = {x0}, goal = {goal}\nu = {sol.u}  status = {sol.status} ({sol.raw_status}), "
+              f"{sol.iterations} iterations, total {1e3 * sol.times['total']:.3f} ms")
+    return 0 if sol.ok else 1
+
+
+def _run_closed_loop(problem, ctrl: Controller, seed: int, duration: float | None = None):
+    from ocpkit.metrics import actual_cost
+    from ocpkit.simulate import simulate
+
+    x0, goal = problem.sample(seed)
+    traj = simulate(problem.plant(), ctrl, x0, goal, duration or problem.duration)
+    return traj, actual_cost(traj, ctrl.ocp)
+
+
+def _labels(problem) -> dict:
+    plant = problem.plant()
+    return {"state_names": plant.state_names, "input_names": plant.input_names}
+
+
+def _time_summary(traj) -> dict:
+    t = traj.times("total")
+    return {"median_ms": 1e3 * float(np.median(t)), "p90_ms": 1e3 * float(np.percentile(t, 90)),
+            "max_ms": 1e3 * float(t.max())}
+
+
+def _simulate(args):
+    from ocpkit import plots
+
+    problem, ocp, ctrl = _controller(args)
+    traj, cost = _run_closed_loop(problem, ctrl, args.seed, args.duration)
+    fig = plots.closed_loop({repr(ctrl): traj}, args.out, title=f"{args.problem}, seed {args.seed}",
+                            **_labels(problem))
+    summary = {"problem": args.problem, "solver": args.solver, "actual_cost": cost, "fallbacks": traj.fallbacks,
+               "steps": len(traj.solutions), "total_time": _time_summary(traj), "figure": str(fig)}
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        print(f"{ctrl!r}: actual cost {cost:.4f}, {traj.fallbacks} fallbacks in {len(traj.solutions)} steps, "
+              f"total solve time median {summary['total_time']['median_ms']:.3f} ms "
+              f"(p90 {summary['total_time']['p90_ms']:.3f}, max {summary['total_time']['max_ms']:.3f})\n"
+              f"figure: {fig}")
+    return 0
+
+
+def _demo(args):
+    """Every registered controller configuration on one seeded pendulum swing, side by side."""
+    from ocpkit import plots
+    from ocpkit.solvers.qp import LinearMPC
+
+    problem = problems.make(args.problem)
+    x0, goal = problem.sample(args.seed)
+    configs = {}
+    for knots in (None, 5):
+        label = "traditional" if knots is None else f"knots={knots}"
+        ocp = problem.ocp(knots=knots)
+        for form in ("sparse", "condensed"):
+            for qp in ("proxqp", "osqp"):
+                configs[f"qp {form} {qp} {label}"] = LinearMPC(ocp, form=form, qp=qp)
+        for name in solvers.names():
+            if name != "qp":
+                configs[f"{name} {label}"] = solvers.make(name, ocp)
+    print(f"{args.problem}: x0 = {np.round(x0, 3)}, goal = {np.round(goal, 3)}, {problem.duration} s at "
+          f"{1 / problem.dt:.0f} Hz, horizon {problem.horizon}")
+    print(f"{'controller':36} {'actual cost':>12} {'ratio':>8} {'median ms':>10} {'p90 ms':>8} {'fallbacks':>9}")
+    trajs, base = {}, None
+    for label, ctrl in configs.items():
+        traj, cost = _run_closed_loop(problem, ctrl, args.seed)
+        base = cost if base is None else base
+        t = _time_summary(traj)
+        print(f"{label:36} {cost:12.4f} {cost / base:8.4f} {t['median_ms']:10.3f} {t['p90_ms']:8.3f} "
+              f"{traj.fallbacks:9d}")
+        trajs[label] = traj
+    shown = {k: v for k, v in trajs.items() if "condensed proxqp" in k or not k.startswith("qp")}
+    fig = plots.closed_loop(shown, Path(args.out) / f"{args.problem}.png",
+                            title=f"{args.problem}: closed loop, seed {args.seed}", **_labels(problem))
+    print(f"ratio = actual cost / first row's; figure: {fig}")
+    return 0
+
+
+def _bench(args):
+    if args.what == "qp":
+        from ocpkit.benchmarks.qp import bench_qp
+
+        bench_qp(samples=args.samples)
+    return 0
+
+
+def main(argv=None) -> int:
+    args = _parser().parse_args(argv)
+    try:
+        return {"solve": _solve, "simulate": _simulate, "demo": _demo, "bench": _bench}[args.command](args)
+    except (ValueError, TypeError) as exc:
+        print(f"ocpkit: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

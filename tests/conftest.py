@@ -1,0 +1,22 @@
+"""Shared fixtures: seeded random stable LTI systems as ocpkit Models."""
+import casadi as ca
+import numpy as np
+import pytest
+
+from ocpkit.model import Model
+
+
+def random_lti(seed: int, n: int = 4, m: int = 2) -> Model:
+    """A seeded random continuous LTI system ẋ = A x + B u + w with stable (negative real part) A."""
+    rng = np.random.default_rng(seed)
+    M = rng.normal(size=(n, n))
+    A = M - (np.abs(np.linalg.eigvals(M)).max() + 0.5) * np.eye(n)
+    B = rng.normal(size=(n, m))
+    w = 0.1 * rng.normal(size=n)
+    x, u = ca.SX.sym("x", n), ca.SX.sym("u", m)
+    return Model(f"lti{seed}", x, u, ca.mtimes(ca.DM(A), x) + ca.mtimes(ca.DM(B), u) + ca.DM(w))
+
+
+@pytest.fixture
+def lti():
+    return random_lti

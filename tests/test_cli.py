@@ -1,0 +1,39 @@
+import json
+import subprocess
+import sys
+
+import pytest
+
+from ocpkit.cli import main
+
+
+def run(*args):
+    return subprocess.run([sys.executable, "-m", "ocpkit.cli", *args], capture_output=True, text=True, timeout=120)
+
+
+def test_solve_json(capsys):
+    assert main(["solve", "pendulum", "--knots", "5", "--json", "--seed", "2"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["status"] == "success" and len(out["u"]) == 1 and len(out["knots"]) == 5
+    assert set(out["times"]) == {"model", "build", "solve", "total"} and out["iterations"] > 0
+
+
+@pytest.mark.parametrize("args,message", [
+    (["solve", "pendulm"], "unknown problem 'pendulm'"),
+    (["solve", "pendulum", "--solver", "foo"], "unknown solver 'foo'"),
+    (["solve", "pendulum", "--knots", "0"], "knots must be >= 1"),
+    (["solve", "pendulum", "--horizon", "-3"], "horizon must be >= 1"),
+    (["solve", "pendulum", "--form", "dense"], "invalid choice"),
+])
+def test_bad_names_exit_2_one_line(args, message):
+    res = run(*args)
+    assert res.returncode == 2
+    assert message in res.stderr and "Traceback" not in res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1
+
+
+def test_simulate_writes_figure(tmp_path, capsys):
+    fig = tmp_path / "sim.png"
+    assert main(["simulate", "pendulum:linear", "--knots", "3", "--duration", "0.2", "--out", str(fig), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert fig.stat().st_size > 1000 and out["steps"] == 20 and out["actual_cost"] > 0
