@@ -34,6 +34,8 @@ class _Result:
 class _ProxQP:
     """ProxQP, dense or sparse backend, re-initialized with each step's data and warm-started."""
 
+    CHUNK = 5  # iterations between wall-clock checks when a time limit is set
+
     def __init__(self, sparse: bool, max_iter: int, eps: float):
         import proxsuite
 
@@ -41,24 +43,33 @@ class _ProxQP:
         self._proxqp = proxsuite.proxqp
         self.max_iter, self.eps = max_iter, eps
 
-    def solve(self, qp: QP, warm: tuple | None) -> _Result:
+    def solve(self, qp: QP, warm: tuple | None, time_limit: float | None) -> _Result:
+        """Solve; with a time limit, iterate in chunks (continuing from the previous iterate) up to it."""
         px = self._proxqp
+        start = time.perf_counter()
         solver = self._module.QP(qp.n, qp.b.size, qp.l.size)
         s = solver.settings
-        s.eps_abs, s.eps_rel, s.max_iter, s.verbose = self.eps, 0.0, self.max_iter, False
+        s.eps_abs, s.eps_rel, s.verbose = self.eps, 0.0, False
+        s.max_iter = self.max_iter if time_limit is None else min(self.max_iter, self.CHUNK)
         s.initial_guess = px.InitialGuess.WARM_START if warm is not None else px.InitialGuess.NO_INITIAL_GUESS
         solver.init(qp.P, qp.q, qp.A, qp.b, qp.C, qp.l, qp.u)
-        if warm is None:
-            solver.solve()
-        else:
-            solver.solve(*warm)
-        r = solver.results
+        solver.solve(*warm) if warm is not None else solver.solve()
         out = px.QPSolverOutput
+        iterations = solver.results.info.iter
+        while (time_limit is not None and solver.results.info.status == out.PROXQP_MAX_ITER_REACHED
+               and iterations < self.max_iter and time.perf_counter() - start < time_limit):
+            s.max_iter = min(self.CHUNK, self.max_iter - iterations)
+            s.initial_guess = px.InitialGuess.WARM_START_WITH_PREVIOUS_RESULT
+            solver.solve()
+            iterations += solver.results.info.iter
+        r = solver.results
         status = {out.PROXQP_SOLVED: SUCCESS, out.PROXQP_MAX_ITER_REACHED: LIMITED,
                   out.PROXQP_PRIMAL_INFEASIBLE: INFEASIBLE, out.PROXQP_DUAL_INFEASIBLE: INFEASIBLE,
                   out.PROXQP_SOLVED_CLOSEST_PRIMAL_FEASIBLE: INFEASIBLE}.get(r.info.status, EXCEPTION)
-        return _Result(np.array(r.x), (np.array(r.x), np.array(r.y), np.array(r.z)), status,
-                       str(r.info.status).rsplit(".", 1)[-1], int(r.info.iter))
+        raw = str(r.info.status).rsplit(".", 1)[-1]
+        if status == LIMITED and iterations < self.max_iter:
+            raw = f"time limit {time_limit:g} s reached ({raw} after {iterations} iterations)"
+        return _Result(np.array(r.x), (np.array(r.x), np.array(r.y), np.array(r.z)), status, raw, int(iterations))
 
 
 class _OSQP:
@@ -74,14 +85,15 @@ class _OSQP:
     def reset(self):
         self.solver = None
 
-    def solve(self, qp: QP, warm: tuple | None) -> _Result:
+    def solve(self, qp: QP, warm: tuple | None, time_limit: float | None) -> _Result:
         P, q, A, lb, ub = qp.stacked()
         P = _upper_csc(P)
         A = _full_csc(A)
         if self.solver is None or (P.nnz, A.nnz) != self._nnz:
             self.solver = self._osqp.OSQP()
             self.solver.setup(P=P, q=q, A=A, l=lb, u=ub, verbose=False, eps_abs=self.eps, eps_rel=self.eps,
-                              max_iter=self.max_iter, polishing=False, warm_starting=True)
+                              max_iter=self.max_iter, polishing=False, warm_starting=True,
+                              time_limit=1e10 if time_limit is None else time_limit)  # OSQP: 1e10 = none
             self._nnz = (P.nnz, A.nnz)
         else:
             self.solver.update(Px=P.data, Ax=A.data, q=q, l=lb, u=ub)
@@ -123,16 +135,21 @@ def _full_csc(A):
 class LinearMPC(Controller):
     """Re-linearized MPC through a QP: ``form`` "sparse" (large matrix) or "condensed" (small matrix),
     ``qp`` "proxqp" or "osqp", any parameterization of the OCP. Warm-starts from the previous solution.
+
+    ``max_iter`` caps the QP iterations and ``time_limit`` (seconds) the backend's wall-clock time; a
+    step that hits either returns status "limited" with the fallback input.
     """
 
     def __init__(self, ocp: OCP, *, form: str = "condensed", qp: str = "proxqp", max_iter: int = 10_000,
-                 eps: float = 1e-9, warm_start: bool = True, raise_on_fail: bool = False):
+                 eps: float = 1e-9, time_limit: float | None = None, warm_start: bool = True,
+                 raise_on_fail: bool = False):
         if form not in TRANSCRIPTIONS:
             raise ValueError(f"form must be one of {tuple(TRANSCRIPTIONS)}, got {form!r}")
         if qp not in QP_SOLVERS:
             raise ValueError(f"qp must be one of {QP_SOLVERS}, got {qp!r}")
         self.form, self.qp_name = form, qp
         self.warm_start = bool(warm_start)
+        self.time_limit = None if time_limit is None else positive(time_limit, "time_limit")
         self.transcription = TRANSCRIPTIONS[form](ocp)
         self._affine = ocp.affine()
         self._backend = (_ProxQP(form == "sparse", 1, positive(eps, "eps")) if qp == "proxqp"
@@ -176,7 +193,7 @@ class LinearMPC(Controller):
         if problem is not None:
             return self._fail(INFEASIBLE if "above" in problem else NAN, problem, times)
         try:
-            res = self._backend.solve(qp, self._warm if self.warm_start else None)
+            res = self._backend.solve(qp, self._warm if self.warm_start else None, self.time_limit)
         except Exception as exc:  # a backend that throws must not stop the control loop
             times["solve"] = time.perf_counter() - t2
             return self._fail(EXCEPTION, f"{type(exc).__name__}: {exc}", times)

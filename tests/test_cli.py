@@ -7,8 +7,10 @@ import pytest
 from ocpkit.cli import main
 
 
-def run(*args):
-    return subprocess.run([sys.executable, "-m", "ocpkit.cli", *args], capture_output=True, text=True, timeout=120)
+def run(*args, cwd):
+    # Outside the checkout, so the installed package (with ocpkit.problems, ocpkit.solvers) is imported.
+    return subprocess.run([sys.executable, "-m", "ocpkit.cli", *args], capture_output=True, text=True, timeout=120,
+                          cwd=cwd)
 
 
 def test_solve_json(capsys):
@@ -25,8 +27,8 @@ def test_solve_json(capsys):
     (["solve", "pendulum", "--horizon", "-3"], "horizon must be >= 1"),
     (["solve", "pendulum", "--form", "dense"], "invalid choice"),
 ])
-def test_bad_names_exit_2_one_line(args, message):
-    res = run(*args)
+def test_bad_names_exit_2_one_line(args, message, tmp_path):
+    res = run(*args, cwd=tmp_path)
     assert res.returncode == 2
     assert message in res.stderr and "Traceback" not in res.stderr
     assert len(res.stderr.strip().splitlines()) == 1

@@ -77,3 +77,15 @@ def test_same_seed_same_trajectory():
     x0, goal = problem.sample(11)
     runs = [simulate(problem.plant(), LinearMPC(problem.ocp(knots=3)), x0, goal, 0.3).x for _ in range(2)]
     np.testing.assert_array_equal(runs[0], runs[1])
+
+
+@pytest.mark.parametrize("form", ["sparse", "condensed"])
+@pytest.mark.parametrize("qp", ["proxqp", "osqp"])
+def test_time_limit_returns_limited_with_fallback(form, qp):
+    problem = make("pendulum")
+    x0, goal = problem.sample(0)
+    ocp = problem.ocp(horizon=100)
+    sol = LinearMPC(ocp, form=form, qp=qp, time_limit=1e-6).solve(x0, goal)
+    assert sol.status == LIMITED and sol.fallback and np.isfinite(sol.u).all()
+    assert sol.times["solve"] < 0.5  # budget plus at most one chunk of iterations, far below an unbounded solve
+    assert LinearMPC(ocp, form=form, qp=qp, time_limit=5.0).solve(x0, goal).ok
