@@ -31,6 +31,14 @@ def _add_controller_args(p):
     p.add_argument("--seed", type=int, default=0, help="seed of the random start and goal")
 
 
+def _add_study_args(p, size=True):
+    if size:
+        p.add_argument("--size", default="quick", choices=("quick", "full"))
+    p.add_argument("--out", default="results/reproduce", help="results folder (store, figures, report)")
+    p.add_argument("--workers", type=int, default=None, help="local worker processes (default: CPU count)")
+    p.add_argument("--scheduler", default=None, help="Dask scheduler address tcp://HOST:PORT")
+
+
 def _parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="ocpkit", description="Parameterized and GPU-parallelized real-time MPC.")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
@@ -46,6 +54,15 @@ def _parser() -> argparse.ArgumentParser:
     demo.add_argument("--problem", default="pendulum")
     demo.add_argument("--seed", type=int, default=0)
     demo.add_argument("--out", default="results/demo", help="folder for the figure")
+    st = sub.add_parser("study", help="run one of the paper's studies (resumable) and write its report")
+    st.add_argument("name", help="study name: knots, horizon, robustness, …")
+    _add_study_args(st)
+    rep = sub.add_parser("reproduce", help="run every study and write report.md")
+    size = rep.add_mutually_exclusive_group()
+    size.add_argument("--quick", dest="size", action="store_const", const="quick", help="minutes (default)")
+    size.add_argument("--full", dest="size", action="store_const", const="full", help="paper scale")
+    rep.set_defaults(size="quick")
+    _add_study_args(rep, size=False)
     bench = sub.add_parser("bench", help="benchmarks that print medians and ratios")
     bench.add_argument("what", choices=("qp",))
     bench.add_argument("--samples", type=int, default=50)
@@ -147,6 +164,24 @@ def _demo(args):
     return 0
 
 
+def _study(args):
+    from ocpkit.studies.reproduce import run_study
+
+    section = run_study(args.name, args.size, args.out, workers=args.workers, scheduler=args.scheduler)
+    path = Path(args.out) / f"{args.name}.md"
+    path.write_text(section)
+    print(section + f"\nreport: {path}")
+    return 0
+
+
+def _reproduce(args):
+    from ocpkit.studies.reproduce import reproduce
+
+    report = reproduce(args.size, args.out, workers=args.workers, scheduler=args.scheduler)
+    print(f"report: {report}")
+    return 0
+
+
 def _bench(args):
     if args.what == "qp":
         from ocpkit.benchmarks.qp import bench_qp
@@ -158,7 +193,9 @@ def _bench(args):
 def main(argv=None) -> int:
     args = _parser().parse_args(argv)
     try:
-        return {"solve": _solve, "simulate": _simulate, "demo": _demo, "bench": _bench}[args.command](args)
+        commands = {"solve": _solve, "simulate": _simulate, "demo": _demo, "study": _study,
+                    "reproduce": _reproduce, "bench": _bench}
+        return commands[args.command](args)
     except (ValueError, TypeError) as exc:
         print(f"ocpkit: error: {exc}", file=sys.stderr)
         return 2

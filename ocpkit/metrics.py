@@ -27,7 +27,8 @@ def step_metrics(traj: Trajectory, joints=None) -> dict:
     """Percent overshoot and rise time (10–90 %) per joint via python-control's ``step_info``.
 
     Joint i is measured on its position (state i) moving from x_0 to the goal; a joint whose start
-    equals its goal has no step and gets NaN.
+    equals its goal has no step and gets NaN, and one that never reaches 90 % of its step gets a NaN
+    rise time.
     """
     import control
 
@@ -41,7 +42,12 @@ def step_metrics(traj: Trajectory, joints=None) -> dict:
             rise.append(np.nan)
             continue
         # Normalize to a unit step from 0 so the sign of the move does not matter.
-        info = control.step_info((q - q0) / (qg - q0), T=traj.t, yfinal=1.0)
+        y = (q - q0) / (qg - q0)
+        if y.max() < 0.9:  # never rose to 90 %: no rise time (step_info cannot measure it) and no overshoot
+            overshoot.append(0.0)
+            rise.append(np.nan)
+            continue
+        info = control.step_info(y, T=traj.t, yfinal=1.0)
         overshoot.append(info["Overshoot"])
         rise.append(info["RiseTime"])
     return {"overshoot": np.array(overshoot), "rise_time": np.array(rise)}

@@ -35,13 +35,48 @@ def closed_loop(trajectories: dict, path, *, title: str = "", state_names=None, 
 
 
 def save(fig, path) -> Path:
-    """Write a figure (format from the suffix) and close it."""
+    """Write a figure and close it: to ``path`` if it has a suffix, else to ``path``.png and ``path``.pdf."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.tight_layout()
-    fig.savefig(path, dpi=130)
+    targets = [path] if path.suffix else [path.with_suffix(".png"), path.with_suffix(".pdf")]
+    for target in targets:
+        fig.savefig(target, dpi=130)
     plt.close(fig)
-    return path
+    return targets[0]
+
+
+def boxes(labels, data, path, *, xlabel: str, ylabel: str, title: str = "", log: bool = True) -> Path:
+    """Box plots in the paper's convention: quartile box, median marker, 1.5 IQR whiskers, outliers as dots."""
+    fig, ax = plt.subplots(figsize=(max(6, 0.35 * len(labels)), 3.6))
+    ax.boxplot(data, showmeans=False, medianprops={"marker": "o", "markersize": 3, "color": "C3"},
+               flierprops={"marker": ".", "markersize": 3})
+    ax.set_xticks(range(1, len(labels) + 1), [str(l) for l in labels], fontsize=8)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    if log:
+        ax.set_yscale("log")
+    ax.axhline(1.0, color="k", lw=0.6, ls=":")
+    ax.grid(axis="y", alpha=0.3)
+    if title:
+        ax.set_title(title, fontsize=10)
+    return save(fig, path)
+
+
+def lines(x, series: dict, path, *, xlabel: str, ylabel: str, title: str = "", log: bool = False) -> Path:
+    """One marked line per labelled series over a shared x."""
+    fig, ax = plt.subplots(figsize=(6.5, 3.8))
+    for label, y in series.items():
+        ax.plot(x, y, marker="o", ms=3, label=label)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    if log:
+        ax.set_yscale("log")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    if title:
+        ax.set_title(title, fontsize=10)
+    return save(fig, path)
 
 
 def bar_times(labels, medians, path, *, ylabel: str = "median solve time [ms]", title: str = "") -> Path:

@@ -1,0 +1,37 @@
+"""The trial behind the closed-loop studies: one controller, one seeded start and goal, one run."""
+from __future__ import annotations
+
+import numpy as np
+
+from ocpkit import problems, solvers
+from ocpkit.metrics import actual_cost, itae, step_metrics
+from ocpkit.simulate import simulate
+
+
+def trial(problem: str, seed: int, solver: str = "qp", knots: int | None = None, horizon: int | None = None,
+          error_multiplier: float = 1.0, form: str = "condensed", qp: str = "proxqp", duration: float | None = None,
+          options: dict | None = None) -> dict:
+    """Run MPC on ``problem`` from the seeded start to goal and measure it (paper Sections III–IV, VII).
+
+    The controller's model carries the error multiplier; the plant is the true model. ``options`` go to
+    the solver (e.g. ``{"generations": 3}`` for EMPC).
+    """
+    pb = problems.make(problem)
+    ocp = pb.ocp(knots=knots, horizon=horizon, error=error_multiplier)
+    opts = {"form": form, "qp": qp} if solver == "qp" else {}
+    ctrl = solvers.make(solver, ocp, **opts, **(options or {}))
+    x0, goal = pb.sample(seed)
+    traj = simulate(pb.plant(), ctrl, x0, goal, duration or pb.duration)
+    steps = step_metrics(traj)
+    solve, total = traj.times("solve"), traj.times("total")
+    return {
+        "actual_cost": actual_cost(traj, ocp),
+        "itae": itae(traj),
+        "overshoot": float(np.nanmean(steps["overshoot"])),
+        "rise_time": float(np.nanmean(steps["rise_time"])),
+        "final_error": float(np.abs(traj.x[-1] - goal).max()),
+        "fallbacks": traj.fallbacks,
+        "solve_median": float(np.median(solve)),
+        "total_median": float(np.median(total)),
+        "total_p90": float(np.percentile(total, 90)),
+    }
