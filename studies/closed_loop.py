@@ -27,11 +27,17 @@ def trial(problem: str, seed: int, solver: str = "qp", knots: int | None = None,
     return {
         "actual_cost": actual_cost(traj, ocp),
         "itae": itae(traj),
-        "overshoot": float(np.nanmean(steps["overshoot"])),
-        "rise_time": float(np.nanmean(steps["rise_time"])),
+        "overshoot": _mean(steps["overshoot"]),
+        "rise_time": _mean(steps["rise_time"]),
         "final_error": float(np.abs(traj.x[-1] - goal).max()),
         "fallbacks": traj.fallbacks,
         "solve_median": float(np.median(solve)),
         "total_median": float(np.median(total)),
         "total_p90": float(np.percentile(total, 90)),
     }
+
+
+def _mean(values) -> float:
+    """Mean over the joints that have a value (NaN when none has)."""
+    values = values[~np.isnan(values)]
+    return float(values.mean()) if values.size else float("nan")
