@@ -17,6 +17,16 @@ SUCCESS, LIMITED, INFEASIBLE, NAN, EXCEPTION = "success", "limited", "infeasible
 STATUSES = (SUCCESS, LIMITED, INFEASIBLE, NAN, EXCEPTION)
 
 
+LINEARIZATIONS = ("goal", "plan")
+
+
+def check_linearization(mode: str) -> str:
+    """A valid choice of the affine model's expansion input (see :meth:`Controller.affine_model`)."""
+    if mode not in LINEARIZATIONS:
+        raise ValueError(f"linearization must be one of {LINEARIZATIONS}, got {mode!r}")
+    return mode
+
+
 class SolverError(RuntimeError):
     """Raised by ``solve`` for a failed step when the controller was built with ``raise_on_fail=True``."""
 
@@ -78,6 +88,20 @@ class Controller:
 
     def _solve(self, x: np.ndarray, goal: np.ndarray) -> Solution:
         raise NotImplementedError
+
+    def affine_model(self, x: np.ndarray, mode: str):
+        """(A_d, B_d, w_d) of the OCP's affine model about (x, ū), or None if any entry is not finite.
+
+        ū is u_goal for ``mode`` "goal", or for "plan" the input the previous plan expects now (u_goal at a
+        cold start). LinearMPC documents why "goal" is the default.
+        """
+        ocp = self.ocp
+        u_bar = (ocp.u_goal if self.plan is None or mode == "goal"
+                 else ocp.parameterization.u_at(ocp.parameterization.shift(self.plan), 0))
+        Ad, Bd, wd = (np.asarray(M, dtype=float) for M in ocp.affine()(x, u_bar))
+        if not (np.isfinite(Ad).all() and np.isfinite(Bd).all() and np.isfinite(wd).all()):
+            return None
+        return Ad, Bd, wd.ravel()
 
     def fallback(self, status: str, raw_status: str, times: dict | None = None, iterations: int = 0) -> Solution:
         """A failed step: the previous plan advanced one step and clipped to the input bounds."""

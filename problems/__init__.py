@@ -5,19 +5,13 @@ from importlib import import_module
 
 from ocpkit.problem import Problem
 
-_MODULES = ("pendulum",)
-
-
-def _registry() -> dict:
-    entries = {}
-    for module in _MODULES:
-        entries.update(import_module(f"ocpkit.problems.{module}").REGISTRY)
-    return entries
+# family -> module defining it (imported only when the family is used)
+_FAMILIES = {"pendulum": "pendulum", "nlink": "nlink", "puma560": "puma560", "baxter": "baxter"}
 
 
 def names() -> list[str]:
     """The registered problem families."""
-    return sorted(_registry())
+    return sorted(_FAMILIES)
 
 
 def make(name: str) -> Problem:
@@ -25,7 +19,6 @@ def make(name: str) -> Problem:
     if not isinstance(name, str):
         raise TypeError(f"problem name must be a string, got {name!r}")
     family, _, arg = name.partition(":")
-    factories = _registry()
-    if family not in factories:
+    if family not in _FAMILIES:
         raise ValueError(f"unknown problem {name!r}; known: {', '.join(names())}")
-    return factories[family](arg or None)
+    return import_module(f"ocpkit.problems.{_FAMILIES[family]}").REGISTRY[family](arg or None)

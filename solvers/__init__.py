@@ -1,4 +1,4 @@
-"""MPC solvers by name: "qp" (LinearMPC), and the others as they are registered."""
+"""MPC solvers by name: "qp" (LinearMPC), "ipopt" (NonlinearMPC), "empc", "cem", "mppi" (sampling on Taichi)."""
 from __future__ import annotations
 
 from importlib import import_module
@@ -6,24 +6,17 @@ from importlib import import_module
 from ocpkit.controller import Controller
 from ocpkit.ocp import OCP
 
-_MODULES = ("qp",)
-
-
-def _registry() -> dict:
-    entries = {}
-    for module in _MODULES:
-        entries.update(import_module(f"ocpkit.solvers.{module}").SOLVERS)
-    return entries
+# solver name -> module defining it (imported only when used: the sampling solvers start Taichi)
+_SOLVERS = {"qp": "qp", "empc": "empc", "cem": "cem", "mppi": "mppi"}
 
 
 def names() -> list[str]:
     """The registered solver names."""
-    return sorted(_registry())
+    return sorted(_SOLVERS)
 
 
 def make(name: str, ocp: OCP, **options) -> Controller:
     """A controller for ``ocp`` by solver name, with solver-specific options."""
-    solvers = _registry()
-    if name not in solvers:
+    if name not in _SOLVERS:
         raise ValueError(f"unknown solver {name!r}; known: {', '.join(names())}")
-    return solvers[name](ocp, **options)
+    return import_module(f"ocpkit.solvers.{_SOLVERS[name]}").SOLVERS[name](ocp, **options)

@@ -1,0 +1,56 @@
+"""The Taichi runtime: started once per process, on CUDA or the CPU.
+
+``ti.init`` may run only once: a second call would destroy every field and compiled kernel
+that live controllers hold. So the first caller picks the arch and later callers must agree.
+Precision is not a process-wide setting here: every field and generated function carries
+its own float type, so float32 and float64 controllers can coexist.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import taichi as ti
+from taichi.lang import impl
+
+ARCHS = ("auto", "cpu", "cuda")
+PRECISIONS = ("float64", "float32")
+
+
+def init(arch: str = "auto") -> str:
+    """Start Taichi if needed and return the arch it runs on ("cpu" or "cuda").
+
+    ``arch="auto"`` takes CUDA when Taichi finds it, else the CPU. Asking for an arch other
+    than the one already running raises ``RuntimeError``; asking for "cuda" where there is
+    none raises ``RuntimeError`` too (the process is then left on the CPU).
+    """
+    if arch not in ARCHS:
+        raise ValueError(f"arch must be one of {ARCHS}, got {arch!r}")
+    if impl.get_runtime().prog is None:
+        ti.init(arch=ti.cpu if arch == "cpu" else ti.cuda, default_fp=ti.f64,
+                offline_cache=True, log_level=ti.WARN, unrolling_limit=0)
+    running = current_arch()
+    if arch != "auto" and arch != running:
+        raise RuntimeError(f"arch={arch!r} requested but Taichi already runs on {running!r} in "
+                           f"this process (it can be started only once)")
+    return running
+
+
+def current_arch() -> str | None:
+    """The arch Taichi runs on ("cpu" or "cuda"), or None before ``init``."""
+    if impl.get_runtime().prog is None:
+        return None
+    return "cuda" if impl.current_cfg().arch == ti.cuda else "cpu"
+
+
+def float_types(precision: str):
+    """(Taichi dtype, numpy dtype) for ``precision`` ("float64" or "float32")."""
+    if precision == "float64":
+        return ti.f64, np.float64
+    if precision == "float32":
+        return ti.f32, np.float32
+    raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
+
+
+def sync() -> None:
+    """Wait for queued kernels, so host timings include the device's work."""
+    ti.sync()
