@@ -12,6 +12,15 @@ from ocpkit import problems, solvers
 from ocpkit.controller import Controller
 
 
+# `ocpkit bench NAME`: module in ocpkit.benchmarks, function, keyword arguments of --quick.
+_BENCHMARKS = {
+    "qp": ("qp", "bench_qp", {"samples": 10}),
+    "empc": ("empc", "bench_empc", {"links": (1, 7, 13), "populations": (256, 1024), "horizons": (100,)}),
+    "export": ("export", "bench_export", {"problems": ["pendulum", "nlink:2", "nlink:3"]}),
+    "model": ("model", "bench_model", {"links": (1, 7, 13), "states": 5}),
+}
+
+
 class _Parser(argparse.ArgumentParser):
     """argparse with our one-line errors (exit code 2)."""
 
@@ -22,8 +31,12 @@ class _Parser(argparse.ArgumentParser):
 def _add_controller_args(p):
     p.add_argument("problem", help="registered problem, e.g. pendulum, pendulum:linear")
     p.add_argument("--solver", default="qp", help="solver name (default qp)")
-    p.add_argument("--form", default="condensed", choices=("sparse", "condensed"), help="QP transcription")
-    p.add_argument("--qp", default="proxqp", choices=("proxqp", "osqp"), help="QP backend")
+    p.add_argument("--form", choices=("sparse", "condensed"), help="qp: QP transcription (default condensed)")
+    p.add_argument("--qp", choices=("proxqp", "osqp"), help="qp: QP backend (default proxqp)")
+    p.add_argument("--method", choices=("ipopt", "sqp"), help="ipopt: NLP method (default ipopt)")
+    p.add_argument("--population", type=int, help="empc/cem/mppi: rollouts per generation")
+    p.add_argument("--generations", type=int, help="empc/cem/mppi: generations per control step")
+    p.add_argument("--arch", choices=("auto", "cpu", "cuda"), help="empc/cem/mppi: Taichi arch (default auto)")
     p.add_argument("--knots", type=int, default=None, help="knot points p (default: traditional MPC, p = T)")
     p.add_argument("--parameterization", default="linear", choices=("linear", "zoh", "identity"))
     p.add_argument("--horizon", type=int, default=None, help="horizon T in steps (default: the problem's)")
@@ -63,17 +76,39 @@ def _parser() -> argparse.ArgumentParser:
     size.add_argument("--full", dest="size", action="store_const", const="full", help="paper scale")
     rep.set_defaults(size="quick")
     _add_study_args(rep, size=False)
+    exp = sub.add_parser("export", help="generate, build and check a C MPC step")
+    exp.add_argument("problem")
+    exp.add_argument("--form", default="condensed", choices=("sparse", "condensed"))
+    exp.add_argument("--knots", type=int, default=5)
+    exp.add_argument("--horizon", type=int, default=None)
+    exp.add_argument("--qp", default="daqp", choices=("daqp", "qrqp", "osqp", "hpipm"))
+    exp.add_argument("--seed", type=int, default=0, help="seed of the example closed loop's start and goal")
+    exp.add_argument("--out", default="export", help="output folder")
     bench = sub.add_parser("bench", help="benchmarks that print medians and ratios")
-    bench.add_argument("what", choices=("qp",))
-    bench.add_argument("--samples", type=int, default=50)
+    bench.add_argument("what", choices=tuple(_BENCHMARKS))
+    bench.add_argument("--quick", action="store_true", help="a smaller grid (minutes instead of tens)")
     return parser
 
 
+# Which solver-specific command-line options each solver takes.
+_SOLVER_OPTIONS = {"qp": ("form", "qp"), "ipopt": ("method",), "empc": ("population", "generations", "arch"),
+                   "cem": ("population", "generations", "arch"), "mppi": ("population", "generations", "arch")}
+
+
+def _solver_options(args) -> dict:
+    given = {k: getattr(args, k) for opts in _SOLVER_OPTIONS.values() for k in opts if getattr(args, k) is not None}
+    accepted = _SOLVER_OPTIONS.get(args.solver, ())
+    stray = sorted(set(given) - set(accepted))
+    if stray:
+        raise ValueError(f"--{stray[0]} does not apply to solver {args.solver!r}")
+    return given
+
+
 def _controller(args) -> tuple:
+    options = _solver_options(args) if args.solver in _SOLVER_OPTIONS else {}
     problem = problems.make(args.problem)
     ocp = problem.ocp(knots=args.knots, horizon=args.horizon, error=args.error,
                       parameterization=args.parameterization)
-    options = {"form": args.form, "qp": args.qp} if args.solver == "qp" else {}
     return problem, ocp, solvers.make(args.solver, ocp, **options)
 
 
@@ -183,10 +218,21 @@ def _reproduce(args):
 
 
 def _bench(args):
-    if args.what == "qp":
-        from ocpkit.benchmarks.qp import bench_qp
+    import importlib
 
-        bench_qp(samples=args.samples)
+    module, function, quick = _BENCHMARKS[args.what]
+    bench = getattr(importlib.import_module(f"ocpkit.benchmarks.{module}"), function)
+    bench(**(quick if args.quick else {}))
+    return 0
+
+
+def _export(args):
+    from ocpkit.export import build, export_problem
+
+    exported = export_problem(args.problem, args.form, args.knots, args.horizon, args.qp, args.out, seed=args.seed)
+    build(args.out)
+    print(f"exported and built {args.problem} ({args.form}, knots {args.knots}, {args.qp}) in {exported.out_dir}; "
+          f"see {Path(args.out) / 'README.md'}")
     return 0
 
 
@@ -194,7 +240,7 @@ def main(argv=None) -> int:
     args = _parser().parse_args(argv)
     try:
         commands = {"solve": _solve, "simulate": _simulate, "demo": _demo, "study": _study,
-                    "reproduce": _reproduce, "bench": _bench}
+                    "reproduce": _reproduce, "export": _export, "bench": _bench}
         return commands[args.command](args)
     except (ValueError, TypeError) as exc:
         print(f"ocpkit: error: {exc}", file=sys.stderr)

@@ -8,6 +8,10 @@ its own float type, so float32 and float64 controllers can coexist.
 
 from __future__ import annotations
 
+import contextlib
+import ctypes
+import sys
+
 import numpy as np
 import taichi as ti
 from taichi.lang import impl
@@ -26,13 +30,25 @@ def init(arch: str = "auto") -> str:
     if arch not in ARCHS:
         raise ValueError(f"arch must be one of {ARCHS}, got {arch!r}")
     if impl.get_runtime().prog is None:
-        ti.init(arch=ti.cpu if arch == "cpu" else ti.cuda, default_fp=ti.f64,
-                offline_cache=True, log_level=ti.WARN, unrolling_limit=0)
+        use_cuda = arch == "cuda" or (arch == "auto" and _cuda_driver_present())
+        # ti.init prints "[Taichi] Starting on arch=…" to stdout: keep stdout for results (--json).
+        with contextlib.redirect_stdout(sys.stderr):
+            ti.init(arch=ti.cuda if use_cuda else ti.cpu, default_fp=ti.f64,
+                    offline_cache=True, log_level=ti.WARN, unrolling_limit=0)
     running = current_arch()
     if arch != "auto" and arch != running:
         raise RuntimeError(f"arch={arch!r} requested but Taichi already runs on {running!r} in "
                            f"this process (it can be started only once)")
     return running
+
+
+def _cuda_driver_present() -> bool:
+    """Whether the CUDA driver library loads (checked before Taichi tries, to spare its fallback warnings)."""
+    try:
+        ctypes.CDLL("libcuda.so.1")
+    except OSError:
+        return False
+    return True
 
 
 def current_arch() -> str | None:
