@@ -68,12 +68,14 @@ class Controller:
     def reset(self) -> None:
         """Forget the previous plan (cold start)."""
         self.plan: np.ndarray | None = None  # knots (p, m) of the last successful solve
+        self._goal = np.zeros(self.ocp.nx)
 
     def solve(self, x, goal) -> Solution:
         """Solve the MPC problem from state x towards goal state ``goal``; return the first input and more."""
         x = self.ocp.check_state(x, "x")
         goal = self.ocp.check_state(goal, "goal")
         start = time.perf_counter()
+        self._goal = goal  # for the fallback's cold-start input
         sol = self._solve(x, goal)
         if sol.ok and not (np.all(np.isfinite(sol.u)) and np.all(np.isfinite(sol.knots))):
             sol = self.fallback(NAN, f"{sol.raw_status} with non-finite result", sol.times, sol.iterations)
@@ -89,14 +91,14 @@ class Controller:
     def _solve(self, x: np.ndarray, goal: np.ndarray) -> Solution:
         raise NotImplementedError
 
-    def affine_model(self, x: np.ndarray, mode: str):
+    def affine_model(self, x: np.ndarray, goal: np.ndarray, mode: str):
         """(A_d, B_d, w_d) of the OCP's affine model about (x, ū), or None if any entry is not finite.
 
-        ū is u_goal for ``mode`` "goal", or for "plan" the input the previous plan expects now (u_goal at a
-        cold start). LinearMPC documents why "goal" is the default.
+        ū is the input goal u_g(goal) for ``mode`` "goal", or for "plan" the input the previous plan
+        expects now (u_g at a cold start). LinearMPC documents why "goal" is the default.
         """
         ocp = self.ocp
-        u_bar = (ocp.u_goal if self.plan is None or mode == "goal"
+        u_bar = (ocp.input_goal(goal) if self.plan is None or mode == "goal"
                  else ocp.parameterization.u_at(ocp.parameterization.shift(self.plan), 0))
         Ad, Bd, wd = (np.asarray(M, dtype=float) for M in ocp.affine()(x, u_bar))
         if not (np.isfinite(Ad).all() and np.isfinite(Bd).all() and np.isfinite(wd).all()):
@@ -107,7 +109,7 @@ class Controller:
         """A failed step: the previous plan advanced one step and clipped to the input bounds."""
         ocp = self.ocp
         if self.plan is None:
-            knots = np.tile(ocp.u_goal, (ocp.knots, 1))
+            knots = np.tile(ocp.input_goal(self._goal), (ocp.knots, 1))
         else:
             knots = ocp.parameterization.shift(self.plan)
         knots = np.clip(np.nan_to_num(knots), ocp.u_min, ocp.u_max)

@@ -101,6 +101,8 @@ def export(ocp: OCP, out_dir, *, form: str = "condensed", qp: str = "daqp", name
                          f"supported: {sorted(SUPPORTED)}")
     if linearization not in LINEARIZATIONS:
         raise ValueError(f"linearization must be one of {LINEARIZATIONS}, got {linearization!r}")
+    if np.any(ocp.u_goal_gain):
+        raise ValueError("ocp.u_goal_gain is nonzero: the exported step supports a constant input goal only")
     if not (isinstance(name, str) and name.isidentifier() and name.isascii()):
         raise ValueError(f"name must be a C identifier, got {name!r}")
     eps = positive(eps, "eps")
@@ -178,7 +180,7 @@ def _condensed_functions(ocp: OCP, name: str, linearization: str) -> dict:
     Ad, Bd, wd = ocp.affine()(x, u_bar)
 
     P = ca.MX(ca.DM(tr.R_knots))
-    q = ca.MX(ca.DM(tr.q_knots))
+    q = ca.MX(ca.DM(tr.q_knots(np.zeros(n))))
     S_rows, v_rows = [], []
     S, v = ca.mtimes(Bd, E[0]), ca.mtimes(Ad, x) + wd
     for k in range(T):

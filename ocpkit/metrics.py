@@ -11,10 +11,10 @@ def actual_cost(traj: Trajectory, ocp: OCP) -> float:
     """The MPC objective evaluated on the states and inputs actually applied (paper eq. actual_cost).
 
     Σ_{i=0}^{H} J(x_i, u_i) with J the OCP's stage cost: every recorded state x_0 … x_H against the
-    goal and every applied input u_0 … u_{H−1} against u_goal.
+    goal and every applied input u_0 … u_{H−1} against the input goal.
     """
     ex = traj.x - traj.goal
-    eu = traj.u - ocp.u_goal
+    eu = traj.u - ocp.input_goal(traj.goal)
     return float(np.einsum("ij,jk,ik->", ex, ocp.Q, ex) + np.einsum("ij,jk,ik->", eu, ocp.R, eu))
 
 

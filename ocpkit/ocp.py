@@ -2,11 +2,13 @@
 
 The paper's MPC problem (eq. mpc_problem) with a zero-order-hold discrete model:
 
-    min  Σ_{k=0}^{T-1} (u_k − u_goal)ᵀ R (u_k − u_goal) + Σ_{k=1}^{T-1} (x_k − x_goal)ᵀ Q (x_k − x_goal)
+    min  Σ_{k=0}^{T-1} (u_k − u_g)ᵀ R (u_k − u_g) + Σ_{k=1}^{T-1} (x_k − x_goal)ᵀ Q (x_k − x_goal)
          + (x_T − x_goal)ᵀ Q_T (x_T − x_goal)
     s.t. x_{k+1} = F(x_k, u_k),  u = φ U (the parameterization),  u_min ≤ u_k ≤ u_max,  x_min ≤ x_k ≤ x_max.
 
-x_0 is the measured state, so its cost term is a constant and is left out. Every solver reads this one
+x_0 is the measured state, so its cost term is a constant and is left out. The input goal is
+u_g = u_goal + K x_goal with K = ``u_goal_gain`` (zero by default, the paper's u_goal = 0): for a robot whose
+inputs are servo set points (Baxter) the input that holds the goal is the goal position itself. Every solver reads this one
 description: the QPs through its affine model, IPOPT through F, EMPC through the translated kernels.
 """
 from __future__ import annotations
@@ -23,7 +25,7 @@ class OCP:
     """A validated MPC problem; see the module docstring for the objective and constraints."""
 
     def __init__(self, model: Model, dt: float, horizon: int, Q, R, *, Q_terminal=None, u_goal=None,
-                 u_min=None, u_max=None, x_min=None, x_max=None, parameterization: Parameterization | None = None,
+                 u_goal_gain=None, u_min=None, u_max=None, x_min=None, x_max=None, parameterization: Parameterization | None = None,
                  substeps: int = 1):
         if not isinstance(model, Model):
             raise TypeError(f"model must be an ocpkit Model, got {type(model).__name__}")
@@ -39,6 +41,7 @@ class OCP:
         self.u_goal = np.zeros(m) if u_goal is None else bounds(u_goal, u_goal, "u_goal", "u_goal", m)[0]
         if not np.all(np.isfinite(self.u_goal)):
             raise ValueError(f"u_goal must be finite, got {self.u_goal.tolist()}")
+        self.u_goal_gain = np.zeros((m, n)) if u_goal_gain is None else array(u_goal_gain, "u_goal_gain", (m, n))
         self.u_min, self.u_max = bounds(u_min, u_max, "u_min", "u_max", m)
         self.x_min, self.x_max = bounds(x_min, x_max, "x_min", "x_max", n)
         if parameterization is None:
@@ -50,7 +53,7 @@ class OCP:
         self.parameterization = parameterization
         self.knots = parameterization.knots
         x, u, xg = ca.SX.sym("x", n), ca.SX.sym("u", m), ca.SX.sym("x_goal", n)
-        ex, eu = x - xg, u - ca.DM(self.u_goal)
+        ex, eu = x - xg, u - ca.DM(self.u_goal) - ca.mtimes(ca.DM(self.u_goal_gain), xg)
         self.stage_cost = ca.Function("stage_cost", [x, u, xg], [ca.bilin(ca.DM(self.Q), ex, ex)
                                       + ca.bilin(ca.DM(self.R), eu, eu)], ["x", "u", "x_goal"], ["l"])
         self.terminal_cost = ca.Function("terminal_cost", [x, xg], [ca.bilin(ca.DM(self.Q_terminal), ex, ex)],
@@ -63,6 +66,10 @@ class OCP:
     @property
     def has_state_bounds(self) -> bool:
         return bool(np.isfinite(self.x_min).any() or np.isfinite(self.x_max).any())
+
+    def input_goal(self, x_goal) -> np.ndarray:
+        """u_g = u_goal + K x_goal: the input the cost pulls towards for this goal."""
+        return self.u_goal + self.u_goal_gain @ np.asarray(x_goal, dtype=float)
 
     def discrete(self) -> ca.Function:
         """The discrete model F(x, u) -> x⁺ every solver predicts with."""

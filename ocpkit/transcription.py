@@ -75,9 +75,9 @@ class _Transcription:
         n, m, T, p = ocp.nx, ocp.nu, ocp.horizon, ocp.knots
         self.n, self.m, self.T, self.p = n, m, T, p
         self.phi = ocp.parameterization.basis
-        # Cost on the inputs Σ_k (u_k − u_goal)ᵀR(u_k − u_goal) in knot coordinates: (φᵀφ ⊗ R) and its linear term.
+        # Cost on the inputs Σ_k (u_k − u_g)ᵀR(u_k − u_g) in knot coordinates: (φᵀφ ⊗ R) and its linear term.
         self.R_knots = np.kron(self.phi.T @ self.phi, ocp.R)
-        self.q_knots = -np.kron(self.phi.sum(axis=0), ocp.R @ ocp.u_goal)
+        self._phi_sum = self.phi.sum(axis=0)
         # Knot bounds, only for the input components with a finite bound.
         self.u_rows = np.flatnonzero(np.tile(np.isfinite(ocp.u_min) | np.isfinite(ocp.u_max), p))
         self.u_lo = np.tile(ocp.u_min, p)[self.u_rows]
@@ -88,6 +88,10 @@ class _Transcription:
         self.x_hi = np.tile(ocp.x_max, T)[self.x_rows]
         # Per-step state weights Q (k = 1 … T−1) and Q_T (k = T).
         self.Qs = np.concatenate([np.broadcast_to(ocp.Q, (T - 1, n, n)), ocp.Q_terminal[None]])
+
+    def q_knots(self, x_goal) -> np.ndarray:
+        """Linear cost term of the knots, −(φᵀ1 ⊗ R u_g) with u_g the OCP's input goal."""
+        return -np.kron(self._phi_sum, self.ocp.R @ self.ocp.input_goal(x_goal))
 
     def knots(self, z: np.ndarray) -> np.ndarray:
         """Knots (p, m) from a solution vector."""
@@ -141,9 +145,6 @@ class SparseQP(_Transcription):
         self.C = sp.csc_matrix((np.ones(sel.size), (np.arange(sel.size), sel)), shape=(sel.size, self.nz))
         self.l = np.r_[self.u_lo, self.x_lo]
         self.u = np.r_[self.u_hi, self.x_hi]
-        q = np.zeros(self.nz)
-        q[nX:] = self.q_knots
-        self._q = q
 
     def build(self, Ad, Bd, wd, x0, x_goal) -> QP:
         """The QP for the affine model (A_d, B_d, w_d), measured state x0 and goal state."""
@@ -153,8 +154,9 @@ class SparseQP(_Transcription):
         v[self._bd_slots] = (self._phi_nz[:, None] * np.asarray(Bd, dtype=float).ravel()[None]).ravel()
         A = self.A.copy()
         A.data = v[self._order]
-        q = self._q.copy()
+        q = np.zeros(self.nz)
         q[n:n * (T + 1)] = -np.einsum("kab,b->ka", self.Qs, x_goal).ravel()
+        q[n * (T + 1):] = self.q_knots(x_goal)
         b = np.r_[-np.asarray(x0, dtype=float), np.tile(-np.asarray(wd, dtype=float).ravel(), T)]
         return QP(self.P, q, A, b, self.C, self.l, self.u)
 
@@ -209,7 +211,7 @@ class CondensedQP(_Transcription):
         P = S.T @ QS + self.R_knots
         P = 0.5 * (P + P.T)
         err = v - np.tile(np.asarray(x_goal, dtype=float), T)
-        q = QS.T @ err + self.q_knots
+        q = QS.T @ err + self.q_knots(x_goal)
         C = np.vstack([np.eye(self.nz)[self.u_rows], S[self.x_rows]])
         l = np.r_[self.u_lo, self.x_lo - v[self.x_rows]]
         u = np.r_[self.u_hi, self.x_hi - v[self.x_rows]]

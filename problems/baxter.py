@@ -131,7 +131,10 @@ class Baxter(Problem):
 
     def defaults(self) -> dict:
         Q = np.diag(np.r_[10.0 * np.ones(7), 0.1 * np.ones(7)])
-        return {"Q": Q, "R": 1e-3 * np.eye(7), "Q_terminal": 10 * Q, "u_min": self.q_min, "u_max": self.q_max}
+        # The input that holds a goal at rest is the set point q_des = q_goal: R pulls the set points there.
+        hold = np.hstack([np.eye(7), np.zeros((7, 7))])
+        return {"Q": Q, "R": 1e-3 * np.eye(7), "Q_terminal": 10 * Q, "u_goal_gain": hold,
+                "u_min": self.q_min, "u_max": self.q_max}
 
     def sample(self, seed: int):
         rng = np.random.default_rng(seed)

@@ -39,7 +39,7 @@ class CrossEntropyMPC(GaussianSampling):
         ocp = self.ocp
         p = ocp.knots
         if cold:
-            self.mean = np.tile(np.clip(ocp.u_goal, ocp.u_min, ocp.u_max), (p, 1))
+            self.mean = np.tile(np.clip(ocp.input_goal(goal), ocp.u_min, ocp.u_max), (p, 1))
         else:
             self.mean = self._shifted(self.mean)
         self.std = np.tile(self.sigma, (p, 1))

@@ -41,7 +41,7 @@ class MPPI(GaussianSampling):
     def _start(self, x, goal, cold):
         ocp = self.ocp
         if cold:
-            self.nominal = np.tile(np.clip(ocp.u_goal, ocp.u_min, ocp.u_max), (ocp.knots, 1))
+            self.nominal = np.tile(np.clip(ocp.input_goal(goal), ocp.u_min, ocp.u_max), (ocp.knots, 1))
         else:
             self.nominal = self._shifted(self.nominal)
         self.std = np.tile(self.sigma, (ocp.knots, 1))

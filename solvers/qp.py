@@ -140,7 +140,8 @@ class LinearMPC(Controller):
     ``max_iter`` caps the QP iterations and ``time_limit`` (seconds) the backend's wall-clock time; a
     step that hits either returns status "limited" with the fallback input.
 
-    ``linearization`` picks the input ū of the expansion point (x, ū): "goal" (default) uses u_goal, "plan"
+    ``linearization`` picks the input ū of the expansion point (x, ū): "goal" (default) uses the input
+    goal u_g (OCP.input_goal), "plan"
     the input the previous plan expects now. For robots the two differ: about a nonzero torque the
     linearized N-link dynamics are exponentially unstable (|eig A_d| ≈ 1.12 per 10 ms step at nlink:13),
     which over a 1 s horizon makes the condensed P ill-conditioned (eigenvalues 0.06…6e10) and both ProxQP
@@ -188,7 +189,7 @@ class LinearMPC(Controller):
     def _solve(self, x: np.ndarray, goal: np.ndarray) -> Solution:
         ocp, times = self.ocp, {"model": 0.0, "build": 0.0, "solve": 0.0}
         t0 = time.perf_counter()
-        model = self.affine_model(x, self.linearization)
+        model = self.affine_model(x, goal, self.linearization)
         t1 = time.perf_counter()
         times["model"] = t1 - t0
         if model is None:

@@ -70,7 +70,7 @@ class SamplingMPC(Controller):
         times = {"model": 0.0, "build": 0.0, "solve": 0.0, "total": 0.0}
         if self._affine:
             start = time.perf_counter()
-            model = self.affine_model(x, self.linearization)
+            model = self.affine_model(x, goal, self.linearization)
             if model is None:
                 self._warm = False
                 return self.fallback(NAN, f"non-finite affine model at x = {x.tolist()}", times)

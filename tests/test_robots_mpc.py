@@ -55,7 +55,7 @@ def test_baxter_mpc_overshoots_less_than_the_bare_servo():
     xs = np.array(xs)
     t = np.arange(len(xs)) * dt
     # Linearize about the plan's input: for set-point inputs u_goal = 0 is far from any equilibrium.
-    mpc = LinearMPC(p.ocp(knots=3), form="condensed", linearization="plan")
+    mpc = LinearMPC(p.ocp(knots=3), form="condensed")
     traj = simulate(p.plant(), mpc, x0, goal, duration)
     assert traj.fallbacks == 0
     servo, controlled = _overshoot(xs[:, :7], t, q0, qg), _overshoot(traj.x[:, :7], traj.t, q0, qg)
