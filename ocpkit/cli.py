@@ -18,6 +18,8 @@ _BENCHMARKS = {
     "empc": ("empc", "bench_empc", {"links": (1, 7, 13), "populations": (256, 1024), "horizons": (100,)}),
     "export": ("export", "bench_export", {"problems": ["pendulum", "nlink:2", "nlink:3"]}),
     "model": ("model", "bench_model", {"links": (1, 7, 13), "states": 5}),
+    "nlp": ("nlp", "bench_nlp", {"problems": ["pendulum", "nlink:2", "nlink:3"], "samples": 1, "steps": 5}),
+    "faults": ("faults", "bench_faults", {}),
 }
 
 

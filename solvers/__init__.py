@@ -7,7 +7,7 @@ from ocpkit.controller import Controller
 from ocpkit.ocp import OCP
 
 # solver name -> module defining it (imported only when used: the sampling solvers start Taichi)
-_SOLVERS = {"qp": "qp", "empc": "empc", "cem": "cem", "mppi": "mppi"}
+_SOLVERS = {"qp": "qp", "ipopt": "nlp", "empc": "empc", "cem": "cem", "mppi": "mppi"}
 
 
 def names() -> list[str]:

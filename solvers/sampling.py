@@ -13,8 +13,8 @@ import time
 import numpy as np
 import taichi as ti
 
-from ocpkit._checks import array, integer
-from ocpkit.controller import EXCEPTION, NAN, SUCCESS, Controller, Solution, check_linearization
+from ocpkit._checks import array, integer, positive
+from ocpkit.controller import EXCEPTION, LIMITED, NAN, SUCCESS, Controller, Solution, check_linearization
 from ocpkit.kernels.random import normal, seed_key
 from ocpkit.kernels.rollout import Rollout
 
@@ -26,14 +26,17 @@ class SamplingMPC(Controller):
     "affine" (re-linearized each step) or "nonlinear" (the discrete model F in the kernel);
     ``stage_cost``/``terminal_cost`` replace the OCP's quadratic costs (any CasADi Function
     of (x, u, x_goal) / (x, x_goal), non-smooth allowed); ``seed`` makes runs repeatable.
-    ``linearization`` picks the affine model's expansion input as in LinearMPC.
+    ``linearization`` picks the affine model's expansion input as in LinearMPC. ``time_limit`` (s)
+    stops the generations once exceeded (a launched generation always completes): the step then
+    returns the best candidate so far with status "limited".
     """
 
     def __init__(self, ocp, *, population: int = 1024, generations: int = 1, num_picked: int = 1,
                  sigma=None, dynamics: str = "affine", stage_cost=None, terminal_cost=None,
                  precision: str = "float64", arch: str = "auto", seed: int = 0,
-                 linearization: str = "goal", raise_on_fail: bool = False):
+                 linearization: str = "goal", time_limit: float | None = None, raise_on_fail: bool = False):
         super().__init__(ocp, raise_on_fail=raise_on_fail)
+        self.time_limit = None if time_limit is None else positive(time_limit, "time_limit")
         self.linearization = check_linearization(linearization)
         self.population = integer(population, "population", 1)
         self.generations = integer(generations, "generations", 1)
@@ -82,24 +85,34 @@ class SamplingMPC(Controller):
                 self.engine.set_affine(*model)
             cold = not self._warm
             self._start(x, goal, cold)
-            best = np.inf
-            for g in range(self.generations):
-                best = self._generation(cold and g == 0)
+            best, done = np.inf, 0
+            while done < self.generations and not self._out_of_time(start):
+                best = self._generation(cold and done == 0)
                 self.counter += 1
-            knots = self._result()
+                done += 1
+            knots = self._result() if done else None
         except Exception as exc:  # a failed step must not raise inside the control loop
             times["solve"] = time.perf_counter() - start
             self._warm = False
             return self.fallback(EXCEPTION, f"{type(exc).__name__}: {exc}", times, self.generations)
         times["solve"] = time.perf_counter() - start
+        if knots is None:
+            return self.fallback(LIMITED, f"time limit {self.time_limit:g} s reached before a generation", times)
         if not np.isfinite(best) or not np.isfinite(knots).all():
             self._warm = False
             return self.fallback(NAN, f"best rollout cost {best}", times, self.generations)
         self._warm = True
         knots = np.clip(knots, ocp.u_min, ocp.u_max)
         u = np.clip(ocp.parameterization.u_at(knots, 0), ocp.u_min, ocp.u_max)
+        if done < self.generations:
+            return Solution(u=u, knots=knots, status=LIMITED, iterations=done, times=times,
+                            raw_status=f"time limit {self.time_limit:g} s reached after {done} of "
+                                       f"{self.generations} generations (best cost {best:.6g})")
         return Solution(u=u, knots=knots, status=SUCCESS, raw_status=f"best cost {best:.6g}",
                         iterations=self.generations, times=times)
+
+    def _out_of_time(self, start: float) -> bool:
+        return self.time_limit is not None and time.perf_counter() - start >= self.time_limit
 
     def _shifted(self, knots: np.ndarray) -> np.ndarray:
         """Knots (…, p, m) advanced one control step and clipped to the input bounds."""

@@ -1,0 +1,233 @@
+"""NonlinearMPC: the OCP as a nonlinear program solved by IPOPT (or CasADi's SQP), the "fmincon" baseline.
+
+The paper's first parameterization experiments solved the MPC problem with MATLAB's fmincon (Section
+III-C, experimental setup); here the same OCP is transcribed by multiple shooting and handed to IPOPT
+through CasADi. Decision
+variables are the predicted states x_1 … x_T and the knots U (p, m), with the parameterization substituted
+symbolically (u_k = Σ_j φ_kj U_j), so a knot-parameterized problem has p·m input unknowns, not T·m.
+
+``dynamics="nonlinear"`` predicts with the model's discrete dynamics F(x, u) (RK4); ``"affine"`` with the
+affine model x⁺ = A_d x + B_d u + w_d about (x, ū), ū chosen by ``linearization`` exactly as in LinearMPC:
+LinearMPC's problem solved by a general NLP solver (as the paper did with fmincon).
+The NLP is built once per OCP with parameters (x_0, x_goal[, A_d, B_d, w_d]) and re-solved every step,
+warm-started from the previous primal and dual solution shifted by one step.
+"""
+from __future__ import annotations
+
+import time
+
+import casadi as ca
+import numpy as np
+
+from ocpkit._checks import integer, positive
+from ocpkit.controller import (EXCEPTION, INFEASIBLE, LIMITED, NAN, SUCCESS, Controller, Solution,
+                               check_linearization)
+from ocpkit.ocp import OCP
+
+METHODS = ("ipopt", "sqp")
+DYNAMICS = ("nonlinear", "affine")
+
+# IPOPT's ApplicationReturnStatus and sqpmethod's return_status, as ocpkit statuses (unlisted: exception).
+_STATUS = {
+    "Solve_Succeeded": SUCCESS,
+    "Solved_To_Acceptable_Level": SUCCESS,
+    "Feasible_Point_Found": SUCCESS,
+    "Maximum_Iterations_Exceeded": LIMITED,
+    "Maximum_CpuTime_Exceeded": LIMITED,
+    "Maximum_WallTime_Exceeded": LIMITED,
+    "Search_Direction_Becomes_Too_Small": LIMITED,
+    "Infeasible_Problem_Detected": INFEASIBLE,
+    "Restoration_Failed": INFEASIBLE,
+    "Not_Enough_Degrees_Of_Freedom": INFEASIBLE,
+    "Invalid_Number_Detected": NAN,
+    "Diverging_Iterates": NAN,
+}
+
+
+class NonlinearMPC(Controller):
+    """Multiple-shooting MPC solved as an NLP: ``method`` "ipopt" (interior point) or "sqp" (CasADi
+    ``sqpmethod`` with the qrqp QP solver), over the ``dynamics`` "nonlinear" (F) or "affine" model.
+
+    ``max_iter`` and ``time_limit`` (wall-clock seconds, IPOPT's max_wall_time; IPOPT only) limit each
+    solve; a solve stopped by either is ``limited`` and falls back. Both can be changed between steps
+    (the NLP solver is rebuilt). ``options`` pass through to IPOPT (e.g. ``{"tol": 1e-10,
+    "max_wall_time": 0.01}``) or to ``sqpmethod`` (e.g. ``{"qpsol": "osqp"}``). ``linearization`` ("goal" or
+    "plan") is the affine model's expansion input, as in LinearMPC.
+    """
+
+    def __init__(self, ocp: OCP, *, dynamics: str = "nonlinear", method: str = "ipopt", max_iter: int = 200,
+                 time_limit: float | None = None, options: dict | None = None, warm_start: bool = True,
+                 raise_on_fail: bool = False, linearization: str = "goal"):
+        if not isinstance(ocp, OCP):
+            raise TypeError(f"ocp must be an ocpkit OCP, got {type(ocp).__name__}")
+        if dynamics not in DYNAMICS:
+            raise ValueError(f"dynamics must be one of {DYNAMICS}, got {dynamics!r}")
+        if method not in METHODS:
+            raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+        if options is not None and not isinstance(options, dict):
+            raise TypeError(f"options must be a dict or None, got {type(options).__name__}")
+        self.dynamics, self.method = dynamics, method
+        self.linearization = check_linearization(linearization)
+        self.options = dict(options or {})
+        self.warm_start = bool(warm_start)
+        self._limits = (integer(max_iter, "max_iter", 1), self._checked_time_limit(time_limit))
+        self._build(ocp)
+        super().__init__(ocp, raise_on_fail=raise_on_fail)
+
+    @property
+    def max_iter(self) -> int:
+        return self._limits[0]
+
+    @max_iter.setter
+    def max_iter(self, value: int) -> None:
+        self._limits = (integer(value, "max_iter", 1), self._limits[1])
+        self._build(self.ocp)
+
+    @property
+    def time_limit(self) -> float | None:
+        return self._limits[1]
+
+    @time_limit.setter
+    def time_limit(self, value: float | None) -> None:
+        self._limits = (self._limits[0], self._checked_time_limit(value))
+        self._build(self.ocp)
+
+    def _checked_time_limit(self, value):
+        if value is None:
+            return None
+        if self.method == "sqp":
+            raise ValueError("time_limit is an IPOPT limit; method='sqp' (sqpmethod) only takes max_iter")
+        return positive(value, "time_limit")
+
+    def __repr__(self):
+        return f"NonlinearMPC({self.method}, {self.dynamics}, {self.ocp!r})"
+
+    def _build(self, ocp: OCP) -> None:
+        """The NLP over w = [x_1 … x_T, U_0 … U_{p−1}] with parameters (x_0, x_goal[, A_d, B_d, w_d])."""
+        n, m, T, p = ocp.nx, ocp.nu, ocp.horizon, ocp.knots
+        # MX graph over mapped calls of the SX step and cost Functions: derivatives are generated per step
+        # Function, not for T inlined copies (inlining a 7-link RK4 step 50 times takes minutes to build).
+        X = ca.MX.sym("X", n, T)  # columns x_1 … x_T
+        U = ca.MX.sym("U", m, p)  # columns U_0 … U_{p−1}: vec(U) is the knots (p, m) row by row
+        x0, xg = ca.MX.sym("x0", n), ca.MX.sym("x_goal", n)
+        params = [x0, xg]
+        # u = φ U, column k is u_k; φ kept sparse so u_k depends structurally on its own knots only.
+        inputs = ca.mtimes(U, ca.sparsify(ca.DM(ocp.parameterization.basis.T)))
+        starts = ca.horzcat(x0, X[:, :-1])
+        if self.dynamics == "affine":
+            Ad, Bd, wd = ca.MX.sym("Ad", n, n), ca.MX.sym("Bd", n, m), ca.MX.sym("wd", n)
+            params += [ca.vec(Ad), ca.vec(Bd), wd]
+            predicted = ca.mtimes(Ad, starts) + ca.mtimes(Bd, inputs) + ca.repmat(wd, 1, T)
+        else:
+            predicted = ocp.discrete().map(T)(starts, inputs)
+        # The objective of ocp.py: the x_0 term is a constant and left out, so step 0 costs its input only.
+        J = ocp.stage_cost(xg, inputs[:, 0], xg) + ocp.terminal_cost(X[:, T - 1], xg)
+        if T > 1:
+            J += ca.sum2(ocp.stage_cost.map(T - 1)(X[:, : T - 1], inputs[:, 1:], ca.repmat(xg, 1, T - 1)))
+        nlp = {"x": ca.vertcat(ca.vec(X), ca.vec(U)), "p": ca.vertcat(*params), "f": J,
+               "g": ca.vec(predicted - X)}
+        # Input bounds on the knots, as LinearMPC: with a convex-combination basis they bound every u_k.
+        self._lbx = np.r_[np.tile(ocp.x_min, T), np.tile(ocp.u_min, p)]
+        self._ubx = np.r_[np.tile(ocp.x_max, T), np.tile(ocp.u_max, p)]
+        self._nX = n * T
+        try:
+            self._solver = ca.nlpsol("nonlinear_mpc", "ipopt" if self.method == "ipopt" else "sqpmethod", nlp,
+                                     self._solver_options())
+        except RuntimeError as exc:
+            raise ValueError(f"options rejected by {self.method}: {exc}") from None
+
+    def _solver_options(self) -> dict:
+        if self.method == "ipopt":
+            ipopt = {"print_level": 0, "sb": "yes", "max_iter": self.max_iter,
+                     # Start from the supplied primal and dual point (the shifted previous solution).
+                     "warm_start_init_point": "yes", "mu_strategy": "adaptive"}
+            if self.time_limit is not None:
+                ipopt["max_wall_time"] = self.time_limit
+            ipopt.update(self.options)
+            return {"ipopt": ipopt, "print_time": False, "error_on_fail": False}
+        qpsol = self.options.get("qpsol", "qrqp")
+        quiet = {"qrqp": {"print_iter": False, "print_header": False, "print_info": False},
+                 "osqp": {"osqp": {"verbose": False}}}.get(qpsol, {})
+        opts = {"qpsol": qpsol, "qpsol_options": {**quiet, "error_on_fail": False}, "max_iter": self.max_iter,
+                # Exact Hessians of a nonlinear OCP can be indefinite; qrqp needs a convex QP.
+                "convexify_strategy": "regularize", "print_header": False, "print_iteration": False,
+                "print_status": False, "print_time": False, "error_on_fail": False}
+        opts.update(self.options)
+        return opts
+
+    def reset(self) -> None:
+        super().reset()
+        self._warm = None  # (w, lam_x, lam_g) of the last successful solve
+
+    def _solve(self, x: np.ndarray, goal: np.ndarray) -> Solution:
+        ocp, times = self.ocp, {"model": 0.0, "build": 0.0, "solve": 0.0}
+        n, m, T, p = ocp.nx, ocp.nu, ocp.horizon, ocp.knots
+        t0 = time.perf_counter()
+        params = [x, goal]
+        if self.dynamics == "affine":
+            model = self.affine_model(x, goal, self.linearization)
+            if model is None:
+                times["model"] = time.perf_counter() - t0
+                return self._fail(NAN, f"non-finite affine model at x = {x.tolist()}", times)
+            Ad, Bd, wd = model
+            params += [Ad.ravel(order="F"), Bd.ravel(order="F"), wd]
+        t1 = time.perf_counter()
+        times["model"] = t1 - t0
+        w0, lam_x0, lam_g0 = self._initial_guess(x, goal)
+        args = {"x0": w0, "p": np.concatenate(params), "lbx": self._lbx, "ubx": self._ubx, "lbg": 0.0, "ubg": 0.0}
+        if lam_x0 is not None:
+            args.update(lam_x0=lam_x0, lam_g0=lam_g0)
+        t2 = time.perf_counter()
+        times["build"] = t2 - t1
+        try:
+            res = self._solver(**args)
+        except Exception as exc:  # a solver that throws must not stop the control loop
+            times["solve"] = time.perf_counter() - t2
+            return self._fail(EXCEPTION, f"{type(exc).__name__}: {exc}", times)
+        times["solve"] = time.perf_counter() - t2
+        try:
+            stats = self._solver.stats()
+            raw = str(stats["return_status"])
+        except (RuntimeError, KeyError):  # sqpmethod can stop (e.g. on a failed QP) without a return status
+            stats, raw = {}, "no return status"
+        iterations = int(stats.get("iter_count", 0))
+        status = _STATUS.get(raw, EXCEPTION)
+        w = np.asarray(res["x"], dtype=float).ravel()
+        if status == SUCCESS and not np.isfinite(w).all():
+            status = NAN
+        if status != SUCCESS:
+            return self._fail(status, raw, times, iterations)
+        self._warm = (w, np.asarray(res["lam_x"], dtype=float).ravel(), np.asarray(res["lam_g"], dtype=float).ravel())
+        # IPOPT relaxes bounds by its bound_relax_factor (1e-8 relative); project the knots back.
+        knots = np.clip(w[self._nX:].reshape(p, m), ocp.u_min, ocp.u_max)
+        x_pred = np.vstack([x, w[: self._nX].reshape(T, n)])
+        return Solution(u=ocp.parameterization.u_at(knots, 0), knots=knots, status=SUCCESS, raw_status=raw,
+                        iterations=iterations, x_pred=x_pred, times=times)
+
+    def _initial_guess(self, x: np.ndarray, goal: np.ndarray):
+        """Cold: states held at x_0 and knots at the input goal u_g (clipped). Warm: the previous solution shifted a step."""
+        ocp, n, T = self.ocp, self.ocp.nx, self.ocp.horizon
+        if self._warm is None or not self.warm_start:
+            knots = np.clip(np.tile(ocp.input_goal(goal), (ocp.knots, 1)), ocp.u_min, ocp.u_max)
+            return np.r_[np.tile(x, T), knots.ravel()], None, None
+        w, lam_x, lam_g = self._warm
+        shifted = ocp.parameterization.shift(w[self._nX:].reshape(ocp.knots, ocp.nu))
+        lam_u = lam_x[self._nX:]
+        if ocp.parameterization.kind == "identity":
+            lam_u = _shift_blocks(lam_u, ocp.nu)
+        # Knot bound multipliers stay put otherwise: knots sit at fixed fractions of the horizon.
+        return (np.r_[_shift_blocks(w[: self._nX], n), shifted.ravel()],
+                np.r_[_shift_blocks(lam_x[: self._nX], n), lam_u], _shift_blocks(lam_g, n))
+
+    def _fail(self, status, raw, times, iterations=0) -> Solution:
+        """Fallback solution and a cold start for the next step (no stale warm start)."""
+        self._warm = None
+        return self.fallback(status, raw, times, iterations)
+
+
+def _shift_blocks(v: np.ndarray, size: int) -> np.ndarray:
+    """A stacked per-step vector advanced one step (blocks of ``size``), its last block repeated."""
+    return np.r_[v[size:], v[-size:]]
+
+
+SOLVERS = {"ipopt": NonlinearMPC}
