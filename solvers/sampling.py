@@ -40,6 +40,9 @@ class SamplingMPC(Controller):
         self.linearization = check_linearization(linearization)
         self.population = integer(population, "population", 1)
         self.generations = integer(generations, "generations", 1)
+        if ocp.has_state_bounds:
+            raise ValueError(f"{type(self).__name__} does not enforce state bounds (x_min/x_max): express them "
+                             f"as a penalty in stage_cost, or use LinearMPC/NonlinearMPC")
         if not (np.isfinite(ocp.u_min).all() and np.isfinite(ocp.u_max).all()):
             raise ValueError(f"{type(self).__name__} samples within the input bounds, which must be "
                              f"finite; got u_min={ocp.u_min.tolist()}, u_max={ocp.u_max.tolist()}")
