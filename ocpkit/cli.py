@@ -14,7 +14,7 @@ from ocpkit.controller import Controller
 
 # `ocpkit bench NAME`: module in ocpkit.benchmarks, function, keyword arguments of --quick.
 _BENCHMARKS = {
-    "qp": ("qp", "bench_qp", {"samples": 10}),
+    "qp": ("qp", "bench_qp", {"problems": ("pendulum:linear", "pendulum", "nlink:3"), "samples": 10}),
     "empc": ("empc", "bench_empc", {"links": (1, 7, 13), "populations": (256, 1024), "horizons": (100,)}),
     "export": ("export", "bench_export", {"problems": ["pendulum", "nlink:2", "nlink:3"]}),
     "model": ("model", "bench_model", {"links": (1, 7, 13), "states": 5}),

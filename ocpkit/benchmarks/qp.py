@@ -9,8 +9,8 @@ from ocpkit.solvers.qp import LinearMPC
 PARTS = ("model", "build", "solve", "total")
 
 
-def bench_qp(problems=("pendulum:linear", "pendulum"), horizons=(50, 100), knots=5, samples=50,
-             qp="proxqp", seed=0, out=print) -> list[dict]:
+def bench_qp(problems=("pendulum:linear", "pendulum", "nlink:3", "nlink:7"), horizons=(50, 100), knots=5,
+             samples=30, qp="proxqp", seed=0, out=print) -> list[dict]:
     """One MPC solve per sampled state for every configuration, interleaved so all see the same machine load."""
     rows = []
     for name in problems:
