@@ -34,6 +34,7 @@ class QP:
     C: object
     l: np.ndarray
     u: np.ndarray
+    box: np.ndarray | None = None  # z indices of C's first rows when those are unit rows (simple bounds on z)
 
     @property
     def n(self) -> int:
@@ -166,61 +167,151 @@ class SparseQP(_Transcription):
 
 
 class CondensedQP(_Transcription):
-    """The paper's small-matrix formulation: states eliminated, [x_1; …; x_T] = S z + v (Section V-B and V-E)."""
+    """The paper's small-matrix formulation: states eliminated, [x_1; …; x_T] = S z + v (Section V-B and V-E).
+
+    The build exploits the structure of S. The horizon splits into *pieces*, runs of inputs u_a … u_{a+L−1}
+    along which φ_i = φ_a + (i − a) Δ is affine in i (one piece per knot interval for piecewise-linear and
+    zero-order-hold bases). Inside a piece, with r_a = [x_a, S_a] the row block of [v S] at x_a,
+
+        [v S]_{a+s} = Λ_s R,   Λ_s = [A_d^s  E_s  F_s  e_s],   R = [r_a; φ_a ⊗ I; Δ ⊗ I; (1, 0 … 0)],
+        E_s = Σ_{t<s} A_d^t B_d,  F_s = Σ_{t<s} (s−1−t) A_d^t B_d,  e_s = Σ_{t<s} A_d^t w_d.
+
+    Λ_1 … Λ_L are the same for every piece, so with Γ_L = Σ_{s≤L} Λ_sᵀ Q Λ_s (goal folded into e_s) a
+    piece adds Rᵀ Γ_L R to the Gram matrix [[·, qᵀ], [q, P]] of Q^½ [v − x_goal, S]; S itself is never
+    formed. Knot j enters only from the first input it shapes, so R keeps only the knot columns already
+    active (S is block-lower-triangular in knot columns). The terminal weight adds its difference at x_T.
+    """
 
     form = "condensed"
 
     def __init__(self, ocp: OCP):
         super().__init__(ocp)
-        self.nz = self.m * self.p
+        n, m, p = self.n, self.m, self.p
+        self.nz = m * p
         self.A = np.zeros((0, self.nz))
         self.b = np.zeros(0)
-        self.diagonal_Q = all(np.count_nonzero(Qk - np.diag(np.diag(Qk))) == 0 for Qk in self.Qs)
+        Q, QT = self.Qs[0], self.Qs[-1]
+        self.diagonal_Q = all(np.count_nonzero(M - np.diag(np.diag(M))) == 0 for M in (Q, QT))
+        # Q^½ with (Q^½)ᵀQ^½ = Q (Q ⪰ 0): a diagonal or a matrix; the terminal step adds Q_T − Q.
+        if self.diagonal_Q:
+            self._qh, self._dQT = np.sqrt(np.diag(Q)), np.diag(QT - Q)
+        else:
+            w, V = np.linalg.eigh(Q)
+            self._qh, self._dQT = np.sqrt(np.clip(w, 0.0, None))[:, None] * V.T, QT - Q
+        self._pieces = _pieces(self.phi, n, m)
+        self._lengths = sorted({piece[1] for piece in self._pieces})
+        self._box_C = np.eye(self.nz)[self.u_rows]
 
     def prediction(self, Ad, Bd, wd, x0):
-        """S (T·n, p·m) and v (T·n,) with [x_1; …; x_T] = S z + v.
+        """S (T·n, p·m) and v (T·n,) with [x_1; …; x_T] = S z + v (the paper's recipe below its T=5, p=3
+        example, evaluated piece by piece as in the class docstring)."""
+        self._predict(Ad, Bd, wd, x0)
+        SV = self._rows()
+        return SV[:, 1:], SV[:, 0]
 
-        Row block k is the previous one pre-multiplied by A_d plus B_d in the basis proportions φ_k
-        (the paper's recipe below its T=5, p=3 example).
-        """
-        n, m, T, p = self.n, self.m, self.T, self.p
+    def _predict(self, Ad, Bd, wd, x0):
+        """Λ_1 … Λ_L and each piece's R for the affine model (self._Lam, the pieces' rhs buffers)."""
+        n, m, L = self.n, self.m, self._lengths[-1]
         Ad = np.asarray(Ad, dtype=float)
-        Bd = np.asarray(Bd, dtype=float)
-        wd = np.asarray(wd, dtype=float).ravel()
-        S = np.empty((T, n, p, m))
-        v = np.empty((T, n))
-        # φ_k ⊗ B_d for all k at once: (T, n, p, m).
-        phiB = np.einsum("kj,am->kajm", self.phi, Bd)
-        S[0] = phiB[0]
-        v[0] = Ad @ x0 + wd
-        for k in range(1, T):
-            S[k] = (Ad @ S[k - 1].reshape(n, p * m)).reshape(n, p, m) + phiB[k]
-            v[k] = Ad @ v[k - 1] + wd
-        return S.reshape(T * n, p * m), v.ravel()
+        Lam = np.empty((L, n, n + 2 * m + 1))
+        Apow = Lam[:, :, :n]
+        Apow[0] = Ad
+        k = 1
+        while k < L:  # A^{k+1 … k+h} = A^k A^{1 … h}
+            h = min(k, L - k)
+            np.matmul(Apow[k - 1], Apow[:h], out=Apow[k:k + h])
+            k += h
+        Bw = np.column_stack([np.asarray(Bd, dtype=float), np.asarray(wd, dtype=float).ravel()])
+        G = np.empty((L, n, m + 1))  # A^t [B w], t = 0 … L−1
+        G[0] = Bw
+        np.matmul(Apow[:L - 1], Bw, out=G[1:])
+        Ew = np.cumsum(G.reshape(L, -1), axis=0).reshape(L, n, m + 1)
+        Lam[:, :, n:n + m] = Ew[:, :, :m]
+        Lam[:, :, -1] = Ew[:, :, m]
+        Lam[0, :, n + m:n + 2 * m] = 0.0
+        Lam[1:, :, n + m:n + 2 * m] = np.cumsum(Ew[:-1, :, :m], axis=0)
+        prev = np.zeros((n, 1 + self.nz))
+        prev[:, 0] = x0
+        for _, Lp, c, rhs in self._pieces:
+            rhs[:n] = prev[:, :c + 1]
+            prev = np.zeros((n, 1 + self.nz))
+            prev[:, :c + 1] = Lam[Lp - 1] @ rhs
+        self._Lam, self._end = Lam, prev
+
+    def _rows(self) -> np.ndarray:
+        """[v S] (T·n, 1 + p·m) of the last prediction, one GEMM per piece."""
+        n, SV = self.n, np.zeros((self.T, self.n, 1 + self.nz))
+        for a, Lp, c, rhs in self._pieces:
+            SV[a:a + Lp, :, :c + 1] = (self._Lam[:Lp].reshape(Lp * n, -1) @ rhs).reshape(Lp, n, c + 1)
+        return SV.reshape(self.T * n, -1)
 
     def build(self, Ad, Bd, wd, x0, x_goal) -> QP:
-        """P = SᵀQ̄S + φᵀφ⊗R and q = SᵀQ̄(v − x̄_goal) − (φᵀ1 ⊗ R u_goal); knot and state bound rows."""
-        S, v = self.prediction(Ad, Bd, wd, np.asarray(x0, dtype=float))
-        T, n = self.T, self.n
-        S3 = S.reshape(T, n, -1)
-        if self.diagonal_Q:
-            QS = np.diagonal(self.Qs, axis1=1, axis2=2)[:, :, None] * S3
+        """P = SᵀQ̄S + φᵀφ⊗R and q = SᵀQ̄(v − x̄_goal) − (φᵀ1 ⊗ R u_goal); knot bounds (``box``), state bound rows."""
+        self._predict(Ad, Bd, wd, x0)
+        n, nz, qh, Lam = self.n, self.nz, self._qh, self._Lam
+        x_goal = np.asarray(x_goal, dtype=float)
+        W = qh[:, None] * Lam if self.diagonal_Q else np.matmul(qh, Lam)
+        W[:, :, -1] -= qh * x_goal if self.diagonal_Q else qh @ x_goal
+        Gam, done, s0 = {}, np.zeros((Lam.shape[2],) * 2), 0
+        for Lp in self._lengths:  # Γ_L for each piece length, accumulated over s
+            Ws = W[s0:Lp].reshape((Lp - s0) * n, -1)
+            done = done + Ws.T @ Ws
+            Gam[Lp], s0 = done, Lp
+        Pq = np.zeros((nz + 1, nz + 1))  # Gram matrix of Q^½ [v − x_goal, S]: [[·, qᵀ], [q, P]]
+        for _, Lp, c, rhs in self._pieces:
+            Pq[:c + 1, :c + 1] += rhs.T @ (Gam[Lp] @ rhs)
+        end = self._end - np.outer(x_goal, np.eye(1, nz + 1))
+        Pq += end.T @ (self._dQT[:, None] * end if self.diagonal_Q else self._dQT @ end)
+        P = Pq[1:, 1:] + self.R_knots
+        P += P.T
+        P *= 0.5
+        q = Pq[1:, 0] + self.q_knots(x_goal)
+        if self.x_rows.size:
+            SV = self._rows()[self.x_rows]
+            C, vr = np.vstack([self._box_C, SV[:, 1:]]), SV[:, 0]
         else:
-            QS = np.einsum("kab,kbc->kac", self.Qs, S3)
-        QS = QS.reshape(T * n, -1)
-        P = S.T @ QS + self.R_knots
-        P = 0.5 * (P + P.T)
-        err = v - np.tile(np.asarray(x_goal, dtype=float), T)
-        q = QS.T @ err + self.q_knots(x_goal)
-        C = np.vstack([np.eye(self.nz)[self.u_rows], S[self.x_rows]])
-        l = np.r_[self.u_lo, self.x_lo - v[self.x_rows]]
-        u = np.r_[self.u_hi, self.x_hi - v[self.x_rows]]
-        self._last_v, self._last_S = v, S
-        return QP(P, q, self.A, self.b, C, l, u)
+            C, vr = self._box_C, np.zeros(0)
+        l = np.r_[self.u_lo, self.x_lo - vr]
+        u = np.r_[self.u_hi, self.x_hi - vr]
+        return QP(P, q, self.A, self.b, C, l, u, box=self.u_rows)
 
     def states(self, z: np.ndarray, x0) -> np.ndarray:
         """Predicted states x_0 … x_T (T+1, n) of the last built QP."""
-        return np.vstack([np.asarray(x0, dtype=float), (self._last_S @ z + self._last_v).reshape(self.T, self.n)])
+        n, X = self.n, np.empty((self.T + 1, self.n))
+        X[0] = x0
+        z1 = np.r_[1.0, z]
+        for a, Lp, c, rhs in self._pieces:
+            X[a + 1:a + Lp + 1] = (self._Lam[:Lp].reshape(Lp * n, -1) @ (rhs @ z1[:c + 1])).reshape(Lp, n)
+        return X
+
+
+def _pieces(phi: np.ndarray, n: int, m: int) -> list:
+    """Runs of inputs a … a+L−1 with φ_i = φ_a + (i − a) Δ, as (a, L, c, rhs).
+
+    c = m·(1 + last knot any input up to a+L−1 shapes) is the column prefix of S nonzero on the piece's rows;
+    rhs (n+2m+1, 1+c) is the piece's right-hand factor with its constant rows filled: φ_a ⊗ I, Δ ⊗ I and the
+    offset's 1 (the first n rows take [x_a, S's row at x_a] at each build).
+    """
+    T, p = phi.shape
+    tol = 1e-12 * max(1.0, np.abs(phi).max())
+    used = np.abs(phi) > 0
+    last_knot = np.maximum.accumulate(np.where(used.any(axis=1), p - 1 - np.argmax(used[:, ::-1], axis=1), -1))
+    pieces, a = [], 0
+    while a < T:
+        delta = phi[a + 1] - phi[a] if a + 1 < T else np.zeros(p)
+        L = 1
+        while a + L < T and np.abs(phi[a + L] - phi[a] - L * delta).max() <= tol:
+            L += 1
+        if L == 1:
+            delta = np.zeros(p)
+        c = m * (last_knot[a + L - 1] + 1)
+        rhs = np.zeros((n + 2 * m + 1, 1 + c))
+        rhs[n:n + m, 1:] = np.kron(phi[a], np.eye(m))[:, :c]
+        rhs[n + m:n + 2 * m, 1:] = np.kron(delta, np.eye(m))[:, :c]
+        rhs[-1, 0] = 1.0
+        pieces.append((a, L, c, rhs))
+        a += L
+    return pieces
 
 
 TRANSCRIPTIONS = {"sparse": SparseQP, "condensed": CondensedQP}

@@ -33,28 +33,57 @@ class _Result:
 
 
 class _ProxQP:
-    """ProxQP, dense or sparse backend, re-initialized with each step's data and warm-started."""
+    """ProxQP, dense or sparse backend. One solver object is kept across steps and refreshed with ``update``
+    (warm-started from its previous result); knot bounds go to the dense backend as box constraints."""
 
     CHUNK = 5  # iterations between wall-clock checks when a time limit is set
 
     def __init__(self, sparse: bool, max_iter: int, eps: float):
         import proxsuite
 
+        self._sparse = sparse
         self._module = proxsuite.proxqp.sparse if sparse else proxsuite.proxqp.dense
         self._proxqp = proxsuite.proxqp
         self.max_iter, self.eps = max_iter, eps
+        self.reset()
+
+    def reset(self):
+        self.solver, self._key = None, None
+
+    def _data(self, qp: QP):
+        """(H, g, A, b, C, l, u, l_box, u_box) for ProxQP: simple bounds on z as a box where the QP marks them."""
+        k = 0 if self._sparse or qp.box is None else len(qp.box)
+        if not k:
+            return (qp.P, qp.q, qp.A, qp.b, qp.C, qp.l, qp.u, None, None), (qp.n, qp.b.size, qp.l.size, False)
+        lo, hi = np.full(qp.n, -np.inf), np.full(qp.n, np.inf)
+        lo[qp.box], hi[qp.box] = qp.l[:k], qp.u[:k]
+        return (qp.P, qp.q, qp.A, qp.b, qp.C[k:], qp.l[k:], qp.u[k:], lo, hi), (qp.n, qp.b.size, qp.l.size - k, True)
 
     def solve(self, qp: QP, warm: tuple | None, time_limit: float | None) -> _Result:
         """Solve; with a time limit, iterate in chunks (continuing from the previous iterate) up to it."""
         px = self._proxqp
         start = time.perf_counter()
-        solver = self._module.QP(qp.n, qp.b.size, qp.l.size)
+        data, key = self._data(qp)
+        H, g, A, b, C, l, u, lo, hi = data
+        box = {"l_box": lo, "u_box": hi} if key[3] else {}
+        reuse = warm is not None and self._key == key
+        if not reuse:
+            n, n_eq, n_in, has_box = key
+            self.solver = (self._module.QP(n, n_eq, n_in, box_constraints=True) if has_box
+                           else self._module.QP(n, n_eq, n_in))
+            self._key = key
+        solver = self.solver
         s = solver.settings
         s.eps_abs, s.eps_rel, s.verbose = self.eps, 0.0, False
         s.max_iter = self.max_iter if time_limit is None else min(self.max_iter, self.CHUNK)
-        s.initial_guess = px.InitialGuess.WARM_START if warm is not None else px.InitialGuess.NO_INITIAL_GUESS
-        solver.init(qp.P, qp.q, qp.A, qp.b, qp.C, qp.l, qp.u)
-        solver.solve(*warm) if warm is not None else solver.solve()
+        if reuse:
+            s.initial_guess = px.InitialGuess.WARM_START_WITH_PREVIOUS_RESULT
+            solver.update(H, g, A, b, C, l, u, **box)
+            solver.solve()
+        else:
+            s.initial_guess = px.InitialGuess.WARM_START if warm is not None else px.InitialGuess.NO_INITIAL_GUESS
+            solver.init(H, g, A, b, C, l, u, **box)
+            solver.solve(*warm) if warm is not None and len(warm[2]) == solver.results.z.size else solver.solve()
         out = px.QPSolverOutput
         iterations = solver.results.info.iter
         while (time_limit is not None and solver.results.info.status == out.PROXQP_MAX_ITER_REACHED
@@ -174,8 +203,7 @@ class LinearMPC(Controller):
     @max_iter.setter
     def max_iter(self, value: int) -> None:
         self._backend.max_iter = integer(value, "max_iter", 1)
-        if isinstance(self._backend, _OSQP):
-            self._backend.reset()
+        self._backend.reset()
 
     def __repr__(self):
         return f"LinearMPC({self.form}, {self.qp_name}, {self.ocp!r})"
@@ -183,8 +211,7 @@ class LinearMPC(Controller):
     def reset(self) -> None:
         super().reset()
         self._warm = None
-        if isinstance(self._backend, _OSQP):
-            self._backend.reset()
+        self._backend.reset()
 
     def _solve(self, x: np.ndarray, goal: np.ndarray) -> Solution:
         ocp, times = self.ocp, {"model": 0.0, "build": 0.0, "solve": 0.0}
@@ -221,8 +248,7 @@ class LinearMPC(Controller):
     def _fail(self, status, raw, times, iterations=0) -> Solution:
         """Fallback solution and a clean workspace for the next step (no stale warm start)."""
         self._warm = None
-        if isinstance(self._backend, _OSQP):
-            self._backend.reset()
+        self._backend.reset()
         return self.fallback(status, raw, times, iterations)
 
 

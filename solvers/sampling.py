@@ -65,6 +65,10 @@ class SamplingMPC(Controller):
         # The warm start's time shift is linear in the knots: U⁺ = S U.
         self._shift = ocp.parameterization.shift(np.eye(p))
 
+    def __repr__(self):
+        return (f"{type(self).__name__}(population={self.population}, generations={self.generations}, "
+                f"{self.ocp!r})")
+
     def reset(self) -> None:
         """Cold start: forget the plan and restart the random stream."""
         super().reset()
