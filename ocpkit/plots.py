@@ -11,10 +11,16 @@ import numpy as np  # noqa: E402
 
 
 def closed_loop(trajectories: dict, path, *, title: str = "", state_names=None, input_names=None) -> Path:
-    """Joint positions against their goals and applied inputs, one line per labelled trajectory."""
+    """Joint positions against their goals and applied inputs, one line per labelled trajectory.
+
+    Up to three joints get a panel each (position, then input); more joints share one position panel and one
+    input panel, a colour per joint and a line style per trajectory.
+    """
     first = next(iter(trajectories.values()))
     n_q = first.x.shape[1] // 2
     m = first.u.shape[1]
+    if n_q > 3:
+        return _closed_loop_compact(trajectories, path, title, n_q, m)
     fig, axes = plt.subplots(n_q + m, 1, figsize=(8, 2.2 * (n_q + m)), sharex=True, squeeze=False)
     axes = axes[:, 0]
     for label, traj in trajectories.items():
@@ -31,6 +37,30 @@ def closed_loop(trajectories: dict, path, *, title: str = "", state_names=None, 
     axes[0].legend(fontsize=7, ncol=2, loc="best")
     if title:
         axes[0].set_title(title)
+    return save(fig, path)
+
+
+def _closed_loop_compact(trajectories, path, title, n_q, m) -> Path:
+    fig, (ax_q, ax_u) = plt.subplots(2, 1, figsize=(9, 7), sharex=True)
+    styles = ["-", "--", ":", "-."]
+    first = next(iter(trajectories.values()))
+    for k, (label, traj) in enumerate(trajectories.items()):
+        ls = styles[k % len(styles)]
+        for i in range(n_q):
+            ax_q.plot(traj.t, traj.x[:, i], color=f"C{i % 10}", ls=ls, lw=1.2,
+                      label=f"q{i + 1}" if k == 0 else None)
+        for j in range(m):
+            ax_u.step(traj.t[:-1], traj.u[:, j], where="post", color=f"C{j % 10}", ls=ls, lw=1.0)
+        ax_u.plot([], [], color="k", ls=ls, label=label)
+    for i in range(n_q):
+        ax_q.axhline(first.goal[i], color=f"C{i % 10}", ls=(0, (1, 3)), lw=0.8)
+    ax_q.set_ylabel("joint positions (dotted: goals)")
+    ax_u.set_ylabel("inputs")
+    ax_u.set_xlabel("time [s]")
+    ax_q.legend(fontsize=7, ncol=min(n_q, 7), loc="best")
+    ax_u.legend(fontsize=7, loc="best")
+    if title:
+        ax_q.set_title(title)
     return save(fig, path)
 
 
