@@ -20,6 +20,7 @@ _BENCHMARKS = {
     "model": ("model", "bench_model", {"links": (1, 7, 13), "states": 5}),
     "nlp": ("nlp", "bench_nlp", {"problems": ["pendulum", "nlink:2", "nlink:3"], "samples": 1, "steps": 5}),
     "faults": ("faults", "bench_faults", {}),
+    "step": ("step", "bench_step", {"links": (1, 7, 13), "steps": 10}),
 }
 
 

@@ -1,0 +1,146 @@
+"""`ocpkit bench step`: one whole MPC step (affine model + QP build + solve), ocpkit's condensed knots form
+against the sparse traditional baselines (HPIPM, OSQP) and, when installed, the paper lab's affine_mpc.
+
+Every controller replays the same closed-loop state sequence (recorded once with ocpkit's condensed
+knots controller on the OCP's discrete model), interleaved step by step so all see the same machine load,
+each warm-starting from its own previous step as in a control loop. affine_mpc gets the identical affine
+model (A_d, B_d, w_d) ocpkit linearized at that state and is timed on its solve() alone.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from ocpkit.problems import make
+from ocpkit.solvers.qp import LinearMPC
+
+
+def bench_step(links=(1, 2, 4, 7, 10, 13), horizons=(50, 100), knots=5, steps=20, seed=0, peers=True,
+               out=print) -> list[dict]:
+    """Medians and spread (ms) of a whole step per configuration; ratios to ocpkit's condensed knots step."""
+    rows = []
+    gemm = _gemm_rate()
+    for N in links:
+        problem = make(f"nlink:{N}")
+        for T in horizons:
+            rows += _one(problem, T, knots, steps, seed, peers)
+    _print(rows, gemm, knots, out)
+    return rows
+
+
+def _one(problem, T, p, steps, seed, peers):
+    ocp_k, ocp_t = problem.ocp(horizon=T, knots=p), problem.ocp(horizon=T)
+    x, goal = problem.sample(seed)
+    F = ocp_k.discrete()
+    ref = LinearMPC(ocp_k, form="condensed", qp="proxqp")
+    xs = []
+    for _ in range(steps):  # the replayed closed loop
+        xs.append(x)
+        x = np.asarray(F(x, ref.solve(x, goal).u)).ravel()
+    ctrls = {"ocpkit condensed knots proxqp": LinearMPC(ocp_k, form="condensed", qp="proxqp"),
+             "ocpkit sparse traditional hpipm": LinearMPC(ocp_t, form="sparse", qp="hpipm"),
+             "ocpkit sparse traditional osqp": LinearMPC(ocp_t, form="sparse", qp="osqp")}
+    peer = _peers(ocp_k, goal) if peers else {}
+    times = {name: [] for name in [*ctrls, *peer]}
+    parts = {"model": [], "build": [], "solve": []}
+    u0, agree, status = {}, {name: 0.0 for name in peer}, {name: set() for name in times}
+    for x in xs:
+        for name, ctrl in ctrls.items():
+            sol = ctrl.solve(x, goal)
+            times[name].append(sol.times["total"])
+            status[name].add(sol.status)
+            u0[name] = sol.u
+            if name.startswith("ocpkit condensed"):
+                for part in parts:
+                    parts[part].append(sol.times[part])
+        model = ctrls["ocpkit condensed knots proxqp"].affine_model(x, goal, "goal")
+        for name, mpc in peer.items():
+            mpc.setModelDiscrete(np.asfortranarray(model[0]), np.asfortranarray(model[1]), model[2])
+            t0 = time.perf_counter()
+            st = mpc.solve(x)
+            times[name].append(time.perf_counter() - t0)
+            status[name].add(str(st).rsplit(".", 1)[-1])
+            agree[name] = max(agree[name], float(np.abs(mpc.getNextInput() - u0["ocpkit condensed knots proxqp"]).max()))
+    tr = ctrls["ocpkit condensed knots proxqp"].transcription
+    base = float(np.median(times["ocpkit condensed knots proxqp"]))
+    out = []
+    for name, t in times.items():
+        t = np.asarray(t)
+        row = {"problem": problem.name, "horizon": T, "solver": name, "median": float(np.median(t)),
+               "p25": float(np.percentile(t, 25)), "p75": float(np.percentile(t, 75)),
+               "ratio": float(np.median(t)) / base, "status": ",".join(sorted(status[name])),
+               "u0_diff": agree.get(name)}
+        if name.startswith("ocpkit condensed"):
+            row.update({part: float(np.median(v)) for part, v in parts.items()}, flops=_build_flops(tr))
+        out.append(row)
+    return out
+
+
+def _peers(ocp, goal) -> dict:
+    """affine_mpc CondensedMPC and SparseMPC on the same OCP (diagonal weights, knot bounds), if installed."""
+    try:
+        import affine_mpc as ampc
+    except ImportError:
+        return {}
+    n, m, T, p = ocp.nx, ocp.nu, ocp.horizon, ocp.knots
+    mpcs = {}
+    for name, cls in (("affine_mpc CondensedMPC (OSQP)", ampc.CondensedMPC), ("affine_mpc SparseMPC (OSQP)", ampc.SparseMPC)):
+        mpc = cls(n, m, ampc.Parameterization.linearInterp(T, p), ampc.Options(use_input_cost=True))
+        mpc.setModelDiscrete(np.asfortranarray(np.eye(n)), np.asfortranarray(np.zeros((n, m))), np.zeros(n))
+        mpc.setInputLimits(ocp.u_min, ocp.u_max)
+        mpc.setWeights(np.diag(ocp.Q).copy(), np.diag(ocp.Q_terminal).copy(), np.diag(ocp.R).copy())
+        mpc.setReferenceState(goal)
+        mpc.setReferenceInput(ocp.input_goal(goal))
+        settings = ampc.OSQPSettings()
+        settings.eps_abs = settings.eps_rel = 1e-6
+        if not mpc.initializeSolver(settings):
+            continue
+        mpcs[name] = mpc
+    return mpcs
+
+
+def _build_flops(tr) -> int:
+    """Floating-point operations of CondensedQP.build (multiply-adds count 2) as implemented."""
+    n, m, L = tr.n, tr.m, tr._lengths[-1]
+    K = n + 2 * m + 1
+    flops = 2 * (L - 1) * n ** 3 + 2 * (L - 1) * n * n * (m + 1)  # A^s by doubling, A^t [B w]
+    flops += 2 * L * n * K * K  # Γ_L = Σ Λᵀ Q Λ (requested as a full product)
+    for _, _, c, _ in tr._pieces:
+        flops += 2 * (K * K * (c + 1) + K * (c + 1) ** 2 + n * K * (c + 1))  # Γ R, Rᵀ(Γ R), end row
+    c = tr._pieces[-1][2]
+    return int(flops + 2 * n * (c + 1) ** 2)
+
+
+def _gemm_rate(size=1000, repeats=5) -> float:
+    """Dense GEMM rate of this machine (GFLOP/s, numpy's BLAS, best of ``repeats``)."""
+    a, b = np.random.default_rng(0).normal(size=(2, size, size))
+    best = min(_timed(lambda: a @ b) for _ in range(repeats))
+    return 2 * size ** 3 / best / 1e9
+
+
+def _timed(f) -> float:
+    t0 = time.perf_counter()
+    f()
+    return time.perf_counter() - t0
+
+
+def _print(rows, gemm, knots, out):
+    out(f"Whole MPC step (affine model + build + solve), ms: median [p25, p75]; ratio = median / ocpkit condensed "
+        f"knots({knots}); u0 = max |u0 − ocpkit's u0| over the replayed steps")
+    out(f"Dense GEMM (1000³, numpy BLAS) in this run: {gemm:.1f} GFLOP/s")
+    out(f"{'problem':10} {'T':>4} {'solver':34} {'median':>9} {'p25':>9} {'p75':>9} {'ratio':>8} {'u0':>9}  status")
+    for r in rows:
+        u0 = "" if r["u0_diff"] is None else f"{r['u0_diff']:9.1e}"
+        out(f"{r['problem']:10} {r['horizon']:>4} {r['solver']:34} {1e3 * r['median']:9.3f} {1e3 * r['p25']:9.3f} "
+            f"{1e3 * r['p75']:9.3f} {r['ratio']:8.2f} {u0:>9}  {r['status']}")
+    out("ocpkit condensed knots, medians (ms) of the parts and the build's rate:")
+    base = {(r["problem"], r["horizon"]): r for r in rows if "flops" in r}
+    for (name, T), r in base.items():
+        gf = r["flops"] / r["build"] / 1e9
+        ratio = ""
+        if T != min(t for (nm, t) in base if nm == name):
+            ratio = f"  solve(T={T})/solve(T={min(t for (nm, t) in base if nm == name)}) = " \
+                    f"{r['solve'] / base[(name, min(t for (nm, t) in base if nm == name))]['solve']:.2f}"
+        out(f"  {name:10} T={T:<4} model {1e3 * r['model']:.3f}  build {1e3 * r['build']:.3f} "
+            f"({r['flops'] / 1e6:.2f} MFLOP, {gf:.1f} GFLOP/s = {100 * gf / gemm:.0f}% of GEMM)  solve {1e3 * r['solve']:.3f}{ratio}")
