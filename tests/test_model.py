@@ -64,3 +64,16 @@ def test_model_validation():
             m.discrete(bad)
     with pytest.raises(ValueError, match="substeps must be an integer"):
         m.rk4(0.1, 0)
+
+
+def test_compiled_affine_model_equals_casadi(tmp_path, monkeypatch):
+    monkeypatch.setenv("OCPKIT_CACHE_DIR", str(tmp_path))
+    problem = make("pendulum")
+    plain, compiled = problem.ocp(knots=3), problem.ocp(knots=3, compiled=True)
+    x, u = np.array([0.4, -1.0]), np.array([2.0])
+    for a, b in zip(plain.affine()(x, u), compiled.affine()(x, u)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert len(list((tmp_path / "compiled").glob("*/*.so"))) == 1
+    # A second OCP of the same model loads the cached library instead of compiling again.
+    again = problem.ocp(knots=3, compiled=True).affine()
+    assert len(list((tmp_path / "compiled").glob("*/*.so"))) == 1 and again.name() == compiled.affine().name()

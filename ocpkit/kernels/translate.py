@@ -24,6 +24,7 @@ import casadi as ca
 import numpy as np
 import taichi as ti
 
+from ocpkit.cache import cache_dir as shared_cache_dir
 from ocpkit.kernels import runtime
 
 # Bumped whenever the generated text changes, so stale cache files are never imported.
@@ -83,12 +84,8 @@ _DTYPES = {"float64": "ti.f64", "float32": "ti.f32"}
 
 
 def cache_dir() -> Path:
-    """Where generated kernels live: ``$OCPKIT_CACHE_DIR`` or ``~/.cache/ocpkit/taichi``."""
-    root = os.environ.get("OCPKIT_CACHE_DIR")
-    if root:
-        return Path(root)
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return Path(base) / "ocpkit" / "taichi"
+    """Where generated kernels live (see :mod:`ocpkit.cache`)."""
+    return shared_cache_dir("taichi")
 
 
 @dataclass(frozen=True)
