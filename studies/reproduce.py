@@ -15,10 +15,12 @@ PACKAGES = ("ocpkit", "casadi", "numpy", "proxsuite", "osqp", "pin", "taichi", "
 
 
 def run_study(name: str, size: str, out_dir, *, workers=None, scheduler=None, progress=True) -> str:
-    """Run one study (resuming from its store in ``out_dir``) and return its report section."""
+    """Run one study (resuming from its store in ``out_dir``), write its table as ``name``.csv and return its
+    report section."""
     module = get(name)
     out_dir = Path(out_dir)
     df = study_runner.run(module.study(size), out_dir, workers=workers, scheduler=scheduler, progress=progress)
+    df.to_csv(out_dir / f"{name}.csv", index=False)
     failed = df[df["status"] == "failed"]
     section = module.report(df, out_dir)
     if len(failed):

@@ -30,6 +30,7 @@ def test_reproduce_quick_on_tiny_grids(tiny, tmp_path):
     assert "wall time" in text and "casadi" in text and "failed" not in text
     assert (tmp_path / "knots_pendulum_linear.png").stat().st_size > 5000
     assert (tmp_path / "knots_pendulum_linear.pdf").exists()
+    assert len((tmp_path / "knots.csv").read_text().splitlines()) == 7  # header and six trials
     df = Store(tmp_path).load("knots")
     assert len(df) == 6 and (df["status"] == "ok").all()
     ratios = get("knots").ratios(df, "knots")

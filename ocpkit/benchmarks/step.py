@@ -38,7 +38,9 @@ def _one(problem, T, p, steps, seed, peers):
     for _ in range(steps):  # the replayed closed loop
         xs.append(x)
         x = np.asarray(F(x, ref.solve(x, goal).u)).ravel()
+    ocp_c = problem.ocp(horizon=T, knots=p, compiled=True)  # the affine model as compiled C (ocpkit.compiled)
     ctrls = {"ocpkit condensed knots proxqp": LinearMPC(ocp_k, form="condensed", qp="proxqp"),
+             "ocpkit condensed knots proxqp, compiled model": LinearMPC(ocp_c, form="condensed", qp="proxqp"),
              "ocpkit sparse traditional hpipm": LinearMPC(ocp_t, form="sparse", qp="hpipm"),
              "ocpkit sparse traditional osqp": LinearMPC(ocp_t, form="sparse", qp="osqp")}
     peer = _peers(ocp_k, goal) if peers else {}
