@@ -226,7 +226,7 @@ def _source(function: ca.Function, precision: str) -> str:
         f"def make_batch({', '.join([f'x{j}' for j in range(n_in)] + [f'y{j}' for j in range(n_out)])}):",
         "    @ti.kernel",
         "    def batch():",
-        f"        for s in range(x0.shape[0]):",
+        "        for s in range(x0.shape[0]):",
     ]
     for j in range(n_in):
         numel = function.sparsity_in(j).numel()
