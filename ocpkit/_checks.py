@@ -4,6 +4,13 @@ from __future__ import annotations
 import numpy as np
 
 
+def choice(value, choices, name: str):
+    """``value`` if it is one of ``choices``, else a ValueError naming the argument and the choices."""
+    if value not in choices:
+        raise ValueError(f"{name} must be one of {tuple(choices)}, got {value!r}")
+    return value
+
+
 def positive(value, name: str) -> float:
     """A finite float > 0."""
     try:

@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ocpkit._checks import choice
 from ocpkit.ocp import OCP
 
 SUCCESS, LIMITED, INFEASIBLE, NAN, EXCEPTION = "success", "limited", "infeasible", "nan", "exception"
@@ -22,8 +23,7 @@ LINEARIZATIONS = ("goal", "plan")
 
 def check_linearization(mode: str) -> str:
     """A valid choice of the affine model's expansion input (see :meth:`Controller.affine_model`)."""
-    if mode not in LINEARIZATIONS:
-        raise ValueError(f"linearization must be one of {LINEARIZATIONS}, got {mode!r}")
+    choice(mode, LINEARIZATIONS, "linearization")
     return mode
 
 

@@ -30,7 +30,7 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
-from ocpkit._checks import array, integer, positive
+from ocpkit._checks import array, choice, integer, positive
 from ocpkit.controller import STATUSES, SUCCESS, Controller, Solution
 from ocpkit.ocp import OCP
 from ocpkit.transcription import CondensedQP
@@ -91,16 +91,13 @@ def export(ocp: OCP, out_dir, *, form: str = "condensed", qp: str = "daqp", name
     """
     if not isinstance(ocp, OCP):
         raise TypeError(f"ocp must be an ocpkit OCP, got {type(ocp).__name__}")
-    if form not in FORMS:
-        raise ValueError(f"form must be one of {FORMS}, got {form!r}")
-    if qp not in QP_SOLVERS:
-        raise ValueError(f"qp must be one of {QP_SOLVERS}, got {qp!r}")
+    choice(form, FORMS, "form")
+    choice(qp, QP_SOLVERS, "qp")
     if (form, qp) not in SUPPORTED:
         why = _UNSUPPORTED_WHY["sparse" if form == "sparse" else qp]
         raise ValueError(f"qp={qp!r} with form={form!r} cannot be exported: {why}; "
                          f"supported: {sorted(SUPPORTED)}")
-    if linearization not in LINEARIZATIONS:
-        raise ValueError(f"linearization must be one of {LINEARIZATIONS}, got {linearization!r}")
+    choice(linearization, LINEARIZATIONS, "linearization")
     if np.any(ocp.u_goal_gain):
         raise ValueError("ocp.u_goal_gain is nonzero: the exported step supports a constant input goal only")
     if not (isinstance(name, str) and name.isidentifier() and name.isascii()):

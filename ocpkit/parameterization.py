@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ocpkit._checks import integer
+from ocpkit._checks import choice, integer
 
 KINDS = ("linear", "zoh", "identity")
 
@@ -64,8 +64,7 @@ class Parameterization:
     @classmethod
     def make(cls, kind: str, horizon: int, knots: int | None = None) -> "Parameterization":
         """By name: "linear", "zoh" or "identity" (knots None or equal to the horizon means traditional MPC)."""
-        if kind not in KINDS:
-            raise ValueError(f"parameterization must be one of {KINDS}, got {kind!r}")
+        choice(kind, KINDS, "parameterization")
         if kind == "identity" or knots is None:
             return cls.identity(horizon)
         return cls.linear_interp(horizon, knots) if kind == "linear" else cls.zero_order_hold(horizon, knots)

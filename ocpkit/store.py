@@ -16,6 +16,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from ._checks import choice
+
 FILENAME = "results.sqlite"
 STATUSES = ("ok", "failed")
 # Columns of the results table besides the parameters and metrics; neither may use these names.
@@ -220,5 +222,4 @@ class Store:
 
 
 def _check_status(status) -> None:
-    if status not in STATUSES:
-        raise ValueError(f"status must be one of {STATUSES}, got {status!r}")
+    choice(status, STATUSES, "status")

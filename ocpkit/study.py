@@ -6,6 +6,7 @@ interrupted study resumes where it stopped and a trial that raises is stored as 
 """
 from __future__ import annotations
 
+import contextlib
 import itertools
 import multiprocessing
 import os
@@ -26,6 +27,7 @@ import pandas as pd
 from tqdm.auto import tqdm
 
 from ._checks import integer
+from .kernels import CPU_THREADS
 from .store import RESERVED, Store, canonical_key, now, split_result
 
 
@@ -182,6 +184,28 @@ def _run_local(fn, pending: list[dict], workers: int):
     """
     queue, suspects = deque(pending), deque()
     context = multiprocessing.get_context("spawn")  # fork is unsafe with Taichi/CUDA threads
+    with _thread_budget(max(1, (os.cpu_count() or 1) // workers)):
+        yield from _run_pool(fn, queue, suspects, workers, context)
+
+
+@contextlib.contextmanager
+def _thread_budget(threads: int):
+    """Spawned workers inherit this environment: each gets ``threads`` BLAS/OpenMP/Taichi threads, so
+    parallel trials do not oversubscribe the cores (and the solve times they measure stay honest).
+    Variables the user has set are kept."""
+    names = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", CPU_THREADS)
+    saved = {name: os.environ.get(name) for name in names}
+    for name in names:
+        os.environ.setdefault(name, str(threads))
+    try:
+        yield
+    finally:
+        for name, value in saved.items():
+            if value is None:
+                os.environ.pop(name, None)
+
+
+def _run_pool(fn, queue: deque, suspects: deque, workers: int, context):
     while queue or suspects:
         pool = ProcessPoolExecutor(workers, mp_context=context, initializer=_worker_init, initargs=(os.getpid(),))
         running = {}

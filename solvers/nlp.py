@@ -19,7 +19,7 @@ import time
 import casadi as ca
 import numpy as np
 
-from ocpkit._checks import integer, positive
+from ocpkit._checks import choice, integer, positive
 from ocpkit.controller import (EXCEPTION, INFEASIBLE, LIMITED, NAN, SUCCESS, Controller, Solution,
                                check_linearization)
 from ocpkit.ocp import OCP
@@ -60,10 +60,8 @@ class NonlinearMPC(Controller):
                  raise_on_fail: bool = False, linearization: str = "goal"):
         if not isinstance(ocp, OCP):
             raise TypeError(f"ocp must be an ocpkit OCP, got {type(ocp).__name__}")
-        if dynamics not in DYNAMICS:
-            raise ValueError(f"dynamics must be one of {DYNAMICS}, got {dynamics!r}")
-        if method not in METHODS:
-            raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+        choice(dynamics, DYNAMICS, "dynamics")
+        choice(method, METHODS, "method")
         if options is not None and not isinstance(options, dict):
             raise TypeError(f"options must be a dict or None, got {type(options).__name__}")
         self.dynamics, self.method = dynamics, method

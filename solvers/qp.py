@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from ocpkit._checks import integer, positive
+from ocpkit._checks import choice, integer, positive
 from ocpkit.controller import (EXCEPTION, INFEASIBLE, LIMITED, NAN, SUCCESS, Controller, Solution,
                                check_linearization)
 from ocpkit.ocp import OCP
@@ -245,10 +245,8 @@ class LinearMPC(Controller):
                  eps: float = 1e-9, time_limit: float | None = None, warm_start: bool = True,
                  raise_on_fail: bool = False, linearization: str = "goal"):
         self.linearization = check_linearization(linearization)
-        if form not in TRANSCRIPTIONS:
-            raise ValueError(f"form must be one of {tuple(TRANSCRIPTIONS)}, got {form!r}")
-        if qp not in QP_SOLVERS:
-            raise ValueError(f"qp must be one of {QP_SOLVERS}, got {qp!r}")
+        choice(form, tuple(TRANSCRIPTIONS), "form")
+        choice(qp, QP_SOLVERS, "qp")
         self.form, self.qp_name = form, qp
         self.warm_start = bool(warm_start)
         self.time_limit = None if time_limit is None else positive(time_limit, "time_limit")

@@ -13,7 +13,7 @@ from ocpkit.studies.report import markdown_table, section
 
 NAME = "horizon"
 TITLE = "Traditional MPC: actual cost ratio vs horizon (Fig. 4)"
-SIZES = {"quick": {"horizons": [5, 10, 20, 30, 50, 75, 100], "seeds": 4},
+SIZES = {"quick": {"horizons": [5, 10, 20, 30, 50, 75, 100], "seeds": 8},
          "full": {"horizons": [5, 10, 15, 20, 25, 30, 40, 50, 60, 70, 80, 90, 100], "seeds": 30}}
 
 

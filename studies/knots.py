@@ -14,7 +14,7 @@ NAME = "knots"
 TITLE = "Actual cost ratio vs number of knot points (Fig. 3)"
 PROBLEMS = ("pendulum:linear", "pendulum", "puma560")
 HORIZON, REFERENCE_HORIZON = 50, 100
-SIZES = {"quick": {"knots": [1, 2, 3, 4, 6, 10, 25, 50], "seeds": 4, "problems": PROBLEMS},
+SIZES = {"quick": {"knots": [1, 2, 3, 4, 6, 10, 25, 50], "seeds": 8, "problems": PROBLEMS},
          "full": {"knots": list(range(1, 51)), "seeds": 30, "problems": PROBLEMS}}
 
 

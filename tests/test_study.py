@@ -32,6 +32,11 @@ def square(x, seed, pause=0.0, crash=None, fail=None):
     return {"y": x * x + seed, "name": f"t{x}", "traj": np.arange(3.0) * x}
 
 
+def thread_budget(seed):
+    """The thread settings a worker process sees."""
+    return {name: os.environ.get(name, "") for name in ("OPENBLAS_NUM_THREADS", "OCPKIT_CPU_THREADS")}
+
+
 def executions(log: Path) -> dict:
     counts = {}
     for f in log.iterdir():
@@ -144,6 +149,18 @@ def test_one_and_two_workers_store_the_same_results_and_export_csv(tmp_path, cap
         csv = pd.read_csv(store.to_csv(tmp_path / "sq.csv"))
     assert len(csv) == 8 and set(csv.columns) == set(one.columns)
     assert sorted(csv.y) == sorted(one.y)
+
+
+def test_workers_share_the_cores_without_oversubscribing(tmp_path, monkeypatch):
+    for name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "OCPKIT_CPU_THREADS"):
+        monkeypatch.delenv(name, raising=False)
+    monkeypatch.setattr(os, "cpu_count", lambda: 8)
+    df = run(Study("threads", thread_budget, grid(seeds=2)), tmp_path / "a", workers=2, progress=False)
+    assert (df["OPENBLAS_NUM_THREADS"] == "4").all() and (df["OCPKIT_CPU_THREADS"] == "4").all()
+    assert "OPENBLAS_NUM_THREADS" not in os.environ  # the parent's environment is restored
+    monkeypatch.setenv("OCPKIT_CPU_THREADS", "3")  # the user's own setting wins
+    df = run(Study("threads", thread_budget, grid(seeds=4)), tmp_path / "b", workers=4, progress=False)
+    assert (df["OPENBLAS_NUM_THREADS"] == "2").all() and (df["OCPKIT_CPU_THREADS"] == "3").all()
 
 
 def test_failures_are_recorded_and_the_study_goes_on(tmp_path, monkeypatch):

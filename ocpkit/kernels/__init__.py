@@ -2,5 +2,7 @@
 
 ``translate`` turns CasADi SX Functions into Taichi functions, ``rollout`` simulates candidate
 populations with them, ``random`` draws seeded counter-based numbers, ``runtime`` starts Taichi
-once per process, and ``bench`` times EMPC (``ocpkit bench empc``).
+once per process (its CPU backend uses ``OCPKIT_CPU_THREADS`` threads if set, else all cores).
 """
+
+CPU_THREADS = "OCPKIT_CPU_THREADS"

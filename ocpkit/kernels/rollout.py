@@ -18,6 +18,7 @@ import casadi as ca
 import numpy as np
 import taichi as ti
 
+from ocpkit._checks import choice
 from ocpkit.kernels import runtime
 from ocpkit.kernels.translate import translate
 
@@ -44,8 +45,7 @@ class Rollout:
                 or not 1 <= num_picked <= num_sims):
             raise ValueError(f"num_picked must be an integer in [1, num_sims={num_sims}], "
                              f"got {num_picked!r}")
-        if dynamics not in DYNAMICS:
-            raise ValueError(f"dynamics must be one of {DYNAMICS}, got {dynamics!r}")
+        choice(dynamics, DYNAMICS, "dynamics")
         self.ftype, self.ntype = runtime.float_types(precision)
         self.arch = runtime.init(arch)
         n, m = ocp.nx, ocp.nu

@@ -10,11 +10,15 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import os
 import sys
 
 import numpy as np
 import taichi as ti
 from taichi.lang import impl
+
+from .._checks import choice
+from . import CPU_THREADS
 
 ARCHS = ("auto", "cpu", "cuda")
 PRECISIONS = ("float64", "float32")
@@ -27,14 +31,14 @@ def init(arch: str = "auto") -> str:
     than the one already running raises ``RuntimeError``; asking for "cuda" where there is
     none raises ``RuntimeError`` too (the process is then left on the CPU).
     """
-    if arch not in ARCHS:
-        raise ValueError(f"arch must be one of {ARCHS}, got {arch!r}")
+    choice(arch, ARCHS, "arch")
     if impl.get_runtime().prog is None:
         use_cuda = arch == "cuda" or (arch == "auto" and _cuda_driver_present())
         # ti.init prints "[Taichi] Starting on arch=…" to stdout: keep stdout for results (--json).
         with contextlib.redirect_stdout(sys.stderr):
+            threads = {"cpu_max_num_threads": int(os.environ[CPU_THREADS])} if os.environ.get(CPU_THREADS) else {}
             ti.init(arch=ti.cuda if use_cuda else ti.cpu, default_fp=ti.f64,
-                    offline_cache=True, log_level=ti.WARN, unrolling_limit=0)
+                    offline_cache=True, log_level=ti.WARN, unrolling_limit=0, **threads)
     running = current_arch()
     if arch != "auto" and arch != running:
         raise RuntimeError(f"arch={arch!r} requested but Taichi already runs on {running!r} in "
