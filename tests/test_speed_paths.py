@@ -98,3 +98,16 @@ def test_hpipm_needs_sparse_traditional():
         LinearMPC(problem.ocp(knots=5), form="sparse", qp="hpipm")
     with pytest.raises(ValueError, match="hpipm"):
         LinearMPC(problem.ocp(), form="condensed", qp="hpipm")
+
+
+def test_bench_step_runs_every_solver_in_rounds():
+    from ocpkit.benchmarks.step import BASE, bench_step
+
+    lines = []
+    rows = bench_step(links=(1,), horizons=(10, 20), knots=3, steps=3, rounds=2, peers=False, out=lines.append)
+    assert {r["solver"] for r in rows} >= {BASE, "ocpkit sparse traditional hpipm", "ocpkit sparse traditional osqp"}
+    assert all(r["status"] == "success" and r["p25"] <= r["median"] <= r["p75"] for r in rows)
+    assert [r["ratio"] for r in rows if r["solver"] == BASE] == [1.0, 1.0]
+    parts = [r for r in rows if "flops" in r]  # both condensed variants report their parts
+    assert len(parts) == 4 and all(r["model"] + r["build"] + r["solve"] <= r["median"] * 1.5 for r in parts)
+    assert any("solve(T=20)/solve(T=10)" in line for line in lines)

@@ -2,8 +2,9 @@
 against the sparse traditional baselines (HPIPM, OSQP) and, when installed, the paper lab's affine_mpc.
 
 Every controller replays the same closed-loop state sequence (recorded once with ocpkit's condensed
-knots controller on the OCP's discrete model), interleaved step by step so all see the same machine load,
-each warm-starting from its own previous step as in a control loop. affine_mpc gets the identical affine
+knots controller on the OCP's discrete model) from a cold start, warm-starting from its own previous step
+as in a control loop. Each replay runs one controller alone, as a real loop would (its data stay in cache);
+``rounds`` rounds alternate the controllers in rotated order, so all see the same machine load. affine_mpc gets the identical affine
 model (A_d, B_d, w_d) ocpkit linearized at that state and is timed on its solve() alone.
 """
 from __future__ import annotations
@@ -16,7 +17,10 @@ from ocpkit.problems import make
 from ocpkit.solvers.qp import LinearMPC
 
 
-def bench_step(links=(1, 2, 4, 7, 10, 13), horizons=(50, 100), knots=5, steps=20, seed=0, peers=True,
+BASE = "ocpkit condensed knots proxqp"
+
+
+def bench_step(links=(1, 2, 4, 7, 10, 13), horizons=(50, 100), knots=5, steps=20, rounds=5, seed=0, peers=True,
                out=print) -> list[dict]:
     """Medians and spread (ms) of a whole step per configuration; ratios to ocpkit's condensed knots step."""
     rows = []
@@ -24,12 +28,12 @@ def bench_step(links=(1, 2, 4, 7, 10, 13), horizons=(50, 100), knots=5, steps=20
     for N in links:
         problem = make(f"nlink:{N}")
         for T in horizons:
-            rows += _one(problem, T, knots, steps, seed, peers)
+            rows += _one(problem, T, knots, steps, seed, peers, rounds)
     _print(rows, gemm, knots, out)
     return rows
 
 
-def _one(problem, T, p, steps, seed, peers):
+def _one(problem, T, p, steps, seed, peers, rounds):
     ocp_k, ocp_t = problem.ocp(horizon=T, knots=p), problem.ocp(horizon=T)
     x, goal = problem.sample(seed)
     F = ocp_k.discrete()
@@ -38,34 +42,38 @@ def _one(problem, T, p, steps, seed, peers):
     for _ in range(steps):  # the replayed closed loop
         xs.append(x)
         x = np.asarray(F(x, ref.solve(x, goal).u)).ravel()
+    models = [ref.affine_model(x, goal, "goal") for x in xs]  # what affine_mpc is given at each step
     ocp_c = problem.ocp(horizon=T, knots=p, compiled=True)  # the affine model as compiled C (ocpkit.compiled)
-    ctrls = {"ocpkit condensed knots proxqp": LinearMPC(ocp_k, form="condensed", qp="proxqp"),
+    ctrls = {BASE: LinearMPC(ocp_k, form="condensed", qp="proxqp"),
              "ocpkit condensed knots proxqp, compiled model": LinearMPC(ocp_c, form="condensed", qp="proxqp"),
              "ocpkit sparse traditional hpipm": LinearMPC(ocp_t, form="sparse", qp="hpipm"),
              "ocpkit sparse traditional osqp": LinearMPC(ocp_t, form="sparse", qp="osqp")}
-    peer = _peers(ocp_k, goal, ctrls["ocpkit condensed knots proxqp"].affine_model(xs[0], goal, "goal")) if peers else {}
+    peer = _peers(ocp_k, goal, models[0]) if peers else {}
     times = {name: [] for name in [*ctrls, *peer]}
-    parts = {"model": [], "build": [], "solve": []}
-    u0, agree, status = {}, {name: 0.0 for name in peer}, {name: set() for name in times}
-    for x in xs:
-        for name, ctrl in ctrls.items():
-            sol = ctrl.solve(x, goal)
-            times[name].append(sol.times["total"])
-            status[name].add(sol.status)
-            u0[name] = sol.u
-            if name.startswith("ocpkit condensed"):
-                for part in parts:
-                    parts[part].append(sol.times[part])
-        model = ctrls["ocpkit condensed knots proxqp"].affine_model(x, goal, "goal")
-        for name, mpc in peer.items():
-            mpc.setModelDiscrete(np.asfortranarray(model[0]), np.asfortranarray(model[1]), model[2])
-            t0 = time.perf_counter()
-            st = mpc.solve(x)
-            times[name].append(time.perf_counter() - t0)
-            status[name].add(str(st).rsplit(".", 1)[-1])
-            agree[name] = max(agree[name], float(np.abs(mpc.getNextInput() - u0["ocpkit condensed knots proxqp"]).max()))
-    tr = ctrls["ocpkit condensed knots proxqp"].transcription
-    base = float(np.median(times["ocpkit condensed knots proxqp"]))
+    parts = {name: {"model": [], "build": [], "solve": []} for name in ctrls if name.startswith("ocpkit condensed")}
+    u0 = [None] * steps
+    agree, status = {name: 0.0 for name in peer}, {name: set() for name in times}
+    for r in range(rounds):
+        for name, ctrl in _rotated(ctrls, r):
+            ctrl.reset()
+            for k, x in enumerate(xs):
+                sol = ctrl.solve(x, goal)
+                times[name].append(sol.times["total"])
+                status[name].add(sol.status)
+                if name == BASE:
+                    u0[k] = sol.u
+                for part, values in parts.get(name, {}).items():
+                    values.append(sol.times[part])
+        for name, mpc in _rotated(peer, r):
+            for k, (x, model) in enumerate(zip(xs, models)):
+                mpc.setModelDiscrete(np.asfortranarray(model[0]), np.asfortranarray(model[1]), model[2])
+                t0 = time.perf_counter()
+                st = mpc.solve(x)
+                times[name].append(time.perf_counter() - t0)
+                status[name].add(str(st).rsplit(".", 1)[-1])
+                agree[name] = max(agree[name], float(np.abs(mpc.getNextInput() - u0[k]).max()))
+    flops = _build_flops(ctrls[BASE].transcription)
+    base = float(np.median(times[BASE]))
     out = []
     for name, t in times.items():
         t = np.asarray(t)
@@ -73,10 +81,16 @@ def _one(problem, T, p, steps, seed, peers):
                "p25": float(np.percentile(t, 25)), "p75": float(np.percentile(t, 75)),
                "ratio": float(np.median(t)) / base, "status": ",".join(sorted(status[name])),
                "u0_diff": agree.get(name)}
-        if name.startswith("ocpkit condensed"):
-            row.update({part: float(np.median(v)) for part, v in parts.items()}, flops=_build_flops(tr))
+        if name in parts:
+            row.update({part: float(np.median(v)) for part, v in parts[name].items()}, flops=flops)
         out.append(row)
     return out
+
+
+def _rotated(items: dict, r: int) -> list:
+    """The (name, item) pairs starting at the r-th: each round times the controllers in another order."""
+    pairs = list(items.items())
+    return pairs[r % len(pairs):] + pairs[:r % len(pairs)] if pairs else []
 
 
 def _peers(ocp, goal, model) -> dict:
@@ -145,13 +159,13 @@ def _print(rows, gemm, knots, out):
         u0 = "" if r["u0_diff"] is None else f"{r['u0_diff']:9.1e}"
         out(f"{r['problem']:10} {r['horizon']:>4} {r['solver']:46} {1e3 * r['median']:9.3f} {1e3 * r['p25']:9.3f} "
             f"{1e3 * r['p75']:9.3f} {r['ratio']:8.2f} {u0:>9}  {r['status']}")
-    out("ocpkit condensed knots, medians (ms) of the parts and the build's rate:")
-    base = {(r["problem"], r["horizon"]): r for r in rows if "flops" in r}
-    for (name, T), r in base.items():
+    out("ocpkit condensed knots, medians (ms) of the parts and the build's rate (c: compiled model):")
+    parts = {(r["problem"], r["horizon"], r["solver"]): r for r in rows if "flops" in r}
+    for (name, T, solver), r in parts.items():
         gf = r["flops"] / r["build"] / 1e9
-        ratio = ""
-        if T != min(t for (nm, t) in base if nm == name):
-            ratio = f"  solve(T={T})/solve(T={min(t for (nm, t) in base if nm == name)}) = " \
-                    f"{r['solve'] / base[(name, min(t for (nm, t) in base if nm == name))]['solve']:.2f}"
-        out(f"  {name:10} T={T:<4} model {1e3 * r['model']:.3f}  build {1e3 * r['build']:.3f} "
-            f"({r['flops'] / 1e6:.2f} MFLOP, {gf:.1f} GFLOP/s = {100 * gf / gemm:.0f}% of GEMM)  solve {1e3 * r['solve']:.3f}{ratio}")
+        shortest = min(t for (nm, t, sv) in parts if nm == name and sv == solver)
+        ratio = "" if T == shortest else \
+            f"  solve(T={T})/solve(T={shortest}) = {r['solve'] / parts[(name, shortest, solver)]['solve']:.2f}"
+        out(f"  {name:10} T={T:<4}{' c' if solver != BASE else '  '} model {1e3 * r['model']:.3f}  "
+            f"build {1e3 * r['build']:.3f} ({r['flops'] / 1e6:.2f} MFLOP, {gf:.1f} GFLOP/s = "
+            f"{100 * gf / gemm:.0f}% of GEMM)  solve {1e3 * r['solve']:.3f}{ratio}")
