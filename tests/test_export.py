@@ -79,17 +79,9 @@ def test_failure_returns_the_controller_fallback(bounded_pendulum):
     assert c.solve([0.0, 0.0], goal).ok  # recovers, starting cold
 
 
-def test_nlink3_matches_linear_mpc(tmp_path):
-    problem = _problem("nlink:3")
-    ocp = problem.ocp(knots=5, horizon=50)
-    out = export(ocp, tmp_path, qp="daqp", linearization="goal")
-    build(out.out_dir)
-    _compare(problem, ocp, ExportedMPC(ocp, out.out_dir), "goal", seeds=range(3), steps=10)
-
-
-@pytest.mark.slow
-def test_nlink7_matches_linear_mpc(tmp_path):
-    problem = _problem("nlink:7")
+@pytest.mark.parametrize("name", ["nlink:3", pytest.param("nlink:7", marks=pytest.mark.slow)])
+def test_nlink_matches_linear_mpc(name, tmp_path):
+    problem = _problem(name)
     ocp = problem.ocp(knots=5, horizon=50)
     out = export(ocp, tmp_path, qp="daqp", linearization="goal")
     build(out.out_dir)
