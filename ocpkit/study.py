@@ -182,10 +182,8 @@ def _run_local(fn, pending: list[dict], workers: int):
     At most ``workers`` trials are in flight, so when a worker dies the culprit is among them:
     alone, it is stored as failed; otherwise they all become suspects and rerun one at a time.
     """
-    queue, suspects = deque(pending), deque()
-    context = multiprocessing.get_context("spawn")  # fork is unsafe with Taichi/CUDA threads
     with _thread_budget(max(1, (os.cpu_count() or 1) // workers)):
-        yield from _run_pool(fn, queue, suspects, workers, context)
+        yield from _run_pool(fn, pending, workers)
 
 
 @contextlib.contextmanager
@@ -205,7 +203,9 @@ def _thread_budget(threads: int):
                 os.environ.pop(name, None)
 
 
-def _run_pool(fn, queue: deque, suspects: deque, workers: int, context):
+def _run_pool(fn, pending: list[dict], workers: int):
+    queue, suspects = deque(pending), deque()
+    context = multiprocessing.get_context("spawn")  # fork is unsafe with Taichi/CUDA threads
     while queue or suspects:
         pool = ProcessPoolExecutor(workers, mp_context=context, initializer=_worker_init, initargs=(os.getpid(),))
         running = {}

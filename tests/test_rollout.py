@@ -113,3 +113,12 @@ def test_bad_arguments():
         engine.evaluate(np.zeros((4, 2, 1)))
     with pytest.raises(ValueError, match="x0"):
         engine.set_state(np.zeros(3), np.zeros(2))
+
+
+def test_cpu_thread_setting_is_checked(monkeypatch):
+    monkeypatch.setenv("OCPKIT_CPU_THREADS", "3")
+    assert runtime._cpu_threads() == 3
+    for bad in ("0", "two", "-1"):
+        monkeypatch.setenv("OCPKIT_CPU_THREADS", bad)
+        with pytest.raises(ValueError, match="OCPKIT_CPU_THREADS must be a positive integer"):
+            runtime._cpu_threads()

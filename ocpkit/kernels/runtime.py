@@ -36,7 +36,7 @@ def init(arch: str = "auto") -> str:
         use_cuda = arch == "cuda" or (arch == "auto" and _cuda_driver_present())
         # ti.init prints "[Taichi] Starting on arch=…" to stdout: keep stdout for results (--json).
         with contextlib.redirect_stdout(sys.stderr):
-            threads = {"cpu_max_num_threads": int(os.environ[CPU_THREADS])} if os.environ.get(CPU_THREADS) else {}
+            threads = {"cpu_max_num_threads": _cpu_threads()} if os.environ.get(CPU_THREADS) else {}
             ti.init(arch=ti.cuda if use_cuda else ti.cpu, default_fp=ti.f64,
                     offline_cache=True, log_level=ti.WARN, unrolling_limit=0, **threads)
     running = current_arch()
@@ -44,6 +44,14 @@ def init(arch: str = "auto") -> str:
         raise RuntimeError(f"arch={arch!r} requested but Taichi already runs on {running!r} in "
                            f"this process (it can be started only once)")
     return running
+
+
+def _cpu_threads() -> int:
+    """The thread count set in the environment variable OCPKIT_CPU_THREADS."""
+    value = os.environ[CPU_THREADS]
+    if not value.isdigit() or int(value) < 1:
+        raise ValueError(f"environment variable {CPU_THREADS} must be a positive integer, got {value!r}")
+    return int(value)
 
 
 def _cuda_driver_present() -> bool:
