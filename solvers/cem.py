@@ -47,8 +47,7 @@ class CrossEntropyMPC(GaussianSampling):
     def _generation(self, cold):
         self._sample(self.mean, self.std)
         idx, cost = self._ranked(self.num_elites)
-        self.engine.pick(idx)
-        elites = self.engine.picked.to_numpy().astype(np.float64)
+        elites = self.engine.pick(idx)
         a = self.smoothing
         self.mean = a * self.mean + (1 - a) * elites.mean(axis=0)
         self.std = np.maximum(a * self.std + (1 - a) * elites.std(axis=0), self.sigma_min)

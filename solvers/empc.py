@@ -44,7 +44,8 @@ class EvolutionaryMPC(SamplingMPC):
                 and (self.sigma_min <= self.sigma).all()):
             raise ValueError(f"sigma_min must be finite with 0 <= sigma_min <= sigma "
                              f"({self.sigma.tolist()}), got {self.sigma_min.tolist()}")
-        self._sigma = ti.field(self.engine.ftype, shape=ocp.nu)
+        self._sigma = ti.field(self.engine.ftype, shape=(2, ocp.nu))  # σ and σ_min
+        self._sigma.from_numpy(np.stack([self.sigma, self.sigma_min]).astype(self.engine.ntype))
         self._generation_kernel = self._build_kernel()
 
     def _build_kernel(self):
@@ -53,12 +54,27 @@ class EvolutionaryMPC(SamplingMPC):
         N, p, m, k = eng.num_sims, eng.num_knots, eng.nu, self.num_parents
         knots, parents, rollout = eng.knots, eng.picked, eng.rollout
         lo, hi, sigma = self._u_min, self._u_max, self._sigma
+        S = self._shift.tolist()
         # Random slots per candidate: parents, then a mutation flag per input, then a
         # crossover coin and a noise draw per parameter.
         MUTATE, CROSS, NOISE = 2, 2 + m, 2 + m + p * m
 
+        @ti.func
+        def parent(r, j: ti.template(), a: ti.template(), shift):
+            """Knot j, input a of parent r; with ``shift``, of the parent advanced one control
+            step (U⁺ = S U, clipped): the warm start from the previous step's parents."""
+            v = parents[r, j, a]
+            if shift:
+                v = ti.cast(0.0, F)
+                for l in ti.static(range(p)):
+                    if ti.static(S[j][l] != 0.0):
+                        v += S[j][l] * parents[r, l, a]
+                v = ti.min(ti.max(v, lo[a]), hi[a])
+            return v
+
         @ti.kernel
-        def generation(key: ti.u32, counter: ti.u32, cold: ti.i32):
+        def generation(key: ti.u32, counter: ti.u32, cold: ti.i32, shift: ti.i32, scale: F,
+                       out: ti.types.ndarray()):
             for i in range(N):
                 if cold:
                     for j, a in ti.static(ti.ndrange(p, m)):
@@ -66,43 +82,41 @@ class EvolutionaryMPC(SamplingMPC):
                         knots[i, j, a] = lo[a] + (hi[a] - lo[a]) * r
                 elif i < k:
                     for j, a in ti.static(ti.ndrange(p, m)):
-                        knots[i, j, a] = parents[i, j, a]
+                        knots[i, j, a] = parent(i, j, a, shift)
                 else:
                     p1 = ti.min(ti.cast(uniform(key, counter, i, 0) * k, ti.i32), k - 1)
                     p2 = ti.min(ti.cast(uniform(key, counter, i, 1) * k, ti.i32), k - 1)
                     for a in ti.static(range(m)):
                         mutate = uniform(key, counter, i, MUTATE + a) < 0.5
+                        noise = sigma[1, a] + (sigma[0, a] - sigma[1, a]) * scale
                         for j in ti.static(range(p)):
                             slot = j * m + a
-                            v = parents[p1, j, a]
+                            v = parent(p1, j, a, shift)
                             if uniform(key, counter, i, CROSS + slot) < 0.5:
-                                v = parents[p2, j, a]
+                                v = parent(p2, j, a, shift)
                             if mutate:
-                                v += sigma[a] * ti.cast(normal(key, counter, i, NOISE + slot), F)
+                                v += noise * ti.cast(normal(key, counter, i, NOISE + slot), F)
                             knots[i, j, a] = ti.min(ti.max(v, lo[a]), hi[a])
-                rollout(i)
+                out[i] = rollout(i)
 
         return generation
 
     def _start(self, x, goal, cold):
-        scale = 1.0
+        self._scale = 1.0  # σ_eff = σ_min + (σ − σ_min)·scale
         if self.shrink_distance is not None:
-            scale = min(1.0, float(np.linalg.norm(x - goal)) / self.shrink_distance)
-        sigma = self.sigma_min + (self.sigma - self.sigma_min) * scale
-        self._sigma.from_numpy(sigma.astype(self.engine.ntype))
-        if not cold:
-            parents = self.engine.picked
-            parents.from_numpy(self._shifted(parents.to_numpy().astype(np.float64))
-                               .astype(self.engine.ntype))
+            self._scale = min(1.0, float(np.linalg.norm(x - goal)) / self.shrink_distance)
+        self._shift_parents = not cold  # the first generation breeds from the shifted parents
 
     def _generation(self, cold):
-        self._generation_kernel(self.key, self.counter & 0xFFFFFFFF, int(cold))
+        self._generation_kernel(self.key, self.counter & 0xFFFFFFFF, int(cold), int(self._shift_parents),
+                                self._scale, self._cost)
+        self._shift_parents = False
         idx, cost = self._ranked(self.num_parents)
-        self.engine.pick(idx)
+        self._best = self.engine.pick(idx)[0]
         return float(cost[0])
 
     def _result(self):
-        return self.engine.picked.to_numpy()[0].astype(np.float64)
+        return self._best
 
 
 SOLVERS = {"empc": EvolutionaryMPC}

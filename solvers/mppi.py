@@ -25,16 +25,14 @@ class MPPI(GaussianSampling):
         eng = self.engine
         N, p, m = eng.num_sims, eng.num_knots, eng.nu
         knots = eng.knots
-        weights = self._weights = ti.field(eng.ftype, shape=N)
-        average = self._average = ti.field(eng.ftype, shape=(p, m))
 
         @ti.kernel
-        def weighted_average():
+        def weighted_average(weights: ti.types.ndarray(), out: ti.types.ndarray()):
             for j, a in ti.ndrange(p, m):
                 s = ti.cast(0.0, eng.ftype)
                 for i in range(N):
-                    s += weights[i] * knots[i, j, a]
-                average[j, a] = s
+                    s += ti.cast(weights[i], eng.ftype) * knots[i, j, a]
+                out[j, a] = s
 
         self._weighted_average = weighted_average
 
@@ -48,14 +46,13 @@ class MPPI(GaussianSampling):
 
     def _generation(self, cold):
         self._sample(self.nominal, self.std)
-        cost = np.nan_to_num(self.engine.cost.to_numpy().astype(np.float64), nan=np.inf)
+        cost = np.nan_to_num(self._cost.astype(np.float64), nan=np.inf)
         best = cost.min()
         if not np.isfinite(best):
             return best
         w = np.exp(-(cost - best) / self.temperature)
-        self._weights.from_numpy((w / w.sum()).astype(self.engine.ntype))
-        self._weighted_average()
-        self.nominal = self._average.to_numpy().astype(np.float64)
+        self.nominal = np.empty((self.ocp.knots, self.ocp.nu))
+        self._weighted_average(w / w.sum(), self.nominal)
         return float(best)
 
     def _result(self):

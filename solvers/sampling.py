@@ -61,6 +61,7 @@ class SamplingMPC(Controller):
         self._u_min.from_numpy(ocp.u_min.astype(self.engine.ntype))
         self._u_max.from_numpy(ocp.u_max.astype(self.engine.ntype))
         self._affine = dynamics == "affine"
+        self._cost = np.empty(self.population, dtype=self.engine.ntype)  # the last generation's costs
         p = ocp.knots
         # The warm start's time shift is linear in the knots: U⁺ = S U.
         self._shift = ocp.parameterization.shift(np.eye(p))
@@ -87,9 +88,7 @@ class SamplingMPC(Controller):
             times["model"] = time.perf_counter() - start
         start = time.perf_counter()
         try:
-            self.engine.set_state(x, goal)
-            if self._affine:
-                self.engine.set_affine(*model)
+            self.engine.load(x, goal, model if self._affine else None)
             cold = not self._warm
             self._start(x, goal, cold)
             best, done = np.inf, 0
@@ -126,11 +125,10 @@ class SamplingMPC(Controller):
         return np.clip(np.einsum("jl,...la->...ja", self._shift, knots), self.ocp.u_min, self.ocp.u_max)
 
     def _ranked(self, count: int) -> tuple[np.ndarray, np.ndarray]:
-        """Indices and costs of the ``count`` cheapest candidates, best first (NaN counts as +inf).
-
-        Ties keep candidate order, so the selection is deterministic.
+        """Indices and costs of the ``count`` cheapest candidates of the last generation, best
+        first (NaN counts as +inf). Ties keep candidate order, so the selection is deterministic.
         """
-        cost = np.nan_to_num(self.engine.cost.to_numpy().astype(np.float64), nan=np.inf)
+        cost = np.nan_to_num(self._cost.astype(np.float64), nan=np.inf)
         idx = np.argpartition(cost, count - 1)[:count] if count < cost.size else np.arange(cost.size)
         idx = idx[np.lexsort((idx, cost[idx]))]
         return idx, cost[idx]
@@ -158,23 +156,20 @@ class GaussianSampling(SamplingMPC):
         F = eng.ftype
         N, p, m = eng.num_sims, eng.num_knots, eng.nu
         knots, rollout, lo, hi = eng.knots, eng.rollout, self._u_min, self._u_max
-        mean = self._mean = ti.field(F, shape=(p, m))
-        std = self._std = ti.field(F, shape=(p, m))
 
         @ti.kernel
-        def generation(key: ti.u32, counter: ti.u32):
+        def generation(key: ti.u32, counter: ti.u32, distribution: ti.types.ndarray(), out: ti.types.ndarray()):
             for i in range(N):
                 for j, a in ti.static(ti.ndrange(p, m)):
-                    v = mean[j, a]
+                    v = ti.cast(distribution[0, j, a], F)
                     if i > 0:
-                        v += std[j, a] * ti.cast(normal(key, counter, i, j * m + a), F)
+                        v += ti.cast(distribution[1, j, a], F) * ti.cast(normal(key, counter, i, j * m + a), F)
                     knots[i, j, a] = ti.min(ti.max(v, lo[a]), hi[a])
-                rollout(i)
+                out[i] = rollout(i)
 
         self._gaussian_kernel = generation
 
     def _sample(self, mean: np.ndarray, std: np.ndarray) -> None:
-        """Copy the distribution to the device and roll out one population drawn from it."""
-        self._mean.from_numpy(mean.astype(self.engine.ntype))
-        self._std.from_numpy(std.astype(self.engine.ntype))
-        self._gaussian_kernel(self.key, self.counter & 0xFFFFFFFF)
+        """Roll out one population drawn from N(mean, std²) (one call: the distribution goes in,
+        the costs come back in ``self._cost``)."""
+        self._gaussian_kernel(self.key, self.counter & 0xFFFFFFFF, np.stack([mean, std]), self._cost)

@@ -20,3 +20,15 @@ def random_lti(seed: int, n: int = 4, m: int = 2) -> Model:
 @pytest.fixture
 def lti():
     return random_lti
+
+
+def pytest_addoption(parser):
+    parser.addoption("--arch", default="cpu", choices=("cpu", "cuda"),
+                     help="Taichi arch of the rollout, translation and EMPC tests (default cpu)")
+
+
+@pytest.fixture(scope="session")
+def taichi_arch(request):
+    """Start Taichi on the arch given by `pytest --arch` (the process keeps it)."""
+    from ocpkit.kernels import runtime
+    return runtime.init(request.config.getoption("arch"))

@@ -1,11 +1,10 @@
-"""EvolutionaryMPC (Algorithm 1) and its siblings CEM and MPPI in closed loop, on the CPU arch."""
+"""EvolutionaryMPC (Algorithm 1) and its siblings CEM and MPPI in closed loop, on the arch of `pytest --arch` (default cpu)."""
 import casadi as ca
 import numpy as np
 import pytest
 
 from ocpkit import problems
 from ocpkit.controller import NAN, SUCCESS
-from ocpkit.kernels import runtime
 from ocpkit.metrics import actual_cost
 from ocpkit.simulate import simulate
 from ocpkit.solvers.cem import CrossEntropyMPC
@@ -13,16 +12,14 @@ from ocpkit.solvers.empc import EvolutionaryMPC
 from ocpkit.solvers.mppi import MPPI
 
 
-@pytest.fixture(scope="module", autouse=True)
-def cpu():
-    runtime.init("cpu")
+pytestmark = pytest.mark.usefixtures("taichi_arch")
 
 
 def test_linear_pendulum_reaches_goal():
     problem = problems.make("pendulum:linear")
     ocp = problem.ocp(knots=3)
     x0, goal = problem.sample(0)
-    ctrl = EvolutionaryMPC(ocp, population=256, arch="cpu", seed=0)
+    ctrl = EvolutionaryMPC(ocp, population=256, seed=0)
     traj = simulate(problem.plant(), ctrl, x0, goal, 2.0)
     assert traj.fallbacks == 0 and set(traj.statuses) == {SUCCESS}
     np.testing.assert_allclose(traj.x[-1], goal, atol=0.02)
@@ -37,7 +34,7 @@ def test_nlink2_reaches_goal_and_generations_help():
     costs = {}
     for generations in (1, 3):
         ctrl = EvolutionaryMPC(ocp, population=256, generations=generations, shrink_distance=1.0,
-                               sigma_min=0.01, arch="cpu", seed=0)
+                               sigma_min=0.01, seed=0)
         costs[generations] = []
         for trial in range(3):
             x0, goal = problem.sample(trial)
@@ -55,13 +52,13 @@ def test_same_seed_same_run():
     x0, goal = problem.sample(1)
     runs = []
     for seed in (5, 5, 6):
-        ctrl = EvolutionaryMPC(ocp, population=128, generations=2, arch="cpu", seed=seed)
+        ctrl = EvolutionaryMPC(ocp, population=128, generations=2, seed=seed)
         runs.append(simulate(problem.plant(), ctrl, x0, goal, 0.3))
     np.testing.assert_array_equal(runs[0].u, runs[1].u)
     np.testing.assert_array_equal(runs[0].x, runs[1].x)
     assert not np.array_equal(runs[0].u, runs[2].u)
     # reset() restarts the random stream: the same controller repeats itself too.
-    ctrl = EvolutionaryMPC(ocp, population=128, generations=2, arch="cpu", seed=5)
+    ctrl = EvolutionaryMPC(ocp, population=128, generations=2, seed=5)
     first = [ctrl.solve(x0, goal).u for _ in range(3)]
     ctrl.reset()
     np.testing.assert_array_equal(first, [ctrl.solve(x0, goal).u for _ in range(3)])
@@ -77,10 +74,10 @@ def test_non_smooth_cost_dead_zone_and_speed_penalty():
     too_fast = ca.if_else(ca.fabs(x[1]) > 2.0, 1e3, 0.0)
     stage = ca.Function("l", [x, u, g], [angle + too_fast + 0.01 * u ** 2])
     terminal = ca.Function("l_T", [x, g], [angle + too_fast])
-    plain = simulate(problem.plant(), EvolutionaryMPC(ocp, population=256, generations=2, arch="cpu"),
+    plain = simulate(problem.plant(), EvolutionaryMPC(ocp, population=256, generations=2),
                      x0, goal, 2.0)
     shaped = simulate(problem.plant(), EvolutionaryMPC(ocp, population=256, generations=2, stage_cost=stage,
-                                                       terminal_cost=terminal, arch="cpu"), x0, goal, 2.0)
+                                                       terminal_cost=terminal), x0, goal, 2.0)
     assert np.abs(plain.x[:, 1]).max() > 3.0  # the quadratic cost alone moves faster
     assert np.abs(shaped.x[:, 1]).max() <= 2.0
     assert abs(shaped.x[-1, 0] - goal[0]) < 0.05
@@ -90,7 +87,7 @@ def test_nonlinear_dynamics_mode():
     problem = problems.make("pendulum")
     ocp = problem.ocp(knots=3)
     x0, goal = problem.sample(2)
-    ctrl = EvolutionaryMPC(ocp, population=256, generations=2, dynamics="nonlinear", arch="cpu")
+    ctrl = EvolutionaryMPC(ocp, population=256, generations=2, dynamics="nonlinear")
     traj = simulate(problem.plant(), ctrl, x0, goal, 2.0)
     np.testing.assert_allclose(traj.x[-1], goal, atol=0.02)
     assert traj.solutions[0].times["model"] == 0.0
@@ -102,7 +99,7 @@ def test_cem_and_mppi_reach_goal(cls, options):
     problem = problems.make("pendulum:linear")
     ocp = problem.ocp(knots=3)
     x0, goal = problem.sample(0)
-    traj = simulate(problem.plant(), cls(ocp, population=256, arch="cpu", seed=0, **options), x0, goal, 2.0)
+    traj = simulate(problem.plant(), cls(ocp, population=256, seed=0, **options), x0, goal, 2.0)
     assert traj.fallbacks == 0
     np.testing.assert_allclose(traj.x[-1], goal, atol=0.05)
 
@@ -111,7 +108,7 @@ def test_nan_cost_falls_back():
     ocp = problems.make("pendulum:linear").ocp(knots=3)
     x, u, g = ca.SX.sym("x", 2), ca.SX.sym("u"), ca.SX.sym("x_goal", 2)
     broken = ca.Function("l", [x, u, g], [ca.sqrt(-1 - ca.sumsqr(x))])
-    ctrl = EvolutionaryMPC(ocp, population=16, num_parents=4, stage_cost=broken, arch="cpu")
+    ctrl = EvolutionaryMPC(ocp, population=16, num_parents=4, stage_cost=broken)
     sol = ctrl.solve(np.zeros(2), np.ones(2))
     assert sol.status == NAN and sol.fallback and np.isfinite(sol.u).all()
 

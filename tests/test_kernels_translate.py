@@ -4,13 +4,10 @@ import numpy as np
 import pytest
 
 from ocpkit import problems
-from ocpkit.kernels import runtime
 from ocpkit.kernels.translate import SUPPORTED_OPERATIONS, translate
 
 
-@pytest.fixture(scope="module", autouse=True)
-def cpu():
-    runtime.init("cpu")
+pytestmark = pytest.mark.usefixtures("taichi_arch")
 
 
 def _random_inputs(function, seed, batch=16, scale=1.0):

@@ -8,9 +8,7 @@ from ocpkit.kernels import runtime
 from ocpkit.kernels.rollout import Rollout
 
 
-@pytest.fixture(scope="module", autouse=True)
-def cpu():
-    runtime.init("cpu")
+pytestmark = pytest.mark.usefixtures("taichi_arch")
 
 
 def reference_costs(ocp, knots, x0, goal, step, stage=None, terminal=None):
@@ -40,9 +38,8 @@ def _setup(name, population, seed, knots=3, horizon=None):
 def test_affine_rollout_matches_numpy(name):
     ocp, x0, goal, U = _setup(name, 32, seed=0)
     Ad, Bd, wd = (np.asarray(M, dtype=float) for M in ocp.affine()(x0, np.zeros(ocp.nu)))
-    engine = Rollout(ocp, 32, arch="cpu")
-    engine.set_state(x0, goal)
-    engine.set_affine(Ad, Bd, wd.ravel())
+    engine = Rollout(ocp, 32)
+    engine.load(x0, goal, (Ad, Bd, wd.ravel()))
     expected = reference_costs(ocp, U, x0, goal, lambda x, u: Ad @ x + Bd @ u + wd.ravel())
     np.testing.assert_allclose(engine.evaluate(U), expected, rtol=1e-10)
 
@@ -55,8 +52,8 @@ def test_nonlinear_rollout_matches_casadi_loop(name, parameterization):
     x0, goal = problem.sample(1)
     U = rng.uniform(ocp.u_min, ocp.u_max, size=(16, ocp.knots, ocp.nu))
     F = ocp.discrete()
-    engine = Rollout(ocp, 16, dynamics="nonlinear", arch="cpu")
-    engine.set_state(x0, goal)
+    engine = Rollout(ocp, 16, dynamics="nonlinear")
+    engine.load(x0, goal)
     expected = reference_costs(ocp, U, x0, goal, lambda x, u: np.asarray(F(x, u)).ravel())
     np.testing.assert_allclose(engine.evaluate(U), expected, rtol=1e-10)
 
@@ -68,8 +65,8 @@ def test_non_smooth_cost_rollout():
                                          + ca.if_else(ca.fabs(x[1]) > 1.0, 100.0, 0.0) + 0.01 * u ** 2])
     terminal = ca.Function("lT", [x, g], [ca.norm_1(x - g)])
     F = ocp.discrete()
-    engine = Rollout(ocp, 24, dynamics="nonlinear", stage_cost=stage, terminal_cost=terminal, arch="cpu")
-    engine.set_state(x0, goal)
+    engine = Rollout(ocp, 24, dynamics="nonlinear", stage_cost=stage, terminal_cost=terminal)
+    engine.load(x0, goal)
     expected = reference_costs(ocp, U, x0, goal, lambda x, u: np.asarray(F(x, u)).ravel(), stage, terminal)
     np.testing.assert_allclose(engine.evaluate(U), expected, rtol=1e-10)
 
@@ -77,17 +74,17 @@ def test_non_smooth_cost_rollout():
 def test_float32_rollout_is_close():
     ocp, x0, goal, U = _setup("pendulum", 8, seed=3)
     F = ocp.discrete()
-    engine = Rollout(ocp, 8, dynamics="nonlinear", precision="float32", arch="cpu")
-    engine.set_state(x0, goal)
+    engine = Rollout(ocp, 8, dynamics="nonlinear", precision="float32")
+    engine.load(x0, goal)
     expected = reference_costs(ocp, U, x0, goal, lambda x, u: np.asarray(F(x, u)).ravel())
     np.testing.assert_allclose(engine.evaluate(U), expected, rtol=1e-4)
 
 
 def test_pick_gathers_candidates():
     ocp, x0, goal, U = _setup("pendulum:linear", 10, seed=4)
-    engine = Rollout(ocp, 10, num_picked=3, arch="cpu")
+    engine = Rollout(ocp, 10, num_picked=3)
     engine.knots.from_numpy(U)
-    engine.pick([7, 2])
+    np.testing.assert_array_equal(engine.pick([7, 2]), U[[7, 2]])
     np.testing.assert_array_equal(engine.picked.to_numpy()[:2], U[[7, 2]])
     with pytest.raises(ValueError, match="indices"):
         engine.pick([10])
@@ -107,12 +104,14 @@ def test_bad_arguments():
     with pytest.raises(ValueError, match="precision"):
         Rollout(ocp, 4, precision="half")
     engine = Rollout(ocp, 4, dynamics="nonlinear")
-    with pytest.raises(ValueError, match="set_affine"):
-        engine.set_affine(np.eye(2), np.ones((2, 1)), np.zeros(2))
+    with pytest.raises(ValueError, match="affine"):
+        engine.load(np.zeros(2), np.zeros(2), (np.eye(2), np.ones((2, 1)), np.zeros(2)))
+    with pytest.raises(ValueError, match="affine"):
+        Rollout(ocp, 4).load(np.zeros(2), np.zeros(2))
     with pytest.raises(ValueError, match="knots"):
         engine.evaluate(np.zeros((4, 2, 1)))
     with pytest.raises(ValueError, match="x0"):
-        engine.set_state(np.zeros(3), np.zeros(2))
+        engine.load(np.zeros(3), np.zeros(2))
 
 
 def test_cpu_thread_setting_is_checked(monkeypatch):

@@ -29,11 +29,16 @@ class Rollout:
     """Rollout engine for ``num_sims`` candidates of ``ocp`` on the Taichi runtime.
 
     ``knots`` (num_sims, p, m) and ``cost`` (num_sims,) are device fields; ``rollout(i)`` is
-    a ``@ti.func`` that simulates candidate i and writes ``cost[i]``, for solver kernels
-    that generate candidates and roll them out in one launch; ``picked`` (num_picked, p, m)
-    receives the candidates chosen by :meth:`pick` (parents, elites). ``stage_cost``
-    (x, u, x_goal) -> scalar and ``terminal_cost`` (x, x_goal) -> scalar default to the
-    OCP's quadratic ones.
+    a ``@ti.func`` that simulates candidate i, writes ``cost[i]`` and returns it, for solver
+    kernels that generate candidates and roll them out in one launch; ``picked``
+    (num_picked, p, m) receives the candidates chosen by :meth:`pick` (parents, elites).
+    ``stage_cost`` (x, u, x_goal) -> scalar and ``terminal_cost`` (x, x_goal) -> scalar default
+    to the OCP's quadratic ones.
+
+    Each Taichi call that moves an array costs tens of microseconds of launch overhead, more
+    than a small population's rollouts, so a control step moves its data in as few calls as
+    possible: :meth:`load` sends x_0, the goal and the affine model in one, solver kernels
+    return the costs through an output array, :meth:`pick` returns what it gathered.
     """
 
     def __init__(self, ocp, num_sims: int, *, num_picked: int = 1, dynamics: str = "affine",
@@ -64,7 +69,6 @@ class Rollout:
         self.knots = ti.field(F, shape=(num_sims, p, m))
         self.cost = ti.field(F, shape=num_sims)
         self.picked = ti.field(F, shape=(num_picked, p, m))
-        self._index = ti.field(ti.i32, shape=num_picked)
         self._basis = ti.field(F, shape=(T, p))
         self._basis.from_numpy(basis.astype(self.ntype))
         self._x0 = ti.field(F, shape=n)
@@ -75,20 +79,36 @@ class Rollout:
             self._w = ti.field(F, shape=n)
             A, B, w = self._A, self._B, self._w
 
-            # Rows unrolled, columns looped: a full unroll runs ~20% faster on the CPU but
-            # takes ~20 s to compile for nlink:13 instead of ~1 s.
+            # Both forms unroll the rows and loop over the columns (a full unroll compiles for
+            # ~20 s at nlink:13 instead of ~1 s). On the CPU, one dot product per row (measured
+            # faster: its n accumulators would not fit in registers). On CUDA, the column loop
+            # outside: each column's n multiply-adds are independent, so a thread issues them back
+            # to back instead of waiting on one row's running sum (measured ~Nx).
+            column_outer = self.arch == "cuda"
+
             @ti.func
             def step(x, u):
-                xn = ti.Vector.zero(F, n)
-                for r in ti.static(range(n)):
-                    s = w[r]
+                xn = ti.Vector([w[r] for r in ti.static(range(n))], dt=F)
+                if ti.static(column_outer):
                     for c in range(n):
-                        s += A[r, c] * x[c]
+                        xc = x[c]
+                        for r in ti.static(range(n)):
+                            xn[r] += A[r, c] * xc
                     for c in range(m):
-                        s += B[r, c] * u[c]
-                    xn[r] = s
+                        uc = u[c]
+                        for r in ti.static(range(n)):
+                            xn[r] += B[r, c] * uc
+                else:
+                    for r in ti.static(range(n)):
+                        s = xn[r]
+                        for c in range(n):
+                            s += A[r, c] * x[c]
+                        for c in range(m):
+                            s += B[r, c] * u[c]
+                        xn[r] = s
                 return xn
         else:
+            A = B = w = None
             discrete = ocp.discrete()
             _check_signature("ocp.discrete()", discrete, [(n, 1), (m, 1)], [(n, 1)])
             step = translate(discrete, precision=precision).func
@@ -99,47 +119,70 @@ class Rollout:
         def rollout(i):
             x = ti.Vector([x0[r] for r in ti.static(range(n))], dt=F)
             g = ti.Vector([goal[r] for r in ti.static(range(n))], dt=F)
+            U = ti.Matrix([[knots[i, j, a] for a in ti.static(range(m))] for j in ti.static(range(p))], dt=F)
             J = ti.cast(0.0, F)
             for k in range(T):
                 u = ti.Vector.zero(F, m)
                 for j in ti.static(range(p)):
                     phi = basis_f[k, j]
                     for a in ti.static(range(m)):
-                        u[a] += phi * knots[i, j, a]
+                        u[a] += phi * U[j, a]
                 J += stage(x, u, g)[0]
                 x = step(x, u)
             J += terminal(x, g)[0]
             cost[i] = J
+            return J
 
         @ti.kernel
-        def evaluate_all():
+        def evaluate_all(out: ti.types.ndarray()):
             for i in range(knots.shape[0]):
-                rollout(i)
+                out[i] = rollout(i)
 
-        picked, index = self.picked, self._index
+        picked = self.picked
 
         @ti.kernel
-        def gather(count: ti.i32):
-            for r, j, a in ti.ndrange(count, p, m):
-                picked[r, j, a] = knots[index[r], j, a]
+        def gather(indices: ti.types.ndarray(), out: ti.types.ndarray()):
+            for r, j, a in ti.ndrange(indices.shape[0], p, m):
+                v = knots[indices[r], j, a]
+                picked[r, j, a] = v
+                out[r, j, a] = v
 
+        affine = dynamics == "affine"
+        model_size = n * n + n * m + n if affine else 0
+
+        @ti.kernel
+        def upload(values: ti.types.ndarray()):
+            for r in range(n):
+                x0[r] = values[r]
+                goal[r] = values[n + r]
+            if ti.static(affine):
+                for r in range(n):
+                    for c in range(n):
+                        A[r, c] = values[2 * n + r * n + c]
+                    for c in range(m):
+                        B[r, c] = values[2 * n + n * n + r * m + c]
+                    w[r] = values[2 * n + n * n + n * m + r]
+
+        self._upload = upload
+        self._upload_buffer = np.empty(2 * n + model_size, dtype=self.ntype)
         self.rollout = rollout
         self._evaluate_all = evaluate_all
         self._gather = gather
 
-    def set_state(self, x0: np.ndarray, goal: np.ndarray) -> None:
-        """Copy the initial state x_0 and the goal state to the device."""
-        self._x0.from_numpy(_vector("x0", x0, self.nx).astype(self.ntype))
-        self._goal.from_numpy(_vector("goal", goal, self.nx).astype(self.ntype))
-
-    def set_affine(self, A_d: np.ndarray, B_d: np.ndarray, w_d: np.ndarray) -> None:
-        """Copy this control step's affine model x⁺ = A_d x + B_d u + w_d to the device."""
-        if self.dynamics != "affine":
-            raise ValueError("set_affine needs dynamics='affine'")
+    def load(self, x0: np.ndarray, goal: np.ndarray, affine=None) -> None:
+        """Copy the initial state x_0, the goal state and, with affine dynamics, this control
+        step's model ``affine`` = (A_d, B_d, w_d) for x⁺ = A_d x + B_d u + w_d to the device."""
         n, m = self.nx, self.nu
-        self._A.from_numpy(_matrix("A_d", A_d, (n, n)).astype(self.ntype))
-        self._B.from_numpy(_matrix("B_d", B_d, (n, m)).astype(self.ntype))
-        self._w.from_numpy(_vector("w_d", w_d, n).astype(self.ntype))
+        if (affine is None) != (self.dynamics != "affine"):
+            raise ValueError("affine (A_d, B_d, w_d) is required with dynamics='affine' and "
+                             f"not accepted with dynamics={self.dynamics!r}")
+        parts = [_vector("x0", x0, n), _vector("goal", goal, n)]
+        if affine is not None:
+            A_d, B_d, w_d = affine
+            parts += [_matrix("A_d", A_d, (n, n)).ravel(), _matrix("B_d", B_d, (n, m)).ravel(),
+                      _vector("w_d", w_d, n)]
+        np.concatenate(parts, out=self._upload_buffer, casting="same_kind")
+        self._upload(self._upload_buffer)
 
     def evaluate(self, knots: np.ndarray) -> np.ndarray:
         """Roll out the candidates ``knots`` (num_sims, p, m); returns their costs."""
@@ -148,21 +191,21 @@ class Rollout:
         if knots.shape != shape:
             raise ValueError(f"knots must have shape {shape}, got {knots.shape}")
         self.knots.from_numpy(knots.astype(self.ntype))
-        self._evaluate_all()
-        return self.cost.to_numpy().astype(np.float64)
+        cost = np.empty(self.num_sims, dtype=self.ntype)
+        self._evaluate_all(cost)
+        return cost.astype(np.float64)
 
-
-    def pick(self, indices: np.ndarray) -> None:
-        """Copy candidates ``indices`` (best first) into ``picked[0:len(indices)]`` on the device."""
-        indices = np.asarray(indices, dtype=np.int32)
+    def pick(self, indices: np.ndarray) -> np.ndarray:
+        """Copy candidates ``indices`` (best first) into ``picked[0:len(indices)]`` on the device;
+        returns them, (len(indices), p, m), on the host."""
+        indices = np.asarray(indices, dtype=np.int32).reshape(-1)
         count = indices.size
         if not 1 <= count <= self.picked.shape[0] or indices.min() < 0 or indices.max() >= self.num_sims:
             raise ValueError(f"indices must be 1..{self.picked.shape[0]} candidate numbers in "
                              f"[0, {self.num_sims}), got {indices.tolist()}")
-        padded = np.zeros(self.picked.shape[0], dtype=np.int32)
-        padded[:count] = indices
-        self._index.from_numpy(padded)
-        self._gather(count)
+        out = np.empty((count, self.num_knots, self.nu), dtype=self.ntype)
+        self._gather(indices, out)
+        return out.astype(np.float64)
 
 
 def _check_signature(name, function, inputs, outputs) -> None:
