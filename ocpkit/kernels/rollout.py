@@ -83,7 +83,8 @@ class Rollout:
             # ~20 s at nlink:13 instead of ~1 s). On the CPU, one dot product per row (measured
             # faster: its n accumulators would not fit in registers). On CUDA, the column loop
             # outside: each column's n multiply-adds are independent, so a thread issues them back
-            # to back instead of waiting on one row's running sum (measured ~Nx).
+            # to back instead of waiting on one row's running sum (H100, nlink:13, T = 100, 4096
+            # candidates: ~0.9 ms instead of ~4 ms per generation, launch overhead taken out).
             column_outer = self.arch == "cuda"
 
             @ti.func
