@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ocpkit._checks import choice
+from ocpkit.numeric import BufferedFunction
 from ocpkit.ocp import OCP
 
 SUCCESS, LIMITED, INFEASIBLE, NAN, EXCEPTION = "success", "limited", "infeasible", "nan", "exception"
@@ -63,6 +64,7 @@ class Controller:
             raise TypeError(f"ocp must be an ocpkit OCP, got {type(ocp).__name__}")
         self.ocp = ocp
         self.raise_on_fail = bool(raise_on_fail)
+        self._affine_model = None  # the OCP's affine model, bound to numpy buffers at its first use
         self.reset()
 
     def reset(self) -> None:
@@ -100,7 +102,9 @@ class Controller:
         ocp = self.ocp
         u_bar = (ocp.input_goal(goal) if self.plan is None or mode == "goal"
                  else ocp.parameterization.u_at(ocp.parameterization.shift(self.plan), 0))
-        Ad, Bd, wd = (np.asarray(M, dtype=float) for M in ocp.affine()(x, u_bar))
+        if self._affine_model is None:
+            self._affine_model = BufferedFunction(ocp.affine())
+        Ad, Bd, wd = self._affine_model(x, u_bar)
         if not (np.isfinite(Ad).all() and np.isfinite(Bd).all() and np.isfinite(wd).all()):
             return None
         return Ad, Bd, wd.ravel()

@@ -225,11 +225,15 @@ class CondensedQP(_Transcription):
         G = np.empty((L, n, m + 1))  # A^t [B w], t = 0 … L−1
         G[0] = Bw
         np.matmul(Apow[:L - 1], Bw, out=G[1:])
-        Ew = np.cumsum(G.reshape(L, -1), axis=0).reshape(L, n, m + 1)
-        Lam[:, :, n:n + m] = Ew[:, :, :m]
-        Lam[:, :, -1] = Ew[:, :, m]
-        Lam[0, :, n + m:n + 2 * m] = 0.0
-        Lam[1:, :, n + m:n + 2 * m] = np.cumsum(Ew[:-1, :, :m], axis=0)
+        # Running sums by row adds: numpy's cumsum along the first axis is ~2x slower on these small blocks.
+        for s in range(1, L):  # E_s and e_s: Σ_{t<s} A^t [B w]
+            G[s] += G[s - 1]
+        Lam[:, :, n:n + m] = G[:, :, :m]
+        Lam[:, :, -1] = G[:, :, m]
+        F = Lam[:, :, n + m:n + 2 * m]
+        F[0] = 0.0
+        for s in range(1, L):  # F_s = Σ_{t<s} E_t
+            np.add(F[s - 1], G[s - 1, :, :m], out=F[s])
         prev = np.zeros((n, 1 + self.nz))
         prev[:, 0] = x0
         for _, Lp, c, rhs in self._pieces:

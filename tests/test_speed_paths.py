@@ -111,3 +111,31 @@ def test_bench_step_runs_every_solver_in_rounds():
     parts = [r for r in rows if "flops" in r]  # both condensed variants report their parts
     assert len(parts) == 4 and all(r["model"] + r["build"] + r["solve"] <= r["median"] * 1.5 for r in parts)
     assert any("solve(T=20)/solve(T=10)" in line for line in lines)
+
+
+def test_buffered_function_equals_casadi_call():
+    import casadi as ca
+
+    from ocpkit.numeric import BufferedFunction
+
+    fn = make("nlink:3").ocp(knots=3).affine()  # A_d has structural zeros: its buffer holds nonzeros only
+    assert not fn.sparsity_out(0).is_dense()
+    call = BufferedFunction(fn)
+    rng = np.random.default_rng(0)
+    for _ in range(3):
+        x, u = rng.normal(size=6), rng.normal(size=3)
+        for got, expected in zip(call(x, u), fn(x, u)):
+            np.testing.assert_array_equal(got, np.asarray(expected))
+    a, b = call(x, u)[0], call(2 * x, u)[0]
+    assert not np.array_equal(a, b)  # every call returns new arrays
+    M = ca.SX.sym("M", 2, 2)
+    matrix = ca.Function("f", [M], [M.T, ca.trace(M)])
+    np.testing.assert_array_equal(BufferedFunction(matrix)(np.array([[1.0, 2.0], [3.0, 4.0]]))[0], [[1, 3], [2, 4]])
+    with pytest.raises(TypeError, match="takes 2 arguments"):
+        call(x)
+    with pytest.raises(ValueError, match="'u'.*3 entries"):
+        call(x, np.zeros(4))
+    d = ca.SX.sym("d", ca.Sparsity.diag(2))
+    sparse = ca.Function("s", [d], [ca.sum1(ca.sum2(d))])
+    with pytest.raises(ValueError, match="sparse inputs"):
+        BufferedFunction(sparse)
