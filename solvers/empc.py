@@ -101,10 +101,17 @@ class EvolutionaryMPC(SamplingMPC):
 
         return generation
 
+    def reset(self):
+        super().reset()
+        self._shift_parents = False
+
     def _start(self, x, goal, cold):
         self._scale = 1.0  # σ_eff = σ_min + (σ − σ_min)·scale
         if self.shrink_distance is not None:
             self._scale = min(1.0, float(np.linalg.norm(x - goal)) / self.shrink_distance)
+        if not cold and self._shift_parents:  # the last step ran out of time before a generation: its shift is owed
+            parents = self.engine.picked
+            parents.from_numpy(self._shifted(parents.to_numpy().astype(np.float64)).astype(self.engine.ntype))
         self._shift_parents = not cold  # the first generation breeds from the shifted parents
 
     def _generation(self, cold):

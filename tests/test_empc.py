@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from ocpkit import problems
-from ocpkit.controller import NAN, SUCCESS
+from ocpkit.controller import LIMITED, NAN, SUCCESS
 from ocpkit.metrics import actual_cost
 from ocpkit.simulate import simulate
 from ocpkit.solvers.cem import CrossEntropyMPC
@@ -141,3 +141,19 @@ def test_bad_arguments():
         CrossEntropyMPC(ocp, population=8, num_elites=9)
     with pytest.raises(ValueError, match="x"):
         EvolutionaryMPC(ocp, population=8, num_parents=2).solve(np.zeros(3), np.zeros(2))
+
+
+def test_parents_shift_is_not_lost_when_a_step_runs_no_generation():
+    problem = problems.make("nlink:2")
+    ocp = problem.ocp(knots=4, horizon=30)
+    x0, goal = problem.sample(0)
+    ctrl = EvolutionaryMPC(ocp, population=32, num_parents=4, seed=0)
+    ctrl.solve(x0, goal)
+    parents = ctrl.engine.picked.to_numpy()
+    ctrl.time_limit = 1e-12  # out of time before the first generation: the fallback input, no breeding
+    assert ctrl.solve(x0, goal).status == LIMITED
+    ctrl.time_limit = None
+    ctrl._start(x0, goal, cold=False)  # the next step: the skipped step's shift is applied now, its own in the kernel
+    np.testing.assert_allclose(ctrl.engine.picked.to_numpy(), ctrl._shifted(parents))
+    ctrl._generation(cold=False)  # the elites survive unchanged: shifted twice, as two steps have passed
+    np.testing.assert_allclose(ctrl.engine.knots.to_numpy()[:4], ctrl._shifted(ctrl._shifted(parents)), atol=1e-15)
