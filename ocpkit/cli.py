@@ -90,6 +90,8 @@ def _parser() -> argparse.ArgumentParser:
     bench = sub.add_parser("bench", help="benchmarks that print medians and ratios")
     bench.add_argument("what", choices=tuple(_BENCHMARKS))
     bench.add_argument("--quick", action="store_true", help="a smaller grid (minutes instead of tens)")
+    bench.add_argument("--arch", choices=("auto", "cpu", "cuda"), help="empc: Taichi arch (default auto)")
+    bench.add_argument("--precision", choices=("float64", "float32"), help="empc: float type (default float64)")
     return parser
 
 
@@ -224,8 +226,11 @@ def _bench(args):
     import importlib
 
     module, function, quick = _BENCHMARKS[args.what]
+    options = {k: getattr(args, k) for k in ("arch", "precision") if getattr(args, k) is not None}
+    if options and args.what != "empc":
+        raise ValueError(f"--{next(iter(options))} applies to `ocpkit bench empc` only")
     bench = getattr(importlib.import_module(f"ocpkit.benchmarks.{module}"), function)
-    bench(**(quick if args.quick else {}))
+    bench(**(quick if args.quick else {}), **options)
     return 0
 
 

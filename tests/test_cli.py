@@ -26,6 +26,7 @@ def test_solve_json(capsys):
     (["solve", "pendulum", "--knots", "0"], "knots must be >= 1"),
     (["solve", "pendulum", "--horizon", "-3"], "horizon must be >= 1"),
     (["solve", "pendulum", "--form", "dense"], "invalid choice"),
+    (["bench", "qp", "--arch", "cpu"], "--arch applies to `ocpkit bench empc` only"),
 ])
 def test_bad_names_exit_2_one_line(args, message, tmp_path):
     res = run(*args, cwd=tmp_path)
