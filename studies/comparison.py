@@ -127,6 +127,8 @@ def report(df, out_dir) -> str:
                             ylabel="actual cost / traditional MPC (median)", log=True,
                             title="Actual cost relative to traditional MPC"))
     tables["Median actual cost ratio to traditional MPC"] = markdown_table(ratio, "{:.3f}")
+    final = ok.pivot_table(index="links", columns="controller", values="final_error", aggfunc="median")[order]
+    tables["Median final error max |x − x_goal| at the end of the run [rad, rad/s]"] = markdown_table(final, "{:.2g}")
     for metric, what in (("solve_median", "optimization solve time"), ("total_median", "MPC solve time")):
         med = ok.pivot_table(index="links", columns="controller", values=metric, aggfunc="median")[order] * 1e3
         figs.append(plots.lines(med.index, {c: med[c].values for c in order}, out_dir / f"comparison_{metric}",
@@ -165,6 +167,9 @@ def _notes(ok, ratio, order) -> str:
         if c in by and len(by[c]):
             lines.append(f"- {c}: median cost ratio {by[c].min():.2f}–{by[c].max():.2f} ({_per_robot(by[c])}); "
                          "paper: slightly worse than the parameterized QP.")
+    final = ok.groupby(["controller", "links"])["final_error"].median()
+    lines.append("- Does each controller reach the goal? Largest median final error over the robots: "
+                 + ", ".join(f"{c} {final[c].max():.2g}" for c in order if c in final.index) + ".")
     condition = ok.groupby("links")["hessian_condition"].median()
     lines.append("- The landscape EMPC searches: median condition number of the 3-knot QP Hessian at the start, "
                  + ", ".join(f"{links} links: {v:.2g}" for links, v in condition.items())
