@@ -18,6 +18,9 @@ def test_solve_json(capsys):
     out = json.loads(capsys.readouterr().out)
     assert out["status"] == "success" and len(out["u"]) == 1 and len(out["knots"]) == 5
     assert set(out["times"]) == {"model", "build", "solve", "total"} and out["iterations"] > 0
+    assert main(["solve", "pendulum", "--knots", "5", "--json", "--seed", "2", "--compiled"]) == 0
+    compiled = json.loads(capsys.readouterr().out)
+    assert abs(compiled["u"][0] - out["u"][0]) < 1e-6
 
 
 @pytest.mark.parametrize("args,message", [
