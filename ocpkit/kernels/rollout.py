@@ -28,12 +28,11 @@ DYNAMICS = ("affine", "nonlinear")
 class Rollout:
     """Rollout engine for ``num_sims`` candidates of ``ocp`` on the Taichi runtime.
 
-    ``knots`` (num_sims, p, m) and ``cost`` (num_sims,) are device fields; ``rollout(i)`` is
-    a ``@ti.func`` that simulates candidate i, writes ``cost[i]`` and returns it, for solver
-    kernels that generate candidates and roll them out in one launch; ``picked``
-    (num_picked, p, m) receives the candidates chosen by :meth:`pick` (parents, elites).
-    ``stage_cost`` (x, u, x_goal) -> scalar and ``terminal_cost`` (x, x_goal) -> scalar default
-    to the OCP's quadratic ones.
+    ``knots`` (num_sims, p, m) is a device field; ``rollout(i)`` is a ``@ti.func`` that
+    simulates candidate i and returns its cost, for solver kernels that generate candidates
+    and roll them out in one launch; ``picked`` (num_picked, p, m) receives the candidates
+    chosen by :meth:`pick` (parents, elites). ``stage_cost`` (x, u, x_goal) -> scalar and
+    ``terminal_cost`` (x, x_goal) -> scalar default to the OCP's quadratic ones.
 
     Each Taichi call that moves an array costs tens of microseconds of launch overhead, more
     than a small population's rollouts, so a control step moves its data in as few calls as
@@ -67,7 +66,6 @@ class Rollout:
 
         F = self.ftype
         self.knots = ti.field(F, shape=(num_sims, p, m))
-        self.cost = ti.field(F, shape=num_sims)
         self.picked = ti.field(F, shape=(num_picked, p, m))
         self._basis = ti.field(F, shape=(T, p))
         self._basis.from_numpy(basis.astype(self.ntype))
@@ -114,7 +112,7 @@ class Rollout:
             _check_signature("ocp.discrete()", discrete, [(n, 1), (m, 1)], [(n, 1)])
             step = translate(discrete, precision=precision).func
 
-        knots, cost, basis_f, x0, goal = self.knots, self.cost, self._basis, self._x0, self._goal
+        knots, basis_f, x0, goal = self.knots, self._basis, self._x0, self._goal
 
         @ti.func
         def rollout(i):
@@ -131,7 +129,6 @@ class Rollout:
                 J += stage(x, u, g)[0]
                 x = step(x, u)
             J += terminal(x, g)[0]
-            cost[i] = J
             return J
 
         @ti.kernel
