@@ -6,12 +6,13 @@ input (the previous plan advanced one step, clipped to the input bounds).
 """
 from __future__ import annotations
 
+import threading
 import time
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from ocpkit._checks import choice
+from ocpkit._checks import choice, integer, positive
 from ocpkit.numeric import BufferedFunction
 from ocpkit.ocp import OCP
 
@@ -20,6 +21,62 @@ STATUSES = (SUCCESS, LIMITED, INFEASIBLE, NAN, EXCEPTION)
 
 
 LINEARIZATIONS = ("goal", "plan")
+
+# A state or goal farther than STATE_SCALE times the problem's scale from the origin makes every QP
+# meaningless (ProxQP ran 54 s at x = 1e20 on the pendulum): it is answered "nan" before any solver runs.
+# The problem's scale is max(1, the largest finite |state bound|).
+STATE_SCALE = 1e6
+# Largest violation of an input bound accepted from a solver that reports success (as ocpkit.export's
+# FEAS_TOL); within it, u and the knots are clipped to the bounds.
+BOUND_TOL = 1e-6
+
+
+def state_limit(ocp: OCP) -> float:
+    """|x|, |goal| beyond which a step is answered "nan" without a solve: STATE_SCALE × the problem's scale."""
+    finite = np.abs(np.r_[ocp.x_min, ocp.x_max])
+    finite = finite[np.isfinite(finite)]
+    return STATE_SCALE * max(1.0, float(finite.max(initial=0.0)))
+
+
+class _ThreadLimit:
+    """BLAS/OpenMP threads limited (threadpoolctl) while any controller step runs in this process.
+
+    The pools are process-wide, so nested or concurrent steps share one limit: the first step to enter sets
+    it, the last to leave restores the original. Multithreaded BLAS on small matrices on a busy machine
+    turned a 1.3 ms nlink:13 step into 24 ms (DESIGN.md), hence 1 thread by default.
+    """
+
+    _lock = threading.Lock()
+    _active = 0
+    _limiter = None
+    _controller = None
+
+    def __init__(self, threads: int | None):
+        self.threads = threads
+
+    def __enter__(self):
+        if self.threads is None:
+            return self
+        cls = _ThreadLimit
+        with cls._lock:
+            if cls._active == 0:
+                if cls._controller is None:
+                    from threadpoolctl import ThreadpoolController
+                    cls._controller = ThreadpoolController()
+                cls._limiter = cls._controller.limit(limits=self.threads)
+            cls._active += 1
+        return self
+
+    def __exit__(self, *exc):
+        if self.threads is None:
+            return False
+        cls = _ThreadLimit
+        with cls._lock:
+            cls._active -= 1
+            if cls._active == 0 and cls._limiter is not None:
+                cls._limiter.restore_original_limits()
+                cls._limiter = None
+        return False
 
 
 def check_linearization(mode: str) -> str:
@@ -57,15 +114,47 @@ class Solution:
 
 
 class Controller:
-    """Base class: keeps the last plan for warm starts and fallbacks; subclasses implement ``_solve``."""
+    """Base class: keeps the last plan for warm starts and fallbacks; subclasses implement ``_solve``.
 
-    def __init__(self, ocp: OCP, *, raise_on_fail: bool = False):
+    ``solve`` wraps every solver's ``_solve`` with what real-time use needs:
+
+    * a per-controller lock: one controller used from several threads at once solves one step at a time
+      (its workspace, warm start and plan are never shared by two steps in flight);
+    * BLAS/OpenMP threads limited to ``threads`` (1 by default; None leaves them alone) through threadpoolctl;
+    * states or goals beyond ``state_limit`` (STATE_SCALE × the problem's scale) answered "nan" at once;
+    * verification before "success": finite u and knots, input bounds violated by at most ``BOUND_TOL``
+      (then clipped), otherwise the fallback with status "limited".
+    """
+
+    def __init__(self, ocp: OCP, *, raise_on_fail: bool = False, threads: int | None = 1):
         if not isinstance(ocp, OCP):
             raise TypeError(f"ocp must be an ocpkit OCP, got {type(ocp).__name__}")
         self.ocp = ocp
         self.raise_on_fail = bool(raise_on_fail)
+        self.threads = threads
+        self.state_limit = state_limit(ocp)
+        self._lock = threading.RLock()
+        self._step_start = None  # perf_counter at the start of the step in flight (time budgets count from it)
         self._affine_model = None  # the OCP's affine model, bound to numpy buffers at its first use
         self.reset()
+
+    @property
+    def threads(self) -> int | None:
+        """BLAS/OpenMP threads inside a step (threadpoolctl); None: not limited."""
+        return self._threads
+
+    @threads.setter
+    def threads(self, value: int | None) -> None:
+        self._threads = None if value is None else integer(value, "threads", 1)
+
+    @property
+    def state_limit(self) -> float:
+        """Largest |x_i| or |goal_i| a step accepts; beyond it the step is "nan" without a solve."""
+        return self._state_limit
+
+    @state_limit.setter
+    def state_limit(self, value: float) -> None:
+        self._state_limit = positive(value, "state_limit")
 
     def reset(self) -> None:
         """Forget the previous plan (cold start)."""
@@ -76,19 +165,56 @@ class Controller:
         """Solve the MPC problem from state x towards goal state ``goal``; return the first input and more."""
         x = self.ocp.check_state(x, "x")
         goal = self.ocp.check_state(goal, "goal")
-        start = time.perf_counter()
-        self._goal = goal  # for the fallback's cold-start input
-        sol = self._solve(x, goal)
-        if sol.ok and not (np.all(np.isfinite(sol.u)) and np.all(np.isfinite(sol.knots))):
-            sol = self.fallback(NAN, f"{sol.raw_status} with non-finite result", sol.times, sol.iterations)
-        sol.times["total"] = time.perf_counter() - start
-        if sol.ok:
-            self.plan = sol.knots
-        elif self.raise_on_fail:
-            raise SolverError(f"{type(self).__name__} failed: {sol.status} ({sol.raw_status})")
-        else:
-            self.plan = sol.knots  # the fallback plan, so repeated failures keep advancing it
+        with self._lock, _ThreadLimit(self._threads):
+            start = self._step_start = time.perf_counter()
+            self._goal = goal  # for the fallback's cold-start input
+            big = max(np.abs(x).max(initial=0.0), np.abs(goal).max(initial=0.0))
+            if big > self._state_limit:
+                sol = self.fallback(NAN, f"state or goal magnitude {big:.3g} beyond state_limit "
+                                         f"{self._state_limit:.3g}: no solver run")
+            else:
+                sol = self._verified(self._solve(x, goal))
+            sol.times["total"] = time.perf_counter() - start
+            self._step_start = None
+            if sol.ok:
+                self.plan = sol.knots
+            elif self.raise_on_fail:
+                raise SolverError(f"{type(self).__name__} failed: {sol.status} ({sol.raw_status})")
+            else:
+                self.plan = sol.knots  # the fallback plan, so repeated failures keep advancing it
+            return sol
+
+    def _verified(self, sol: Solution) -> Solution:
+        """``sol`` if it is a usable success (u and knots finite, within the input bounds up to BOUND_TOL, then
+        clipped to them); otherwise the fallback with a non-success status. Failures pass through."""
+        if not sol.ok:
+            return sol
+        ocp = self.ocp
+        u, knots = np.asarray(sol.u, dtype=float), np.asarray(sol.knots, dtype=float)
+        if not (np.all(np.isfinite(u)) and np.all(np.isfinite(knots))):
+            return self._rejected(NAN, f"{sol.raw_status} with non-finite result", sol)
+        excess = max(float(np.max(np.r_[(ocp.u_min - u), (u - ocp.u_max)], initial=0.0)),
+                     float(np.max(np.r_[(ocp.u_min - knots).ravel(), (knots - ocp.u_max).ravel()], initial=0.0)))
+        bound = np.abs(np.r_[ocp.u_min, ocp.u_max])
+        if excess > BOUND_TOL * max(1.0, float(bound[np.isfinite(bound)].max(initial=0.0))):
+            return self._rejected(LIMITED, f"{sol.raw_status} but an input bound violated by {excess:.3g}", sol)
+        sol.u = np.clip(u, ocp.u_min, ocp.u_max)
+        sol.knots = np.clip(knots, ocp.u_min, ocp.u_max)
         return sol
+
+    def _rejected(self, status: str, raw: str, sol: Solution) -> Solution:
+        """A "success" that failed verification: the solver's workspace is stale, so reset it (``_discard``)."""
+        self._discard()
+        return self.fallback(status, raw, sol.times, sol.iterations)
+
+    def _discard(self) -> None:
+        """Drop solver state a rejected result may have left (warm starts, workspaces); subclasses extend."""
+
+    def remaining(self, budget: float | None) -> float | None:
+        """Seconds left of a step budget ``budget`` counted from the start of the step in flight (None: no budget)."""
+        if budget is None or self._step_start is None:
+            return None
+        return budget - (time.perf_counter() - self._step_start)
 
     def _solve(self, x: np.ndarray, goal: np.ndarray) -> Solution:
         raise NotImplementedError

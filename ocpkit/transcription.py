@@ -12,6 +12,13 @@ Both produce a QP  min ½ zᵀ P z + qᵀ z  s.t.  A z = b,  l ≤ C z ≤ u, th
 
 Input bounds apply to the knots: for piecewise-linear and zero-order-hold bases every u_k is a convex
 combination of knots, so bounded knots bound the whole input trajectory.
+
+State bounds are hard constraints by default; with ``soft=True`` they become an exact L1 penalty: one slack
+s ≥ 0 per bounded state component and step, appended after the other variables, rows x + s ≥ x_min and
+x − s ≤ x_max, and cost ``slack_weight``·Σ (s + ½ s²). With a weight above the hard problem's bound
+multipliers the soft problem has the hard one's solution whenever that exists (the quadratic part has zero
+slope at s = 0, so exactness is kept; it makes the QP strictly convex in s, which the sparse solvers needed:
+pure L1 slacks left sparse OSQP at its iteration limit and ProxQP reporting a feasible problem infeasible).
 """
 from __future__ import annotations
 
@@ -20,6 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
+from ocpkit._checks import positive
 from ocpkit.ocp import OCP
 
 
@@ -69,10 +77,11 @@ def _values(M):
 class _Transcription:
     """Shared data of both forms: the parameterization basis and the bound rows on knots and states."""
 
-    def __init__(self, ocp: OCP):
+    def __init__(self, ocp: OCP, *, soft: bool = False, slack_weight: float = 1e3):
         if not isinstance(ocp, OCP):
             raise TypeError(f"ocp must be an ocpkit OCP, got {type(ocp).__name__}")
         self.ocp = ocp
+        self.slack_weight = positive(slack_weight, "slack_weight")
         n, m, T, p = ocp.nx, ocp.nu, ocp.horizon, ocp.knots
         self.n, self.m, self.T, self.p = n, m, T, p
         self.phi = ocp.parameterization.basis
@@ -87,6 +96,9 @@ class _Transcription:
         self.x_rows = np.flatnonzero(np.tile(np.isfinite(ocp.x_min) | np.isfinite(ocp.x_max), T))
         self.x_lo = np.tile(ocp.x_min, T)[self.x_rows]
         self.x_hi = np.tile(ocp.x_max, T)[self.x_rows]
+        self.soft = bool(soft) and self.x_rows.size > 0
+        self.ns = self.x_rows.size if self.soft else 0  # slack variables, the last ns entries of z
+        self._k0 = 0  # index of the first knot in z (the sparse form overrides)
         # Per-step state weights Q (k = 1 … T−1) and Q_T (k = T).
         self.Qs = np.concatenate([np.broadcast_to(ocp.Q, (T - 1, n, n)), ocp.Q_terminal[None]])
 
@@ -96,7 +108,19 @@ class _Transcription:
 
     def knots(self, z: np.ndarray) -> np.ndarray:
         """Knots (p, m) from a solution vector."""
-        return z[-self.p * self.m:].reshape(self.p, self.m)
+        return z[self._k0:self._k0 + self.p * self.m].reshape(self.p, self.m)
+
+    def slacks(self, z: np.ndarray) -> np.ndarray:
+        """State-bound slacks (ns,) from a solution vector (empty with hard bounds)."""
+        return z[z.size - self.ns:]
+
+    def _soft_rows(self, X, lo, hi):
+        """Rows [X, I; X, −I] with bounds [lo, +∞), (−∞, hi]: X the state-bound rows over the other variables."""
+        ns, stack, eye = self.ns, (sp.vstack if sp.issparse(X) else np.vstack), (sp.identity if sp.issparse(X) else np.eye)
+        hstack = sp.hstack if sp.issparse(X) else np.hstack
+        C = stack([hstack([X, eye(ns)]), hstack([X, -eye(ns)])])
+        inf = np.full(ns, np.inf)
+        return C, np.r_[lo, -inf], np.r_[inf, hi]
 
 
 class SparseQP(_Transcription):
@@ -104,14 +128,15 @@ class SparseQP(_Transcription):
 
     form = "sparse"
 
-    def __init__(self, ocp: OCP):
-        super().__init__(ocp)
+    def __init__(self, ocp: OCP, *, soft: bool = False, slack_weight: float = 1e3):
+        super().__init__(ocp, soft=soft, slack_weight=slack_weight)
         n, m, T, p = self.n, self.m, self.T, self.p
         nX = n * (T + 1)
-        self.nz = nX + m * p
-        # Cost: blkdiag(0 for x_0, Q … Q, Q_T, φᵀφ ⊗ R) — constant, built once.
+        self._k0 = nX
+        self.nz = nX + m * p + self.ns
+        # Cost: blkdiag(0 for x_0, Q … Q, Q_T, φᵀφ ⊗ R, 0 for the slacks) — constant, built once.
         self.P = sp.block_diag([sp.csc_matrix((n, n)), *[sp.csc_matrix(Qk) for Qk in self.Qs],
-                                sp.csc_matrix(self.R_knots)], format="csc")
+                                sp.csc_matrix(self.R_knots), self.slack_weight * sp.identity(self.ns)], format="csc")
         self.P.eliminate_zeros()
         # Dynamics rows: −x_0 = −x0, then A_d x_k − x_{k+1} + B_d Σ_j φ_kj U_j = −w_d.
         rows, cols, src = [np.arange(n)], [np.arange(n)], [np.full(n, -1)]  # src −1: the constant −1
@@ -142,10 +167,20 @@ class SparseQP(_Transcription):
         # Bounds on z: knots (input bounds) and x_1 … x_T (state bounds), as selector rows.
         sel_u = nX + self.u_rows
         sel_x = n + self.x_rows
-        sel = np.r_[sel_u, sel_x]
-        self.C = sp.csc_matrix((np.ones(sel.size), (np.arange(sel.size), sel)), shape=(sel.size, self.nz))
-        self.l = np.r_[self.u_lo, self.x_lo]
-        self.u = np.r_[self.u_hi, self.x_hi]
+        if self.soft:  # knot rows; x ± s rows; s ≥ 0
+            nzs = self.nz - self.ns
+            Cu = sp.csc_matrix((np.ones(sel_u.size), (np.arange(sel_u.size), sel_u)), shape=(sel_u.size, nzs))
+            Cx = sp.csc_matrix((np.ones(sel_x.size), (np.arange(sel_x.size), sel_x)), shape=(sel_x.size, nzs))
+            Cs, ls, us = self._soft_rows(Cx, self.x_lo, self.x_hi)
+            pos = sp.hstack([sp.csc_matrix((self.ns, nzs)), sp.identity(self.ns)])
+            self.C = sp.vstack([sp.hstack([Cu, sp.csc_matrix((sel_u.size, self.ns))]), Cs, pos], format="csc")
+            self.l = np.r_[self.u_lo, ls, np.zeros(self.ns)]
+            self.u = np.r_[self.u_hi, us, np.full(self.ns, np.inf)]
+        else:
+            sel = np.r_[sel_u, sel_x]
+            self.C = sp.csc_matrix((np.ones(sel.size), (np.arange(sel.size), sel)), shape=(sel.size, self.nz))
+            self.l = np.r_[self.u_lo, self.x_lo]
+            self.u = np.r_[self.u_hi, self.x_hi]
 
     def build(self, Ad, Bd, wd, x0, x_goal) -> QP:
         """The QP for the affine model (A_d, B_d, w_d), measured state x0 and goal state."""
@@ -157,7 +192,8 @@ class SparseQP(_Transcription):
         A.data = v[self._order]
         q = np.zeros(self.nz)
         q[n:n * (T + 1)] = -np.einsum("kab,b->ka", self.Qs, x_goal).ravel()
-        q[n * (T + 1):] = self.q_knots(x_goal)
+        q[n * (T + 1):self.nz - self.ns] = self.q_knots(x_goal)
+        q[self.nz - self.ns:] = self.slack_weight
         b = np.r_[-np.asarray(x0, dtype=float), np.tile(-np.asarray(wd, dtype=float).ravel(), T)]
         return QP(self.P, q, A, b, self.C, self.l, self.u)
 
@@ -184,11 +220,11 @@ class CondensedQP(_Transcription):
 
     form = "condensed"
 
-    def __init__(self, ocp: OCP):
-        super().__init__(ocp)
+    def __init__(self, ocp: OCP, *, soft: bool = False, slack_weight: float = 1e3):
+        super().__init__(ocp, soft=soft, slack_weight=slack_weight)
         n, m, p = self.n, self.m, self.p
-        self.nz = m * p
-        self.A = np.zeros((0, self.nz))
+        self.nz = m * p  # the knots; the slacks (if any) follow them in z
+        self.A = np.zeros((0, self.nz + self.ns))
         self.b = np.zeros(0)
         Q, QT = self.Qs[0], self.Qs[-1]
         self.diagonal_Q = all(np.count_nonzero(M - np.diag(np.diag(M))) == 0 for M in (Q, QT))
@@ -200,7 +236,9 @@ class CondensedQP(_Transcription):
             self._qh, self._dQT = np.sqrt(np.clip(w, 0.0, None))[:, None] * V.T, QT - Q
         self._pieces = _pieces(self.phi, n, m)
         self._lengths = sorted({piece[1] for piece in self._pieces})
-        self._box_C = np.eye(self.nz)[self.u_rows]
+        # Simple bounds on z (ProxQP's box): the knots' input bounds, then s ≥ 0.
+        self._box = np.r_[self.u_rows, self.nz + np.arange(self.ns)]
+        self._box_C = np.eye(self.nz + self.ns)[self._box]
 
     def prediction(self, Ad, Bd, wd, x0):
         """S (T·n, p·m) and v (T·n,) with [x_1; …; x_T] = S z + v (the paper's recipe below its T=5, p=3
@@ -270,6 +308,18 @@ class CondensedQP(_Transcription):
         P += P.T
         P *= 0.5
         q = Pq[1:, 0] + self.q_knots(x_goal)
+        if self.soft:
+            ns = self.ns
+            P = np.pad(P, ((0, ns), (0, ns)))
+            P[self.nz:, self.nz:] += self.slack_weight * np.eye(ns)
+            q = np.r_[q, np.full(ns, self.slack_weight)]
+            SV = self._rows()[self.x_rows]
+            vr = SV[:, 0]
+            Cs, ls, us = self._soft_rows(SV[:, 1:], self.x_lo - vr, self.x_hi - vr)
+            C = np.vstack([self._box_C, Cs])
+            l = np.r_[self.u_lo, np.zeros(ns), ls]
+            u = np.r_[self.u_hi, np.full(ns, np.inf), us]
+            return QP(P, q, self.A, self.b, C, l, u, box=self._box)
         if self.x_rows.size:
             SV = self._rows()[self.x_rows]
             C, vr = np.vstack([self._box_C, SV[:, 1:]]), SV[:, 0]
@@ -283,7 +333,7 @@ class CondensedQP(_Transcription):
         """Predicted states x_0 … x_T (T+1, n) of the last built QP."""
         n, X = self.n, np.empty((self.T + 1, self.n))
         X[0] = x0
-        z1 = np.r_[1.0, z]
+        z1 = np.r_[1.0, z[:self.nz]]
         for a, Lp, c, rhs in self._pieces:
             X[a + 1:a + Lp + 1] = (self._Lam[:Lp].reshape(Lp * n, -1) @ (rhs @ z1[:c + 1])).reshape(Lp, n)
         return X

@@ -9,6 +9,7 @@ zero-order-hold) input trajectory within bounds because every u_k is a convex co
 from __future__ import annotations
 
 import time
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -32,11 +33,49 @@ class _Result:
     iterations: int
 
 
+class _Costs:
+    """Measured wall times of a backend's uninterruptible operations (a factorization, one chunk of
+    iterations), the median of the last five of each. With a step budget an operation starts only if its
+    predicted time fits in what is left; one never measured is predicted free, so the first step of a new
+    controller calibrates (it is not bounded: documented in LinearMPC)."""
+
+    def __init__(self):
+        self._seen: dict[str, deque] = {}
+
+    def add(self, op: str, seconds: float) -> None:
+        self._seen.setdefault(op, deque(maxlen=5)).append(seconds)
+
+    def predict(self, op: str) -> float:
+        seen = self._seen.get(op)
+        return float(np.median(seen)) if seen else 0.0
+
+    def fits(self, op: str, left: float | None) -> bool:
+        return left is None or (left > 0.0 and self.predict(op) <= left)
+
+
+def _left(deadline: float | None) -> float | None:
+    return None if deadline is None else deadline - time.perf_counter()
+
+
+def _skipped(op: str, costs: _Costs, deadline: float, n: int, iterations: int = 0) -> _Result:
+    """The LIMITED result of a step whose budget cannot pay for ``op``."""
+    left = max(0.0, deadline - time.perf_counter())
+    return _Result(np.full(n, np.nan), (), LIMITED,
+                   f"time budget: {1e3 * left:.3g} ms left, {op} measured at {1e3 * costs.predict(op):.3g} ms",
+                   iterations)
+
+
 class _ProxQP:
     """ProxQP, dense or sparse backend. One solver object is kept across steps and refreshed with ``update``
-    (warm-started from its previous result); knot bounds go to the dense backend as box constraints."""
+    (warm-started from its previous result); knot bounds go to the dense backend as box constraints.
 
-    CHUNK = 5  # iterations between wall-clock checks when a time limit is set
+    ProxQP's own ``max_iter`` counts outer (BCL) iterations only, each allowing ``max_iter_in`` inner ones
+    (15 M inner iterations at x = 1e20 on the pendulum), so it is run in chunks of at most CHUNK_OUTER outer ×
+    CHUNK_INNER inner iterations, continuing from the previous iterate: ``max_iter`` caps the total inner
+    iterations, and with a deadline a chunk (or the init/update) starts only if its measured time fits.
+    """
+
+    CHUNK_OUTER, CHUNK_INNER = 5, 50
 
     def __init__(self, sparse: bool, max_iter: int, eps: float):
         import proxsuite
@@ -45,6 +84,7 @@ class _ProxQP:
         self._module = proxsuite.proxqp.sparse if sparse else proxsuite.proxqp.dense
         self._proxqp = proxsuite.proxqp
         self.max_iter, self.eps = max_iter, eps
+        self.costs = _Costs()
         self.reset()
 
     def reset(self):
@@ -59,82 +99,134 @@ class _ProxQP:
         lo[qp.box], hi[qp.box] = qp.l[:k], qp.u[:k]
         return (qp.P, qp.q, qp.A, qp.b, qp.C[k:], qp.l[k:], qp.u[k:], lo, hi), (qp.n, qp.b.size, qp.l.size - k, True)
 
-    def solve(self, qp: QP, warm: tuple | None, time_limit: float | None) -> _Result:
-        """Solve; with a time limit, iterate in chunks (continuing from the previous iterate) up to it."""
-        px = self._proxqp
-        start = time.perf_counter()
+    def solve(self, qp: QP, warm: tuple | None, deadline: float | None) -> _Result:
+        """Solve in chunks up to ``max_iter`` inner iterations and, with a deadline (perf_counter), up to it."""
+        px, costs = self._proxqp, self.costs
         data, key = self._data(qp)
         H, g, A, b, C, l, u, lo, hi = data
         box = {"l_box": lo, "u_box": hi} if key[3] else {}
-        reuse = warm is not None and self._key == key
+        reuse = warm is not None and self.solver is not None and self._key == key
+        op = "update" if reuse else "init"
+        if not costs.fits(op, _left(deadline)):
+            return _skipped(op, costs, deadline, qp.n)
+        t = time.perf_counter()
         if not reuse:
             n, n_eq, n_in, has_box = key
+            self._key = None  # until init succeeds
             self.solver = (self._module.QP(n, n_eq, n_in, box_constraints=True) if has_box
                            else self._module.QP(n, n_eq, n_in))
-            self._key = key
         solver = self.solver
         s = solver.settings
         s.eps_abs, s.eps_rel, s.verbose = self.eps, 0.0, False
         # Primal and dual residuals alone let a warm-started solve stop early with a wrong active set
         # (5.8e-4 off in u on the pendulum); the duality gap closes that.
         s.check_duality_gap, s.eps_duality_gap_abs, s.eps_duality_gap_rel = True, self.eps, 0.0
-        s.max_iter = self.max_iter if time_limit is None else min(self.max_iter, self.CHUNK)
+        first = ()
         if reuse:
             s.initial_guess = px.InitialGuess.WARM_START_WITH_PREVIOUS_RESULT
             solver.update(H, g, A, b, C, l, u, **box)
-            solver.solve()
         else:
             # A fresh box-constrained solver starts cold: ProxQP 0.8 rejects (or crashes on) warm box duals.
-            s.initial_guess = (px.InitialGuess.WARM_START if warm is not None and not key[3]
-                               else px.InitialGuess.NO_INITIAL_GUESS)
+            warm_ok = warm is not None and not key[3]
+            s.initial_guess = px.InitialGuess.WARM_START if warm_ok else px.InitialGuess.NO_INITIAL_GUESS
             solver.init(H, g, A, b, C, l, u, **box)
-            solver.solve(*warm) if s.initial_guess == px.InitialGuess.WARM_START else solver.solve()
+            self._key = key
+            first = warm if warm_ok else ()
+        first_warm = bool(first)
+        costs.add(op, time.perf_counter() - t)
         out = px.QPSolverOutput
-        iterations = solver.results.info.iter
-        while (time_limit is not None and solver.results.info.status == out.PROXQP_MAX_ITER_REACHED
-               and iterations < self.max_iter and time.perf_counter() - start < time_limit):
-            s.max_iter = min(self.CHUNK, self.max_iter - iterations)
+        iterations, chunks, why = 0, 0, None
+        while True:
+            left_iter = self.max_iter - iterations
+            if left_iter <= 0:
+                why = f"max_iter {self.max_iter} reached"
+                break
+            if not costs.fits("chunk", _left(deadline)):
+                why = (f"time budget reached after {iterations} iterations (a chunk measured at "
+                       f"{1e3 * costs.predict('chunk'):.3g} ms)")
+                break
+            s.max_iter_in = min(self.CHUNK_INNER, left_iter)
+            s.max_iter = max(1, min(self.CHUNK_OUTER, left_iter // (s.max_iter_in + 1)))
+            t = time.perf_counter()
+            solver.solve(*first) if first else solver.solve()
+            costs.add("chunk", time.perf_counter() - t)
+            first, chunks = (), chunks + 1
             s.initial_guess = px.InitialGuess.WARM_START_WITH_PREVIOUS_RESULT
-            solver.solve()
             iterations += solver.results.info.iter
+            if solver.results.info.status != out.PROXQP_MAX_ITER_REACHED:
+                break
         r = solver.results
+        if (reuse or first_warm) and r.info.status in (out.PROXQP_PRIMAL_INFEASIBLE, out.PROXQP_DUAL_INFEASIBLE):
+            # ProxQP's infeasibility test misfires from a warm start far from the new solution (a soft-bounded,
+            # always feasible QP was reported infeasible): confirm it from a cold start.
+            self.reset()
+            return self.solve(qp, None, deadline)
+        if not chunks:
+            return _Result(np.array(r.x), (np.array(r.x), np.array(r.y), np.array(r.z)), LIMITED, why, 0)
         status = {out.PROXQP_SOLVED: SUCCESS, out.PROXQP_MAX_ITER_REACHED: LIMITED,
                   out.PROXQP_PRIMAL_INFEASIBLE: INFEASIBLE, out.PROXQP_DUAL_INFEASIBLE: INFEASIBLE,
                   out.PROXQP_SOLVED_CLOSEST_PRIMAL_FEASIBLE: INFEASIBLE}.get(r.info.status, EXCEPTION)
         raw = str(r.info.status).rsplit(".", 1)[-1]
-        if status == LIMITED and iterations < self.max_iter:
-            raw = f"time limit {time_limit:g} s reached ({raw} after {iterations} iterations)"
+        if status == LIMITED and why is not None:
+            raw = f"{why} ({raw})"
         return _Result(np.array(r.x), (np.array(r.x), np.array(r.y), np.array(r.z)), status, raw, int(iterations))
 
 
 class _OSQP:
-    """OSQP on the stacked form (P, q, [A; C], lb, ub), set up once; each step updates its numbers."""
+    """OSQP on the stacked form (P, q, [A; C], lb, ub), set up once; each step updates its numbers.
+
+    The update's return codes are checked (a failed update leaves the previous problem in place) and the
+    time left of the step is OSQP's ``time_limit`` on every solve (OSQP counts its update time in it); the
+    setup and the update (numeric refactorization) start only if their measured time fits.
+    """
 
     def __init__(self, max_iter: int, eps: float):
         import osqp
 
         self._osqp = osqp
         self.max_iter, self.eps = max_iter, eps
+        self.costs = _Costs()
         self.solver = None
 
     def reset(self):
         self.solver = None
 
-    def solve(self, qp: QP, warm: tuple | None, time_limit: float | None) -> _Result:
+    def solve(self, qp: QP, warm: tuple | None, deadline: float | None) -> _Result:
+        costs = self.costs
         P, q, A, lb, ub = qp.stacked()
         P = _upper_csc(P)
         A = _full_csc(A)
-        if self.solver is None or (P.nnz, A.nnz) != self._nnz:
-            self.solver = self._osqp.OSQP()
-            self.solver.setup(P=P, q=q, A=A, l=lb, u=ub, verbose=False, eps_abs=self.eps, eps_rel=self.eps,
-                              max_iter=self.max_iter, polishing=False, warm_starting=True,
-                              time_limit=1e10 if time_limit is None else time_limit)  # OSQP: 1e10 = none
-            self._nnz = (P.nnz, A.nnz)
+        setup = self.solver is None or (P.nnz, A.nnz) != self._nnz
+        op = "setup" if setup else "update"
+        left = _left(deadline)
+        if not costs.fits(op, left):
+            return _skipped(op, costs, deadline, qp.n)
+        limit = 1e10 if left is None else left  # OSQP: 1e10 = no limit
+        t = time.perf_counter()
+        if setup:
+            self.solver = None
+            solver = self._osqp.OSQP()
+            solver.setup(P=P, q=q, A=A, l=lb, u=ub, verbose=False, eps_abs=self.eps, eps_rel=self.eps,
+                         max_iter=self.max_iter, polishing=False, warm_starting=True, time_limit=limit)
+            self.solver, self._nnz = solver, (P.nnz, A.nnz)
         else:
-            self.solver.update(Px=P.data, Ax=A.data, q=q, l=lb, u=ub)
-        if warm is not None:
-            self.solver.warm_start(x=warm[0], y=warm[1])
-        r = self.solver.solve(raise_error=False)
+            solver = self.solver
+            solver.update_settings(time_limit=limit, max_iter=self.max_iter)
+            inf = solver.constant("OSQP_INFTY")
+            raw = getattr(solver, "_solver", None)
+            if raw is None:  # no access to the return codes: the wrapper's update (unchecked)
+                solver.update(Px=P.data, Ax=A.data, q=q, l=lb, u=ub)
+            else:
+                codes = (raw.update_data_vec(q=q, l=np.maximum(lb, -inf), u=np.minimum(ub, inf)),
+                         raw.update_data_mat(P_x=P.data, P_i=None, A_x=A.data, A_i=None))
+                if any(codes):
+                    self.solver = None  # the workspace still holds the previous problem
+                    return _Result(np.full(qp.n, np.nan), (), EXCEPTION,
+                                   f"OSQP update failed (codes {codes[0]}, {codes[1]})", 0)
+        costs.add(op, time.perf_counter() - t)
+        if warm is not None and len(warm) == 2 and warm[0].shape == (qp.n,) and warm[1].shape == lb.shape:
+            solver.warm_start(x=warm[0], y=warm[1])
+        r = solver.solve(raise_error=False)
         S = self._osqp.SolverStatus
         status = {S.OSQP_SOLVED: SUCCESS, S.OSQP_MAX_ITER_REACHED: LIMITED, S.OSQP_TIME_LIMIT_REACHED: LIMITED,
                   S.OSQP_SOLVED_INACCURATE: LIMITED, S.OSQP_PRIMAL_INFEASIBLE: INFEASIBLE,
@@ -160,6 +252,7 @@ class _HPIPM:
                                      for k in range(T)] + [np.arange(T * n, nX)])
         self._n, self._T, self._m = n, T, m
         self.max_iter, self.eps = max_iter, eps
+        self.costs = _Costs()
         self.reset()
 
     def reset(self):
@@ -177,7 +270,10 @@ class _HPIPM:
         self.solver = ca.conic("hpipm", "hpipm", self._sp, opts)
         self._ca = ca
 
-    def solve(self, qp: QP, warm: tuple | None, time_limit: float | None) -> _Result:
+    def solve(self, qp: QP, warm: tuple | None, deadline: float | None) -> _Result:
+        """HPIPM cannot be stopped from outside: with a deadline it starts only if its measured time fits."""
+        if self.solver is not None and not self.costs.fits("solve", _left(deadline)):
+            return _skipped("solve", self.costs, deadline, qp.n)
         start = time.perf_counter()
         perm, n = self._perm, self._n
         H = qp.P[perm][:, perm].tocsc()
@@ -191,13 +287,14 @@ class _HPIPM:
         lbx[:n] = ubx[:n] = -qp.b[:n]
         r = self.solver(h=ca.DM(self._sp["h"], H.data), g=qp.q[perm], a=ca.DM(self._sp["a"], A.data),
                         lba=qp.b[n:], uba=qp.b[n:], lbx=lbx[perm], ubx=ubx[perm])
+        self.costs.add("solve", time.perf_counter() - start)
         stats = self.solver.stats()
         code = stats.get("return_status", -1)
         status = {0: SUCCESS, 1: LIMITED, 2: LIMITED, 3: NAN}.get(code, EXCEPTION)
         raw = {0: "HPIPM success", 1: "HPIPM max iterations", 2: "HPIPM minimum step length",
                3: "HPIPM NaN"}.get(code, f"HPIPM status {code}")
-        if status == SUCCESS and time_limit is not None and time.perf_counter() - start > time_limit:
-            status, raw = LIMITED, f"time limit {time_limit:g} s exceeded ({raw})"
+        if status == SUCCESS and deadline is not None and time.perf_counter() > deadline:
+            status, raw = LIMITED, f"time budget exceeded ({raw})"
         z = np.empty(qp.n)
         z[perm] = np.asarray(r["x"]).ravel()
         return _Result(z, (z,), status, raw, int(stats.get("iter_count", 0)))
@@ -229,8 +326,20 @@ class LinearMPC(Controller):
     """Re-linearized MPC through a QP: ``form`` "sparse" (large matrix) or "condensed" (small matrix),
     ``qp`` "proxqp", "osqp" or "hpipm" (sparse traditional form only), any parameterization of the OCP. Warm-starts from the previous solution.
 
-    ``max_iter`` caps the QP iterations and ``time_limit`` (seconds) the backend's wall-clock time; a
-    step that hits either returns status "limited" with the fallback input.
+    ``max_iter`` caps the QP iterations (ProxQP: its total inner iterations) and ``time_limit`` (seconds) is
+    a hard budget for the whole step, model and QP build included, counted from the start of ``solve``:
+    OSQP gets the time left as its own limit, ProxQP iterates in chunks checking the clock between them, and
+    any operation that cannot be stopped from outside (the affine model and build, a backend's init, update
+    or factorization, HPIPM's whole solve) starts only if its measured time (median of its last five) fits in
+    what is left. A step that hits either limit returns status "limited" with the fallback input and keeps
+    the backend's workspace and iterate, so the next, warm step can fit again. The first step of a new (or
+    reset) controller has nothing measured yet and is not bounded: it calibrates.
+
+    ``state_bounds`` "soft" (default) turns the OCP's state bounds into an exact L1 penalty: a slack
+    s ≥ 0 per bounded state component, x_min − s ≤ x_k ≤ x_max + s, cost ``slack_weight``·Σs (larger than
+    the bounds' multipliers, so the bounds hold exactly whenever they can be met). A state the plant has
+    already pushed past a bound, or a goal beyond one, then drives to the bound instead of failing as
+    infeasible. "hard" keeps them as constraints; HPIPM supports hard state bounds only.
 
     ``linearization`` picks the input ū of the expansion point (x, ū): "goal" (default) uses the input
     goal u_g (OCP.input_goal), "plan"
@@ -239,26 +348,50 @@ class LinearMPC(Controller):
     which over a 1 s horizon makes the condensed P ill-conditioned (eigenvalues 0.06…6e10) and both ProxQP
     and OSQP hit their iteration limits; about u_goal = 0 the same robot gives eigenvalues 0.06…6e4, and
     in closed loop on nlink:7 "goal" was never worse (3 seeded trials, 0 vs 118 fallbacks).
+
+    Every "success" is verified: the QP's solution must satisfy its equality and bound rows to within
+    FEAS_TOL (relative to the data's scale), and Controller.solve checks u against the input bounds.
     """
+
+    FEAS_TOL = 1e-6
 
     def __init__(self, ocp: OCP, *, form: str = "condensed", qp: str = "proxqp", max_iter: int = 10_000,
                  eps: float = 1e-9, time_limit: float | None = None, warm_start: bool = True,
-                 raise_on_fail: bool = False, linearization: str = "goal"):
+                 raise_on_fail: bool = False, linearization: str = "goal", state_bounds: str | None = None,
+                 slack_weight: float = 1e3, threads: int | None = 1):
         self.linearization = check_linearization(linearization)
         choice(form, tuple(TRANSCRIPTIONS), "form")
         choice(qp, QP_SOLVERS, "qp")
-        self.form, self.qp_name = form, qp
+        if not isinstance(ocp, OCP):
+            raise TypeError(f"ocp must be an ocpkit OCP, got {type(ocp).__name__}")
+        if state_bounds is None:
+            state_bounds = "hard" if qp == "hpipm" else "soft"
+        choice(state_bounds, ("soft", "hard"), "state_bounds")
+        if qp == "hpipm" and state_bounds == "soft" and ocp.has_state_bounds:
+            raise ValueError("qp 'hpipm' supports hard state bounds only: pass state_bounds='hard'")
+        self.form, self.qp_name, self.state_bounds = form, qp, state_bounds
         self.warm_start = bool(warm_start)
-        self.time_limit = None if time_limit is None else positive(time_limit, "time_limit")
-        self.transcription = TRANSCRIPTIONS[form](ocp)
+        self.time_limit = time_limit
+        self.slack_weight = positive(slack_weight, "slack_weight")
+        self.transcription = TRANSCRIPTIONS[form](ocp, soft=state_bounds == "soft", slack_weight=self.slack_weight)
         if qp == "hpipm" and not (form == "sparse" and ocp.knots == ocp.horizon):
             raise ValueError(f"qp 'hpipm' needs form 'sparse' and the identity parameterization (knots = horizon, "
                              f"traditional MPC), got form {form!r} with {ocp.knots} knots over {ocp.horizon} steps")
         eps = positive(eps, "eps")
         self._backend = (_ProxQP(form == "sparse", 1, eps) if qp == "proxqp" else _OSQP(1, eps) if qp == "osqp"
                          else _HPIPM(self.transcription, 1, eps))
+        self._costs = _Costs()  # the affine model and QP build ("prepare")
         self.max_iter = max_iter
-        super().__init__(ocp, raise_on_fail=raise_on_fail)
+        super().__init__(ocp, raise_on_fail=raise_on_fail, threads=threads)
+
+    @property
+    def time_limit(self) -> float | None:
+        """The step budget in seconds (None: unbounded); settable between steps."""
+        return self._time_limit
+
+    @time_limit.setter
+    def time_limit(self, value: float | None) -> None:
+        self._time_limit = None if value is None else positive(value, "time_limit")
 
     @property
     def max_iter(self) -> int:
@@ -278,8 +411,16 @@ class LinearMPC(Controller):
         self._warm = None
         self._backend.reset()
 
+    def _discard(self) -> None:
+        self._warm = None
+        self._backend.reset()
+
     def _solve(self, x: np.ndarray, goal: np.ndarray) -> Solution:
         ocp, times = self.ocp, {"model": 0.0, "build": 0.0, "solve": 0.0}
+        deadline = None if self._time_limit is None else self._step_start + self._time_limit
+        if not self._costs.fits("prepare", _left(deadline)):
+            res = _skipped("prepare", self._costs, deadline, 0)
+            return self.fallback(LIMITED, res.raw_status.replace("prepare", "model and QP build"), times)
         t0 = time.perf_counter()
         model = self.affine_model(x, goal, self.linearization)
         t1 = time.perf_counter()
@@ -289,19 +430,26 @@ class LinearMPC(Controller):
         qp = self.transcription.build(*model, x, goal)
         t2 = time.perf_counter()
         times["build"] = t2 - t1
+        self._costs.add("prepare", t2 - t0)
         problem = qp.check()
         if problem is not None:
             return self._fail(INFEASIBLE if "above" in problem else NAN, problem, times)
         try:
-            res = self._backend.solve(qp, self._warm if self.warm_start else None, self.time_limit)
+            res = self._backend.solve(qp, self._warm if self.warm_start else None, deadline)
         except Exception as exc:  # a backend that throws must not stop the control loop
             times["solve"] = time.perf_counter() - t2
             return self._fail(EXCEPTION, f"{type(exc).__name__}: {exc}", times)
         times["solve"] = time.perf_counter() - t2
-        if res.status == SUCCESS and not np.isfinite(res.z).all():
-            res.status = NAN
+        if res.status == SUCCESS:
+            if not np.isfinite(res.z).all():
+                res.status, res.raw_status = NAN, f"{res.raw_status} with non-finite solution"
+            else:
+                violation = _violation(qp, res.z)
+                if violation > self.FEAS_TOL * _scale(qp):  # an inaccurate "solution": no warm start from it
+                    return self._fail(LIMITED, f"{res.raw_status} but constraints violated by {violation:.3g}",
+                                      times, res.iterations)
         if res.status != SUCCESS:
-            return self._fail(res.status, res.raw_status, times, res.iterations)
+            return self._fail(res.status, res.raw_status, times, res.iterations, keep=res)
         self._warm = res.duals
         knots = self.transcription.knots(res.z).copy()
         x_pred = (self.transcription.states(res.z) if self.form == "sparse"
@@ -310,11 +458,33 @@ class LinearMPC(Controller):
         return Solution(u=u, knots=knots, status=SUCCESS, raw_status=res.raw_status, iterations=res.iterations,
                         x_pred=x_pred, times=times)
 
-    def _fail(self, status, raw, times, iterations=0) -> Solution:
-        """Fallback solution and a clean workspace for the next step (no stale warm start)."""
-        self._warm = None
-        self._backend.reset()
+    def _fail(self, status, raw, times, iterations=0, keep: _Result | None = None) -> Solution:
+        """Fallback solution. After "limited" the backend's workspace stays and its (finite) iterate is the next
+        warm start: resetting it made every later step start cold, so a budget between the warm and the cold
+        solve time never succeeded again. Any other failure leaves a clean workspace (no stale warm start)."""
+        if status == LIMITED and keep is not None:
+            if keep.duals and all(np.isfinite(d).all() for d in keep.duals):
+                self._warm = keep.duals
+        else:
+            self._discard()
         return self.fallback(status, raw, times, iterations)
+
+
+def _violation(qp: QP, z: np.ndarray) -> float:
+    """Largest violation of the QP's equality and bound rows at z."""
+    worst = 0.0
+    if qp.b.size:
+        worst = float(np.abs(qp.A @ z - qp.b).max())
+    if qp.l.size:
+        Cz = qp.C @ z
+        worst = max(worst, float(np.max(qp.l - Cz, initial=0.0)), float(np.max(Cz - qp.u, initial=0.0)))
+    return worst
+
+
+def _scale(qp: QP) -> float:
+    """1 + the largest finite magnitude of the QP's right-hand sides (b, l, u)."""
+    v = np.abs(np.r_[qp.b, qp.l, qp.u])
+    return 1.0 + float(v[np.isfinite(v)].max(initial=0.0))
 
 
 SOLVERS = {"qp": LinearMPC}

@@ -45,7 +45,8 @@ def test_infeasible_state_bounds_fall_back_without_raising(form, qp):
     problem = make("pendulum:linear")
     # Velocity must stay in [1, 2] while starting at rest: infeasible from the first step.
     ocp = problem.ocp(knots=4, x_min=[-np.inf, 1.0], x_max=[np.inf, 2.0])
-    traj = simulate(problem.plant(), LinearMPC(ocp, form=form, qp=qp, max_iter=200), [0.0, 0.0], [1.0, 0.0], 0.05)
+    ctrl = LinearMPC(ocp, form=form, qp=qp, max_iter=200, state_bounds="hard")
+    traj = simulate(problem.plant(), ctrl, [0.0, 0.0], [1.0, 0.0], 0.05)
     assert traj.fallbacks == len(traj.solutions) == 5
     assert all(s.status in (INFEASIBLE, LIMITED) for s in traj.solutions)
     assert np.isfinite(traj.u).all() and (np.abs(traj.u) <= problem.tau_max).all()
@@ -69,7 +70,7 @@ def test_raise_on_fail():
     problem = make("pendulum:linear")
     ocp = problem.ocp(knots=4, x_min=[-np.inf, 1.0], x_max=[np.inf, 2.0])
     with pytest.raises(SolverError, match="infeasible|limited"):
-        LinearMPC(ocp, raise_on_fail=True, max_iter=200).solve([0.0, 0.0], [1.0, 0.0])
+        LinearMPC(ocp, raise_on_fail=True, max_iter=200, state_bounds="hard").solve([0.0, 0.0], [1.0, 0.0])
 
 
 def test_same_seed_same_trajectory():
