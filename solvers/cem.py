@@ -1,9 +1,12 @@
 """CrossEntropyMPC: the cross-entropy method over the knots, on EMPC's rollout engine.
 
-Each generation draws the population from a Gaussian over the knots (mean, per-parameter std),
-keeps the ``num_elites`` cheapest candidates and refits the Gaussian to them (Rubinstein's CEM,
-as in MuJoCo MPC's cross-entropy planner). The mean carries over to the next control step
-shifted one step in time; the std restarts at σ each step. u is the mean's input at t = 0.
+Each generation draws the population from a Gaussian over the knots, keeps the ``num_elites``
+cheapest candidates and refits the Gaussian to them (Rubinstein's CEM, as in MuJoCo MPC's
+cross-entropy planner). The preconditioned variant (default) draws and refits in the coordinates
+whitened by the knot QP's Hessian and evaluates the seeds in every population
+(:mod:`ocpkit.solvers.sampling`); "paper" uses per-parameter stds in input coordinates. The mean
+carries over to the next control step shifted one step in time; the std restarts at σ each step.
+u is the mean's input at t = 0.
 """
 from __future__ import annotations
 
@@ -14,9 +17,9 @@ from ocpkit.solvers.sampling import GaussianSampling
 
 
 class CrossEntropyMPC(GaussianSampling):
-    """CEM with ``population`` samples, ``num_elites`` kept, initial std ``sigma`` (scalar or per
-    input; default 10% of each input's range), floor ``sigma_min`` (default σ/100) and
-    ``smoothing`` α ∈ [0, 1): mean ← α·mean + (1−α)·elite mean (same for the std)."""
+    """CEM with ``population`` samples, ``num_elites`` kept, initial std ``sigma`` (see
+    :class:`GaussianSampling`), floor ``sigma_min`` (default σ/100) and ``smoothing`` α ∈ [0, 1):
+    mean ← α·mean + (1−α)·elite mean (same for the std)."""
 
     def __init__(self, ocp, *, population: int = 1024, num_elites: int = 32, sigma=None,
                  generations: int = 1, sigma_min=None, smoothing: float = 0.0, **options):
@@ -30,27 +33,25 @@ class CrossEntropyMPC(GaussianSampling):
         self.smoothing = smoothing
         super().__init__(ocp, population=population, generations=generations,
                          num_picked=self.num_elites, sigma=sigma, **options)
-        self.sigma_min = self.sigma / 100 if sigma_min is None else np.broadcast_to(
-            np.asarray(sigma_min, dtype=float), self.sigma.shape).copy()
+        self.sigma_min = np.asarray(self.sigma, dtype=float) / 100 if sigma_min is None else np.broadcast_to(
+            np.asarray(sigma_min, dtype=float), np.shape(self.sigma)).copy()
         if not (np.isfinite(self.sigma_min).all() and (self.sigma_min >= 0).all()):
-            raise ValueError(f"sigma_min must be finite and >= 0, got {self.sigma_min.tolist()}")
+            raise ValueError(f"sigma_min must be finite and >= 0, got {np.ravel(self.sigma_min).tolist()}")
 
     def _start(self, x, goal, cold):
-        ocp = self.ocp
-        p = ocp.knots
-        if cold:
-            self.mean = np.tile(np.clip(ocp.input_goal(goal), ocp.u_min, ocp.u_max), (p, 1))
-        else:
-            self.mean = self._shifted(self.mean)
-        self.std = np.tile(self.sigma, (p, 1))
+        self.mean = self._start_distribution(getattr(self, "mean", None), cold)
 
     def _generation(self, cold):
-        self._sample(self.mean, self.std)
+        self._sample(self.mean)
         idx, cost = self._ranked(self.num_elites)
-        elites = self.engine.pick(idx)
+        elites = self._pick(idx)
+        elite_mean = elites.mean(axis=0)
+        spread = (self.preconditioner.whitened(elites, elite_mean) if self.preconditioned
+                  else elites.reshape(len(elites), -1) - elite_mean.ravel()).std(axis=0)
+        floor = np.broadcast_to(self.sigma_min, self.mean.shape).ravel()
         a = self.smoothing
-        self.mean = a * self.mean + (1 - a) * elites.mean(axis=0)
-        self.std = np.maximum(a * self.std + (1 - a) * elites.std(axis=0), self.sigma_min)
+        self.mean = a * self.mean + (1 - a) * elite_mean
+        self.std = np.maximum(a * self.std + (1 - a) * spread, floor)
         return float(cost[0])
 
     def _result(self):

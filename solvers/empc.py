@@ -1,41 +1,74 @@
 """EvolutionaryMPC: the paper's EMPC (Section "Evolutionary MPC", Algorithm 1) on a Taichi kernel.
 
-Per generation, in one kernel launch, every candidate is bred and rolled out:
-cold start draws each knot uniformly within the input bounds; warm start keeps the
-``num_parents`` best knot sets (elitism: they survive unchanged) and fills the rest of the
-population with children of two parents drawn uniformly, each parameter inherited from either
-parent with probability ½, then each input mutated with probability ½ by adding N(0, σ) to its
-knots, clipped to the bounds. The parents carry over to the next control step shifted one step
-in time. u is the best parent's input at t = 0. Following the paper's conclusion, σ may shrink
-with the distance to the goal so that EMPC holds the system near it.
+Per generation, in one kernel launch, every candidate is bred and rolled out. The ``num_parents``
+best knot sets survive unchanged (elitism) and carry over to the next control step shifted one step
+in time; the rest of the population are children of two parents drawn uniformly, each parameter
+inherited from either parent with probability ½, then mutated and clipped to the bounds. u is the
+best candidate's input at t = 0.
+
+``variant="paper"`` is Algorithm 1 as printed: a cold start draws each knot uniformly within the input
+bounds; each input of a child is mutated with probability ½ by adding N(0, σ) to its knots; σ may
+shrink with the distance to the goal (the paper's conclusion) so that EMPC holds the system near it.
+
+``variant="preconditioned"`` (default; :mod:`ocpkit.solvers.sampling`) breeds from the parents and the
+seeds (Newton candidate, holding input), which are also candidates of every population; a cold start
+takes the holding input as every parent. Each child is mutated by s·L⁻ᵀε, ε ~ N(0, I), with a scale s
+drawn log-uniformly from ``scales`` in whitened units, so its expected extra cost, s²·p·m on the QP's
+quadratic model, spans small refinements to bold jumps whatever the conditioning.
 """
 # No "from __future__ import annotations": Taichi reads kernel annotations as types.
+import math
+
 import numpy as np
 import taichi as ti
 
 from ocpkit._checks import integer, positive
 from ocpkit.kernels.random import normal, uniform
-from ocpkit.solvers.sampling import SamplingMPC
+from ocpkit.solvers.sampling import SEEDS, SamplingMPC
 
 
 class EvolutionaryMPC(SamplingMPC):
-    """Algorithm 1 with ``population`` (numSims), ``num_parents``, ``sigma`` (σ_noise: a scalar
-    or one per input; default 10% of each input's range) and ``generations`` per control step.
+    """Algorithm 1 with ``population`` (numSims), ``num_parents`` and ``generations`` per control step.
 
-    ``shrink_distance`` d: when set, σ_eff = σ_min + (σ − σ_min)·min(1, ‖x − x_goal‖ / d), with
-    ``sigma_min`` (default σ/10). See :class:`ocpkit.solvers.sampling.SamplingMPC` for
-    ``dynamics``, ``stage_cost``/``terminal_cost``, ``precision``, ``arch`` and ``seed``.
+    Preconditioned (default): ``scales`` = (s_min, s_max), the log-uniform range of the whitened
+    mutation scale (default (1e-2, 1e2)). Paper: ``sigma`` (σ_noise: a scalar or one per input; default
+    10 % of each input's range) and ``shrink_distance`` d: when set, σ_eff = σ_min + (σ − σ_min)·
+    min(1, ‖x − x_goal‖ / d), with ``sigma_min`` (default σ/10). See
+    :class:`ocpkit.solvers.sampling.SamplingMPC` for ``variant``, ``dynamics``,
+    ``stage_cost``/``terminal_cost``, ``precision``, ``arch`` and ``seed``.
     """
 
-    def __init__(self, ocp, *, population: int = 1024, num_parents: int = 16, sigma=None,
-                 generations: int = 1, shrink_distance: float | None = None, sigma_min=None,
-                 **options):
+    def __init__(self, ocp, *, population: int = 1024, num_parents: int = 16, generations: int = 1,
+                 scales=None, sigma=None, shrink_distance: float | None = None, sigma_min=None,
+                 variant: str = "preconditioned", **options):
         population = integer(population, "population", 2)
         self.num_parents = integer(num_parents, "num_parents", 1)
         if self.num_parents >= population:
             raise ValueError(f"num_parents must be < population ({population}), got {num_parents}")
         super().__init__(ocp, population=population, generations=generations,
-                         num_picked=self.num_parents, sigma=sigma, **options)
+                         num_picked=self.num_parents, variant=variant, **options)
+        paper_only = {"sigma": sigma, "shrink_distance": shrink_distance, "sigma_min": sigma_min}
+        given = [name for name, value in paper_only.items() if value is not None]
+        if self.preconditioned:
+            if given:
+                raise ValueError(f"{', '.join(given)} apply to variant='paper' only; the preconditioned "
+                                 f"variant draws its mutation scale from scales")
+            self.scales = _scales(scales)
+            self._generation_kernel = self._preconditioned_kernel()
+        else:
+            if scales is not None:
+                raise ValueError("scales applies to variant='preconditioned' only; the paper's variant "
+                                 "mutates with sigma")
+            self._paper_settings(sigma, shrink_distance, sigma_min)
+            self._generation_kernel = self._paper_kernel()
+
+    def _paper_settings(self, sigma, shrink_distance, sigma_min):
+        ocp = self.ocp
+        span = ocp.u_max - ocp.u_min
+        self.sigma = 0.1 * span if sigma is None else np.broadcast_to(
+            np.asarray(sigma, dtype=float), span.shape).copy()
+        if not (np.isfinite(self.sigma).all() and (self.sigma >= 0).all()):
+            raise ValueError(f"sigma must be finite and >= 0, got {self.sigma.tolist()}")
         self.shrink_distance = None if shrink_distance is None else positive(shrink_distance,
                                                                               "shrink_distance")
         self.sigma_min = self.sigma / 10 if sigma_min is None else np.broadcast_to(
@@ -46,23 +79,17 @@ class EvolutionaryMPC(SamplingMPC):
                              f"({self.sigma.tolist()}), got {self.sigma_min.tolist()}")
         self._sigma = ti.field(self.engine.ftype, shape=(2, ocp.nu))  # σ and σ_min
         self._sigma.from_numpy(np.stack([self.sigma, self.sigma_min]).astype(self.engine.ntype))
-        self._generation_kernel = self._build_kernel()
 
-    def _build_kernel(self):
+    def _parent_func(self):
+        """``parent(r, j, a, shift)``: knot j, input a of parent r; with ``shift``, of the parent
+        advanced one control step (U⁺ = S U, clipped): the warm start from the previous step's parents."""
         eng = self.engine
-        F = eng.ftype
-        N, p, m, k = eng.num_sims, eng.num_knots, eng.nu, self.num_parents
-        knots, parents, rollout = eng.knots, eng.picked, eng.rollout
-        lo, hi, sigma = self._u_min, self._u_max, self._sigma
+        F, p = eng.ftype, eng.num_knots
+        parents, lo, hi = eng.picked, self._u_min, self._u_max
         S = self._shift.tolist()
-        # Random slots per candidate: parents, then a mutation flag per input, then a
-        # crossover coin and a noise draw per parameter.
-        MUTATE, CROSS, NOISE = 2, 2 + m, 2 + m + p * m
 
         @ti.func
         def parent(r, j: ti.template(), a: ti.template(), shift):
-            """Knot j, input a of parent r; with ``shift``, of the parent advanced one control
-            step (U⁺ = S U, clipped): the warm start from the previous step's parents."""
             v = parents[r, j, a]
             if shift:
                 v = ti.cast(0.0, F)
@@ -71,6 +98,19 @@ class EvolutionaryMPC(SamplingMPC):
                         v += S[j][l] * parents[r, l, a]
                 v = ti.min(ti.max(v, lo[a]), hi[a])
             return v
+
+        return parent
+
+    def _paper_kernel(self):
+        eng = self.engine
+        F = eng.ftype
+        N, p, m, k = eng.num_sims, eng.num_knots, eng.nu, self.num_parents
+        knots, rollout = eng.knots, eng.rollout
+        lo, hi, sigma = self._u_min, self._u_max, self._sigma
+        parent = self._parent_func()
+        # Random slots per candidate: parents, then a mutation flag per input, then a
+        # crossover coin and a noise draw per parameter.
+        MUTATE, CROSS, NOISE = 2, 2 + m, 2 + m + p * m
 
         @ti.kernel
         def generation(key: ti.u32, counter: ti.u32, cold: ti.i32, shift: ti.i32, scale: F,
@@ -101,29 +141,98 @@ class EvolutionaryMPC(SamplingMPC):
 
         return generation
 
+    def _preconditioned_kernel(self):
+        eng = self.engine
+        F = eng.ftype
+        N, p, m, k = eng.num_sims, eng.num_knots, eng.nu, self.num_parents
+        d, pool = p * m, self.num_parents + SEEDS
+        knots, rollout = eng.knots, eng.rollout
+        lo, hi, whiten, seeds = self._u_min, self._u_max, self._whiten, self._seeds
+        parent = self._parent_func()
+        log_lo, log_span = math.log(self.scales[0]), math.log(self.scales[1] / self.scales[0])
+        # Random slots per candidate: two parents, the mutation scale, a crossover coin per parameter;
+        # the normal draws ε use their own stream.
+        SCALE, CROSS = 2, 3
+
+        @ti.func
+        def breeder(r, j: ti.template(), a: ti.template(), shift):
+            """Member r of the breeding pool: the parents, then the seeds."""
+            v = ti.cast(0.0, F)
+            if r < k:
+                v = parent(r, j, a, shift)
+            else:
+                v = seeds[r - k, j, a]
+            return v
+
+        @ti.kernel
+        def generation(key: ti.u32, counter: ti.u32, shift: ti.i32, out: ti.types.ndarray()):
+            for i in range(N):
+                if i < pool:  # the elites and the seeds themselves
+                    for j, a in ti.static(ti.ndrange(p, m)):
+                        knots[i, j, a] = breeder(i, j, a, shift)
+                else:
+                    p1 = ti.min(ti.cast(uniform(key, counter, i, 0) * pool, ti.i32), pool - 1)
+                    p2 = ti.min(ti.cast(uniform(key, counter, i, 1) * pool, ti.i32), pool - 1)
+                    v = ti.Vector.zero(F, d)
+                    for j, a in ti.static(ti.ndrange(p, m)):
+                        if uniform(key, counter, i, CROSS + j * m + a) < 0.5:
+                            v[j * m + a] = breeder(p1, j, a, shift)
+                        else:
+                            v[j * m + a] = breeder(p2, j, a, shift)
+                    s = ti.cast(ti.exp(log_lo + log_span * uniform(key, counter, i, SCALE)), F)
+                    eps = ti.Vector([ti.cast(normal(key, counter, i, c), F) for c in ti.static(range(d))], dt=F)
+                    for r in ti.static(range(d)):
+                        acc = ti.cast(0.0, F)
+                        for c in range(r, d):  # L⁻ᵀ is upper triangular
+                            acc += whiten[r, c] * eps[c]
+                        v[r] += s * acc
+                    for j, a in ti.static(ti.ndrange(p, m)):
+                        knots[i, j, a] = ti.min(ti.max(v[j * m + a], lo[a]), hi[a])
+                out[i] = rollout(i)
+
+        return generation
+
     def reset(self):
         super().reset()
         self._shift_parents = False
 
     def _start(self, x, goal, cold):
-        self._scale = 1.0  # σ_eff = σ_min + (σ − σ_min)·scale
-        if self.shrink_distance is not None:
-            self._scale = min(1.0, float(np.linalg.norm(x - goal)) / self.shrink_distance)
-        if not cold and self._shift_parents:  # the last step ran out of time before a generation: its shift is owed
-            parents = self.engine.picked
+        parents = self.engine.picked
+        if cold and self.preconditioned:  # every parent starts as the holding input
+            hold = self.preconditioner.hold
+            parents.from_numpy(np.broadcast_to(hold, parents.shape).astype(self.engine.ntype))
+        elif not cold and self._shift_parents:  # the last step ran out of time before a generation: its shift is owed
             parents.from_numpy(self._shifted(parents.to_numpy().astype(np.float64)).astype(self.engine.ntype))
         self._shift_parents = not cold  # the first generation breeds from the shifted parents
+        self._scale = 1.0  # paper: σ_eff = σ_min + (σ − σ_min)·scale
+        if not self.preconditioned and self.shrink_distance is not None:
+            self._scale = min(1.0, float(np.linalg.norm(x - goal)) / self.shrink_distance)
 
     def _generation(self, cold):
-        self._generation_kernel(self.key, self.counter & 0xFFFFFFFF, int(cold), int(self._shift_parents),
-                                self._scale, self._cost)
+        key, counter, shift = self.key, self.counter & 0xFFFFFFFF, int(self._shift_parents)
+        if self.preconditioned:
+            self._launch(self._generation_kernel, key, counter, shift, self._cost)
+        else:
+            self._launch(self._generation_kernel, key, counter, int(cold), shift, self._scale, self._cost)
         self._shift_parents = False
         idx, cost = self._ranked(self.num_parents)
-        self._best = self.engine.pick(idx)[0]
+        self._best = self._pick(idx)[0]
         return float(cost[0])
 
     def _result(self):
         return self._best
+
+
+def _scales(scales) -> tuple[float, float]:
+    if scales is None:
+        return 1e-2, 1e2
+    try:
+        lo, hi = (float(s) for s in scales)
+    except (TypeError, ValueError):
+        raise TypeError(f"scales must be two numbers (s_min, s_max), got {scales!r}") from None
+    if not (np.isfinite([lo, hi]).all() and 0 < lo <= hi):
+        raise ValueError(f"scales must satisfy 0 < s_min <= s_max < inf, got {scales!r}")
+    return lo, hi
 
 
 SOLVERS = {"empc": EvolutionaryMPC}

@@ -1,9 +1,11 @@
 """MPPI: model predictive path integral control (Williams et al., cited in the paper) over the knots.
 
-Each generation perturbs the nominal knots with N(0, σ²) noise (clipped to the input bounds),
-rolls the population out and moves the nominal to the exponentially weighted average
-Σ_i w_i U_i with w_i ∝ exp(−(J_i − min J)/λ). The nominal carries over to the next control step
-shifted one step in time; u is its input at t = 0.
+Each generation perturbs the nominal knots with Gaussian noise (clipped to the input bounds), rolls
+the population out and moves the nominal to the exponentially weighted average Σ_i w_i U_i with
+w_i ∝ exp(−(J_i − min J)/λ). The preconditioned variant (default) draws the noise with covariance
+σ²P⁻¹ from the knot QP's Hessian and evaluates the seeds in every population
+(:mod:`ocpkit.solvers.sampling`); "paper" uses N(0, σ²) per parameter. The nominal carries over to the
+next control step shifted one step in time; u is its input at t = 0.
 """
 # No "from __future__ import annotations": Taichi reads kernel annotations as types.
 import numpy as np
@@ -14,8 +16,8 @@ from ocpkit.solvers.sampling import GaussianSampling
 
 
 class MPPI(GaussianSampling):
-    """MPPI with ``population`` samples, noise ``sigma`` (scalar or per input; default 10% of each
-    input's range) and temperature ``temperature`` λ (in the cost's units)."""
+    """MPPI with ``population`` samples, noise ``sigma`` (see :class:`GaussianSampling`) and temperature
+    ``temperature`` λ (in the cost's units)."""
 
     def __init__(self, ocp, *, population: int = 1024, sigma=None, temperature: float = 1.0,
                  generations: int = 1, **options):
@@ -37,22 +39,17 @@ class MPPI(GaussianSampling):
         self._weighted_average = weighted_average
 
     def _start(self, x, goal, cold):
-        ocp = self.ocp
-        if cold:
-            self.nominal = np.tile(np.clip(ocp.input_goal(goal), ocp.u_min, ocp.u_max), (ocp.knots, 1))
-        else:
-            self.nominal = self._shifted(self.nominal)
-        self.std = np.tile(self.sigma, (ocp.knots, 1))
+        self.nominal = self._start_distribution(getattr(self, "nominal", None), cold)
 
     def _generation(self, cold):
-        self._sample(self.nominal, self.std)
+        self._sample(self.nominal)
         cost = np.nan_to_num(self._cost.astype(np.float64), nan=np.inf)
         best = cost.min()
         if not np.isfinite(best):
             return best
         w = np.exp(-(cost - best) / self.temperature)
         self.nominal = np.empty((self.ocp.knots, self.ocp.nu))
-        self._weighted_average(w / w.sum(), self.nominal)
+        self._launch(self._weighted_average, w / w.sum(), self.nominal)
         return float(best)
 
     def _result(self):

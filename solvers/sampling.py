@@ -1,41 +1,124 @@
-"""The frame shared by the sampling planners (EMPC, CEM, MPPI) on one rollout engine.
+"""The frame shared by the sampling planners (EMPC, CEM, MPPI) on one rollout engine, and their preconditioner.
 
-Each control step: linearize the model about (x, ū) as LinearMPC does (``linearization``)
-when the affine dynamics are used (the paper's EMPC), copy x, the goal and (A_d, B_d, w_d) to
-the device, run ``generations`` rounds of the planner's update rule over populations rolled
-out by :class:`ocpkit.kernels.rollout.Rollout`, and copy the chosen knots back. Timings:
-``model`` is the linearization, ``solve`` everything on the device including the copies
-(as the paper counts EMPC's solve time), ``build`` is zero: nothing is assembled.
+Each control step: linearize the model about (x, ū) as LinearMPC does (``linearization``), copy x,
+the goal and (A_d, B_d, w_d) to the device, run ``generations`` rounds of the planner's update rule
+over populations rolled out by :class:`ocpkit.kernels.rollout.Rollout`, and copy the chosen knots back.
+
+``variant="preconditioned"`` (the default) fixes what defeats the paper's Algorithm 1 on the N-link
+robots (DESIGN, "Sampling planners: what we learnt"): the knot QP's Hessian is so anisotropic
+(condition 1e5–1e7 from 3 links) that isotropic mutations land far uphill. Each step the
+:class:`Preconditioner` builds the condensed knot QP ½zᵀPz + qᵀz at this step's linearization (the
+rollout cost of affine dynamics is exactly twice it plus a constant), factors P = LLᵀ, and supplies
+*seeds* evaluated in every population: the box-constrained optimum of that QP (a Newton candidate,
+:func:`ocpkit.boxqp.solve_box_qp`) and the input that holds the goal (u_g corrected for gravity and
+other static loads). Perturbations are drawn as L⁻ᵀε (covariance ∝ P⁻¹), so every direction costs
+alike. The fitness stays the rollout, so ``dynamics="nonlinear"`` and any CasADi stage cost keep
+working; the QP only shapes the search. ``variant="paper"`` is the plain algorithm: isotropic
+sampling in input coordinates, no seeds.
+
+Timings: ``model`` is the linearization; ``build`` the preconditioner's QP; ``solve`` the rest
+(``factor``, ``seed`` — the Newton and holding candidates —, ``copies`` between host and device and
+``generations``, each also reported on its own), as the paper counts EMPC's solve time.
 """
 # No "from __future__ import annotations": Taichi reads kernel annotations as types.
 import time
 
+import casadi as ca
 import numpy as np
+import scipy.linalg
 import taichi as ti
 
-from ocpkit._checks import array, integer, positive
+from ocpkit._checks import array, choice, integer, positive
+from ocpkit.boxqp import solve_box_qp
 from ocpkit.controller import EXCEPTION, LIMITED, NAN, SUCCESS, Controller, Solution, check_linearization
 from ocpkit.kernels.random import normal, seed_key
 from ocpkit.kernels.rollout import Rollout
+from ocpkit.transcription import CondensedQP
+
+VARIANTS = ("preconditioned", "paper")
+SEEDS = 2  # Newton candidate, holding input
+PARTS = ("model", "build", "factor", "seed", "copies", "generations", "solve", "total")
+
+
+class Preconditioner:
+    """The knot QP ½zᵀPz + qᵀz (z = knots, p·m) of ``ocp`` at one linearization, P = LLᵀ, and the seeds.
+
+    :meth:`update` builds it with :class:`ocpkit.transcription.CondensedQP` (the structure-exploiting
+    build LinearMPC uses), factors P and computes ``newton`` (the QP's optimum within the input
+    bounds, warm-started from the previous plan) and ``hold`` (:meth:`holding_input` at every knot).
+    ``whiten`` = L⁻ᵀ maps N(0, I) draws to N(0, P⁻¹).
+    """
+
+    def __init__(self, ocp):
+        self.ocp = ocp
+        self.transcription = CondensedQP(ocp)
+        self.lo, self.hi = np.tile(ocp.u_min, ocp.knots), np.tile(ocp.u_max, ocp.knots)
+        x, u = ocp.model.x, ocp.model.u
+        f = ocp.model.xdot
+        self._statics = ca.Function("statics", [x, u], [f, ca.jacobian(f, u)])
+        self._hold_goal, self._hold = None, None
+
+    def holding_input(self, goal: np.ndarray) -> np.ndarray:
+        """u_g corrected so that the continuous dynamics rest at the goal: u_g − J⁺ f(x_goal, u_g) with
+        J = ∂f/∂u (exact for robots, whose dynamics are affine in the torques: gravity compensation),
+        clipped to the input bounds; u_g where that is not finite. Cached per goal."""
+        ocp = self.ocp
+        if self._hold_goal is None or not np.array_equal(goal, self._hold_goal):
+            u_g = np.clip(ocp.input_goal(goal), ocp.u_min, ocp.u_max)
+            f, J = (np.asarray(v, dtype=float) for v in self._statics(goal, u_g))
+            u = u_g - np.linalg.lstsq(J, f.ravel(), rcond=None)[0]
+            self._hold = np.clip(u, ocp.u_min, ocp.u_max) if np.isfinite(u).all() else u_g
+            self._hold_goal = goal.copy()
+        return self._hold
+
+    def update(self, model, x, goal, warm: np.ndarray | None, times: dict) -> None:
+        """Build, factor and seed for the affine ``model`` = (A_d, B_d, w_d) at state x; ``warm`` (p, m)
+        starts the Newton candidate (the holding input if None). Adds its parts to ``times``."""
+        p, m = self.ocp.knots, self.ocp.nu
+        t0 = time.perf_counter()
+        qp = self.transcription.build(*model, x, goal)
+        t1 = time.perf_counter()
+        self.P, self.q = qp.P, qp.q
+        try:
+            self.L = np.linalg.cholesky(self.P)
+        except np.linalg.LinAlgError:  # P ≻ 0 in exact arithmetic (R ≻ 0); lift rounding-level negatives
+            w, V = np.linalg.eigh(self.P)
+            self.L = np.linalg.cholesky((V * np.maximum(w, 1e-12 * w.max())) @ V.T)
+        self.whiten = scipy.linalg.solve_triangular(self.L, np.eye(p * m), lower=True).T
+        t2 = time.perf_counter()
+        self.hold = np.tile(self.holding_input(goal), (p, 1))
+        start = self.hold if warm is None else warm
+        self.newton = solve_box_qp(self.P, self.q, self.lo, self.hi, start.ravel()).z.reshape(p, m)
+        times["build"] += t1 - t0
+        times["factor"] += t2 - t1
+        times["seed"] += time.perf_counter() - t2
+
+    def whitened(self, knots: np.ndarray, center: np.ndarray) -> np.ndarray:
+        """Lᵀ(U − center) for knots (…, p, m): deviations in the coordinates where P is the identity."""
+        d = self.L.shape[0]
+        return (knots.reshape(-1, d) - center.reshape(d)) @ self.L
 
 
 class SamplingMPC(Controller):
-    """Base class: subclasses implement ``_start(cold)`` and ``_generation(cold)`` and ``_result()``.
+    """Base class: subclasses implement ``_start``, ``_generation`` and ``_result``.
 
-    ``population`` candidates per generation, ``generations`` per control step; ``dynamics``
-    "affine" (re-linearized each step) or "nonlinear" (the discrete model F in the kernel);
-    ``stage_cost``/``terminal_cost`` replace the OCP's quadratic costs (any CasADi Function
-    of (x, u, x_goal) / (x, x_goal), non-smooth allowed); ``seed`` makes runs repeatable.
-    ``linearization`` picks the affine model's expansion input as in LinearMPC. ``time_limit`` (s)
-    stops the generations once exceeded (a launched generation always completes): the step then
-    returns the best candidate so far with status "limited".
+    ``population`` candidates per generation, ``generations`` per control step; ``variant``
+    "preconditioned" (default) or "paper" (module docstring); ``dynamics`` "affine" (re-linearized
+    each step) or "nonlinear" (the discrete model F in the kernel); ``stage_cost``/``terminal_cost``
+    replace the OCP's quadratic costs in the fitness (any CasADi Function of (x, u, x_goal) /
+    (x, x_goal), non-smooth allowed); ``seed`` makes runs repeatable. ``linearization`` picks the
+    affine model's expansion input as in LinearMPC. ``time_limit`` (s) stops the generations once
+    exceeded (a launched generation always completes): the step then returns the best candidate so
+    far with status "limited".
     """
 
     def __init__(self, ocp, *, population: int = 1024, generations: int = 1, num_picked: int = 1,
-                 sigma=None, dynamics: str = "affine", stage_cost=None, terminal_cost=None,
+                 variant: str = "preconditioned", dynamics: str = "affine", stage_cost=None, terminal_cost=None,
                  precision: str = "float64", arch: str = "auto", seed: int = 0,
                  linearization: str = "goal", time_limit: float | None = None, raise_on_fail: bool = False):
         super().__init__(ocp, raise_on_fail=raise_on_fail)
+        self.variant = choice(variant, VARIANTS, "variant")
+        self.preconditioned = variant == "preconditioned"
         self.time_limit = None if time_limit is None else positive(time_limit, "time_limit")
         self.linearization = check_linearization(linearization)
         self.population = integer(population, "population", 1)
@@ -46,29 +129,40 @@ class SamplingMPC(Controller):
         if not (np.isfinite(ocp.u_min).all() and np.isfinite(ocp.u_max).all()):
             raise ValueError(f"{type(self).__name__} samples within the input bounds, which must be "
                              f"finite; got u_min={ocp.u_min.tolist()}, u_max={ocp.u_max.tolist()}")
-        span = ocp.u_max - ocp.u_min
-        self.sigma = 0.1 * span if sigma is None else array(np.broadcast_to(sigma, span.shape),
-                                                             "sigma", span.shape)
-        if (self.sigma < 0).any():
-            raise ValueError(f"sigma must be >= 0, got {self.sigma.tolist()}")
         self.key = seed_key(seed)
         self.engine = Rollout(ocp, self.population, num_picked=num_picked, dynamics=dynamics,
                               stage_cost=stage_cost, terminal_cost=terminal_cost,
                               precision=precision, arch=arch)
         F = self.engine.ftype
-        self._u_min = ti.field(F, shape=ocp.nu)
-        self._u_max = ti.field(F, shape=ocp.nu)
+        p, m = ocp.knots, ocp.nu
+        self._u_min = ti.field(F, shape=m)
+        self._u_max = ti.field(F, shape=m)
         self._u_min.from_numpy(ocp.u_min.astype(self.engine.ntype))
         self._u_max.from_numpy(ocp.u_max.astype(self.engine.ntype))
         self._affine = dynamics == "affine"
         self._cost = np.empty(self.population, dtype=self.engine.ntype)  # the last generation's costs
-        p = ocp.knots
         # The warm start's time shift is linear in the knots: U⁺ = S U.
         self._shift = ocp.parameterization.shift(np.eye(p))
+        if self.preconditioned:
+            self.preconditioner = Preconditioner(ocp)
+            d = p * m
+            self._whiten = ti.field(F, shape=(d, d))  # L⁻ᵀ
+            self._seeds = ti.field(F, shape=(SEEDS, p, m))  # Newton candidate, holding input
+            whiten, seeds = self._whiten, self._seeds
+
+            @ti.kernel
+            def upload(values: ti.types.ndarray()):
+                for r, c in ti.ndrange(d, d):
+                    whiten[r, c] = values[r * d + c]
+                for s, j, a in ti.ndrange(SEEDS, p, m):
+                    seeds[s, j, a] = values[d * d + (s * p + j) * m + a]
+
+            self._upload_preconditioner = upload
+            self._upload_buffer = np.empty(d * d + SEEDS * d, dtype=self.engine.ntype)
 
     def __repr__(self):
-        return (f"{type(self).__name__}(population={self.population}, generations={self.generations}, "
-                f"{self.ocp!r})")
+        return (f"{type(self).__name__}({self.variant}, population={self.population}, "
+                f"generations={self.generations}, {self.ocp!r})")
 
     def reset(self) -> None:
         """Cold start: forget the plan and restart the random stream."""
@@ -78,18 +172,28 @@ class SamplingMPC(Controller):
 
     def _solve(self, x: np.ndarray, goal: np.ndarray) -> Solution:
         ocp = self.ocp
-        times = {"model": 0.0, "build": 0.0, "solve": 0.0, "total": 0.0}
-        if self._affine:
+        times = self._times = dict.fromkeys(PARTS, 0.0)
+        model = None
+        if self._affine or self.preconditioned:
             start = time.perf_counter()
             model = self.affine_model(x, goal, self.linearization)
+            times["model"] = time.perf_counter() - start
             if model is None:
                 self._warm = False
                 return self.fallback(NAN, f"non-finite affine model at x = {x.tolist()}", times)
-            times["model"] = time.perf_counter() - start
         start = time.perf_counter()
+        cold = not self._warm
         try:
+            if self.preconditioned:
+                pre = self.preconditioner
+                pre.update(model, x, goal, None if self.plan is None else self._shifted(self.plan), times)
+            t = time.perf_counter()
             self.engine.load(x, goal, model if self._affine else None)
-            cold = not self._warm
+            if self.preconditioned:
+                np.concatenate([pre.whiten.ravel(), pre.newton.ravel(), pre.hold.ravel()],
+                               out=self._upload_buffer, casting="same_kind")
+                self._upload_preconditioner(self._upload_buffer)
+            times["copies"] += time.perf_counter() - t
             self._start(x, goal, cold)
             best, done = np.inf, 0
             while done < self.generations and not self._out_of_time(start):
@@ -98,10 +202,10 @@ class SamplingMPC(Controller):
                 done += 1
             knots = self._result() if done else None
         except Exception as exc:  # a failed step must not raise inside the control loop
-            times["solve"] = time.perf_counter() - start
+            self._close_times(start)
             self._warm = False
             return self.fallback(EXCEPTION, f"{type(exc).__name__}: {exc}", times, self.generations)
-        times["solve"] = time.perf_counter() - start
+        self._close_times(start)
         if knots is None:
             return self.fallback(LIMITED, f"time limit {self.time_limit:g} s reached before a generation", times)
         if not np.isfinite(best) or not np.isfinite(knots).all():
@@ -117,8 +221,25 @@ class SamplingMPC(Controller):
         return Solution(u=u, knots=knots, status=SUCCESS, raw_status=f"best cost {best:.6g}",
                         iterations=self.generations, times=times)
 
+    def _close_times(self, start: float) -> None:
+        """Everything after the linearization except the preconditioner's QP build counts as solve."""
+        self._times["solve"] = time.perf_counter() - start - self._times["build"]
+
     def _out_of_time(self, start: float) -> bool:
         return self.time_limit is not None and time.perf_counter() - start >= self.time_limit
+
+    def _launch(self, kernel, *args) -> None:
+        """Run one population kernel, its time counted as ``generations``."""
+        t = time.perf_counter()
+        kernel(*args)
+        self._times["generations"] += time.perf_counter() - t
+
+    def _pick(self, indices) -> np.ndarray:
+        """:meth:`Rollout.pick`, its time counted as ``copies``."""
+        t = time.perf_counter()
+        picked = self.engine.pick(indices)
+        self._times["copies"] += time.perf_counter() - t
+        return picked
 
     def _shifted(self, knots: np.ndarray) -> np.ndarray:
         """Knots (…, p, m) advanced one control step and clipped to the input bounds."""
@@ -147,29 +268,73 @@ class SamplingMPC(Controller):
 
 
 class GaussianSampling(SamplingMPC):
-    """Base of CEM and MPPI: each generation samples knots ~ N(mean, std²) per parameter, clipped
-    to the input bounds; candidate 0 is the mean itself so the incumbent is always evaluated."""
+    """Base of CEM and MPPI: each generation draws knots z = μ + G ε, ε ~ N(0, I), clipped to the input
+    bounds; candidate 0 is μ itself so the incumbent is always evaluated, and with the preconditioned
+    variant candidates 1 and 2 are the seeds. G is diag(std) in input coordinates ("paper") or
+    L⁻ᵀ diag(std) with std in whitened units ("preconditioned"): see :meth:`_sample`.
 
-    def __init__(self, ocp, **options):
+    ``sigma``: with "paper", the initial std in input units (scalar or per input; default 10 % of each
+    input's range); with "preconditioned", in whitened units (a scalar; default 1: a draw then adds
+    about ‖ε‖² ≈ p·m to the rollout cost of the QP's quadratic model).
+    """
+
+    def __init__(self, ocp, *, sigma=None, **options):
         super().__init__(ocp, **options)
         eng = self.engine
         F = eng.ftype
         N, p, m = eng.num_sims, eng.num_knots, eng.nu
+        d = p * m
+        if self.preconditioned:
+            self.sigma = 1.0 if sigma is None else positive(sigma, "sigma")
+        else:
+            span = ocp.u_max - ocp.u_min
+            self.sigma = 0.1 * span if sigma is None else array(np.broadcast_to(sigma, span.shape), "sigma",
+                                                                 span.shape)
+            if (self.sigma < 0).any():
+                raise ValueError(f"sigma must be >= 0, got {self.sigma.tolist()}")
         knots, rollout, lo, hi = eng.knots, eng.rollout, self._u_min, self._u_max
+        seeded = SEEDS if self.preconditioned else 0
+        seeds = self._seeds if self.preconditioned else None
 
         @ti.kernel
         def generation(key: ti.u32, counter: ti.u32, distribution: ti.types.ndarray(), out: ti.types.ndarray()):
             for i in range(N):
+                v = ti.Vector([ti.cast(distribution[0, r], F) for r in ti.static(range(d))], dt=F)
+                if ti.static(seeded) and 1 <= i <= seeded:
+                    for j, a in ti.static(ti.ndrange(p, m)):
+                        v[j * m + a] = seeds[i - 1, j, a]
+                elif i > seeded:
+                    eps = ti.Vector([ti.cast(normal(key, counter, i, c), F) for c in ti.static(range(d))], dt=F)
+                    for r in ti.static(range(d)):
+                        acc = ti.cast(0.0, F)
+                        for c in range(d):
+                            acc += ti.cast(distribution[1 + r, c], F) * eps[c]
+                        v[r] += acc
                 for j, a in ti.static(ti.ndrange(p, m)):
-                    v = ti.cast(distribution[0, j, a], F)
-                    if i > 0:
-                        v += ti.cast(distribution[1, j, a], F) * ti.cast(normal(key, counter, i, j * m + a), F)
-                    knots[i, j, a] = ti.min(ti.max(v, lo[a]), hi[a])
+                    knots[i, j, a] = ti.min(ti.max(v[j * m + a], lo[a]), hi[a])
                 out[i] = rollout(i)
 
         self._gaussian_kernel = generation
+        self._distribution = np.empty((1 + d, d), dtype=eng.ntype)
 
-    def _sample(self, mean: np.ndarray, std: np.ndarray) -> None:
-        """Roll out one population drawn from N(mean, std²) (one call: the distribution goes in,
-        the costs come back in ``self._cost``)."""
-        self._gaussian_kernel(self.key, self.counter & 0xFFFFFFFF, np.stack([mean, std]), self._cost)
+    def _start_distribution(self, mean: np.ndarray, cold: bool) -> np.ndarray:
+        """This step's starting mean: the shifted one, or at a cold start the holding input
+        (preconditioned) or the input goal (paper); the std restarts at σ."""
+        ocp = self.ocp
+        if not cold:
+            start = self._shifted(mean)
+        elif self.preconditioned:
+            start = self.preconditioner.hold
+        else:
+            start = np.tile(np.clip(ocp.input_goal(self._goal), ocp.u_min, ocp.u_max), (ocp.knots, 1))
+        d = ocp.knots * ocp.nu
+        self.std = np.full(d, self.sigma) if self.preconditioned else np.tile(self.sigma, ocp.knots)
+        return start
+
+    def _sample(self, mean: np.ndarray) -> None:
+        """Roll out one population drawn around ``mean`` (p, m) with the current ``self.std`` (one call:
+        the distribution goes in, the costs come back in ``self._cost``)."""
+        dist = self._distribution
+        dist[0] = mean.ravel()
+        dist[1:] = self.preconditioner.whiten * self.std if self.preconditioned else np.diag(self.std)
+        self._launch(self._gaussian_kernel, self.key, self.counter & 0xFFFFFFFF, dist, self._cost)

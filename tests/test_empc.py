@@ -1,4 +1,5 @@
-"""EvolutionaryMPC (Algorithm 1) and its siblings CEM and MPPI in closed loop, on the arch of `pytest --arch` (default cpu)."""
+"""EvolutionaryMPC (Algorithm 1, preconditioned and as printed) and its siblings CEM and MPPI in closed loop, on
+the arch of `pytest --arch` (default cpu)."""
 import casadi as ca
 import numpy as np
 import pytest
@@ -10,31 +11,81 @@ from ocpkit.simulate import simulate
 from ocpkit.solvers.cem import CrossEntropyMPC
 from ocpkit.solvers.empc import EvolutionaryMPC
 from ocpkit.solvers.mppi import MPPI
+from ocpkit.solvers.sampling import SEEDS
 
 
 pytestmark = pytest.mark.usefixtures("taichi_arch")
 
 
-def test_linear_pendulum_reaches_goal():
+@pytest.mark.parametrize("variant", ["preconditioned", "paper"])
+def test_linear_pendulum_reaches_goal(variant):
     problem = problems.make("pendulum:linear")
     ocp = problem.ocp(knots=3)
     x0, goal = problem.sample(0)
-    ctrl = EvolutionaryMPC(ocp, population=256, seed=0)
+    ctrl = EvolutionaryMPC(ocp, population=256, seed=0, variant=variant)
     traj = simulate(problem.plant(), ctrl, x0, goal, 2.0)
     assert traj.fallbacks == 0 and set(traj.statuses) == {SUCCESS}
     np.testing.assert_allclose(traj.x[-1], goal, atol=0.02)
     sol = traj.solutions[-1]
-    assert sol.iterations == 1 and sol.times["solve"] > 0 and sol.times["build"] == 0
+    assert sol.iterations == 1 and sol.times["solve"] > 0 and sol.times["generations"] > 0
+    # The paper's variant assembles nothing; the preconditioned one builds the knot QP.
+    assert (sol.times["build"] > 0) == (variant == "preconditioned")
     assert sol.knots.shape == (3, 1) and np.all(np.abs(sol.knots) <= ocp.u_max)
 
 
-def test_nlink2_reaches_goal_and_generations_help():
+@pytest.mark.parametrize("cls", [EvolutionaryMPC, CrossEntropyMPC, MPPI])
+def test_reaches_goal_at_three_links(cls):
+    """The preconditioned planners bring the 3-link robot to its goal (the paper's Algorithm 1 does not)."""
+    problem = problems.make("nlink:3")
+    ocp = problem.ocp(knots=3)
+    x0, goal = problem.sample(11)
+    traj = simulate(problem.plant(), cls(ocp, population=256, seed=3), x0, goal, 5.0)
+    assert traj.fallbacks == 0
+    assert np.abs(traj.x[-1] - goal).max() < 0.05
+
+
+@pytest.mark.parametrize("cls", [EvolutionaryMPC, CrossEntropyMPC, MPPI])
+def test_whitened_draws_have_covariance_proportional_to_inverse_hessian(cls):
+    """At rest on the goal (no gravity) every seed and the mean are zero, so each candidate is its whitened
+    draw alone: Lᵀz must have covariance E[s²]·I (EMPC: s log-uniform; CEM and MPPI: s = sigma)."""
+    problem = problems.make("nlink:2")
+    ocp = problem.ocp(knots=3, horizon=20, u_min=np.full(2, -1e9), u_max=np.full(2, 1e9))
+    x = np.r_[0.3, -0.2, 0.0, 0.0]
+    if cls is EvolutionaryMPC:
+        lo, hi = 0.5, 2.0
+        ctrl, second_moment = cls(ocp, population=40_000, scales=(lo, hi)), (hi**2 - lo**2) / (2 * np.log(hi / lo))
+    else:
+        ctrl, second_moment = cls(ocp, population=40_000, sigma=0.7), 0.49
+    ctrl.solve(x, x)
+    pre = ctrl.preconditioner
+    np.testing.assert_allclose(pre.newton, 0.0, atol=1e-12)
+    first_child = ctrl.num_parents + SEEDS if cls is EvolutionaryMPC else 1 + SEEDS
+    knots = ctrl.engine.knots.to_numpy()[first_child:]
+    w = pre.whitened(knots, np.zeros(knots.shape[1:]))
+    cov = w.T @ w / len(w)
+    d = cov.shape[0]
+    # Sample covariance of 40k draws: entries within ~4 standard errors of E[s²]·I.
+    np.testing.assert_allclose(cov / second_moment, np.eye(d), atol=0.06)
+
+
+def test_holding_input_compensates_gravity():
+    problem = problems.make("puma560")
+    ocp = problem.ocp(knots=3)
+    ctrl = EvolutionaryMPC(ocp, population=16, num_parents=4)
+    _, goal = problem.sample(0)
+    hold = ctrl.preconditioner.holding_input(goal)
+    xdot = np.asarray(ocp.model.f(goal, hold)).ravel()
+    assert np.abs(hold).max() > 1.0  # gravity needs real torque
+    np.testing.assert_allclose(xdot, 0.0, atol=1e-9)
+
+
+def test_paper_variant_nlink2_reaches_goal_and_generations_help():
     problem = problems.make("nlink:2")
     ocp = problem.ocp(knots=3)
     costs = {}
     for generations in (1, 3):
         ctrl = EvolutionaryMPC(ocp, population=256, generations=generations, shrink_distance=1.0,
-                               sigma_min=0.01, seed=0)
+                               sigma_min=0.01, seed=0, variant="paper")
         costs[generations] = []
         for trial in range(3):
             x0, goal = problem.sample(trial)
@@ -46,19 +97,24 @@ def test_nlink2_reaches_goal_and_generations_help():
     assert np.mean(costs[3]) <= np.mean(costs[1])
 
 
-def test_same_seed_same_run():
+@pytest.mark.parametrize("variant", ["preconditioned", "paper"])
+def test_same_seed_same_run(variant):
+    # Nonlinear rollouts: the Newton candidate of the linearized QP is then improvable, so the seed matters.
     problem = problems.make("pendulum")
     ocp = problem.ocp(knots=3)
     x0, goal = problem.sample(1)
+    options = {"population": 128, "generations": 2, "variant": variant, "dynamics": "nonlinear"}
     runs = []
     for seed in (5, 5, 6):
-        ctrl = EvolutionaryMPC(ocp, population=128, generations=2, seed=seed)
+        ctrl = EvolutionaryMPC(ocp, seed=seed, **options)
         runs.append(simulate(problem.plant(), ctrl, x0, goal, 0.3))
     np.testing.assert_array_equal(runs[0].u, runs[1].u)
     np.testing.assert_array_equal(runs[0].x, runs[1].x)
-    assert not np.array_equal(runs[0].u, runs[2].u)
+    knots = [np.array([s.knots for s in run.solutions]) for run in runs]
+    np.testing.assert_array_equal(knots[0], knots[1])
+    assert not np.array_equal(knots[0], knots[2])
     # reset() restarts the random stream: the same controller repeats itself too.
-    ctrl = EvolutionaryMPC(ocp, population=128, generations=2, seed=5)
+    ctrl = EvolutionaryMPC(ocp, seed=5, **options)
     first = [ctrl.solve(x0, goal).u for _ in range(3)]
     ctrl.reset()
     np.testing.assert_array_equal(first, [ctrl.solve(x0, goal).u for _ in range(3)])
@@ -83,14 +139,16 @@ def test_non_smooth_cost_dead_zone_and_speed_penalty():
     assert abs(shaped.x[-1, 0] - goal[0]) < 0.05
 
 
-def test_nonlinear_dynamics_mode():
+@pytest.mark.parametrize("variant", ["preconditioned", "paper"])
+def test_nonlinear_dynamics_mode(variant):
     problem = problems.make("pendulum")
     ocp = problem.ocp(knots=3)
     x0, goal = problem.sample(2)
-    ctrl = EvolutionaryMPC(ocp, population=256, generations=2, dynamics="nonlinear")
+    ctrl = EvolutionaryMPC(ocp, population=256, generations=2, dynamics="nonlinear", variant=variant)
     traj = simulate(problem.plant(), ctrl, x0, goal, 2.0)
     np.testing.assert_allclose(traj.x[-1], goal, atol=0.02)
-    assert traj.solutions[0].times["model"] == 0.0
+    # Only the preconditioner needs the affine model when the kernel rolls out the nonlinear one.
+    assert (traj.solutions[0].times["model"] > 0) == (variant == "preconditioned")
 
 
 @pytest.mark.parametrize("cls, options", [(CrossEntropyMPC, {"generations": 3}),
@@ -128,7 +186,13 @@ def test_bad_arguments():
     with pytest.raises(ValueError, match="population"):
         EvolutionaryMPC(ocp, population=1)
     with pytest.raises(ValueError, match="sigma"):
-        EvolutionaryMPC(ocp, population=8, num_parents=2, sigma=-1.0)
+        EvolutionaryMPC(ocp, population=8, num_parents=2, sigma=-1.0, variant="paper")
+    with pytest.raises(ValueError, match="variant='paper' only"):
+        EvolutionaryMPC(ocp, population=8, num_parents=2, sigma=0.1)
+    with pytest.raises(ValueError, match="scales"):
+        EvolutionaryMPC(ocp, population=8, num_parents=2, scales=(1.0, 0.1))
+    with pytest.raises(ValueError, match="variant"):
+        CrossEntropyMPC(ocp, population=8, num_elites=4, variant="isotropic")
     with pytest.raises(ValueError, match="seed"):
         EvolutionaryMPC(ocp, population=8, num_parents=2, seed=-3)
     with pytest.raises(ValueError, match="arch"):
