@@ -6,8 +6,10 @@ input (the previous plan advanced one step, clipped to the input bounds).
 """
 from __future__ import annotations
 
+import sys
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -38,6 +40,26 @@ def state_limit(ocp: OCP) -> float:
     return STATE_SCALE * max(1.0, float(finite.max(initial=0.0)))
 
 
+class OperationCosts:
+    """Measured wall times of a backend's uninterruptible operations (a factorization, one chunk of
+    iterations), the median of the last five of each. With a step budget an operation starts only if its
+    predicted time fits in what is left; one never measured is predicted free, so the first step of a new
+    controller calibrates (it is not bounded: documented in LinearMPC)."""
+
+    def __init__(self):
+        self._seen: dict[str, deque] = {}
+
+    def add(self, op: str, seconds: float) -> None:
+        self._seen.setdefault(op, deque(maxlen=5)).append(seconds)
+
+    def predict(self, op: str) -> float:
+        seen = self._seen.get(op)
+        return float(np.median(seen)) if seen else 0.0
+
+    def fits(self, op: str, left: float | None) -> bool:
+        return left is None or (left > 0.0 and self.predict(op) <= left)
+
+
 class _ThreadLimit:
     """BLAS/OpenMP threads limited (threadpoolctl) while any controller step runs in this process.
 
@@ -50,6 +72,7 @@ class _ThreadLimit:
     _active = 0
     _limiter = None
     _controller = None
+    _modules = 0
 
     def __init__(self, threads: int | None):
         self.threads = threads
@@ -60,9 +83,11 @@ class _ThreadLimit:
         cls = _ThreadLimit
         with cls._lock:
             if cls._active == 0:
-                if cls._controller is None:
+                # Rescan the loaded libraries when modules were imported since (a new BLAS may have come in).
+                if cls._controller is None or cls._modules != len(sys.modules):
                     from threadpoolctl import ThreadpoolController
                     cls._controller = ThreadpoolController()
+                    cls._modules = len(sys.modules)
                 cls._limiter = cls._controller.limit(limits=self.threads)
             cls._active += 1
         return self

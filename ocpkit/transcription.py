@@ -74,6 +74,9 @@ def _values(M):
     return M.data if sp.issparse(M) else M
 
 
+SLACK_QUAD = 1.0
+
+
 class _Transcription:
     """Shared data of both forms: the parameterization basis and the bound rows on knots and states."""
 
@@ -97,7 +100,8 @@ class _Transcription:
         self.x_lo = np.tile(ocp.x_min, T)[self.x_rows]
         self.x_hi = np.tile(ocp.x_max, T)[self.x_rows]
         self.soft = bool(soft) and self.x_rows.size > 0
-        self.ns = self.x_rows.size if self.soft else 0  # slack variables, the last ns entries of z
+        self.ns = 2 * self.x_rows.size if self.soft else 0  # slacks s⁺, s⁻: the last ns entries of z
+        self.slack_quad = SLACK_QUAD
         self._k0 = 0  # index of the first knot in z (the sparse form overrides)
         # Per-step state weights Q (k = 1 … T−1) and Q_T (k = T).
         self.Qs = np.concatenate([np.broadcast_to(ocp.Q, (T - 1, n, n)), ocp.Q_terminal[None]])
@@ -115,12 +119,13 @@ class _Transcription:
         return z[z.size - self.ns:]
 
     def _soft_rows(self, X, lo, hi):
-        """Rows [X, I; X, −I] with bounds [lo, +∞), (−∞, hi]: X the state-bound rows over the other variables."""
-        ns, stack, eye = self.ns, (sp.vstack if sp.issparse(X) else np.vstack), (sp.identity if sp.issparse(X) else np.eye)
-        hstack = sp.hstack if sp.issparse(X) else np.hstack
-        C = stack([hstack([X, eye(ns)]), hstack([X, -eye(ns)])])
-        inf = np.full(ns, np.inf)
-        return C, np.r_[lo, -inf], np.r_[inf, hi]
+        """Rows [X, −I, I] with bounds [lo, hi]: X the state-bound rows over the other variables, x − s⁺ + s⁻."""
+        nr = self.ns // 2
+        if sp.issparse(X):
+            C = sp.hstack([X, -sp.identity(nr), sp.identity(nr)])
+        else:
+            C = np.hstack([X, -np.eye(nr), np.eye(nr)])
+        return C, lo, hi
 
 
 class SparseQP(_Transcription):
@@ -136,7 +141,7 @@ class SparseQP(_Transcription):
         self.nz = nX + m * p + self.ns
         # Cost: blkdiag(0 for x_0, Q … Q, Q_T, φᵀφ ⊗ R, 0 for the slacks) — constant, built once.
         self.P = sp.block_diag([sp.csc_matrix((n, n)), *[sp.csc_matrix(Qk) for Qk in self.Qs],
-                                sp.csc_matrix(self.R_knots), self.slack_weight * sp.identity(self.ns)], format="csc")
+                                sp.csc_matrix(self.R_knots), self.slack_quad * sp.identity(self.ns)], format="csc")
         self.P.eliminate_zeros()
         # Dynamics rows: −x_0 = −x0, then A_d x_k − x_{k+1} + B_d Σ_j φ_kj U_j = −w_d.
         rows, cols, src = [np.arange(n)], [np.arange(n)], [np.full(n, -1)]  # src −1: the constant −1
@@ -311,7 +316,7 @@ class CondensedQP(_Transcription):
         if self.soft:
             ns = self.ns
             P = np.pad(P, ((0, ns), (0, ns)))
-            P[self.nz:, self.nz:] += self.slack_weight * np.eye(ns)
+            P[self.nz:, self.nz:] += self.slack_quad * np.eye(ns)
             q = np.r_[q, np.full(ns, self.slack_weight)]
             SV = self._rows()[self.x_rows]
             vr = SV[:, 0]

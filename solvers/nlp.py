@@ -20,8 +20,8 @@ import casadi as ca
 import numpy as np
 
 from ocpkit._checks import choice, integer, positive
-from ocpkit.controller import (EXCEPTION, INFEASIBLE, LIMITED, NAN, SUCCESS, Controller, Solution,
-                               check_linearization)
+from ocpkit.controller import (EXCEPTION, INFEASIBLE, LIMITED, NAN, SUCCESS, Controller, OperationCosts,
+                               Solution, check_linearization)
 from ocpkit.ocp import OCP
 
 METHODS = ("ipopt", "sqp")
@@ -49,7 +49,10 @@ class NonlinearMPC(Controller):
     ``sqpmethod`` with the qrqp QP solver), over the ``dynamics`` "nonlinear" (F) or "affine" model.
 
     ``max_iter`` and ``time_limit`` (wall-clock seconds, IPOPT's max_wall_time; IPOPT only) limit each
-    solve; a solve stopped by either is ``limited`` and falls back. Both can be changed between steps
+    solve; a solve stopped by either is ``limited`` and falls back. IPOPT checks its clock once per
+    iteration, after derivative evaluations it cannot interrupt (30 ms of constraint Jacobian at nlink:7,
+    T=50 before the first check), so with a time limit a solve starts only if the measured time of one
+    iteration (median of the last five solves: wall time / (iterations + 1)) fits in the step's budget. Both can be changed between steps
     (the NLP solver is rebuilt). ``options`` pass through to IPOPT (e.g. ``{"tol": 1e-10,
     "max_wall_time": 0.01}``) or to ``sqpmethod`` (e.g. ``{"qpsol": "osqp"}``). ``linearization`` ("goal" or
     "plan") is the affine model's expansion input, as in LinearMPC.
@@ -70,6 +73,7 @@ class NonlinearMPC(Controller):
         self.warm_start = bool(warm_start)
         self._limits = (integer(max_iter, "max_iter", 1), self._checked_time_limit(time_limit))
         self._build(ocp)
+        self._costs = OperationCosts()
         super().__init__(ocp, raise_on_fail=raise_on_fail)
 
     @property
@@ -177,6 +181,10 @@ class NonlinearMPC(Controller):
             args.update(lam_x0=lam_x0, lam_g0=lam_g0)
         t2 = time.perf_counter()
         times["build"] = t2 - t1
+        left = self.remaining(self.time_limit)
+        if not self._costs.fits("iteration", left):
+            return self.fallback(LIMITED, f"time budget: {1e3 * max(left, 0.0):.3g} ms left, an IPOPT iteration "
+                                          f"measured at {1e3 * self._costs.predict('iteration'):.3g} ms", times)
         try:
             res = self._solver(**args)
         except Exception as exc:  # a solver that throws must not stop the control loop
@@ -189,6 +197,7 @@ class NonlinearMPC(Controller):
         except (RuntimeError, KeyError):  # sqpmethod can stop (e.g. on a failed QP) without a return status
             stats, raw = {}, "no return status"
         iterations = int(stats.get("iter_count", 0))
+        self._costs.add("iteration", times["solve"] / (iterations + 1))
         status = _STATUS.get(raw, EXCEPTION)
         w = np.asarray(res["x"], dtype=float).ravel()
         if status == SUCCESS and not np.isfinite(w).all():

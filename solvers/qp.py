@@ -9,15 +9,14 @@ zero-order-hold) input trajectory within bounds because every u_k is a convex co
 from __future__ import annotations
 
 import time
-from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
 
 from ocpkit._checks import choice, integer, positive
-from ocpkit.controller import (EXCEPTION, INFEASIBLE, LIMITED, NAN, SUCCESS, Controller, Solution,
-                               check_linearization)
+from ocpkit.controller import (EXCEPTION, INFEASIBLE, LIMITED, NAN, SUCCESS, Controller, OperationCosts,
+                               Solution, check_linearization)
 from ocpkit.ocp import OCP
 from ocpkit.transcription import QP, TRANSCRIPTIONS
 
@@ -33,31 +32,11 @@ class _Result:
     iterations: int
 
 
-class _Costs:
-    """Measured wall times of a backend's uninterruptible operations (a factorization, one chunk of
-    iterations), the median of the last five of each. With a step budget an operation starts only if its
-    predicted time fits in what is left; one never measured is predicted free, so the first step of a new
-    controller calibrates (it is not bounded: documented in LinearMPC)."""
-
-    def __init__(self):
-        self._seen: dict[str, deque] = {}
-
-    def add(self, op: str, seconds: float) -> None:
-        self._seen.setdefault(op, deque(maxlen=5)).append(seconds)
-
-    def predict(self, op: str) -> float:
-        seen = self._seen.get(op)
-        return float(np.median(seen)) if seen else 0.0
-
-    def fits(self, op: str, left: float | None) -> bool:
-        return left is None or (left > 0.0 and self.predict(op) <= left)
-
-
 def _left(deadline: float | None) -> float | None:
     return None if deadline is None else deadline - time.perf_counter()
 
 
-def _skipped(op: str, costs: _Costs, deadline: float, n: int, iterations: int = 0) -> _Result:
+def _skipped(op: str, costs: OperationCosts, deadline: float, n: int, iterations: int = 0) -> _Result:
     """The LIMITED result of a step whose budget cannot pay for ``op``."""
     left = max(0.0, deadline - time.perf_counter())
     return _Result(np.full(n, np.nan), (), LIMITED,
@@ -84,7 +63,7 @@ class _ProxQP:
         self._module = proxsuite.proxqp.sparse if sparse else proxsuite.proxqp.dense
         self._proxqp = proxsuite.proxqp
         self.max_iter, self.eps = max_iter, eps
-        self.costs = _Costs()
+        self.costs = OperationCosts()
         self.reset()
 
     def reset(self):
@@ -185,7 +164,7 @@ class _OSQP:
 
         self._osqp = osqp
         self.max_iter, self.eps = max_iter, eps
-        self.costs = _Costs()
+        self.costs = OperationCosts()
         self.solver = None
 
     def reset(self):
@@ -252,7 +231,7 @@ class _HPIPM:
                                      for k in range(T)] + [np.arange(T * n, nX)])
         self._n, self._T, self._m = n, T, m
         self.max_iter, self.eps = max_iter, eps
-        self.costs = _Costs()
+        self.costs = OperationCosts()
         self.reset()
 
     def reset(self):
@@ -380,7 +359,7 @@ class LinearMPC(Controller):
         eps = positive(eps, "eps")
         self._backend = (_ProxQP(form == "sparse", 1, eps) if qp == "proxqp" else _OSQP(1, eps) if qp == "osqp"
                          else _HPIPM(self.transcription, 1, eps))
-        self._costs = _Costs()  # the affine model and QP build ("prepare")
+        self._costs = OperationCosts()  # the affine model and QP build ("prepare")
         self.max_iter = max_iter
         super().__init__(ocp, raise_on_fail=raise_on_fail, threads=threads)
 

@@ -176,10 +176,220 @@ def format_matrix(outcomes: list[Outcome]) -> str:
     return "\n".join(lines)
 
 
-def bench_faults(labels=tuple(SOLVERS), out=print) -> list[Outcome]:
-    """Print the matrix: "rec" = the same controller then matched a fresh one on a good problem."""
+def bench_faults(labels=tuple(SOLVERS), realtime: bool = True, out=print) -> list:
+    """Print the matrix ("rec" = the same controller then matched a fresh one on a good problem), then the
+    real-time rows (:func:`realtime_rows`) with their measured wall times and statuses."""
     outcomes = matrix(labels)
     out(format_matrix(outcomes))
     bad = [o for o in outcomes if not o.acceptable]
     out(f"{len(outcomes)} cells, {len(bad)} unacceptable")
-    return outcomes
+    if not realtime:
+        return outcomes
+    rows = realtime_rows()
+    out("")
+    out(format_realtime(rows))
+    out(f"{len(rows)} real-time rows, {sum(not r.acceptable for r in rows)} unacceptable")
+    return outcomes + rows
+
+
+# --- Real-time rows: step budgets, absurd states, the warm/cold budget spiral, goals beyond bounds, threads, load.
+
+@dataclass
+class RealTimeRow:
+    """One real-time check: the measured wall time (s) the criterion is about, the statuses seen, the verdict."""
+
+    case: str
+    solver: str
+    detail: str
+    seconds: float
+    statuses: str
+    acceptable: bool
+    criterion: str
+
+
+def _counts(statuses) -> str:
+    from collections import Counter
+    return ", ".join(f"{k} {v}" for k, v in Counter(statuses).most_common())
+
+
+BUDGET_SOLVERS = {  # label -> (options, knots): nlink:13, T = 100
+    "qp condensed proxqp": ({"form": "condensed", "qp": "proxqp"}, 5),
+    "qp condensed osqp": ({"form": "condensed", "qp": "osqp"}, 5),
+    "qp sparse proxqp": ({"form": "sparse", "qp": "proxqp"}, 5),
+    "qp sparse osqp": ({"form": "sparse", "qp": "osqp"}, 5),
+    "qp sparse hpipm (p=T)": ({"form": "sparse", "qp": "hpipm"}, None),
+}
+
+
+def _replayed_states(problem, ocp, steps, seed=0):
+    """A closed loop of the default controller on the OCP's discrete model: the states every row replays."""
+    x, goal = problem.sample(seed)
+    F, ref, xs = ocp.discrete(), solvers.make("qp", ocp), []
+    for _ in range(steps):
+        xs.append(x)
+        x = np.asarray(F(x, ref.solve(x, goal).u)).ravel()
+    return xs, goal
+
+
+def budget_rows(budgets=(1e-3, 5e-3, 50e-3), steps=10, labels=tuple(BUDGET_SOLVERS)) -> list[RealTimeRow]:
+    """nlink:13, T=100: each backend and form, calibrated by one unbudgeted step, then ``steps`` replayed steps
+    per budget; acceptable if the slowest step took at most 2 × budget + 2 ms. IPOPT: nlink:7, T=50."""
+    rows = []
+    problem = problems.make("nlink:13")
+    xs, goal = _replayed_states(problem, problem.ocp(horizon=100, knots=5), steps)
+    for label in labels:
+        options, knots = BUDGET_SOLVERS[label]
+        ocp = problem.ocp(horizon=100, knots=knots) if knots else problem.ocp(horizon=100)
+        rows += _budgeted(solvers.make("qp", ocp, **options), label, "nlink:13 T=100", xs, goal, budgets)
+    problem = problems.make("nlink:7")
+    ocp = problem.ocp(horizon=50)
+    xs, goal = _replayed_states(problem, ocp, steps)
+    rows += _budgeted(solvers.make("ipopt", ocp), "ipopt", "nlink:7 T=50", xs, goal, (10e-3, 50e-3))
+    return rows
+
+
+def _budgeted(ctrl, label, name, xs, goal, budgets):
+    ctrl.solve(xs[0], goal)  # calibration: the one unbounded step of a new controller
+    rows = []
+    for budget in budgets:
+        ctrl.time_limit = budget
+        walls, statuses = [], []
+        for x in xs:
+            t0 = time.perf_counter()
+            sol = ctrl.solve(x, goal)
+            walls.append(time.perf_counter() - t0)
+            statuses.append(sol.status)
+        worst = max(walls)
+        rows.append(RealTimeRow("step budget", label, f"{name}, budget {1e3 * budget:g} ms, {len(xs)} steps, "
+                                f"median {1e3 * float(np.median(walls)):.2f} ms", worst, _counts(statuses),
+                                worst <= 2 * budget + 2e-3, "slowest step ≤ 2 × budget + 2 ms"))
+    return rows
+
+
+def huge_state_rows(labels=tuple(SOLVERS)) -> list[RealTimeRow]:
+    """Pendulum at x = [1e20, 0]: every solver answers in ≤ 50 ms with a non-success status and a finite input."""
+    rows = []
+    for label in labels:
+        ctrl = _controller(label, PENDULUM.ocp(knots=3))
+        t0 = time.perf_counter()
+        sol = ctrl.solve([1e20, 0.0], GOAL)
+        wall = time.perf_counter() - t0
+        ok = sol.status != SUCCESS and bool(np.isfinite(sol.u).all()) and wall <= 0.05
+        rows.append(RealTimeRow("x = 1e20", label, f"pendulum: {sol.raw_status[:48]}", wall, sol.status, ok,
+                                "non-success, finite u, ≤ 50 ms"))
+    return rows
+
+
+def spiral_row(steps=50, links=7, horizon=100, knots=None) -> RealTimeRow:
+    """The warm/cold budget spiral: sparse OSQP with a budget halfway between its warm and cold step times (both
+    measured here); from a cold start, ≥ 90% of ``steps`` closed-loop steps must succeed."""
+    problem = problems.make(f"nlink:{links}")
+    ocp = problem.ocp(horizon=horizon, knots=knots) if knots else problem.ocp(horizon=horizon)
+    x, goal = problem.sample(0)
+    F = ocp.discrete()
+    ctrl = solvers.make("qp", ocp, form="sparse", qp="osqp")
+    cold = ctrl.solve(x, goal).times["total"]
+    warm = float(np.median([ctrl.solve(x, goal).times["total"] for _ in range(3)]))
+    ctrl.reset()  # keeps the measured costs, drops the workspace: the next step is cold again
+    budget = 0.5 * (cold + warm)
+    ctrl.time_limit = budget
+    statuses, walls = [], []
+    for _ in range(steps):
+        sol = ctrl.solve(x, goal)
+        statuses.append(sol.status)
+        walls.append(sol.times["total"])
+        x = np.asarray(F(x, sol.u)).ravel()
+    ok = statuses.count(SUCCESS) >= 0.9 * steps
+    return RealTimeRow("warm/cold spiral", "qp sparse osqp",
+                       f"nlink:{links} T={horizon}: cold {1e3 * cold:.0f} ms, warm {1e3 * warm:.0f} ms, budget "
+                       f"{1e3 * budget:.0f} ms, {statuses.count(SUCCESS)}/{steps} success", max(walls),
+                       _counts(statuses), ok, "≥ 90% of the steps succeed")
+
+
+def beyond_bounds_rows(labels=("qp condensed proxqp", "qp condensed osqp", "qp sparse proxqp", "qp sparse osqp"),
+                       duration=1.0) -> list[RealTimeRow]:
+    """Pendulum with |q| ≤ 1 and goal q = 1.5 (soft state bounds, the default): from rest the angle must end at
+    the bound (within 0.02) and every step succeed."""
+    from ocpkit.simulate import simulate
+
+    ocp = PENDULUM.ocp(knots=5, x_min=[-1.0, -np.inf], x_max=[1.0, np.inf])
+    rows = []
+    for label in labels:
+        t0 = time.perf_counter()
+        traj = simulate(PENDULUM.plant(), _controller(label, ocp), [0.0, 0.0], [1.5, 0.0], duration)
+        wall = time.perf_counter() - t0
+        q_end, n_ok = float(traj.x[-1, 0]), traj.statuses.count(SUCCESS)
+        ok = abs(q_end - 1.0) <= 0.02 and n_ok == len(traj.statuses)
+        rows.append(RealTimeRow("goal beyond bounds", label, f"q_end {q_end:.4f}, {n_ok}/{len(traj.statuses)} "
+                                f"success, max |q| {np.abs(traj.x[:, 0]).max():.4f}", wall, _counts(traj.statuses),
+                                ok, "|q_end − 1| ≤ 0.02, all steps succeed"))
+    return rows
+
+
+def two_threads_rows(labels=("qp condensed proxqp", "qp sparse osqp"), per_thread=160) -> list[RealTimeRow]:
+    """One controller shared by two threads, each solving its own stream of states: every success must equal a
+    single-threaded cold solve of the same state (1e-5) with u within bounds, and nothing may raise."""
+    import threading
+
+    ocp = PENDULUM.ocp(knots=3)
+    rng = np.random.default_rng(0)
+    states = [np.array([rng.uniform(-np.pi, np.pi), rng.uniform(-2, 2)]) for _ in range(16)]
+    rows = []
+    for label in labels:
+        ref_ctrl = _controller(label, ocp)
+        ref = []
+        for x in states:
+            ref_ctrl.reset()
+            ref.append(ref_ctrl.solve(x, GOAL).u)
+        shared = _controller(label, ocp)
+        results, errors = [], []
+
+        def worker(offset):
+            try:
+                for k in range(per_thread):
+                    i = (k + offset) % len(states)
+                    results.append((i, shared.solve(states[i], GOAL)))
+            except Exception as exc:  # noqa: BLE001 - counted and reported
+                errors.append(repr(exc))
+
+        t0 = time.perf_counter()
+        threads = [threading.Thread(target=worker, args=(o,)) for o in (0, 7)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        wall = time.perf_counter() - t0
+        wrong = sum(1 for i, s in results if s.ok and (not np.allclose(s.u, ref[i], atol=1e-5)
+                                                        or (s.u < ocp.u_min - 1e-9).any() or (s.u > ocp.u_max + 1e-9).any()))
+        n_ok = sum(s.ok for _, s in results)
+        rows.append(RealTimeRow("two threads", label, f"{len(results)} steps, {n_ok} success, {wrong} wrong, "
+                                f"{len(errors)} raised", wall, _counts(s.status for _, s in results),
+                                wrong == 0 and not errors and len(results) == 2 * per_thread,
+                                "no wrong success, nothing raised"))
+    return rows
+
+
+def loaded_row(busy=2, steps=30) -> RealTimeRow:
+    """nlink:13 T=100 condensed knots step: median beside ``busy`` busy processes ≤ 2 × the quiet median."""
+    from ocpkit.benchmarks.step import load_medians
+
+    med = load_medians(steps=steps, busy=busy)
+    q, l = med[(1, "quiet")], med[(1, "loaded")]
+    return RealTimeRow("loaded machine", "qp condensed proxqp",
+                       f"nlink:13 T=100 median quiet {1e3 * q:.2f} ms, {busy} busy processes {1e3 * l:.2f} ms "
+                       f"(unlimited BLAS threads: {1e3 * med[(None, 'quiet')]:.2f} / {1e3 * med[(None, 'loaded')]:.2f} ms)",
+                       l, "", l <= 2 * q, "loaded median ≤ 2 × quiet median")
+
+
+def realtime_rows() -> list[RealTimeRow]:
+    """Every real-time row (about a minute here, most of it calibrating sparse ProxQP at nlink:13)."""
+    return (budget_rows() + huge_state_rows() + [spiral_row()] + beyond_bounds_rows() + two_threads_rows()
+            + [loaded_row()])
+
+
+def format_realtime(rows: list[RealTimeRow]) -> str:
+    lines = [f"{'case':20} {'solver':24} {'wall ms':>9}  {'ok':3} statuses | detail | criterion"]
+    for r in rows:
+        lines.append(f"{r.case:20} {r.solver:24} {1e3 * r.seconds:9.2f}  {'yes' if r.acceptable else 'BAD':3} "
+                     f"{r.statuses} | {r.detail} | {r.criterion}")
+    return "\n".join(lines)

@@ -9,7 +9,10 @@ model (A_d, B_d, w_d) ocpkit linearized at that state and is timed on its solve(
 """
 from __future__ import annotations
 
+import subprocess
+import sys
 import time
+from contextlib import contextmanager
 
 import numpy as np
 
@@ -21,8 +24,9 @@ BASE = "ocpkit condensed knots proxqp"
 
 
 def bench_step(links=(1, 2, 4, 7, 10, 13), horizons=(50, 100), knots=5, steps=20, rounds=5, seed=0, peers=True,
-               out=print) -> list[dict]:
-    """Medians and spread (ms) of a whole step per configuration; ratios to ocpkit's condensed knots step."""
+               busy=2, out=print) -> list[dict]:
+    """Medians and spread (ms) of a whole step per configuration; ratios to ocpkit's condensed knots step.
+    With ``busy`` > 0, then the nlink:13 T=100 step quiet and beside ``busy`` busy processes (:func:`bench_load`)."""
     rows = []
     gemm = _gemm_rate()
     for N in links:
@@ -30,7 +34,62 @@ def bench_step(links=(1, 2, 4, 7, 10, 13), horizons=(50, 100), knots=5, steps=20
         for T in horizons:
             rows += _one(problem, T, knots, steps, seed, peers, rounds)
     _print(rows, gemm, knots, out)
+    if busy:
+        bench_load(busy=busy, knots=knots, out=out)
     return rows
+
+
+@contextmanager
+def busy_processes(count: int):
+    """``count`` processes spinning on a CPU each for the duration of the block (a loaded machine)."""
+    procs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(count)]
+    try:
+        time.sleep(0.2)  # let them reach the CPU
+        yield procs
+    finally:
+        for p in procs:
+            p.kill()
+        for p in procs:
+            p.wait()
+
+
+def load_medians(problem="nlink:13", horizon=100, knots=5, steps=30, busy=2, seed=0) -> dict:
+    """Median whole-step time (s) of the condensed knots controller quiet and beside ``busy`` busy processes,
+    with BLAS/OpenMP limited to 1 thread (the default) and unlimited (threads=None): {(threads, "quiet"|"loaded"): s}.
+
+    The same replayed closed-loop states every time; each controller is calibrated by one untimed replay."""
+    prob = make(problem)
+    ocp = prob.ocp(horizon=horizon, knots=knots)
+    x, goal = prob.sample(seed)
+    F, ref, xs = ocp.discrete(), LinearMPC(ocp), []
+    for _ in range(steps):
+        xs.append(x)
+        x = np.asarray(F(x, ref.solve(x, goal).u)).ravel()
+    ctrls = {1: LinearMPC(ocp), None: LinearMPC(ocp, threads=None)}
+
+    def replay(ctrl):
+        ctrl.reset()
+        return [ctrl.solve(x, goal).times["total"] for x in xs]
+
+    for ctrl in ctrls.values():
+        replay(ctrl)
+    out = {}
+    for label in ("quiet", "loaded"):
+        with busy_processes(busy if label == "loaded" else 0):
+            for threads, ctrl in ctrls.items():
+                out[(threads, label)] = float(np.median(replay(ctrl) + replay(ctrl)))
+    return out
+
+
+def bench_load(problem="nlink:13", horizon=100, knots=5, steps=30, busy=2, out=print) -> dict:
+    """Print the step's median quiet and under load (:func:`load_medians`) and the loaded/quiet ratio."""
+    med = load_medians(problem, horizon, knots, steps, busy)
+    out(f"{problem} T={horizon} condensed knots({knots}) proxqp, median whole step, quiet vs {busy} busy processes:")
+    for threads in (1, None):
+        q, l = med[(threads, "quiet")], med[(threads, "loaded")]
+        name = "BLAS threads 1 (default)" if threads == 1 else "BLAS threads unlimited"
+        out(f"  {name:26} quiet {1e3 * q:8.3f} ms   loaded {1e3 * l:8.3f} ms   loaded/quiet {l / q:6.2f}")
+    return med
 
 
 def _one(problem, T, p, steps, seed, peers, rounds):

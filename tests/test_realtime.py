@@ -1,0 +1,162 @@
+"""Real-time behaviour: bounded steps, verified successes, absurd states, threads, soft state bounds."""
+import time
+
+import numpy as np
+import pytest
+from threadpoolctl import threadpool_info
+
+from ocpkit import problems
+from ocpkit.benchmarks.faults import beyond_bounds_rows, huge_state_rows, realtime_rows, two_threads_rows
+from ocpkit.controller import LIMITED, NAN, SUCCESS, Controller, Solution
+from ocpkit.solvers.nlp import NonlinearMPC
+from ocpkit.solvers.qp import LinearMPC
+
+PENDULUM = problems.make("pendulum")
+X0, GOAL = PENDULUM.sample(0)
+
+
+@pytest.mark.parametrize("form", ["sparse", "condensed"])
+@pytest.mark.parametrize("qp", ["proxqp", "osqp"])
+def test_absurd_state_is_nan_before_any_solver(form, qp):
+    ctrl = LinearMPC(PENDULUM.ocp(knots=3), form=form, qp=qp)
+    t0 = time.perf_counter()
+    sol = ctrl.solve([1e20, 0.0], GOAL)
+    assert time.perf_counter() - t0 < 1.0  # generous: the check runs before the model and the QP
+    assert sol.status == NAN and sol.fallback and sol.iterations == 0 and "state_limit" in sol.raw_status
+    assert np.isfinite(sol.u).all() and abs(sol.u[0]) <= PENDULUM.tau_max
+    assert ctrl.solve(X0, GOAL).ok  # and the controller still works
+
+
+def test_every_solver_answers_huge_state_with_non_success():
+    rows = huge_state_rows(("qp condensed proxqp", "qp sparse osqp", "ipopt"))
+    assert all(r.acceptable for r in rows), [(r.solver, r.statuses, r.seconds) for r in rows]
+
+
+@pytest.mark.parametrize("form", ["sparse", "condensed"])
+def test_proxqp_total_inner_iterations_capped(form):
+    # With the state check lifted, x = 1e20 reaches ProxQP, which once ran 15 M inner iterations (54 s) here.
+    ctrl = LinearMPC(PENDULUM.ocp(knots=3), form=form, qp="proxqp", max_iter=200)
+    ctrl.state_limit = 1e300
+    t0 = time.perf_counter()
+    sol = ctrl.solve([1e20, 0.0], GOAL)
+    assert time.perf_counter() - t0 < 10.0
+    assert sol.status != SUCCESS and sol.iterations <= 200 + 1
+    assert np.isfinite(sol.u).all() and abs(sol.u[0]) <= PENDULUM.tau_max
+
+
+@pytest.mark.parametrize("form", ["sparse", "condensed"])
+@pytest.mark.parametrize("qp", ["proxqp", "osqp"])
+def test_budget_after_calibration_is_limited_and_keeps_workspace(form, qp):
+    ctrl = LinearMPC(PENDULUM.ocp(horizon=100, knots=5), form=form, qp=qp)
+    assert ctrl.solve(X0, GOAL).ok  # calibration
+    backend = ctrl._backend.solver
+    ctrl.time_limit = 1e-6
+    t0 = time.perf_counter()
+    sol = ctrl.solve(X0, GOAL)
+    assert time.perf_counter() - t0 < 0.5
+    assert sol.status == LIMITED and sol.fallback and "budget" in sol.raw_status
+    assert ctrl._backend.solver is backend  # "limited" keeps the workspace
+    ctrl.time_limit = None
+    assert ctrl.solve(X0, GOAL).ok
+
+
+def test_ipopt_budget_smaller_than_an_iteration_is_not_started():
+    ctrl = NonlinearMPC(PENDULUM.ocp(knots=3))
+    assert ctrl.solve(X0, GOAL).ok
+    ctrl.time_limit = 1e-6
+    sol = ctrl.solve(X0, GOAL)
+    assert sol.status == LIMITED and "IPOPT iteration" in sol.raw_status
+
+
+class _Fixed(Controller):
+    """Reports success with a given input: the base class must verify it."""
+
+    def __init__(self, ocp, u, **kw):
+        self.fixed = np.asarray(u, dtype=float)
+        super().__init__(ocp, **kw)
+
+    def _solve(self, x, goal):
+        knots = np.tile(self.fixed, (self.ocp.knots, 1))
+        self.seen_threads = [i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"]
+        return Solution(u=self.fixed.copy(), knots=knots, status=SUCCESS, raw_status="claimed")
+
+
+def test_success_outside_input_bounds_is_rejected():
+    ocp = PENDULUM.ocp(knots=3)
+    sol = _Fixed(ocp, [-4.7e8]).solve(X0, GOAL)
+    assert sol.status == LIMITED and sol.fallback and abs(sol.u[0]) <= PENDULUM.tau_max
+    sol = _Fixed(ocp, [PENDULUM.tau_max + 1e-9]).solve(X0, GOAL)  # within the tolerance: clipped
+    assert sol.ok and sol.u[0] == PENDULUM.tau_max and (sol.knots <= PENDULUM.tau_max).all()
+    assert _Fixed(ocp, [np.nan]).solve(X0, GOAL).status == NAN
+
+
+def test_blas_threads_limited_inside_a_step():
+    ocp = PENDULUM.ocp(knots=3)
+    one = _Fixed(ocp, [0.0])
+    one.solve(X0, GOAL)
+    assert one.seen_threads and set(one.seen_threads) == {1}
+    free = _Fixed(ocp, [0.0], threads=None)
+    free.solve(X0, GOAL)
+    outside = [i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"]
+    assert free.seen_threads == outside  # None leaves the pools alone, and the limit was restored
+    with pytest.raises(ValueError, match="threads"):
+        _Fixed(ocp, [0.0], threads=0)
+
+
+def test_osqp_update_error_is_not_success():
+    ctrl = LinearMPC(PENDULUM.ocp(knots=3), form="sparse", qp="osqp")
+    assert ctrl.solve(X0, GOAL).ok
+    raw = ctrl._backend.solver._solver
+
+    class Failing:
+        def __getattr__(self, name):
+            return getattr(raw, name)
+
+        def update_data_vec(self, **kw):
+            return 1  # OSQP's "data validation" error code
+
+    ctrl._backend.solver._solver = Failing()
+    sol = ctrl.solve(X0 + 0.1, GOAL)
+    assert sol.status != SUCCESS and "update failed" in sol.raw_status and sol.fallback
+    assert ctrl.solve(X0, GOAL).ok  # a fresh workspace afterwards
+
+
+def test_two_threads_share_one_controller_safely():
+    rows = two_threads_rows(per_thread=40)
+    assert all(r.acceptable for r in rows), [r.detail for r in rows]
+
+
+def test_goal_beyond_state_bound_drives_to_the_bound():
+    (row,) = beyond_bounds_rows(("qp condensed proxqp",))
+    assert row.acceptable, row.detail
+
+
+@pytest.mark.parametrize("form", ["sparse", "condensed"])
+def test_soft_bounds_equal_hard_ones_when_feasible(form):
+    ocp = PENDULUM.ocp(knots=3, x_min=[-np.inf, -1.0], x_max=[np.inf, 1.0])
+    soft = LinearMPC(ocp, form=form).solve([0.5, 0.0], GOAL)
+    hard = LinearMPC(ocp, form=form, state_bounds="hard").solve([0.5, 0.0], GOAL)
+    assert soft.ok and hard.ok
+    np.testing.assert_allclose(soft.u, hard.u, atol=1e-6)
+    np.testing.assert_allclose(soft.x_pred, hard.x_pred, atol=1e-5)
+
+
+def test_soft_bounds_recover_a_start_outside_them():
+    ocp = PENDULUM.ocp(knots=3, x_min=[-np.inf, -1.0], x_max=[np.inf, 1.0])
+    sol = LinearMPC(ocp).solve([0.0, 3.0], GOAL)
+    assert sol.ok and sol.u[0] == -PENDULUM.tau_max  # brakes as hard as it can
+    assert LinearMPC(ocp, state_bounds="hard").solve([0.0, 3.0], GOAL).status != SUCCESS
+
+
+def test_hpipm_takes_hard_state_bounds_only():
+    ocp = PENDULUM.ocp(x_min=[-np.inf, -1.0], x_max=[np.inf, 1.0])
+    with pytest.raises(ValueError, match="hard"):
+        LinearMPC(ocp, form="sparse", qp="hpipm", state_bounds="soft")
+    assert LinearMPC(ocp, form="sparse", qp="hpipm").state_bounds == "hard"
+
+
+@pytest.mark.slow
+def test_every_realtime_row_acceptable():
+    rows = realtime_rows()
+    bad = [(r.case, r.solver, r.detail) for r in rows if not r.acceptable]
+    assert not bad, bad
