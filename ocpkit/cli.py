@@ -94,6 +94,8 @@ def _parser() -> argparse.ArgumentParser:
     bench.add_argument("--quick", action="store_true", help="a smaller grid (minutes instead of tens)")
     bench.add_argument("--arch", choices=("auto", "cpu", "cuda"), help="empc: Taichi arch (default auto)")
     bench.add_argument("--precision", choices=("float64", "float32"), help="empc: float type (default float64)")
+    bench.add_argument("--busy", type=int, help="step: busy processes for the quiet-vs-loaded comparison (default 2; "
+                                                "0 skips it)")
     return parser
 
 
@@ -231,6 +233,12 @@ def _bench(args):
     options = {k: getattr(args, k) for k in ("arch", "precision") if getattr(args, k) is not None}
     if options and args.what != "empc":
         raise ValueError(f"--{next(iter(options))} applies to `ocpkit bench empc` only")
+    if args.busy is not None:
+        if args.what != "step":
+            raise ValueError("--busy applies to `ocpkit bench step` only")
+        if args.busy < 0:
+            raise ValueError(f"--busy must be >= 0, got {args.busy}")
+        options["busy"] = args.busy
     bench = getattr(importlib.import_module(f"ocpkit.benchmarks.{module}"), function)
     bench(**(quick if args.quick else {}), **options)
     return 0

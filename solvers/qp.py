@@ -63,7 +63,7 @@ class _ProxQP:
         self._module = proxsuite.proxqp.sparse if sparse else proxsuite.proxqp.dense
         self._proxqp = proxsuite.proxqp
         self.max_iter, self.eps = max_iter, eps
-        self.costs = OperationCosts()
+        self.costs = OperationCosts(like={"update": "init", "init": "update"})
         self.reset()
 
     def reset(self):
@@ -164,7 +164,7 @@ class _OSQP:
 
         self._osqp = osqp
         self.max_iter, self.eps = max_iter, eps
-        self.costs = OperationCosts()
+        self.costs = OperationCosts(like={"update": "setup", "setup": "update"})
         self.solver = None
 
     def reset(self):
