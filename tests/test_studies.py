@@ -25,13 +25,14 @@ def tiny(monkeypatch):
     monkeypatch.setitem(get("comparison").SIZES, "quick", {"links": [1], "seeds": 1, "duration": 0.2,
                                                            "population": 32, "arch": "cpu"})
     monkeypatch.setattr(get("comparison"), "SAMPLE_LINKS", 1)
+    monkeypatch.setitem(get("keepout").SIZES, "quick", {"seeds": 1, "duration": 0.2, "population": 32, "arch": "cpu"})
     monkeypatch.setitem(get("baxter").SIZES, "quick", {"seeds": 1, "duration": 0.2, "population": 32, "arch": "cpu"})
 
 
 def test_reproduce_quick_on_tiny_grids(tiny, tmp_path):
     report = reproduce("quick", tmp_path, workers=1, progress=False)
     text = report.read_text()
-    for title in ("Fig. 3", "Fig. 4", "Tables I–II", "Figs. 7–10", "Figs. 11–13", "Table III"):
+    for title in ("Fig. 3", "Fig. 4", "Tables I–II", "Figs. 7–10", "Figs. 11–13", "keep-out zone", "Table III"):
         assert title in text
     assert "wall time" in text and "casadi" in text and "failed" not in text
     assert (tmp_path / "knots_pendulum_linear.png").stat().st_size > 5000

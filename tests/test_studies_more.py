@@ -49,7 +49,7 @@ def test_comparison_tiny(monkeypatch, tmp_path):
                                                     "arch": "cpu"})
     monkeypatch.setattr(comparison, "SAMPLE_LINKS", 2)
     df, text = _run(comparison, tmp_path)
-    assert len(df) == 4 and df["record"].all() and (df["fallbacks"] == 0).all()
+    assert len(df) == len(comparison.CONTROLLERS) and df["record"].all() and (df["fallbacks"] == 0).all()
     assert "| 2 | 1.000 |" in text  # traditional MPC is its own reference
     _figures(tmp_path, "comparison_sample_response", "comparison_cost_ratio", "comparison_solve_median",
              "comparison_total_median")
@@ -82,3 +82,17 @@ def test_baxter_commands_within_joint_limits():
         for q in (start, goal):
             assert np.all(q > pb.q_min) and np.all(q < pb.q_max)
         assert np.all(np.abs(goal - start) >= 0.3)  # every joint moves
+
+
+def test_keepout_tiny(monkeypatch, tmp_path):
+    from ocpkit.studies import keepout
+
+    monkeypatch.setitem(keepout.SIZES, "quick", {"seeds": 2, "duration": 0.3, "population": 64, "arch": "cpu"})
+    df, text = _run(keepout, tmp_path)
+    assert len(df) == 6 and (df["status"] == "ok").all()
+    assert (df["penalty"] >= 0).all() and "costs less than the QP on" in text
+    _figures(tmp_path, "keepout_cost")
+    # The penalty is what the zone costs: zero far from the centre, w·r at it.
+    penalty = keepout.keepout_penalty([0.0, 0.0, 0.0])
+    assert float(penalty([1.0, 0, 0, 0, 0, 0])) == 0.0
+    assert float(penalty([0.0] * 6)) == keepout.WEIGHT * keepout.RADIUS
