@@ -56,9 +56,7 @@ class OperationCosts:
         self._seen.setdefault(op, deque(maxlen=5)).append(seconds)
 
     def predict(self, op: str) -> float:
-        seen = self._seen.get(op)
-        if not seen and op in self._like:
-            return self.predict(self._like[op])
+        seen = self._seen.get(op) or self._seen.get(self._like.get(op))
         return float(np.median(seen)) if seen else 0.0
 
     def fits(self, op: str, left: float | None) -> bool:
