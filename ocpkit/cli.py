@@ -40,6 +40,8 @@ def _add_controller_args(p):
     p.add_argument("--population", type=int, help="empc/cem/mppi: rollouts per generation")
     p.add_argument("--generations", type=int, help="empc/cem/mppi: generations per control step")
     p.add_argument("--arch", choices=("auto", "cpu", "cuda"), help="empc/cem/mppi: Taichi arch (default auto)")
+    p.add_argument("--variant", choices=("preconditioned", "paper"),
+                   help="empc/cem/mppi: preconditioned by the knot QP (default) or the paper's plain algorithm")
     p.add_argument("--knots", type=int, default=None, help="knot points p (default: traditional MPC, p = T)")
     p.add_argument("--parameterization", default="linear", choices=("linear", "zoh", "identity"))
     p.add_argument("--horizon", type=int, default=None, help="horizon T in steps (default: the problem's)")
@@ -100,8 +102,9 @@ def _parser() -> argparse.ArgumentParser:
 
 
 # Which solver-specific command-line options each solver takes.
-_SOLVER_OPTIONS = {"qp": ("form", "qp"), "ipopt": ("method",), "empc": ("population", "generations", "arch"),
-                   "cem": ("population", "generations", "arch"), "mppi": ("population", "generations", "arch")}
+_SAMPLING_OPTIONS = ("population", "generations", "arch", "variant")
+_SOLVER_OPTIONS = {"qp": ("form", "qp"), "ipopt": ("method",), "empc": _SAMPLING_OPTIONS, "cem": _SAMPLING_OPTIONS,
+                   "mppi": _SAMPLING_OPTIONS}
 
 
 def _solver_options(args) -> dict:

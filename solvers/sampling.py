@@ -109,14 +109,16 @@ class SamplingMPC(Controller):
     (x, x_goal), non-smooth allowed); ``seed`` makes runs repeatable. ``linearization`` picks the
     affine model's expansion input as in LinearMPC. ``time_limit`` (s) stops the generations once
     exceeded (a launched generation always completes): the step then returns the best candidate so
-    far with status "limited".
+    far with status "limited". ``threads`` limits BLAS/OpenMP threads inside a step (see Controller);
+    Taichi's own CPU threads are set at its start (``OCPKIT_CPU_THREADS``).
     """
 
     def __init__(self, ocp, *, population: int = 1024, generations: int = 1, num_picked: int = 1,
                  variant: str = "preconditioned", dynamics: str = "affine", stage_cost=None, terminal_cost=None,
                  precision: str = "float64", arch: str = "auto", seed: int = 0,
-                 linearization: str = "goal", time_limit: float | None = None, raise_on_fail: bool = False):
-        super().__init__(ocp, raise_on_fail=raise_on_fail)
+                 linearization: str = "goal", time_limit: float | None = None, raise_on_fail: bool = False,
+                 threads: int | None = 1):
+        super().__init__(ocp, raise_on_fail=raise_on_fail, threads=threads)
         self.variant = choice(variant, VARIANTS, "variant")
         self.preconditioned = variant == "preconditioned"
         self.time_limit = None if time_limit is None else positive(time_limit, "time_limit")
