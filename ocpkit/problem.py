@@ -1,8 +1,17 @@
-"""A robot or system the paper controls: its true plant, the controller's model, defaults and sampling."""
+"""A robot or system to control: its true plant, the controller's model, defaults and sampling.
+
+Declare one by subclassing :class:`Problem` and implementing three public hooks — ``dynamics(error)``
+(the continuous model as a :class:`~ocpkit.model.Model`, inertias scaled by the paper's error multiplier),
+``defaults()`` (the OCP's weights and bounds) and ``sample(seed)`` (a seeded start and goal) — with
+``name``, ``dt``, ``horizon`` and ``duration`` as class attributes. A robot described by a URDF needs no
+code: :meth:`Problem.from_urdf` (a :class:`URDFRobot`).
+"""
 from __future__ import annotations
 
 from functools import cached_property
+from pathlib import Path
 
+import casadi as ca
 import numpy as np
 
 from ocpkit._checks import positive
@@ -12,10 +21,12 @@ from ocpkit.parameterization import Parameterization
 
 
 class Problem:
-    """Base class. Subclasses implement ``_model(error)``, ``defaults()`` and ``sample(seed)``.
+    """Base class of every problem. Subclasses implement :meth:`dynamics`, :meth:`defaults` and :meth:`sample`.
 
-    ``model(error)`` is the controller's model with the paper's error multiplier applied; ``plant()`` is
-    always the true model (error = 1): model error belongs to the controller, never to the plant.
+    ``model(error)`` is the controller's model with the paper's error multiplier applied (cached per error);
+    ``plant()`` is always the true model (error = 1): model error belongs to the controller, never to the
+    plant. ``ocp(...)`` assembles the MPC problem from these. Override :meth:`goal_input` when the input that
+    holds a goal at rest depends on the goal nonlinearly (gravity compensation).
     """
 
     name = "problem"
@@ -23,27 +34,44 @@ class Problem:
     horizon = 50
     duration = 1.0  # seconds of closed loop in the paper's experiments
 
+    # --- the hooks a problem implements ------------------------------------------------------------------
+
+    def dynamics(self, error: float) -> Model:
+        """The continuous model ẋ = f(x, u) with every modelled mass/inertia scaled by ``error`` (1: the truth)."""
+        raise NotImplementedError(f"{type(self).__name__} must implement dynamics(error) -> ocpkit.Model")
+
+    def defaults(self) -> dict:
+        """OCP keyword arguments: Q, R and bounds (and optionally Q_terminal, u_goal, u_goal_gain, x_min, x_max)."""
+        raise NotImplementedError(f"{type(self).__name__} must implement defaults() -> dict with at least Q and R")
+
+    def sample(self, seed: int) -> tuple[np.ndarray, np.ndarray]:
+        """Seeded random start and goal states."""
+        raise NotImplementedError(f"{type(self).__name__} must implement sample(seed) -> (x0, goal)")
+
+    def goal_input(self) -> ca.Function | None:
+        """An extra, goal-dependent input goal x_goal -> u added to u_goal + K x_goal (None: none).
+
+        For a robot under gravity the input that holds q_goal at rest is g(q_goal); without it the cost's R
+        term pulls the inputs towards zero and leaves a steady-state error.
+        """
+        return None
+
+    # --- what the rest of ocpkit calls -------------------------------------------------------------------
+
     def model(self, error: float = 1.0) -> Model:
         """The controller's model with every modelled mass/inertia scaled by ``error``."""
         error = positive(error, "error")
         if error not in self._models:
-            self._models[error] = self._model(error)
+            model = self.dynamics(error)
+            if not isinstance(model, Model):
+                raise TypeError(f"{type(self).__name__}.dynamics({error}) must return an ocpkit.Model, "
+                                f"got {type(model).__name__}")
+            self._models[error] = model
         return self._models[error]
 
     def plant(self) -> Model:
         """The true system (error multiplier 1)."""
         return self.model(1.0)
-
-    def defaults(self) -> dict:
-        """OCP keyword arguments: Q, R and bounds (and optionally Q_terminal, u_goal, x_min, x_max)."""
-        raise NotImplementedError
-
-    def sample(self, seed: int) -> tuple[np.ndarray, np.ndarray]:
-        """Seeded random start and goal states."""
-        raise NotImplementedError
-
-    def _model(self, error: float) -> Model:
-        raise NotImplementedError
 
     @cached_property
     def _models(self) -> dict:
@@ -54,8 +82,144 @@ class Problem:
         """The MPC problem: ``knots`` None means traditional MPC (p = T); other keywords override defaults."""
         T = self.horizon if horizon is None else horizon
         kwargs = {**self.defaults(), **overrides}
-        return OCP(self.model(error), self.dt if dt is None else dt, T,
-                   parameterization=Parameterization.make(parameterization, T, knots), **kwargs)
+        args = (self.model(error), self.dt if dt is None else dt, T)
+        param = Parameterization.make(parameterization, T, knots)
+        extra = self.goal_input()
+        if extra is None:
+            return OCP(*args, parameterization=param, **kwargs)
+        return GoalInputOCP(*args, parameterization=param, goal_input=extra, **kwargs)
+
+    @classmethod
+    def from_urdf(cls, path, **options) -> "URDFRobot":
+        """A torque-controlled robot from a URDF file; see :class:`URDFRobot` for ``options``."""
+        return URDFRobot(path, **options)
 
     def __repr__(self):
         return f"{type(self).__name__}({self.name!r})"
+
+
+class GoalInputOCP(OCP):
+    """An OCP whose input goal is u_g(x_goal) = u_goal + K x_goal + h(x_goal) with a CasADi Function h.
+
+    Everything that reads the input goal — the QPs' expansion point and R term, the fallback, IPOPT's and
+    EMPC's stage cost — goes through :meth:`input_goal` and ``stage_cost``, both extended here. The exported C
+    step supports a constant input goal only (``ocpkit.export`` refuses this OCP's problem).
+    """
+
+    def __init__(self, *args, goal_input: ca.Function, **kwargs):
+        super().__init__(*args, **kwargs)
+        if not isinstance(goal_input, ca.Function):
+            raise TypeError(f"goal_input must be a casadi.Function x_goal -> u, got {type(goal_input).__name__}")
+        if (goal_input.n_in() != 1 or goal_input.n_out() != 1 or goal_input.size_in(0) != (self.nx, 1)
+                or goal_input.size_out(0) != (self.nu, 1)):
+            raise ValueError(f"goal_input must map one ({self.nx}, 1) goal to one ({self.nu}, 1) input, got "
+                             f"{goal_input.size_in(0) if goal_input.n_in() else None} -> "
+                             f"{goal_input.size_out(0) if goal_input.n_out() else None}")
+        self.goal_input = goal_input
+        x, u, xg = ca.SX.sym("x", self.nx), ca.SX.sym("u", self.nu), ca.SX.sym("x_goal", self.nx)
+        ex = x - xg
+        eu = u - ca.DM(self.u_goal) - ca.mtimes(ca.DM(self.u_goal_gain), xg) - goal_input(xg)
+        self.stage_cost = ca.Function("stage_cost", [x, u, xg], [ca.bilin(ca.DM(self.Q), ex, ex)
+                                      + ca.bilin(ca.DM(self.R), eu, eu)], ["x", "u", "x_goal"], ["l"])
+
+    def input_goal(self, x_goal) -> np.ndarray:
+        """u_g = u_goal + K x_goal + h(x_goal)."""
+        x_goal = np.asarray(x_goal, dtype=float)
+        return super().input_goal(x_goal) + np.asarray(self.goal_input(x_goal), dtype=float).ravel()
+
+
+class URDFRobot(Problem):
+    """A torque-controlled robot read from a URDF: state x = [q, q̇], input τ (forces on prismatic joints).
+
+    * Kinematics and inertias come from the URDF through pinocchio (fixed joints merge into their links);
+      revolute, continuous and prismatic joints are supported, in a chain or a tree (fingers on a hand).
+    * ``locked_joints``: joint names frozen at ``locked_positions`` (a dict name -> value; default 0 clipped
+      into the joint's limits); they leave the state and the input.
+    * ``damping`` and ``friction`` (viscous b and Coulomb f per joint, friction smoothed as f tanh(q̇ / 0.01)):
+      None reads the URDF's ``<dynamics damping friction>``; a scalar or one value per joint overrides it.
+    * ``effort_limits``: None reads the URDF's ``<limit effort>`` as the input bounds ±τ_max (a joint
+      without one is unbounded); a scalar or one value per joint overrides.
+    * ``gravity``: simulate gravity (the URDF world's −9.81 m/s² along z). With ``gravity_compensation`` the
+      input goal is g(q_goal), the torque that holds the goal at rest (see :meth:`Problem.goal_input`).
+    * ``position_bounds``: the URDF's joint limits as (soft, in LinearMPC) state bounds.
+    * Defaults: Q = diag(``q_weight`` per position, ``qd_weight`` per rate), R = ``r_weight`` I, terminal
+      weight 10 Q. ``sample(seed)``: at rest, q0 uniform in the middle half of each joint's range (±π/2 for
+      an unlimited joint), the goal q0 plus a uniform step of up to ±``step`` per joint, within the limits.
+    The error multiplier scales M(q) in the controller's model (not g(q), as for the paper's robots).
+    """
+
+    def __init__(self, urdf, *, locked_joints=(), locked_positions=None, damping=None, friction=None,
+                 effort_limits=None, gravity: bool = True, gravity_compensation: bool = True,
+                 position_bounds: bool = False, name: str | None = None, dt: float = 0.01, horizon: int = 50,
+                 duration: float = 2.0, q_weight: float = 100.0, qd_weight: float = 1.0, r_weight: float = 1e-3,
+                 step: float = 0.5):
+        from ocpkit.rigid_body import Chain, load_urdf
+
+        self.urdf = str(urdf)
+        self.pin_model = load_urdf(urdf, locked_joints=locked_joints, locked_positions=locked_positions)
+        self.chain = Chain(self.pin_model)
+        n = self.chain.n
+        self.name = name or f"urdf:{Path(self.urdf).stem}"
+        self.dt, self.duration = positive(dt, "dt"), positive(duration, "duration")
+        if isinstance(horizon, bool) or not isinstance(horizon, (int, np.integer)) or horizon < 1:
+            raise ValueError(f"horizon must be an integer >= 1, got {horizon!r}")
+        self.horizon = int(horizon)
+        self.damping = self.chain.coefficients(self.pin_model.damping if damping is None else damping, "damping")
+        self.friction = self.chain.coefficients(self.pin_model.friction if friction is None else friction,
+                                                "friction")
+        limits = np.asarray(self.pin_model.effortLimit, dtype=float) if effort_limits is None else effort_limits
+        self.tau_max = self.chain.coefficients(limits, "effort_limits")
+        self.tau_max[self.tau_max == 0] = np.inf          # a URDF without <limit effort> reads as 0
+        self.gravity, self.gravity_compensation = bool(gravity), bool(gravity_compensation)
+        self.position_bounds = bool(position_bounds)
+        self.q_weight, self.qd_weight = positive(q_weight, "q_weight"), positive(qd_weight, "qd_weight")
+        self.r_weight, self.step = positive(r_weight, "r_weight"), positive(step, "step")
+        lo, hi = np.array(self.pin_model.lowerPositionLimit), np.array(self.pin_model.upperPositionLimit)
+        if self.pin_model.nq != n:
+            raise ValueError(f"{self.urdf}: continuous joints (two configuration entries each) are not supported "
+                             "by URDFRobot yet; lock them or give them limits")
+        self.q_min = np.where(np.isfinite(lo) & (lo < hi), lo, -np.inf)
+        self.q_max = np.where(np.isfinite(hi) & (lo < hi), hi, np.inf)
+
+    @property
+    def joint_names(self) -> list[str]:
+        return list(self.chain.names)
+
+    def dynamics(self, error: float) -> Model:
+        n = self.chain.n
+        x, u = ca.SX.sym("x", 2 * n), ca.SX.sym("u", n)
+        qdd = self.chain.forward_dynamics(x[:n], x[n:], u, damping=self.damping, friction=self.friction,
+                                          inertia_scale=error, gravity=self.gravity)
+        names = self.joint_names
+        return Model(self.name, x, u, ca.vertcat(x[n:], qdd), state_names=[f"q_{j}" for j in names]
+                     + [f"qd_{j}" for j in names], input_names=[f"tau_{j}" for j in names])
+
+    def goal_input(self) -> ca.Function | None:
+        if not (self.gravity and self.gravity_compensation):
+            return None
+        n = self.chain.n
+        xg = ca.SX.sym("x_goal", 2 * n)
+        return ca.Function("gravity_compensation", [xg], [self.chain.gravity(xg[:n])], ["x_goal"], ["u"])
+
+    def defaults(self) -> dict:
+        n = self.chain.n
+        Q = np.diag(np.r_[np.full(n, self.q_weight), np.full(n, self.qd_weight)])
+        out = {"Q": Q, "R": self.r_weight * np.eye(n), "Q_terminal": 10 * Q, "u_min": -self.tau_max,
+               "u_max": self.tau_max}
+        if self.position_bounds:
+            out["x_min"] = np.r_[self.q_min, np.full(n, -np.inf)]
+            out["x_max"] = np.r_[self.q_max, np.full(n, np.inf)]
+        return out
+
+    def sample(self, seed: int):
+        rng = np.random.default_rng(seed)
+        n = self.chain.n
+        bounded = np.isfinite(self.q_min) & np.isfinite(self.q_max)
+        mid = np.where(bounded, (self.q_min + self.q_max) / 2, 0.0)
+        half = np.where(bounded, (self.q_max - self.q_min) / 4, np.pi / 2)
+        q0 = rng.uniform(mid - half, mid + half)
+        # A prismatic joint's step is scaled to its range (fingers travel centimetres, not half a metre).
+        step = np.where(np.array(self.chain.revolute) | ~bounded, self.step,
+                        np.minimum(self.step, half))
+        qg = np.clip(q0 + rng.uniform(-1.0, 1.0, size=n) * step, self.q_min, self.q_max)
+        return np.r_[q0, np.zeros(n)], np.r_[qg, np.zeros(n)]

@@ -105,7 +105,7 @@ class Baxter(Problem):
         self.q_min = np.array(self.pin_model.lowerPositionLimit)
         self.q_max = np.array(self.pin_model.upperPositionLimit)
 
-    def _dynamics(self, error: float):
+    def _servo(self, error: float):
         x, u = ca.SX.sym("x", 14), ca.SX.sym("u", 7)
         q, qd = x[:7], x[7:]
         tau = ca.DM(self.kp) * (u - q) - ca.DM(self.kd) * qd
@@ -114,14 +114,14 @@ class Baxter(Problem):
                  "input_names": [f"qdes_{j[6:]}" for j in JOINTS]}
         return x, u, ca.vertcat(qd, qdd), names
 
-    def _model(self, error: float) -> Model:
-        x, u, xdot, names = self._dynamics(error)
+    def dynamics(self, error: float) -> Model:
+        x, u, xdot, names = self._servo(error)
         return Model(self.name, x, u, xdot, **names)
 
     def plant(self) -> SampledServo:
         """The true arm with its servo sampled at 500 Hz (not the continuous servo of ``model(1.0)``)."""
         if "_plant" not in self.__dict__:
-            x, u, xdot, names = self._dynamics(1.0)
+            x, u, xdot, names = self._servo(1.0)
             xs, tau = ca.SX.sym("x", 14), ca.SX.sym("tau", 7)
             qdd = self.chain.forward_dynamics(xs[:7], xs[7:], tau, gravity=False)
             arm_f = ca.Function("arm", [xs, tau], [ca.vertcat(xs[7:], qdd)])

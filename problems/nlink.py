@@ -60,7 +60,7 @@ class NLink(Problem):
         self.sample_range = positive(sample_range, "sample_range")
         self.chain = Chain(planar_chain(self.links))
 
-    def _model(self, error: float) -> Model:
+    def dynamics(self, error: float) -> Model:
         n = self.links
         x, u = ca.SX.sym("x", 2 * n), ca.SX.sym("u", n)
         q, qd = x[:n], x[n:]
@@ -82,13 +82,19 @@ class NLink(Problem):
         return np.r_[q0, zeros], np.r_[qg, zeros]
 
 
+LINKS = range(1, 14)  # the paper's robots: 1 to 13 links
+
+
 def _make(arg=None) -> NLink:
     if arg is None:
-        raise ValueError("nlink needs a number of links, e.g. 'nlink:7'")
+        raise ValueError("nlink needs a number of links, e.g. 'nlink:7' (1 to 13)")
     try:
         links = int(arg)
     except ValueError:
-        raise ValueError(f"nlink: number of links must be an integer, got {arg!r}") from None
+        raise ValueError(f"nlink: number of links must be an integer from 1 to 13, got {arg!r}") from None
+    if links not in LINKS:
+        raise ValueError(f"nlink: number of links must be 1 to 13 (the paper's robots), got {links}; "
+                         "NLink(links) builds any size in Python")
     return NLink(links)
 
 

@@ -26,7 +26,7 @@ class Pendulum(Problem):
         self.name = "pendulum" if self.gravity else "pendulum:linear"
         self.m, self.l, self.b, self.g, self.tau_max = m, l, b, (g if self.gravity else 0.0), tau_max
 
-    def _model(self, error: float) -> Model:
+    def dynamics(self, error: float) -> Model:
         m, l = self.m * error, self.l * error
         x, u = ca.SX.sym("x", 2), ca.SX.sym("u", 1)
         qdd = (u[0] - self.b * x[1] - m * self.g * l * ca.sin(x[0])) / (m * l**2)
@@ -42,4 +42,13 @@ class Pendulum(Problem):
         return np.array([q0, 0.0]), np.array([qg, 0.0])
 
 
-REGISTRY = {"pendulum": lambda arg=None: Pendulum(gravity=arg != "linear")}
+VARIANTS = {None: True, "linear": False}  # registry argument -> gravity
+
+
+def _make(arg=None) -> Pendulum:
+    if arg not in VARIANTS:
+        raise ValueError(f"unknown pendulum variant {arg!r}; valid: pendulum, pendulum:linear")
+    return Pendulum(gravity=VARIANTS[arg])
+
+
+REGISTRY = {"pendulum": _make}

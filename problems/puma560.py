@@ -79,7 +79,7 @@ class Puma560(Problem):
         self.damping = np.array(MOTOR_VISCOUS) * np.array(GEAR) ** 2
         self.tau_max = np.array(TAU_MAX)
 
-    def _model(self, error: float) -> Model:
+    def dynamics(self, error: float) -> Model:
         x, u = ca.SX.sym("x", 12), ca.SX.sym("u", 6)
         qdd = self.chain.forward_dynamics(x[:6], x[6:], u, damping=self.damping, inertia_scale=error)
         return Model(self.name, x, u, ca.vertcat(x[6:], qdd),

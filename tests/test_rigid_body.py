@@ -1,6 +1,8 @@
 """CasADi rigid-body dynamics against pinocchio, energy conservation, the error multiplier, robot problems."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import casadi as ca
 import numpy as np
 import pinocchio as pin
@@ -12,6 +14,7 @@ from ocpkit.problems.puma560 import Puma560, puma560_model
 from ocpkit.rigid_body import Chain
 
 TOL = 1e-9
+PANDA_URDF = str(Path(__file__).parent / "data" / "panda" / "panda.urdf")
 
 
 def _random_chain(n=5, seed=3):
@@ -31,9 +34,43 @@ def _random_chain(n=5, seed=3):
     return model
 
 
+def _random_tree(n=7, seed=4):
+    """A seeded 3-D tree mixing revolute and prismatic joints on aligned and unaligned axes, with random
+    placements, inertias, armature and gravity. Each joint branches off the last one added or one of its
+    ancestors (depth-first order, which pinocchio's algorithms assume)."""
+    rng = np.random.default_rng(seed)
+    model = pin.Model()
+    kinds = [pin.JointModelRZ, pin.JointModelPX, pin.JointModelPY, pin.JointModelRY, pin.JointModelPZ]
+    path = [0]                                              # the base, then the last joint's ancestors
+    for i in range(n):
+        parent = path[int(rng.integers(0, len(path)))]
+        path = path[: path.index(parent) + 1]
+        axis = rng.normal(size=3)
+        axis /= np.linalg.norm(axis)
+        if i % 3 == 2:
+            joint = pin.JointModelPrismaticUnaligned(axis) if i % 2 else pin.JointModelRevoluteUnaligned(axis)
+        else:
+            joint = kinds[i % len(kinds)]()
+        placement = pin.SE3(pin.rpy.rpyToMatrix(*rng.uniform(-np.pi, np.pi, 3)), rng.uniform(-0.3, 0.3, 3))
+        jid = model.addJoint(parent, joint, placement, f"j{i}")
+        path.append(jid)
+        L = rng.normal(size=(3, 3))
+        model.appendBodyToJoint(jid, pin.Inertia(rng.uniform(0.5, 3), rng.uniform(-0.2, 0.2, 3),
+                                                 L @ L.T * 0.05 + 0.01 * np.eye(3)), pin.SE3.Identity())
+    model.armature = rng.uniform(0, 0.2, n)
+    model.gravity = pin.Motion(rng.normal(size=3) * 5, np.zeros(3))
+    return model
+
+
+def _panda():
+    """The Franka Panda from its URDF (tests/data/panda): 7 revolute joints and two prismatic fingers, the
+    second one on an unaligned (−y) axis, both children of the hand: a tree."""
+    return pin.buildModelFromUrdf(PANDA_URDF)
+
+
 MODELS = {"nlink1": lambda: planar_chain(1), "nlink2": lambda: planar_chain(2), "nlink7": lambda: planar_chain(7),
           "nlink13": lambda: planar_chain(13), "puma560": puma560_model, "baxter": baxter_arm_model,
-          "unaligned": _random_chain}
+          "unaligned": _random_chain, "tree_prismatic": _random_tree, "panda_fingers": _panda}
 
 
 def _sym_functions(chain):
@@ -184,15 +221,15 @@ def test_baxter_plant_samples_its_servo():
 def test_bad_inputs_raise_naming_the_argument():
     with pytest.raises(TypeError, match="model"):
         Chain("not a model")
-    prismatic = pin.Model()
-    prismatic.addJoint(0, pin.JointModelPX(), pin.SE3.Identity(), "slider")
-    with pytest.raises(ValueError, match="revolute"):
-        Chain(prismatic)
-    branched = pin.Model()
-    branched.addJoint(0, pin.JointModelRZ(), pin.SE3.Identity(), "a")
-    branched.addJoint(0, pin.JointModelRZ(), pin.SE3.Identity(), "b")
-    with pytest.raises(ValueError, match="serial chain"):
-        Chain(branched)
+    spherical = pin.Model()
+    spherical.addJoint(0, pin.JointModelSpherical(), pin.SE3.Identity(), "ball")
+    with pytest.raises(ValueError, match="1-DoF"):
+        Chain(spherical)
+    floating = pin.Model()
+    floating.addJoint(0, pin.JointModelRZ(), pin.SE3.Identity(), "a")
+    floating.addJoint(1, pin.JointModelPlanar(), pin.SE3.Identity(), "b")
+    with pytest.raises(ValueError, match="1-DoF"):
+        Chain(floating)
     chain = Chain(planar_chain(2))
     q = ca.SX.sym("q", 2)
     with pytest.raises(ValueError, match="inertia_scale"):
