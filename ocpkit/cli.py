@@ -1,4 +1,8 @@
-"""The `ocpkit` command line: solve, simulate, demo and bench."""
+"""The `ocpkit` command line: solve, simulate, demo, study, reproduce, export and bench.
+
+Wherever a problem is named, a problem spec is accepted: a registered name (``pendulum``, ``nlink:7``, …),
+``package.module:Name`` or ``path/to/file.py:Name`` (see :mod:`ocpkit.problems`).
+"""
 from __future__ import annotations
 
 import argparse
@@ -11,6 +15,13 @@ import numpy as np
 from ocpkit import problems, solvers
 from ocpkit.controller import Controller
 
+
+_SPEC_HELP = ("problem spec: a registered name (pendulum, pendulum:linear, nlink:N with N = 1…13, puma560, baxter, "
+              "urdf:FILE), package.module:Name or path/to/file.py:Name (a Problem subclass, instance or factory; "
+              "':arg' passes through)")
+# Studies that take --problem, and benchmarks that take --problem (their `problems` argument).
+_PROBLEM_STUDIES = ("knots", "horizon", "robustness")
+_PROBLEM_BENCHMARKS = ("qp", "export", "nlp")
 
 # `ocpkit bench NAME`: module in ocpkit.benchmarks, function, keyword arguments of --quick.
 _BENCHMARKS = {
@@ -32,7 +43,7 @@ class _Parser(argparse.ArgumentParser):
 
 
 def _add_controller_args(p):
-    p.add_argument("problem", help="registered problem, e.g. pendulum, pendulum:linear")
+    p.add_argument("problem", help=_SPEC_HELP)
     p.add_argument("--solver", default="qp", help="solver name (default qp)")
     p.add_argument("--form", choices=("sparse", "condensed"), help="qp: QP transcription (default condensed)")
     p.add_argument("--qp", choices=("proxqp", "osqp"), help="qp: QP backend (default proxqp)")
@@ -76,6 +87,9 @@ def _parser() -> argparse.ArgumentParser:
     demo.add_argument("--out", default="results/demo", help="folder for the figure")
     st = sub.add_parser("study", help="run one of the paper's studies (resumable) and write its report")
     st.add_argument("name", help="study name: knots, horizon, robustness, …")
+    st.add_argument("--problem", action="append", metavar="SPEC",
+                    help=f"{', '.join(_PROBLEM_STUDIES)}: run on this problem instead of the paper's (repeatable; "
+                         f"quick size: a test-sized grid). {_SPEC_HELP}")
     _add_study_args(st)
     rep = sub.add_parser("reproduce", help="run every study and write report.md")
     size = rep.add_mutually_exclusive_group()
@@ -84,7 +98,7 @@ def _parser() -> argparse.ArgumentParser:
     rep.set_defaults(size="quick")
     _add_study_args(rep, size=False)
     exp = sub.add_parser("export", help="generate, build and check a C MPC step")
-    exp.add_argument("problem")
+    exp.add_argument("problem", help=_SPEC_HELP)
     exp.add_argument("--form", default="condensed", choices=("sparse", "condensed"))
     exp.add_argument("--knots", type=int, default=5)
     exp.add_argument("--horizon", type=int, default=None)
@@ -96,6 +110,8 @@ def _parser() -> argparse.ArgumentParser:
     bench.add_argument("--quick", action="store_true", help="a smaller grid (minutes instead of tens)")
     bench.add_argument("--arch", choices=("auto", "cpu", "cuda"), help="empc: Taichi arch (default auto)")
     bench.add_argument("--precision", choices=("float64", "float32"), help="empc: float type (default float64)")
+    bench.add_argument("--problem", action="append", metavar="SPEC",
+                       help=f"{'/'.join(_PROBLEM_BENCHMARKS)}: benchmark this problem (repeatable). {_SPEC_HELP}")
     bench.add_argument("--busy", type=int, help="step: busy processes for the quiet-vs-loaded comparison (default 2; "
                                                 "0 skips it)")
     return parser
@@ -214,11 +230,37 @@ def _demo(args):
 def _study(args):
     from ocpkit.studies.reproduce import run_study
 
-    section = run_study(args.name, args.size, args.out, workers=args.workers, scheduler=args.scheduler)
+    if args.problem:
+        section = _study_problems(args)
+    else:
+        section = run_study(args.name, args.size, args.out, workers=args.workers, scheduler=args.scheduler)
     path = Path(args.out) / f"{args.name}.md"
     path.write_text(section)
     print(section + f"\nreport: {path}")
     return 0
+
+
+def _study_problems(args) -> str:
+    """A closed-loop study on the problems of --problem: its table (CSV), figures and report section."""
+    from ocpkit import study as study_runner
+    from ocpkit.studies import get
+
+    if args.name not in _PROBLEM_STUDIES:
+        raise ValueError(f"--problem applies to the studies {', '.join(_PROBLEM_STUDIES)}, not {args.name!r}")
+    module = get(args.name)
+    out = Path(args.out)
+    df = study_runner.run(module.study(args.size, problems=args.problem), out, workers=args.workers,
+                          scheduler=args.scheduler)
+    df.to_csv(out / f"{args.name}.csv", index=False)
+    failed = df[df["status"] == "failed"]
+    if len(failed) == len(df):
+        raise ValueError(f"every trial of {args.name} failed; first error: {failed['error'].iloc[0].splitlines()[0]}")
+    section = module.report(df, out)
+    if len(failed):
+        errors = failed["error"].value_counts().head(5)
+        section += f"\n{len(failed)} of {len(df)} trials failed; most common errors:\n\n" + "\n".join(
+            f"- {count}× `{err.splitlines()[0][:200]}`" for err, count in errors.items()) + "\n"
+    return section
 
 
 def _reproduce(args):
@@ -242,8 +284,15 @@ def _bench(args):
         if args.busy < 0:
             raise ValueError(f"--busy must be >= 0, got {args.busy}")
         options["busy"] = args.busy
+    kwargs = dict(quick) if args.quick else {}
+    if args.problem:
+        if args.what not in _PROBLEM_BENCHMARKS:
+            raise ValueError(f"--problem applies to `ocpkit bench {'|'.join(_PROBLEM_BENCHMARKS)}` only")
+        for spec in args.problem:
+            problems.make(spec)  # a bad spec fails before any benchmark starts
+        kwargs["problems"] = list(args.problem)
     bench = getattr(importlib.import_module(f"ocpkit.benchmarks.{module}"), function)
-    bench(**(quick if args.quick else {}), **options)
+    bench(**kwargs, **options)
     return 0
 
 
@@ -252,9 +301,34 @@ def _export(args):
 
     exported = export_problem(args.problem, args.form, args.knots, args.horizon, args.qp, args.out, seed=args.seed)
     build(args.out)
+    du, steps, failures = _round_trip(args, exported)
+    ok = failures == 0 and du <= 1e-6
     print(f"exported and built {args.problem} ({args.form}, knots {args.knots}, {args.qp}) in {exported.out_dir}; "
-          f"see {Path(args.out) / 'README.md'}")
-    return 0
+          f"see {Path(args.out) / 'README.md'}\nround trip: the compiled step vs LinearMPC over {steps} closed-loop "
+          f"steps from seed {args.seed}: max |du| = {du:.2e}, {failures} non-successes — "
+          f"{'agree' if ok else 'DISAGREE'}")
+    return 0 if ok else 1
+
+
+def _round_trip(args, exported, steps: int = 20):
+    """The compiled step (through ctypes) and LinearMPC in Python on the same closed loop (the discrete model,
+    driven by LinearMPC's input): their largest first-input difference and the steps where either failed."""
+    from ocpkit.export import ExportedMPC
+    from ocpkit.solvers.qp import LinearMPC
+
+    problem = problems.make(args.problem)
+    ocp = problem.ocp(knots=args.knots, horizon=args.horizon)
+    c = ExportedMPC(ocp, exported.out_dir, name=exported.name)
+    py = LinearMPC(ocp, form="condensed", eps=1e-10, linearization=exported.linearization)
+    F = ocp.discrete()
+    x, goal = problem.sample(args.seed)
+    du, failures = 0.0, 0
+    for _ in range(steps):
+        a, b = py.solve(x, goal), c.solve(x, goal)
+        failures += (not a.ok) + (not b.ok)
+        du = max(du, float(np.abs(a.u - b.u).max()))
+        x = np.asarray(F(x, a.u)).ravel()
+    return du, steps, failures
 
 
 def main(argv=None) -> int:

@@ -659,11 +659,16 @@ class ExportedMPC(Controller):
 
 def export_problem(problem_name: str, form: str = "condensed", knots: int | None = 5, horizon: int | None = 100,
                    qp: str = "daqp", out_dir="export", *, seed: int = 0, steps: int = 100) -> Export:
-    """Export a registered problem (``ocpkit.problems.make``) with the example closed loop from ``sample(seed)``."""
+    """Export a problem by spec (``ocpkit.problems.make``: a registered name, ``module:Name`` or ``file.py:Name``)
+    with the example closed loop from ``sample(seed)``."""
     from ocpkit.problems import make
 
     problem = make(problem_name)
     ocp = problem.ocp(knots=knots, horizon=horizon)
+    if getattr(ocp, "goal_input", None) is not None:
+        raise ValueError(f"{problem_name}: its input goal depends on the goal nonlinearly ({ocp.goal_input.name()}); "
+                         "the exported C step supports a constant input goal only (for a URDF robot: "
+                         "gravity_compensation=False)")
     x0, goal = problem.sample(seed)
     return export(ocp, out_dir, form=form, qp=qp, x0=x0, goal=goal, steps=steps)
 

@@ -143,7 +143,8 @@ class URDFRobot(Problem):
       input goal is g(q_goal), the torque that holds the goal at rest (see :meth:`Problem.goal_input`).
     * ``position_bounds``: the URDF's joint limits as (soft, in LinearMPC) state bounds.
     * Defaults: Q = diag(``q_weight`` per position, ``qd_weight`` per rate), R = ``r_weight`` I, terminal
-      weight 10 Q. ``sample(seed)``: at rest, q0 uniform in the middle half of each joint's range (±π/2 for
+      weight Q (a heavier one, 10 Q, made the condensed QP of the Panda's light wrist so ill-conditioned —
+      condition ~1e9 — that ProxQP ran into its iteration limit on most steps of some starts). ``sample(seed)``: at rest, q0 uniform in the middle half of each joint's range (±π/2 for
       an unlimited joint), the goal q0 plus a uniform step of up to ±``step`` per joint, within the limits.
     The error multiplier scales M(q) in the controller's model (not g(q), as for the paper's robots).
     """
@@ -204,7 +205,7 @@ class URDFRobot(Problem):
     def defaults(self) -> dict:
         n = self.chain.n
         Q = np.diag(np.r_[np.full(n, self.q_weight), np.full(n, self.qd_weight)])
-        out = {"Q": Q, "R": self.r_weight * np.eye(n), "Q_terminal": 10 * Q, "u_min": -self.tau_max,
+        out = {"Q": Q, "R": self.r_weight * np.eye(n), "Q_terminal": Q, "u_min": -self.tau_max,
                "u_max": self.tau_max}
         if self.position_bounds:
             out["x_min"] = np.r_[self.q_min, np.full(n, -np.inf)]

@@ -1,4 +1,8 @@
-"""The trial behind the closed-loop studies: one controller, one seeded start and goal, one run."""
+"""The trial behind the closed-loop studies: one controller, one seeded start and goal, one run.
+
+``problem`` is any problem spec (``ocpkit.problems.make``): a registered name, ``package.module:Name`` or
+``path/to/file.py:Name``; worker processes resolve it themselves (a relative path from the study's folder).
+"""
 from __future__ import annotations
 
 import numpy as np
@@ -41,3 +45,20 @@ def _mean(values) -> float:
     """Mean over the joints that have a value (NaN when none has)."""
     values = values[~np.isnan(values)]
     return float(values.mean()) if values.size else float("nan")
+
+
+def grid_size(sizes: dict, size: str, specs, user_quick: dict) -> dict:
+    """A study's grid ``sizes[size]``, with ``problems`` (a spec or a list of specs) replacing the paper's
+    problems and, at the quick size, ``user_quick`` replacing its axes (a user's problem gets a test-sized grid)."""
+    if size not in sizes:
+        raise ValueError(f"size must be one of {', '.join(sizes)}, got {size!r}")
+    s = dict(sizes[size])
+    if specs is not None:
+        specs = [specs] if isinstance(specs, str) else list(specs)
+        if not specs:
+            raise ValueError("problems must name at least one problem spec")
+        for spec in specs:
+            problems.make(spec)  # fail now, naming the bad spec, rather than in every trial
+        s.update(user_quick if size == "quick" else {})
+        s["problems"] = list(dict.fromkeys(specs))
+    return s

@@ -26,7 +26,7 @@ def bench_export(problems=None, *, horizon: int = 100, knots: int = 5, qp: str =
     LinearMPC's input (condensed, ProxQP), from ``problem.sample(seed)``. ``max_abs_du`` is the largest
     difference between the two first inputs over the loop.
     """
-    from ocpkit.problems import make
+    from ocpkit.problems import filename, make
     from ocpkit.solvers.qp import LinearMPC
 
     problems = default_problems() if problems is None else list(problems)
@@ -36,7 +36,7 @@ def bench_export(problems=None, *, horizon: int = 100, knots: int = 5, qp: str =
     for name in problems:
         problem = make(name)
         ocp = problem.ocp(knots=knots, horizon=horizon)
-        out_dir = root / name.replace(":", "_")
+        out_dir = root / filename(name)
         t0 = time.perf_counter()
         info = export(ocp, out_dir, qp=qp, linearization=linearization)
         t1 = time.perf_counter()
