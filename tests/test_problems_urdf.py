@@ -142,3 +142,12 @@ def test_urdf_spec_and_export_refusal(tmp_path):
     assert make(f"{spec}:Arm").chain.n == 7
     with pytest.raises(ValueError, match="constant input goal only"):
         export_problem(f"{spec}:Arm", out_dir=tmp_path / "out")
+
+
+def test_readme_urdf_section_runs_as_written(monkeypatch, capsys):
+    readme = Path(__file__).resolve().parents[1] / "README.md"
+    text = readme.read_text()
+    code = re.search(r"```python\n(.*?)```", text[text.index("## Robot from a URDF"):], re.S).group(1)
+    monkeypatch.chdir(readme.parent)
+    exec(compile(code, "README: Robot from a URDF", "exec"), {})
+    assert float(capsys.readouterr().out) <= 0.02
