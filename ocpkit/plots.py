@@ -76,8 +76,10 @@ def save(fig, path) -> Path:
     return targets[0]
 
 
-def boxes(labels, data, path, *, xlabel: str, ylabel: str, title: str = "", log: bool = True) -> Path:
-    """Box plots in the paper's convention: quartile box, median marker, 1.5 IQR whiskers, outliers as dots."""
+def boxes(labels, data, path, *, xlabel: str, ylabel: str, title: str = "", log: bool = True,
+          reference: float | None = 1.0) -> Path:
+    """Box plots in the paper's convention: quartile box, median marker, 1.5 IQR whiskers, outliers as dots;
+    a dotted line at ``reference`` (ratio 1 by default; None for none)."""
     fig, ax = plt.subplots(figsize=(max(6, 0.35 * len(labels)), 3.6))
     ax.boxplot(data, showmeans=False, medianprops={"marker": "o", "markersize": 3, "color": "C3"},
                flierprops={"marker": ".", "markersize": 3})
@@ -86,7 +88,8 @@ def boxes(labels, data, path, *, xlabel: str, ylabel: str, title: str = "", log:
     ax.set_ylabel(ylabel)
     if log:
         ax.set_yscale("log")
-    ax.axhline(1.0, color="k", lw=0.6, ls=":")
+    if reference is not None:
+        ax.axhline(reference, color="k", lw=0.6, ls=":")
     ax.grid(axis="y", alpha=0.3)
     if title:
         ax.set_title(title, fontsize=10)

@@ -85,7 +85,9 @@ def report(df, out_dir) -> str:
     table = ok.pivot_table(index="seed", columns="controller", values="actual_cost")[order]
     figs = [plots.boxes(order, [table[c].dropna().values for c in order], out_dir / "keepout_cost",
                         xlabel="controller", ylabel="actual penalized cost",
-                        title=f"{LINKS}-link robot, keep-out ball r = {RADIUS} rad, w = {WEIGHT:g}")]
+                        reference=None,
+                        title=f"{LINKS}-link robot, keep-out ball r = {RADIUS} rad, w = {WEIGHT:g}\n"
+                        f"{ok['seed'].nunique()} seeds; box: quartiles, red line: median")]
     summary = ok.groupby("controller")[["actual_cost", "penalty", "steps_inside", "final_error", "solve_median"]]
     summary = summary.median().reindex(order)
     summary["solve_median"] *= 1e3
