@@ -23,6 +23,8 @@ STATUSES = (SUCCESS, LIMITED, INFEASIBLE, NAN, EXCEPTION)
 
 
 LINEARIZATIONS = ("goal", "plan")
+# LinearMPC also linearizes stage by stage along the shifted plan (LTV); other controllers take one model.
+TRAJECTORY = "trajectory"
 
 # A state or goal farther than STATE_SCALE times the problem's scale from the origin makes every QP
 # meaningless (ProxQP ran 54 s at x = 1e20 on the pendulum): it is answered "nan" before any solver runs.
@@ -107,9 +109,10 @@ class _ThreadLimit:
         return False
 
 
-def check_linearization(mode: str) -> str:
-    """A valid choice of the affine model's expansion input (see :meth:`Controller.affine_model`)."""
-    choice(mode, LINEARIZATIONS, "linearization")
+def check_linearization(mode: str, trajectory: bool = False) -> str:
+    """A valid choice of the affine model's expansion input (see :meth:`Controller.affine_model`); with
+    ``trajectory`` also "trajectory", one model per stage (see :meth:`Controller.affine_models`)."""
+    choice(mode, LINEARIZATIONS + ((TRAJECTORY,) if trajectory else ()), "linearization")
     return mode
 
 
@@ -164,6 +167,8 @@ class Controller:
         self._lock = threading.RLock()
         self._step_start = None  # perf_counter at the start of the step in flight (time budgets count from it)
         self._affine_model = None  # the OCP's affine model, bound to numpy buffers at its first use
+        self._affine_map = None  # the same mapped over the horizon (per-stage models), and the rollout
+        self._rollout = None
         self.reset()
 
     @property
@@ -262,6 +267,28 @@ class Controller:
         if not (np.isfinite(Ad).all() and np.isfinite(Bd).all() and np.isfinite(wd).all()):
             return None
         return Ad, Bd, wd.ravel()
+
+    def affine_models(self, xs: np.ndarray, us: np.ndarray):
+        """Per-stage affine models (A_k, B_k, w_k), (T, n, n), (T, n, m), (T, n), about (x̄_k, ū_k) for the rows of
+        ``xs`` (T, n) and ``us`` (T, m) — one call of the OCP's affine model mapped over the horizon
+        (``Function.map``) — or None if any entry is not finite. The LTV model of real-time iteration."""
+        ocp = self.ocp
+        n, m, T = ocp.nx, ocp.nu, ocp.horizon
+        if self._affine_map is None:
+            self._affine_map = BufferedFunction(ocp.affine().map(T))
+        A, B, w = self._affine_map(np.asarray(xs, dtype=float).T, np.asarray(us, dtype=float).T)
+        if not (np.isfinite(A).all() and np.isfinite(B).all() and np.isfinite(w).all()):
+            return None
+        return A.reshape(n, T, n).transpose(1, 0, 2), B.reshape(n, T, m).transpose(1, 0, 2), w.T
+
+    def rollout(self, x: np.ndarray, us: np.ndarray) -> np.ndarray:
+        """States x_0 … x_T (T+1, n) of the OCP's discrete model from x under the inputs ``us`` (T, m), in one call
+        (``Function.mapaccum``)."""
+        ocp = self.ocp
+        if self._rollout is None:
+            self._rollout = BufferedFunction(ocp.discrete().mapaccum(ocp.horizon))
+        (X,) = self._rollout(x, np.asarray(us, dtype=float).T)
+        return np.vstack([x, X.T])
 
     def fallback(self, status: str, raw_status: str, times: dict | None = None, iterations: int = 0) -> Solution:
         """A failed step: the previous plan advanced one step and clipped to the input bounds."""

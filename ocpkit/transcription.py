@@ -10,6 +10,10 @@ Both produce a QP  min ½ zᵀ P z + qᵀ z  s.t.  A z = b,  l ≤ C z ≤ u, th
 * :class:`CondensedQP`, the "small matrix" formulation: z = [U_0, …, U_{p−1}], the states eliminated as
   [x_1; …; x_T] = S z + v (eq. small_matrix_sz_v with the parameterized S of Section V-E).
 
+Both build from an affine model, one (A_d, B_d, w_d) for the whole horizon (the paper's linearization at the
+current state, LTI) or one per stage, (T, n, n), (T, n, m), (T, n) arrays: the model linearized along a
+trajectory (LTV), as real-time iteration and ``LinearMPC(linearization="trajectory")`` need.
+
 Input bounds apply to the knots: for piecewise-linear and zero-order-hold bases every u_k is a convex
 combination of knots, so bounded knots bound the whole input trajectory.
 
@@ -152,13 +156,14 @@ class SparseQP(_Transcription):
             cols += [n * k + c_blk.ravel(), n * (k + 1) + np.arange(n)]
             src += [np.arange(n * n), np.full(n, -1)]  # A_d entries, then −I
         rb, cb = np.meshgrid(np.arange(n), np.arange(m), indexing="ij")
-        phi_nz = []  # φ_kj of every nonzero of the basis, in the order its B_d block is inserted
+        phi_nz, bd_stage = [], []  # φ_kj of every nonzero of the basis (and its k), in B_d block order
         for k in range(T):
             for j in np.flatnonzero(self.phi[k]):
                 rows.append(n * (k + 1) + rb.ravel())
                 cols.append(nX + m * j + cb.ravel())
                 src.append(np.full(n * m, -2))  # −2: an entry of φ_kj B_d
                 phi_nz.append(self.phi[k, j])
+                bd_stage.append(k)
         rows, cols, src = map(np.concatenate, (rows, cols, src))
         # Build the CSC pattern once; `_order` maps each CSC slot to the COO entry that fills it.
         pattern = sp.coo_matrix((np.arange(1, rows.size + 1, dtype=float), (rows, cols)),
@@ -166,6 +171,7 @@ class SparseQP(_Transcription):
         self._order = pattern.data.astype(np.int64) - 1
         self.A = pattern
         self._phi_nz = np.array(phi_nz)
+        self._bd_stage = np.array(bd_stage, dtype=np.int64)
         self._values = np.where(src == -1, -1.0, 0.0)
         self._ad_slots = np.flatnonzero(src >= 0)
         self._bd_slots = np.flatnonzero(src == -2)
@@ -188,18 +194,24 @@ class SparseQP(_Transcription):
             self.u = np.r_[self.u_hi, self.x_hi]
 
     def build(self, Ad, Bd, wd, x0, x_goal) -> QP:
-        """The QP for the affine model (A_d, B_d, w_d), measured state x0 and goal state."""
-        n, T = self.n, self.T
+        """The QP for the affine model (A_d, B_d, w_d) — one for all stages or one per stage (T, ·, ·) —,
+        measured state x0 and goal state."""
+        n, m, T = self.n, self.m, self.T
+        Ad, Bd, wd, ltv = _model(Ad, Bd, wd, n, m, T)
         v = self._values
-        v[self._ad_slots] = np.tile(np.asarray(Ad, dtype=float).ravel(), T)
-        v[self._bd_slots] = (self._phi_nz[:, None] * np.asarray(Bd, dtype=float).ravel()[None]).ravel()
+        if ltv:
+            v[self._ad_slots] = Ad.ravel()
+            v[self._bd_slots] = (self._phi_nz[:, None] * Bd.reshape(T, n * m)[self._bd_stage]).ravel()
+        else:
+            v[self._ad_slots] = np.tile(Ad.ravel(), T)
+            v[self._bd_slots] = (self._phi_nz[:, None] * Bd.ravel()[None]).ravel()
         A = self.A.copy()
         A.data = v[self._order]
         q = np.zeros(self.nz)
         q[n:n * (T + 1)] = -np.einsum("kab,b->ka", self.Qs, x_goal).ravel()
         q[n * (T + 1):self.nz - self.ns] = self.q_knots(x_goal)
         q[self.nz - self.ns:] = self.slack_weight
-        b = np.r_[-np.asarray(x0, dtype=float), np.tile(-np.asarray(wd, dtype=float).ravel(), T)]
+        b = np.r_[-np.asarray(x0, dtype=float), -wd.ravel() if ltv else np.tile(-wd, T)]
         return QP(self.P, q, A, b, self.C, self.l, self.u)
 
     def states(self, z: np.ndarray) -> np.ndarray:
@@ -244,13 +256,43 @@ class CondensedQP(_Transcription):
         # Simple bounds on z (ProxQP's box): the knots' input bounds, then s ≥ 0.
         self._box = np.r_[self.u_rows, self.nz + np.arange(self.ns)]
         self._box_C = np.eye(self.nz + self.ns)[self._box]
+        # For per-stage models: the knots each input u_k mixes (j, φ_kj) and the z columns in use up to x_{k+1}.
+        used = np.abs(self.phi) > 0
+        self._stage_knots = [[(int(j), float(self.phi[k, j])) for j in np.flatnonzero(used[k])]
+                             for k in range(self.T)]
+        last = np.maximum.accumulate(np.where(used.any(axis=1), p - 1 - np.argmax(used[:, ::-1], axis=1), -1))
+        self._stage_cols = m * (last + 1)
+        self._SV = None  # [v S] by stage (T, n, 1 + p·m) of the last per-stage (LTV) prediction
 
     def prediction(self, Ad, Bd, wd, x0):
         """S (T·n, p·m) and v (T·n,) with [x_1; …; x_T] = S z + v (the paper's recipe below its T=5, p=3
-        example, evaluated piece by piece as in the class docstring)."""
-        self._predict(Ad, Bd, wd, x0)
+        example, evaluated piece by piece as in the class docstring; stage by stage for per-stage models)."""
+        Ad, Bd, wd, ltv = _model(Ad, Bd, wd, self.n, self.m, self.T)
+        if ltv:
+            self._predict_ltv(Ad, Bd, wd, x0)
+        else:
+            self._SV = None
+            self._predict(Ad, Bd, wd, x0)
         SV = self._rows()
         return SV[:, 1:], SV[:, 0]
+
+    def _predict_ltv(self, Ad, Bd, wd, x0):
+        """[v S] by stage for per-stage models: [v S]_{k+1} = A_k [v S]_k + [w_k, B_k (φ_k ⊗ I)].
+
+        Row block k only has nonzeros in the columns of the knots that inputs u_0 … u_k shape (S is
+        block-lower-triangular in knot columns), so each stage multiplies A_k by that prefix only."""
+        n, m = self.n, self.m
+        SV = np.zeros((self.T, n, 1 + self.nz))
+        prev, c = np.zeros((n, 1)), 0
+        prev[:, 0] = x0
+        for k in range(self.T):
+            cur = SV[k]
+            cur[:, :c + 1] = Ad[k] @ prev[:, :c + 1]
+            cur[:, 0] += wd[k]
+            for j, f in self._stage_knots[k]:
+                cur[:, 1 + m * j:1 + m * (j + 1)] += f * Bd[k]
+            prev, c = cur, self._stage_cols[k]
+        self._SV = SV
 
     def _predict(self, Ad, Bd, wd, x0):
         """Λ_1 … Λ_L and each piece's R for the affine model (self._Lam, the pieces' rhs buffers)."""
@@ -287,16 +329,46 @@ class CondensedQP(_Transcription):
 
     def _rows(self) -> np.ndarray:
         """[v S] (T·n, 1 + p·m) of the last prediction, one GEMM per piece."""
+        if self._SV is not None:
+            return self._SV.reshape(self.T * self.n, -1)
         n, SV = self.n, np.zeros((self.T, self.n, 1 + self.nz))
         for a, Lp, c, rhs in self._pieces:
             SV[a:a + Lp, :, :c + 1] = (self._Lam[:Lp].reshape(Lp * n, -1) @ rhs).reshape(Lp, n, c + 1)
         return SV.reshape(self.T * n, -1)
 
     def build(self, Ad, Bd, wd, x0, x_goal) -> QP:
-        """P = SᵀQ̄S + φᵀφ⊗R and q = SᵀQ̄(v − x̄_goal) − (φᵀ1 ⊗ R u_goal); knot bounds (``box``), state bound rows."""
-        self._predict(Ad, Bd, wd, x0)
-        n, nz, qh, Lam = self.n, self.nz, self._qh, self._Lam
+        """P = SᵀQ̄S + φᵀφ⊗R and q = SᵀQ̄(v − x̄_goal) − (φᵀ1 ⊗ R u_goal); knot bounds (``box``), state bound rows.
+
+        (A_d, B_d, w_d) is one affine model for all stages (the piece-wise build of the class docstring) or one
+        per stage, (T, n, n), (T, n, m), (T, n) (LTV: [v S] stage by stage, then one Gram product)."""
+        Ad, Bd, wd, ltv = _model(Ad, Bd, wd, self.n, self.m, self.T)
         x_goal = np.asarray(x_goal, dtype=float)
+        if ltv:
+            self._predict_ltv(Ad, Bd, wd, x0)
+            P, q = self._cost_ltv(x_goal)
+        else:
+            self._SV = None
+            self._predict(Ad, Bd, wd, x0)
+            P, q = self._cost_lti(x_goal)
+        return self._qp(P, q)
+
+    def _cost_ltv(self, x_goal):
+        """P, q from the stage rows [v S]: the Gram matrix of Q^½ [v − x_goal, S], Q_T's difference at x_T."""
+        E = self._SV.copy()
+        E[:, :, 0] -= x_goal
+        W = self._qh[None, :, None] * E if self.diagonal_Q else np.matmul(self._qh, E)
+        W = W.reshape(self.T * self.n, -1)
+        Pq = W.T @ W
+        end = E[-1]
+        Pq += end.T @ (self._dQT[:, None] * end if self.diagonal_Q else self._dQT @ end)
+        P = Pq[1:, 1:] + self.R_knots
+        P += P.T
+        P *= 0.5
+        return P, Pq[1:, 0] + self.q_knots(x_goal)
+
+    def _cost_lti(self, x_goal):
+        """P, q of the last (one-model) prediction, piece by piece as in the class docstring."""
+        n, nz, qh, Lam = self.n, self.nz, self._qh, self._Lam
         W = qh[:, None] * Lam if self.diagonal_Q else np.matmul(qh, Lam)
         W[:, :, -1] -= qh * x_goal if self.diagonal_Q else qh @ x_goal
         Gam, done, s0 = {}, np.zeros((Lam.shape[2],) * 2), 0
@@ -313,6 +385,10 @@ class CondensedQP(_Transcription):
         P += P.T
         P *= 0.5
         q = Pq[1:, 0] + self.q_knots(x_goal)
+        return P, q
+
+    def _qp(self, P, q) -> QP:
+        """The QP with cost (P, q): knot bounds as ProxQP's box, the state bound rows of the last prediction."""
         if self.soft:
             ns = self.ns
             P = np.pad(P, ((0, ns), (0, ns)))
@@ -339,9 +415,23 @@ class CondensedQP(_Transcription):
         n, X = self.n, np.empty((self.T + 1, self.n))
         X[0] = x0
         z1 = np.r_[1.0, z[:self.nz]]
+        if self._SV is not None:
+            X[1:] = self._SV @ z1
+            return X
         for a, Lp, c, rhs in self._pieces:
             X[a + 1:a + Lp + 1] = (self._Lam[:Lp].reshape(Lp * n, -1) @ (rhs @ z1[:c + 1])).reshape(Lp, n)
         return X
+
+
+def _model(Ad, Bd, wd, n: int, m: int, T: int):
+    """(A_d, B_d, w_d, ltv): float arrays, per stage ((T, n, n), (T, n, m), (T, n)) when ``Ad`` is 3-D."""
+    Ad, Bd, wd = (np.asarray(M, dtype=float) for M in (Ad, Bd, wd))
+    if Ad.ndim != 3:
+        return Ad, Bd, wd.ravel(), False
+    if Ad.shape != (T, n, n) or Bd.shape != (T, n, m) or wd.size != T * n:
+        raise ValueError(f"a per-stage affine model needs Ad (T, n, n) = {(T, n, n)}, Bd {(T, n, m)} and wd {(T, n)}, "
+                         f"got {Ad.shape}, {Bd.shape} and {wd.shape}")
+    return Ad, Bd, wd.reshape(T, n), True
 
 
 def _pieces(phi: np.ndarray, n: int, m: int) -> list:

@@ -320,9 +320,13 @@ class LinearMPC(Controller):
     already pushed past a bound, or a goal beyond one, then drives to the bound instead of failing as
     infeasible. "hard" keeps them as constraints; HPIPM supports hard state bounds only.
 
-    ``linearization`` picks the input ū of the expansion point (x, ū): "goal" (default) uses the input
-    goal u_g (OCP.input_goal), "plan"
-    the input the previous plan expects now. For robots the two differ: about a nonzero torque the
+    ``linearization`` picks the expansion point: "goal" (default) linearizes once about (x, u_g) with u_g the
+    input goal (OCP.input_goal), "plan" about (x, ū) with ū the input the previous plan expects now — one
+    model for the whole horizon, the paper's scheme — and "trajectory" stage by stage along the previous plan
+    shifted by one step (LTV: x̄_0 = x, x̄_k the plan's predicted x_{k+1}, ū_k its inputs; after a cold start
+    or a fallback the states are a rollout of the model from x under the shifted inputs), one mapped call of
+    the affine model for all stages. Only "trajectory" follows a plan that leaves the neighbourhood of x
+    (a cart-pole swing-up); its step costs T model evaluations instead of one. For robots the two differ: about a nonzero torque the
     linearized N-link dynamics are exponentially unstable (|eig A_d| ≈ 1.12 per 10 ms step at nlink:13),
     which over a 1 s horizon makes the condensed P ill-conditioned (eigenvalues 0.06…6e10) and both ProxQP
     and OSQP hit their iteration limits; about u_goal = 0 the same robot gives eigenvalues 0.06…6e4, and
@@ -338,7 +342,7 @@ class LinearMPC(Controller):
                  eps: float = 1e-9, time_limit: float | None = None, warm_start: bool = True,
                  raise_on_fail: bool = False, linearization: str = "goal", state_bounds: str | None = None,
                  slack_weight: float = 1e3, threads: int | None = 1):
-        self.linearization = check_linearization(linearization)
+        self.linearization = check_linearization(linearization, trajectory=True)
         choice(form, tuple(TRANSCRIPTIONS), "form")
         choice(qp, QP_SOLVERS, "qp")
         if not isinstance(ocp, OCP):
@@ -388,27 +392,58 @@ class LinearMPC(Controller):
     def reset(self) -> None:
         super().reset()
         self._warm = None
+        self._x_plan = None  # predicted states x_0 … x_T of the last successful step (trajectory linearization)
         self._backend.reset()
 
     def _discard(self) -> None:
         self._warm = None
+        self._x_plan = None
         self._backend.reset()
 
+    def _deadline(self) -> float | None:
+        return None if self._time_limit is None else self._step_start + self._time_limit
+
     def _solve(self, x: np.ndarray, goal: np.ndarray) -> Solution:
-        ocp, times = self.ocp, {"model": 0.0, "build": 0.0, "solve": 0.0}
-        deadline = None if self._time_limit is None else self._step_start + self._time_limit
+        along = self.shifted_plan(x, goal) if self.linearization == "trajectory" else None
+        return self._qp_step(x, goal, along, self._deadline())
+
+    def shifted_plan(self, x: np.ndarray, goal: np.ndarray):
+        """The linearization trajectory (x̄ (T, n), ū (T, m)) of this step: the last plan advanced one step, x̄_0 = x.
+
+        Its states are the last successful step's predictions shifted, or (cold start, after a fallback) a
+        rollout of the model from x under the shifted inputs (the input goal at a cold start)."""
+        ocp = self.ocp
+        par = ocp.parameterization
+        knots = (np.tile(ocp.input_goal(goal), (ocp.knots, 1)) if self.plan is None else par.shift(self.plan))
+        us = par.inputs(knots)
+        if self._x_plan is not None:
+            xs = np.vstack([x, self._x_plan[2:]])
+        else:
+            xs = self.rollout(x, us)[:-1]
+        return xs, us
+
+    def _qp_step(self, x: np.ndarray, goal: np.ndarray, along, deadline: float | None,
+                 times: dict | None = None) -> Solution:
+        """One QP step: the affine model (about x, or per stage along ``along`` = (x̄, ū)), the build, the solve."""
+        ocp, times = self.ocp, times or {"model": 0.0, "build": 0.0, "solve": 0.0}
         if not self._costs.fits("prepare", _left(deadline)):
             res = _skipped("prepare", self._costs, deadline, 0)
             return self.fallback(LIMITED, res.raw_status.replace("prepare", "model and QP build"), times)
         t0 = time.perf_counter()
-        model = self.affine_model(x, goal, self.linearization)
+        if along is None:
+            model = self.affine_model(x, goal, self.linearization)
+        else:
+            if not (np.isfinite(along[0]).all() and np.isfinite(along[1]).all()):
+                model = None
+            else:
+                model = self.affine_models(*along)
         t1 = time.perf_counter()
-        times["model"] = t1 - t0
+        times["model"] += t1 - t0
         if model is None:
             return self._fail(NAN, f"non-finite affine model at x = {x.tolist()}", times)
         qp = self.transcription.build(*model, x, goal)
         t2 = time.perf_counter()
-        times["build"] = t2 - t1
+        times["build"] += t2 - t1
         self._costs.add("prepare", t2 - t0)
         problem = qp.check()
         if problem is not None:
@@ -416,9 +451,9 @@ class LinearMPC(Controller):
         try:
             res = self._backend.solve(qp, self._warm if self.warm_start else None, deadline)
         except Exception as exc:  # a backend that throws must not stop the control loop
-            times["solve"] = time.perf_counter() - t2
+            times["solve"] += time.perf_counter() - t2
             return self._fail(EXCEPTION, f"{type(exc).__name__}: {exc}", times)
-        times["solve"] = time.perf_counter() - t2
+        times["solve"] += time.perf_counter() - t2
         if res.status == SUCCESS:
             if not np.isfinite(res.z).all():
                 res.status, res.raw_status = NAN, f"{res.raw_status} with non-finite solution"
@@ -434,6 +469,7 @@ class LinearMPC(Controller):
         x_pred = (self.transcription.states(res.z) if self.form == "sparse"
                   else self.transcription.states(res.z, x))
         u = ocp.parameterization.u_at(knots, 0)
+        self._x_plan = x_pred
         return Solution(u=u, knots=knots, status=SUCCESS, raw_status=res.raw_status, iterations=res.iterations,
                         x_pred=x_pred, times=times)
 
@@ -441,6 +477,7 @@ class LinearMPC(Controller):
         """Fallback solution. After "limited" the backend's workspace stays and its (finite) iterate is the next
         warm start: resetting it made every later step start cold, so a budget between the warm and the cold
         solve time never succeeded again. Any other failure leaves a clean workspace (no stale warm start)."""
+        self._x_plan = None  # the plan advances by the fallback now, not by the predictions
         if status == LIMITED and keep is not None:
             if keep.duals and all(np.isfinite(d).all() for d in keep.duals):
                 self._warm = keep.duals
