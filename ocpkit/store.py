@@ -2,13 +2,22 @@
 
 The database (``results.sqlite`` in the results folder) runs in WAL mode and commits every
 trial on its own, so killing the writing process (even with SIGKILL) loses no finished trial.
+Processes sharing one folder coordinate through **claims**: a trial is leased to one process
+in a transaction, the lease is renewed by a heartbeat, and a lease whose owner died (or
+stopped renewing it) may be taken by another process. Each run of a study is recorded, so the
+compute time summed over runs is known. Every failure of the database itself is a
+:class:`StoreError` whose one-line message names the file and what to do.
 """
 from __future__ import annotations
 
+import contextlib
 import io
 import json
 import math
+import os
+import socket
 import sqlite3
+import time
 from collections.abc import Mapping
 from datetime import datetime, timezone
 from pathlib import Path
@@ -21,7 +30,8 @@ from ._checks import choice
 FILENAME = "results.sqlite"
 STATUSES = ("ok", "failed")
 # Columns of the results table besides the parameters and metrics; neither may use these names.
-RESERVED = ("study", "status", "error", "traceback", "wall_time", "started", "finished")
+RESERVED = ("study", "status", "error", "traceback", "wall_time", "started", "finished", "ocpkit_version",
+            "code_hash")
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS trials (
@@ -38,6 +48,32 @@ CREATE TABLE IF NOT EXISTS trials (
     PRIMARY KEY (study, key)
 )
 """
+# Columns added after the first release: older stores gain them (NULL for their trials) when opened for writing.
+_ADDED_COLUMNS = {"ocpkit_version": "TEXT",   # the package version that computed the trial
+                  "code_hash": "TEXT"}        # hash of the study's code (see ocpkit.study.code_hash)
+_CLAIMS = """
+CREATE TABLE IF NOT EXISTS claims (
+    study   TEXT NOT NULL,
+    key     TEXT NOT NULL,
+    owner   TEXT NOT NULL,     -- host:pid:token of the claiming process
+    expires REAL NOT NULL,     -- Unix time; the heartbeat pushes it forward
+    PRIMARY KEY (study, key)
+)
+"""
+_RUNS = """
+CREATE TABLE IF NOT EXISTS runs (
+    study    TEXT NOT NULL,
+    owner    TEXT NOT NULL,
+    started  TEXT NOT NULL,
+    finished TEXT NOT NULL,
+    wall     REAL NOT NULL,    -- seconds this run took
+    trials   INTEGER NOT NULL  -- trials it ran
+)
+"""
+
+
+class StoreError(RuntimeError):
+    """The results database could not be used; the message is one line naming the file and what to do."""
 
 
 def canonical_key(params: Mapping) -> str:
@@ -101,22 +137,76 @@ def now() -> str:
 
 
 class Store:
-    """The results database of one output folder; a context manager that closes it."""
+    """The results database of one output folder; a context manager that closes it.
 
-    def __init__(self, out_dir):
+    ``readonly`` (default: when the folder or file cannot be written) opens the database for reading
+    only: :meth:`load`, :meth:`arrays` and :meth:`keys` work, writing raises :class:`StoreError`.
+    """
+
+    def __init__(self, out_dir, *, readonly: bool | None = None):
         if not isinstance(out_dir, (str, Path)):
             raise TypeError(f"out_dir must be a path, got {out_dir!r}")
         folder = Path(out_dir)
         if folder.exists() and not folder.is_dir():
             raise ValueError(f"out_dir must be a folder, got the file {str(folder)!r}")
-        folder.mkdir(parents=True, exist_ok=True)
         self.path = folder / FILENAME
-        self._con = sqlite3.connect(self.path, timeout=60)
-        self._con.execute("PRAGMA journal_mode=WAL")
-        # NORMAL in WAL mode: a commit survives the process being killed (not a power cut) at low cost.
-        self._con.execute("PRAGMA synchronous=NORMAL")
-        with self._con:
-            self._con.execute(_SCHEMA)
+        if readonly is None:
+            readonly = folder.is_dir() and not (os.access(folder, os.W_OK) and
+                                                (not self.path.exists() or os.access(self.path, os.W_OK)))
+        self.readonly = bool(readonly)
+        if self.readonly:
+            if not self.path.is_file():
+                raise StoreError(f"{self.path}: no results store to read (the folder is read-only or "
+                                 f"readonly=True was asked); run the study in a writable folder first")
+            self._con = self._guard("open", lambda: self._open_readonly())
+            self._guard("read", lambda: self._con.execute("SELECT count(*) FROM trials").fetchone())
+            return
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise StoreError(f"{folder}: cannot create the results folder ({exc.strerror or exc}); "
+                             f"choose another --out") from None
+        self._con = self._guard("open", lambda: sqlite3.connect(self.path, timeout=60))
+
+        def setup():
+            self._con.execute("PRAGMA journal_mode=WAL")
+            # NORMAL in WAL mode: a commit survives the process being killed (not a power cut) at low cost.
+            self._con.execute("PRAGMA synchronous=NORMAL")
+            with self._con:
+                self._con.execute(_SCHEMA)
+                self._con.execute(_CLAIMS)
+                self._con.execute(_RUNS)
+                have = {r[1] for r in self._con.execute("PRAGMA table_info(trials)")}
+                for name, kind in _ADDED_COLUMNS.items():
+                    if name not in have:
+                        self._con.execute(f"ALTER TABLE trials ADD COLUMN {name} {kind}")
+        self._guard("open", setup)
+
+    def _open_readonly(self):
+        con = sqlite3.connect(f"{self.path.resolve().as_uri()}?mode=ro", uri=True, timeout=60)
+        try:
+            con.execute("SELECT count(*) FROM sqlite_master").fetchone()
+        except sqlite3.OperationalError:
+            # WAL with a -wal file but no way to create the -shm beside it: read the main file as it is.
+            con.close()
+            con = sqlite3.connect(f"{self.path.resolve().as_uri()}?immutable=1", uri=True)
+        return con
+
+    def _guard(self, doing: str, action):
+        """Run ``action``; turn database and OS errors into one-line StoreErrors naming the file."""
+        try:
+            return action()
+        except StoreError:
+            raise
+        except sqlite3.DatabaseError as exc:
+            raise StoreError(_explain(self.path, doing, exc)) from None
+        except OSError as exc:
+            raise StoreError(_explain(self.path, doing, exc)) from None
+
+    def _writable(self) -> None:
+        if self.readonly:
+            raise StoreError(f"{self.path}: opened read-only (the folder or file cannot be written); "
+                             f"copy the folder somewhere writable to run more trials")
 
     def close(self) -> None:
         self._con.close()
@@ -127,6 +217,36 @@ class Store:
     def __exit__(self, *exc) -> None:
         self.close()
 
+    def checkpoint(self) -> None:
+        """Move everything in the ``-wal`` file into ``results.sqlite`` (so a plain copy of it is complete);
+        a no-op for a read-only store. Another process reading at the same time may keep part of it back."""
+        if not self.readonly:
+            self._guard("checkpoint", lambda: self._con.execute("PRAGMA wal_checkpoint(TRUNCATE)").fetchall())
+
+    def export(self, path) -> Path:
+        """Write a single self-contained copy of the database (no ``-wal``/``-shm`` beside it) to ``path``."""
+        path = Path(path)
+        if path.is_dir():
+            raise ValueError(f"export path must be a file, got the folder {str(path)!r}")
+        partial = path.with_name(f".{path.name}.partial")
+
+        def copy():
+            with contextlib.suppress(FileNotFoundError):
+                partial.unlink()
+            target = sqlite3.connect(partial)
+            try:
+                self._con.backup(target)
+                target.execute("PRAGMA journal_mode=DELETE")
+            finally:
+                target.close()
+            os.replace(partial, path)
+        try:
+            self._guard("export", copy)
+        finally:
+            with contextlib.suppress(FileNotFoundError):
+                partial.unlink()
+        return path
+
     def studies(self) -> list[str]:
         """Names of the studies with stored trials."""
         return [r[0] for r in self._con.execute("SELECT DISTINCT study FROM trials ORDER BY study")]
@@ -134,16 +254,28 @@ class Store:
     def keys(self, study: str, *, status: str | None = None) -> set[str]:
         """Canonical keys of the stored trials of ``study`` (only those with ``status`` if given)."""
         if status is None:
-            rows = self._con.execute("SELECT key FROM trials WHERE study = ?", (study,))
+            query, args = "SELECT key FROM trials WHERE study = ?", (study,)
         else:
             _check_status(status)
-            rows = self._con.execute("SELECT key FROM trials WHERE study = ? AND status = ?", (study, status))
-        return {r[0] for r in rows}
+            query, args = "SELECT key FROM trials WHERE study = ? AND status = ?", (study, status)
+        return {r[0] for r in self._guard("read", lambda: self._con.execute(query, args).fetchall())}
+
+    def provenance(self, study: str) -> dict[str, tuple]:
+        """{key: (status, finished, ocpkit_version, code_hash)} of the stored trials of ``study``."""
+        rows = self._guard("read", lambda: self._con.execute(
+            "SELECT key, status, finished, ocpkit_version, code_hash FROM trials WHERE study = ?",
+            (study,)).fetchall())
+        return {r[0]: tuple(r[1:]) for r in rows}
 
     def write(self, study: str, params: Mapping, result: Mapping | None = None, *, status: str = "ok",
               error: str | None = None, traceback: str | None = None, wall_time: float | None = None,
-              started: str | None = None, finished: str | None = None) -> None:
-        """Store one finished trial (replacing an earlier one with the same parameters) and commit."""
+              started: str | None = None, finished: str | None = None, version: str | None = None,
+              code: str | None = None, owner: str | None = None) -> None:
+        """Store one finished trial (replacing an earlier one with the same parameters) and commit.
+
+        ``version`` and ``code`` record the package version and the study code's hash that computed it;
+        ``owner`` releases that owner's claim on the trial in the same transaction."""
+        self._writable()
         if not isinstance(study, str) or not study:
             raise TypeError(f"study must be a non-empty string, got {study!r}")
         key = canonical_key(params)
@@ -155,16 +287,111 @@ class Store:
             np.savez_compressed(buffer, **arrays)
             blob = buffer.getvalue()
         stamp = now()
-        with self._con:
-            self._con.execute(
-                "INSERT OR REPLACE INTO trials VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                (study, key, status, json.dumps(metrics), blob, error, traceback,
-                 None if wall_time is None else float(wall_time), started or stamp, finished or stamp))
+
+        def insert():
+            with self._con:
+                self._con.execute(
+                    "INSERT OR REPLACE INTO trials (study, key, status, metrics, arrays, error, traceback, wall_time, "
+                    "started, finished, ocpkit_version, code_hash) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                    (study, key, status, json.dumps(metrics), blob, error, traceback,
+                     None if wall_time is None else float(wall_time), started or stamp, finished or stamp,
+                     version, code))
+                if owner is not None:
+                    self._con.execute("DELETE FROM claims WHERE study = ? AND key = ? AND owner = ?",
+                                      (study, key, owner))
+        self._guard("write", insert)
+
+    # Claims: which process runs which trial.
+
+    def claim(self, study: str, candidates, owner: str, lease: float, *, done) -> tuple[str | None, int]:
+        """Lease the first of ``candidates`` (canonical keys, in order) that is neither ``done(key, row)`` nor
+        leased to another live process; returns (its key or None, how many candidates other processes hold).
+
+        ``row`` is the stored (status, finished, ocpkit_version, code_hash) or None. Taken in one write
+        transaction, so two processes never lease the same trial. A lease is live while unexpired and, when
+        its owner runs on this host, while that process exists."""
+        self._writable()
+
+        def take():
+            with self._con:
+                self._con.execute("BEGIN IMMEDIATE")
+                stored = {r[0]: tuple(r[1:]) for r in self._con.execute(
+                    "SELECT key, status, finished, ocpkit_version, code_hash FROM trials WHERE study = ?", (study,))}
+                clock = time.time()
+                held = {r[0] for r in self._con.execute(
+                    "SELECT key, owner, expires FROM claims WHERE study = ? AND owner != ?", (study, owner))
+                    if r[2] > clock and _alive(r[1])}
+                others = 0
+                for key in candidates:
+                    if done(key, stored.get(key)):
+                        continue
+                    if key in held:
+                        others += 1
+                        continue
+                    self._con.execute("INSERT OR REPLACE INTO claims VALUES (?, ?, ?, ?)",
+                                      (study, key, owner, clock + lease))
+                    return key, others
+                return None, others
+        return self._guard("claim trials in", take)
+
+    def renew(self, owner: str, lease: float) -> None:
+        """Push every claim of ``owner`` ``lease`` seconds into the future (the heartbeat)."""
+        def update():
+            with self._con:
+                self._con.execute("UPDATE claims SET expires = ? WHERE owner = ?", (time.time() + lease, owner))
+        self._guard("renew claims in", update)
+
+    def release(self, owner: str, study: str | None = None) -> None:
+        """Drop every claim of ``owner`` (of ``study`` if given)."""
+        if self.readonly:
+            return
+        query, args = "DELETE FROM claims WHERE owner = ?", (owner,)
+        if study is not None:
+            query, args = query + " AND study = ?", (owner, study)
+
+        def drop():
+            with self._con:
+                self._con.execute(query, args)
+        self._guard("release claims in", drop)
+
+    def claims(self, study: str | None = None) -> pd.DataFrame:
+        """The current claims: study, key, owner, expires (Unix time)."""
+        query, args = "SELECT study, key, owner, expires FROM claims", ()
+        if study is not None:
+            query, args = query + " WHERE study = ?", (study,)
+        rows = self._guard("read", lambda: self._con.execute(query, args).fetchall())
+        return pd.DataFrame(rows, columns=["study", "key", "owner", "expires"])
+
+    def record_run(self, study: str, owner: str, started: str, wall: float, trials: int) -> None:
+        """Record one run of ``study`` (its wall time and how many trials it ran)."""
+        self._writable()
+
+        def insert():
+            with self._con:
+                self._con.execute("INSERT INTO runs VALUES (?, ?, ?, ?, ?, ?)",
+                                  (study, owner, started, now(), float(wall), int(trials)))
+        self._guard("write", insert)
+
+    def runs(self, study: str | None = None) -> pd.DataFrame:
+        """Every recorded run: study, owner, started, finished, wall (s), trials; oldest first."""
+        query, args = "SELECT study, owner, started, finished, wall, trials FROM runs", ()
+        if study is not None:
+            query, args = query + " WHERE study = ?", (study,)
+
+        def read():
+            try:
+                return self._con.execute(query + " ORDER BY rowid", args).fetchall()
+            except sqlite3.OperationalError as exc:
+                if "no such table" in str(exc):  # a read-only store from before runs were recorded
+                    return []
+                raise
+        return pd.DataFrame(self._guard("read", read), columns=["study", "owner", "started", "finished", "wall",
+                                                                  "trials"])
 
     def arrays(self, study: str, params: Mapping) -> dict[str, np.ndarray]:
         """The arrays a stored trial returned ({} if none); KeyError if the trial is not stored."""
-        row = self._con.execute("SELECT arrays FROM trials WHERE study = ? AND key = ?",
-                                (study, canonical_key(params))).fetchone()
+        row = self._guard("read", lambda: self._con.execute("SELECT arrays FROM trials WHERE study = ? AND key = ?",
+                                                            (study, canonical_key(params))).fetchone())
         if row is None:
             raise KeyError(f"no stored trial of study {study!r} with params {canonical_key(params)}")
         if row[0] is None:
@@ -180,23 +407,29 @@ class Store:
         only those trials, in that order; otherwise rows are in the order they finished.
         ``df.attrs["params"]`` and ``df.attrs["metrics"]`` name the parameter and metric columns.
         """
-        query = "SELECT study, key, status, metrics, error, traceback, wall_time, started, finished FROM trials"
+        query = "SELECT study, key, status, metrics, error, traceback, wall_time, started, finished, {} FROM trials"
         args = ()
         if study is not None:
             query, args = query + " WHERE study = ?", (study,)
-        rows = self._con.execute(query + " ORDER BY finished, rowid", args).fetchall()
+
+        def read():
+            have = {r[1] for r in self._con.execute("PRAGMA table_info(trials)")}
+            added = ", ".join(name if name in have else "NULL" for name in _ADDED_COLUMNS)
+            return self._con.execute(query.format(added) + " ORDER BY finished, rowid", args).fetchall()
+        rows = self._guard("read", read)
         if trials is not None:
             by_key = {(r[0], r[1]): r for r in rows}
             wanted = [canonical_key(p) for p in trials]
             names = [study] if study is not None else sorted({r[0] for r in rows})
             rows = [by_key[(s, k)] for s in names for k in wanted if (s, k) in by_key]
         params, metrics, records = {}, {}, []
-        for name, key, status, metrics_json, error, tb, wall, started, finished in rows:
+        for name, key, status, metrics_json, error, tb, wall, started, finished, version, code in rows:
             p, m = json.loads(key), json.loads(metrics_json)
             params.update(dict.fromkeys(p))
             metrics.update(dict.fromkeys(m))
             records.append({"study": name, **p, **m, "status": status, "error": error, "traceback": tb,
-                            "wall_time": wall, "started": started, "finished": finished})
+                            "wall_time": wall, "started": started, "finished": finished, "ocpkit_version": version,
+                            "code_hash": code})
         columns = ["study", *params, *metrics, *RESERVED[1:]]
         df = pd.DataFrame.from_records(records, columns=columns)
         for column in ("started", "finished"):
@@ -223,3 +456,47 @@ class Store:
 
 def _check_status(status) -> None:
     choice(status, STATUSES, "status")
+
+
+def owner_id() -> str:
+    """A claim owner name for this process: host:pid:random (unique even after the pid is reused)."""
+    return f"{socket.gethostname()}:{os.getpid()}:{os.urandom(4).hex()}"
+
+
+def _alive(owner: str) -> bool:
+    """Whether a claim's owner may still run: False only when it ran on this host and its process is gone."""
+    host, _, rest = owner.partition(":")
+    pid = rest.partition(":")[0]
+    if host != socket.gethostname() or not pid.isdigit():
+        return True
+    try:
+        os.kill(int(pid), 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    try:  # a zombie (killed, not yet reaped by its parent) runs nothing
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except (OSError, IndexError):
+        return True
+
+
+def _explain(path: Path, doing: str, exc: BaseException) -> str:
+    """One line: the file, what went wrong, what to do."""
+    text = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+    lower = text.lower()
+    if isinstance(exc, OSError) and exc.strerror:
+        text = exc.strerror
+        lower = text.lower()
+    if "not a database" in lower or "malformed" in lower or "corrupt" in lower:
+        advice = ("the file is damaged: move it (and any -wal/-shm beside it) aside and rerun to recompute, "
+                  "or restore it from a copy")
+    elif "disk is full" in lower or "no space" in lower or "quota" in lower:
+        advice = "the disk is full: free space and rerun (finished trials are kept)"
+    elif "readonly" in lower or "read-only" in lower or "permission" in lower or "unable to open" in lower:
+        advice = "the file or its folder cannot be written: fix its permissions or choose another --out"
+    elif "locked" in lower or "busy" in lower:
+        advice = "another process holds the database locked: wait for it or stop it, then rerun"
+    else:
+        advice = "check the file, or move it aside and rerun"
+    return f"results store {path}: could not {doing} it ({text}); {advice}"

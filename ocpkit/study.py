@@ -3,10 +3,16 @@
 Trials run in local worker processes (spawn-started) or on a Dask distributed cluster; the
 parent process writes each finished trial to the :mod:`ocpkit.store` as it completes, so an
 interrupted study resumes where it stopped and a trial that raises is stored as failed.
+Before a trial starts, the parent **claims** it in the store (a lease renewed by a heartbeat),
+so several processes on one folder share the grid and run each trial once, and the trials of
+a claimant that died are taken over. Each trial records the package version and a hash of the
+study's code; resuming refuses trials computed by other code unless told what to do with them.
 """
 from __future__ import annotations
 
 import contextlib
+import hashlib
+import inspect
 import itertools
 import multiprocessing
 import os
@@ -21,14 +27,50 @@ from collections.abc import Callable, Iterable, Mapping
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
+from importlib import metadata
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
 from tqdm.auto import tqdm
 
-from ._checks import integer
+from ._checks import choice, integer
 from .kernels import CPU_THREADS
-from .store import RESERVED, Store, canonical_key, now, split_result
+from .store import RESERVED, Store, StoreError, canonical_key, now, owner_id, split_result
+
+STALE = ("refuse", "reuse", "rerun")
+_TIMEOUT_EXIT = 124  # exit status of a worker whose trial ignored its timeout
+LEASE = 60.0  # seconds a claim lives without a heartbeat
+
+
+class StaleTrialsError(ValueError):
+    """Stored trials were computed by another package version or other study code."""
+
+
+class TrialTimeout(Exception):
+    """Raised inside a trial that ran longer than its timeout."""
+
+
+def package_version() -> str:
+    """The installed ocpkit version ("unknown" when not installed)."""
+    try:
+        return metadata.version("ocpkit")
+    except metadata.PackageNotFoundError:
+        return "unknown"
+
+
+def code_hash(fn) -> str:
+    """A hash of the study's code: the source file of the module defining ``fn`` (its bytecode if it has none)."""
+    module = sys.modules.get(getattr(fn, "__module__", None) or "")
+    data = None
+    with contextlib.suppress(TypeError, OSError):
+        source = inspect.getsourcefile(module) if module is not None else None
+        if source:
+            data = Path(source).read_bytes()
+    if data is None:
+        code = getattr(fn, "__code__", None)
+        data = code.co_code + repr(code.co_consts).encode() if code is not None else repr(fn).encode()
+    return hashlib.sha256(data).hexdigest()[:16]
 
 
 @dataclass(frozen=True)
@@ -90,15 +132,23 @@ def grid(*, seeds=None, **axes) -> list[dict]:
 
 
 def run(study: Study, out_dir, *, workers: int | None = None, scheduler: str | None = None,
-        progress: bool = True, retry_failed: bool = False) -> pd.DataFrame:
+        progress: bool = True, retry_failed: bool = False, trial_timeout: float | None = None,
+        stale: str = "refuse", lease: float = LEASE) -> pd.DataFrame:
     """Run the study's trials not yet stored in ``out_dir`` and return all its trials as a table.
 
     Trials run on ``workers`` local processes (default: one per CPU), or on the Dask cluster
-    at ``scheduler`` ("tcp://host:port"). Each finished trial is committed as it arrives; a
-    trial that raises (or kills its worker) is stored as failed and the rest go on. Stored
-    failures are skipped like successes unless ``retry_failed``. On Ctrl-C the workers are
-    stopped and KeyboardInterrupt propagates; every trial finished before it stays stored.
-    Columns as in :meth:`Store.load`, rows in grid order.
+    at ``scheduler`` ("tcp://host:port"). Each trial is claimed in the store before it starts, so
+    other processes running the same study on the same folder take other trials; a claim lives
+    ``lease`` seconds unless renewed (a heartbeat renews it while this process runs), and the
+    claims of a process that died on this host are taken over at once. Each finished trial is
+    committed as it arrives; a trial that raises (or kills its worker, or runs longer than
+    ``trial_timeout`` seconds) is stored as failed and the rest go on. Stored failures are
+    skipped like successes unless ``retry_failed``. Stored trials computed by another package
+    version or other study code (see :func:`code_hash`) make the run raise
+    :class:`StaleTrialsError` unless ``stale`` is "reuse" (keep them) or "rerun" (compute them
+    again). On Ctrl-C the workers are stopped and KeyboardInterrupt propagates; every trial
+    finished before it stays stored. At the end the store is checkpointed, so ``results.sqlite``
+    alone holds every trial. Columns as in :meth:`Store.load`, rows in grid order.
     """
     if not isinstance(study, Study):
         raise TypeError(f"study must be a Study, got {type(study).__name__}")
@@ -108,28 +158,131 @@ def run(study: Study, out_dir, *, workers: int | None = None, scheduler: str | N
         if workers is not None:
             raise ValueError("workers applies to local processes; a Dask cluster (scheduler=) brings its own")
     workers = (os.cpu_count() or 1) if workers is None else integer(workers, "workers", 1)
+    choice(stale, STALE, "stale")
+    if trial_timeout is not None:
+        if isinstance(trial_timeout, bool) or not isinstance(trial_timeout, (int, float)) or \
+                not np.isfinite(trial_timeout) or trial_timeout <= 0:
+            raise ValueError(f"trial_timeout must be a positive number of seconds, got {trial_timeout!r}")
+    if isinstance(lease, bool) or not isinstance(lease, (int, float)) or not lease > 0:
+        raise ValueError(f"lease must be a positive number of seconds, got {lease!r}")
+    version, code = package_version(), code_hash(study.fn)
     with Store(out_dir) as store:
-        stored = store.keys(study.name)
-        if retry_failed:
-            stored -= store.keys(study.name, status="failed")
-        pending = [p for p in study.trials if canonical_key(p) not in stored]
-        if scheduler is None:
-            finished = _run_local(study.fn, pending, max(1, min(workers, len(pending))))
+        keys = {canonical_key(p): p for p in study.trials}
+        stored = store.provenance(study.name)
+        old = {k: row for k, row in stored.items() if k in keys and (row[2], row[3]) != (version, code)}
+        if old and stale == "refuse":
+            raise StaleTrialsError(_stale_message(study.name, store.path, old, len(stored), version, code))
+        run_start, owner = now(), owner_id()
+
+        def done(key, row) -> bool:
+            if row is None:
+                return False
+            redo = (row[0] == "failed" and retry_failed) or (stale == "rerun" and (row[2], row[3]) != (version, code))
+            return not (redo and row[1] < run_start)  # redone by any process since this run began: done
+
+        todo = [k for k in keys if not done(k, stored.get(k))]
+        if todo and store.readonly:
+            store._writable()
+        source = _Claims(store, study.name, todo, keys, owner, lease, done)
+        executed, t0 = 0, time.perf_counter()
+        if not todo:
+            finished = iter(())
+        elif scheduler is None:
+            finished = _run_local(study.fn, source, max(1, min(workers, len(todo))), trial_timeout)
         else:
-            finished = _run_dask(study.fn, pending, scheduler)
+            finished = _run_dask(study.fn, source, scheduler, trial_timeout)
         failed = 0
-        with tqdm(total=len(study.trials), initial=len(study.trials) - len(pending), desc=study.name,
+        with tqdm(total=len(study.trials), initial=len(study.trials) - len(todo), desc=study.name,
                   unit="trial", disable=not progress, dynamic_ncols=True) as bar:
+            heartbeat = _Heartbeat(store.path.parent, owner, lease) if todo else None
             try:
                 for params, outcome in finished:
-                    store.write(study.name, params, **outcome)
+                    store.write(study.name, params, **outcome, version=version, code=code, owner=owner)
+                    executed += 1
                     if outcome["status"] == "failed":
                         failed += 1
                         bar.set_postfix(failed=failed, refresh=False)
                     bar.update()
             finally:
-                finished.close()
+                with contextlib.suppress(StoreError):
+                    finished.close() if hasattr(finished, "close") else None
+                if heartbeat is not None:
+                    heartbeat.stop()
+                if todo:
+                    with contextlib.suppress(StoreError):
+                        store.release(owner, study.name)
+                        if executed:
+                            store.record_run(study.name, owner, run_start, time.perf_counter() - t0, executed)
+                        store.checkpoint()
         return store.load(study.name, trials=study.trials)
+
+
+def failure_summary(df: pd.DataFrame, top: int = 5) -> str:
+    """A report paragraph counting a study table's failed trials and its most common errors ("" if none)."""
+    failed = df[df["status"] == "failed"]
+    if not len(failed):
+        return ""
+    errors = failed["error"].fillna("(no message)").value_counts().head(top)
+    return f"\n{len(failed)} of {len(df)} trials failed; most common errors:\n\n" + "\n".join(
+        f"- {count}× `{(err.splitlines() or [''])[0][:200]}`" for err, count in errors.items()) + "\n"
+
+
+def _stale_message(name, path, old, n_stored, version, code) -> str:
+    versions = sorted({f"ocpkit {row[2] or '?'} / code {row[3] or '?'}" for row in old.values()})
+    return (f"{len(old)} of the {n_stored} stored trials of study {name!r} in {path} were computed by other code "
+            f"({', '.join(versions[:3])}{', …' if len(versions) > 3 else ''}; now ocpkit {version} / code {code}): "
+            f"pass --reuse-stale (stale='reuse') to keep them, --rerun-stale (stale='rerun') to compute them again, "
+            f"or choose another --out")
+
+
+class _Claims:
+    """The trials this process may run, claimed from the store one at a time as workers free up."""
+
+    def __init__(self, store: Store, study: str, todo: list, params: dict, owner: str, lease: float, done):
+        self.store, self.study, self.params, self.owner, self.lease = store, study, params, owner, lease
+        self.remaining, self.done, self.others = list(todo), done, 0
+
+    def take(self) -> dict | None:
+        """Claim the next trial no process has; None when there is none now (``others`` says how many other
+        processes hold, so the caller may wait for them to finish or die)."""
+        if not self.remaining:
+            self.others = 0
+            return None
+        finished = set()
+
+        def done(key, row):
+            if self.done(key, row):
+                finished.add(key)
+                return True
+            return False
+        key, self.others = self.store.claim(self.study, self.remaining, self.owner, self.lease, done=done)
+        self.remaining = [k for k in self.remaining if k not in finished and k != key]
+        return None if key is None else self.params[key]
+
+    def pause(self) -> None:
+        """Wait a little before looking again for trials that other processes hold."""
+        time.sleep(min(1.0, self.lease / 10))
+
+    def __len__(self) -> int:
+        return len(self.remaining)
+
+
+class _Heartbeat:
+    """Renews this process's claims every lease/4 seconds, on its own thread and database connection."""
+
+    def __init__(self, folder, owner: str, lease: float):
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._beat, args=(folder, owner, lease), daemon=True)
+        self._thread.start()
+
+    def _beat(self, folder, owner, lease):
+        with contextlib.suppress(Exception), Store(folder) as store:
+            while not self._stop.wait(lease / 4):
+                store.renew(owner, lease)
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join()
 
 
 def _check_importable(fn) -> None:
@@ -148,15 +301,45 @@ def _check_importable(fn) -> None:
         raise TypeError(f"fn must be picklable by reference (a module-level function), got {fn!r}: {exc}") from None
 
 
-def _execute(fn, params: dict) -> dict:
-    """Run one trial (in a worker); its outcome as keyword arguments of :meth:`Store.write`."""
+def _execute(fn, params: dict, timeout: float | None = None) -> dict:
+    """Run one trial (in a worker); its outcome as keyword arguments of :meth:`Store.write`.
+
+    With a ``timeout`` on a worker's main thread, SIGALRM raises :class:`TrialTimeout` inside the trial;
+    a trial stuck where Python cannot interrupt it (inside C code) ends its worker process shortly after."""
     started, t0 = now(), time.perf_counter()
-    try:
-        metrics, arrays = split_result(params, fn(**params))
-        outcome = {"result": {**metrics, **arrays}, "status": "ok"}
-    except Exception as exc:
-        outcome = {"status": "failed", "error": f"{type(exc).__name__}: {exc}", "traceback": traceback.format_exc()}
+    with _deadline(timeout):
+        try:
+            metrics, arrays = split_result(params, fn(**params))
+            outcome = {"result": {**metrics, **arrays}, "status": "ok"}
+        except Exception as exc:
+            outcome = {"status": "failed", "error": f"{type(exc).__name__}: {exc}", "traceback": traceback.format_exc()}
     return {**outcome, "wall_time": time.perf_counter() - t0, "started": started, "finished": now()}
+
+
+def _timeout_message(timeout: float) -> str:
+    return f"TrialTimeout: the trial ran longer than the trial timeout of {timeout:g} s and was stopped"
+
+
+@contextlib.contextmanager
+def _deadline(timeout: float | None):
+    if timeout is None or threading.current_thread() is not threading.main_thread():
+        yield  # Dask runs trials on worker threads: the parent abandons them instead
+        return
+
+    def expire(signum, frame):
+        raise TrialTimeout(_timeout_message(timeout).partition(": ")[2])
+    previous = signal.signal(signal.SIGALRM, expire)
+    # A trial that cannot be interrupted (stuck in C) takes its worker down: the pool reports it as dead.
+    killer = threading.Timer(timeout + max(2.0, 0.5 * timeout), os._exit, args=(_TIMEOUT_EXIT,))
+    killer.daemon = True
+    killer.start()
+    signal.setitimer(signal.ITIMER_REAL, timeout)
+    try:
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        killer.cancel()
+        signal.signal(signal.SIGALRM, previous)
 
 
 def _failure(message: str) -> dict:
@@ -176,14 +359,14 @@ def _exit_when_orphaned(parent: int) -> None:
     os._exit(1)
 
 
-def _run_local(fn, pending: list[dict], workers: int):
+def _run_local(fn, source: _Claims, workers: int, timeout: float | None = None):
     """Yield (params, outcome) as trials finish on a pool of spawn-started processes.
 
     At most ``workers`` trials are in flight, so when a worker dies the culprit is among them:
     alone, it is stored as failed; otherwise they all become suspects and rerun one at a time.
     """
     with _thread_budget(max(1, (os.cpu_count() or 1) // workers)):
-        yield from _run_pool(fn, pending, workers)
+        yield from _run_pool(fn, source, workers, timeout)
 
 
 @contextlib.contextmanager
@@ -203,69 +386,143 @@ def _thread_budget(threads: int):
                 os.environ.pop(name, None)
 
 
-def _run_pool(fn, pending: list[dict], workers: int):
-    queue, suspects = deque(pending), deque()
+def _run_pool(fn, source: _Claims, workers: int, timeout: float | None = None):
+    suspects = deque()
     context = multiprocessing.get_context("spawn")  # fork is unsafe with Taichi/CUDA threads
-    while queue or suspects:
-        pool = ProcessPoolExecutor(workers, mp_context=context, initializer=_worker_init, initargs=(os.getpid(),))
-        running = {}
+    while True:
+        pool = None
+        running = {}  # future -> (params, when it was submitted)
         try:
             broken = False
-            while not broken and (queue or suspects or running):
+            while not broken:
+                submit = []
                 if suspects:
                     if not running:
-                        params = suspects.popleft()
-                        running[pool.submit(_execute, fn, params)] = params
+                        submit.append(suspects.popleft())
                 else:
-                    while queue and len(running) < workers:
-                        params = queue.popleft()
-                        running[pool.submit(_execute, fn, params)] = params
+                    while len(running) + len(submit) < workers:
+                        params = source.take()
+                        if params is None:
+                            break
+                        submit.append(params)
+                if submit and pool is None:
+                    pool = ProcessPoolExecutor(workers, mp_context=context, initializer=_worker_init,
+                                               initargs=(os.getpid(),))
+                for params in submit:
+                    running[pool.submit(_execute, fn, params, timeout)] = (params, time.monotonic())
+                if not running:
+                    if suspects:
+                        continue
+                    if not source.others:
+                        return  # every trial is stored, by this process or another
+                    source.pause()  # other processes hold the rest: wait until they store them or die
+                    continue
                 done, _ = wait(running, return_when=FIRST_COMPLETED)
                 if any(isinstance(f.exception(), BrokenProcessPool) for f in done):
                     broken, done = True, wait(running).done
                 crashed = []
                 for future in done:
-                    params, exc = running.pop(future), future.exception()
+                    (params, submitted), exc = running.pop(future), future.exception()
                     if exc is None:
                         yield params, future.result()
                     elif isinstance(exc, BrokenProcessPool):
-                        crashed.append(params)
+                        crashed.append((params, submitted))
                     else:  # the trial or its outcome could not be pickled, say
                         yield params, _failure(f"{type(exc).__name__}: {exc}")
                 if len(crashed) == 1:
-                    yield crashed[0], _failure("the worker process died while running this trial "
+                    params, submitted = crashed[0]
+                    if timeout is not None and time.monotonic() - submitted >= timeout:
+                        yield params, _failure(_timeout_message(timeout) + " (it did not return to Python, so its "
+                                                                          "worker process was ended)")
+                    else:
+                        yield params, _failure("the worker process died while running this trial "
                                                "(killed by a signal, os._exit, a segfault or out of memory)")
                 else:
-                    suspects.extend(crashed)
+                    suspects.extend(params for params, _ in crashed)
         except BaseException:
             # Python 3.11 has no public way to stop busy workers; terminate them so Ctrl-C is prompt.
-            for process in list((pool._processes or {}).values()):
-                process.terminate()
+            if pool is not None:
+                for process in list((pool._processes or {}).values()):
+                    process.terminate()
             raise
         finally:
-            pool.shutdown(wait=True, cancel_futures=True)
+            if pool is not None:
+                pool.shutdown(wait=True, cancel_futures=True)
 
 
-def _run_dask(fn, pending: list[dict], scheduler: str):
+def _run_dask(fn, source: _Claims, scheduler: str, timeout: float | None = None):
     """(params, outcome) pairs as trials finish on the Dask cluster at ``scheduler``: a generator,
-    but whether distributed is installed is checked now."""
+    but whether distributed is installed and the scheduler answers are checked now."""
     try:
-        from distributed import Client, as_completed
+        from distributed import Client, wait as dask_wait
     except ImportError:
         raise ImportError('running a study on a Dask cluster needs distributed: pip install "ocpkit[dask]"') from None
-    return _dask_outcomes(Client, as_completed, fn, pending, scheduler)
+    check_scheduler(scheduler)
+    return _dask_outcomes(Client, dask_wait, fn, source, scheduler, timeout)
 
 
-def _dask_outcomes(Client, as_completed, fn, pending: list[dict], scheduler: str):
-    if not pending:
-        return
-    with Client(scheduler) as client:
-        futures = {client.submit(_execute, fn, params, pure=False): params for params in pending}
-        for future in as_completed(futures):
-            params = futures.pop(future)
-            try:
-                outcome = future.result()
-            except Exception as exc:  # e.g. KilledWorker: the trial took down its workers repeatedly
-                outcome = _failure(f"{type(exc).__name__}: {exc}")
-            future.release()
-            yield params, outcome
+def check_scheduler(scheduler: str, timeout: float = 5.0) -> None:
+    """Raise ConnectionError (one line) unless a TCP connection to the Dask scheduler opens within ``timeout`` s."""
+    import socket
+    from urllib.parse import urlsplit
+
+    if not isinstance(scheduler, str):
+        raise TypeError(f"scheduler must be an address like 'tcp://host:8786', got {scheduler!r}")
+    address = scheduler if "://" in scheduler else f"tcp://{scheduler}"
+    parts = urlsplit(address)
+    try:
+        host, port = parts.hostname, parts.port
+    except ValueError:
+        host = port = None
+    if parts.scheme not in ("tcp", "tls") or not host or not port:
+        raise ValueError(f"scheduler must be an address like 'tcp://host:8786', got {scheduler!r}")
+    try:
+        socket.create_connection((host, port), timeout=timeout).close()
+    except OSError as exc:
+        reason = exc.strerror or str(exc) or type(exc).__name__
+        raise ConnectionError(f"cannot reach the Dask scheduler at {scheduler} ({reason}); start one "
+                              f"(`dask scheduler`) or check the address") from None
+
+
+def _dask_outcomes(Client, dask_wait, fn, source: _Claims, scheduler: str, timeout: float | None):
+    with Client(scheduler, timeout="10s") as client:
+        # As many trials in flight as the cluster has threads, so a trial's submission is about its start.
+        slots = max(1, sum(client.nthreads().values()))
+        running = {}  # future -> (params, when submitted)
+        while True:
+            while len(running) < slots:
+                params = source.take()
+                if params is None:
+                    break
+                running[client.submit(_execute, fn, params, pure=False)] = (params, time.monotonic())
+            if not running:
+                if not source.others:
+                    return
+                source.pause()
+                continue
+            wait_s = None
+            if timeout is not None:
+                wait_s = max(0.05, min(t for _, t in running.values()) + timeout - time.monotonic())
+            done = dask_wait(list(running), timeout=wait_s, return_when="FIRST_COMPLETED").done \
+                if wait_s is None else _dask_wait_or_none(dask_wait, list(running), wait_s)
+            for future in done:
+                params, _ = running.pop(future)
+                try:
+                    outcome = future.result()
+                except Exception as exc:  # e.g. KilledWorker: the trial took down its workers repeatedly
+                    outcome = _failure(f"{type(exc).__name__}: {exc}")
+                future.release()
+                yield params, outcome
+            if timeout is not None:
+                clock = time.monotonic()
+                for future in [f for f, (_, t) in running.items() if clock - t >= timeout]:
+                    params, _ = running.pop(future)
+                    future.cancel()  # its worker thread may run on; the study does not wait for it
+                    yield params, _failure(_timeout_message(timeout) + " (abandoned on the Dask cluster)")
+
+
+def _dask_wait_or_none(dask_wait, futures, timeout: float):
+    try:
+        return dask_wait(futures, timeout=timeout, return_when="FIRST_COMPLETED").done
+    except TimeoutError:
+        return set()
