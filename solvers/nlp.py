@@ -11,6 +11,19 @@ affine model x⁺ = A_d x + B_d u + w_d about (x, ū), ū chosen by ``linearizat
 LinearMPC's problem solved by a general NLP solver (as the paper did with fmincon).
 The NLP is built once per OCP with parameters (x_0, x_goal[, A_d, B_d, w_d]) and re-solved every step,
 warm-started from the previous primal and dual solution shifted by one step.
+
+Two faster methods solve the same NLP:
+
+* ``method="fatrop"``: CasADi's fatrop plugin, an interior-point method that factorizes the KKT system by a
+  Riccati recursion over the stages. It needs the variables and constraints in stage order
+  [u_0, x_1, u_1, …, x_T] with gap rows x_{k+1} − F(x_k, u_k); with knots (p < T) the knots are the controls of
+  stage 0 and are carried along as extra states (U_{k+1} = U_k), so every stage stays a stage.
+* ``method="rti"``: real-time iteration (Diehl et al.): Gauss–Newton SQP steps on the multiple-shooting NLP,
+  one per control step by default (``iterations``). Each step is the QP of LinearMPC with the model linearized
+  stage by stage along the current iterate — the previous plan shifted by one step, then each new QP solution
+  — so it reuses the sparse and condensed knot QPs and their backends. The cost is quadratic, so the
+  Gauss–Newton Hessian is exact in the cost and a fixed point of the iteration is a KKT point of the NLP:
+  iterated, it reaches IPOPT's optimum.
 """
 from __future__ import annotations
 
@@ -23,8 +36,9 @@ from ocpkit._checks import choice, integer, positive
 from ocpkit.controller import (EXCEPTION, INFEASIBLE, LIMITED, NAN, SUCCESS, Controller, OperationCosts,
                                Solution, check_linearization)
 from ocpkit.ocp import OCP
+from ocpkit.solvers.qp import LinearMPC
 
-METHODS = ("ipopt", "sqp")
+METHODS = ("ipopt", "sqp", "fatrop", "rti")
 DYNAMICS = ("nonlinear", "affine")
 
 # IPOPT's ApplicationReturnStatus and sqpmethod's return_status, as ocpkit statuses (unlisted: exception).
@@ -44,6 +58,49 @@ _STATUS = {
 }
 
 
+class RealTimeIteration(LinearMPC):
+    """Real-time iteration: ``iterations`` Gauss–Newton SQP steps per control step on the knot QP linearized
+    along the iterate (LinearMPC's "trajectory" linearization), warm-started by shifting the previous plan.
+
+    Iteration i + 1 linearizes at iteration i's QP solution (x̄_0 = x, x̄_k its predicted states, ū its inputs);
+    ``tol`` > 0 stops early once the knots and predicted states move less than ``tol`` (max norm). When an
+    iteration after the first fails (a time budget, a QP limit), the previous iteration's plan is returned:
+    every iterate is a usable plan, the point of RTI."""
+
+    def __init__(self, ocp: OCP, *, iterations: int = 1, tol: float = 0.0, **options):
+        options.setdefault("state_bounds", "soft")
+        super().__init__(ocp, linearization="trajectory", **options)
+        self.iterations = integer(iterations, "iterations", 1)
+        if not (isinstance(tol, (int, float)) and np.isfinite(tol) and tol >= 0):
+            raise ValueError(f"tol must be a finite number >= 0, got {tol!r}")
+        self.tol = float(tol)
+
+    def __repr__(self):
+        return f"RealTimeIteration({self.iterations}, {self.form}, {self.qp_name}, {self.ocp!r})"
+
+    def _solve(self, x: np.ndarray, goal: np.ndarray) -> Solution:
+        deadline, par = self._deadline(), self.ocp.parameterization
+        times = {"model": 0.0, "build": 0.0, "solve": 0.0}
+        along, sol, qp_iterations = self.shifted_plan(x, goal), None, 0
+        for i in range(self.iterations):
+            new = self._qp_step(x, goal, along, deadline, times)
+            qp_iterations += new.iterations
+            if not new.ok:
+                if sol is None:
+                    return new
+                self._x_plan = sol.x_pred  # the last good iterate stays the plan
+                sol.raw_status = f"{sol.raw_status}; iteration {i + 1} {new.status}: {new.raw_status}"
+                break
+            moved = (np.inf if sol is None else
+                     max(np.abs(new.knots - sol.knots).max(), np.abs(new.x_pred - sol.x_pred).max()))
+            sol = new
+            if moved <= self.tol:
+                break
+            along = (np.vstack([x, sol.x_pred[1:-1]]), par.inputs(sol.knots))
+        sol.iterations, sol.times = qp_iterations, times
+        return sol
+
+
 class NonlinearMPC(Controller):
     """Multiple-shooting MPC solved as an NLP: ``method`` "ipopt" (interior point) or "sqp" (CasADi
     ``sqpmethod`` with the qrqp QP solver), over the ``dynamics`` "nonlinear" (F) or "affine" model.
@@ -58,20 +115,33 @@ class NonlinearMPC(Controller):
     "plan") is the affine model's expansion input, as in LinearMPC.
     """
 
-    def __init__(self, ocp: OCP, *, dynamics: str = "nonlinear", method: str = "ipopt", max_iter: int = 200,
+    def __init__(self, ocp: OCP, *, dynamics: str = "nonlinear", method: str = "ipopt", max_iter: int | None = None,
                  time_limit: float | None = None, options: dict | None = None, warm_start: bool = True,
-                 raise_on_fail: bool = False, linearization: str = "goal"):
+                 raise_on_fail: bool = False, linearization: str = "goal", iterations: int = 1, tol: float = 0.0,
+                 form: str = "condensed", qp: str = "proxqp", state_bounds: str | None = None):
         if not isinstance(ocp, OCP):
             raise TypeError(f"ocp must be an ocpkit OCP, got {type(ocp).__name__}")
         choice(dynamics, DYNAMICS, "dynamics")
         choice(method, METHODS, "method")
         if options is not None and not isinstance(options, dict):
             raise TypeError(f"options must be a dict or None, got {type(options).__name__}")
+        if method in ("rti", "fatrop") and dynamics != "nonlinear":
+            raise ValueError(f"method {method!r} solves the nonlinear dynamics; dynamics 'affine' is for ipopt/sqp")
+        if method != "rti" and (iterations != 1 or tol != 0.0):
+            raise ValueError(f"iterations and tol are options of method 'rti', not {method!r}")
         self.dynamics, self.method = dynamics, method
         self.linearization = check_linearization(linearization)
         self.options = dict(options or {})
         self.warm_start = bool(warm_start)
+        if max_iter is None:
+            max_iter = 10_000 if method == "rti" else 200  # rti: the QP's iterations, as LinearMPC
         self._limits = (integer(max_iter, "max_iter", 1), self._checked_time_limit(time_limit))
+        self._rti = None
+        if method == "rti":
+            self._rti = RealTimeIteration(ocp, iterations=iterations, tol=tol, form=form, qp=qp,
+                                          state_bounds=state_bounds, max_iter=self.max_iter,
+                                          time_limit=self.time_limit, warm_start=warm_start, threads=None,
+                                          **self.options)
         self._build(ocp)
         self._costs = OperationCosts()
         super().__init__(ocp, raise_on_fail=raise_on_fail)
@@ -97,8 +167,8 @@ class NonlinearMPC(Controller):
     def _checked_time_limit(self, value):
         if value is None:
             return None
-        if self.method == "sqp":
-            raise ValueError("time_limit is an IPOPT limit; method='sqp' (sqpmethod) only takes max_iter")
+        if self.method in ("sqp", "fatrop"):
+            raise ValueError(f"time_limit is an IPOPT and RTI limit; method={self.method!r} only takes max_iter")
         return positive(value, "time_limit")
 
     def __repr__(self):
@@ -107,6 +177,13 @@ class NonlinearMPC(Controller):
     def _build(self, ocp: OCP) -> None:
         """The NLP over w = [x_1 … x_T, U_0 … U_{p−1}] with parameters (x_0, x_goal[, A_d, B_d, w_d])."""
         n, m, T, p = ocp.nx, ocp.nu, ocp.horizon, ocp.knots
+        self._nX = n * T
+        self._order = None  # fatrop: positions of [x_1 … x_T, U] in its stage-ordered w
+        if self.method == "rti":
+            self._rti.max_iter, self._rti.time_limit = self.max_iter, self.time_limit
+            return
+        if self.method == "fatrop":
+            return self._build_fatrop(ocp)
         # MX graph over mapped calls of the SX step and cost Functions: derivatives are generated per step
         # Function, not for T inlined copies (inlining a 7-link RK4 step 50 times takes minutes to build).
         X = ca.MX.sym("X", n, T)  # columns x_1 … x_T
@@ -138,6 +215,71 @@ class NonlinearMPC(Controller):
         except RuntimeError as exc:
             raise ValueError(f"options rejected by {self.method}: {exc}") from None
 
+    def _build_fatrop(self, ocp: OCP) -> None:
+        """The same NLP in fatrop's stage order, with ``_order`` mapping it to [x_1 … x_T, U].
+
+        Traditional MPC (p = T): stage 0 holds u_0, stage k the pair (x_k, u_k), stage T x_T. With knots the
+        stage-0 controls are the knots U and stages 1 … T−1 hold (x_k, C_k) with C_k = U carried by gap rows
+        C_{k+1} = C_k, so each stage's input u_k = φ_k C_k is a function of that stage's variables only."""
+        n, m, T, p = ocp.nx, ocp.nu, ocp.horizon, ocp.knots
+        x0, xg = ca.MX.sym("x0", n), ca.MX.sym("x_goal", n)
+        F, phi = ocp.discrete(), ocp.parameterization.basis
+        traditional = ocp.parameterization.kind == "identity"
+        c = m if traditional else p * m  # the controls of stage 0 / the carried block of stages 1 … T−1
+        blocks, order_x, pos, self._copies = [], np.zeros((T, n), dtype=np.int64), 0, []
+        u0 = ca.MX.sym("u0", c)
+        blocks.append(u0)
+        order_u0 = np.arange(c)
+        pos += c
+        carried, states, gaps = [u0], [], []
+        for k in range(1, T + 1):
+            xk = ca.MX.sym(f"x{k}", n)
+            blocks.append(xk)
+            order_x[k - 1] = pos + np.arange(n)
+            pos += n
+            states.append(xk)
+            if k < T:
+                ck = ca.MX.sym(f"c{k}", c)
+                blocks.append(ck)
+                carried.append(ck)
+                if not traditional:
+                    self._copies.append(pos)
+                pos += c
+        inputs = [carried[k] if traditional else ca.mtimes(ca.kron(ca.DM(phi[k:k + 1]), ca.DM.eye(m)), carried[k])
+                  for k in range(T)]
+        J = ocp.stage_cost(xg, inputs[0], xg) + ocp.terminal_cost(states[-1], xg)
+        prev = x0
+        for k in range(T):
+            gap = states[k] - F(prev, inputs[k])  # fatrop's sign: +I on the next stage's variables
+            if not traditional and k + 1 < T:
+                gap = ca.vertcat(gap, carried[k + 1] - carried[k])
+            gaps.append(gap)
+            if 0 < k:
+                J += ocp.stage_cost(states[k - 1], inputs[k], xg)
+            prev = states[k]
+        # Knots from stage 0 (traditional: u_k is the control of stage k, columns of the knots (T, m)).
+        if traditional:
+            order_u = np.vstack([order_u0] + [order_x[k - 1, -1] + 1 + np.arange(m) for k in range(1, T)])
+        else:
+            order_u = order_u0.reshape(p, m)
+        self._order = np.r_[order_x.ravel(), order_u.ravel()]
+        nw = pos
+        lo, hi = np.full(nw, -np.inf), np.full(nw, np.inf)
+        lo[self._order] = np.r_[np.tile(ocp.x_min, T), np.tile(ocp.u_min, p)]
+        hi[self._order] = np.r_[np.tile(ocp.x_max, T), np.tile(ocp.u_max, p)]
+        self._lbx, self._ubx = lo, hi
+        nlp = {"x": ca.vertcat(*blocks), "p": ca.vertcat(x0, xg), "f": J, "g": ca.vertcat(*gaps)}
+        nx = [0] + [n if traditional else n + c] * (T - 1) + [n]
+        nu = [c] + [m if traditional else 0] * (T - 1) + [0]
+        fatrop = {"print_level": 0, "max_iter": self.max_iter, "tol": 1e-8}
+        fatrop.update(self.options)
+        opts = {"structure_detection": "manual", "N": T, "nx": nx, "nu": nu, "ng": [0] * (T + 1),
+                "expand": True, "fatrop": fatrop, "print_time": False, "error_on_fail": False}
+        try:
+            self._solver = ca.nlpsol("nonlinear_mpc", "fatrop", nlp, opts)
+        except RuntimeError as exc:
+            raise ValueError(f"options rejected by fatrop: {exc}") from None
+
     def _solver_options(self) -> dict:
         if self.method == "ipopt":
             ipopt = {"print_level": 0, "sb": "yes", "max_iter": self.max_iter,
@@ -160,8 +302,17 @@ class NonlinearMPC(Controller):
     def reset(self) -> None:
         super().reset()
         self._warm = None  # (w, lam_x, lam_g) of the last successful solve
+        if self._rti is not None:
+            self._rti.reset()
+
+    def _discard(self) -> None:
+        self._warm = None
+        if self._rti is not None:
+            self._rti._discard()
 
     def _solve(self, x: np.ndarray, goal: np.ndarray) -> Solution:
+        if self._rti is not None:
+            return self._rti.solve(x, goal)
         ocp, times = self.ocp, {"model": 0.0, "build": 0.0, "solve": 0.0}
         n, m, T, p = ocp.nx, ocp.nu, ocp.horizon, ocp.knots
         t0 = time.perf_counter()
@@ -176,6 +327,12 @@ class NonlinearMPC(Controller):
         t1 = time.perf_counter()
         times["model"] = t1 - t0
         w0, lam_x0, lam_g0 = self._initial_guess(x, goal)
+        if self._order is not None:  # fatrop's stage order; the carried knot copies start at the knots
+            w, (lam_x0, lam_g0) = np.empty(self._lbx.size), (None, None)
+            w[self._order] = w0
+            for start in self._copies:
+                w[start:start + p * m] = w0[self._nX:]
+            w0 = w
         args = {"x0": w0, "p": np.concatenate(params), "lbx": self._lbx, "ubx": self._ubx, "lbg": 0.0, "ubg": 0.0}
         if lam_x0 is not None:
             args.update(lam_x0=lam_x0, lam_g0=lam_g0)
@@ -199,12 +356,18 @@ class NonlinearMPC(Controller):
         iterations = int(stats.get("iter_count", 0))
         self._costs.add("iteration", times["solve"] / (iterations + 1))
         status = _STATUS.get(raw, EXCEPTION)
+        if self._order is not None and raw not in _STATUS:  # fatrop: a return code and its success flag
+            raw = f"fatrop return status {raw}"
+            status = SUCCESS if stats.get("success", False) else LIMITED if iterations >= self.max_iter else EXCEPTION
         w = np.asarray(res["x"], dtype=float).ravel()
+        lam_x = np.asarray(res["lam_x"], dtype=float).ravel()
+        if self._order is not None:
+            w, lam_x = w[self._order], lam_x[self._order]
         if status == SUCCESS and not np.isfinite(w).all():
             status = NAN
         if status != SUCCESS:
             return self._fail(status, raw, times, iterations)
-        self._warm = (w, np.asarray(res["lam_x"], dtype=float).ravel(), np.asarray(res["lam_g"], dtype=float).ravel())
+        self._warm = (w, lam_x, np.asarray(res["lam_g"], dtype=float).ravel())
         # IPOPT relaxes bounds by its bound_relax_factor (1e-8 relative); project the knots back.
         knots = np.clip(w[self._nX:].reshape(p, m), ocp.u_min, ocp.u_max)
         x_pred = np.vstack([x, w[: self._nX].reshape(T, n)])

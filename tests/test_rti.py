@@ -1,0 +1,133 @@
+"""Real-time iteration and fatrop against IPOPT on the same nonlinear OCP."""
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ocpkit.problems import make
+from ocpkit.simulate import simulate
+from ocpkit.solvers.nlp import NonlinearMPC, RealTimeIteration
+from ocpkit.solvers.qp import LinearMPC
+
+README = Path(__file__).resolve().parents[1] / "README.md"
+
+
+def _ipopt(ocp, x0, goal):
+    sol = NonlinearMPC(ocp, options={"tol": 1e-11}).solve(x0, goal)
+    assert sol.ok
+    return sol
+
+
+@pytest.mark.parametrize("form", ["condensed", "sparse"])
+@pytest.mark.parametrize("knots", [None, 5])
+def test_iterated_rti_converges_to_ipopts_optimum(form, knots):
+    """Gauss–Newton SQP on the LTV knot QP, iterated from a cold start, reaches the NLP's KKT point."""
+    prob = make("nlink:3")
+    ocp = prob.ocp(knots=knots)
+    x0, goal = prob.sample(0)
+    ref = _ipopt(ocp, x0, goal)
+    rti = NonlinearMPC(ocp, method="rti", form=form, iterations=60, tol=1e-11)
+    sol = rti.solve(x0, goal)
+    assert sol.ok and sol.iterations > 0
+    np.testing.assert_allclose(sol.knots, ref.knots, atol=1e-6)
+    np.testing.assert_allclose(sol.x_pred, ref.x_pred, atol=1e-6)
+
+
+def test_one_rti_step_moves_towards_the_optimum_and_stays_a_plan():
+    prob = make("nlink:3")
+    ocp = prob.ocp(knots=5)
+    x0, goal = prob.sample(1)
+    ref = _ipopt(ocp, x0, goal)
+    errors = []
+    for k in (1, 2, 4):
+        sol = NonlinearMPC(ocp, method="rti", iterations=k).solve(x0, goal)
+        assert sol.ok
+        errors.append(np.abs(sol.knots - ref.knots).max())
+    assert errors[2] < errors[0]
+
+
+def test_rti_is_the_trajectory_linear_mpc_with_one_iteration():
+    """One iteration per step is LinearMPC linearized along the shifted plan, step for step."""
+    prob = make("nlink:2")
+    ocp = prob.ocp(knots=4)
+    x0, goal = prob.sample(0)
+    a = simulate(prob.plant(), NonlinearMPC(ocp, method="rti"), x0, goal, 0.2)
+    b = simulate(prob.plant(), LinearMPC(ocp, linearization="trajectory"), x0, goal, 0.2)
+    np.testing.assert_allclose(a.u, b.u, atol=1e-9)
+
+
+def test_rti_options_are_checked():
+    ocp = make("nlink:2").ocp(knots=3)
+    with pytest.raises(ValueError, match="iterations"):
+        NonlinearMPC(ocp, method="rti", iterations=0)
+    with pytest.raises(ValueError, match="method 'rti'"):
+        NonlinearMPC(ocp, iterations=3)
+    with pytest.raises(ValueError, match="tol"):
+        RealTimeIteration(ocp, tol=-1.0)
+    with pytest.raises(ValueError, match="dynamics"):
+        NonlinearMPC(ocp, method="rti", dynamics="affine")
+    with pytest.raises(ValueError, match="form"):
+        NonlinearMPC(ocp, method="rti", form="dense")
+
+
+def test_rti_time_budget_falls_back():
+    """A budget no iteration fits in: the fallback input, finite, no exception."""
+    prob = make("nlink:3")
+    ocp = prob.ocp(knots=5)
+    x0, goal = prob.sample(0)
+    rti = NonlinearMPC(ocp, method="rti", iterations=3)
+    rti.solve(x0, goal)  # calibrates the measured costs
+    rti.time_limit = 1e-9
+    sol = rti.solve(x0, goal)
+    assert not sol.ok and sol.fallback and np.isfinite(sol.u).all()
+
+
+@pytest.mark.parametrize("knots", [None, 5])
+def test_fatrop_reaches_ipopts_optimum(knots):
+    prob = make("nlink:3")
+    ocp = prob.ocp(knots=knots)
+    x0, goal = prob.sample(0)
+    ref = _ipopt(ocp, x0, goal)
+    ctrl = NonlinearMPC(ocp, method="fatrop", options={"tol": 1e-10})
+    sol = ctrl.solve(x0, goal)
+    assert sol.ok, sol.raw_status
+    np.testing.assert_allclose(sol.knots, ref.knots, atol=1e-6)
+    np.testing.assert_allclose(sol.x_pred, ref.x_pred, atol=1e-6)
+    again = ctrl.solve(x0, goal)  # warm start in fatrop's stage order
+    assert again.ok
+    np.testing.assert_allclose(again.knots, ref.knots, atol=1e-6)
+
+
+def test_fatrop_takes_no_time_limit():
+    with pytest.raises(ValueError, match="time_limit"):
+        NonlinearMPC(make("nlink:2").ocp(knots=3), method="fatrop", time_limit=0.01)
+
+
+@pytest.mark.slow
+def test_fatrop_reaches_ipopts_optimum_on_the_puma():
+    prob = make("puma560")
+    ocp = prob.ocp(knots=5, horizon=50)
+    x0, goal = prob.sample(0)
+    ref = _ipopt(ocp, x0, goal)
+    sol = NonlinearMPC(ocp, method="fatrop", options={"tol": 1e-10}).solve(x0, goal)
+    assert sol.ok, sol.raw_status
+    np.testing.assert_allclose(sol.knots, ref.knots, atol=1e-6 * max(1.0, np.abs(ref.knots).max()))
+
+
+@pytest.fixture
+def cartpole(tmp_path, monkeypatch):
+    """The README's user-declared cart-pole (section "Declare your own problem")."""
+    text = README.read_text()
+    code = re.search(r"```python\n(.*?)```", text[text.index("## Declare your own problem"):], re.S).group(1)
+    (tmp_path / "cartpole.py").write_text(code)
+    monkeypatch.chdir(tmp_path)
+    return make("./cartpole.py:CartPole")
+
+
+def test_rti_swings_the_cartpole_up(cartpole):
+    x0, goal = np.r_[0.0, np.pi, 0.0, 0.0], np.zeros(4)
+    ocp = cartpole.ocp(knots=10)
+    traj = simulate(cartpole.plant(), NonlinearMPC(ocp, method="rti"), x0, goal, 3.0)
+    assert traj.fallbacks == 0
+    assert np.abs(traj.x[-1] - goal).max() <= 0.05
