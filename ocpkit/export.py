@@ -1,12 +1,24 @@
-"""Export the whole MPC control step as generated C, and load it back as a Controller.
+"""Export the MPC control step as generated C, and load it back as a Controller.
 
 One control step of the paper's condensed convex MPC (Section V-B, V-E) — affine model about (x, ū),
-condensed QP  min ½ zᵀPz + qᵀz  s.t. knot and state bounds, QP solve, first input — is written in CasADi
-from the same description every Python solver uses (``ocp.affine()``, the parameterization basis, Q, R,
-bounds) and code-generated with CasADi's CodeGenerator. ū is u_goal (``linearization="goal"``) or the
-input the previous plan expects now, ``u_at(shift(plan), 0)`` (``"plan"``), exactly as
-:class:`~ocpkit.solvers.qp.LinearMPC` does, so the exported step reproduces LinearMPC's QP and solution. A small hand-written wrapper keeps the plan and warm start in a
-caller-owned memory struct (no allocation in ``step``) and applies the controller's fallback on failure.
+condensed QP  min ½ zᵀPz + qᵀz  s.t. knot and state bounds, QP solve, first input — from the same
+description every Python solver uses. ū is the input goal u_g = u_goal + K x_goal (``linearization="goal"``)
+or the input the previous plan expects now, ``u_at(shift(plan), 0)`` (``"plan"``), exactly as
+:class:`~ocpkit.solvers.qp.LinearMPC` does, so the exported step reproduces LinearMPC's QP and solution.
+
+The generated code stays small at robot scale (its size does not grow with the horizon, and with the state
+dimension only through the model):
+
+* ``<name>_casadi.c`` — CasADi code generation of the continuous dynamics and their Jacobians
+  f, ∂f/∂x, ∂f/∂u **once**, called four times per RK4 step with the sensitivities propagated by dense
+  matrix products (the exact chain rule of ``ocp.affine()``, never an unrolled SX graph of the discrete
+  Jacobian), the discrete model for the example, and the QP solver.
+* ``<name>.c`` — a hand-written condensing that mirrors :class:`~ocpkit.transcription.CondensedQP.build`:
+  Λ_s = [A_d^s E_s F_s e_s] for s ≤ L, Γ_L = Σ Λ_sᵀQΛ_s, and per piece of the parameterization Rᵀ Γ_L R,
+  as C loops over stages and pieces. Constants (Q^½, R, the basis' pieces, bounds) are static arrays.
+
+All memory of one controller lives in a caller-owned struct (``<name>_memory``): several instances run in one
+process, each with its own QP-solver memory slot (``MAX_INSTANCES`` in the Makefile, 16 by default).
 
 QP solvers (CasADi conic plugins with code generation in CasADi 3.8):
 
@@ -15,17 +27,21 @@ QP solvers (CasADi conic plugins with code generation in CasADi 3.8):
   violation of the returned point and treats more than ``FEAS_TOL`` as a failure.
 * ``daqp`` (default) — links CasADi's shipped ``libdaqpstat.a`` (headers under ``casadi/include``); DAQP's setup
   runs inside each step and allocates there.
-* ``osqp`` — links CasADi's shipped ``libosqpstatic.a``; set up once at init, updated each step.
+* ``osqp`` — links CasADi's shipped ``libosqpstatic.a``; set up once at init, updated each step; quiet
+  (verbose and polishing off unless ``polish=True``).
 * ``hpipm`` — refused: CasADi's HPIPM interface needs a stage-wise OCP structure, which the condensed
   QP over knots does not have.
 """
 from __future__ import annotations
 
 import ctypes
+import os
+import shutil
 import subprocess
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from string import Template
 
 import casadi as ca
 import numpy as np
@@ -48,15 +64,22 @@ _UNSUPPORTED_WHY = {
 }
 FEAS_TOL = 1e-6  # largest bound violation accepted from a QP solver that reports success
 _VIOLATED = 9999  # solver return code the C step reports for a "solved" point violating bounds
+MAX_INSTANCES = 16  # QP-solver memory slots per loaded library (CASADI_MAX_NUM_THREADS); a Makefile variable
+OPT_FLAGS = "-O2"  # the Makefile's OPT default
 _SOLVER_NOTE = {
     "qrqp": "qrqp is warm-started from the previous solution; `step` never allocates.",
     "daqp": "CasADi's DAQP code starts DAQP cold and runs its setup, which allocates, inside every step.",
     "osqp": "OSQP is set up (allocating) once in `init` and warm-started; `step` does not allocate.",
 }
-_UBAR = {"goal": "the goal input u_goal",
-         "plan": "the input the previous plan expects now (u_goal at a cold start)"}
+_UBAR = {"goal": "the input goal u_g = u_goal + K goal",
+         "plan": "the input the previous plan expects now (the input goal at a cold start)"}
 _CASADI_DIR = Path(ca.__file__).resolve().parent
 _LIBS = {"qrqp": "", "daqp": "$(CASADI_DIR)/libdaqpstat.a", "osqp": "$(CASADI_DIR)/libosqpstatic.a"}
+
+
+class BuildError(RuntimeError):
+    """The exported folder could not be built: a tool is missing or ``make`` failed (message is one line
+    naming the tool, or make's output)."""
 
 
 @dataclass
@@ -79,15 +102,34 @@ class Export:
         """The shared library ``make`` builds in the folder."""
         return self.out_dir / f"lib{self.name}.so"
 
+    @property
+    def c_bytes(self) -> int:
+        """Bytes of generated C (sources and headers, the example included)."""
+        return sum(p.stat().st_size for p in self.out_dir.iterdir() if p.suffix in (".c", ".h"))
+
+
+def _check_out_dir(out: Path, force: bool) -> None:
+    """``out`` must be absent or an empty folder unless ``force``: a user's files are never overwritten silently."""
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"out_dir {str(out)!r} is a file, not a folder; name a new or empty folder")
+    if out.is_dir() and not force:
+        held = sorted(p.name for p in out.iterdir())
+        if held:
+            shown = ", ".join(held[:5]) + (f" and {len(held) - 5} more" if len(held) > 5 else "")
+            raise ValueError(f"out_dir {str(out)!r} is not empty (holds {shown}); name a new or empty folder, "
+                             "or pass force=True (--force) to overwrite the exported files in it")
+
 
 def export(ocp: OCP, out_dir, *, form: str = "condensed", qp: str = "daqp", name: str = "mpc",
            eps: float = 1e-9, max_iter: int = 1000, linearization: str = "goal", x0=None, goal=None,
-           steps: int = 100) -> Export:
+           steps: int = 100, force: bool = False, polish: bool = False) -> Export:
     """Write C sources, header, Makefile, example ``main.c`` and README for the MPC step of ``ocp``.
 
-    ``eps`` is the QP solver's tolerance, ``max_iter`` its iteration limit; ``linearization`` "goal"
-    linearizes about (x, u_goal), "plan" about (x, ū) as LinearMPC's option of that name; ``x0``, ``goal`` and
-    ``steps`` set the closed loop the example runs against the generated discrete model.
+    ``out_dir`` must be absent or empty unless ``force`` (then the exported files in it are overwritten).
+    ``eps`` is the QP solver's tolerance, ``max_iter`` its iteration limit, ``polish`` OSQP's solution
+    polishing; ``linearization`` "goal" linearizes about (x, u_g), "plan" about (x, ū) as LinearMPC's option
+    of that name; ``x0``, ``goal`` and ``steps`` set the closed loop the example runs against the generated
+    discrete model.
     """
     if not isinstance(ocp, OCP):
         raise TypeError(f"ocp must be an ocpkit OCP, got {type(ocp).__name__}")
@@ -98,8 +140,9 @@ def export(ocp: OCP, out_dir, *, form: str = "condensed", qp: str = "daqp", name
         raise ValueError(f"qp={qp!r} with form={form!r} cannot be exported: {why}; "
                          f"supported: {sorted(SUPPORTED)}")
     choice(linearization, LINEARIZATIONS, "linearization")
-    if np.any(ocp.u_goal_gain):
-        raise ValueError("ocp.u_goal_gain is nonzero: the exported step supports a constant input goal only")
+    if getattr(ocp, "goal_input", None) is not None:
+        raise ValueError("ocp.goal_input is set: the exported step supports a constant input goal only, or one "
+                         "linear in the goal (u_goal + K goal)")
     if not (isinstance(name, str) and name.isidentifier() and name.isascii()):
         raise ValueError(f"name must be a C identifier, got {name!r}")
     eps = positive(eps, "eps")
@@ -108,146 +151,135 @@ def export(ocp: OCP, out_dir, *, form: str = "condensed", qp: str = "daqp", name
     x0 = np.zeros(ocp.nx) if x0 is None else ocp.check_state(x0, "x0")
     goal = np.zeros(ocp.nx) if goal is None else ocp.check_state(goal, "goal")
     out = Path(out_dir)
+    _check_out_dir(out, bool(force))
     out.mkdir(parents=True, exist_ok=True)
 
-    funcs = _condensed_functions(ocp, name, linearization)
-    solver = _conic(qp, name, funcs["qp_data"], eps, max_iter)
+    tr = CondensedQP(ocp)
+    na = tr.x_rows.size
+    affine, model = _model_functions(ocp, name)
+    solver = _conic(qp, name, tr.nz, na, eps, max_iter, polish)
     cg = ca.CodeGenerator(f"{name}_casadi.c", {"with_header": True, "casadi_int": "long long int"})
-    all_f = [solver, *funcs.values()]
+    all_f = [solver, affine, model]
     for f in all_f:
         cg.add(f)
     cg.generate(str(out) + "/")
 
-    qd = funcs["qp_data"]
     sizes = {
-        "NX": ocp.nx, "NU": ocp.nu, "KNOTS": ocp.knots, "HORIZON": ocp.horizon,
-        "NZ": ocp.knots * ocp.nu, "NA": qd.sparsity_out("a").size1(),
-        "NNZ_H": qd.sparsity_out("h").nnz(), "NNZ_A": qd.sparsity_out("a").nnz(),
+        "NX": ocp.nx, "NU": ocp.nu, "KNOTS": ocp.knots, "HORIZON": ocp.horizon, "NZ": tr.nz, "NA": na,
+        "NL": ocp.nx + 2 * ocp.nu + 1, "LMAX": max(tr._lengths), "NLEN": len(tr._lengths),
         "SZ_ARG": max(f.sz_arg() for f in all_f), "SZ_RES": max(f.sz_res() for f in all_f),
         "SZ_IW": max(f.sz_iw() for f in all_f), "SZ_W": max(f.sz_w() for f in all_f),
     }
-    info = Export(out, name, form, qp, linearization, ocp.nx, ocp.nu, ocp.knots, ocp.horizon, sizes["NA"])
+    info = Export(out, name, form, qp, linearization, ocp.nx, ocp.nu, ocp.knots, ocp.horizon, na)
     (out / f"{name}.h").write_text(_header(name, sizes, ocp, form, qp, linearization))
-    (out / f"{name}.c").write_text(_wrapper(name, qp))
+    (out / f"{name}.c").write_text(_wrapper(name, qp, linearization, tr))
     (out / "main.c").write_text(_example(name, x0, goal, steps, ocp.dt))
     (out / "Makefile").write_text(_makefile(name, qp))
     (out / "README.md").write_text(_readme(info, ocp, eps, max_iter))
     return info
 
 
-def build(out_dir, *, target: str = "lib") -> Path:
-    """Run the folder's own Makefile (``make lib`` by default) and return the folder."""
+def check_tools() -> None:
+    """Raise :class:`BuildError` naming the first of the C compiler (``$CC`` or ``cc``) and ``make`` not on PATH."""
+    cc = os.environ.get("CC", "cc").split()[0] if os.environ.get("CC", "").strip() else "cc"
+    for tool, why in ((cc, "a C compiler (install gcc or clang, or set CC)"), ("make", "GNU make")):
+        if shutil.which(tool) is None:
+            raise BuildError(f"`{tool}` not found on PATH: building the exported C step needs {why}")
+
+
+def build(out_dir, *, target: str = "lib", jobs: int = 2) -> Path:
+    """Run the folder's own Makefile (``make lib`` by default, ``jobs`` compiles in parallel); return the folder.
+
+    Raises ValueError if the folder holds no exported Makefile, :class:`BuildError` if ``cc`` or ``make`` is
+    missing or the build fails.
+    """
     out = Path(out_dir)
     if not (out / "Makefile").is_file():
         raise ValueError(f"out_dir {str(out)!r} holds no exported Makefile")
-    proc = subprocess.run(["make", "-C", str(out), target], capture_output=True, text=True)
+    check_tools()
+    proc = subprocess.run(["make", "-s", "-C", str(out), f"-j{integer(jobs, 'jobs', 1)}", target],
+                          capture_output=True, text=True)
     if proc.returncode:
-        raise RuntimeError(f"make {target} failed in {out}:\n{proc.stdout}\n{proc.stderr}")
+        raise BuildError(f"make {target} failed in {out}:\n{proc.stdout}\n{proc.stderr}")
     return out
 
 
 # ---------------------------------------------------------------------------------------------------
-# The step's mathematics in CasADi
+# The model in CasADi: f and its Jacobians generated once, RK4 and its sensitivities as matrix products
 
 
-def _condensed_functions(ocp: OCP, name: str, linearization: str) -> dict:
-    """CasADi Functions of the condensed step: QP data, first input, fallback and the discrete model.
+def _model_functions(ocp: OCP, name: str):
+    """(affine, model): (x, ū) -> (A_d, B_d, w_d) and (x, u) -> x⁺ of ``ocp.discrete()``.
 
-    qp_data(x, goal, plan, warm) -> (h, g, a, lba, uba, lbx, ubx) is CondensedQP.build about
-    (x, ū) with ū = u_at(shift(plan), 0) when linearizing about the plan and ``warm``, else u_goal; S and v
-    by the recursion
-    S_k = A_d S_{k−1} + B_d (φ_k ⊗ I), v_k = A_d v_{k−1} + w_d, then P = Σ S_kᵀQ_kS_k + φᵀφ⊗R,
-    q = Σ S_kᵀQ_k(v_k − x_goal) − φᵀ1 ⊗ R u_goal; knot bounds as simple bounds on z, state bounds as rows.
+    A linear model's discretization is a constant (matrix exponential): its own Functions are small. A
+    nonlinear one is RK4 over ``substeps``; its Jacobian is propagated through the four stages
+    (dk/dx = J_x(x_s, u) dx_s/dx, …), the same derivative ``ocp.affine()`` takes of the unrolled RK4 graph,
+    with f, J_x, J_u generated once instead of differentiating the whole step symbolically.
     """
-    tr = CondensedQP(ocp)
-    n, m, T, p = tr.n, tr.m, tr.T, tr.p
-    phi = tr.phi
-    I_m = np.eye(m)
-    # Knots of the shifted plan, M U with M = pinv(φ) Sh φ (Parameterization.shift as a matrix).
-    Sh = np.eye(T, k=1)
-    Sh[-1, -1] = 1.0
-    M = ocp.parameterization._fit @ Sh @ phi
-    shift_z = ca.DM(ca.sparsify(ca.DM(np.kron(M, I_m))))
-    E = [ca.sparsify(ca.DM(np.kron(phi[k:k + 1], I_m))) for k in range(T)]  # u_k = E_k z
-
-    x, goal = ca.MX.sym("x", n), ca.MX.sym("goal", n)
-    plan, warm = ca.MX.sym("plan", p * m), ca.MX.sym("warm")
-    u_bar = (ca.if_else(warm, ca.mtimes(E[0], ca.mtimes(shift_z, plan)), ca.DM(ocp.u_goal), True)
-             if linearization == "plan" else ca.MX(ca.DM(ocp.u_goal)))
-    Ad, Bd, wd = ocp.affine()(x, u_bar)
-
-    P = ca.MX(ca.DM(tr.R_knots))
-    q = ca.MX(ca.DM(tr.q_knots(np.zeros(n))))
-    S_rows, v_rows = [], []
-    S, v = ca.mtimes(Bd, E[0]), ca.mtimes(Ad, x) + wd
-    for k in range(T):
-        if k:
-            S = ca.mtimes(Ad, S) + ca.mtimes(Bd, E[k])
-            v = ca.mtimes(Ad, v) + wd
-        QS = ca.mtimes(ca.sparsify(ca.DM(tr.Qs[k])), S)
-        P = P + ca.mtimes(S.T, QS)
-        q = q + ca.mtimes(QS.T, v - goal)
-        S_rows.append(S)
-        v_rows.append(v)
-    P = 0.5 * (P + P.T)
-    if tr.x_rows.size:
-        rows = [int(r) for r in tr.x_rows]
-        A = ca.vertcat(*S_rows)[rows, :]
-        vx = ca.vertcat(*v_rows)[rows]
-        lba, uba = ca.DM(tr.x_lo) - vx, ca.DM(tr.x_hi) - vx
-    else:
-        A, lba, uba = ca.MX(0, p * m), ca.MX(0, 1), ca.MX(0, 1)
-    lbx = ca.MX(ca.DM(np.tile(ocp.u_min, p)))
-    ubx = ca.MX(ca.DM(np.tile(ocp.u_max, p)))
-    qp_data = ca.Function(f"{name}_qp_data", [x, goal, plan, warm], [ca.densify(P), q, A, lba, uba, lbx, ubx],
-                          ["x", "goal", "plan", "warm"], ["h", "g", "a", "lba", "uba", "lbx", "ubx"])
-
-    z = ca.MX.sym("z", p * m)
-    first_input = ca.Function(f"{name}_first_input", [z], [ca.mtimes(E[0], z)], ["z"], ["u"])
-
-    # Controller.fallback: previous plan shifted one step (u_goal knots at a cold start), clipped to bounds.
-    clip = lambda e, lo, hi: ca.fmin(ca.fmax(e, ca.DM(lo)), ca.DM(hi))  # noqa: E731
-    knots = clip(ca.if_else(warm, ca.mtimes(shift_z, plan), ca.DM(np.tile(ocp.u_goal, p)), True),
-                 np.tile(ocp.u_min, p), np.tile(ocp.u_max, p))
-    fallback = ca.Function(f"{name}_fallback", [plan, warm],
-                           [knots, clip(ca.mtimes(E[0], knots), ocp.u_min, ocp.u_max)],
-                           ["plan", "has_plan"], ["knots", "u"])
-
-    # Largest bound violation of a solution: CasADi's qrqp can report success at an infeasible point.
-    a = ca.MX.sym("a", qp_data.sparsity_out("a"))
-    lo_a, hi_a = ca.MX.sym("lba", A.shape[0]), ca.MX.sym("uba", A.shape[0])
-    lo_x, hi_x = ca.MX.sym("lbx", p * m), ca.MX.sym("ubx", p * m)
-    az = ca.mtimes(a, z)
-    viol = ca.mmax(ca.vertcat(lo_x - z, z - hi_x, lo_a - az, az - hi_a, ca.DM(0.0)))
-    violation = ca.Function(f"{name}_violation", [a, z, lo_a, hi_a, lo_x, hi_x], [viol],
-                            ["a", "z", "lba", "uba", "lbx", "ubx"], ["violation"])
-
-    xs, us = ca.SX.sym("x", n), ca.SX.sym("u", m)
-    model = ca.Function(f"{name}_model", [xs, us], [ocp.discrete()(xs, us)], ["x", "u"], ["x_next"])
-    return {"qp_data": qp_data, "first_input": first_input, "fallback": fallback, "violation": violation,
-            "model": model}
+    model = ocp.model
+    n, m = ocp.nx, ocp.nu
+    if model.linear:
+        aff = model.affine(ocp.dt, ocp.substeps)
+        disc = model.discrete(ocp.dt, ocp.substeps)
+        xs, us = ca.SX.sym("x", n), ca.SX.sym("u", m)
+        Ad, Bd, wd = aff(xs, us)
+        return (ca.Function(f"{name}_affine", [xs, us], [ca.densify(Ad), ca.densify(Bd), ca.densify(wd)],
+                            ["x", "u"], ["Ad", "Bd", "wd"]),
+                ca.Function(f"{name}_model", [xs, us], [disc(xs, us)], ["x", "u"], ["x_next"]))
+    x, u = model.x, model.u
+    f = ca.Function(f"{name}_f", [x, u], [model.xdot], ["x", "u"], ["xdot"])
+    fj = ca.Function(f"{name}_fjac", [x, u], [model.xdot, ca.densify(ca.jacobian(model.xdot, x)),
+                                              ca.densify(ca.jacobian(model.xdot, u))],
+                     ["x", "u"], ["xdot", "fx", "fu"])
+    h = ocp.dt / ocp.substeps
+    X, U = ca.MX.sym("x", n), ca.MX.sym("u", m)
+    xk, Sx, Su = X, ca.MX(ca.DM.eye(n)), ca.MX(n, m)
+    xm = X
+    for _ in range(ocp.substeps):
+        k1, J1, G1 = fj(xk, U)
+        d1x, d1u = ca.mtimes(J1, Sx), ca.mtimes(J1, Su) + G1
+        k2, J2, G2 = fj(xk + h / 2 * k1, U)
+        S2x, S2u = Sx + h / 2 * d1x, Su + h / 2 * d1u
+        d2x, d2u = ca.mtimes(J2, S2x), ca.mtimes(J2, S2u) + G2
+        k3, J3, G3 = fj(xk + h / 2 * k2, U)
+        S3x, S3u = Sx + h / 2 * d2x, Su + h / 2 * d2u
+        d3x, d3u = ca.mtimes(J3, S3x), ca.mtimes(J3, S3u) + G3
+        k4, J4, G4 = fj(xk + h * k3, U)
+        S4x, S4u = Sx + h * d3x, Su + h * d3u
+        d4x, d4u = ca.mtimes(J4, S4x), ca.mtimes(J4, S4u) + G4
+        xk = xk + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+        Sx = Sx + h / 6 * (d1x + 2 * d2x + 2 * d3x + d4x)
+        Su = Su + h / 6 * (d1u + 2 * d2u + 2 * d3u + d4u)
+        q1 = f(xm, U)
+        q2 = f(xm + h / 2 * q1, U)
+        q3 = f(xm + h / 2 * q2, U)
+        q4 = f(xm + h * q3, U)
+        xm = xm + h / 6 * (q1 + 2 * q2 + 2 * q3 + q4)
+    wd = xk - ca.mtimes(Sx, X) - ca.mtimes(Su, U)
+    affine = ca.Function(f"{name}_affine", [X, U], [ca.densify(Sx), ca.densify(Su), wd],
+                         ["x", "u"], ["Ad", "Bd", "wd"])
+    return affine, ca.Function(f"{name}_model", [X, U], [xm], ["x", "u"], ["x_next"])
 
 
-def _conic(qp: str, name: str, qp_data: ca.Function, eps: float, max_iter: int) -> ca.Function:
-    """The CasADi conic solver for QP data with qp_data's sparsity, set up for code generation."""
+def _conic(qp: str, name: str, nz: int, na: int, eps: float, max_iter: int, polish: bool) -> ca.Function:
+    """The CasADi conic solver for a dense H (nz × nz) and dense A (na × nz), set up for code generation."""
     opts = {"error_on_fail": False, "print_problem": False}
     if qp == "qrqp":
         opts.update(print_iter=False, print_header=False, print_info=False, max_iter=max_iter,
                     constr_viol_tol=eps, dual_inf_tol=eps)
     elif qp == "osqp":
         opts["osqp"] = {"eps_abs": eps, "eps_rel": eps, "max_iter": max_iter, "verbose": False,
-                        "polishing": True}
+                        "polishing": bool(polish)}
         opts.update(warm_start_primal=True, warm_start_dual=True)
         opts.pop("print_problem")
     else:
         opts["daqp"] = {"iter_limit": max_iter, "primal_tol": eps, "dual_tol": eps}
-    structure = {"h": qp_data.sparsity_out("h"), "a": qp_data.sparsity_out("a")}
+    structure = {"h": ca.Sparsity.dense(nz, nz), "a": ca.Sparsity.dense(na, nz)}
     return ca.conic(f"{name}_qp_solve", qp, structure, opts)
 
 
 # ---------------------------------------------------------------------------------------------------
 # The C around it
-
 
 def _header(name: str, s: dict, ocp: OCP, form: str, qp: str, lin: str, feas_tol: float = FEAS_TOL) -> str:
     N = name.upper()
@@ -257,16 +289,18 @@ def _header(name: str, s: dict, ocp: OCP, form: str, qp: str, lin: str, feas_tol
  * Generated by ocpkit.export. One control step: affine model about (x, u_bar), condensed QP, QP solve,
  * first input. u_bar: {_UBAR[lin]}.
  *
- * Usage:
- *   static {name}_memory mem;              // caller-owned; holds all work space, the plan, warm start
- *   if ({name}_init(&mem)) abort();        // once
+ * Usage (any number of instances, up to MAX_INSTANCES in the Makefile live at once per process):
+ *   {name}_memory* mem = malloc(sizeof *mem);   // caller-owned: all work space, the plan, warm start
+ *   if ({name}_init(mem)) abort();              // once per instance
  *   int status;
- *   {name}_step(&mem, x, goal, u, &status);  // each control period; never allocates
+ *   {name}_step(mem, x, goal, u, &status);      // each control period
+ *   {name}_free(mem);                           // gives the QP solver's memory slot back
  *
  * Arrays: x, goal: {N}_NX doubles; u: {N}_NU; knots: {N}_KNOTS x {N}_NU row-major (knot j, input i at
  * j*{N}_NU + i). Statuses (the same set as ocpkit.controller.STATUSES) are {N}_SUCCESS ... below. On any
  * failure the step returns the safe fallback input (previous plan advanced one step, clipped to the input
- * bounds) and the next step starts without warm start.
+ * bounds) and the next step starts without warm start. Instances share no mutable state except the QP
+ * solver's slot table: init and free are not thread-safe, steps of different instances are.
  */
 #ifndef {N}_H
 #define {N}_H
@@ -279,6 +313,7 @@ extern "C" {{
 
 {defs}
 #define {N}_NA1 ({N}_NA > 0 ? {N}_NA : 1)
+#define {N}_NZ1 ({N}_NZ + 1)
 /* Bound violation above which a reported solution is rejected (status {N}_EXCEPTION, solver return
    {N}_VIOLATED). */
 #define {N}_FEAS_TOL {feas_tol!r}
@@ -292,7 +327,14 @@ typedef struct {{
   double* res[{N}_SZ_RES];
   long long iw[{N}_SZ_IW > 0 ? {N}_SZ_IW : 1];
   double w[{N}_SZ_W > 0 ? {N}_SZ_W : 1];
-  double h[{N}_NNZ_H], g[{N}_NZ], a[{N}_NNZ_A > 0 ? {N}_NNZ_A : 1], lba[{N}_NA1], uba[{N}_NA1];
+  /* affine model and the condensing's work space */
+  double ug[{N}_NU], ubar[{N}_NU], Ad[{N}_NX * {N}_NX], Bd[{N}_NX * {N}_NU], wd[{N}_NX];
+  double G[{N}_NX * ({N}_NU + 1)], Gn[{N}_NX * ({N}_NU + 1)];
+  double Lam[{N}_LMAX * {N}_NX * {N}_NL], W[{N}_NX * {N}_NL], acc[{N}_NL * {N}_NL];
+  double Gam[{N}_NLEN * {N}_NL * {N}_NL], Y[{N}_NL * {N}_NZ1];
+  double prev[{N}_NX * {N}_NZ1], next[{N}_NX * {N}_NZ1], Pq[{N}_NZ1 * {N}_NZ1], row[{N}_NZ1];
+  /* the QP */
+  double h[{N}_NZ * {N}_NZ], g[{N}_NZ], a[{N}_NA1 * {N}_NZ], lba[{N}_NA1], uba[{N}_NA1];
   double lbx[{N}_NZ], ubx[{N}_NZ];
   double z[{N}_NZ], lam_x[{N}_NZ], lam_a[{N}_NA1];           /* last solution: warm start */
   double z_new[{N}_NZ], lam_x_new[{N}_NZ], lam_a_new[{N}_NA1];
@@ -301,7 +343,8 @@ typedef struct {{
   int solver_mem, solver_rc;
 }} {name}_memory;
 
-/* Set up one instance (checks out the QP solver's memory): cold start. Returns 0 on success. */
+/* Set up one instance (checks out a QP solver memory slot): cold start. Returns 0 on success, 1 when
+   all MAX_INSTANCES slots are taken. */
 int {name}_init({name}_memory* mem);
 /* Forget the plan and warm start (cold start). */
 void {name}_reset({name}_memory* mem);
@@ -313,7 +356,7 @@ void {name}_knots(const {name}_memory* mem, double* knots);
 int {name}_solver_return(const {name}_memory* mem);
 /* One step of the generated discrete model x_next = F(x, u) the controller predicts with. */
 int {name}_model_step({name}_memory* mem, const double* x, const double* u, double* x_next);
-/* Release the QP solver's memory. */
+/* Give the instance's QP solver memory slot back (safe to call twice); the slot is reused by a later init. */
 void {name}_free({name}_memory* mem);
 /* sizeof({name}_memory), and the sizes nx, nu, knots, horizon (for foreign-function loaders). */
 size_t {name}_memory_size(void);
@@ -326,146 +369,481 @@ void {name}_dims(int* nx, int* nu, int* knots, int* horizon);
 """
 
 
-def _wrapper(name: str, qp: str) -> str:
-    N = name.upper()
-    # qrqp returns 4 when it finds no search direction (an infeasible or degenerate QP).
-    infeasible = "rc == 4" if qp == "qrqp" else "0"
-    return f"""/* {name}.c — the control step around the CasADi-generated functions in {name}_casadi.c. */
+def _c_num(v: float) -> str:
+    v = float(v)
+    if np.isnan(v):
+        return "NAN"
+    if np.isinf(v):
+        return "INFINITY" if v > 0 else "-INFINITY"
+    return repr(v)
+
+
+def _c_array(v) -> str:
+    return "{" + ", ".join(_c_num(e) for e in np.asarray(v, dtype=float).ravel()) + "}"
+
+
+def _c_const(kind: str, name: str, values) -> str:
+    """A static const C array; empty arrays get one dummy entry (C has no zero-length arrays)."""
+    values = np.asarray(values).ravel()
+    if values.size == 0:
+        values = np.zeros(1)
+    body = ("{" + ", ".join(str(int(e)) for e in values) + "}" if kind == "int" else _c_array(values))
+    return f"static const {kind} {name}[{values.size}] = {body};"
+
+
+def _constants(tr: CondensedQP, linearization: str) -> str:
+    """The step's constants: input goal, shift, bounds, weights and the basis' pieces."""
+    ocp = tr.ocp
+    n, m, p = tr.n, tr.m, tr.p
+    phi = tr.phi
+    Sh = np.eye(tr.T, k=1)
+    Sh[-1, -1] = 1.0
+    M = ocp.parameterization._fit @ Sh @ phi  # knots of the shifted plan: M U (Parameterization.shift)
+    K = np.asarray(ocp.u_goal_gain, dtype=float)
+    bounded = np.flatnonzero(np.isfinite(ocp.x_min) | np.isfinite(ocp.x_max))
+    lengths = tr._lengths
+    pieces = tr._pieces
+    pa = [a for a, _, _, _ in pieces]
+    pl = [L for _, L, _, _ in pieces]
+    pc = [int(c) for _, _, c, _ in pieces]
+    # rhs rows n … n+m−1 hold φ_a ⊗ I and rows n+m … n+2m−1 hold Δ ⊗ I: read φ_a and Δ back per knot.
+    pphi = np.zeros((len(pieces), p))
+    pdel = np.zeros((len(pieces), p))
+    for i, (_, _, c, rhs) in enumerate(pieces):
+        for j in range(int(c) // m):
+            pphi[i, j] = rhs[n, 1 + j * m]
+            pdel[i, j] = rhs[n + m, 1 + j * m]
+    lines = [
+        f"#define DIAG_Q {int(tr.diagonal_Q)}",
+        f"#define HAS_K {int(np.any(K))}",
+        f"#define LIN_PLAN {int(linearization == 'plan')}",
+        f"#define NPIECE {len(pieces)}",
+        f"#define NB {bounded.size}",
+        _c_const("double", "U_GOAL", ocp.u_goal),
+        _c_const("double", "K_GOAL", K),
+        _c_const("double", "R_IN", ocp.R),
+        _c_const("double", "R_KNOTS", tr.R_knots),
+        _c_const("double", "PHI_SUM", tr._phi_sum),
+        _c_const("double", "PHI0", phi[0]),
+        _c_const("double", "W0", phi[0] @ M),
+        _c_const("double", "SHIFT", M),
+        _c_const("double", "LBX", np.tile(ocp.u_min, p)),
+        _c_const("double", "UBX", np.tile(ocp.u_max, p)),
+        _c_const("double", "QH", tr._qh),
+        _c_const("double", "DQT", tr._dQT),
+        _c_const("int", "LENGTHS", lengths),
+        _c_const("int", "PIECE_A", pa),
+        _c_const("int", "PIECE_L", pl),
+        _c_const("int", "PIECE_C", pc),
+        _c_const("int", "PIECE_LEN", [lengths.index(L) for L in pl]),
+        _c_const("double", "PIECE_PHI", pphi),
+        _c_const("double", "PIECE_DELTA", pdel),
+        _c_const("int", "XB_COMP", bounded),
+        _c_const("double", "XB_LO", ocp.x_min[bounded]),
+        _c_const("double", "XB_HI", ocp.x_max[bounded]),
+    ]
+    return "\n".join(lines)
+
+
+_WRAPPER = Template(r"""/* $name.c — one MPC step: the affine model (generated, ${name}_casadi.c), the condensed QP built by the
+ * loops below (ocpkit.transcription.CondensedQP.build in C), the QP solve (generated) and the first input. */
 #include <math.h>
-#include "{name}.h"
-#include "{name}_casadi.h"
+#include <string.h>
+#include "$name.h"
+#include "${name}_casadi.h"
 
-int {name}_init({name}_memory* m) {{
-  {name}_qp_solve_incref();
-  m->solver_mem = {name}_qp_solve_checkout();
+#define NX ${N}_NX
+#define NU ${N}_NU
+#define NP ${N}_KNOTS
+#define NZ ${N}_NZ
+#define NZ1 ${N}_NZ1
+#define NA ${N}_NA
+#define NL ${N}_NL
+#define LMAX ${N}_LMAX
+#define NLEN ${N}_NLEN
+typedef ${name}_memory mem_t;
+
+$constants
+
+int ${name}_init(mem_t* m) {
+  m->solver_mem = ${name}_qp_solve_checkout();
   if (m->solver_mem < 0) return 1;
-  {name}_reset(m);
+  ${name}_reset(m);
   return 0;
-}}
+}
 
-void {name}_reset({name}_memory* m) {{
+void ${name}_reset(mem_t* m) {
   int i;
-  for (i = 0; i < {N}_NZ; ++i) m->plan[i] = m->z[i] = m->lam_x[i] = 0;
-  for (i = 0; i < {N}_NA1; ++i) m->lam_a[i] = 0;
+  for (i = 0; i < NZ; ++i) m->plan[i] = m->z[i] = m->lam_x[i] = 0;
+  for (i = 0; i < ${N}_NA1; ++i) m->lam_a[i] = 0;
   m->has_plan = m->warm = 0;
   m->solver_rc = 0;
-}}
+}
 
-void {name}_free({name}_memory* m) {{
-  if (m->solver_mem >= 0) {name}_qp_solve_release(m->solver_mem);
-  {name}_qp_solve_decref();
+/* CasADi's decref frees every slot (even ones still on its free list) once the count reaches zero, so the
+   slots stay allocated for the library's lifetime and are reused by later inits. */
+void ${name}_free(mem_t* m) {
+  if (m->solver_mem >= 0) ${name}_qp_solve_release(m->solver_mem);
   m->solver_mem = -1;
-}}
+}
 
-static int all_finite(const double* v, int n) {{
+static int all_finite(const double* v, int n) {
   int i;
   for (i = 0; i < n; ++i) if (!isfinite(v[i])) return 0;
   return 1;
-}}
+}
 
-static int any_nan(const double* v, int n) {{
+static int any_nan(const double* v, int n) {
   int i;
   for (i = 0; i < n; ++i) if (isnan(v[i])) return 1;
   return 0;
-}}
+}
 
-static int any_above(const double* lo, const double* hi, int n) {{
+static int any_above(const double* lo, const double* hi, int n) {
   int i;
   for (i = 0; i < n; ++i) if (lo[i] > hi[i]) return 1;
   return 0;
-}}
+}
 
-/* Controller.fallback: previous plan shifted, clipped; the next step starts cold. */
-static int fallback({name}_memory* m, double* u_out, int status) {{
-  m->arg[0] = m->plan; m->arg[1] = &m->has_plan;
-  m->res[0] = m->z_new; m->res[1] = u_out;
-  if ({name}_fallback(m->arg, m->res, (casadi_int*) m->iw, m->w, 0)) return {N}_EXCEPTION;
-  {{ int i; for (i = 0; i < {N}_NZ; ++i) m->plan[i] = m->z_new[i]; }}
+static double clip(double v, double lo, double hi) { return v < lo ? lo : (v > hi ? hi : v); }
+
+/* u_g = u_goal + K goal: the input the cost pulls towards. */
+static void input_goal(const double* goal, double* ug) {
+  int i;
+  for (i = 0; i < NU; ++i) {
+    double s = U_GOAL[i];
+#if HAS_K
+    int j;
+    for (j = 0; j < NX; ++j) s += K_GOAL[i * NX + j] * goal[j];
+#endif
+    ug[i] = s;
+  }
+  (void) goal;
+}
+
+/* Controller.fallback: previous plan shifted (input goal at a cold start), clipped; the next step starts cold. */
+static int fallback(mem_t* m, double* u_out, int status) {
+  int j, l, i;
+  for (j = 0; j < NP; ++j)
+    for (i = 0; i < NU; ++i) {
+      double s = 0;
+      if (m->has_plan) for (l = 0; l < NP; ++l) s += SHIFT[j * NP + l] * m->plan[l * NU + i];
+      else s = m->ug[i];
+      m->z_new[j * NU + i] = clip(s, LBX[j * NU + i], UBX[j * NU + i]);
+    }
+  for (i = 0; i < NU; ++i) {
+    double s = 0;
+    for (j = 0; j < NP; ++j) s += PHI0[j] * m->z_new[j * NU + i];
+    u_out[i] = clip(s, LBX[i], UBX[i]);
+  }
+  for (i = 0; i < NZ; ++i) m->plan[i] = m->z_new[i];
   m->has_plan = 1;
   m->warm = 0;
   return status;
-}}
+}
 
-int {name}_step({name}_memory* m, const double* x, const double* goal, double* u_out, int* status) {{
-  int i, rc;
-  double viol;
-  /* QP data about (x, u_bar) */
-  m->arg[0] = x; m->arg[1] = goal; m->arg[2] = m->plan; m->arg[3] = &m->has_plan;
-  m->res[0] = m->h; m->res[1] = m->g; m->res[2] = m->a; m->res[3] = m->lba; m->res[4] = m->uba;
-  m->res[5] = m->lbx; m->res[6] = m->ubx;
+/* Λ_s = [A^s E_s F_s e_s] for s = 1 … LMAX (row-major NX x NL each, Lam[s-1]): E_s = Σ_{t<s} A^t B,
+   F_s = Σ_{t<s} E_t, e_s = Σ_{t<s} A^t w. Ad, Bd come column-major from CasADi. */
+static void lambdas(mem_t* m) {
+  const double *A = m->Ad, *B = m->Bd, *w = m->wd;
+  double *G = m->G, *Gn = m->Gn;
+  int s, i, j, k;
+  for (i = 0; i < NX; ++i) {
+    for (j = 0; j < NU; ++j) G[i * (NU + 1) + j] = B[i + NX * j];
+    G[i * (NU + 1) + NU] = w[i];
+  }
+  for (s = 0; s < LMAX; ++s) {
+    double* L = m->Lam + s * NX * NL;
+    const double* P = m->Lam + (s > 0 ? s - 1 : 0) * NX * NL;
+    if (s == 0) {
+      for (i = 0; i < NX; ++i) for (j = 0; j < NX; ++j) L[i * NL + j] = A[i + NX * j];
+    } else {
+      for (i = 0; i < NX; ++i)
+        for (j = 0; j < NX; ++j) {
+          double acc = 0;
+          const double* Aj = A + NX * j;
+          for (k = 0; k < NX; ++k) acc += P[i * NL + k] * Aj[k];
+          L[i * NL + j] = acc;
+        }
+      for (i = 0; i < NX * (NU + 1); ++i) Gn[i] = 0;
+      for (k = 0; k < NX; ++k) {
+        const double* Ak = A + NX * k;
+        const double* Gk = G + k * (NU + 1);
+        for (i = 0; i < NX; ++i) {
+          double aik = Ak[i];
+          for (j = 0; j <= NU; ++j) Gn[i * (NU + 1) + j] += aik * Gk[j];
+        }
+      }
+      for (i = 0; i < NX * (NU + 1); ++i) G[i] = Gn[i];
+    }
+    for (i = 0; i < NX; ++i) {
+      for (j = 0; j < NU; ++j) {
+        L[i * NL + NX + j] = (s ? P[i * NL + NX + j] : 0.0) + G[i * (NU + 1) + j];
+        L[i * NL + NX + NU + j] = s ? P[i * NL + NX + NU + j] + P[i * NL + NX + j] : 0.0;
+      }
+      L[i * NL + NL - 1] = (s ? P[i * NL + NL - 1] : 0.0) + G[i * (NU + 1) + NU];
+    }
+  }
+}
+
+/* Γ_L = Σ_{s≤L} W_sᵀW_s, W_s = Q^½ Λ_s with the goal folded into the last column, for each piece length L. */
+static void grams(mem_t* m, const double* xg) {
+  double *W = m->W, *acc = m->acc;
+  int s, i, j, k, li = 0;
+  for (i = 0; i < NL * NL; ++i) acc[i] = 0;
+  for (s = 0; s < LMAX && li < NLEN; ++s) {
+    const double* L = m->Lam + s * NX * NL;
+#if DIAG_Q
+    for (i = 0; i < NX; ++i) {
+      for (j = 0; j < NL; ++j) W[i * NL + j] = QH[i] * L[i * NL + j];
+      W[i * NL + NL - 1] -= QH[i] * xg[i];
+    }
+#else
+    for (i = 0; i < NX; ++i) {
+      double gx = 0;
+      for (j = 0; j < NL; ++j) W[i * NL + j] = 0;
+      for (k = 0; k < NX; ++k) {
+        double q = QH[i * NX + k];
+        for (j = 0; j < NL; ++j) W[i * NL + j] += q * L[k * NL + j];
+        gx += q * xg[k];
+      }
+      W[i * NL + NL - 1] -= gx;
+    }
+#endif
+    for (k = 0; k < NX; ++k) {
+      const double* wr = W + k * NL;
+      for (i = 0; i < NL; ++i) {
+        double wi = wr[i];
+        double* ai = acc + i * NL;
+        for (j = i; j < NL; ++j) ai[j] += wi * wr[j];
+      }
+    }
+    if (s + 1 == LENGTHS[li]) {
+      double* Gm = m->Gam + li * NL * NL;
+      for (i = 0; i < NL; ++i)
+        for (j = i; j < NL; ++j) Gm[i * NL + j] = Gm[j * NL + i] = acc[i * NL + j];
+      ++li;
+    }
+  }
+}
+
+/* out[0 … c] = lr R for a row lr (length NL) and the piece's R = [prev; φ_a ⊗ I; Δ ⊗ I; (1, 0 … 0)]. */
+static void row_times_r(const double* lr, const double* prev, const double* phi, const double* del, int c,
+                        double* out) {
+  int t, col;
+  out[0] = lr[NL - 1];
+  for (col = 1; col <= c; ++col) {
+    int j = (col - 1) / NU, u = (col - 1) % NU;
+    out[col] = phi[j] * lr[NX + u] + del[j] * lr[NX + NU + u];
+  }
+  for (t = 0; t < NX; ++t) {
+    double l = lr[t];
+    const double* pr = prev + t * NZ1;
+    for (col = 0; col <= c; ++col) out[col] += l * pr[col];
+  }
+}
+
+/* The condensed QP about the affine model in m (CondensedQP.build): h, g, state-bound rows a, lba, uba. */
+static void condense(mem_t* m, const double* x, const double* xg) {
+  double *prev = m->prev, *next = m->next, *Pq = m->Pq, *Y = m->Y;
+  int pc, i, j, k, r, col, s, b;
+  lambdas(m);
+  grams(m, xg);
+  for (i = 0; i < NX * NZ1; ++i) prev[i] = 0;
+  for (i = 0; i < NX; ++i) prev[i * NZ1] = x[i];
+  for (i = 0; i < NZ1 * NZ1; ++i) Pq[i] = 0;
+  for (pc = 0; pc < NPIECE; ++pc) {
+    const int a = PIECE_A[pc], Lp = PIECE_L[pc], c = PIECE_C[pc];
+    const double *phi = PIECE_PHI + pc * NP, *del = PIECE_DELTA + pc * NP;
+    const double* Gm = m->Gam + PIECE_LEN[pc] * NL * NL;
+    const double* Llast = m->Lam + (Lp - 1) * NX * NL;
+    /* Pq[:c+1, :c+1] += Rᵀ Γ R: Y = Γ R row by row (Γ symmetric), then R's columns against Y (upper half). */
+    for (k = 0; k < NL; ++k) row_times_r(Gm + k * NL, prev, phi, del, c, Y + k * NZ1);
+    for (r = 0; r <= c; ++r) {
+      double* pr = Pq + r * NZ1;
+      if (r == 0) {
+        for (col = 0; col <= c; ++col) pr[col] += Y[(NL - 1) * NZ1 + col];
+      } else {
+        int jr = (r - 1) / NU, ur = (r - 1) % NU;
+        double f = phi[jr], d = del[jr];
+        const double *y1 = Y + (NX + ur) * NZ1, *y2 = Y + (NX + NU + ur) * NZ1;
+        for (col = r; col <= c; ++col) pr[col] += f * y1[col] + d * y2[col];
+      }
+      for (k = 0; k < NX; ++k) {
+        double pk = prev[k * NZ1 + r];
+        const double* yk = Y + k * NZ1;
+        for (col = r; col <= c; ++col) pr[col] += pk * yk[col];
+      }
+    }
+#if NB > 0
+    /* state-bound rows of [v S] at x_{a+1} … x_{a+Lp}: row (k, b) at k*NB + b */
+    for (s = 0; s < Lp; ++s)
+      for (b = 0; b < NB; ++b) {
+        const int ri = (a + s) * NB + b;
+        row_times_r(m->Lam + s * NX * NL + XB_COMP[b] * NL, prev, phi, del, c, m->row);
+        for (col = 0; col < NZ; ++col) m->a[ri + NA * col] = col < c ? m->row[col + 1] : 0.0;
+        m->lba[ri] = XB_LO[b] - m->row[0];
+        m->uba[ri] = XB_HI[b] - m->row[0];
+      }
+#else
+    (void) a; (void) s; (void) b;
+#endif
+    /* [v S] at the piece's end: Λ_Lp R */
+    for (i = 0; i < NX; ++i) {
+      row_times_r(Llast + i * NL, prev, phi, del, c, next + i * NZ1);
+      for (col = c + 1; col < NZ1; ++col) next[i * NZ1 + col] = 0;
+    }
+    for (i = 0; i < NX * NZ1; ++i) prev[i] = next[i];
+  }
+  /* terminal weight: (Q_T − Q) on [v − x_goal, S] at x_T */
+  for (i = 0; i < NX; ++i) prev[i * NZ1] -= xg[i];
+#if DIAG_Q
+  for (i = 0; i < NX; ++i) {
+    const double* ei = prev + i * NZ1;
+    if (DQT[i] == 0) continue;
+    for (r = 0; r < NZ1; ++r) {
+      double f = DQT[i] * ei[r];
+      for (col = r; col < NZ1; ++col) Pq[r * NZ1 + col] += f * ei[col];
+    }
+  }
+#else
+  for (i = 0; i < NX; ++i) {
+    for (col = 0; col < NZ1; ++col) {
+      double s2 = 0;
+      for (k = 0; k < NX; ++k) s2 += DQT[i * NX + k] * prev[k * NZ1 + col];
+      next[i * NZ1 + col] = s2;
+    }
+  }
+  for (i = 0; i < NX; ++i)
+    for (r = 0; r < NZ1; ++r) {
+      double f = prev[i * NZ1 + r];
+      for (col = r; col < NZ1; ++col) Pq[r * NZ1 + col] += f * next[i * NZ1 + col];
+    }
+#endif
+  /* P = S'QS + φᵀφ ⊗ R (symmetric by construction), q = S'Q(v − x_goal) − φᵀ1 ⊗ R u_g */
+  for (i = 0; i < NZ; ++i)
+    for (j = i; j < NZ; ++j) {
+      double v = Pq[(1 + i) * NZ1 + 1 + j] + R_KNOTS[i * NZ + j];
+      m->h[i + NZ * j] = m->h[j + NZ * i] = v;
+    }
+  for (i = 0; i < NZ; ++i) {
+    const int jk = i / NU, u = i % NU;
+    double ru = 0;
+    for (k = 0; k < NU; ++k) ru += R_IN[u * NU + k] * m->ug[k];
+    m->g[i] = Pq[1 + i] - PHI_SUM[jk] * ru;
+    m->lbx[i] = LBX[i];
+    m->ubx[i] = UBX[i];
+  }
+}
+
+/* Largest bound violation of z (CasADi's qrqp can report success at an infeasible point). */
+static double violation(const mem_t* m, const double* z) {
+  double v = 0.0;
+  int r, j;
+  for (j = 0; j < NZ; ++j) {
+    if (LBX[j] - z[j] > v) v = LBX[j] - z[j];
+    if (z[j] - UBX[j] > v) v = z[j] - UBX[j];
+  }
+  for (r = 0; r < NA; ++r) {
+    double az = 0;
+    for (j = 0; j < NZ; ++j) az += m->a[r + NA * j] * z[j];
+    if (m->lba[r] - az > v) v = m->lba[r] - az;
+    if (az - m->uba[r] > v) v = az - m->uba[r];
+  }
+  return v;
+}
+
+int ${name}_step(mem_t* m, const double* x, const double* goal, double* u_out, int* status) {
+  int i, j, rc;
+  input_goal(goal, m->ug);
+  /* affine model about (x, u_bar) */
+  for (i = 0; i < NU; ++i) {
+    double s = m->ug[i];
+#if LIN_PLAN
+    if (m->has_plan) { s = 0; for (j = 0; j < NP; ++j) s += W0[j] * m->plan[j * NU + i]; }
+#endif
+    m->ubar[i] = s;
+  }
+  m->arg[0] = x; m->arg[1] = m->ubar;
+  m->res[0] = m->Ad; m->res[1] = m->Bd; m->res[2] = m->wd;
   m->solver_rc = 0;
-  if ({name}_qp_data(m->arg, m->res, (casadi_int*) m->iw, m->w, 0)) {{
-    *status = fallback(m, u_out, {N}_EXCEPTION);
+  if (${name}_affine(m->arg, m->res, (casadi_int*) m->iw, m->w, 0)) {
+    *status = fallback(m, u_out, ${N}_EXCEPTION);
     return *status;
-  }}
-  if (!all_finite(m->h, {N}_NNZ_H) || !all_finite(m->g, {N}_NZ) || !all_finite(m->a, {N}_NNZ_A)
-      || any_nan(m->lba, {N}_NA) || any_nan(m->uba, {N}_NA) || any_nan(m->lbx, {N}_NZ)
-      || any_nan(m->ubx, {N}_NZ)) {{
-    *status = fallback(m, u_out, {N}_NAN);
+  }
+  if (!all_finite(m->Ad, NX * NX) || !all_finite(m->Bd, NX * NU) || !all_finite(m->wd, NX)) {
+    *status = fallback(m, u_out, ${N}_NAN);
     return *status;
-  }}
-  if (any_above(m->lba, m->uba, {N}_NA) || any_above(m->lbx, m->ubx, {N}_NZ)) {{
-    *status = fallback(m, u_out, {N}_INFEASIBLE);
+  }
+  condense(m, x, goal);
+  if (!all_finite(m->h, NZ * NZ) || !all_finite(m->g, NZ) || !all_finite(m->a, NA * NZ)
+      || any_nan(m->lba, NA) || any_nan(m->uba, NA)) {
+    *status = fallback(m, u_out, ${N}_NAN);
     return *status;
-  }}
+  }
+  if (any_above(m->lba, m->uba, NA) || any_above(m->lbx, m->ubx, NZ)) {
+    *status = fallback(m, u_out, ${N}_INFEASIBLE);
+    return *status;
+  }
   /* QP solve, warm-started from the previous solution */
   m->arg[0] = m->h; m->arg[1] = m->g; m->arg[2] = m->a; m->arg[3] = m->lba; m->arg[4] = m->uba;
   m->arg[5] = m->lbx; m->arg[6] = m->ubx;
   m->arg[7] = m->warm ? m->z : 0; m->arg[8] = m->warm ? m->lam_x : 0; m->arg[9] = m->warm ? m->lam_a : 0;
   m->arg[10] = 0; m->arg[11] = 0;
   m->res[0] = m->z_new; m->res[1] = 0; m->res[2] = m->lam_a_new; m->res[3] = m->lam_x_new;
-  rc = {name}_qp_solve(m->arg, m->res, (casadi_int*) m->iw, m->w, m->solver_mem);
+  rc = ${name}_qp_solve(m->arg, m->res, (casadi_int*) m->iw, m->w, m->solver_mem);
   m->solver_rc = rc;
-  if (!all_finite(m->z_new, {N}_NZ)) {{
-    *status = fallback(m, u_out, {N}_NAN);
+  if (!all_finite(m->z_new, NZ)) {
+    *status = fallback(m, u_out, ${N}_NAN);
     return *status;
-  }}
-  if (rc) {{
-    *status = fallback(m, u_out, ({infeasible}) ? {N}_INFEASIBLE : {N}_LIMITED);
+  }
+  if (rc) {
+    *status = fallback(m, u_out, ($infeasible) ? ${N}_INFEASIBLE : ${N}_LIMITED);
     return *status;
-  }}
-  m->arg[0] = m->a; m->arg[1] = m->z_new; m->arg[2] = m->lba; m->arg[3] = m->uba; m->arg[4] = m->lbx;
-  m->arg[5] = m->ubx; m->res[0] = &viol;
-  if ({name}_violation(m->arg, m->res, (casadi_int*) m->iw, m->w, 0) || !(viol <= {N}_FEAS_TOL)) {{
-    m->solver_rc = {N}_VIOLATED;
-    *status = fallback(m, u_out, {N}_EXCEPTION);
+  }
+  if (!(violation(m, m->z_new) <= ${N}_FEAS_TOL)) {
+    m->solver_rc = ${N}_VIOLATED;
+    *status = fallback(m, u_out, ${N}_EXCEPTION);
     return *status;
-  }}
-  for (i = 0; i < {N}_NZ; ++i) {{ m->plan[i] = m->z[i] = m->z_new[i]; m->lam_x[i] = m->lam_x_new[i]; }}
-  for (i = 0; i < {N}_NA; ++i) m->lam_a[i] = m->lam_a_new[i];
+  }
+  for (i = 0; i < NZ; ++i) { m->plan[i] = m->z[i] = m->z_new[i]; m->lam_x[i] = m->lam_x_new[i]; }
+  for (i = 0; i < NA; ++i) m->lam_a[i] = m->lam_a_new[i];
   m->has_plan = m->warm = 1;
   /* first input */
-  m->arg[0] = m->plan; m->res[0] = u_out;
-  if ({name}_first_input(m->arg, m->res, (casadi_int*) m->iw, m->w, 0)) {{
-    *status = fallback(m, u_out, {N}_EXCEPTION);
-    return *status;
-  }}
-  *status = {N}_SUCCESS;
+  for (i = 0; i < NU; ++i) {
+    double s = 0;
+    for (j = 0; j < NP; ++j) s += PHI0[j] * m->plan[j * NU + i];
+    u_out[i] = s;
+  }
+  *status = ${N}_SUCCESS;
   return *status;
-}}
+}
 
-void {name}_knots(const {name}_memory* m, double* knots) {{
+void ${name}_knots(const mem_t* m, double* knots) {
   int i;
-  for (i = 0; i < {N}_NZ; ++i) knots[i] = m->plan[i];
-}}
+  for (i = 0; i < NZ; ++i) knots[i] = m->plan[i];
+}
 
-int {name}_solver_return(const {name}_memory* m) {{ return m->solver_rc; }}
+int ${name}_solver_return(const mem_t* m) { return m->solver_rc; }
 
-int {name}_model_step({name}_memory* m, const double* x, const double* u, double* x_next) {{
+int ${name}_model_step(mem_t* m, const double* x, const double* u, double* x_next) {
   m->arg[0] = x; m->arg[1] = u; m->res[0] = x_next;
-  return {name}_model(m->arg, m->res, (casadi_int*) m->iw, m->w, 0);
-}}
+  return ${name}_model(m->arg, m->res, (casadi_int*) m->iw, m->w, 0);
+}
 
-size_t {name}_memory_size(void) {{ return sizeof({name}_memory); }}
+size_t ${name}_memory_size(void) { return sizeof(mem_t); }
 
-void {name}_dims(int* nx, int* nu, int* knots, int* horizon) {{
-  *nx = {N}_NX; *nu = {N}_NU; *knots = {N}_KNOTS; *horizon = {N}_HORIZON;
-}}
-"""
+void ${name}_dims(int* nx, int* nu, int* knots, int* horizon) {
+  *nx = NX; *nu = NU; *knots = NP; *horizon = ${N}_HORIZON;
+}
+""")
 
 
-def _c_array(v) -> str:
-    return "{" + ", ".join(repr(float(e)) for e in np.asarray(v, dtype=float).ravel()) + "}"
+def _wrapper(name: str, qp: str, linearization: str, tr: CondensedQP) -> str:
+    # qrqp returns 4 when it finds no search direction (an infeasible or degenerate QP).
+    infeasible = "rc == 4" if qp == "qrqp" else "0"
+    return _WRAPPER.substitute(name=name, N=name.upper(), infeasible=infeasible,
+                               constants=_constants(tr, linearization))
 
 
 def _example(name: str, x0, goal, steps: int, dt: float) -> str:
@@ -518,27 +896,38 @@ int main(void) {{
 
 def _makefile(name: str, qp: str) -> str:
     casadi = f"CASADI_DIR ?= {_CASADI_DIR}\nCPPFLAGS += -I$(CASADI_DIR)/include\n" if _LIBS[qp] else ""
-    return f"""# Builds the exported MPC step: lib{name}.so (for ocpkit.export.ExportedMPC) and the example.
+    return f"""# Builds the exported MPC step: lib{name}.so (for ocpkit.export.ExportedMPC) and ./example.
+# Each source is compiled once (position-independent objects shared by the library and the example).
 CC ?= cc
-CFLAGS ?= -O2 -fPIC
+OPT ?= {OPT_FLAGS}
+CFLAGS ?= $(OPT) -fPIC
+# QP-solver memory slots per process: how many instances may be live at once.
+MAX_INSTANCES ?= {MAX_INSTANCES}
+CPPFLAGS += -DCASADI_MAX_NUM_THREADS=$(MAX_INSTANCES)
 {casadi}LDLIBS = {_LIBS[qp]} -lm
-SRC = {name}.c {name}_casadi.c
+OBJ = {name}.o {name}_casadi.o
 
 all: lib example
 
 lib: lib{name}.so
 
-lib{name}.so: $(SRC) {name}.h {name}_casadi.h
-\t$(CC) $(CPPFLAGS) $(CFLAGS) -shared -o $@ $(SRC) $(LDLIBS)
+lib{name}.so: $(OBJ)
+\t@echo "  LD  $@"
+\t@$(CC) $(CFLAGS) -shared -o $@ $(OBJ) $(LDLIBS)
 
-example: $(SRC) main.c {name}.h {name}_casadi.h
-\t$(CC) $(CPPFLAGS) $(CFLAGS) -o $@ main.c $(SRC) $(LDLIBS)
+example: main.o $(OBJ)
+\t@echo "  LD  $@"
+\t@$(CC) $(CFLAGS) -o $@ main.o $(OBJ) $(LDLIBS)
+
+%.o: %.c {name}.h {name}_casadi.h
+\t@echo "  CC  $<"
+\t@$(CC) $(CPPFLAGS) $(CFLAGS) -c -o $@ $<
 
 run: example
 \t./example
 
 clean:
-\trm -f lib{name}.so example
+\trm -f lib{name}.so example *.o
 
 .PHONY: all lib run clean
 """
@@ -567,14 +956,18 @@ plan advanced one step, clipped to the input bounds, and the next step starts co
 - `{n}.h` — the API (documented in the header): `{n}_init`, `{n}_step`, `{n}_reset`, `{n}_knots`,
   `{n}_model_step`, `{n}_free`; statuses `{n.upper()}_SUCCESS`, `_LIMITED`, `_INFEASIBLE`, `_NAN`,
   `_EXCEPTION`.
-- `{n}.c` — the step around the generated functions; `{n}_casadi.c/.h` — CasADi-generated QP data,
-  QP solver, first input, fallback and discrete model.
+- `{n}.c` — the step: the condensed QP built by loops over the horizon's pieces (Λ_s, Γ_L of
+  `ocpkit.transcription.CondensedQP`), checks, fallback; `{n}_casadi.c/.h` — CasADi-generated continuous
+  dynamics and Jacobians (once) with RK4 sensitivities, the discrete model and the QP solver.
 - `main.c` — a closed loop against the generated discrete model; `Makefile`.
 
 ## Build
 
-    make          # lib{n}.so and ./example
+    make          # lib{n}.so and ./example (each source compiled once, `OPT ?= {OPT_FLAGS}`)
     make run      # runs the closed loop, prints median step time and the final state
+
+Several instances may run in one process: each `{n}_memory` is one controller (`{n}_init` ...
+`{n}_free`); at most `MAX_INSTANCES` (Makefile, default {MAX_INSTANCES}) are live at once.
 
 Dependencies: {deps}
 
@@ -590,7 +983,9 @@ class ExportedMPC(Controller):
     """The compiled exported step (``lib<name>.so`` in ``out_dir``) as a Controller, through ctypes.
 
     Statuses map one to one onto ocpkit's; on failure the library already returns the fallback input and
-    plan, which equal :meth:`Controller.fallback`. ``times["solve"]`` is the whole C step.
+    plan, which equal :meth:`Controller.fallback`. ``times["solve"]`` is the whole C step. Each instance owns
+    its C memory (several may step in one process, up to the library's ``MAX_INSTANCES``); :meth:`close`, or
+    leaving a ``with`` block, gives its QP-solver slot back.
     """
 
     def __init__(self, ocp: OCP, out_dir, *, name: str = "mpc", raise_on_fail: bool = False):
@@ -619,8 +1014,12 @@ class ExportedMPC(Controller):
         self._model.argtypes = [ctypes.c_void_p, dbl, dbl, dbl]
         self._rc = getattr(lib, f"{name}_solver_return")
         self._lib, self.name, self.out_dir = lib, name, Path(out_dir)
+        self._free = getattr(lib, f"{name}_free")
+        self._open = False
         if getattr(lib, f"{name}_init")(self._mem):
-            raise RuntimeError(f"{name}_init failed: no QP solver memory left in {lib_path}")
+            raise RuntimeError(f"{name}_init failed: all QP solver memory slots of {lib_path} are in use "
+                               f"(close() other instances, or rebuild with make MAX_INSTANCES=N)")
+        self._open = True
         self._status = ctypes.c_int()
         self._status_ptr = ctypes.addressof(self._status)
         super().__init__(ocp, raise_on_fail=raise_on_fail)
@@ -628,20 +1027,49 @@ class ExportedMPC(Controller):
     def __repr__(self):
         return f"ExportedMPC({str(self.out_dir / ('lib' + self.name + '.so'))!r}, {self.ocp!r})"
 
+    def close(self) -> None:
+        """Give the instance's C memory back (its QP-solver slot); further steps raise. Safe to call twice."""
+        if getattr(self, "_open", False):
+            self._free(self._mem)
+            self._open = False
+
+    @property
+    def closed(self) -> bool:
+        return not self._open
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def __del__(self):
+        try:
+            self.close()
+        except Exception:  # interpreter shutdown: the library may already be gone
+            pass
+
+    def _check_open(self):
+        if not self._open:
+            raise RuntimeError(f"{self!r} is closed")
+
     def reset(self) -> None:
         super().reset()
-        getattr(self._lib, f"{self.name}_reset")(self._mem)
+        if getattr(self, "_open", False):
+            getattr(self._lib, f"{self.name}_reset")(self._mem)
 
     def model_step(self, x, u) -> np.ndarray:
         """x⁺ from the library's generated discrete model (the model the controller predicts with)."""
         x = self.ocp.check_state(x, "x")
         u = array(u, "u", (self.ocp.nu,))
+        self._check_open()
         out = np.empty(self.ocp.nx)
         if self._model(self._mem, x, u, out):
             raise RuntimeError("generated discrete model failed")
         return out
 
     def _solve(self, x: np.ndarray, goal: np.ndarray) -> Solution:
+        self._check_open()
         u = np.empty(self.ocp.nu)
         knots = np.empty(self.ocp.knots * self.ocp.nu)
         x, goal = np.ascontiguousarray(x), np.ascontiguousarray(goal)
@@ -658,17 +1086,19 @@ class ExportedMPC(Controller):
 
 
 def export_problem(problem_name: str, form: str = "condensed", knots: int | None = 5, horizon: int | None = 100,
-                   qp: str = "daqp", out_dir="export", *, seed: int = 0, steps: int = 100) -> Export:
+                   qp: str = "daqp", out_dir="export", *, seed: int = 0, steps: int = 100,
+                   force: bool = False) -> Export:
     """Export a problem by spec (``ocpkit.problems.make``: a registered name, ``module:Name`` or ``file.py:Name``)
-    with the example closed loop from ``sample(seed)``."""
+    with the example closed loop from ``sample(seed)``; ``out_dir`` absent or empty unless ``force``."""
     from ocpkit.problems import make
 
     problem = make(problem_name)
     ocp = problem.ocp(knots=knots, horizon=horizon)
     if getattr(ocp, "goal_input", None) is not None:
         raise ValueError(f"{problem_name}: its input goal depends on the goal nonlinearly ({ocp.goal_input.name()}); "
-                         "the exported C step supports a constant input goal only (for a URDF robot: "
-                         "gravity_compensation=False)")
+                         "the exported C step supports a constant input goal only, or one linear in the goal "
+                         "(u_goal + K goal) (for a URDF robot: gravity_compensation=False)")
+    _check_out_dir(Path(out_dir), force)  # before sampling and code generation
     x0, goal = problem.sample(seed)
-    return export(ocp, out_dir, form=form, qp=qp, x0=x0, goal=goal, steps=steps)
+    return export(ocp, out_dir, form=form, qp=qp, x0=x0, goal=goal, steps=steps, force=force)
 
