@@ -256,12 +256,12 @@ class CondensedQP(_Transcription):
         # Simple bounds on z (ProxQP's box): the knots' input bounds, then s ≥ 0.
         self._box = np.r_[self.u_rows, self.nz + np.arange(self.ns)]
         self._box_C = np.eye(self.nz + self.ns)[self._box]
-        # For per-stage models: the knots each input u_k mixes (j, φ_kj) and the z columns in use up to x_{k+1}.
+        # For per-stage models: the z columns in use up to x_{k+1} and the basis' nonzeros (k, j, φ_kj).
         used = np.abs(self.phi) > 0
-        self._stage_knots = [[(int(j), float(self.phi[k, j])) for j in np.flatnonzero(used[k])]
-                             for k in range(self.T)]
         last = np.maximum.accumulate(np.where(used.any(axis=1), p - 1 - np.argmax(used[:, ::-1], axis=1), -1))
         self._stage_cols = m * (last + 1)
+        ks, js = np.nonzero(used)
+        self._stage_nz = (ks, js, self.phi[ks, js])
         self._SV = None  # [v S] by stage (T, n, 1 + p·m) of the last per-stage (LTV) prediction
 
     def prediction(self, Ad, Bd, wd, x0):
@@ -281,17 +281,17 @@ class CondensedQP(_Transcription):
 
         Row block k only has nonzeros in the columns of the knots that inputs u_0 … u_k shape (S is
         block-lower-triangular in knot columns), so each stage multiplies A_k by that prefix only."""
-        n, m = self.n, self.m
-        SV = np.zeros((self.T, n, 1 + self.nz))
-        prev, c = np.zeros((n, 1)), 0
-        prev[:, 0] = x0
-        for k in range(self.T):
-            cur = SV[k]
-            cur[:, :c + 1] = Ad[k] @ prev[:, :c + 1]
-            cur[:, 0] += wd[k]
-            for j, f in self._stage_knots[k]:
-                cur[:, 1 + m * j:1 + m * (j + 1)] += f * Bd[k]
-            prev, c = cur, self._stage_cols[k]
+        n, m, T, p = self.n, self.m, self.T, self.p
+        # SV starts as each stage's own term [w_k, B_k (φ_k ⊗ I)], written for all stages in one scatter.
+        SV = np.zeros((T, n, 1 + self.nz))
+        SV[:, :, 0] = wd
+        ks, js, fs = self._stage_nz
+        SV[:, :, 1:].reshape(T, n, p, m)[ks, :, js, :] = fs[:, None, None] * Bd[ks]
+        c = 0
+        SV[0, :, 0] += Ad[0] @ x0
+        for k in range(1, T):  # then the recursion adds A_k [v S]_k on the columns in use
+            c = self._stage_cols[k - 1]
+            SV[k, :, :c + 1] += Ad[k] @ SV[k - 1, :, :c + 1]
         self._SV = SV
 
     def _predict(self, Ad, Bd, wd, x0):

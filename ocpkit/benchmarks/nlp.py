@@ -1,77 +1,132 @@
-"""Solve time of the IPOPT baseline (NonlinearMPC) per control step, traditional vs knots, beside LinearMPC.
+"""Nonlinear MPC side by side: IPOPT, fatrop, real-time iteration (1 and 3 SQP steps) and LinearMPC (LTI, LTV).
 
-For each problem, parameterization and seeded trial, NonlinearMPC runs the closed loop on the plant; LinearMPC
-is then timed on the very same sequence of states (each warm-started from its own previous step), so both
-columns answer the same problems. Times are the per-step totals (model + build + solve) in milliseconds.
+For each problem and seeded start/goal every controller runs its own closed loop on the plant (the same
+starts, goals and duration); the table gives each one's median step time (model + build + solve, ms), its
+closed-loop actual cost (ocpkit.metrics.actual_cost) as a ratio to IPOPT's (converged to its default tol
+1e-8), its fallbacks and its final error max |x_T − x_goal|. All controllers use the same OCP (knots,
+horizon); IPOPT is the reference solution of the nonlinear problem, so a ratio below 1 is luck of the
+closed loop, not a better optimizer.
+
+A problem named "cartpole" (the README's user-declared cart-pole, x = [p, θ, ṗ, θ̇], θ = 0 upright) is run
+as a swing-up: from hanging, θ = π, to the sampled goal. By default the bench reads that cart-pole from the
+README's "Declare your own problem" section when the package runs from its source tree.
 """
 from __future__ import annotations
 
+import re
 import time
+from pathlib import Path
 
 import numpy as np
 
 from ocpkit import problems as registry
 from ocpkit._checks import integer
+from ocpkit.metrics import actual_cost
 from ocpkit.simulate import simulate
 
-PAPER_PROBLEMS = tuple(f"nlink:{n}" for n in range(1, 8)) + ("puma560",)
-FALLBACK_PROBLEMS = ("pendulum:linear", "pendulum")
+ROBOTS = ("nlink:3", "nlink:7", "puma560", "baxter")
+CONTROLLERS = ("ipopt", "fatrop", "rti1", "rti3", "lti", "ltv")
+
+
+def readme_cartpole() -> str | None:
+    """The README's cart-pole as a problem spec (a file written to the cache), or None outside the source tree."""
+    from ocpkit.cache import cache_dir
+
+    readme = Path(__file__).resolve().parents[2] / "README.md"
+    if not readme.exists():
+        return None
+    text = readme.read_text()
+    if "## Declare your own problem" not in text:
+        return None
+    match = re.search(r"```python\n(.*?)```", text[text.index("## Declare your own problem"):], re.S)
+    if match is None:
+        return None
+    path = cache_dir("bench_nlp") / "cartpole.py"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if not path.exists() or path.read_text() != match.group(1):
+        path.write_text(match.group(1))
+    return f"{path}:CartPole"
 
 
 def default_problems() -> list[str]:
-    """nlink 1…7 and the Puma where registered; the pendulums when none of them is."""
     known = set(registry.names())
-    chosen = [name for name in PAPER_PROBLEMS if name.partition(":")[0] in known]
-    return chosen or list(FALLBACK_PROBLEMS)
+    chosen = [name for name in ROBOTS if name.partition(":")[0] in known]
+    cartpole = readme_cartpole()
+    return chosen + ([cartpole] if cartpole else [])
 
 
-def bench_nlp(problems=None, knots=(None, 3, 5), samples: int = 3, steps: int = 20, *, method: str = "ipopt",
-              echo: bool = True) -> list[dict]:
-    """Median per-step solve time of NonlinearMPC and LinearMPC on the same states; one row per problem × knots.
-
-    ``knots`` None is traditional MPC (p = T). ``samples`` seeded start/goal pairs (``Problem.sample``), each
-    run for ``steps`` control steps. Prints a table when ``echo``; returns the rows as dicts.
-    """
+def controller(kind: str, ocp):
+    """One of CONTROLLERS for ``ocp``."""
     from ocpkit.solvers.nlp import NonlinearMPC
     from ocpkit.solvers.qp import LinearMPC
 
+    if kind == "ipopt":
+        return NonlinearMPC(ocp)
+    if kind == "fatrop":
+        return NonlinearMPC(ocp, method="fatrop")
+    if kind.startswith("rti"):
+        return NonlinearMPC(ocp, method="rti", iterations=int(kind[3:]))
+    return LinearMPC(ocp, linearization="goal" if kind == "lti" else "trajectory")
+
+
+def bench_nlp(problems=None, knots: int | None = 5, horizon: int | None = 50, samples: int = 2, steps: int = 50, *,
+              controllers=CONTROLLERS, compiled: bool = False, echo: bool = True) -> list[dict]:
+    """Median step time (ms), closed-loop actual-cost ratio to IPOPT, fallbacks and final error of every
+    controller in CONTROLLERS, one row per problem × controller.
+
+    ``knots`` None is traditional MPC (p = T); ``horizon`` None is the problem's own. The cart-pole swing-up
+    keeps its own horizon (1 s, 100 steps: half of it cannot see the pole come up) with 10 knots, and runs
+    for the problem's duration plus one second. ``samples`` seeded start/goal pairs run ``steps`` control steps.
+    """
     if isinstance(problems, str):
         raise TypeError(f"problems must be a list of problem names, got the string {problems!r}")
     names = default_problems() if problems is None else list(problems)
-    samples = integer(samples, "samples", 1)
-    steps = integer(steps, "steps", 1)
-    knots = tuple(knots)
-    if not knots:
-        raise ValueError("knots must name at least one parameterization (None for traditional MPC)")
+    samples, steps = integer(samples, "samples", 1), integer(steps, "steps", 1)
+    controllers = tuple(controllers)
+    unknown = [c for c in controllers if c not in CONTROLLERS]
+    if unknown or "ipopt" not in controllers:
+        raise ValueError(f"controllers must include 'ipopt' (the reference) and be among {CONTROLLERS}, got {controllers}")
     rows = []
     if echo:
-        print(f"{'problem':<16}{'knots':>6}{'build s':>9}{'ipopt ms':>10}{'iters':>7}{'fallbk':>7}"
-              f"{'qp ms':>9}{'ratio':>8}")
+        print(f"{'problem':<22}{'knots':>6}{'T':>5} {'controller':<8}{'build s':>9}{'step ms':>9}{'p90 ms':>8}"
+              f"{'cost/ipopt':>11}{'fallbk':>7}{'final err':>10}", flush=True)
     for name in names:
         prob = registry.make(name)
-        for p in knots:
-            ocp = prob.ocp(knots=p)
+        swing = prob.name == "cartpole"
+        p, T = (10, None) if swing else (knots, horizon)
+        ocp = prob.ocp(knots=p, horizon=T, compiled=compiled) if compiled else prob.ocp(knots=p, horizon=T)
+        duration = (prob.duration + 1.0) if swing else steps * ocp.dt
+        cases = []
+        for seed in range(samples):
+            x0, goal = prob.sample(seed)
+            if swing:
+                x0 = np.r_[x0[0], np.pi + x0[1], x0[2:]]
+            cases.append((x0, goal))
+        results = {}
+        for kind in controllers:
             t0 = time.perf_counter()
-            nl = NonlinearMPC(ocp, method=method)
+            ctrl = controller(kind, ocp)
             build = time.perf_counter() - t0
-            lin = LinearMPC(ocp)
-            t_nl, t_lin, iters, fallbacks = [], [], [], 0
-            for seed in range(samples):
-                x0, goal = prob.sample(seed)
-                traj = simulate(prob.plant(), nl, x0, goal, steps * ocp.dt)
-                t_nl += list(traj.times())
-                iters += [s.iterations for s in traj.solutions]
+            times, cost, fallbacks, errors = [], 0.0, 0, []
+            for x0, goal in cases:
+                ctrl.reset()
+                traj = simulate(prob.plant(), ctrl, x0, goal, duration)
+                times += list(traj.times())
+                cost += actual_cost(traj, ocp)
                 fallbacks += traj.fallbacks
-                lin.reset()
-                t_lin += [lin.solve(x, goal).times["total"] for x in traj.x[:-1]]
-            row = {"problem": name, "knots": "T" if p is None else p, "build_s": build,
-                   "nlp_ms": 1e3 * float(np.median(t_nl)), "nlp_iterations": float(np.median(iters)),
-                   "nlp_fallbacks": fallbacks, "qp_ms": 1e3 * float(np.median(t_lin)),
-                   "steps": len(t_nl)}
-            row["ratio"] = row["nlp_ms"] / row["qp_ms"]
+                errors.append(float(np.abs(traj.x[-1] - goal).max()))
+            results[kind] = {"problem": prob.name if swing else name, "knots": "T" if ocp.knots == ocp.horizon
+                             else ocp.knots, "horizon": ocp.horizon, "controller": kind, "build_s": build,
+                             "step_ms": 1e3 * float(np.median(times)), "p90_ms": 1e3 * float(np.percentile(times, 90)),
+                             "cost": cost, "fallbacks": fallbacks, "final_error": float(np.median(errors)),
+                             "swing_up": swing, "steps": len(times)}
+        for kind in controllers:
+            row = results[kind]
+            row["cost_ratio"] = row["cost"] / results["ipopt"]["cost"]
             rows.append(row)
             if echo:
-                print(f"{name:<16}{row['knots']!s:>6}{build:>9.2f}{row['nlp_ms']:>10.2f}"
-                      f"{row['nlp_iterations']:>7.0f}{fallbacks:>7d}{row['qp_ms']:>9.2f}{row['ratio']:>8.1f}",
-                      flush=True)
+                label = "cartpole swing-up" if swing else name
+                print(f"{label:<22}{row['knots']!s:>6}{row['horizon']:>5} {kind:<8}{row['build_s']:>9.2f}"
+                      f"{row['step_ms']:>9.2f}{row['p90_ms']:>8.2f}{row['cost_ratio']:>11.4f}{row['fallbacks']:>7d}"
+                      f"{row['final_error']:>10.4f}", flush=True)
     return rows
