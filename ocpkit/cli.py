@@ -7,7 +7,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -68,6 +70,17 @@ def _add_study_args(p, size=True):
     p.add_argument("--out", default="results/reproduce", help="results folder (store, figures, report)")
     p.add_argument("--workers", type=int, default=None, help="local worker processes (default: CPU count)")
     p.add_argument("--scheduler", default=None, help="Dask scheduler address tcp://HOST:PORT")
+    p.add_argument("--trial-timeout", type=float, default=None, metavar="SECONDS",
+                   help="stop a trial that runs longer and store it as failed (default: no limit)")
+    p.add_argument("--retry-failed", action="store_true", help="run the stored failed trials again")
+    stale = p.add_mutually_exclusive_group()
+    stale.add_argument("--reuse-stale", dest="stale", action="store_const", const="reuse",
+                       help="keep stored trials computed by another ocpkit version or other study code")
+    stale.add_argument("--rerun-stale", dest="stale", action="store_const", const="rerun",
+                       help="compute such trials again (default: refuse to resume over them)")
+    p.set_defaults(stale="refuse")
+    p.add_argument("--export", default=None, metavar="FILE",
+                   help="also write the results database as one self-contained SQLite file")
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -135,6 +148,7 @@ def _solver_options(args) -> dict:
 def _controller(args) -> tuple:
     options = _solver_options(args) if args.solver in _SOLVER_OPTIONS else {}
     problem = problems.make(args.problem)
+    _check_size(problem, args)
     ocp = problem.ocp(knots=args.knots, horizon=args.horizon, error=args.error,
                       parameterization=args.parameterization, compiled=args.compiled)
     return problem, ocp, solvers.make(args.solver, ocp, **options)
@@ -176,6 +190,7 @@ def _time_summary(traj) -> dict:
 def _simulate(args):
     from ocpkit import plots
 
+    _check_output_file(args.out, "--out")
     problem, ocp, ctrl = _controller(args)
     traj, cost = _run_closed_loop(problem, ctrl, args.seed, args.duration)
     fig = plots.closed_loop({repr(ctrl): traj}, args.out, title=f"{args.problem}, seed {args.seed}",
@@ -197,6 +212,7 @@ def _demo(args):
     from ocpkit import plots
     from ocpkit.solvers.qp import LinearMPC
 
+    _check_output_folder(args.out, "--out")
     problem = problems.make(args.problem)
     x0, goal = problem.sample(args.seed)
     configs = {}
@@ -227,20 +243,45 @@ def _demo(args):
     return 0
 
 
+def _study_options(args) -> dict:
+    """The study runner's options from the command line, with the output paths and the scheduler checked first."""
+    from ocpkit.study import check_scheduler
+
+    _check_output_folder(args.out, "--out")
+    if args.export is not None:
+        _check_output_file(args.export, "--export")
+    if args.trial_timeout is not None and not args.trial_timeout > 0:
+        raise ValueError(f"--trial-timeout must be a positive number of seconds, got {args.trial_timeout}")
+    if args.scheduler is not None:
+        check_scheduler(args.scheduler)
+    return {"trial_timeout": args.trial_timeout, "retry_failed": args.retry_failed, "stale": args.stale}
+
+
+def _export_store(args) -> None:
+    if args.export is not None:
+        from ocpkit.store import Store
+
+        with Store(args.out) as store:
+            print(f"results database: {store.export(args.export)}")
+
+
 def _study(args):
     from ocpkit.studies.reproduce import run_study
 
+    options = _study_options(args)
     if args.problem:
-        section = _study_problems(args)
+        section = _study_problems(args, options)
     else:
-        section = run_study(args.name, args.size, args.out, workers=args.workers, scheduler=args.scheduler)
+        section = run_study(args.name, args.size, args.out, workers=args.workers, scheduler=args.scheduler,
+                            **options)
     path = Path(args.out) / f"{args.name}.md"
     path.write_text(section)
     print(section + f"\nreport: {path}")
+    _export_store(args)
     return 0
 
 
-def _study_problems(args) -> str:
+def _study_problems(args, options) -> str:
     """A closed-loop study on the problems of --problem: its table (CSV), figures and report section."""
     from ocpkit import study as study_runner
     from ocpkit.studies import get
@@ -250,24 +291,21 @@ def _study_problems(args) -> str:
     module = get(args.name)
     out = Path(args.out)
     df = study_runner.run(module.study(args.size, problems=args.problem), out, workers=args.workers,
-                          scheduler=args.scheduler)
+                          scheduler=args.scheduler, **options)
     df.to_csv(out / f"{args.name}.csv", index=False)
     failed = df[df["status"] == "failed"]
     if len(failed) == len(df):
         raise ValueError(f"every trial of {args.name} failed; first error: {failed['error'].iloc[0].splitlines()[0]}")
-    section = module.report(df, out)
-    if len(failed):
-        errors = failed["error"].value_counts().head(5)
-        section += f"\n{len(failed)} of {len(df)} trials failed; most common errors:\n\n" + "\n".join(
-            f"- {count}× `{err.splitlines()[0][:200]}`" for err, count in errors.items()) + "\n"
-    return section
+    return module.report(df, out) + study_runner.failure_summary(df)
 
 
 def _reproduce(args):
     from ocpkit.studies.reproduce import reproduce
 
-    report = reproduce(args.size, args.out, workers=args.workers, scheduler=args.scheduler)
+    options = _study_options(args)
+    report = reproduce(args.size, args.out, workers=args.workers, scheduler=args.scheduler, **options)
     print(f"report: {report}")
+    _export_store(args)
     return 0
 
 
@@ -331,13 +369,105 @@ def _round_trip(args, exported, steps: int = 20):
     return du, steps, failures
 
 
+# Output paths and sizes are checked before any work starts, so a run is not lost to a bad path at its end.
+
+def _check_output_folder(path, option: str) -> None:
+    """``path`` is (or can be created as) a folder this process can write into."""
+    folder = Path(path)
+    if folder.exists() and not folder.is_dir():
+        raise ValueError(f"{option} {path}: is a file; give a folder")
+    existing = next((p for p in (folder, *folder.parents) if p.exists()), None)
+    if existing is not None and not existing.is_dir():
+        raise ValueError(f"{option} {path}: {existing} is a file, so the folder cannot be created")
+    _probe(folder if folder.exists() else existing, option, path, folder.exists())
+
+
+def _check_output_file(path, option: str) -> None:
+    """``path`` names a file this process can create or replace."""
+    target = Path(path)
+    if target.is_dir():
+        raise ValueError(f"{option} {path}: is a folder; give a file name")
+    if target.exists() and not os.access(target, os.W_OK):
+        raise ValueError(f"{option} {path}: the file cannot be written; choose another path")
+    existing = next((p for p in target.parents if p.exists()), None)
+    if existing is not None and not existing.is_dir():
+        raise ValueError(f"{option} {path}: {existing} is a file, so no file can be created below it")
+    _probe(existing, option, path, False)
+
+
+def _probe(folder, option, path, is_target) -> None:
+    """Create and delete a scratch file in ``folder`` (file modes alone do not tell: root, /proc, read-only mounts)."""
+    folder = Path(folder) if folder is not None else Path(".")
+    try:
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=".ocpkit-probe-"):
+            pass
+    except OSError as exc:
+        where = "" if is_target else f" (nothing can be created in {folder})"
+        raise ValueError(f"{option} {path}: not writable{where}: {exc.strerror or exc}; choose another path") from None
+
+
+def _available_memory() -> float | None:
+    """Bytes of memory available now (Linux /proc/meminfo), or None where unknown."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return 1024.0 * int(line.split()[1])
+    except OSError:
+        return None
+    return None
+
+
+def _check_size(problem, args) -> None:
+    """Refuse an MPC problem whose dense matrices cannot fit in memory; warn when one solve will take long.
+
+    Dense storage (8-byte floats): the T×p basis, and for the condensed QP the (T·nx)×(p·nu) prediction matrix
+    and the (p·nu)² Hessian. Time (condensed, the default): about 2 ns × ((p·nu)³ + T·nx·(p·nu)²), fitted to
+    pendulum solves at T = 250…3000 here (one-off build included), so an order of magnitude only."""
+    T = problem.horizon if args.horizon is None else args.horizon
+    if T < 1:
+        return  # the OCP's own check names the bad value
+    model = problem.model()
+    nx, nu = model.nx, model.nu
+    p = T if args.knots is None or args.parameterization == "identity" else max(1, args.knots)
+    condensed = args.solver == "qp" and (args.form or "condensed") == "condensed"
+    entries = T * p + (T * nx * p * nu + (p * nu) ** 2 if condensed or args.solver != "qp" else 0)
+    need = 8.0 * entries
+    have = _available_memory()
+    size = f"horizon T = {T}, p = {p} knots, nx = {nx}, nu = {nu}"
+    if have is not None and need > 0.5 * have:
+        raise ValueError(f"{size} needs about {_gib(need)} for its dense matrices, more than half the "
+                         f"{_gib(have)} available: shorten --horizon or give --knots")
+    if condensed:
+        seconds = 2e-9 * ((p * nu) ** 3 + T * nx * (p * nu) ** 2)
+        if seconds > 30:
+            print(f"ocpkit: warning: {size}: one solve may take around {seconds:.0f} s "
+                  f"(memory about {_gib(need)}); --knots makes it smaller", file=sys.stderr)
+
+
+def _gib(n: float) -> str:
+    return f"{n / 2**30:.1f} GiB" if n >= 2**30 else f"{n / 2**20:.0f} MiB"
+
+
+def _one_line_error(exc: BaseException) -> bool:
+    """Errors of the user's input or environment, shown as one line (anything else keeps its traceback)."""
+    if isinstance(exc, (ValueError, TypeError, OSError)):
+        return True
+    kinds = [getattr(sys.modules.get(module), name, None) for module, name in (
+        ("ocpkit.store", "StoreError"), ("ocpkit.kernels.runtime", "ArchUnavailable"),
+        ("ocpkit.compiled", "CompileError"))]
+    return any(kind is not None and isinstance(exc, kind) for kind in kinds)
+
+
 def main(argv=None) -> int:
     args = _parser().parse_args(argv)
     try:
         commands = {"solve": _solve, "simulate": _simulate, "demo": _demo, "study": _study,
                     "reproduce": _reproduce, "export": _export, "bench": _bench}
         return commands[args.command](args)
-    except (ValueError, TypeError) as exc:
+    except Exception as exc:
+        if not _one_line_error(exc):
+            raise
         print(f"ocpkit: error: {exc}", file=sys.stderr)
         return 2
 
