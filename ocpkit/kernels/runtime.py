@@ -21,6 +21,10 @@ from .._checks import choice
 from . import CPU_THREADS
 
 ARCHS = ("auto", "cpu", "cuda")
+
+
+class ArchUnavailable(RuntimeError):
+    """The asked-for arch does not exist on this machine (``cuda`` without a GPU)."""
 PRECISIONS = ("float64", "float32")
 
 
@@ -29,10 +33,16 @@ def init(arch: str = "auto") -> str:
 
     ``arch="auto"`` takes CUDA when Taichi finds it, else the CPU. Asking for an arch other
     than the one already running raises ``RuntimeError``; asking for "cuda" where there is
-    none raises ``RuntimeError`` too (the process is then left on the CPU).
+    none raises :class:`ArchUnavailable` (a ``RuntimeError``) saying so, before Taichi starts
+    when no CUDA driver is installed.
     """
     choice(arch, ARCHS, "arch")
-    if impl.get_runtime().prog is None:
+    started_before = impl.get_runtime().prog is not None
+    if not started_before:
+        if arch == "cuda" and not _cuda_driver_present():
+            raise ArchUnavailable("arch 'cuda' needs an NVIDIA GPU and its CUDA driver, and this machine has none "
+                                  "(libcuda.so.1 does not load): use --arch cpu, or --arch auto to take a GPU "
+                                  "only where there is one")
         use_cuda = arch == "cuda" or (arch == "auto" and _cuda_driver_present())
         # ti.init prints "[Taichi] Starting on arch=…" to stdout: keep stdout for results (--json).
         with contextlib.redirect_stdout(sys.stderr):
@@ -40,6 +50,9 @@ def init(arch: str = "auto") -> str:
             ti.init(arch=ti.cuda if use_cuda else ti.cpu, default_fp=ti.f64,
                     offline_cache=True, log_level=ti.WARN, unrolling_limit=0, **threads)
     running = current_arch()
+    if arch == "cuda" and running != "cuda" and not started_before:
+        raise ArchUnavailable("arch 'cuda' was asked for, but Taichi found no usable CUDA GPU (the driver loads, "
+                              "no device starts) and started on the CPU: use --arch cpu or --arch auto")
     if arch != "auto" and arch != running:
         raise RuntimeError(f"arch={arch!r} requested but Taichi already runs on {running!r} in "
                            f"this process (it can be started only once)")
