@@ -117,7 +117,8 @@ def _parser() -> argparse.ArgumentParser:
     exp.add_argument("--horizon", type=int, default=None)
     exp.add_argument("--qp", default="daqp", choices=("daqp", "qrqp", "osqp", "hpipm"))
     exp.add_argument("--seed", type=int, default=0, help="seed of the example closed loop's start and goal")
-    exp.add_argument("--out", default="export", help="output folder")
+    exp.add_argument("--out", default="export", help="output folder (absent or empty unless --force)")
+    exp.add_argument("--force", action="store_true", help="export into a non-empty --out, overwriting its files")
     bench = sub.add_parser("bench", help="benchmarks that print medians and ratios")
     bench.add_argument("what", choices=tuple(_BENCHMARKS))
     bench.add_argument("--quick", action="store_true", help="a smaller grid (minutes instead of tens)")
@@ -335,10 +336,16 @@ def _bench(args):
 
 
 def _export(args):
-    from ocpkit.export import build, export_problem
+    from ocpkit.export import BuildError, build, check_tools, export_problem
 
-    exported = export_problem(args.problem, args.form, args.knots, args.horizon, args.qp, args.out, seed=args.seed)
-    build(args.out)
+    try:
+        check_tools()  # before any work: a missing cc or make is one line
+        exported = export_problem(args.problem, args.form, args.knots, args.horizon, args.qp, args.out,
+                                  seed=args.seed, force=args.force)
+        build(args.out)
+    except BuildError as exc:
+        print(f"ocpkit: error: {exc}", file=sys.stderr)
+        return 2
     du, steps, failures = _round_trip(args, exported)
     ok = failures == 0 and du <= 1e-6
     print(f"exported and built {args.problem} ({args.form}, knots {args.knots}, {args.qp}) in {exported.out_dir}; "

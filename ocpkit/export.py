@@ -65,7 +65,8 @@ _UNSUPPORTED_WHY = {
 FEAS_TOL = 1e-6  # largest bound violation accepted from a QP solver that reports success
 _VIOLATED = 9999  # solver return code the C step reports for a "solved" point violating bounds
 MAX_INSTANCES = 16  # QP-solver memory slots per loaded library (CASADI_MAX_NUM_THREADS); a Makefile variable
-OPT_FLAGS = "-O2"  # the Makefile's OPT default
+OPT_FLAGS = "-O2"  # the Makefile's OPT default (generated model and QP solver)
+OPT_STEP = "-O3"  # the Makefile's OPT_STEP default (the condensing loops: -O3 vectorizes them)
 _SOLVER_NOTE = {
     "qrqp": "qrqp is warm-started from the previous solution; `step` never allocates.",
     "daqp": "CasADi's DAQP code starts DAQP cold and runs its setup, which allocates, inside every step.",
@@ -328,7 +329,7 @@ typedef struct {{
   long long iw[{N}_SZ_IW > 0 ? {N}_SZ_IW : 1];
   double w[{N}_SZ_W > 0 ? {N}_SZ_W : 1];
   /* affine model and the condensing's work space */
-  double ug[{N}_NU], ubar[{N}_NU], Ad[{N}_NX * {N}_NX], Bd[{N}_NX * {N}_NU], wd[{N}_NX];
+  double ug[{N}_NU], ubar[{N}_NU], Ad[{N}_NX * {N}_NX], At[{N}_NX * {N}_NX], Bd[{N}_NX * {N}_NU], wd[{N}_NX];
   double G[{N}_NX * ({N}_NU + 1)], Gn[{N}_NX * ({N}_NU + 1)];
   double Lam[{N}_LMAX * {N}_NX * {N}_NL], W[{N}_NX * {N}_NL], acc[{N}_NL * {N}_NL];
   double Gam[{N}_NLEN * {N}_NL * {N}_NL], Y[{N}_NL * {N}_NZ1];
@@ -546,9 +547,11 @@ static int fallback(mem_t* m, double* u_out, int status) {
    F_s = Σ_{t<s} E_t, e_s = Σ_{t<s} A^t w. Ad, Bd come column-major from CasADi. */
 static void lambdas(mem_t* m) {
   const double *A = m->Ad, *B = m->Bd, *w = m->wd;
-  double *G = m->G, *Gn = m->Gn;
+  double *G = m->G, *Gn = m->Gn, *At = m->At;
   int s, i, j, k;
+  /* Loops are written as row updates (axpy) so that compilers vectorize them without reassociation. */
   for (i = 0; i < NX; ++i) {
+    for (j = 0; j < NX; ++j) At[i * NX + j] = A[i + NX * j];
     for (j = 0; j < NU; ++j) G[i * (NU + 1) + j] = B[i + NX * j];
     G[i * (NU + 1) + NU] = w[i];
   }
@@ -556,32 +559,47 @@ static void lambdas(mem_t* m) {
     double* L = m->Lam + s * NX * NL;
     const double* P = m->Lam + (s > 0 ? s - 1 : 0) * NX * NL;
     if (s == 0) {
-      for (i = 0; i < NX; ++i) for (j = 0; j < NX; ++j) L[i * NL + j] = A[i + NX * j];
+      for (i = 0; i < NX; ++i) for (j = 0; j < NX; ++j) L[i * NL + j] = At[i * NX + j];
     } else {
-      for (i = 0; i < NX; ++i)
-        for (j = 0; j < NX; ++j) {
-          double acc = 0;
-          const double* Aj = A + NX * j;
-          for (k = 0; k < NX; ++k) acc += P[i * NL + k] * Aj[k];
-          L[i * NL + j] = acc;
+      for (i = 0; i < NX; ++i) {  /* A^{s+1} = A^s A */
+        double* Li = L + i * NL;
+        const double* Pi = P + i * NL;
+        for (j = 0; j < NX; ++j) Li[j] = 0;
+        for (k = 0; k + 4 <= NX; k += 4) {
+          const double p0 = Pi[k], p1 = Pi[k + 1], p2 = Pi[k + 2], p3 = Pi[k + 3];
+          const double *A0 = At + k * NX, *A1 = A0 + NX, *A2 = A1 + NX, *A3 = A2 + NX;
+          for (j = 0; j < NX; ++j) Li[j] += p0 * A0[j] + p1 * A1[j] + p2 * A2[j] + p3 * A3[j];
         }
-      for (i = 0; i < NX * (NU + 1); ++i) Gn[i] = 0;
-      for (k = 0; k < NX; ++k) {
-        const double* Ak = A + NX * k;
-        const double* Gk = G + k * (NU + 1);
-        for (i = 0; i < NX; ++i) {
-          double aik = Ak[i];
-          for (j = 0; j <= NU; ++j) Gn[i * (NU + 1) + j] += aik * Gk[j];
+        for (; k < NX; ++k) {
+          const double pik = Pi[k];
+          const double* Ak = At + k * NX;
+          for (j = 0; j < NX; ++j) Li[j] += pik * Ak[j];
         }
       }
+      for (i = 0; i < NX * (NU + 1); ++i) Gn[i] = 0;
+      for (i = 0; i < NX; ++i)  /* A^s [B w] = A (A^{s-1} [B w]) */
+        for (k = 0; k < NX; ++k) {
+          const double aik = At[i * NX + k];
+          const double* Gk = G + k * (NU + 1);
+          double* Gi = Gn + i * (NU + 1);
+          for (j = 0; j <= NU; ++j) Gi[j] += aik * Gk[j];
+        }
       for (i = 0; i < NX * (NU + 1); ++i) G[i] = Gn[i];
     }
     for (i = 0; i < NX; ++i) {
-      for (j = 0; j < NU; ++j) {
-        L[i * NL + NX + j] = (s ? P[i * NL + NX + j] : 0.0) + G[i * (NU + 1) + j];
-        L[i * NL + NX + NU + j] = s ? P[i * NL + NX + NU + j] + P[i * NL + NX + j] : 0.0;
+      double* Li = L + i * NL;
+      const double* Pi = P + i * NL;
+      const double* Gi = G + i * (NU + 1);
+      if (s) {
+        for (j = 0; j < NU; ++j) {
+          Li[NX + j] = Pi[NX + j] + Gi[j];
+          Li[NX + NU + j] = Pi[NX + NU + j] + Pi[NX + j];
+        }
+        Li[NL - 1] = Pi[NL - 1] + Gi[NU];
+      } else {
+        for (j = 0; j < NU; ++j) { Li[NX + j] = Gi[j]; Li[NX + NU + j] = 0.0; }
+        Li[NL - 1] = Gi[NU];
       }
-      L[i * NL + NL - 1] = (s ? P[i * NL + NL - 1] : 0.0) + G[i * (NU + 1) + NU];
     }
   }
 }
@@ -610,10 +628,19 @@ static void grams(mem_t* m, const double* xg) {
       W[i * NL + NL - 1] -= gx;
     }
 #endif
-    for (k = 0; k < NX; ++k) {
+    /* acc += WᵀW (upper half), four rows of W at a time: one load and store of acc per four products */
+    for (k = 0; k + 4 <= NX; k += 4) {
+      const double *w0 = W + k * NL, *w1 = w0 + NL, *w2 = w1 + NL, *w3 = w2 + NL;
+      for (i = 0; i < NL; ++i) {
+        const double a0 = w0[i], a1 = w1[i], a2 = w2[i], a3 = w3[i];
+        double* ai = acc + i * NL;
+        for (j = i; j < NL; ++j) ai[j] += a0 * w0[j] + a1 * w1[j] + a2 * w2[j] + a3 * w3[j];
+      }
+    }
+    for (; k < NX; ++k) {
       const double* wr = W + k * NL;
       for (i = 0; i < NL; ++i) {
-        double wi = wr[i];
+        const double wi = wr[i];
         double* ai = acc + i * NL;
         for (j = i; j < NL; ++j) ai[j] += wi * wr[j];
       }
@@ -630,14 +657,17 @@ static void grams(mem_t* m, const double* xg) {
 /* out[0 … c] = lr R for a row lr (length NL) and the piece's R = [prev; φ_a ⊗ I; Δ ⊗ I; (1, 0 … 0)]. */
 static void row_times_r(const double* lr, const double* prev, const double* phi, const double* del, int c,
                         double* out) {
-  int t, col;
+  int t, col, j, u;
   out[0] = lr[NL - 1];
-  for (col = 1; col <= c; ++col) {
-    int j = (col - 1) / NU, u = (col - 1) % NU;
-    out[col] = phi[j] * lr[NX + u] + del[j] * lr[NX + NU + u];
+  for (j = 0, col = 1; col <= c; ++j)
+    for (u = 0; u < NU; ++u, ++col) out[col] = phi[j] * lr[NX + u] + del[j] * lr[NX + NU + u];
+  for (t = 0; t + 4 <= NX; t += 4) {
+    const double l0 = lr[t], l1 = lr[t + 1], l2 = lr[t + 2], l3 = lr[t + 3];
+    const double *p0 = prev + t * NZ1, *p1 = p0 + NZ1, *p2 = p1 + NZ1, *p3 = p2 + NZ1;
+    for (col = 0; col <= c; ++col) out[col] += l0 * p0[col] + l1 * p1[col] + l2 * p2[col] + l3 * p3[col];
   }
-  for (t = 0; t < NX; ++t) {
-    double l = lr[t];
+  for (; t < NX; ++t) {
+    const double l = lr[t];
     const double* pr = prev + t * NZ1;
     for (col = 0; col <= c; ++col) out[col] += l * pr[col];
   }
@@ -664,8 +694,8 @@ static void condense(mem_t* m, const double* x, const double* xg) {
       if (r == 0) {
         for (col = 0; col <= c; ++col) pr[col] += Y[(NL - 1) * NZ1 + col];
       } else {
-        int jr = (r - 1) / NU, ur = (r - 1) % NU;
-        double f = phi[jr], d = del[jr];
+        const int jr = (r - 1) / NU, ur = r - 1 - jr * NU;
+        const double f = phi[jr], d = del[jr];
         const double *y1 = Y + (NX + ur) * NZ1, *y2 = Y + (NX + NU + ur) * NZ1;
         for (col = r; col <= c; ++col) pr[col] += f * y1[col] + d * y2[col];
       }
@@ -899,8 +929,10 @@ def _makefile(name: str, qp: str) -> str:
     return f"""# Builds the exported MPC step: lib{name}.so (for ocpkit.export.ExportedMPC) and ./example.
 # Each source is compiled once (position-independent objects shared by the library and the example).
 CC ?= cc
+# The generated model and QP solver at OPT; the step's loops (condensing) at OPT_STEP.
 OPT ?= {OPT_FLAGS}
-CFLAGS ?= $(OPT) -fPIC
+OPT_STEP ?= {OPT_STEP}
+CFLAGS ?= -fPIC
 # QP-solver memory slots per process: how many instances may be live at once.
 MAX_INSTANCES ?= {MAX_INSTANCES}
 CPPFLAGS += -DCASADI_MAX_NUM_THREADS=$(MAX_INSTANCES)
@@ -919,9 +951,13 @@ example: main.o $(OBJ)
 \t@echo "  LD  $@"
 \t@$(CC) $(CFLAGS) -o $@ main.o $(OBJ) $(LDLIBS)
 
-%.o: %.c {name}.h {name}_casadi.h
+{name}.o: {name}.c {name}.h {name}_casadi.h
 \t@echo "  CC  $<"
-\t@$(CC) $(CPPFLAGS) $(CFLAGS) -c -o $@ $<
+\t@$(CC) $(CPPFLAGS) $(OPT_STEP) $(CFLAGS) -c -o $@ $<
+
+{name}_casadi.o main.o: %.o: %.c {name}.h {name}_casadi.h
+\t@echo "  CC  $<"
+\t@$(CC) $(CPPFLAGS) $(OPT) $(CFLAGS) -c -o $@ $<
 
 run: example
 \t./example
@@ -963,7 +999,7 @@ plan advanced one step, clipped to the input bounds, and the next step starts co
 
 ## Build
 
-    make          # lib{n}.so and ./example (each source compiled once, `OPT ?= {OPT_FLAGS}`)
+    make          # lib{n}.so and ./example (each source compiled once: `OPT ?= {OPT_FLAGS}`, `OPT_STEP ?= {OPT_STEP}`)
     make run      # runs the closed loop, prints median step time and the final state
 
 Several instances may run in one process: each `{n}_memory` is one controller (`{n}_init` ...

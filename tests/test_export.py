@@ -4,6 +4,7 @@ from __future__ import annotations
 import os
 import shutil
 import subprocess
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -121,3 +122,151 @@ def test_unsupported_combinations_are_refused(tmp_path):
         export(ocp, tmp_path, name="not-an-identifier")
     with pytest.raises(ValueError, match="out_dir"):
         ExportedMPC(ocp, tmp_path / "missing")
+
+
+# --- robot scale: size, several instances, quiet OSQP, variants of the condensing -------------------------
+
+
+def test_generated_c_size_does_not_grow_with_the_horizon(tmp_path):
+    """The condensing is loops over the basis' pieces: T = 400 writes about the C of T = 50."""
+    ocp50 = make("nlink:3").ocp(knots=5, horizon=50)
+    ocp400 = make("nlink:3").ocp(knots=5, horizon=400)
+    small = export(ocp50, tmp_path / "t50").c_bytes
+    large = export(ocp400, tmp_path / "t400").c_bytes
+    assert large < 1.05 * small, (small, large)
+
+
+def test_nlink7_generated_c_is_small(tmp_path):
+    """The per-stage model is generated once (f and its Jacobians), not the unrolled discrete Jacobian."""
+    info = export(_problem("nlink:7").ocp(knots=5, horizon=100), tmp_path / "n7")
+    assert info.c_bytes < 400_000, info.c_bytes  # the unrolled SX step was 5.2 MB
+
+
+@pytest.mark.parametrize("variant", ["zoh", "identity", "full_q_and_goal_gain"])
+def test_condensing_variants_match_linear_mpc(variant, tmp_path):
+    """Other bases (other pieces), a non-diagonal Q and an input goal linear in the goal (u_goal + K goal)."""
+    problem = make("pendulum")
+    if variant == "zoh":
+        ocp = problem.ocp(knots=4, horizon=30, parameterization="zoh")
+    elif variant == "identity":
+        ocp = problem.ocp(knots=None, horizon=12)
+    else:
+        ocp = problem.ocp(knots=5, horizon=40, Q=[[10.0, 1.0], [1.0, 1.0]], u_goal=[0.2], u_goal_gain=[[0.5, 0.0]])
+    info = export(ocp, tmp_path / variant, linearization="plan")
+    build(info.out_dir)
+    with ExportedMPC(ocp, info.out_dir) as c:
+        _compare(problem, ocp, c, "plan", seeds=[0, 1], steps=12)
+
+
+def test_two_instances_step_alternately(tmp_path):
+    """Two instances of one library, stepping in turn from different states, each equal to its own LinearMPC."""
+    problem = make("nlink:2") if "nlink" in __import__("ocpkit.problems", fromlist=["names"]).names() \
+        else make("pendulum")
+    ocp = problem.ocp(knots=5, horizon=40)
+    info = export(ocp, tmp_path / "two", linearization="plan")
+    build(info.out_dir)
+    F = ocp.discrete()
+    with ExportedMPC(ocp, info.out_dir) as c1, ExportedMPC(ocp, info.out_dir) as c2:
+        loops = []
+        for seed, c in ((0, c1), (3, c2)):
+            x, goal = problem.sample(seed)
+            loops.append([c, LinearMPC(ocp, form="condensed", eps=1e-10, linearization="plan"), x, goal])
+        assert not np.allclose(loops[0][2], loops[1][2])
+        for k in range(10):
+            for loop in loops:
+                c, ref, x, goal = loop
+                a, b = ref.solve(x, goal), c.solve(x, goal)
+                assert a.ok and b.ok, (k, b.raw_status)
+                np.testing.assert_allclose(b.u, a.u, atol=1e-6, rtol=0)
+                np.testing.assert_allclose(b.knots, a.knots, atol=1e-6, rtol=0)
+                loop[2] = np.asarray(F(x, a.u)).ravel()
+    assert c1.closed and c2.closed
+    with pytest.raises(RuntimeError, match="closed"):
+        c1.solve(*problem.sample(0))
+    c1.close()  # twice is fine
+
+
+def test_instances_beyond_the_slots_fail_cleanly_and_slots_are_reused(tmp_path):
+    ocp = make("pendulum").ocp(knots=3, horizon=20)
+    info = export(ocp, tmp_path / "slots", qp="osqp")
+    (info.out_dir / "Makefile").write_text((info.out_dir / "Makefile").read_text()
+                                           .replace("MAX_INSTANCES ?= 16", "MAX_INSTANCES ?= 2"))
+    build(info.out_dir)
+    a, b = ExportedMPC(ocp, info.out_dir), ExportedMPC(ocp, info.out_dir)
+    with pytest.raises(RuntimeError, match="memory slots"):
+        ExportedMPC(ocp, info.out_dir)
+    a.close()
+    with ExportedMPC(ocp, info.out_dir) as c:  # a's slot, reused
+        assert c.solve([0.5, 0.0], [0.0, 0.0]).ok
+    assert b.solve([0.5, 0.0], [0.0, 0.0]).ok
+    b.close()
+
+
+def test_osqp_export_is_quiet_and_matches(tmp_path, capfd):
+    problem = make("pendulum")
+    ocp = problem.ocp(knots=5, horizon=40)
+    info = export(ocp, tmp_path / "osqp", qp="osqp")
+    build(info.out_dir)
+    capfd.readouterr()
+    with ExportedMPC(ocp, info.out_dir) as c:
+        _compare(problem, ocp, c, "goal", seeds=[0], steps=10, tol=1e-5)
+    out = capfd.readouterr()
+    assert out.out == "" and out.err == "", out
+
+
+# --- the output folder and the tools (issue 19) ------------------------------------------------------------
+
+
+def test_out_dir_must_be_empty_unless_force(tmp_path):
+    ocp = make("pendulum").ocp(knots=3, horizon=10)
+    user = tmp_path / "mine"
+    user.mkdir()
+    (user / "README.md").write_text("my notes")
+    with pytest.raises(ValueError, match="not empty.*README.md.*force"):
+        export(ocp, user)
+    assert (user / "README.md").read_text() == "my notes"
+    export(ocp, user, force=True)
+    assert (user / "Makefile").is_file()
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    with pytest.raises(ValueError, match="is a file"):
+        export(ocp, afile, force=True)
+
+
+def test_cli_export_refuses_a_users_folder_and_a_file(tmp_path, monkeypatch, capsys):
+    from ocpkit.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    Path("mine").mkdir()
+    Path("mine/main.c").write_text("int main(void) { return 0; }\n")
+    assert main(["export", "pendulum", "--knots", "3", "--horizon", "10", "--out", "mine"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "not empty" in err and "--force" in err
+    assert Path("mine/main.c").read_text() == "int main(void) { return 0; }\n"
+    Path("f.txt").write_text("x")
+    assert main(["export", "pendulum", "--knots", "3", "--horizon", "10", "--out", "f.txt"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "is a file" in err
+
+
+@pytest.mark.parametrize("missing", ["cc", "make"])
+def test_missing_tool_is_one_line(missing, tmp_path, monkeypatch, capsys):
+    from ocpkit.cli import main
+    from ocpkit.export import BuildError
+
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    for tool in ("cc", "make"):
+        if tool != missing:
+            (bin_dir / tool).symlink_to(shutil.which(tool))
+    monkeypatch.setenv("PATH", str(bin_dir))
+    monkeypatch.delenv("CC", raising=False)
+    ocp = make("pendulum").ocp(knots=3, horizon=10)
+    info = export(ocp, tmp_path / "gen")
+    with pytest.raises(BuildError, match=f"`{missing}` not found"):
+        build(info.out_dir)
+    monkeypatch.chdir(tmp_path)
+    assert main(["export", "pendulum", "--knots", "3", "--horizon", "10", "--out", "cli"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"`{missing}` not found" in err
+    assert not Path("cli").exists()  # checked before any work
