@@ -1,6 +1,10 @@
-"""Benchmark: median step time of the exported, compiled C step vs Python's LinearMPC (issue 7)."""
+"""Benchmark: the exported C step at robot scale — generated C size, build time, C step vs Python's LinearMPC
+step and their round-trip error, side by side (issues 7 and 18)."""
 from __future__ import annotations
 
+import os
+import re
+import subprocess
 import tempfile
 import time
 from pathlib import Path
@@ -10,21 +14,33 @@ import numpy as np
 from ocpkit._checks import integer
 from ocpkit.export import ExportedMPC, build, export
 
+DEFAULT_PROBLEMS = ("pendulum", "nlink:3", "nlink:7", "nlink:13", "puma560", "baxter")
+
 
 def default_problems() -> list[str]:
-    """nlink:1 … nlink:13 when the n-link robots are registered, else the pendulum."""
-    from ocpkit.problems import names
+    """The issue-18 set (pendulum, nlink:3/7/13, puma560, baxter) among the registered problems."""
+    from ocpkit.problems import make
 
-    return [f"nlink:{n}" for n in range(1, 14)] if "nlink" in names() else ["pendulum"]
+    found = []
+    for name in DEFAULT_PROBLEMS:
+        try:
+            make(name)
+        except ValueError:
+            continue
+        found.append(name)
+    return found
 
 
 def bench_export(problems=None, *, horizon: int = 100, knots: int = 5, qp: str = "daqp", steps: int = 50,
-                 seed: int = 0, out_root=None, linearization: str = "goal", out=print) -> list[dict]:
-    """Per problem: export + build times, and the median step time (s) of the C step and of LinearMPC.
+                 seed: int = 0, out_root=None, linearization: str = "goal", example: bool = True,
+                 out=print) -> list[dict]:
+    """Per problem: generated C size, export and build times, the median step time (s) of the C step (through
+    ctypes, and of the folder's own ``./example`` closed loop) and of LinearMPC, and the round-trip error.
 
     Both controllers see the same states: a closed loop of ``steps`` steps on the discrete model driven by
-    LinearMPC's input (condensed, ProxQP), from ``problem.sample(seed)``. ``max_abs_du`` is the largest
-    difference between the two first inputs over the loop.
+    LinearMPC's input (condensed, ProxQP at eps 1e-10), from ``problem.sample(seed)``. ``max_abs_du`` is the
+    largest difference between the two first inputs and knots over the loop. ``build_s`` is ``make lib``
+    (every source compiled once, two jobs); the example then only links.
     """
     from ocpkit.problems import filename, make
     from ocpkit.solvers.qp import LinearMPC
@@ -37,41 +53,59 @@ def bench_export(problems=None, *, horizon: int = 100, knots: int = 5, qp: str =
         problem = make(name)
         ocp = problem.ocp(knots=knots, horizon=horizon)
         out_dir = root / filename(name)
+        x, goal = problem.sample(seed)
         t0 = time.perf_counter()
-        info = export(ocp, out_dir, qp=qp, linearization=linearization)
+        info = export(ocp, out_dir, qp=qp, linearization=linearization, x0=x, goal=goal, force=True)
         t1 = time.perf_counter()
         build(info.out_dir)
         t2 = time.perf_counter()
-        c = ExportedMPC(ocp, info.out_dir, name=info.name)
-        py = LinearMPC(ocp, form="condensed", linearization=linearization)
+        example_s = float("nan")
+        if example:
+            build(info.out_dir, target="example")
+            run = subprocess.run(["./example"], cwd=info.out_dir, capture_output=True, text=True,
+                                 env={**os.environ, "OMP_NUM_THREADS": "1"})
+            found = re.search(r"median step ([0-9.]+) us", run.stdout)
+            example_s = 1e-6 * float(found.group(1)) if found else float("nan")
+        py = LinearMPC(ocp, form="condensed", eps=1e-10, linearization=linearization)
         F = ocp.discrete()
-        x, goal = problem.sample(seed)
         t_c, t_py, du, py_fails, c_fails = [], [], 0.0, 0, 0
-        for _ in range(steps):
-            a, b = py.solve(x, goal), c.solve(x, goal)
-            t_py.append(a.times["total"])
-            t_c.append(b.times["solve"])
-            du = max(du, float(np.abs(a.u - b.u).max()))
-            py_fails += not a.ok
-            c_fails += not b.ok
-            x = np.asarray(F(x, a.u)).ravel()
+        with ExportedMPC(ocp, info.out_dir, name=info.name) as c:
+            for _ in range(steps):
+                a, b = py.solve(x, goal), c.solve(x, goal)
+                t_py.append(a.times["total"])
+                t_c.append(b.times["solve"])
+                du = max(du, float(np.abs(a.u - b.u).max()), float(np.abs(a.knots - b.knots).max()))
+                py_fails += not a.ok
+                c_fails += not b.ok
+                x = np.asarray(F(x, a.u)).ravel()
         rows.append({"problem": name, "nx": ocp.nx, "nu": ocp.nu, "horizon": horizon, "knots": knots, "qp": qp,
-                     "export_s": t1 - t0, "build_s": t2 - t1, "c_median_s": float(np.median(t_c)),
+                     "c_bytes": info.c_bytes, "export_s": t1 - t0, "build_s": t2 - t1,
+                     "c_median_s": float(np.median(t_c)), "example_median_s": example_s,
                      "python_median_s": float(np.median(t_py)),
                      "speedup": float(np.median(t_py) / np.median(t_c)), "max_abs_du": du,
                      "python_failures": py_fails, "c_failures": c_fails})
-    out(f"exported C step vs Python LinearMPC (condensed, horizon {horizon}, knots {knots}, {qp}); medians\n"
-        + format_table(rows))
+        if out is print:  # progress: a row as soon as it is measured
+            print(format_table(rows[-1:], header=len(rows) == 1), flush=True)
+    out(f"exported C step vs Python LinearMPC (condensed, horizon {horizon}, knots {knots}, {qp}; {steps} steps); "
+        f"medians, cores: {os.cpu_count()}, load: {_load()}\n" + format_table(rows))
     return rows
 
 
-def format_table(rows: list[dict]) -> str:
-    """The benchmark rows as a fixed-width text table (times in ms)."""
-    head = f"{'problem':<10} {'nx':>3} {'nu':>3} {'C ms':>9} {'Python ms':>10} {'speedup':>8} {'max|du|':>9} " \
-           f"{'fails py/C':>10} {'build s':>8}"
-    lines = [head]
+def _load() -> str:
+    try:
+        return " ".join(f"{v:.1f}" for v in os.getloadavg())
+    except OSError:
+        return "n/a"
+
+
+def format_table(rows: list[dict], header: bool = True) -> str:
+    """The benchmark rows as a fixed-width text table (sizes in kB, times in ms, build in s)."""
+    head = (f"{'problem':<10} {'nx':>3} {'nu':>3} {'C kB':>6} {'build s':>8} {'C ms':>7} {'example ms':>10} "
+            f"{'Python ms':>10} {'speedup':>8} {'max|du|':>9} {'fails py/C':>10}")
+    lines = [head] if header else []
     for r in rows:
-        lines.append(f"{r['problem']:<10} {r['nx']:>3} {r['nu']:>3} {1e3 * r['c_median_s']:>9.3f} "
+        lines.append(f"{r['problem']:<10} {r['nx']:>3} {r['nu']:>3} {r['c_bytes'] / 1e3:>6.0f} {r['build_s']:>8.1f} "
+                     f"{1e3 * r['c_median_s']:>7.3f} {1e3 * r['example_median_s']:>10.3f} "
                      f"{1e3 * r['python_median_s']:>10.3f} {r['speedup']:>8.1f} {r['max_abs_du']:>9.2e} "
-                     f"{r['python_failures']:>4}/{r['c_failures']:<5} {r['build_s']:>8.1f}")
+                     f"{r['python_failures']:>4}/{r['c_failures']:<5}")
     return "\n".join(lines)
