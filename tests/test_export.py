@@ -270,3 +270,25 @@ def test_missing_tool_is_one_line(missing, tmp_path, monkeypatch, capsys):
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and f"`{missing}` not found" in err
     assert not Path("cli").exists()  # checked before any work
+
+
+def test_each_source_is_compiled_once(bounded_pendulum):
+    """`make lib` compiled the step and the generated code; the example only adds main.c and links."""
+    _, _, c = bounded_pendulum
+    plan = subprocess.run(["make", "-n", "-C", str(c.out_dir), "example"], capture_output=True, text=True,
+                          check=True).stdout
+    compiles = [line for line in plan.splitlines() if " -c " in line]
+    assert len(compiles) == 1 and "main.c" in compiles[0], plan
+    makefile = (c.out_dir / "Makefile").read_text()
+    assert "OPT ?= -O2" in makefile and "OPT_STEP ?= -O3" in makefile
+
+
+def test_bench_export_prints_the_columns(tmp_path):
+    from ocpkit.benchmarks.export import bench_export
+
+    lines = []
+    rows = bench_export(["pendulum"], horizon=30, steps=5, out_root=tmp_path, out=lines.append)
+    assert rows[0]["max_abs_du"] <= 1e-6 and rows[0]["c_failures"] == 0 and rows[0]["c_bytes"] > 0
+    assert rows[0]["example_median_s"] > 0
+    for column in ("C kB", "build s", "C ms", "example ms", "Python ms", "max|du|"):
+        assert column in lines[0]
