@@ -421,7 +421,6 @@ def _constants(tr: CondensedQP, linearization: str) -> str:
         f"#define NPIECE {len(pieces)}",
         f"#define NB {bounded.size}",
         _c_const("double", "U_GOAL", ocp.u_goal),
-        _c_const("double", "K_GOAL", K),
         _c_const("double", "R_IN", ocp.R),
         _c_const("double", "R_KNOTS", tr.R_knots),
         _c_const("double", "PHI_SUM", tr._phi_sum),
@@ -439,10 +438,12 @@ def _constants(tr: CondensedQP, linearization: str) -> str:
         _c_const("int", "PIECE_LEN", [lengths.index(L) for L in pl]),
         _c_const("double", "PIECE_PHI", pphi),
         _c_const("double", "PIECE_DELTA", pdel),
-        _c_const("int", "XB_COMP", bounded),
-        _c_const("double", "XB_LO", ocp.x_min[bounded]),
-        _c_const("double", "XB_HI", ocp.x_max[bounded]),
     ]
+    if np.any(K):  # read only under #if HAS_K / #if NB > 0: unused constants would draw warnings
+        lines.append(_c_const("double", "K_GOAL", K))
+    if bounded.size:
+        lines += [_c_const("int", "XB_COMP", bounded), _c_const("double", "XB_LO", ocp.x_min[bounded]),
+                  _c_const("double", "XB_HI", ocp.x_max[bounded])]
     return "\n".join(lines)
 
 
@@ -879,6 +880,7 @@ def _wrapper(name: str, qp: str, linearization: str, tr: CondensedQP) -> str:
 def _example(name: str, x0, goal, steps: int, dt: float) -> str:
     N = name.upper()
     return f"""/* main.c — closed loop of the exported MPC against the generated discrete model ({steps} steps). */
+#define _POSIX_C_SOURCE 199309L /* clock_gettime under -std=c99 */
 #include <stdio.h>
 #include <stdlib.h>
 #include <time.h>
