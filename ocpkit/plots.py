@@ -1,4 +1,5 @@
-"""Figures (matplotlib, Agg): closed-loop responses and solve-time comparisons."""
+"""Figures (matplotlib, Agg): closed-loop responses and solve-time comparisons, and the one number style
+(:func:`number`) every report table, figure tick and note uses."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -8,6 +9,37 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from matplotlib import ticker  # noqa: E402
+
+BOX_CONVENTION = "box: quartiles; line: median; whiskers: 1.5 IQR; dots: outliers"
+
+
+def number(value, digits: int = 4) -> str:
+    """A number as reports print it: ``digits`` significant digits in plain decimals (scientific only below
+    1e-4 or from 10^digits on), "–" for a missing value, ints as ints: 1.0037 → "1.004", 0.5 → "0.5"."""
+    if value is None:
+        return "–"
+    if isinstance(value, (int, np.integer)) and not isinstance(value, bool):
+        return str(int(value))
+    v = float(value)
+    if np.isnan(v):
+        return "–"
+    if np.isinf(v):
+        return "∞" if v > 0 else "−∞"
+    return format(v, f".{digits}g")
+
+
+def log_axis(ax, axis: str = "y") -> None:
+    """A log axis with readable ticks: plain decimals; over less than 1.5 decades, evenly spaced values
+    (a log locator would label only 10⁰ on a ratio axis spanning 0.98–1.4)."""
+    which = ax.yaxis if axis == "y" else ax.xaxis
+    lo, hi = ax.get_ylim() if axis == "y" else ax.get_xlim()
+    if lo > 0 and hi / lo < 10 ** 1.5:
+        which.set_major_locator(ticker.MaxNLocator(nbins=6))
+    else:
+        which.set_major_locator(ticker.LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
+    which.set_major_formatter(ticker.FuncFormatter(lambda v, _: number(v, 3)))
+    which.set_minor_formatter(ticker.NullFormatter())
 
 
 def closed_loop(trajectories: dict, path, *, title: str = "", state_names=None, input_names=None) -> Path:
@@ -34,7 +66,7 @@ def closed_loop(trajectories: dict, path, *, title: str = "", state_names=None, 
     for j in range(m):
         axes[n_q + j].set_ylabel(input_names[j] if input_names else f"u{j}")
     axes[-1].set_xlabel("time [s]")
-    axes[0].legend(fontsize=7, ncol=2, loc="best")
+    axes[0].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # outside: every entry, no trace hidden
     if title:
         axes[0].set_title(title)
     return save(fig, path)
@@ -57,8 +89,8 @@ def _closed_loop_compact(trajectories, path, title, n_q, m) -> Path:
     ax_q.set_ylabel("joint positions (dotted: goals)")
     ax_u.set_ylabel("inputs")
     ax_u.set_xlabel("time [s]")
-    ax_q.legend(fontsize=7, ncol=min(n_q, 7), loc="best")
-    ax_u.legend(fontsize=7, loc="best")
+    ax_q.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    ax_u.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     if title:
         ax_q.set_title(title)
     return save(fig, path)
@@ -83,13 +115,15 @@ def boxes(labels, data, path, *, xlabel: str, ylabel: str, title: str = "", log:
     fig, ax = plt.subplots(figsize=(max(6, 0.35 * len(labels)), 3.6))
     ax.boxplot(data, showmeans=False, medianprops={"marker": "o", "markersize": 3, "color": "C3"},
                flierprops={"marker": ".", "markersize": 3})
-    ax.set_xticks(range(1, len(labels) + 1), [str(l) for l in labels], fontsize=8)
-    ax.set_xlabel(xlabel)
+    ax.set_xticks(range(1, len(labels) + 1), [number(l) if isinstance(l, float) else str(l) for l in labels],
+                  fontsize=8)
+    ax.set_xlabel(f"{xlabel}\n({BOX_CONVENTION})")
     ax.set_ylabel(ylabel)
-    if log:
-        ax.set_yscale("log")
     if reference is not None:
         ax.axhline(reference, color="k", lw=0.6, ls=":")
+    if log:
+        ax.set_yscale("log")
+        log_axis(ax)
     ax.grid(axis="y", alpha=0.3)
     if title:
         ax.set_title(title, fontsize=10)
@@ -98,15 +132,17 @@ def boxes(labels, data, path, *, xlabel: str, ylabel: str, title: str = "", log:
 
 def lines(x, series: dict, path, *, xlabel: str, ylabel: str, title: str = "", log: bool = False) -> Path:
     """One marked line per labelled series over a shared x."""
-    fig, ax = plt.subplots(figsize=(6.5, 3.8))
+    fig, ax = plt.subplots(figsize=(6.5, 4.6))
     for label, y in series.items():
         ax.plot(x, y, marker="o", ms=3, label=label)
     ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
     if log:
         ax.set_yscale("log")
+        log_axis(ax)
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
+    # Outside the data: below the axes, as many columns as fit.
+    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.2), ncol=min(len(series), 4), frameon=False)
     if title:
         ax.set_title(title, fontsize=10)
     return save(fig, path)
@@ -119,6 +155,7 @@ def bar_times(labels, medians, path, *, ylabel: str = "median solve time [ms]", 
     ax.set_xticks(range(len(labels)), labels, rotation=45, ha="right", fontsize=8)
     ax.set_ylabel(ylabel)
     ax.set_yscale("log")
+    log_axis(ax)
     if title:
         ax.set_title(title)
     return save(fig, path)

@@ -14,6 +14,8 @@ command (21 values per controller and seed); Table III reports their mean and me
 """
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pandas as pd
 
@@ -26,7 +28,8 @@ from ocpkit.problems.baxter import JOINTS
 from ocpkit.simulate import Trajectory, simulate
 from ocpkit.study import Study, grid
 from ocpkit.studies.comparison import responses, row_arrays
-from ocpkit.studies.report import markdown_table, section
+from ocpkit.plots import number
+from ocpkit.studies.report import Claim, markdown_table, section, timing_context, trials_line, verdict
 from ocpkit.studies.solve_times import quartiles
 
 NAME = "baxter"
@@ -81,7 +84,7 @@ def trial(command: int, controller: str, duration: float, population: int, arch:
     return {**{f"itae_{j}": itae(traj, [i]) for i, j in enumerate(SHORT)}, **quartiles("solve", solve),
             **quartiles("total", total), "fallbacks": traj.fallbacks,
             "final_error": float(np.abs(traj.x[-1, :ocp.nu] - goal[:ocp.nu]).max()),
-            "device": current_arch() if controller == EMPC else "cpu",
+            "device": current_arch() if controller == EMPC else "cpu", "load": os.getloadavg()[0],
             "t": traj.t, "x": traj.x, "u": traj.u, "goal": goal, "solve_times": solve, "total_times": total}
 
 
@@ -95,8 +98,10 @@ def study(size: str) -> Study:
 
 def report(df, out_dir) -> str:
     ok = df[df["status"] == "ok"]
+    trials = trials_line(df, {"commands": df["command"].nunique(), "controllers": df["controller"].nunique(),
+                              "seeds": df["seed"].nunique()})
     if ok.empty:
-        return section(TITLE, [], {}) + "\nNo trial succeeded.\n"
+        return section(TITLE, [], {}, trials=trials, claims=[], notes=["No trial succeeded."])
     order = [c for c in (SERVO, *CONTROLLERS) if c in set(ok["controller"])]
     columns = [f"itae_{j}" for j in SHORT]
     values = {c: ok.loc[ok["controller"] == c, columns].to_numpy().ravel() for c in order}
@@ -109,18 +114,20 @@ def report(df, out_dir) -> str:
             a = row_arrays(df, row, out_dir)
             trajs[df.at[row, "controller"]] = Trajectory(t=a["t"], x=a["x"], u=a["u"], goal=a["goal"])
         figs.append(responses({c: trajs[c] for c in order if c in trajs}, out_dir / f"baxter_command{command}",
-                              title=f"Baxter step command {command + 1}: joint angles (dotted: goals)",
+                              title=f"Baxter step command {command}: joint angles (dotted: goals)",
                               joint_names=SHORT))
+    solve = ok[ok["controller"] != SERVO].groupby("controller")[["solve_median", "total_median"]].median() * 1e3
     times = {c: np.concatenate([row_arrays(df, r, out_dir)["total_times"] for r in ok.index[ok["controller"] == c]])
              for c in order if c != SERVO}
     if times:
-        figs.append(_histogram(times, out_dir / "baxter_solve_times"))
-    solve = ok[ok["controller"] != SERVO].groupby("controller")[["solve_median", "total_median"]].median() * 1e3
+        figs.append(_histogram(times, solve["total_median"], out_dir / "baxter_solve_times"))
     solve.columns = ["optimization solve time", "MPC solve time"]
     caption = f"ITAE over {len(COMMANDS)} commands × {len(SHORT)} joints × {ok['seed'].nunique()} seed(s) (Table III)"
-    tables = {caption: table,
-              "Median per-step solve times [ms]": markdown_table(solve, "{:.3g}")}
-    return section(TITLE, figs, tables) + _notes(ok, values)
+    tables = {caption: table, "Median over runs of the per-step median solve times [ms]": markdown_table(solve)}
+    notes = [f"Fallback steps (solver failures): {int(ok['fallbacks'].sum())} in {len(ok)} runs; EMPC ran on "
+             + ", ".join(sorted(set(ok.loc[ok['controller'] == EMPC, 'device']))) + "."]
+    return section(TITLE, figs, tables, trials=trials + " " + timing_context(ok), notes=notes,
+                   claims=claims(ok, values))
 
 
 def _table(values: dict) -> str:
@@ -129,37 +136,40 @@ def _table(values: dict) -> str:
                 "median change vs servo [%]": 100 * (np.median(v) / servo - 1)} for c, v in values.items()}
     df = pd.DataFrame.from_dict(rows, orient="index")
     df.index.name = "controller"
-    return markdown_table(df, "{:.3g}")
+    return markdown_table(df)
 
 
-def _histogram(times: dict, path):
-    """Histograms of the per-step MPC solve times (as in the paper's hardware results), log-spaced bins in ms."""
-    fig, ax = plots.plt.subplots(figsize=(6.5, 3.6))
+def _histogram(times: dict, medians, path):
+    """Histograms of the per-step MPC solve times (as in the paper's hardware results), log-spaced bins in ms;
+    the legend gives the same median as the table (median over runs of each run's median)."""
+    fig, ax = plots.plt.subplots(figsize=(6.5, 4.2))
     ms = {c: 1e3 * t for c, t in times.items()}
     lo, hi = min(t.min() for t in ms.values()), max(t.max() for t in ms.values())
     bins = np.geomspace(max(lo, 1e-3), hi, 40)
     for label, t in ms.items():
-        ax.hist(t, bins=bins, alpha=0.6, label=f"{label} (median {np.median(t):.2f} ms)")
+        ax.hist(t, bins=bins, alpha=0.6, label=f"{label} (median {number(medians[label], 3)} ms)")
     ax.set_xscale("log")
+    plots.log_axis(ax, "x")
     ax.set_xlabel("MPC solve time per step [ms]")
     ax.set_ylabel("steps")
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.22), ncol=2, frameon=False)
     ax.set_title("Baxter: MPC solve times", fontsize=10)
     return plots.save(fig, path)
 
 
-def _notes(ok, values) -> str:
-    """The paper's claims checked against these numbers."""
-    lines = [f"- Fallback steps (solver failures): {int(ok['fallbacks'].sum())} in {len(ok)} runs; EMPC ran on "
-             + ", ".join(sorted(set(ok.loc[ok['controller'] == EMPC, 'device']))) + "."]
-    if SERVO in values:
-        servo = np.median(values[SERVO])
-        for c, paper in ((QP, 31), (EMPC, 42)):
-            if c in values:
-                lines.append(f"- Paper (hardware): {c} reduces the median ITAE by {paper} %. "
-                             f"Here (simulation, exact model): by {100 * (1 - np.median(values[c]) / servo):.0f} %.")
+def claims(ok, values) -> list:
+    """The paper's Table III claims (hardware) against this simulation."""
+    out = []
+    servo = np.median(values[SERVO]) if SERVO in values else None
+    for c, paper in ((QP, 31), (EMPC, 42)):
+        if c in values and servo:
+            change = 100 * (1 - np.median(values[c]) / servo)
+            out.append(Claim(f"{c} reduces the median ITAE vs the bare servo (hardware: by {paper} %)",
+                             f"by {number(change, 3)} % (simulation, exact model)", verdict(bool(change > 0))))
     if {QP, EMPC} <= set(ok["controller"]):
         med = ok.groupby("controller")["total_median"].median()
-        lines.append(f"- Paper: EMPC solves faster than the QP (GPU). Here the median MPC solve time is "
-                     f"{1e3 * med[EMPC]:.2f} ms for EMPC and {1e3 * med[QP]:.2f} ms for the QP.")
-    return "\n" + "\n".join(lines) + "\n"
+        out.append(Claim("EMPC solves faster than the QP (GPU)",
+                         f"median MPC solve time {number(1e3 * med[EMPC], 3)} ms for EMPC "
+                         f"({', '.join(sorted(set(ok.loc[ok['controller'] == EMPC, 'device'])))}) vs "
+                         f"{number(1e3 * med[QP], 3)} ms for the QP", verdict(bool(med[EMPC] < med[QP]))))
+    return out

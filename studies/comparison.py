@@ -11,6 +11,8 @@ solve time and the MPC solve time of every step.
 """
 from __future__ import annotations
 
+import os
+
 import numpy as np
 
 from ocpkit import plots, problems, solvers
@@ -20,7 +22,8 @@ from ocpkit.metrics import actual_cost
 from ocpkit.simulate import Trajectory, simulate
 from ocpkit.store import Store
 from ocpkit.study import Study, grid
-from ocpkit.studies.report import markdown_table, section
+from ocpkit.plots import number
+from ocpkit.studies.report import Claim, markdown_table, section, timing_context, trials_line, verdict
 from ocpkit.studies.solve_times import quartiles
 from ocpkit.transcription import CondensedQP
 
@@ -66,7 +69,7 @@ def trial(links: int, controller: str, duration: float, population: int, arch: s
               **quartiles("total", traj.times("total")), "model_median": float(np.median(traj.times("model"))),
               "fallbacks": traj.fallbacks,
               "final_error": float(np.abs(traj.x[-1] - goal).max()),
-              "device": current_arch() if solver in SAMPLING else "cpu"}
+              "device": current_arch() if solver in SAMPLING else "cpu", "load": os.getloadavg()[0]}
     if record:
         result.update(t=traj.t, x=traj.x, u=traj.u, goal=goal)
     return result
@@ -114,7 +117,7 @@ def responses(trajectories: dict, path, *, title: str, joint_names=None):
         ax.set_ylabel("angle [rad]")
         ax.set_title(label, fontsize=9)
         ax.grid(alpha=0.3)
-    axes[0, 0].legend(fontsize=7, ncol=min(n_q, 7), loc="best")
+    axes[0, 0].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # outside: it hides no trace
     axes[-1, 0].set_xlabel("time [s]")
     fig.suptitle(title, fontsize=10)
     return plots.save(fig, path)
@@ -122,14 +125,17 @@ def responses(trajectories: dict, path, *, title: str, joint_names=None):
 
 def report(df, out_dir) -> str:
     ok = df[df["status"] == "ok"]
+    trials = trials_line(df, {"robots": df["links"].nunique(), "controllers": df["controller"].nunique(),
+                              "start/goal seeds": df["seed"].nunique()})
     if ok.empty:
-        return section(TITLE, [], {}) + "\nNo trial succeeded.\n"
+        return section(TITLE, [], {}, trials=trials, claims=[], notes=["No trial succeeded."])
     reference = ok[ok["controller"] == REFERENCE].set_index(["links", "seed"])
     keys = list(zip(ok["links"], ok["seed"]))
     ok = ok.assign(
         ratio=[c / reference["actual_cost"].get(k, np.nan) for c, k in zip(ok["actual_cost"], keys)],
         extra_error=[e - reference["final_error"].get(k, np.nan) for e, k in zip(ok["final_error"], keys)])
     order = [c for c in CONTROLLERS if c in set(ok["controller"])]
+    seeds = ok["seed"].nunique()
     figs, tables = [], {}
 
     def per_robot(values, how):
@@ -139,21 +145,19 @@ def report(df, out_dir) -> str:
     figs.append(plots.lines(ratio.index, {c: ratio[c].values for c in order if c != REFERENCE},
                             out_dir / "comparison_cost_ratio", xlabel="number of links",
                             ylabel="actual cost / traditional MPC (median)", log=True,
-                            title="Actual cost relative to traditional MPC"))
-    tables["Median actual cost ratio to traditional MPC"] = markdown_table(ratio, "{:.3f}")
-    tables["Worst (largest) actual cost ratio to traditional MPC over the start/goal pairs"] = markdown_table(
-        worst, "{:.3f}")
+                            title=f"Actual cost relative to traditional MPC ({seeds} start/goal pairs per robot)"))
+    tables[f"Median actual cost ratio to traditional MPC over {seeds} start/goal pairs"] = markdown_table(ratio)
+    tables["Worst (largest) actual cost ratio to traditional MPC over the start/goal pairs"] = markdown_table(worst)
     final = per_robot("final_error", "median")
-    tables["Median final error max |x − x_goal| at the end of the run [rad, rad/s]"] = markdown_table(final, "{:.2g}")
+    tables["Median final error max |x − x_goal| at the end of the run [rad, rad/s]"] = markdown_table(final)
     extra = per_robot("extra_error", "max")
-    tables["Worst final error above traditional MPC's on the same start/goal [rad, rad/s]"] = markdown_table(
-        extra, "{:.2g}")
+    tables["Worst final error above traditional MPC's on the same start/goal [rad, rad/s]"] = markdown_table(extra)
     for metric, what in (("solve_median", "optimization solve time"), ("total_median", "MPC solve time")):
         med = per_robot(metric, "median") * 1e3
         figs.append(plots.lines(med.index, {c: med[c].values for c in order}, out_dir / f"comparison_{metric}",
                                 xlabel="number of links", ylabel=f"median {what} [ms]", log=True,
                                 title=f"Median {what} per control step"))
-        tables[f"Median over trials of the per-step median {what} [ms]"] = markdown_table(med, "{:.3g}")
+        tables[f"Median over trials of the per-step median {what} [ms]"] = markdown_table(med)
     sample = ok[ok["record"].astype(bool)]
     if len(sample):
         trajs = {}
@@ -163,56 +167,70 @@ def report(df, out_dir) -> str:
         trajs = {c: trajs[c] for c in order if c in trajs}
         figs.insert(0, responses(trajs, out_dir / "comparison_sample_response",
                                  title=f"{SAMPLE_LINKS}-link robot, start/goal seed 0: joint angles (dotted: goals)"))
-    return section(TITLE, figs, tables) + _notes(ok, ratio, worst, final, extra, order)
+    return section(TITLE, figs, tables, trials=trials + " " + timing_context(ok),
+                   notes=_notes(ok, ratio, worst, final, extra, order), claims=claims(ok, ratio, order))
 
 
-def _notes(ok, ratio, worst, final, extra, order) -> str:
-    """The paper's claims and the preconditioned planners' targets checked against these numbers, and what ran where."""
+def _notes(ok, ratio, worst, final, extra, order) -> list:
+    """What ran where, and how the sampling planners did (median and worst over the seeds, final errors)."""
     model = ok.groupby("links")["model_median"].median()
     sampling = ok["controller"].map(lambda c: CONTROLLERS[c][0] in SAMPLING)
-    lines = [f"- Runs: {ok['duration'].iloc[0]:g} s at 100 Hz, horizon {HORIZON}, "
-             f"{ok['seed'].nunique()} start/goal pairs per robot; sampling planners' population "
-             f"{ok['population'].iloc[0]} on " + ", ".join(sorted(set(ok.loc[sampling, 'device']))) + ".",
-             f"- Fallback steps (solver failures): {int(ok['fallbacks'].sum())} in {len(ok)} runs.",
-             "- The MPC solve time includes the linearization, which the paper leaves out (median "
-             + ", ".join(f"{links} links: {1e3 * v:.2g} ms" for links, v in model.items())
+    notes = [f"Runs: {number(ok['duration'].iloc[0])} s at 100 Hz, horizon {HORIZON}; traditional MPC on HPIPM; "
+             f"sampling planners' population {ok['population'].iloc[0]} on "
+             + ", ".join(sorted(set(ok.loc[sampling, 'device']))) + ".",
+             f"Fallback steps (solver failures): {int(ok['fallbacks'].sum())} in {len(ok)} runs.",
+             "The MPC solve time includes the linearization, which the paper leaves out (median "
+             + ", ".join(f"{links} links: {number(1e3 * v, 2)} ms" for links, v in model.items())
              + "); the sampling planners' optimization time includes their preconditioner (factor, Newton "
              "candidate) but not its QP build."]
-    by = {c: ratio[c].dropna() for c in order if c != REFERENCE}
-    qp = by.get("knots 3 (QP)")
-    if qp is not None and len(qp):
-        lines.append(f"- Paper: parameterized QP MPC costs < 20 % more than traditional beyond one link, and less "
-                     f"for high-DoF robots. Here its median ratio is {qp.min():.2f}–{qp.max():.2f} "
-                     f"(per robot: {_per_robot(qp)}).")
     for c in order:
-        if c in by and len(by[c]) and CONTROLLERS[c][0] in SAMPLING:
-            lines.append(f"- {c}: median cost ratio {_per_robot(by[c])}; worst {worst[c].max():.2f}; final error "
-                         f"at most {extra[c].max():.2g} above traditional MPC's.")
-    lines.append("- Paper: EMPC is slightly worse than the parameterized QP. The preconditioned EMPC evaluates that "
-                 "QP's box-constrained optimum (its Newton candidate) in every population, so with affine dynamics "
-                 "and the quadratic cost it cannot do worse than the QP except by the linearization both share; the "
-                 "paper's Algorithm 1 as printed is the '(paper)' rows.")
-    lines.append("- Does each controller reach the goal? Largest median final error over the robots: "
-                 + ", ".join(f"{c} {final[c].max():.2g}" for c in order) + ".")
+        if CONTROLLERS[c][0] in SAMPLING:
+            notes.append(f"{c}: median cost ratio {_per_robot(ratio[c].dropna())}; worst {number(worst[c].max())}; "
+                         f"median final error at most {number(final[c].max(), 2)}, at most "
+                         f"{number(extra[c].max(), 2)} above traditional MPC's on the same start/goal.")
     condition = ok.groupby("links")["hessian_condition"].median()
-    lines.append("- The landscape the planners search: median condition number of the 3-knot QP Hessian at the "
-                 "start, " + ", ".join(f"{links} links: {v:.2g}" for links, v in condition.items())
+    notes.append("The landscape the planners search: median condition number of the 3-knot QP Hessian at the start, "
+                 + ", ".join(f"{links} links: {number(v, 2)}" for links, v in condition.items())
                  + ". The paper's mutations add the same-sized noise to every input, so where the Hessian is this "
                  "anisotropic (light distal links move far for a small torque) most children land far uphill; the "
-                 "preconditioned planners draw their noise with covariance ∝ P⁻¹.")
+                 "preconditioned planners draw their noise with covariance ∝ P⁻¹ and evaluate the QP's "
+                 "box-constrained optimum (the Newton candidate) in every population, so with affine dynamics and "
+                 "the quadratic cost they cannot do worse than the QP except through the linearization both share.")
+    return notes
+
+
+def claims(ok, ratio, order) -> list:
+    """The paper's Section VI-B claims against this run's medians."""
+    out = []
+    qp = ratio["knots 3 (QP)"].dropna() if "knots 3 (QP)" in ratio else None
+    if qp is not None and len(qp):
+        beyond = qp[qp.index > 1]
+        out.append(Claim("Parameterized QP MPC costs < 20 % more than traditional beyond one link",
+                         f"median ratio {_per_robot(qp)}",
+                         verdict(bool((beyond < 1.2).all()) if len(beyond) else None)))
+    for c in ("EMPC 1 gen", "EMPC 1 gen (paper)"):
+        if c in ratio and qp is not None and len(qp):
+            empc = ratio[c].dropna()
+            slightly = bool(((empc / qp.reindex(empc.index)) <= 1.2).all())
+            out.append(Claim(f"EMPC is slightly worse than the parameterized QP ({c})",
+                             f"median ratio {_per_robot(empc)}", verdict(slightly)))
     for one, three in (("EMPC 1 gen", "EMPC 3 gen"), ("EMPC 1 gen (paper)", "EMPC 3 gen (paper)")):
-        if {one, three} <= set(by):
+        if {one, three} <= set(ratio.columns):
             both = ratio[[one, three]].dropna()
-            lines.append(f"- Paper: more generations bring EMPC's cost towards the QP's. {three} costs at most "
-                         f"{one}'s (within 0.1 %) on {int((both[three] <= both[one] * 1.001).sum())} of "
-                         f"{len(both)} robots.")
+            better = int((both[three] <= both[one] * 1.001).sum())
+            out.append(Claim(f"More generations bring EMPC's cost down ({three} vs {one})",
+                             f"no higher (within 0.1 %) on {better} of {len(both)} robots",
+                             verdict(better == len(both))))
     solve = ok.pivot_table(index="links", columns="controller", values="solve_median", aggfunc="median")
     if {"EMPC 1 gen", REFERENCE} <= set(solve.columns):
-        faster = solve.index[solve["EMPC 1 gen"] < solve[REFERENCE]].tolist()
-        lines.append("- Paper (GPU): one-generation EMPC solves faster than traditional MPC from 10 links on. Here "
-                     f"it is faster at links {faster or 'none'}.")
-    return "\n" + "\n".join(lines) + "\n"
+        big = solve[solve.index >= 10]
+        faster = [int(l) for l in solve.index[solve["EMPC 1 gen"] < solve[REFERENCE]]]
+        out.append(Claim("One-generation EMPC solves faster than traditional MPC from 10 links on (GPU)",
+                         f"faster at {', '.join(map(str, faster)) or 'no robot'} links "
+                         f"({', '.join(sorted(set(ok['device'])))})",
+                         verdict(bool((big["EMPC 1 gen"] < big[REFERENCE]).all()) if len(big) else None)))
+    return out
 
 
 def _per_robot(series) -> str:
-    return ", ".join(f"{links}: {v:.2f}" for links, v in series.items())
+    return ", ".join(f"{links} links {number(v, 3)}" for links, v in series.items())

@@ -11,6 +11,8 @@ the final error.
 """
 from __future__ import annotations
 
+import os
+
 import casadi as ca
 import numpy as np
 
@@ -20,7 +22,8 @@ from ocpkit.kernels.runtime import current_arch
 from ocpkit.metrics import actual_cost
 from ocpkit.simulate import simulate
 from ocpkit.study import Study, grid
-from ocpkit.studies.report import markdown_table, section
+from ocpkit.plots import number
+from ocpkit.studies.report import markdown_table, section, timing_context, trials_line
 
 NAME = "keepout"
 TITLE = "Where the rollout matters: a joint-space keep-out zone (EMPC's fitness vs the QP)"
@@ -67,7 +70,7 @@ def trial(controller: str, duration: float, population: int, arch: str, seed: in
             "steps_inside": int((np.linalg.norm(traj.x[:, :LINKS] - centre, axis=1) < RADIUS).sum()),
             "final_error": float(np.abs(traj.x[-1] - goal).max()), "fallbacks": traj.fallbacks,
             "solve_median": float(np.median(traj.times("solve"))),
-            "device": current_arch() if solver == "empc" else "cpu"}
+            "device": current_arch() if solver == "empc" else "cpu", "load": os.getloadavg()[0]}
 
 
 def study(size: str) -> Study:
@@ -79,33 +82,33 @@ def study(size: str) -> Study:
 
 def report(df, out_dir) -> str:
     ok = df[df["status"] == "ok"]
+    trials = trials_line(df, {"controllers": df["controller"].nunique(), "start/goal seeds": df["seed"].nunique()})
     if ok.empty:
-        return section(TITLE, [], {}) + "\nNo trial succeeded.\n"
+        return section(TITLE, [], {}, trials=trials, claims=[], notes=["No trial succeeded."])
     order = [c for c in CONTROLLERS if c in set(ok["controller"])]
     table = ok.pivot_table(index="seed", columns="controller", values="actual_cost")[order]
     figs = [plots.boxes(order, [table[c].dropna().values for c in order], out_dir / "keepout_cost",
-                        xlabel="controller", ylabel="actual penalized cost",
-                        reference=None,
-                        title=f"{LINKS}-link robot, keep-out ball r = {RADIUS} rad, w = {WEIGHT:g}\n"
-                        f"{ok['seed'].nunique()} seeds; box: quartiles, red line: median")]
+                        xlabel="controller", ylabel="actual penalized cost", reference=None,
+                        title=f"{LINKS}-link robot, keep-out ball r = {number(RADIUS)} rad, w = {number(WEIGHT)}, "
+                              f"{ok['seed'].nunique()} seeds")]
     summary = ok.groupby("controller")[["actual_cost", "penalty", "steps_inside", "final_error", "solve_median"]]
     summary = summary.median().reindex(order)
     summary["solve_median"] *= 1e3
-    tables = {"Actual penalized cost per start/goal seed": markdown_table(table, "{:.1f}"),
+    tables = {"Actual penalized cost per start/goal seed": markdown_table(table),
               "Medians over the seeds (penalty part of the cost, steps inside the zone, final error max |x − x_goal|,"
-              " per-step optimization time in ms)": markdown_table(summary, "{:.3g}")}
-    lines = [f"- Runs: {ok['duration'].iloc[0]:g} s at 100 Hz, horizon {HORIZON}, {KNOTS} knots, "
-             f"{ok['seed'].nunique()} start/goal pairs; EMPC population {ok['population'].iloc[0]} on "
-             + ", ".join(sorted(set(ok.loc[ok['controller'] != QP, 'device']))) + "; "
-             f"fallback steps: {int(ok['fallbacks'].sum())}."]
+              " per-step optimization time in ms)": markdown_table(summary)}
+    notes = [f"Runs: {number(ok['duration'].iloc[0])} s at 100 Hz, horizon {HORIZON}, {KNOTS} knots; EMPC "
+             f"population {ok['population'].iloc[0]} on " + ", ".join(sorted(set(ok.loc[ok['controller'] != QP,
+                                                                                           'device'])))
+             + f"; fallback steps: {int(ok['fallbacks'].sum())}."]
     if {QP, EMPC_PENALTY} <= set(table.columns):
         both = table[[QP, EMPC_PENALTY]].dropna()
         wins = int((both[EMPC_PENALTY] < both[QP]).sum())
-        lines.append(f"- EMPC with the penalized fitness costs less than the QP on {wins} of {len(both)} seeds "
-                     f"(median ratio {np.median(both[EMPC_PENALTY] / both[QP]):.2f}).")
-    lines.append("- What it shows: a sampling planner optimizes whatever its rollout evaluates, here a non-convex, "
+        notes.append(f"EMPC with the penalized fitness costs less than the QP on {wins} of {len(both)} seeds "
+                     f"(median ratio {number(np.median(both[EMPC_PENALTY] / both[QP]), 3)}).")
+    notes.append("What it shows: a sampling planner optimizes whatever its rollout evaluates, here a non-convex, "
                  "non-smooth penalty a QP cannot hold, and steers around the zone. What it does not show: that "
                  "EMPC beats a nonlinear solver given the same cost (IPOPT could take a smoothed penalty), or "
                  "that it finds the best detour: it searches locally around its seeds and elites, one generation "
                  "per step.")
-    return section(TITLE, figs, tables) + "\n" + "\n".join(lines) + "\n"
+    return section(TITLE, figs, tables, trials=trials + " " + timing_context(ok), notes=notes, claims=[])

@@ -11,7 +11,8 @@ from ocpkit import plots
 from ocpkit.problems import filename
 from ocpkit.study import Study, grid
 from ocpkit.studies.closed_loop import grid_size, trial
-from ocpkit.studies.report import markdown_table, section
+from ocpkit.studies.report import Claim, markdown_table, section, trials_line, verdict
+from ocpkit.plots import number
 
 NAME = "knots"
 TITLE = "Actual cost ratio vs number of knot points (Fig. 3)"
@@ -47,9 +48,50 @@ def report(df, out_dir) -> str:
         labels = sorted(g["knots"].dropna().unique())
         data = [g.loc[g["knots"] == k, "ratio"].values for k in labels]
         figs.append(plots.boxes([int(k) for k in labels], data, out_dir / f"knots_{filename(problem)}",
-                                xlabel="number of knot points p (horizon 50)", ylabel="actual cost ratio",
-                                title=f"{problem}: cost vs knots (reference: traditional, horizon 100)"))
+                                xlabel=f"number of knot points p (horizon {HORIZON})", ylabel="actual cost ratio",
+                                title=f"{problem}: cost vs knots ({g['seed'].nunique()} seeds; reference: "
+                                      f"traditional MPC, T = {REFERENCE_HORIZON})"))
     table = rows.pivot_table(index="knots", columns="problem", values="ratio", aggfunc="median")
-    return section(TITLE, figs, {"Median actual cost ratio (rows: knots)": markdown_table(table, "{:.4f}")})
+    table.index = table.index.astype(int)
+    ok = df[df["status"] == "ok"]
+    trials = trials_line(df, {"problems": ok["problem"].nunique(), "knot counts + reference": ok["knots"].nunique(
+        dropna=False), "seeds": ok["seed"].nunique()})
+    caption = (f"Median actual cost ratio to traditional MPC with T = {REFERENCE_HORIZON} over the seeds "
+               f"(rows: knots, horizon {HORIZON})")
+    return section(TITLE, figs, {caption: markdown_table(table)}, trials=trials, claims=claims(rows, table))
 
 
+def claims(rows, table) -> list:
+    """The paper's Fig. 3 claims (Section III-D) against the ratios of this run."""
+    out = []
+    if 4 in table.index:
+        at4 = table.loc[4]
+        out.append(Claim("The cost hardly changes down to 3–4 knots", "median ratio at 4 knots: "
+                         + ", ".join(f"{p} {number(v)}" for p, v in at4.items()),
+                         verdict(bool((at4 <= 1.05).all()))))
+    else:
+        out.append(Claim("The cost hardly changes down to 3–4 knots", "4 knots not in this grid", verdict(None)))
+    highest = table.idxmax()
+    out.append(Claim("The cost is highest with one knot", "largest median at "
+                     + ", ".join(f"{p}: {int(k)} knots" for p, k in highest.items()),
+                     verdict(bool((highest == table.index.min()).all()) if table.index.min() == 1 else None)))
+    linear = rows[rows["problem"] == "pendulum:linear"]
+    if len(linear):
+        low = linear["ratio"].min()
+        out.append(Claim("The linear pendulum's ratio never goes below 1", f"smallest ratio {number(low, 6)}",
+                         verdict(bool(low >= 1 - 1e-6))))
+        top = linear[linear["knots"] == linear["knots"].max()]["ratio"].median()
+        out.append(Claim("With more knots the linear pendulum converges to traditional MPC",
+                         f"median ratio at {int(linear['knots'].max())} knots {number(top, 6)}",
+                         verdict(bool(abs(top - 1) <= 1e-3))))
+    else:
+        out.append(Claim("The linear pendulum's ratio never goes below 1", "pendulum:linear not in this run",
+                         verdict(None)))
+    if {"pendulum", "pendulum:linear"} <= set(table.columns):
+        few = table.loc[table.index <= 2]
+        below = rows.loc[rows["problem"] == "pendulum", "ratio"].min()
+        out.append(Claim("The nonlinear pendulum's median ratio is below the linear one's at few knots and "
+                         "dips below 1", f"1–2 knots: {', '.join(number(v) for v in few['pendulum'])} vs "
+                         f"{', '.join(number(v) for v in few['pendulum:linear'])}; smallest ratio {number(below)}",
+                         verdict(bool((few["pendulum"] < few["pendulum:linear"]).all() and below < 1))))
+    return out

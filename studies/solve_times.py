@@ -9,12 +9,15 @@ building P, q, A, l, u, and the optimization).
 """
 from __future__ import annotations
 
+import os
+
 import numpy as np
 
 from ocpkit import plots, problems, solvers
 from ocpkit._checks import choice, integer
 from ocpkit.study import Study, grid
-from ocpkit.studies.report import markdown_table, section
+from ocpkit.plots import number
+from ocpkit.studies.report import Claim, markdown_table, section, timing_context, trials_line, verdict
 
 NAME = "solve_times"
 TITLE = "Solve times of the convex formulations vs number of links (Figs. 7–10)"
@@ -48,7 +51,8 @@ def trial(links: int, horizon: int, form: str, knots: int | None, qp: str, state
     return {**quartiles("solve", solve), **quartiles("total", total),
             "model_median": float(np.median([s.times["model"] for s in sols])),
             "build_median": float(np.median([s.times["build"] for s in sols])),
-            "failures": sum(not s.ok for s in sols), "solve_times": solve, "total_times": total}
+            "failures": sum(not s.ok for s in sols), "solve_times": solve, "total_times": total,
+            "load": os.getloadavg()[0]}
 
 
 def quartiles(name: str, values) -> dict:
@@ -78,9 +82,12 @@ def label(form: str, knots) -> str:
 
 def report(df, out_dir) -> str:
     ok = df[df["status"] == "ok"].copy()
+    trials = trials_line(df, {"robots": df["links"].nunique(), "horizons": df["horizon"].nunique(),
+                              "formulations": len(FORMS) * 2})
     if ok.empty:
-        return section(TITLE, [], {}) + "\nNo trial succeeded.\n"
+        return section(TITLE, [], {}, trials=trials, claims=[], notes=["No trial succeeded."])
     ok["formulation"] = [label(f, k) for f, k in zip(ok["form"], ok["knots"])]
+    states = int(ok["states"].iloc[0])
     figs, tables = [], {}
     for horizon, g in ok.groupby("horizon"):
         for metric, what, fig in (("solve_median", "optimization solve time", "solve"),
@@ -89,52 +96,71 @@ def report(df, out_dir) -> str:
             figs.append(plots.lines(med.index, {c: med[c].values for c in med.columns},
                                     out_dir / f"solve_times_{fig}_T{horizon}", xlabel="number of links",
                                     ylabel=f"median {what} [ms]", log=True,
-                                    title=f"Median {what}, horizon {horizon} ({int(g['states'].iloc[0])} states)"))
-            tables[f"Median {what} [ms], horizon {horizon}"] = markdown_table(med, "{:.3g}")
-    return section(TITLE, figs, tables) + _notes(ok, df)
+                                    title=f"Median {what}, horizon {horizon} ({states} cold solves each)"))
+            tables[f"Median {what} over {states} cold solves [ms], horizon {horizon}"] = markdown_table(med)
+    return section(TITLE, figs, tables, trials=trials + " " + timing_context(ok), notes=_notes(ok, df),
+                   claims=claims(ok))
 
 
-def _notes(ok, df) -> str:
-    """What was skipped or failed, and the paper's claims checked against these numbers."""
-    lines = []
+def _notes(ok, df) -> list:
+    """What was skipped or failed, and what the times include."""
+    notes = []
     have = {(r.links, r.horizon) for r in df[(df["form"] == "condensed") & df["knots"].isna()].itertuples()}
     missing = sorted({(r.links, r.horizon) for r in df.itertuples()} - have)
     if missing:
-        lines.append("- Not run (too slow for this size): small matrix traditional at "
+        notes.append("Not run (too slow for this size): small matrix traditional at "
                      + ", ".join(f"{l} links, T = {h}" for l, h in missing) + ".")
     model = ok.groupby("links")["model_median"].median() * 1e3
-    lines.append(f"- The MPC solve time includes the linearization (median {model.min():.2g}–{model.max():.2g} ms "
-                 "from the fewest to the most links), the same for every formulation of a robot.")
-    failures = int(ok["failures"].sum())
-    lines.append(f"- {failures} of {int(ok['states'].sum())} solves did not return success "
+    notes.append(f"The MPC solve time includes the linearization (median {number(model.min(), 2)}–"
+                 f"{number(model.max(), 2)} ms from the fewest to the most links), the same for every formulation.")
+    notes.append(f"{int(ok['failures'].sum())} of {int(ok['states'].sum())} solves did not return success "
                  "(their times are included).")
+    return notes
+
+
+def claims(ok) -> list:
+    """The paper's Section IV-G claims against the medians of this run."""
     opt = ok.pivot_table(index=["links", "horizon"], columns="formulation", values="solve_median")
     tot = ok.pivot_table(index=["links", "horizon"], columns="formulation", values="total_median")
     small, large = label("condensed", KNOTS), label("sparse", KNOTS)
+    out = []
     fastest = opt.idxmin(axis=1) == small
-    lines.append(f"- Paper: the parameterized small matrix formulation has the lowest optimization solve time. "
-                 f"Here: in {int(fastest.sum())} of {len(fastest)} (links, horizon) cases.")
-    lines.append("- Paper: the traditional small matrix formulation beats the large one on small problems only. "
-                 "Here it is faster at " + _where(opt, label("condensed", None), label("sparse", None)) + ".")
-    lines.append("- Paper: parameterizing the large matrix formulation does not reduce its optimization solve time. "
-                 "Here it does at " + _where(opt, large, label("sparse", None)) + ".")
+    out.append(Claim("The parameterized small matrix formulation has the lowest optimization solve time",
+                     f"lowest in {int(fastest.sum())} of {len(fastest)} (links, T) cases",
+                     verdict(bool(fastest.all()))))
+    wins, cases = _where(opt, label("condensed", None), label("sparse", None))
+    small_only = None if not cases else bool(not wins or max(l for l, _ in wins) < max(l for l, _ in cases))
+    out.append(Claim("The traditional small matrix formulation beats the large one on small problems only",
+                     f"faster at {_cases(wins, cases)}", verdict(small_only)))
+    wins, cases = _where(opt, large, label("sparse", None))
+    out.append(Claim("Parameterizing the large matrix formulation does not reduce its optimization solve time",
+                     f"reduces it at {_cases(wins, cases)}", verdict(None if not cases else not wins)))
     for form in FORMS:
-        lines.append(f"- Paper: parameterization reduces the MPC solve time of the {form} formulation. Here it does at "
-                     + _where(tot, label(form, KNOTS), label(form, None)) + ".")
+        wins, cases = _where(tot, label(form, KNOTS), label(form, None))
+        out.append(Claim(f"Parameterization reduces the MPC solve time of the {form} formulation",
+                         f"reduces it at {_cases(wins, cases)}",
+                         verdict(None if not cases else len(wins) == len(cases))))
     if small in opt:
         by_t = opt[small].unstack("horizon")
         if set(HORIZONS) <= set(by_t.columns):
             ratio = (by_t[HORIZONS[1]] / by_t[HORIZONS[0]]).dropna()
-            lines.append(f"- Paper: the parameterized small matrix optimization time hardly depends on the horizon. "
-                         f"Here its T = {HORIZONS[1]} / T = {HORIZONS[0]} ratio of medians is "
-                         f"{ratio.min():.2f}–{ratio.max():.2f} over {len(ratio)} robots.")
-    return "\n" + "\n".join(lines) + "\n"
+            out.append(Claim("The parameterized small matrix optimization time hardly depends on the horizon",
+                             f"T = {HORIZONS[1]} / T = {HORIZONS[0]}: {number(ratio.min(), 3)}–"
+                             f"{number(ratio.max(), 3)} over {len(ratio)} robots",
+                             verdict(bool((ratio <= 1.5).all()))))
+    return out
 
 
-def _where(table, a: str, b: str) -> str:
-    """The (links, T) cases where formulation ``a`` has the smaller median than ``b``, counted."""
+def _where(table, a: str, b: str):
+    """The (links, T) cases where formulation ``a`` has the smaller median than ``b``, and all compared cases."""
     if a not in table or b not in table:
-        return "no case (not run)"
+        return [], []
     both = table[[a, b]].dropna()
-    wins = [f"{l}/{h}" for (l, h), faster in (both[a] < both[b]).items() if faster]
-    return f"{len(wins)} of {len(both)} (links/T: {', '.join(wins) or 'none'})"
+    return [case for case, faster in (both[a] < both[b]).items() if faster], list(both.index)
+
+
+def _cases(wins, cases) -> str:
+    if not cases:
+        return "no case (not run)"
+    return (f"{len(wins)} of {len(cases)} (links/T: "
+            + (", ".join(f"{l}/{h}" for l, h in wins) or "none") + ")")
