@@ -102,8 +102,16 @@ class RealTimeIteration(LinearMPC):
 
 
 class NonlinearMPC(Controller):
-    """Multiple-shooting MPC solved as an NLP: ``method`` "ipopt" (interior point) or "sqp" (CasADi
-    ``sqpmethod`` with the qrqp QP solver), over the ``dynamics`` "nonlinear" (F) or "affine" model.
+    """Multiple-shooting MPC solved as an NLP: ``method`` "ipopt" (interior point), "sqp" (CasADi
+    ``sqpmethod`` with the qrqp QP solver), "fatrop" (structure-exploiting interior point, stage-ordered NLP)
+    or "rti" (real-time iteration, :class:`RealTimeIteration`), over the ``dynamics`` "nonlinear" (F) or
+    "affine" model (ipopt and sqp only).
+
+    "rti" takes ``iterations`` (SQP steps per control step), ``tol`` (stop earlier once an iteration moves
+    the plan less), and LinearMPC's ``form``, ``qp`` and ``state_bounds`` ("soft" by default, as LinearMPC);
+    its ``max_iter`` caps each QP's iterations (default 10 000), ``time_limit`` is the whole step's budget
+    and ``options`` pass to LinearMPC (e.g. ``{"eps": 1e-8}``). "fatrop" takes ``max_iter`` and ``options``
+    for fatrop (e.g. ``{"tol": 1e-10}``), not ``time_limit``.
 
     ``max_iter`` and ``time_limit`` (wall-clock seconds, IPOPT's max_wall_time; IPOPT only) limit each
     solve; a solve stopped by either is ``limited`` and falls back. IPOPT checks its clock once per
