@@ -35,6 +35,16 @@ def test_reproduce_quick_on_tiny_grids(tiny, tmp_path):
     for title in ("Fig. 3", "Fig. 4", "Tables I–II", "Figs. 7–10", "Figs. 11–13", "keep-out zone", "Table III"):
         assert title in text
     assert "wall time" in text and "casadi" in text and "failed" not in text
+    # Every study section says how many trials stand behind it and ends with its claim checks.
+    sections = text.split("\n## ")[1:]
+    assert len(sections) == 7
+    for part in sections:
+        title = part.splitlines()[0]
+        assert "trials succeeded (" in part, title
+        claims = part.split("Claim checks:")[1]
+        assert "| paper's claim | here | verdict |" in claims, title
+        verdicts = [row.rsplit("|", 2)[-2].strip() for row in claims.strip().splitlines()[2:]]
+        assert verdicts and set(verdicts) <= {"held", "not held", "not tested at this size", "–"}, (title, verdicts)
     assert (tmp_path / "knots_pendulum_linear.png").stat().st_size > 5000
     assert (tmp_path / "knots_pendulum_linear.pdf").exists()
     assert len((tmp_path / "knots.csv").read_text().splitlines()) == 7  # header and six trials
