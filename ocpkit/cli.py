@@ -458,7 +458,7 @@ def _gib(n: float) -> str:
 
 def _one_line_error(exc: BaseException) -> bool:
     """Errors of the user's input or environment, shown as one line (anything else keeps its traceback)."""
-    if isinstance(exc, (ValueError, TypeError, OSError)):
+    if isinstance(exc, (ValueError, TypeError, OSError, ImportError)):  # ImportError: an optional package, with pip's line
         return True
     kinds = [getattr(sys.modules.get(module), name, None) for module, name in (
         ("ocpkit.store", "StoreError"), ("ocpkit.kernels.runtime", "ArchUnavailable"),
