@@ -26,10 +26,11 @@ class MPPI(GaussianSampling):
         self.temperature = positive(temperature, "temperature")
         eng = self.engine
         N, p, m = eng.num_sims, eng.num_knots, eng.nu
-        knots = eng.knots
+        knots, serial = eng.knots, eng.serial_transfers
 
         @ti.kernel
         def weighted_average(weights: ti.types.ndarray(), out: ti.types.ndarray()):
+            ti.loop_config(serialize=serial)
             for j, a in ti.ndrange(p, m):
                 s = ti.cast(0.0, eng.ftype)
                 for i in range(N):

@@ -150,12 +150,14 @@ class SamplingMPC(Controller):
             d = p * m
             self._whiten = ti.field(F, shape=(d, d))  # L⁻ᵀ
             self._seeds = ti.field(F, shape=(SEEDS, p, m))  # Newton candidate, holding input
-            whiten, seeds = self._whiten, self._seeds
+            whiten, seeds, serial = self._whiten, self._seeds, self.engine.serial_transfers
 
             @ti.kernel
             def upload(values: ti.types.ndarray()):
+                ti.loop_config(serialize=serial)
                 for r, c in ti.ndrange(d, d):
                     whiten[r, c] = values[r * d + c]
+                ti.loop_config(serialize=serial)
                 for s, j, a in ti.ndrange(SEEDS, p, m):
                     seeds[s, j, a] = values[d * d + (s * p + j) * m + a]
 

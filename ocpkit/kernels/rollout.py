@@ -138,9 +138,13 @@ class Rollout:
                 out[i] = rollout(i)
 
         picked = self.picked
+        # The transfer kernels move a few hundred numbers: on the CPU one thread does that in microseconds, while
+        # a parallel loop waits for the pool's threads to wake, which on a busy machine took milliseconds.
+        serial = self.serial_transfers = self.arch != "cuda"
 
         @ti.kernel
         def gather(indices: ti.types.ndarray(), out: ti.types.ndarray()):
+            ti.loop_config(serialize=serial)
             for r, j, a in ti.ndrange(indices.shape[0], p, m):
                 v = knots[indices[r], j, a]
                 picked[r, j, a] = v
@@ -151,10 +155,12 @@ class Rollout:
 
         @ti.kernel
         def upload(values: ti.types.ndarray()):
+            ti.loop_config(serialize=serial)
             for r in range(n):
                 x0[r] = values[r]
                 goal[r] = values[n + r]
             if ti.static(affine):
+                ti.loop_config(serialize=serial)
                 for r in range(n):
                     for c in range(n):
                         A[r, c] = values[2 * n + r * n + c]
