@@ -136,6 +136,20 @@ def now() -> str:
     return datetime.now(timezone.utc).isoformat()
 
 
+def _retry_locked(action, seconds: float = 60.0):
+    """``action()``, retried while SQLite answers "database is locked" (up to ``seconds``). Switching a new
+    database to WAL takes a lock for which SQLite does not wait on its busy timeout: two processes opening one
+    new store at once saw the second fail at once (a study pair sharing a folder)."""
+    deadline = time.monotonic() + seconds
+    while True:
+        try:
+            return action()
+        except sqlite3.OperationalError as exc:
+            if "locked" not in str(exc) or time.monotonic() > deadline:
+                raise
+            time.sleep(0.05)
+
+
 class Store:
     """The results database of one output folder; a context manager that closes it.
 
@@ -172,7 +186,10 @@ class Store:
             self._con.execute("PRAGMA journal_mode=WAL")
             # NORMAL in WAL mode: a commit survives the process being killed (not a power cut) at low cost.
             self._con.execute("PRAGMA synchronous=NORMAL")
-            with self._con:
+            # One write transaction for the schema: DDL autocommits statement by statement otherwise, and two
+            # processes opening a new store both saw a column missing and both added it.
+            self._con.execute("BEGIN IMMEDIATE")
+            try:
                 self._con.execute(_SCHEMA)
                 self._con.execute(_CLAIMS)
                 self._con.execute(_RUNS)
@@ -180,7 +197,11 @@ class Store:
                 for name, kind in _ADDED_COLUMNS.items():
                     if name not in have:
                         self._con.execute(f"ALTER TABLE trials ADD COLUMN {name} {kind}")
-        self._guard("open", setup)
+                self._con.execute("COMMIT")
+            except BaseException:
+                self._con.execute("ROLLBACK")
+                raise
+        self._guard("open", lambda: _retry_locked(setup))
 
     def _open_readonly(self):
         con = sqlite3.connect(f"{self.path.resolve().as_uri()}?mode=ro", uri=True, timeout=60)

@@ -110,3 +110,28 @@ def test_a_store_from_before_provenance_gains_its_columns(tmp_path):
         run(Study("q", trial, grid(x=range(2))), tmp_path, workers=1, progress=False)
     df = run(Study("q", trial, grid(x=range(2))), tmp_path, workers=1, progress=False, stale="reuse")
     assert df.y.tolist() == [0, 1]
+
+
+def test_several_connections_opening_one_new_store_at_once(tmp_path):
+    """Switching a new store to WAL does not wait on SQLite's busy timeout; opening must retry, not fail."""
+    import threading
+
+    errors = []
+    for round_ in range(20):
+        folder = tmp_path / f"r{round_}"
+        gate = threading.Barrier(4)
+
+        def open_store():
+            gate.wait()
+            try:
+                with Store(folder):
+                    pass
+            except Exception as exc:  # collected: an assertion in a thread would be lost
+                errors.append(exc)
+
+        threads = [threading.Thread(target=open_store) for _ in range(4)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+    assert not errors, errors[:3]
