@@ -125,3 +125,28 @@ def test_bad_arguments():
         translate(ca.Function("f", [x], [x * ca.SX.sym("p")], {"allow_free": True}))
     with pytest.raises(ValueError, match="shape"):
         translate(ca.Function("f", [x], [x]))(np.zeros((3, 2)))
+
+
+def test_damaged_or_planted_cache_entry_is_rewritten_not_executed(taichi_arch, tmp_path, monkeypatch):
+    """A truncated or tampered kernel file is replaced by the fresh translation, with a warning."""
+    import sys
+    import warnings
+
+    import casadi as ca
+
+    from ocpkit.kernels import translate as tr
+
+    monkeypatch.setattr(tr, "cache_dir", lambda: tmp_path)
+    x = ca.SX.sym("x", 2)
+    fn = ca.Function("planted_check", [x], [ca.sin(x[0]) * x[1] + 3.25])
+    first = tr.translate(fn)
+    text = first.path.read_text()
+    for bad in (text[: len(text) // 2], "raise SystemExit('planted code ran')\n"):
+        first.path.write_text(bad)
+        for name in [n for n in sys.modules if n.startswith("ocpkit_kernel_")]:
+            monkeypatch.delitem(sys.modules, name)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            again = tr.translate(fn)
+        assert any("differs from its translation" in str(w.message) for w in caught)
+        assert again.path.read_text() == text

@@ -3,7 +3,8 @@
 The EMPC kernel (paper, Section "Evolutionary MPC") must simulate exactly the dynamics and
 costs the QPs and IPOPT use, so those CasADi Functions are translated rather than rewritten.
 Taichi compiles from inspectable source, so the translation is written to a cache file
-keyed by a hash of the Function's serialization and imported from there.
+keyed by a hash of the Function's serialization and imported from there, once its text is
+checked against a fresh translation.
 
 Calling convention of the generated function: every input is passed densely as a Taichi
 vector of its entries in column-major order (structural zeros included), and every output
@@ -17,6 +18,7 @@ import importlib.util
 import os
 import sys
 import tempfile
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -164,9 +166,21 @@ def translate(function: ca.Function, *, precision: str = "float64") -> TaichiFun
     key = hashlib.sha256(
         f"{_GENERATOR_VERSION}|{precision}|{function.serialize()}".encode()).hexdigest()[:24]
     path = cache_dir() / f"fn_{key}.py"
-    if not path.exists():
-        _write_atomically(path, _source(function, precision))
-    module = _import(path, f"ocpkit_kernel_{key}")
+    module_name = f"ocpkit_kernel_{key}"
+    if module_name not in sys.modules:
+        # The cache saves Taichi's compile, not the translation: the text is generated again and the file
+        # imported only if it is exactly that text, so a damaged or tampered entry is never executed.
+        text = _source(function, precision)
+        try:
+            cached = path.read_text() if path.exists() else None
+        except (OSError, UnicodeDecodeError):
+            cached = ""
+        if cached != text:
+            if cached is not None:
+                warnings.warn(f"kernel cache entry {path} differs from its translation (damaged or modified): "
+                              "rewritten", RuntimeWarning, stacklevel=2)
+            _write_atomically(path, text)
+    module = _import(path, module_name)
     return TaichiFunction(
         name=function.name(),
         func=module.evaluate,
