@@ -1,4 +1,7 @@
-"""Shared fixtures: seeded random stable LTI systems as ocpkit Models."""
+"""Shared fixtures: seeded random stable LTI systems as ocpkit Models; the README's user-declared cart-pole."""
+import re
+from pathlib import Path
+
 import casadi as ca
 import numpy as np
 import pytest
@@ -32,3 +35,28 @@ def taichi_arch(request):
     """Start Taichi on the arch given by `pytest --arch` (the process keeps it)."""
     from ocpkit.kernels import runtime
     return runtime.init(request.config.getoption("arch"))
+
+
+README = Path(__file__).resolve().parents[1] / "README.md"
+
+
+def readme_block(heading: str) -> str:
+    """The first Python code block of the README section ``heading``, as written there."""
+    text = README.read_text()
+    return re.search(r"```python\n(.*?)```", text[text.index(f"## {heading}"):], re.S).group(1)
+
+
+@pytest.fixture
+def cartpole_dir(tmp_path, monkeypatch):
+    """A folder holding the README's cartpole.py (section "Declare your own problem"), as the working directory."""
+    (tmp_path / "cartpole.py").write_text(readme_block("Declare your own problem"))
+    monkeypatch.chdir(tmp_path)
+    return tmp_path
+
+
+@pytest.fixture
+def cartpole(cartpole_dir):
+    """The README's user-declared cart-pole problem."""
+    from ocpkit.problems import make
+
+    return make("./cartpole.py:CartPole")

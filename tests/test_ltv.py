@@ -1,6 +1,4 @@
 """Linearization along the plan (LTV): per-stage affine models in both transcriptions and in LinearMPC."""
-import re
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,7 +12,6 @@ from ocpkit.simulate import simulate
 from ocpkit.solvers.qp import LinearMPC
 from ocpkit.transcription import CondensedQP, SparseQP
 
-README = Path(__file__).resolve().parents[1] / "README.md"
 
 
 def _ocp(model, T=7, p=3, kind="linear", dense_Q=False, bounds=True):
@@ -139,15 +136,6 @@ def test_sparse_and_condensed_ltv_controllers_agree_in_closed_loop():
     assert all(t.fallbacks == 0 for t in trajs)
     np.testing.assert_allclose(trajs[0].u, trajs[1].u, atol=1e-5)
 
-
-@pytest.fixture
-def cartpole(tmp_path, monkeypatch):
-    """The README's user-declared cart-pole (section "Declare your own problem")."""
-    text = README.read_text()
-    code = re.search(r"```python\n(.*?)```", text[text.index("## Declare your own problem"):], re.S).group(1)
-    (tmp_path / "cartpole.py").write_text(code)
-    monkeypatch.chdir(tmp_path)
-    return make("./cartpole.py:CartPole")
 
 
 def test_cartpole_swing_up_needs_the_trajectory_linearization(cartpole):

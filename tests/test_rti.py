@@ -1,6 +1,4 @@
 """Real-time iteration and fatrop against IPOPT on the same nonlinear OCP."""
-import re
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -10,7 +8,6 @@ from ocpkit.simulate import simulate
 from ocpkit.solvers.nlp import NonlinearMPC, RealTimeIteration
 from ocpkit.solvers.qp import LinearMPC
 
-README = Path(__file__).resolve().parents[1] / "README.md"
 
 
 def _ipopt(ocp, x0, goal):
@@ -114,15 +111,6 @@ def test_fatrop_reaches_ipopts_optimum_on_the_puma():
     assert sol.ok, sol.raw_status
     np.testing.assert_allclose(sol.knots, ref.knots, atol=1e-6 * max(1.0, np.abs(ref.knots).max()))
 
-
-@pytest.fixture
-def cartpole(tmp_path, monkeypatch):
-    """The README's user-declared cart-pole (section "Declare your own problem")."""
-    text = README.read_text()
-    code = re.search(r"```python\n(.*?)```", text[text.index("## Declare your own problem"):], re.S).group(1)
-    (tmp_path / "cartpole.py").write_text(code)
-    monkeypatch.chdir(tmp_path)
-    return make("./cartpole.py:CartPole")
 
 
 def test_rti_swings_the_cartpole_up(cartpole):

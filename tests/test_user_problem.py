@@ -16,21 +16,7 @@ from ocpkit.cli import main
 from ocpkit.problems import make, register
 from ocpkit.problems.pendulum import Pendulum
 
-README = Path(__file__).resolve().parents[1] / "README.md"
-
-
-def _readme_block(heading: str) -> str:
-    text = README.read_text()
-    section = text[text.index(f"## {heading}"):]
-    return re.search(r"```python\n(.*?)```", section, re.S).group(1)
-
-
-@pytest.fixture
-def cartpole_dir(tmp_path, monkeypatch):
-    """A folder holding the README's cartpole.py, as the working directory."""
-    (tmp_path / "cartpole.py").write_text(_readme_block("Declare your own problem"))
-    monkeypatch.chdir(tmp_path)
-    return tmp_path
+from conftest import readme_block as _readme_block
 
 
 def test_readme_cartpole_is_short_and_public():
