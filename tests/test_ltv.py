@@ -127,6 +127,27 @@ def test_affine_models_are_the_one_point_model_at_every_stage():
     np.testing.assert_allclose(X[5], np.asarray(F(X[4], us[4])).ravel(), rtol=1e-12, atol=1e-12)
 
 
+def test_compiled_and_threaded_per_stage_models_equal_the_sx_ones(tmp_path, monkeypatch):
+    """The per-stage map of the compiled C affine model (ocp.compiled), serial or over threads, gives the SX
+    model's (A_k, B_k, w_k), and the LTV controller built on it the same closed loop."""
+    monkeypatch.setenv("OCPKIT_CACHE_DIR", str(tmp_path))
+    prob = make("nlink:2")
+    plain, compiled = prob.ocp(knots=3), prob.ocp(knots=3, compiled=True)
+    rng = np.random.default_rng(3)
+    xs, us = rng.normal(size=(plain.horizon, plain.nx)), rng.normal(size=(plain.horizon, plain.nu))
+    ref = LinearMPC(plain, linearization="trajectory").affine_models(xs, us)
+    fast = LinearMPC(compiled, linearization="trajectory")
+    assert fast.ocp.affine().is_a("External")
+    for threads in (1, 2, 1):  # serial, two threads, and back (the map is rebuilt when threads change)
+        fast.threads = threads
+        for a, b in zip(fast.affine_models(xs, us), ref):
+            np.testing.assert_allclose(a, b, rtol=0, atol=1e-10)
+    x0, goal = prob.sample(0)
+    trajs = [simulate(prob.plant(), LinearMPC(ocp, linearization="trajectory"), x0, goal, 0.1)
+             for ocp in (plain, compiled)]
+    np.testing.assert_allclose(trajs[1].u, trajs[0].u, rtol=0, atol=1e-10)
+
+
 def test_sparse_and_condensed_ltv_controllers_agree_in_closed_loop():
     prob = make("nlink:2")
     ocp = prob.ocp(knots=4)
