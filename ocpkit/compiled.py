@@ -4,6 +4,10 @@ The SX virtual machine evaluates a 13-link robot's RK4 affine model (264k instru
 same Function compiled at -O1 takes about 0.3 ms, at the price of a one-off compile of tens of seconds,
 cached on disk by the Function's hash so it is paid once per model. The library is checked against the content
 hash recorded beside it before it is loaded; a damaged one (truncated, empty) is rebuilt with a warning.
+
+:func:`compile_in_background` starts that compile in a thread (CasADi's serialization and code generation release
+the GIL; the compiler is a subprocess) and :class:`SwitchingFunction` evaluates the Function on the virtual machine
+until the compiled twin is ready, then on the twin: the default path of ``OCP.affine`` (no pause in a running loop).
 """
 from __future__ import annotations
 
@@ -13,7 +17,10 @@ import os
 import shutil
 import subprocess
 import tempfile
+import threading
 import warnings
+import weakref
+from concurrent.futures import Future
 from pathlib import Path
 
 import casadi as ca
@@ -68,3 +75,132 @@ def _build(fn: ca.Function, flags: str, folder: Path, library: Path) -> None:
             shutil.copy(scratch / source, folder / source)  # kept for the curious reader; never compiled from
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
+
+
+_background: "weakref.WeakKeyDictionary[ca.Function, Future]" = weakref.WeakKeyDictionary()
+_background_lock = threading.Lock()
+
+
+def compiler_available() -> bool:
+    """Whether the C compiler ``$CC`` (default ``cc``) is on PATH."""
+    return shutil.which(os.environ.get("CC", "cc")) is not None
+
+
+def compile_in_background(fn: ca.Function, flags: str = "-O1") -> Future | None:
+    """A Future of :func:`compile_function` (``fn``, ``flags``) computed in a daemon thread, one per Function object
+    (a second call returns the same Future); None, with one warning, where no C compiler is on PATH. A compile that
+    fails resolves the Future with its :class:`CompileError` (or OSError); :class:`SwitchingFunction` then warns once
+    and stays on the virtual machine."""
+    if not isinstance(fn, ca.Function):
+        raise TypeError(f"fn must be a casadi.Function, got {type(fn).__name__}")
+    with _background_lock:
+        future = _background.get(fn)
+        if future is not None:
+            return future
+        if not compiler_available():
+            warnings.warn(f"no C compiler (`{os.environ.get('CC', 'cc')}`) on PATH: {fn.name()} stays on CasADi's "
+                          f"virtual machine (install one, e.g. apt install gcc, for the compiled model)",
+                          RuntimeWarning, stacklevel=3)
+            _background[fn] = future = Future()
+            future.set_exception(CompileError("no C compiler on PATH"))
+            future.warned = True
+            return None
+        future = Future()
+        future.set_running_or_notify_cancel()
+        _background[fn] = future
+
+    def work():
+        try:
+            future.set_result(compile_function(fn, flags))
+        except BaseException as exc:  # noqa: BLE001 - handed to the Future, reported by SwitchingFunction
+            future.set_exception(exc)
+
+    threading.Thread(target=work, name=f"ocpkit-compile-{fn.name()}", daemon=True).start()
+    return future
+
+
+class SwitchingFunction(ca.Function):
+    """``fn`` (CasADi's virtual machine) until ``future`` holds its compiled twin, then the twin (through
+    ``transform``, e.g. a map of it): same inputs, outputs and results. Calls, :meth:`buffer` (bound once, as
+    :class:`ocpkit.numeric.BufferedFunction` does; the switch rebinds the same arrays) and :meth:`map` switch
+    by themselves at the first evaluation after the compile finished. A failed compile: one warning, the VM."""
+
+    def __init__(self, fn: ca.Function, future: Future, transform=None):
+        ca.Function.__init__(self, fn)
+        self._future = future
+        self._transform = transform
+        self._target = None
+        self._failed = False
+
+    def compiled(self) -> ca.Function | None:
+        """The compiled twin if the background compile has finished (and succeeded), else None."""
+        if self._target is None and not self._failed and self._future.done():
+            exc = self._future.exception()
+            if exc is not None:
+                self._failed = True
+                if not getattr(self._future, "warned", False):
+                    self._future.warned = True
+                    warnings.warn(f"{self.name()} stays on CasADi's virtual machine: {exc}", RuntimeWarning,
+                                  stacklevel=3)
+                return None
+            target = self._future.result()
+            self._target = target if self._transform is None else self._transform(target)
+        return self._target
+
+    def wait(self, timeout: float | None = None) -> ca.Function | None:
+        """Block until the background compile has finished (tests, benchmarks); the twin or None if it failed."""
+        with contextlib.suppress(Exception):
+            self._future.exception(timeout)
+        return self.compiled()
+
+    def __call__(self, *args, **kwargs):
+        target = self.compiled()
+        return ca.Function.__call__(self if target is None else target, *args, **kwargs)
+
+    def buffer(self):
+        switch = _SwitchingBuffer(self)
+        return switch, switch.evaluate
+
+    def map(self, *args):
+        target = self.compiled()
+        if target is not None:
+            return target.map(*args)
+        transform = self._transform
+        return SwitchingFunction(ca.Function.map(self, *args), self._future,
+                                 lambda f: (f if transform is None else transform(f)).map(*args))
+
+    def __reduce__(self):  # pickled as the plain Function it currently evaluates as
+        target = self.compiled()
+        return (target if target is not None else ca.Function(self)).__reduce__()
+
+
+class _SwitchingBuffer:
+    """A FunctionBuffer that starts as the VM's and rebinds its arrays to the compiled twin's once it is ready."""
+
+    def __init__(self, owner: SwitchingFunction):
+        self._owner = owner
+        self._buffer, self._evaluate = ca.Function.buffer(owner)
+        self._args, self._res = {}, {}
+        self.switched = False
+
+    def set_arg(self, i, view):
+        self._args[i] = view
+        self._buffer.set_arg(i, view)
+
+    def set_res(self, i, view):
+        self._res[i] = view
+        self._buffer.set_res(i, view)
+
+    def evaluate(self):
+        if not self.switched:
+            target = self._owner.compiled()
+            if target is not None:
+                buffer, evaluate = target.buffer()
+                for i, view in self._args.items():
+                    buffer.set_arg(i, view)
+                for i, view in self._res.items():
+                    buffer.set_res(i, view)
+                self._buffer, self._evaluate, self.switched = buffer, evaluate, True
+            elif self._owner._failed:
+                self.switched = True  # the VM for good: no further checks
+        self._evaluate()

@@ -17,9 +17,14 @@ import casadi as ca
 import numpy as np
 
 from ocpkit._checks import array, bounds, integer, positive, weight
-from ocpkit.compiled import compile_function
+from ocpkit.compiled import SwitchingFunction, compile_function, compile_in_background
 from ocpkit.model import Model
 from ocpkit.parameterization import Parameterization
+
+# The default path (``compiled`` not given) compiles the affine model in the background only from this size up
+# (CasADi VM instructions): below it the VM takes tens of µs and a compile would only cost CPU. nlink:3 has 7k,
+# nlink:7 67k, nlink:13 264k.
+BACKGROUND_MIN_INSTRUCTIONS = 20_000
 
 
 class OCP:
@@ -27,7 +32,7 @@ class OCP:
 
     def __init__(self, model: Model, dt: float, horizon: int, Q, R, *, Q_terminal=None, u_goal=None,
                  u_goal_gain=None, u_min=None, u_max=None, x_min=None, x_max=None,
-                 parameterization: Parameterization | None = None, substeps: int = 1, compiled: bool = False):
+                 parameterization: Parameterization | None = None, substeps: int = 1, compiled: bool | None = None):
         if not isinstance(model, Model):
             raise TypeError(f"model must be an ocpkit Model, got {type(model).__name__}")
         n, m = model.nx, model.nu
@@ -35,7 +40,7 @@ class OCP:
         self.dt = positive(dt, "dt")
         self.horizon = integer(horizon, "horizon", 1)
         self.substeps = integer(substeps, "substeps", 1)
-        self.compiled = bool(compiled)
+        self.compiled = None if compiled is None else bool(compiled)
         self.nx, self.nu = n, m
         self.Q = weight(Q, "Q", n, definite=False)
         self.R = weight(R, "R", m, definite=True)
@@ -53,7 +58,7 @@ class OCP:
         if parameterization.horizon != self.horizon:
             raise ValueError(f"parameterization has horizon {parameterization.horizon}, the OCP {self.horizon}")
         self.parameterization = parameterization
-        self._compiled_affine = None
+        self._compiled_affine = None  # compiled=True: the compiled model; None: the switching one, once made
         self.knots = parameterization.knots
         x, u, xg = ca.SX.sym("x", n), ca.SX.sym("u", m), ca.SX.sym("x_goal", n)
         ex, eu = x - xg, u - ca.DM(self.u_goal) - ca.mtimes(ca.DM(self.u_goal_gain), xg)
@@ -79,13 +84,26 @@ class OCP:
         return self.model.discrete(self.dt, self.substeps)
 
     def affine(self) -> ca.Function:
-        """The affine model (x̄, ū) -> (A_d, B_d, w_d) of :meth:`discrete`; compiled C if ``compiled``
-        (see :mod:`ocpkit.compiled`: about 2x faster for large robots after a one-off, cached compile)."""
+        """The affine model (x̄, ū) -> (A_d, B_d, w_d) of :meth:`discrete`.
+
+        ``compiled=True``: compiled C, compiled here and now (see :mod:`ocpkit.compiled`: about 2x faster for large
+        robots after a one-off compile, cached by hash). ``compiled=False``: CasADi's SX virtual machine.
+        Not given (default): the virtual machine, which switches by itself to the compiled C as soon as a compile
+        started in the background at this first call finishes (models of ``BACKGROUND_MIN_INSTRUCTIONS`` and
+        more; a :class:`ocpkit.compiled.SwitchingFunction`); without a C compiler, the VM with one warning."""
         fn = self.model.affine(self.dt, self.substeps)
         if self.compiled:
             if self._compiled_affine is None:
                 self._compiled_affine = compile_function(fn)
             return self._compiled_affine
+        if self.compiled is None and fn.n_instructions() >= BACKGROUND_MIN_INSTRUCTIONS:
+            if self._compiled_affine is None:
+                future = compile_in_background(fn)
+                self._compiled_affine = fn if future is None else SwitchingFunction(fn, future)
+            current = self._compiled_affine
+            if isinstance(current, SwitchingFunction) and current.compiled() is not None:
+                return current.compiled()
+            return current
         return fn
 
     def check_state(self, x, name: str = "x") -> np.ndarray:
