@@ -20,7 +20,7 @@ from ocpkit.controller import (EXCEPTION, INFEASIBLE, LIMITED, NAN, SUCCESS, Con
 from ocpkit.ocp import OCP
 from ocpkit.transcription import QP, TRANSCRIPTIONS
 
-QP_SOLVERS = ("proxqp", "osqp", "hpipm")
+QP_SOLVERS = ("proxqp", "osqp", "hpipm", "daqp")
 
 
 @dataclass
@@ -279,6 +279,67 @@ class _HPIPM:
         return _Result(z, (z,), status, raw, int(stats.get("iter_count", 0)))
 
 
+class _DAQP:
+    """DAQP (dual active-set, dense; Arnström et al.) on the condensed form: simple bounds on every z (±1e30 where
+    the QP has none), the remaining bound rows and any equality rows as general rows. Warm-started from the
+    previous step's active set (the signs of its multipliers become DAQP's ``sense`` flags); a warm start DAQP
+    rejects (an overdetermined initial working set) is retried cold. An active-set solve cannot be stopped from
+    outside: with a deadline it starts only if its measured time fits."""
+
+    INF = 1e30  # DAQP's "no bound"
+    _EXIT = {1: (SUCCESS, "optimal"), 2: (SUCCESS, "soft optimal"), -1: (INFEASIBLE, "infeasible"),
+             -2: (LIMITED, "cycling"), -3: (INFEASIBLE, "unbounded"), -4: (LIMITED, "iteration limit"),
+             -5: (EXCEPTION, "nonconvex"), -6: (EXCEPTION, "overdetermined initial working set"),
+             -7: (LIMITED, "time limit")}
+
+    def __init__(self, max_iter: int, eps: float):
+        import daqp
+
+        self._daqp = daqp
+        self.max_iter, self.eps = max_iter, eps
+        self.costs = OperationCosts()
+        self.reset()
+
+    def reset(self):
+        self._measured = False
+
+    def solve(self, qp: QP, warm: tuple | None, deadline: float | None) -> _Result:
+        if self._measured and not self.costs.fits("solve", _left(deadline)):
+            return _skipped("solve", self.costs, deadline, qp.n)
+        start = time.perf_counter()
+        n, k = qp.n, 0 if qp.box is None else len(qp.box)
+        lo, hi = np.full(n, -self.INF), np.full(n, self.INF)
+        if k:
+            lo[qp.box], hi[qp.box] = qp.l[:k], qp.u[:k]
+        dense = (lambda M: M.toarray() if sp.issparse(M) else np.asarray(M, dtype=float))
+        rows = [dense(qp.C)[k:]] + ([dense(qp.A)] if qp.b.size else [])
+        A = np.ascontiguousarray(np.vstack(rows)) if sum(r.shape[0] for r in rows) else np.zeros((0, n))
+        bu = np.clip(np.r_[hi, qp.u[k:], qp.b], -self.INF, self.INF)
+        bl = np.clip(np.r_[lo, qp.l[k:], qp.b], -self.INF, self.INF)
+        sense = np.zeros(bu.size, dtype=np.int32)
+        sense[bu.size - qp.b.size:] = 5  # equality: active and immutable
+        if warm is not None and len(warm) == 2 and warm[1].shape == bu.shape:
+            lam = warm[1][: bu.size - qp.b.size]
+            free = sense[: lam.size]
+            free[lam > 0] = 1  # active at the upper bound
+            free[lam < 0] = 3  # active at the lower bound
+        settings = {"iter_limit": self.max_iter, "primal_tol": min(1e-6, max(self.eps, 1e-10))}
+        H = np.ascontiguousarray(dense(qp.P))
+        z, _, flag, info = self._daqp.solve(H, np.asarray(qp.q, dtype=float), A, bu, bl, sense, **settings)
+        if flag == -6 and sense[: bu.size - qp.b.size].any():  # the warm working set is not usable: cold
+            sense[: bu.size - qp.b.size] = 0
+            z, _, flag, info = self._daqp.solve(H, np.asarray(qp.q, dtype=float), A, bu, bl, sense, **settings)
+        self.costs.add("solve", time.perf_counter() - start)
+        self._measured = True
+        status, raw = self._EXIT.get(flag, (EXCEPTION, f"exit flag {flag}"))
+        raw = f"DAQP {raw}"
+        if status == SUCCESS and deadline is not None and time.perf_counter() > deadline:
+            status, raw = LIMITED, f"time budget exceeded ({raw})"
+        z = np.array(z, dtype=float)
+        lam = np.array(info.get("lam", np.zeros(bu.size)), dtype=float)
+        return _Result(z, (z, lam), status, raw, int(info.get("iterations", 0)))
+
+
 def _upper_csc(P):
     """Upper triangle of P as CSC with a pattern that depends only on the shape (dense) or on P's pattern."""
     if sp.issparse(P):
@@ -303,7 +364,8 @@ def _full_csc(A):
 
 class LinearMPC(Controller):
     """Re-linearized MPC through a QP: ``form`` "sparse" (large matrix) or "condensed" (small matrix),
-    ``qp`` "proxqp", "osqp" or "hpipm" (sparse traditional form only), any parameterization of the OCP. Warm-starts from the previous solution.
+    ``qp`` "proxqp", "osqp", "hpipm" (sparse traditional form only) or "daqp" (dense active set, condensed form
+    only), any parameterization of the OCP. Warm-starts from the previous solution.
 
     ``max_iter`` caps the QP iterations (ProxQP: its total inner iterations) and ``time_limit`` (seconds) is
     a hard budget for the whole step, model and QP build included, counted from the start of ``solve``:
@@ -360,9 +422,11 @@ class LinearMPC(Controller):
         if qp == "hpipm" and not (form == "sparse" and ocp.knots == ocp.horizon):
             raise ValueError(f"qp 'hpipm' needs form 'sparse' and the identity parameterization (knots = horizon, "
                              f"traditional MPC), got form {form!r} with {ocp.knots} knots over {ocp.horizon} steps")
+        if qp == "daqp" and form != "condensed":
+            raise ValueError(f"qp 'daqp' is a dense solver: it needs form 'condensed', got form {form!r}")
         eps = positive(eps, "eps")
         self._backend = (_ProxQP(form == "sparse", 1, eps) if qp == "proxqp" else _OSQP(1, eps) if qp == "osqp"
-                         else _HPIPM(self.transcription, 1, eps))
+                         else _DAQP(1, eps) if qp == "daqp" else _HPIPM(self.transcription, 1, eps))
         self._costs = OperationCosts()  # the affine model and QP build ("prepare")
         self.max_iter = max_iter
         super().__init__(ocp, raise_on_fail=raise_on_fail, threads=threads)
