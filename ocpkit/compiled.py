@@ -11,6 +11,7 @@ until the compiled twin is ready, then on the twin: the default path of ``OCP.af
 """
 from __future__ import annotations
 
+import atexit
 import contextlib
 import hashlib
 import os
@@ -61,8 +62,8 @@ def _build(fn: ca.Function, flags: str, folder: Path, library: Path) -> None:
         partial = scratch / library.name
         compiler = os.environ.get("CC", "cc")
         try:
-            subprocess.run([compiler, *flags.split(), "-fPIC", "-shared", str(scratch / source), "-o", str(partial),
-                            "-lm"], check=True, capture_output=True, text=True)
+            _run_compiler([compiler, *flags.split(), "-fPIC", "-shared", str(scratch / source), "-o", str(partial),
+                           "-lm"], scratch)
         except FileNotFoundError:
             raise CompileError(f"compiling {fn.name()} needs a C compiler, and `{compiler}` was not found on PATH: "
                                f"install one (e.g. apt install gcc) or run without --compiled") from None
@@ -74,6 +75,31 @@ def _build(fn: ca.Function, flags: str, folder: Path, library: Path) -> None:
         with contextlib.suppress(OSError):
             shutil.copy(scratch / source, folder / source)  # kept for the curious reader; never compiled from
     finally:
+        shutil.rmtree(scratch, ignore_errors=True)
+
+
+_compiling: dict = {}  # running compiler processes -> their scratch folders (ended at interpreter exit)
+
+
+def _run_compiler(command: list[str], scratch: Path) -> None:
+    """subprocess.run(command, check=True) that a background compile cut short by the interpreter's exit does not
+    outlive: the compiler is stopped and its scratch folder removed (see :func:`_stop_compilers`)."""
+    with subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) as proc:
+        _compiling[proc] = scratch
+        try:
+            out, err = proc.communicate()
+        finally:
+            _compiling.pop(proc, None)
+    if proc.returncode:
+        raise subprocess.CalledProcessError(proc.returncode, command, out, err)
+
+
+@atexit.register
+def _stop_compilers() -> None:
+    for proc, scratch in list(_compiling.items()):
+        with contextlib.suppress(OSError):
+            proc.kill()
+            proc.wait(5)
         shutil.rmtree(scratch, ignore_errors=True)
 
 

@@ -107,3 +107,19 @@ def test_no_compiler_one_warning_and_the_vm(background, monkeypatch):
         assert ocp.affine() is fn
         x, goal = problem.sample(0)
         assert LinearMPC(ocp).solve(x, goal).ok
+
+
+def test_exit_during_a_background_compile_leaves_no_compiler_nor_scratch(tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    script = ("import time, ocpkit.ocp as o\nfrom ocpkit.problems import make\no.BACKGROUND_MIN_INSTRUCTIONS = 0\n"
+              "fn = make('nlink:3').ocp(knots=3).affine()\nimport ocpkit.compiled as c\n"
+              "for _ in range(600):\n    time.sleep(0.05)\n    if c._compiling: break\n"
+              "print(len(c._compiling))\n")
+    env = {**os.environ, "OCPKIT_CACHE_DIR": str(tmp_path)}
+    out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    if out.stdout.strip() == "1":  # it exited while the compiler ran
+        assert not list((tmp_path / "compiled").glob("*/.build-*"))
