@@ -132,7 +132,7 @@ def test_compiled_and_threaded_per_stage_models_equal_the_sx_ones(tmp_path, monk
     model's (A_k, B_k, w_k), and the LTV controller built on it the same closed loop."""
     monkeypatch.setenv("OCPKIT_CACHE_DIR", str(tmp_path))
     prob = make("nlink:2")
-    plain, compiled = prob.ocp(knots=3), prob.ocp(knots=3, compiled=True)
+    plain, compiled = prob.ocp(knots=3, compiled=False), prob.ocp(knots=3, compiled=True)
     rng = np.random.default_rng(3)
     xs, us = rng.normal(size=(plain.horizon, plain.nx)), rng.normal(size=(plain.horizon, plain.nu))
     ref = LinearMPC(plain, linearization="trajectory").affine_models(xs, us)
@@ -146,6 +146,27 @@ def test_compiled_and_threaded_per_stage_models_equal_the_sx_ones(tmp_path, monk
     trajs = [simulate(prob.plant(), LinearMPC(ocp, linearization="trajectory"), x0, goal, 0.1)
              for ocp in (plain, compiled)]
     np.testing.assert_allclose(trajs[1].u, trajs[0].u, rtol=0, atol=1e-10)
+
+
+def test_default_per_stage_models_switch_to_the_compiled_map(tmp_path, monkeypatch):
+    """The default OCP (compiled not given): the per-stage map runs on the VM until the background compile
+    finishes, then on the compiled model by itself, with the SX model's numbers to 1e-10."""
+    import ocpkit.ocp as ocp_module
+
+    monkeypatch.setenv("OCPKIT_CACHE_DIR", str(tmp_path))
+    monkeypatch.setattr(ocp_module, "BACKGROUND_MIN_INSTRUCTIONS", 0)
+    prob = make("nlink:2")
+    ocp = prob.ocp(knots=3)
+    rng = np.random.default_rng(4)
+    xs, us = rng.normal(size=(ocp.horizon, ocp.nx)), rng.normal(size=(ocp.horizon, ocp.nu))
+    ref = LinearMPC(prob.ocp(knots=3, compiled=False), linearization="trajectory").affine_models(xs, us)
+    ctrl = LinearMPC(ocp, linearization="trajectory")
+    first = ctrl.affine_models(xs, us)  # on the VM or already switched: the same numbers either way
+    assert ocp.affine() is not None and ocp._compiled_affine.wait(300) is not None
+    for got in (first, ctrl.affine_models(xs, us)):
+        for a, b in zip(got, ref):
+            np.testing.assert_allclose(a, b, rtol=0, atol=1e-10)
+    assert getattr(ctrl._affine_map[1]._buffer, "switched", True)  # a plain buffer: mapped after the compile
 
 
 def test_sparse_and_condensed_ltv_controllers_agree_in_closed_loop():
