@@ -48,7 +48,8 @@ def _add_controller_args(p):
     p.add_argument("problem", help=_SPEC_HELP)
     p.add_argument("--solver", default="qp", help="solver name (default qp)")
     p.add_argument("--form", choices=("sparse", "condensed"), help="qp: QP transcription (default condensed)")
-    p.add_argument("--qp", choices=("proxqp", "osqp"), help="qp: QP backend (default proxqp)")
+    p.add_argument("--qp", choices=("proxqp", "osqp", "daqp", "hpipm"),
+                   help="qp: QP backend (default proxqp; daqp: condensed form; hpipm: sparse traditional)")
     p.add_argument("--method", choices=("ipopt", "sqp"), help="ipopt: NLP method (default ipopt)")
     p.add_argument("--population", type=int, help="empc/cem/mppi: rollouts per generation")
     p.add_argument("--generations", type=int, help="empc/cem/mppi: generations per control step")
@@ -59,8 +60,11 @@ def _add_controller_args(p):
     p.add_argument("--parameterization", default="linear", choices=("linear", "zoh", "identity"))
     p.add_argument("--horizon", type=int, default=None, help="horizon T in steps (default: the problem's)")
     p.add_argument("--error", type=float, default=1.0, help="model error multiplier of the controller's model")
-    p.add_argument("--compiled", action="store_true",
-                   help="evaluate the affine model as compiled C (a one-off compile, cached; ~2x faster for large robots)")
+    p.add_argument("--compiled", action="store_true", default=None,
+                   help="compile the affine model to C before the first step (default: large models start on "
+                        "CasADi's VM and switch once a background compile, cached, has finished)")
+    p.add_argument("--no-compiled", dest="compiled", action="store_false",
+                   help="stay on CasADi's VM (no C compile)")
     p.add_argument("--seed", type=int, default=0, help="seed of the random start and goal")
 
 
