@@ -3,6 +3,7 @@
 No test here waits on a clock: trials block on a gate file that the test creates once the state it needs is
 reached (both processes hold claims, say); timeouts only guard against hangs.
 """
+import contextlib
 import json
 import os
 import signal
@@ -88,20 +89,27 @@ def folders(tmp_path):
     return tmp_path / "out", tmp_path / "gate", log
 
 
-def test_two_processes_share_the_grid_and_run_every_trial_once(folders):
-    out, gate, log = folders
-    n = 12
+@contextlib.contextmanager
+def competing(out, n, gate, log):
+    """Two study processes on one folder, yielded once both hold claims; killed on the way out."""
     a, b = spawn(out, n, gate, log), spawn(out, n, gate, log)
     try:
         until(lambda: {a.pid, b.pid} <= set(owners(out)), "both processes hold claims")
-        held = owners(out)
-        assert not held[a.pid] & held[b.pid]  # a trial is claimed by one process only
-        gate.touch()
-        assert a.wait(HANG_GUARD) == 0 and b.wait(HANG_GUARD) == 0
+        yield a, b
     finally:
         for p in (a, b):
             p.kill()
             p.wait()
+
+
+def test_two_processes_share_the_grid_and_run_every_trial_once(folders):
+    out, gate, log = folders
+    n = 12
+    with competing(out, n, gate, log) as (a, b):
+        held = owners(out)
+        assert not held[a.pid] & held[b.pid]  # a trial is claimed by one process only
+        gate.touch()
+        assert a.wait(HANG_GUARD) == 0 and b.wait(HANG_GUARD) == 0
     assert executions(log) == {x: 1 for x in range(n)}  # every trial ran exactly once
     with Store(out) as store:
         df = store.load("shared")
@@ -114,19 +122,13 @@ def test_two_processes_share_the_grid_and_run_every_trial_once(folders):
 def test_a_killed_claimants_trials_are_taken_over(folders):
     out, gate, log = folders
     n = 12
-    a, b = spawn(out, n, gate, log), spawn(out, n, gate, log)
-    try:
-        until(lambda: {a.pid, b.pid} <= set(owners(out)), "both processes hold claims")
+    with competing(out, n, gate, log) as (a, b):
         lost = owners(out)[a.pid]
         until(lambda: lost <= set(executions(log)), "a's workers started its trials")
         a.send_signal(signal.SIGKILL)
         a.wait()
         gate.touch()
         assert b.wait(HANG_GUARD) == 0  # b finishes the grid, a's trials included
-    finally:
-        for p in (a, b):
-            p.kill()
-            p.wait()
     with Store(out) as store:
         df = store.load("shared")
     assert sorted(df.x) == list(range(n)) and (df.status == "ok").all()
