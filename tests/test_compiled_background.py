@@ -119,7 +119,10 @@ def test_exit_during_a_background_compile_leaves_no_compiler_nor_scratch(tmp_pat
               "for _ in range(600):\n    time.sleep(0.05)\n    if c._compiling: break\n"
               "print(len(c._compiling))\n")
     env = {**os.environ, "OCPKIT_CACHE_DIR": str(tmp_path)}
-    out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=300)
+    # cwd away from the checkout: `python -c` puts the cwd first on sys.path, and the checkout's ocpkit/ has no
+    # problems/ (that only exists as ocpkit.problems once installed).
+    out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=300,
+                         cwd=tmp_path)
     assert out.returncode == 0, out.stderr
     if out.stdout.strip() == "1":  # it exited while the compiler ran
         assert not list((tmp_path / "compiled").glob("*/.build-*"))
