@@ -63,7 +63,7 @@ def test_comparison_tiny(monkeypatch, tmp_path):
 def test_baxter_tiny(monkeypatch, tmp_path):
     monkeypatch.setitem(baxter.SIZES, "quick", {"seeds": 1, "duration": 1.0, "population": 64, "arch": "cpu"})
     df, text = _run(baxter, tmp_path)
-    assert len(df) == 9 and (df["fallbacks"] == 0).all()
+    assert len(df) == 3 * (1 + len(baxter.CONTROLLERS)) and (df["fallbacks"] == 0).all()
     itae = {c: np.median(g[[f"itae_{j}" for j in baxter.SHORT]].to_numpy()) for c, g in df.groupby("controller")}
     assert itae[baxter.QP] < itae[baxter.SERVO]  # MPC damps the underdamped servo
     assert "(Table III)" in text and "| servo (step input) |" in text
