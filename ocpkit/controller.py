@@ -299,11 +299,16 @@ class Controller:
         (X,) = self._rollout(x, np.asarray(us, dtype=float).T)
         return np.vstack([x, X.T])
 
+    def goal_knots(self, goal) -> np.ndarray:
+        """The input goal u_g held at every knot and clipped to the input bounds: the cold-start plan."""
+        ocp = self.ocp
+        return np.clip(np.tile(ocp.input_goal(goal), (ocp.knots, 1)), ocp.u_min, ocp.u_max)
+
     def fallback(self, status: str, raw_status: str, times: dict | None = None, iterations: int = 0) -> Solution:
         """A failed step: the previous plan advanced one step and clipped to the input bounds."""
         ocp = self.ocp
         if self.plan is None:
-            knots = np.tile(ocp.input_goal(self._goal), (ocp.knots, 1))
+            knots = self.goal_knots(self._goal)
         else:
             knots = ocp.parameterization.shift(self.plan)
         knots = np.clip(np.nan_to_num(knots), ocp.u_min, ocp.u_max)

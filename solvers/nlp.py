@@ -386,7 +386,7 @@ class NonlinearMPC(Controller):
         """Cold: states held at x_0 and knots at the input goal u_g (clipped). Warm: the previous solution shifted a step."""
         ocp, n, T = self.ocp, self.ocp.nx, self.ocp.horizon
         if self._warm is None or not self.warm_start:
-            knots = np.clip(np.tile(ocp.input_goal(goal), (ocp.knots, 1)), ocp.u_min, ocp.u_max)
+            knots = self.goal_knots(goal)
             return np.r_[np.tile(x, T), knots.ravel()], None, None
         w, lam_x, lam_g = self._warm
         shifted = ocp.parameterization.shift(w[self._nX:].reshape(ocp.knots, ocp.nu))

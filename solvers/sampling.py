@@ -330,7 +330,7 @@ class GaussianSampling(SamplingMPC):
         elif self.preconditioned:
             start = self.preconditioner.hold
         else:
-            start = np.tile(np.clip(ocp.input_goal(self._goal), ocp.u_min, ocp.u_max), (ocp.knots, 1))
+            start = self.goal_knots(self._goal)
         d = ocp.knots * ocp.nu
         self.std = np.full(d, self.sigma) if self.preconditioned else np.tile(self.sigma, ocp.knots)
         return start
