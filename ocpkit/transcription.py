@@ -78,8 +78,6 @@ def _values(M):
     return M.data if sp.issparse(M) else M
 
 
-SLACK_QUAD = 1.0
-
 
 class _Transcription:
     """Shared data of both forms: the parameterization basis and the bound rows on knots and states."""
@@ -105,7 +103,7 @@ class _Transcription:
         self.x_hi = np.tile(ocp.x_max, T)[self.x_rows]
         self.soft = bool(soft) and self.x_rows.size > 0
         self.ns = 2 * self.x_rows.size if self.soft else 0  # slacks s⁺, s⁻: the last ns entries of z
-        self.slack_quad = SLACK_QUAD
+        self.slack_quad = self.slack_weight  # the ½·w·s² of the cost (see the module docstring)
         self._k0 = 0  # index of the first knot in z (the sparse form overrides)
         # Per-step state weights Q (k = 1 … T−1) and Q_T (k = T).
         self.Qs = np.concatenate([np.broadcast_to(ocp.Q, (T - 1, n, n)), ocp.Q_terminal[None]])

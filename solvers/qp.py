@@ -52,9 +52,15 @@ class _ProxQP:
     (15 M inner iterations at x = 1e20 on the pendulum), so it is run in chunks of at most CHUNK_OUTER outer ×
     CHUNK_INNER inner iterations, continuing from the previous iterate: ``max_iter`` caps the total inner
     iterations, and with a deadline a chunk (or the init/update) starts only if its measured time fits.
+
+    A warm start from the previous step can leave ProxQP stalled with zero residuals and an open duality gap
+    (the pendulum driven against a soft state bound: 10,000 iterations on every later step, where a cold solve
+    takes 34), so a warm-started solve gets WARM_INNER inner iterations; if it has not converged by then the
+    QP is solved again from a cold start with what is left of the iterations and the budget.
     """
 
     CHUNK_OUTER, CHUNK_INNER = 5, 50
+    WARM_INNER = 500
 
     def __init__(self, sparse: bool, max_iter: int, eps: float):
         import proxsuite
@@ -80,6 +86,9 @@ class _ProxQP:
 
     def solve(self, qp: QP, warm: tuple | None, deadline: float | None) -> _Result:
         """Solve in chunks up to ``max_iter`` inner iterations and, with a deadline (perf_counter), up to it."""
+        return self._solve(qp, warm, deadline, self.max_iter)
+
+    def _solve(self, qp: QP, warm: tuple | None, deadline: float | None, max_iter: int) -> _Result:
         px, costs = self._proxqp, self.costs
         data, key = self._data(qp)
         H, g, A, b, C, l, u, lo, hi = data
@@ -111,15 +120,17 @@ class _ProxQP:
             solver.init(H, g, A, b, C, l, u, **box)
             self._key = key
             first = warm if warm_ok else ()
-        first_warm = bool(first)
+        warm_started = reuse or bool(first)
         costs.add(op, time.perf_counter() - t)
         out = px.QPSolverOutput
         iterations, chunks, why = 0, 0, None
         while True:
-            left_iter = self.max_iter - iterations
+            left_iter = max_iter - iterations
             if left_iter <= 0:
                 why = f"max_iter {self.max_iter} reached"
                 break
+            if warm_started and iterations >= self.WARM_INNER:  # stalled from the warm start
+                return self._cold_again(qp, deadline, left_iter, iterations)
             if not costs.fits("chunk", _left(deadline)):
                 why = (f"time budget reached after {iterations} iterations (a chunk measured at "
                        f"{1e3 * costs.predict('chunk'):.3g} ms)")
@@ -135,11 +146,10 @@ class _ProxQP:
             if solver.results.info.status != out.PROXQP_MAX_ITER_REACHED:
                 break
         r = solver.results
-        if (reuse or first_warm) and r.info.status in (out.PROXQP_PRIMAL_INFEASIBLE, out.PROXQP_DUAL_INFEASIBLE):
+        if warm_started and r.info.status in (out.PROXQP_PRIMAL_INFEASIBLE, out.PROXQP_DUAL_INFEASIBLE):
             # ProxQP's infeasibility test misfires from a warm start far from the new solution (a soft-bounded,
             # always feasible QP was reported infeasible): confirm it from a cold start.
-            self.reset()
-            return self.solve(qp, None, deadline)
+            return self._cold_again(qp, deadline, max_iter - iterations, iterations)
         if not chunks:
             return _Result(np.array(r.x), (np.array(r.x), np.array(r.y), np.array(r.z)), LIMITED, why, 0)
         status = {out.PROXQP_SOLVED: SUCCESS, out.PROXQP_MAX_ITER_REACHED: LIMITED,
@@ -149,6 +159,14 @@ class _ProxQP:
         if status == LIMITED and why is not None:
             raw = f"{why} ({raw})"
         return _Result(np.array(r.x), (np.array(r.x), np.array(r.y), np.array(r.z)), status, raw, int(iterations))
+
+    def _cold_again(self, qp: QP, deadline: float | None, max_iter: int, spent: int) -> _Result:
+        """The QP again from a cold start, with ``max_iter`` inner iterations left (``spent`` already used)."""
+        self.reset()
+        res = self._solve(qp, None, deadline, max_iter) if max_iter > 0 else _Result(
+            np.full(qp.n, np.nan), (), LIMITED, f"max_iter {self.max_iter} reached", 0)
+        res.iterations += spent
+        return res
 
 
 class _OSQP:
@@ -377,7 +395,7 @@ class LinearMPC(Controller):
     reset) controller has nothing measured yet and is not bounded: it calibrates.
 
     ``state_bounds`` "soft" (default) turns the OCP's state bounds into an exact L1 penalty: a slack
-    s ≥ 0 per bounded state component, x_min − s ≤ x_k ≤ x_max + s, cost ``slack_weight``·Σs (larger than
+    s ≥ 0 per bounded state component, x_min − s ≤ x_k ≤ x_max + s, cost ``slack_weight``·Σ(s + ½s²) (larger than
     the bounds' multipliers, so the bounds hold exactly whenever they can be met). A state the plant has
     already pushed past a bound, or a goal beyond one, then drives to the bound instead of failing as
     infeasible. "hard" keeps them as constraints; HPIPM supports hard state bounds only.

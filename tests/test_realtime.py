@@ -126,8 +126,10 @@ def test_two_threads_share_one_controller_safely():
     assert all(r.acceptable for r in rows), [r.detail for r in rows]
 
 
-def test_goal_beyond_state_bound_drives_to_the_bound():
-    (row,) = beyond_bounds_rows(("qp condensed proxqp",))
+@pytest.mark.parametrize("label", ["qp condensed proxqp", "qp sparse proxqp"])
+def test_goal_beyond_state_bound_drives_to_the_bound(label):
+    # Sparse ProxQP stalled from its warm start here (25/100 steps, 10,000 iterations each) before the cold retry.
+    (row,) = beyond_bounds_rows((label,))
     assert row.acceptable, row.detail
 
 
