@@ -68,11 +68,13 @@ def busy_processes(count: int):
             p.wait()
 
 
-def load_medians(problem="nlink:13", horizon=100, knots=5, steps=30, busy=2, seed=0) -> dict:
+def load_medians(problem="nlink:13", horizon=100, knots=5, steps=30, busy=2, seed=0, seconds=2.0) -> dict:
     """Median whole-step time (s) of the condensed knots controller quiet and beside ``busy`` busy processes,
     with BLAS/OpenMP limited to 1 thread (the default) and unlimited (threads=None): {(threads, "quiet"|"loaded"): s}.
 
-    The same replayed closed-loop states every time; each controller is calibrated by one untimed replay."""
+    The same replayed closed-loop states every time; each controller is calibrated by one untimed replay, then
+    replays them for at least ``seconds`` per condition (a few replays last a fraction of a scheduler period,
+    too short to see the load)."""
     prob = make(problem)
     ocp = prob.ocp(horizon=horizon, knots=knots)
     x, goal = prob.sample(seed)
@@ -93,7 +95,10 @@ def load_medians(problem="nlink:13", horizon=100, knots=5, steps=30, busy=2, see
     for label in ("quiet", "loaded"):
         with busy_processes(busy if label == "loaded" else 0):
             for threads, ctrl in ctrls.items():
-                out[(threads, label)] = float(np.median(replay(ctrl) + replay(ctrl)))
+                walls, end = [], time.perf_counter() + seconds
+                while time.perf_counter() < end:
+                    walls += replay(ctrl)
+                out[(threads, label)] = float(np.median(walls))
     return out
 
 
