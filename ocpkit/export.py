@@ -157,10 +157,10 @@ def export(ocp: OCP, out_dir, *, form: str = "condensed", qp: str = "daqp", name
 
     tr = CondensedQP(ocp)
     na = tr.x_rows.size
-    affine, model = _model_functions(ocp, name)
+    lin, model, jac = _model_functions(ocp, name)
     solver = _conic(qp, name, tr.nz, na, eps, max_iter, polish)
     cg = ca.CodeGenerator(f"{name}_casadi.c", {"with_header": True, "casadi_int": "long long int"})
-    all_f = [solver, affine, model]
+    all_f = [solver, lin, model]
     for f in all_f:
         cg.add(f)
     cg.generate(str(out) + "/")
@@ -168,12 +168,14 @@ def export(ocp: OCP, out_dir, *, form: str = "condensed", qp: str = "daqp", name
     sizes = {
         "NX": ocp.nx, "NU": ocp.nu, "KNOTS": ocp.knots, "HORIZON": ocp.horizon, "NZ": tr.nz, "NA": na,
         "NL": ocp.nx + 2 * ocp.nu + 1, "LMAX": max(tr._lengths), "NLEN": len(tr._lengths),
+        "NB": int(np.count_nonzero(np.isfinite(ocp.x_min) | np.isfinite(ocp.x_max))),
+        "NNZ_FX": len(jac[0][0]) if jac else 0, "NNZ_FU": len(jac[1][0]) if jac else 0,
         "SZ_ARG": max(f.sz_arg() for f in all_f), "SZ_RES": max(f.sz_res() for f in all_f),
         "SZ_IW": max(f.sz_iw() for f in all_f), "SZ_W": max(f.sz_w() for f in all_f),
     }
     info = Export(out, name, form, qp, linearization, ocp.nx, ocp.nu, ocp.knots, ocp.horizon, na)
     (out / f"{name}.h").write_text(_header(name, sizes, ocp, form, qp, linearization))
-    (out / f"{name}.c").write_text(_wrapper(name, qp, linearization, tr))
+    (out / f"{name}.c").write_text(_wrapper(name, qp, linearization, tr, jac))
     (out / "main.c").write_text(_example(name, x0, goal, steps, ocp.dt))
     (out / "Makefile").write_text(_makefile(name, qp))
     (out / "README.md").write_text(_readme(info, ocp, eps, max_iter))
@@ -210,56 +212,55 @@ def build(out_dir, *, target: str = "lib", jobs: int = 2) -> Path:
 
 
 def _model_functions(ocp: OCP, name: str):
-    """(affine, model): (x, ū) -> (A_d, B_d, w_d) and (x, u) -> x⁺ of ``ocp.discrete()``.
+    """(linearization, model, jacobian sparsity): the Function the C step linearizes with, (x, u) -> x⁺ of
+    ``ocp.discrete()``, and for a nonlinear model the row and column indices of ∂f/∂x and ∂f/∂u.
 
-    A linear model's discretization is a constant (matrix exponential): its own Functions are small. A
-    nonlinear one is RK4 over ``substeps``; its Jacobian is propagated through the four stages
-    (dk/dx = J_x(x_s, u) dx_s/dx, …), the same derivative ``ocp.affine()`` takes of the unrolled RK4 graph,
-    with f, J_x, J_u generated once instead of differentiating the whole step symbolically.
+    A linear model's discretization is a constant (matrix exponential): ``<name>_affine`` (x, ū) -> (A_d, B_d,
+    w_d) is small. A nonlinear one is RK4 over ``substeps``: ``<name>_fjac`` (x, u) -> (f, ∂f/∂x, ∂f/∂u) is
+    generated once, its Jacobians kept sparse, and the C step propagates the sensitivities through the four
+    stages (dk/dx = J_x(x_s, u) dx_s/dx, …) — the same derivative ``ocp.affine()`` takes of the unrolled RK4
+    graph, with sparse-times-dense products instead of a symbolic derivative of the whole step.
     """
     model = ocp.model
-    n, m = ocp.nx, ocp.nu
+    disc = model.discrete(ocp.dt, ocp.substeps)
+    xs, us = ca.SX.sym("x", ocp.nx), ca.SX.sym("u", ocp.nu)
+    step = ca.Function(f"{name}_model", [xs, us], [disc(xs, us)], ["x", "u"], ["x_next"])
     if model.linear:
-        aff = model.affine(ocp.dt, ocp.substeps)
-        disc = model.discrete(ocp.dt, ocp.substeps)
-        xs, us = ca.SX.sym("x", n), ca.SX.sym("u", m)
-        Ad, Bd, wd = aff(xs, us)
+        Ad, Bd, wd = model.affine(ocp.dt, ocp.substeps)(xs, us)
         return (ca.Function(f"{name}_affine", [xs, us], [ca.densify(Ad), ca.densify(Bd), ca.densify(wd)],
-                            ["x", "u"], ["Ad", "Bd", "wd"]),
-                ca.Function(f"{name}_model", [xs, us], [disc(xs, us)], ["x", "u"], ["x_next"]))
+                            ["x", "u"], ["Ad", "Bd", "wd"]), step, None)
     x, u = model.x, model.u
-    f = ca.Function(f"{name}_f", [x, u], [model.xdot], ["x", "u"], ["xdot"])
-    fj = ca.Function(f"{name}_fjac", [x, u], [model.xdot, ca.densify(ca.jacobian(model.xdot, x)),
-                                              ca.densify(ca.jacobian(model.xdot, u))],
-                     ["x", "u"], ["xdot", "fx", "fu"])
-    h = ocp.dt / ocp.substeps
-    X, U = ca.MX.sym("x", n), ca.MX.sym("u", m)
-    xk, Sx, Su = X, ca.MX(ca.DM.eye(n)), ca.MX(n, m)
-    xm = X
-    for _ in range(ocp.substeps):
-        k1, J1, G1 = fj(xk, U)
-        d1x, d1u = ca.mtimes(J1, Sx), ca.mtimes(J1, Su) + G1
-        k2, J2, G2 = fj(xk + h / 2 * k1, U)
-        S2x, S2u = Sx + h / 2 * d1x, Su + h / 2 * d1u
-        d2x, d2u = ca.mtimes(J2, S2x), ca.mtimes(J2, S2u) + G2
-        k3, J3, G3 = fj(xk + h / 2 * k2, U)
-        S3x, S3u = Sx + h / 2 * d2x, Su + h / 2 * d2u
-        d3x, d3u = ca.mtimes(J3, S3x), ca.mtimes(J3, S3u) + G3
-        k4, J4, G4 = fj(xk + h * k3, U)
-        S4x, S4u = Sx + h * d3x, Su + h * d3u
-        d4x, d4u = ca.mtimes(J4, S4x), ca.mtimes(J4, S4u) + G4
-        xk = xk + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
-        Sx = Sx + h / 6 * (d1x + 2 * d2x + 2 * d3x + d4x)
-        Su = Su + h / 6 * (d1u + 2 * d2u + 2 * d3u + d4u)
-        q1 = f(xm, U)
-        q2 = f(xm + h / 2 * q1, U)
-        q3 = f(xm + h / 2 * q2, U)
-        q4 = f(xm + h * q3, U)
-        xm = xm + h / 6 * (q1 + 2 * q2 + 2 * q3 + q4)
-    wd = xk - ca.mtimes(Sx, X) - ca.mtimes(Su, U)
-    affine = ca.Function(f"{name}_affine", [X, U], [ca.densify(Sx), ca.densify(Su), wd],
-                         ["x", "u"], ["Ad", "Bd", "wd"])
-    return affine, ca.Function(f"{name}_model", [X, U], [xm], ["x", "u"], ["x_next"])
+    fx, fu = ca.jacobian(model.xdot, x), ca.jacobian(model.xdot, u)
+    fj = ca.Function(f"{name}_fjac", [x, u], [model.xdot, fx, fu], ["x", "u"], ["xdot", "fx", "fu"])
+    return fj, step, (fx.sparsity().get_triplet(), fu.sparsity().get_triplet())
+
+
+def _gram_schedule(lengths) -> list[int]:
+    """Operations that build Γ_L for each piece length L from Γ_1 (codes of the C step's ``GRAM_OPS``).
+
+    ``DOUBLE`` takes Γ_s, Λ_s to Γ_2s = Γ_s + (Â^s)ᵀ Γ_s Â^s, Λ_2s = Λ_s Â^s; ``INC`` to Γ_s+1 = Γ_s + W_s+1ᵀW_s+1;
+    ``RESET`` restarts from s = 1; ``SAVE + i`` stores Γ_L, Λ_L as length i. L is reached by its binary digits
+    (a doubling per digit, an increment per one) or by increments from the length before, whichever costs
+    less (a doubling costs about 2.5 increments at robot scale).
+    """
+    ops, s = [], 1
+    for i, L in enumerate(lengths):
+        bits = bin(L)[3:]
+        chain = 2.5 * len(bits) + bits.count("1")
+        if L - s > chain:
+            ops.append(_RESET)
+            for bit in bits:
+                ops.append(_DOUBLE)
+                if bit == "1":
+                    ops.append(_INC)
+        else:
+            ops += [_INC] * (L - s)
+        s = L
+        ops.append(_SAVE + i)
+    return ops
+
+
+_DOUBLE, _INC, _RESET, _SAVE = 1, 2, 3, 10
 
 
 def _conic(qp: str, name: str, nz: int, na: int, eps: float, max_iter: int, polish: bool) -> ca.Function:
@@ -315,6 +316,7 @@ extern "C" {{
 {defs}
 #define {N}_NA1 ({N}_NA > 0 ? {N}_NA : 1)
 #define {N}_NZ1 ({N}_NZ + 1)
+#define {N}_NB1 ({N}_NB > 0 ? {N}_NB : 1)
 /* Bound violation above which a reported solution is rejected (status {N}_EXCEPTION, solver return
    {N}_VIOLATED). */
 #define {N}_FEAS_TOL {feas_tol!r}
@@ -328,12 +330,17 @@ typedef struct {{
   double* res[{N}_SZ_RES];
   long long iw[{N}_SZ_IW > 0 ? {N}_SZ_IW : 1];
   double w[{N}_SZ_W > 0 ? {N}_SZ_W : 1];
-  /* affine model and the condensing's work space */
-  double ug[{N}_NU], ubar[{N}_NU], Ad[{N}_NX * {N}_NX], At[{N}_NX * {N}_NX], Bd[{N}_NX * {N}_NU], wd[{N}_NX];
-  double G[{N}_NX * ({N}_NU + 1)], Gn[{N}_NX * ({N}_NU + 1)];
-  double Lam[{N}_LMAX * {N}_NX * {N}_NL], W[{N}_NX * {N}_NL], acc[{N}_NL * {N}_NL];
-  double Gam[{N}_NLEN * {N}_NL * {N}_NL], Y[{N}_NL * {N}_NZ1];
-  double prev[{N}_NX * {N}_NZ1], next[{N}_NX * {N}_NZ1], Pq[{N}_NZ1 * {N}_NZ1], row[{N}_NZ1];
+  /* the affine model: RK4 sensitivities S = [dx/dx0, dx/du] (row-major), or the generated constant model */
+  double ug[{N}_NU], ubar[{N}_NU], Ad[{N}_NX * {N}_NX], Bd[{N}_NX * {N}_NU], wd[{N}_NX];
+  double xk[{N}_NX], xs[{N}_NX], kq[{N}_NX], kacc[{N}_NX], fx[{N}_NNZ_FX + 1], fu[{N}_NNZ_FU + 1];
+  double S[{N}_NX * ({N}_NX + {N}_NU)], Ss[{N}_NX * ({N}_NX + {N}_NU)], D[{N}_NX * ({N}_NX + {N}_NU)];
+  double Dacc[{N}_NX * ({N}_NX + {N}_NU)];
+  /* the condensing's work space: Λ_1, the running Λ_s and Γ_s, Γ_L and Λ_L per piece length */
+  double Lam1[{N}_NX * {N}_NL], LamS[{N}_NX * {N}_NL], LamT[{N}_NX * {N}_NL], W[{N}_NX * {N}_NL];
+  double Gam1[{N}_NL * {N}_NL], GamS[{N}_NL * {N}_NL], Y[{N}_NL * ({N}_NL > {N}_NZ1 ? {N}_NL : {N}_NZ1)];
+  double GamL[{N}_NLEN * {N}_NL * {N}_NL], LamL[{N}_NLEN * {N}_NX * {N}_NL];
+  double LamB[{N}_LMAX * {N}_NB1 * {N}_NL], RB[{N}_LMAX * {N}_NB1 * {N}_NZ1];
+  double prev[{N}_NX * {N}_NZ1], next[{N}_NX * {N}_NZ1], E2[{N}_NX * {N}_NZ1], Pq[{N}_NZ1 * {N}_NZ1];
   /* the QP */
   double h[{N}_NZ * {N}_NZ], g[{N}_NZ], a[{N}_NA1 * {N}_NZ], lba[{N}_NA1], uba[{N}_NA1];
   double lbx[{N}_NZ], ubx[{N}_NZ];
@@ -351,6 +358,10 @@ int {name}_init({name}_memory* mem);
 void {name}_reset({name}_memory* mem);
 /* One MPC step from state x towards goal state goal: writes u_out and *status, returns *status. */
 int {name}_step({name}_memory* mem, const double* x, const double* goal, double* u_out, int* status);
+/* The step, also writing the seconds it spent in its three parts: t[0] the affine model, t[1] the condensing
+   (the QP's matrices), t[2] the QP solver (0 for the parts a failure skipped). */
+int {name}_step_timed({name}_memory* mem, const double* x, const double* goal, double* u_out, int* status,
+                      double* t);
 /* Copy the current plan's knots (the solution, or the fallback plan after a failure). */
 void {name}_knots(const {name}_memory* mem, double* knots);
 /* The QP solver's raw return code of the last step (0: solved). */
@@ -392,8 +403,9 @@ def _c_const(kind: str, name: str, values) -> str:
     return f"static const {kind} {name}[{values.size}] = {body};"
 
 
-def _constants(tr: CondensedQP, linearization: str) -> str:
-    """The step's constants: input goal, shift, bounds, weights and the basis' pieces."""
+def _constants(tr: CondensedQP, linearization: str, jac) -> str:
+    """The step's constants: input goal, shift, bounds, weights, the basis' pieces, the Gram schedule and, for
+    a nonlinear model, RK4's step and the Jacobians' sparsity."""
     ocp = tr.ocp
     n, m, p = tr.n, tr.m, tr.p
     phi = tr.phi
@@ -414,8 +426,15 @@ def _constants(tr: CondensedQP, linearization: str) -> str:
         for j in range(int(c) // m):
             pphi[i, j] = rhs[n, 1 + j * m]
             pdel[i, j] = rhs[n + m, 1 + j * m]
+    ops = _gram_schedule(lengths)
     lines = [
         f"#define DIAG_Q {int(tr.diagonal_Q)}",
+        f"#define HAS_DQT {int(np.any(tr._dQT))}",
+        f"#define MODEL_RK4 {int(jac is not None)}",
+        f"#define SUBSTEPS {ocp.substeps}",
+        f"#define RK_H {_c_num(ocp.dt / ocp.substeps)}",
+        f"#define NGRAM_OPS {len(ops)}",
+        _c_const("int", "GRAM_OPS", ops),
         f"#define HAS_K {int(np.any(K))}",
         f"#define LIN_PLAN {int(linearization == 'plan')}",
         f"#define NPIECE {len(pieces)}",
@@ -425,20 +444,26 @@ def _constants(tr: CondensedQP, linearization: str) -> str:
         _c_const("double", "R_KNOTS", tr.R_knots),
         _c_const("double", "PHI_SUM", tr._phi_sum),
         _c_const("double", "PHI0", phi[0]),
-        _c_const("double", "W0", phi[0] @ M),
         _c_const("double", "SHIFT", M),
         _c_const("double", "LBX", np.tile(ocp.u_min, p)),
         _c_const("double", "UBX", np.tile(ocp.u_max, p)),
         _c_const("double", "QH", tr._qh),
-        _c_const("double", "DQT", tr._dQT),
-        _c_const("int", "LENGTHS", lengths),
         _c_const("int", "PIECE_A", pa),
         _c_const("int", "PIECE_L", pl),
         _c_const("int", "PIECE_C", pc),
+        _c_const("int", "PIECE_CP", [0] + pc[:-1]),
         _c_const("int", "PIECE_LEN", [lengths.index(L) for L in pl]),
         _c_const("double", "PIECE_PHI", pphi),
         _c_const("double", "PIECE_DELTA", pdel),
     ]
+    if linearization == "plan":
+        lines.append(_c_const("double", "W0", phi[0] @ M))
+    if np.any(tr._dQT):
+        lines.append(_c_const("double", "DQT", tr._dQT))
+    if jac is not None:
+        (fxi, fxj), (fui, fuj) = jac
+        lines += [_c_const("int", "FX_I", fxi), _c_const("int", "FX_J", fxj),
+                  _c_const("int", "FU_I", fui), _c_const("int", "FU_J", fuj)]
     if np.any(K):  # read only under #if HAS_K / #if NB > 0: unused constants would draw warnings
         lines.append(_c_const("double", "K_GOAL", K))
     if bounded.size:
@@ -449,8 +474,12 @@ def _constants(tr: CondensedQP, linearization: str) -> str:
 
 _WRAPPER = Template(r"""/* $name.c — one MPC step: the affine model (generated, ${name}_casadi.c), the condensed QP built by the
  * loops below (ocpkit.transcription.CondensedQP.build in C), the QP solve (generated) and the first input. */
+#if !defined(_WIN32) && !defined(_POSIX_C_SOURCE)
+#define _POSIX_C_SOURCE 199309L /* clock_gettime for ${name}_step_timed */
+#endif
 #include <math.h>
 #include <string.h>
+#include <time.h>
 #include "$name.h"
 #include "${name}_casadi.h"
 
@@ -544,152 +573,228 @@ static int fallback(mem_t* m, double* u_out, int status) {
   return status;
 }
 
-/* Λ_s = [A^s E_s F_s e_s] for s = 1 … LMAX (row-major NX x NL each, Lam[s-1]): E_s = Σ_{t<s} A^t B,
-   F_s = Σ_{t<s} E_t, e_s = Σ_{t<s} A^t w. Ad, Bd come column-major from CasADi. */
-static void lambdas(mem_t* m) {
-  const double *A = m->Ad, *B = m->Bd, *w = m->wd;
-  double *G = m->G, *Gn = m->Gn, *At = m->At;
-  int s, i, j, k;
-  /* Loops are written as row updates (axpy) so that compilers vectorize them without reassociation. */
-  for (i = 0; i < NX; ++i) {
-    for (j = 0; j < NX; ++j) At[i * NX + j] = A[i + NX * j];
-    for (j = 0; j < NU; ++j) G[i * (NU + 1) + j] = B[i + NX * j];
-    G[i * (NU + 1) + NU] = w[i];
-  }
-  for (s = 0; s < LMAX; ++s) {
-    double* L = m->Lam + s * NX * NL;
-    const double* P = m->Lam + (s > 0 ? s - 1 : 0) * NX * NL;
-    if (s == 0) {
-      for (i = 0; i < NX; ++i) for (j = 0; j < NX; ++j) L[i * NL + j] = At[i * NX + j];
-    } else {
-      for (i = 0; i < NX; ++i) {  /* A^{s+1} = A^s A */
-        double* Li = L + i * NL;
-        const double* Pi = P + i * NL;
-        for (j = 0; j < NX; ++j) Li[j] = 0;
-        for (k = 0; k + 4 <= NX; k += 4) {
-          const double p0 = Pi[k], p1 = Pi[k + 1], p2 = Pi[k + 2], p3 = Pi[k + 3];
-          const double *A0 = At + k * NX, *A1 = A0 + NX, *A2 = A1 + NX, *A3 = A2 + NX;
-          for (j = 0; j < NX; ++j) Li[j] += p0 * A0[j] + p1 * A1[j] + p2 * A2[j] + p3 * A3[j];
-        }
-        for (; k < NX; ++k) {
-          const double pik = Pi[k];
-          const double* Ak = At + k * NX;
-          for (j = 0; j < NX; ++j) Li[j] += pik * Ak[j];
-        }
-      }
-      for (i = 0; i < NX * (NU + 1); ++i) Gn[i] = 0;
-      for (i = 0; i < NX; ++i)  /* A^s [B w] = A (A^{s-1} [B w]) */
-        for (k = 0; k < NX; ++k) {
-          const double aik = At[i * NX + k];
-          const double* Gk = G + k * (NU + 1);
-          double* Gi = Gn + i * (NU + 1);
-          for (j = 0; j <= NU; ++j) Gi[j] += aik * Gk[j];
-        }
-      for (i = 0; i < NX * (NU + 1); ++i) G[i] = Gn[i];
-    }
-    for (i = 0; i < NX; ++i) {
-      double* Li = L + i * NL;
-      const double* Pi = P + i * NL;
-      const double* Gi = G + i * (NU + 1);
-      if (s) {
-        for (j = 0; j < NU; ++j) {
-          Li[NX + j] = Pi[NX + j] + Gi[j];
-          Li[NX + NU + j] = Pi[NX + NU + j] + Pi[NX + j];
-        }
-        Li[NL - 1] = Pi[NL - 1] + Gi[NU];
-      } else {
-        for (j = 0; j < NU; ++j) { Li[NX + j] = Gi[j]; Li[NX + NU + j] = 0.0; }
-        Li[NL - 1] = Gi[NU];
-      }
-    }
-  }
-}
-
-/* Γ_L = Σ_{s≤L} W_sᵀW_s, W_s = Q^½ Λ_s with the goal folded into the last column, for each piece length L. */
-static void grams(mem_t* m, const double* xg) {
-  double *W = m->W, *acc = m->acc;
-  int s, i, j, k, li = 0;
-  for (i = 0; i < NL * NL; ++i) acc[i] = 0;
-  for (s = 0; s < LMAX && li < NLEN; ++s) {
-    const double* L = m->Lam + s * NX * NL;
-#if DIAG_Q
-    for (i = 0; i < NX; ++i) {
-      for (j = 0; j < NL; ++j) W[i * NL + j] = QH[i] * L[i * NL + j];
-      W[i * NL + NL - 1] -= QH[i] * xg[i];
-    }
-#else
-    for (i = 0; i < NX; ++i) {
-      double gx = 0;
-      for (j = 0; j < NL; ++j) W[i * NL + j] = 0;
-      for (k = 0; k < NX; ++k) {
-        double q = QH[i * NX + k];
-        for (j = 0; j < NL; ++j) W[i * NL + j] += q * L[k * NL + j];
-        gx += q * xg[k];
-      }
-      W[i * NL + NL - 1] -= gx;
-    }
+/* C += A B for an M x NX matrix A with A(i, k) = A[i * ars + k * aks] (row-major: ars = lda, aks = 1; its
+   transpose: ars = 1, aks = lda) and row-major B, C. With upper set, tiles wholly below C's diagonal are
+   skipped (the lower triangle is then left partial, and is never read). The inner product runs over NX, a
+   constant. Tiles of MR rows x 8 (or 4) columns of C stay in vector registers while B's rows, contiguous,
+   stream through: GCC/Clang vector extensions, 2 doubles wide (SSE2, any x86-64) and, on x86 CPUs that have
+   them, 4 wide with AVX2 and FMA (chosen once at run time; no build flag, the library stays portable). */
+#if defined(__GNUC__) || defined(__clang__)
+#define VECTOR_EXT 1
+typedef double vec2 __attribute__((vector_size(16), aligned(8)));
+#if (defined(__x86_64__) || defined(__i386__)) && !defined(OCPKIT_NO_AVX2)
+#define HAVE_AVX2_PATH 1
+typedef double vec4 __attribute__((vector_size(32), aligned(8)));
 #endif
-    /* acc += WᵀW (upper half), four rows of W at a time: one load and store of acc per four products */
-    for (k = 0; k + 4 <= NX; k += 4) {
-      const double *w0 = W + k * NL, *w1 = w0 + NL, *w2 = w1 + NL, *w3 = w2 + NL;
-      for (i = 0; i < NL; ++i) {
-        const double a0 = w0[i], a1 = w1[i], a2 = w2[i], a3 = w3[i];
-        double* ai = acc + i * NL;
-        for (j = i; j < NL; ++j) ai[j] += a0 * w0[j] + a1 * w1[j] + a2 * w2[j] + a3 * w3[j];
+#endif
+
+/* One generic body per vector type VT of W doubles: tile_<sfx>(MR rows, NC = 4 or 8 columns). */
+#define TILES(sfx, attr, VT, W, MR)                                                                           \
+  attr static void tile8_##sfx(int mr, const double* restrict A, int ars, int aks, const double* restrict B,  \
+                               int ldb, double* restrict C, int ldc) {                                        \
+    VT c[MR][8 / W];                                                                                          \
+    int r, v, k;                                                                                              \
+    for (r = 0; r < MR; ++r) for (v = 0; v < 8 / W; ++v) c[r][v] = (VT){0};                                   \
+    if (mr == MR) {                                                                                           \
+      for (k = 0; k < NX; ++k) {                                                                              \
+        VT b[8 / W];                                                                                          \
+        for (v = 0; v < 8 / W; ++v) b[v] = *(const VT*) (B + k * ldb + v * W);                                \
+        for (r = 0; r < MR; ++r) {                                                                            \
+          const double a = A[r * ars + k * aks];                                                              \
+          for (v = 0; v < 8 / W; ++v) c[r][v] += a * b[v];                                                    \
+        }                                                                                                     \
+      }                                                                                                       \
+    } else {                                                                                                  \
+      for (k = 0; k < NX; ++k) {                                                                              \
+        VT b[8 / W];                                                                                          \
+        for (v = 0; v < 8 / W; ++v) b[v] = *(const VT*) (B + k * ldb + v * W);                                \
+        for (r = 0; r < mr; ++r) {                                                                            \
+          const double a = A[r * ars + k * aks];                                                              \
+          for (v = 0; v < 8 / W; ++v) c[r][v] += a * b[v];                                                    \
+        }                                                                                                     \
+      }                                                                                                       \
+    }                                                                                                         \
+    for (r = 0; r < mr; ++r) for (v = 0; v < 8 / W; ++v) *(VT*) (C + r * ldc + v * W) += c[r][v];            \
+  }                                                                                                           \
+  attr static void tile4_##sfx(const double* restrict A, int aks, const double* restrict B, int ldb,         \
+                               double* restrict C) {                                                          \
+    VT c[4 / W];                                                                                              \
+    int v, k;                                                                                                 \
+    for (v = 0; v < 4 / W; ++v) c[v] = (VT){0};                                                               \
+    for (k = 0; k < NX; ++k)                                                                                  \
+      for (v = 0; v < 4 / W; ++v) c[v] += A[k * aks] * *(const VT*) (B + k * ldb + v * W);                   \
+    for (v = 0; v < 4 / W; ++v) *(VT*) (C + v * W) += c[v];                                                   \
+  }                                                                                                           \
+  attr static void gemm_##sfx(int M, int N, const double* restrict A, int ars, int aks,                       \
+                              const double* restrict B, int ldb, double* restrict C, int ldc, int upper) {    \
+    int i, j, r;                                                                                              \
+    for (i = 0; i < M; i += MR) {                                                                             \
+      const int mr = M - i < MR ? M - i : MR;                                                                 \
+      for (j = upper ? (i / 8) * 8 : 0; j + 8 <= N; j += 8)                                                   \
+        tile8_##sfx(mr, A + i * ars, ars, aks, B + j, ldb, C + i * ldc + j, ldc);                             \
+      for (r = i; r < i + mr; ++r) {                                                                          \
+        int jr = j;                                                                                           \
+        if (jr + 4 <= N) { tile4_##sfx(A + r * ars, aks, B + jr, ldb, C + r * ldc + jr); jr += 4; }          \
+        for (; jr < N; ++jr) {                                                                                \
+          double s = 0;                                                                                       \
+          int k;                                                                                              \
+          for (k = 0; k < NX; ++k) s += A[r * ars + k * aks] * B[k * ldb + jr];                               \
+          C[r * ldc + jr] += s;                                                                               \
+        }                                                                                                     \
+      }                                                                                                       \
+    }                                                                                                         \
+  }
+
+#if VECTOR_EXT
+TILES(v2, , vec2, 2, 2)
+#if HAVE_AVX2_PATH
+TILES(v4, __attribute__((target("avx2,fma"))), vec4, 4, 4)
+#endif
+#else
+typedef double vec1;
+TILES(v1, , vec1, 1, 2)
+#endif
+
+static void gemm(int M, int N, const double* restrict A, int ars, int aks, const double* restrict B, int ldb,
+                 double* restrict C, int ldc, int upper) {
+#if HAVE_AVX2_PATH
+  static int avx2 = -1;  /* an idempotent race at worst: every thread writes the same value */
+  if (avx2 < 0) avx2 = __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma");
+  if (avx2) { gemm_v4(M, N, A, ars, aks, B, ldb, C, ldc, upper); return; }
+#endif
+#if VECTOR_EXT
+  gemm_v2(M, N, A, ars, aks, B, ldb, C, ldc, upper);
+#else
+  gemm_v1(M, N, A, ars, aks, B, ldb, C, ldc, upper);
+#endif
+}
+
+/* The upper triangle of a row-major n x n matrix copied into its lower one. */
+static void symmetrize(double* X, int n) {
+  int i, j;
+  for (i = 0; i < n; ++i)
+    for (j = 0; j < i; ++j) X[i * n + j] = X[j * n + i];
+}
+
+/* The augmented state ζ = [x; v; d; 1] of a piece (input v_t = v + t d, d constant) moves by
+   ζ_{s+1} = Â ζ_s, and Λ_s = [A^s E_s F_s e_s] = C Â^s (C picks x). out = X Â^b for X (rows x NL, row stride
+   ldx) from Λ_b, the x rows of Â^b, whose other rows are [0 I bI 0; 0 0 I 0; 0 0 0 1]. */
+static void times_ahat(const double* X, int rows, int ldx, const double* Lb, int b, double* out) {
+  int r, u;
+  for (r = 0; r < rows; ++r) {
+    const double* xr = X + r * ldx;
+    double* o = out + r * NL;
+    for (u = 0; u < NX; ++u) o[u] = 0;
+    for (u = 0; u < NU; ++u) {
+      o[NX + u] = xr[NX + u];
+      o[NX + NU + u] = b * xr[NX + u] + xr[NX + NU + u];
+    }
+    o[NL - 1] = xr[NL - 1];
+  }
+  gemm(rows, NL, X, ldx, 1, Lb, NL, out, NL, 0);
+}
+
+/* Γ += Wᵀ W with W = Q^½ (Λ - x_goal e_lastᵀ): the stage cost (x_s − x_goal)ᵀ Q (x_s − x_goal) as a form in ζ. */
+static void add_stage(mem_t* m, const double* Lam, const double* xg, double* Gam) {
+  double* W = m->W;
+  int i, j, k;
+#if DIAG_Q
+  for (i = 0; i < NX; ++i) {
+    for (j = 0; j < NL; ++j) W[i * NL + j] = QH[i] * Lam[i * NL + j];
+    W[i * NL + NL - 1] -= QH[i] * xg[i];
+  }
+  (void) k;
+#else
+  for (i = 0; i < NX * NL; ++i) W[i] = 0;
+  gemm(NX, NL, QH, NX, 1, Lam, NL, W, NL, 0);
+  for (i = 0; i < NX; ++i) {
+    double gx = 0;
+    for (k = 0; k < NX; ++k) gx += QH[i * NX + k] * xg[k];
+    W[i * NL + NL - 1] -= gx;
+  }
+  (void) j;
+#endif
+  gemm(NL, NL, W, 1, NL, W, NL, Gam, NL, 1);
+  symmetrize(Gam, NL);
+}
+
+/* Γ_L = Σ_{s≤L} Λ_sᵀ Q Λ_s (goal folded in) and Λ_L for each piece length, by the schedule GRAM_OPS: doublings
+   Γ_2s = Γ_s + (Â^s)ᵀ Γ_s Â^s, Λ_2s = Λ_s Â^s and single stages, O(log L) products instead of L. */
+static void grams(mem_t* m, const double* xg) {
+  double *Lam = m->LamS, *tmp = m->LamT, *Gam = m->GamS, *sw;
+  int op, i, s = 1;
+  for (i = 0; i < NL * NL; ++i) m->Gam1[i] = 0;
+  add_stage(m, m->Lam1, xg, m->Gam1);
+  memcpy(Lam, m->Lam1, sizeof m->Lam1);
+  memcpy(Gam, m->Gam1, sizeof m->Gam1);
+  for (op = 0; op < NGRAM_OPS; ++op) {
+    const int code = GRAM_OPS[op];
+    if (code == 1) {  /* double */
+      times_ahat(Gam, NL, NL, Lam, s, m->Y);
+      for (i = 0; i < NU; ++i) {
+        double* gv = Gam + (NX + i) * NL;
+        double* gd = Gam + (NX + NU + i) * NL;
+        const double* yv = m->Y + (NX + i) * NL;
+        const double* yd = m->Y + (NX + NU + i) * NL;
+        int j;
+        for (j = 0; j < NL; ++j) { gv[j] += yv[j]; gd[j] += s * yv[j] + yd[j]; }
       }
+      for (i = 0; i < NL; ++i) Gam[(NL - 1) * NL + i] += m->Y[(NL - 1) * NL + i];
+      gemm(NL, NL, Lam, 1, NL, m->Y, NL, Gam, NL, 1);
+      symmetrize(Gam, NL);
+      times_ahat(Lam, NX, NL, Lam, s, tmp);
+      s *= 2;
+    } else if (code == 2) {  /* one more stage */
+      times_ahat(Lam, NX, NL, m->Lam1, 1, tmp);
+      add_stage(m, tmp, xg, Gam);
+      s += 1;
+    } else if (code == 3) {  /* restart from s = 1 */
+      memcpy(Lam, m->Lam1, sizeof m->Lam1);
+      memcpy(Gam, m->Gam1, sizeof m->Gam1);
+      s = 1;
+      continue;
+    } else {  /* save as length code - 10 */
+      memcpy(m->GamL + (code - 10) * NL * NL, Gam, sizeof m->GamS);
+      memcpy(m->LamL + (code - 10) * NX * NL, Lam, sizeof m->LamS);
+      continue;
     }
-    for (; k < NX; ++k) {
-      const double* wr = W + k * NL;
-      for (i = 0; i < NL; ++i) {
-        const double wi = wr[i];
-        double* ai = acc + i * NL;
-        for (j = i; j < NL; ++j) ai[j] += wi * wr[j];
-      }
-    }
-    if (s + 1 == LENGTHS[li]) {
-      double* Gm = m->Gam + li * NL * NL;
-      for (i = 0; i < NL; ++i)
-        for (j = i; j < NL; ++j) Gm[i * NL + j] = Gm[j * NL + i] = acc[i * NL + j];
-      ++li;
-    }
+    sw = Lam; Lam = tmp; tmp = sw;
   }
 }
 
-/* out[0 … c] = lr R for a row lr (length NL) and the piece's R = [prev; φ_a ⊗ I; Δ ⊗ I; (1, 0 … 0)]. */
-static void row_times_r(const double* lr, const double* prev, const double* phi, const double* del, int c,
-                        double* out) {
-  int t, col, j, u;
-  out[0] = lr[NL - 1];
-  for (j = 0, col = 1; col <= c; ++j)
-    for (u = 0; u < NU; ++u, ++col) out[col] = phi[j] * lr[NX + u] + del[j] * lr[NX + NU + u];
-  for (t = 0; t + 4 <= NX; t += 4) {
-    const double l0 = lr[t], l1 = lr[t + 1], l2 = lr[t + 2], l3 = lr[t + 3];
-    const double *p0 = prev + t * NZ1, *p1 = p0 + NZ1, *p2 = p1 + NZ1, *p3 = p2 + NZ1;
-    for (col = 0; col <= c; ++col) out[col] += l0 * p0[col] + l1 * p1[col] + l2 * p2[col] + l3 * p3[col];
+/* out (rows x (c+1), row stride ldo) = X R for X (rows x NL, stride ldx) and the piece's
+   R = [prev; φ_a ⊗ I; Δ ⊗ I; (1, 0 … 0)]; prev's columns past cp are zero (knots not yet active). */
+static void times_r(const double* X, int rows, int ldx, const double* prev, int cp, const double* phi,
+                    const double* del, int c, double* out, int ldo) {
+  int r, j, u, col;
+  for (r = 0; r < rows; ++r) {
+    const double* xr = X + r * ldx;
+    double* o = out + r * ldo;
+    o[0] = xr[NL - 1];
+    for (j = 0, col = 1; col <= c; ++j)
+      for (u = 0; u < NU; ++u, ++col) o[col] = phi[j] * xr[NX + u] + del[j] * xr[NX + NU + u];
   }
-  for (; t < NX; ++t) {
-    const double l = lr[t];
-    const double* pr = prev + t * NZ1;
-    for (col = 0; col <= c; ++col) out[col] += l * pr[col];
-  }
+  gemm(rows, cp + 1, X, ldx, 1, prev, NZ1, out, ldo, 0);
 }
 
-/* The condensed QP about the affine model in m (CondensedQP.build): h, g, state-bound rows a, lba, uba. */
+/* The condensed QP about the affine model Λ_1 (CondensedQP.build): h, g, state-bound rows a, lba, uba. */
 static void condense(mem_t* m, const double* x, const double* xg) {
-  double *prev = m->prev, *next = m->next, *Pq = m->Pq, *Y = m->Y;
+  double *prev = m->prev, *next = m->next, *Pq = m->Pq, *Y = m->Y, *sw;
   int pc, i, j, k, r, col, s, b;
-  lambdas(m);
   grams(m, xg);
+#if NB > 0
+  /* the bounded rows of Λ_1 … Λ_LMAX (row b of Λ_s at LamB[(s-1) NB + b]) */
+  for (b = 0; b < NB; ++b) memcpy(m->LamB + b * NL, m->Lam1 + XB_COMP[b] * NL, NL * sizeof(double));
+  for (s = 1; s < LMAX; ++s) times_ahat(m->LamB + (s - 1) * NB * NL, NB, NL, m->Lam1, 1, m->LamB + s * NB * NL);
+#endif
   for (i = 0; i < NX * NZ1; ++i) prev[i] = 0;
   for (i = 0; i < NX; ++i) prev[i * NZ1] = x[i];
   for (i = 0; i < NZ1 * NZ1; ++i) Pq[i] = 0;
   for (pc = 0; pc < NPIECE; ++pc) {
-    const int a = PIECE_A[pc], Lp = PIECE_L[pc], c = PIECE_C[pc];
+    const int a = PIECE_A[pc], Lp = PIECE_L[pc], c = PIECE_C[pc], cp = PIECE_CP[pc];
     const double *phi = PIECE_PHI + pc * NP, *del = PIECE_DELTA + pc * NP;
-    const double* Gm = m->Gam + PIECE_LEN[pc] * NL * NL;
-    const double* Llast = m->Lam + (Lp - 1) * NX * NL;
-    /* Pq[:c+1, :c+1] += Rᵀ Γ R: Y = Γ R row by row (Γ symmetric), then R's columns against Y (upper half). */
-    for (k = 0; k < NL; ++k) row_times_r(Gm + k * NL, prev, phi, del, c, Y + k * NZ1);
+    /* Pq[:c+1, :c+1] += Rᵀ (Γ R) (upper half) */
+    times_r(m->GamL + PIECE_LEN[pc] * NL * NL, NL, NL, prev, cp, phi, del, c, Y, NZ1);
     for (r = 0; r <= c; ++r) {
       double* pr = Pq + r * NZ1;
       if (r == 0) {
@@ -698,58 +803,41 @@ static void condense(mem_t* m, const double* x, const double* xg) {
         const int jr = (r - 1) / NU, ur = r - 1 - jr * NU;
         const double f = phi[jr], d = del[jr];
         const double *y1 = Y + (NX + ur) * NZ1, *y2 = Y + (NX + NU + ur) * NZ1;
-        for (col = r; col <= c; ++col) pr[col] += f * y1[col] + d * y2[col];
-      }
-      for (k = 0; k < NX; ++k) {
-        double pk = prev[k * NZ1 + r];
-        const double* yk = Y + k * NZ1;
-        for (col = r; col <= c; ++col) pr[col] += pk * yk[col];
+        if (f != 0 || d != 0) for (col = r; col <= c; ++col) pr[col] += f * y1[col] + d * y2[col];
       }
     }
+    gemm(cp + 1, c + 1, prev, 1, NZ1, Y, NZ1, Pq, NZ1, 1);
 #if NB > 0
     /* state-bound rows of [v S] at x_{a+1} … x_{a+Lp}: row (k, b) at k*NB + b */
+    times_r(m->LamB, Lp * NB, NL, prev, cp, phi, del, c, m->RB, NZ1);
     for (s = 0; s < Lp; ++s)
       for (b = 0; b < NB; ++b) {
         const int ri = (a + s) * NB + b;
-        row_times_r(m->Lam + s * NX * NL + XB_COMP[b] * NL, prev, phi, del, c, m->row);
-        for (col = 0; col < NZ; ++col) m->a[ri + NA * col] = col < c ? m->row[col + 1] : 0.0;
-        m->lba[ri] = XB_LO[b] - m->row[0];
-        m->uba[ri] = XB_HI[b] - m->row[0];
+        const double* row = m->RB + (s * NB + b) * NZ1;
+        for (col = 0; col < NZ; ++col) m->a[ri + NA * col] = col < c ? row[col + 1] : 0.0;
+        m->lba[ri] = XB_LO[b] - row[0];
+        m->uba[ri] = XB_HI[b] - row[0];
       }
 #else
-    (void) a; (void) s; (void) b;
+    (void) a; (void) Lp; (void) s; (void) b;
 #endif
     /* [v S] at the piece's end: Λ_Lp R */
-    for (i = 0; i < NX; ++i) {
-      row_times_r(Llast + i * NL, prev, phi, del, c, next + i * NZ1);
+    times_r(m->LamL + PIECE_LEN[pc] * NX * NL, NX, NL, prev, cp, phi, del, c, next, NZ1);
+    for (i = 0; i < NX; ++i)
       for (col = c + 1; col < NZ1; ++col) next[i * NZ1 + col] = 0;
-    }
-    for (i = 0; i < NX * NZ1; ++i) prev[i] = next[i];
+    sw = prev; prev = next; next = sw;
   }
   /* terminal weight: (Q_T − Q) on [v − x_goal, S] at x_T */
+#if HAS_DQT
   for (i = 0; i < NX; ++i) prev[i * NZ1] -= xg[i];
 #if DIAG_Q
-  for (i = 0; i < NX; ++i) {
-    const double* ei = prev + i * NZ1;
-    if (DQT[i] == 0) continue;
-    for (r = 0; r < NZ1; ++r) {
-      double f = DQT[i] * ei[r];
-      for (col = r; col < NZ1; ++col) Pq[r * NZ1 + col] += f * ei[col];
-    }
-  }
-#else
-  for (i = 0; i < NX; ++i) {
-    for (col = 0; col < NZ1; ++col) {
-      double s2 = 0;
-      for (k = 0; k < NX; ++k) s2 += DQT[i * NX + k] * prev[k * NZ1 + col];
-      next[i * NZ1 + col] = s2;
-    }
-  }
   for (i = 0; i < NX; ++i)
-    for (r = 0; r < NZ1; ++r) {
-      double f = prev[i * NZ1 + r];
-      for (col = r; col < NZ1; ++col) Pq[r * NZ1 + col] += f * next[i * NZ1 + col];
-    }
+    for (col = 0; col < NZ1; ++col) m->E2[i * NZ1 + col] = DQT[i] * prev[i * NZ1 + col];
+#else
+  for (i = 0; i < NX * NZ1; ++i) m->E2[i] = 0;
+  gemm(NX, NZ1, DQT, NX, 1, prev, NZ1, m->E2, NZ1, 0);
+#endif
+  gemm(NZ1, NZ1, prev, 1, NZ1, m->E2, NZ1, Pq, NZ1, 1);
 #endif
   /* P = S'QS + φᵀφ ⊗ R (symmetric by construction), q = S'Q(v − x_goal) − φᵀ1 ⊗ R u_g */
   for (i = 0; i < NZ; ++i)
@@ -765,6 +853,72 @@ static void condense(mem_t* m, const double* x, const double* xg) {
     m->lbx[i] = LBX[i];
     m->ubx[i] = UBX[i];
   }
+}
+
+#if MODEL_RK4
+/* D = J_x S + [0 J_u] with the Jacobians' nonzeros (fx, fu) at (FX_I, FX_J), (FU_I, FU_J); S, D row-major
+   NX x (NX + NU). */
+static void sensitivity_rate(const mem_t* m, const double* restrict S, double* restrict D) {
+  int q, j;
+  for (q = 0; q < NX * (NX + NU); ++q) D[q] = 0;
+  for (q = 0; q < ${N}_NNZ_FX; ++q) {
+    const double v = m->fx[q];
+    const double* sk = S + FX_J[q] * (NX + NU);
+    double* di = D + FX_I[q] * (NX + NU);
+    for (j = 0; j < NX + NU; ++j) di[j] += v * sk[j];
+  }
+  for (q = 0; q < ${N}_NNZ_FU; ++q) D[FU_I[q] * (NX + NU) + NX + FU_J[q]] += m->fu[q];
+}
+#endif
+
+/* Λ_1 = [A_d B_d 0 w_d] (row-major) of the affine model about (x, ū): RK4 over SUBSTEPS with its sensitivities
+   (the generated f, ∂f/∂x, ∂f/∂u at each stage), or the generated constant model of a linear one. */
+static int affine_model(mem_t* m, const double* x, const double* u) {
+  int i, j;
+#if MODEL_RK4
+  static const double C_STAGE[4] = {0.0, 0.5 * RK_H, 0.5 * RK_H, RK_H}, W_STAGE[4] = {1.0, 2.0, 2.0, 1.0};
+  const int nS = NX * (NX + NU);
+  int sub, q;
+  for (i = 0; i < NX; ++i) m->xk[i] = x[i];
+  for (i = 0; i < nS; ++i) m->S[i] = 0;
+  for (i = 0; i < NX; ++i) m->S[i * (NX + NU) + i] = 1;
+  for (sub = 0; sub < SUBSTEPS; ++sub) {
+    for (i = 0; i < NX; ++i) m->kacc[i] = 0;
+    for (i = 0; i < nS; ++i) m->Dacc[i] = 0;
+    for (q = 0; q < 4; ++q) {
+      const double cq = C_STAGE[q], wq = W_STAGE[q];
+      for (i = 0; i < NX; ++i) m->xs[i] = q ? m->xk[i] + cq * m->kq[i] : m->xk[i];
+      for (i = 0; i < nS; ++i) m->Ss[i] = q ? m->S[i] + cq * m->D[i] : m->S[i];
+      m->arg[0] = m->xs; m->arg[1] = u;
+      m->res[0] = m->kq; m->res[1] = m->fx; m->res[2] = m->fu;
+      if (${name}_fjac(m->arg, m->res, (casadi_int*) m->iw, m->w, 0)) return 1;
+      sensitivity_rate(m, m->Ss, m->D);
+      for (i = 0; i < NX; ++i) m->kacc[i] += wq * m->kq[i];
+      for (i = 0; i < nS; ++i) m->Dacc[i] += wq * m->D[i];
+    }
+    for (i = 0; i < NX; ++i) m->xk[i] += RK_H / 6 * m->kacc[i];
+    for (i = 0; i < nS; ++i) m->S[i] += RK_H / 6 * m->Dacc[i];
+  }
+  for (i = 0; i < NX; ++i) {
+    const double* si = m->S + i * (NX + NU);
+    double* L = m->Lam1 + i * NL;
+    double wi = m->xk[i];
+    for (j = 0; j < NX + NU; ++j) { L[j] = si[j]; wi -= si[j] * (j < NX ? x[j] : u[j - NX]); }
+    for (j = 0; j < NU; ++j) L[NX + NU + j] = 0;
+    L[NL - 1] = wi;
+  }
+#else
+  m->arg[0] = x; m->arg[1] = u;
+  m->res[0] = m->Ad; m->res[1] = m->Bd; m->res[2] = m->wd;
+  if (${name}_affine(m->arg, m->res, (casadi_int*) m->iw, m->w, 0)) return 1;
+  for (i = 0; i < NX; ++i) {  /* Ad, Bd come column-major from CasADi */
+    double* L = m->Lam1 + i * NL;
+    for (j = 0; j < NX; ++j) L[j] = m->Ad[i + NX * j];
+    for (j = 0; j < NU; ++j) { L[NX + j] = m->Bd[i + NX * j]; L[NX + NU + j] = 0; }
+    L[NL - 1] = m->wd[i];
+  }
+#endif
+  return 0;
 }
 
 /* Largest bound violation of z (CasADi's qrqp can report success at an infeasible point). */
@@ -784,8 +938,25 @@ static double violation(const mem_t* m, const double* z) {
   return v;
 }
 
+/* Seconds on a monotonic clock (0 where there is none: the split then reads 0). */
+static double seconds(void) {
+#if defined(CLOCK_MONOTONIC)
+  struct timespec t;
+  clock_gettime(CLOCK_MONOTONIC, &t);
+  return t.tv_sec + 1e-9 * t.tv_nsec;
+#else
+  return 0.0;
+#endif
+}
+
 int ${name}_step(mem_t* m, const double* x, const double* goal, double* u_out, int* status) {
+  return ${name}_step_timed(m, x, goal, u_out, status, 0);
+}
+
+int ${name}_step_timed(mem_t* m, const double* x, const double* goal, double* u_out, int* status, double* t) {
   int i, j, rc;
+  double t0 = 0, t1 = 0, t2 = 0;
+  if (t) { t[0] = t[1] = t[2] = 0; t0 = seconds(); }
   input_goal(goal, m->ug);
   /* affine model about (x, u_bar) */
   for (i = 0; i < NU; ++i) {
@@ -795,18 +966,18 @@ int ${name}_step(mem_t* m, const double* x, const double* goal, double* u_out, i
 #endif
     m->ubar[i] = s;
   }
-  m->arg[0] = x; m->arg[1] = m->ubar;
-  m->res[0] = m->Ad; m->res[1] = m->Bd; m->res[2] = m->wd;
   m->solver_rc = 0;
-  if (${name}_affine(m->arg, m->res, (casadi_int*) m->iw, m->w, 0)) {
+  if (affine_model(m, x, m->ubar)) {
     *status = fallback(m, u_out, ${N}_EXCEPTION);
     return *status;
   }
-  if (!all_finite(m->Ad, NX * NX) || !all_finite(m->Bd, NX * NU) || !all_finite(m->wd, NX)) {
+  if (!all_finite(m->Lam1, NX * NL)) {
     *status = fallback(m, u_out, ${N}_NAN);
     return *status;
   }
+  if (t) { t1 = seconds(); t[0] = t1 - t0; }
   condense(m, x, goal);
+  if (t) { t2 = seconds(); t[1] = t2 - t1; }
   if (!all_finite(m->h, NZ * NZ) || !all_finite(m->g, NZ) || !all_finite(m->a, NA * NZ)
       || any_nan(m->lba, NA) || any_nan(m->uba, NA)) {
     *status = fallback(m, u_out, ${N}_NAN);
@@ -823,6 +994,7 @@ int ${name}_step(mem_t* m, const double* x, const double* goal, double* u_out, i
   m->arg[10] = 0; m->arg[11] = 0;
   m->res[0] = m->z_new; m->res[1] = 0; m->res[2] = m->lam_a_new; m->res[3] = m->lam_x_new;
   rc = ${name}_qp_solve(m->arg, m->res, (casadi_int*) m->iw, m->w, m->solver_mem);
+  if (t) t[2] = seconds() - t2;
   m->solver_rc = rc;
   if (!all_finite(m->z_new, NZ)) {
     *status = fallback(m, u_out, ${N}_NAN);
@@ -870,11 +1042,11 @@ void ${name}_dims(int* nx, int* nu, int* knots, int* horizon) {
 """)
 
 
-def _wrapper(name: str, qp: str, linearization: str, tr: CondensedQP) -> str:
+def _wrapper(name: str, qp: str, linearization: str, tr: CondensedQP, jac) -> str:
     # qrqp returns 4 when it finds no search direction (an infeasible or degenerate QP).
     infeasible = "rc == 4" if qp == "qrqp" else "0"
     return _WRAPPER.substitute(name=name, N=name.upper(), infeasible=infeasible,
-                               constants=_constants(tr, linearization))
+                               constants=_constants(tr, linearization, jac))
 
 
 def _example(name: str, x0, goal, steps: int, dt: float) -> str:
@@ -1021,7 +1193,9 @@ class ExportedMPC(Controller):
     """The compiled exported step (``lib<name>.so`` in ``out_dir``) as a Controller, through ctypes.
 
     Statuses map one to one onto ocpkit's; on failure the library already returns the fallback input and
-    plan, which equal :meth:`Controller.fallback`. ``times["solve"]`` is the whole C step. Each instance owns
+    plan, which equal :meth:`Controller.fallback`. ``times`` splits the C step as the DESIGN does, measured in C:
+    ``model`` (RK4 and its sensitivities), ``build`` (the condensing), ``solve`` (the QP solver);
+    :attr:`step_seconds` is the last whole C step seen from Python (ctypes call included). Each instance owns
     its C memory (several may step in one process, up to the library's ``MAX_INSTANCES``); :meth:`close`, or
     leaving a ``with`` block, gives its QP-solver slot back.
     """
@@ -1043,8 +1217,8 @@ class ExportedMPC(Controller):
         size = getattr(lib, f"{name}_memory_size")
         size.restype = ctypes.c_size_t
         self._mem = ctypes.create_string_buffer(size())
-        self._step = getattr(lib, f"{name}_step")
-        self._step.argtypes = [ctypes.c_void_p] * 5
+        self._step = getattr(lib, f"{name}_step_timed")
+        self._step.argtypes = [ctypes.c_void_p] * 6
         self._step.restype = ctypes.c_int
         self._knots = getattr(lib, f"{name}_knots")
         self._knots.argtypes = [ctypes.c_void_p, dbl]
@@ -1060,6 +1234,8 @@ class ExportedMPC(Controller):
         self._open = True
         self._status = ctypes.c_int()
         self._status_ptr = ctypes.addressof(self._status)
+        self._split = np.zeros(3)
+        self.step_seconds = float("nan")
         super().__init__(ocp, raise_on_fail=raise_on_fail)
 
     def __repr__(self):
@@ -1111,16 +1287,17 @@ class ExportedMPC(Controller):
         u = np.empty(self.ocp.nu)
         knots = np.empty(self.ocp.knots * self.ocp.nu)
         x, goal = np.ascontiguousarray(x), np.ascontiguousarray(goal)
-        args = (self._mem, x.ctypes.data, goal.ctypes.data, u.ctypes.data, self._status_ptr)
+        args = (self._mem, x.ctypes.data, goal.ctypes.data, u.ctypes.data, self._status_ptr, self._split.ctypes.data)
         t0 = time.perf_counter()
         self._step(*args)
-        elapsed = time.perf_counter() - t0
+        self.step_seconds = time.perf_counter() - t0
         self._knots(self._mem, knots)
         status = STATUSES[self._status.value]
         rc = self._rc(self._mem)
         raw = ("solved point violates the bounds" if rc == _VIOLATED else f"{self.name}_qp_solve returned {rc}")
+        model, build_s, solve = (float(t) for t in self._split)
         return Solution(u=u, knots=knots.reshape(self.ocp.knots, self.ocp.nu), status=status, raw_status=raw,
-                        times={"model": 0.0, "build": 0.0, "solve": elapsed}, fallback=status != SUCCESS)
+                        times={"model": model, "build": build_s, "solve": solve}, fallback=status != SUCCESS)
 
 
 def export_problem(problem_name: str, form: str = "condensed", knots: int | None = 5, horizon: int | None = 100,

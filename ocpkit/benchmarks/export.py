@@ -34,8 +34,9 @@ def default_problems() -> list[str]:
 def bench_export(problems=None, *, horizon: int = 100, knots: int = 5, qp: str = "daqp", steps: int = 50,
                  seed: int = 0, out_root=None, linearization: str = "goal", example: bool = True,
                  out=print) -> list[dict]:
-    """Per problem: generated C size, export and build times, the median step time (s) of the C step (through
-    ctypes, and of the folder's own ``./example`` closed loop) and of LinearMPC, and the round-trip error.
+    """Per problem: generated C size, export and build times, the median and worst step time (s) of the C step
+    (through ctypes, and the median of the folder's own ``./example`` closed loop) beside LinearMPC's, the C
+    step's split (medians of its affine model, condensing and QP solve, timed in C), and the round-trip error.
 
     Both controllers see the same states: a closed loop of ``steps`` steps on the discrete model driven by
     LinearMPC's input (condensed, ProxQP at eps 1e-10), from ``problem.sample(seed)``. ``max_abs_du`` is the
@@ -68,26 +69,30 @@ def bench_export(problems=None, *, horizon: int = 100, knots: int = 5, qp: str =
             example_s = 1e-6 * float(found.group(1)) if found else float("nan")
         py = LinearMPC(ocp, form="condensed", eps=1e-10, linearization=linearization)
         F = ocp.discrete()
-        t_c, t_py, du, py_fails, c_fails = [], [], 0.0, 0, 0
+        t_c, t_py, split, du, py_fails, c_fails = [], [], [], 0.0, 0, 0
         with ExportedMPC(ocp, info.out_dir, name=info.name) as c:
             for _ in range(steps):
                 a, b = py.solve(x, goal), c.solve(x, goal)
                 t_py.append(a.times["total"])
-                t_c.append(b.times["solve"])
+                t_c.append(c.step_seconds)
+                split.append([b.times[k] for k in ("model", "build", "solve")])
                 du = max(du, float(np.abs(a.u - b.u).max()), float(np.abs(a.knots - b.knots).max()))
                 py_fails += not a.ok
                 c_fails += not b.ok
                 x = np.asarray(F(x, a.u)).ravel()
+        m_s, b_s, q_s = (float(v) for v in np.median(split, axis=0))
         rows.append({"problem": name, "nx": ocp.nx, "nu": ocp.nu, "horizon": horizon, "knots": knots, "qp": qp,
                      "c_bytes": info.c_bytes, "export_s": t1 - t0, "build_s": t2 - t1,
-                     "c_median_s": float(np.median(t_c)), "example_median_s": example_s,
-                     "python_median_s": float(np.median(t_py)),
+                     "c_median_s": float(np.median(t_c)), "c_worst_s": float(np.max(t_c)),
+                     "c_model_s": m_s, "c_build_s": b_s, "c_qp_s": q_s, "example_median_s": example_s,
+                     "python_median_s": float(np.median(t_py)), "python_worst_s": float(np.max(t_py)),
                      "speedup": float(np.median(t_py) / np.median(t_c)), "max_abs_du": du,
                      "python_failures": py_fails, "c_failures": c_fails})
         if out is print:  # progress: a row as soon as it is measured
             print(format_table(rows[-1:], header=len(rows) == 1), flush=True)
     out(f"exported C step vs Python LinearMPC (condensed, horizon {horizon}, knots {knots}, {qp}; {steps} steps); "
-        f"medians, cores: {os.cpu_count()}, load: {_load()}\n" + format_table(rows))
+        f"medians and worst over the steps; C split = affine model / condensing / QP solve (medians, timed in C); "
+        f"cores: {os.cpu_count()}, load: {_load()}\n" + format_table(rows))
     return rows
 
 
@@ -100,12 +105,16 @@ def _load() -> str:
 
 def format_table(rows: list[dict], header: bool = True) -> str:
     """The benchmark rows as a fixed-width text table (sizes in kB, times in ms, build in s)."""
-    head = (f"{'problem':<10} {'nx':>3} {'nu':>3} {'C kB':>6} {'build s':>8} {'C ms':>7} {'example ms':>10} "
-            f"{'Python ms':>10} {'speedup':>8} {'max|du|':>9} {'fails py/C':>10}")
+    head = (f"{'problem':<10} {'nx':>3} {'nu':>3} {'C kB':>6} {'build s':>8} {'C ms':>7} {'C worst':>8} "
+            f"{'C model/cond/QP ms':>19} {'example ms':>10} {'Python ms':>10} {'Py worst':>9} {'speedup':>8} "
+            f"{'max|du|':>9} {'fails py/C':>10}")
     lines = [head] if header else []
     for r in rows:
+        split = "/".join(f"{1e3 * r[k]:.3f}" for k in ("c_model_s", "c_build_s", "c_qp_s"))
         lines.append(f"{r['problem']:<10} {r['nx']:>3} {r['nu']:>3} {r['c_bytes'] / 1e3:>6.0f} {r['build_s']:>8.1f} "
-                     f"{1e3 * r['c_median_s']:>7.3f} {1e3 * r['example_median_s']:>10.3f} "
-                     f"{1e3 * r['python_median_s']:>10.3f} {r['speedup']:>8.1f} {r['max_abs_du']:>9.2e} "
+                     f"{1e3 * r['c_median_s']:>7.3f} {1e3 * r['c_worst_s']:>8.3f} "
+                     f"{split:>19} {1e3 * r['example_median_s']:>10.3f} "
+                     f"{1e3 * r['python_median_s']:>10.3f} {1e3 * r['python_worst_s']:>9.3f} {r['speedup']:>8.1f} "
+                     f"{r['max_abs_du']:>9.2e} "
                      f"{r['python_failures']:>4}/{r['c_failures']:<5}")
     return "\n".join(lines)
