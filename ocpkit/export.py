@@ -9,13 +9,17 @@ or the input the previous plan expects now, ``u_at(shift(plan), 0)`` (``"plan"``
 The generated code stays small at robot scale (its size does not grow with the horizon, and with the state
 dimension only through the model):
 
-* ``<name>_casadi.c`` — CasADi code generation of the continuous dynamics and their Jacobians
-  f, ∂f/∂x, ∂f/∂u **once**, called four times per RK4 step with the sensitivities propagated by dense
-  matrix products (the exact chain rule of ``ocp.affine()``, never an unrolled SX graph of the discrete
-  Jacobian), the discrete model for the example, and the QP solver.
-* ``<name>.c`` — a hand-written condensing that mirrors :class:`~ocpkit.transcription.CondensedQP.build`:
-  Λ_s = [A_d^s E_s F_s e_s] for s ≤ L, Γ_L = Σ Λ_sᵀQΛ_s, and per piece of the parameterization Rᵀ Γ_L R,
-  as C loops over stages and pieces. Constants (Q^½, R, the basis' pieces, bounds) are static arrays.
+* ``<name>_casadi.c`` — CasADi code generation of the continuous dynamics and their sparse Jacobians
+  f, ∂f/∂x, ∂f/∂u **once** (``<name>_fjac``; a linear model: its constant discrete model), the discrete
+  model for the example, and the QP solver.
+* ``<name>.c`` — the hand-written step. The affine model: RK4 calling ``<name>_fjac`` four times per substep,
+  its sensitivities propagated by sparse-times-dense products (the exact chain rule of ``ocp.affine()``).
+  The condensing mirrors :class:`~ocpkit.transcription.CondensedQP.build`: Λ_s = [A_d^s E_s F_s e_s],
+  Γ_L = Σ_{s≤L} Λ_sᵀQΛ_s and per piece of the parameterization Rᵀ Γ_L R. Γ_L is built in O(log L) products
+  (Λ_s = C Â^s for the piece's augmented state [x; v; d; 1], so Γ_2s = Γ_s + (Â^s)ᵀ Γ_s Â^s, Λ_2s = Λ_s Â^s),
+  and every product is one small GEMM kernel whose tiles of C stay in vector registers (GCC/Clang vector
+  extensions: SSE2, plus AVX2+FMA chosen at run time on CPUs that have them; ``make SIMD=sse2|none``).
+  Constants (Q^½, R, the basis' pieces, bounds, the Γ schedule) are static arrays.
 
 All memory of one controller lives in a caller-owned struct (``<name>_memory``): several instances run in one
 process, each with its own QP-solver memory slot (``MAX_INSTANCES`` in the Makefile, 16 by default).
@@ -579,68 +583,69 @@ static int fallback(mem_t* m, double* u_out, int status) {
    constant. Tiles of MR rows x 8 (or 4) columns of C stay in vector registers while B's rows, contiguous,
    stream through: GCC/Clang vector extensions, 2 doubles wide (SSE2, any x86-64) and, on x86 CPUs that have
    them, 4 wide with AVX2 and FMA (chosen once at run time; no build flag, the library stays portable). */
-#if defined(__GNUC__) || defined(__clang__)
+#ifndef OCPKIT_SIMD
+#define OCPKIT_SIMD 2 /* the Makefile's SIMD: 2 auto (AVX2 where the CPU has it), 1 no AVX2 path, 0 plain C */
+#endif
+#if (defined(__GNUC__) || defined(__clang__)) && OCPKIT_SIMD >= 1
 #define VECTOR_EXT 1
 typedef double vec2 __attribute__((vector_size(16), aligned(8)));
-#if (defined(__x86_64__) || defined(__i386__)) && !defined(OCPKIT_NO_AVX2)
+#if (defined(__x86_64__) || defined(__i386__)) && OCPKIT_SIMD >= 2
 #define HAVE_AVX2_PATH 1
 typedef double vec4 __attribute__((vector_size(32), aligned(8)));
 #endif
 #endif
 
-/* One generic body per vector type VT of W doubles: tile_<sfx>(MR rows, NC = 4 or 8 columns). */
-#define TILES(sfx, attr, VT, W, MR)                                                                           \
-  attr static void tile8_##sfx(int mr, const double* restrict A, int ars, int aks, const double* restrict B,  \
-                               int ldb, double* restrict C, int ldc) {                                        \
-    VT c[MR][8 / W];                                                                                          \
+/* A tile: C[0:mr, 0:NC] += A[0:mr, :] B[:, 0:NC], its MR x NC block of C in registers (vectors VT of W). */
+#define TILE(name, attr, VT, W, MR, NC)                                                                       \
+  attr static void name(int mr, const double* restrict A, int ars, int aks, const double* restrict B, int ldb, \
+                        double* restrict C, int ldc) {                                                        \
+    VT c[MR][NC / W];                                                                                         \
     int r, v, k;                                                                                              \
-    for (r = 0; r < MR; ++r) for (v = 0; v < 8 / W; ++v) c[r][v] = (VT){0};                                   \
+    for (r = 0; r < MR; ++r) for (v = 0; v < NC / W; ++v) c[r][v] = (VT){0};                                  \
     if (mr == MR) {                                                                                           \
       for (k = 0; k < NX; ++k) {                                                                              \
-        VT b[8 / W];                                                                                          \
-        for (v = 0; v < 8 / W; ++v) b[v] = *(const VT*) (B + k * ldb + v * W);                                \
+        VT b[NC / W];                                                                                         \
+        for (v = 0; v < NC / W; ++v) b[v] = *(const VT*) (B + k * ldb + v * W);                               \
         for (r = 0; r < MR; ++r) {                                                                            \
           const double a = A[r * ars + k * aks];                                                              \
-          for (v = 0; v < 8 / W; ++v) c[r][v] += a * b[v];                                                    \
+          for (v = 0; v < NC / W; ++v) c[r][v] += a * b[v];                                                   \
         }                                                                                                     \
       }                                                                                                       \
     } else {                                                                                                  \
       for (k = 0; k < NX; ++k) {                                                                              \
-        VT b[8 / W];                                                                                          \
-        for (v = 0; v < 8 / W; ++v) b[v] = *(const VT*) (B + k * ldb + v * W);                                \
+        VT b[NC / W];                                                                                         \
+        for (v = 0; v < NC / W; ++v) b[v] = *(const VT*) (B + k * ldb + v * W);                               \
         for (r = 0; r < mr; ++r) {                                                                            \
           const double a = A[r * ars + k * aks];                                                              \
-          for (v = 0; v < 8 / W; ++v) c[r][v] += a * b[v];                                                    \
+          for (v = 0; v < NC / W; ++v) c[r][v] += a * b[v];                                                   \
         }                                                                                                     \
       }                                                                                                       \
     }                                                                                                         \
-    for (r = 0; r < mr; ++r) for (v = 0; v < 8 / W; ++v) *(VT*) (C + r * ldc + v * W) += c[r][v];            \
-  }                                                                                                           \
-  attr static void tile4_##sfx(const double* restrict A, int aks, const double* restrict B, int ldb,         \
-                               double* restrict C) {                                                          \
-    VT c[4 / W];                                                                                              \
-    int v, k;                                                                                                 \
-    for (v = 0; v < 4 / W; ++v) c[v] = (VT){0};                                                               \
-    for (k = 0; k < NX; ++k)                                                                                  \
-      for (v = 0; v < 4 / W; ++v) c[v] += A[k * aks] * *(const VT*) (B + k * ldb + v * W);                   \
-    for (v = 0; v < 4 / W; ++v) *(VT*) (C + v * W) += c[v];                                                   \
-  }                                                                                                           \
+    for (r = 0; r < mr; ++r) for (v = 0; v < NC / W; ++v) *(VT*) (C + r * ldc + v * W) += c[r][v];           \
+  }
+
+/* gemm_<sfx>: tiles of 8 columns, one of 4, and the last N mod 4 columns through a zero-padded copy of B's
+   columns (so that they too run in registers, not as latency-bound dot products). */
+#define TILES(sfx, attr, VT, W, MR)                                                                           \
+  TILE(tile8_##sfx, attr, VT, W, MR, 8)                                                                       \
+  TILE(tile4_##sfx, attr, VT, W, MR, 4)                                                                       \
   attr static void gemm_##sfx(int M, int N, const double* restrict A, int ars, int aks,                       \
                               const double* restrict B, int ldb, double* restrict C, int ldc, int upper) {    \
-    int i, j, r;                                                                                              \
+    const int n8 = N - N % 8, n4 = N - N % 4, nrem = N - n4;                                                  \
+    double Bp[NX * 4], Cp[MR * 4];                                                                            \
+    int i, j, k, r;                                                                                           \
+    for (k = 0; nrem && k < NX; ++k)                                                                          \
+      for (j = 0; j < 4; ++j) Bp[k * 4 + j] = j < nrem ? B[k * ldb + n4 + j] : 0.0;                          \
     for (i = 0; i < M; i += MR) {                                                                             \
       const int mr = M - i < MR ? M - i : MR;                                                                 \
-      for (j = upper ? (i / 8) * 8 : 0; j + 8 <= N; j += 8)                                                   \
+      for (j = upper ? (i / 8) * 8 : 0; j < n8; j += 8)                                                       \
         tile8_##sfx(mr, A + i * ars, ars, aks, B + j, ldb, C + i * ldc + j, ldc);                             \
-      for (r = i; r < i + mr; ++r) {                                                                          \
-        int jr = j;                                                                                           \
-        if (jr + 4 <= N) { tile4_##sfx(A + r * ars, aks, B + jr, ldb, C + r * ldc + jr); jr += 4; }          \
-        for (; jr < N; ++jr) {                                                                                \
-          double s = 0;                                                                                       \
-          int k;                                                                                              \
-          for (k = 0; k < NX; ++k) s += A[r * ars + k * aks] * B[k * ldb + jr];                               \
-          C[r * ldc + jr] += s;                                                                               \
-        }                                                                                                     \
+      if (n4 > n8) tile4_##sfx(mr, A + i * ars, ars, aks, B + n8, ldb, C + i * ldc + n8, ldc);                \
+      if (nrem) {                                                                                             \
+        for (j = 0; j < MR * 4; ++j) Cp[j] = 0;                                                               \
+        tile4_##sfx(mr, A + i * ars, ars, aks, Bp, 4, Cp, 4);                                                 \
+        for (r = 0; r < mr; ++r)                                                                              \
+          for (j = 0; j < nrem; ++j) C[(i + r) * ldc + n4 + j] += Cp[r * 4 + j];                              \
       }                                                                                                       \
     }                                                                                                         \
   }
@@ -655,12 +660,18 @@ typedef double vec1;
 TILES(v1, , vec1, 1, 2)
 #endif
 
+#if HAVE_AVX2_PATH
+static int use_avx2(void) {
+  static int avx2 = -1;  /* an idempotent race at worst: every thread writes the same value */
+  if (avx2 < 0) avx2 = __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma");
+  return avx2;
+}
+#endif
+
 static void gemm(int M, int N, const double* restrict A, int ars, int aks, const double* restrict B, int ldb,
                  double* restrict C, int ldc, int upper) {
 #if HAVE_AVX2_PATH
-  static int avx2 = -1;  /* an idempotent race at worst: every thread writes the same value */
-  if (avx2 < 0) avx2 = __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma");
-  if (avx2) { gemm_v4(M, N, A, ars, aks, B, ldb, C, ldc, upper); return; }
+  if (use_avx2()) { gemm_v4(M, N, A, ars, aks, B, ldb, C, ldc, upper); return; }
 #endif
 #if VECTOR_EXT
   gemm_v2(M, N, A, ars, aks, B, ldb, C, ldc, upper);
@@ -857,17 +868,29 @@ static void condense(mem_t* m, const double* x, const double* xg) {
 
 #if MODEL_RK4
 /* D = J_x S + [0 J_u] with the Jacobians' nonzeros (fx, fu) at (FX_I, FX_J), (FU_I, FU_J); S, D row-major
-   NX x (NX + NU). */
-static void sensitivity_rate(const mem_t* m, const double* restrict S, double* restrict D) {
-  int q, j;
-  for (q = 0; q < NX * (NX + NU); ++q) D[q] = 0;
-  for (q = 0; q < ${N}_NNZ_FX; ++q) {
-    const double v = m->fx[q];
-    const double* sk = S + FX_J[q] * (NX + NU);
-    double* di = D + FX_I[q] * (NX + NU);
-    for (j = 0; j < NX + NU; ++j) di[j] += v * sk[j];
+   NX x (NX + NU): a row of S, contiguous, per nonzero (compiled twice like gemm: SSE2 and AVX2). */
+#define SENSITIVITY_RATE(sfx, attr)                                                                           \
+  attr static void sensitivity_rate_##sfx(const mem_t* m, const double* restrict S, double* restrict D) {    \
+    int q, j;                                                                                                 \
+    for (q = 0; q < NX * (NX + NU); ++q) D[q] = 0;                                                            \
+    for (q = 0; q < ${N}_NNZ_FX; ++q) {                                                                       \
+      const double v = m->fx[q];                                                                              \
+      const double* restrict sk = S + FX_J[q] * (NX + NU);                                                    \
+      double* restrict di = D + FX_I[q] * (NX + NU);                                                          \
+      for (j = 0; j < NX + NU; ++j) di[j] += v * sk[j];                                                       \
+    }                                                                                                         \
+    for (q = 0; q < ${N}_NNZ_FU; ++q) D[FU_I[q] * (NX + NU) + NX + FU_J[q]] += m->fu[q];                      \
   }
-  for (q = 0; q < ${N}_NNZ_FU; ++q) D[FU_I[q] * (NX + NU) + NX + FU_J[q]] += m->fu[q];
+SENSITIVITY_RATE(v2, )
+#if HAVE_AVX2_PATH
+SENSITIVITY_RATE(v4, __attribute__((target("avx2,fma"))))
+#endif
+
+static void sensitivity_rate(const mem_t* m, const double* restrict S, double* restrict D) {
+#if HAVE_AVX2_PATH
+  if (use_avx2()) { sensitivity_rate_v4(m, S, D); return; }
+#endif
+  sensitivity_rate_v2(m, S, D);
 }
 #endif
 
@@ -1076,6 +1099,10 @@ int main(void) {{
   double u[{N}_NU], x_next[{N}_NX], times[{steps}];
   int k, i, status, failures = 0;
   if ({name}_init(&mem)) {{ fprintf(stderr, "init failed\\n"); return 1; }}
+  /* warm-up, as a real-time loop does at start-up: the first step's page faults and first allocation are
+     not part of the timed loop; reset forgets the plan, so the loop starts cold all the same */
+  {name}_step(&mem, x, goal, u, &status);
+  {name}_reset(&mem);
   for (k = 0; k < {steps}; ++k) {{
     double t0 = now();
     {name}_step(&mem, x, goal, u, &status);
@@ -1085,8 +1112,8 @@ int main(void) {{
     for (i = 0; i < {N}_NX; ++i) x[i] = x_next[i];
   }}
   qsort(times, {steps}, sizeof(double), cmp);
-  printf("steps %d (%.3f s)  failures %d  median step %.1f us\\n", {steps}, {steps} * {dt!r}, failures,
-         1e6 * times[{steps} / 2]);
+  printf("steps %d (%.3f s)  failures %d  median step %.1f us  worst %.1f us\\n", {steps}, {steps} * {dt!r},
+         failures, 1e6 * times[{steps} / 2], 1e6 * times[{steps} - 1]);
   printf("x_final");
   for (i = 0; i < {N}_NX; ++i) printf(" %.6f", x[i]);
   printf("\\ngoal   ");
@@ -1109,7 +1136,11 @@ OPT_STEP ?= {OPT_STEP}
 CFLAGS ?= -fPIC
 # QP-solver memory slots per process: how many instances may be live at once.
 MAX_INSTANCES ?= {MAX_INSTANCES}
-CPPFLAGS += -DCASADI_MAX_NUM_THREADS=$(MAX_INSTANCES)
+# The condensing's vector code: auto (SSE2, and AVX2+FMA chosen at run time on x86 CPUs that have them),
+# sse2 (no AVX2 path), none (plain C loops, any C99 compiler). No -march flag: the library stays portable.
+SIMD ?= auto
+SIMD_LEVEL = $(if $(filter none,$(SIMD)),0,$(if $(filter sse2,$(SIMD)),1,2))
+CPPFLAGS += -DCASADI_MAX_NUM_THREADS=$(MAX_INSTANCES) -DOCPKIT_SIMD=$(SIMD_LEVEL)
 {casadi}LDLIBS = {_LIBS[qp]} -lm
 OBJ = {name}.o {name}_casadi.o
 
@@ -1166,15 +1197,20 @@ plan advanced one step, clipped to the input bounds, and the next step starts co
 - `{n}.h` — the API (documented in the header): `{n}_init`, `{n}_step`, `{n}_reset`, `{n}_knots`,
   `{n}_model_step`, `{n}_free`; statuses `{n.upper()}_SUCCESS`, `_LIMITED`, `_INFEASIBLE`, `_NAN`,
   `_EXCEPTION`.
-- `{n}.c` — the step: the condensed QP built by loops over the horizon's pieces (Λ_s, Γ_L of
-  `ocpkit.transcription.CondensedQP`), checks, fallback; `{n}_casadi.c/.h` — CasADi-generated continuous
-  dynamics and Jacobians (once) with RK4 sensitivities, the discrete model and the QP solver.
+- `{n}.c` — the step: RK4 and its sensitivities from the generated f and Jacobians, the condensed QP built
+  over the horizon's pieces (Λ_s, Γ_L of `ocpkit.transcription.CondensedQP`, Γ_L by doubling), checks,
+  fallback; `{n}_step_timed` also returns the seconds of model, condensing and QP solve. `{n}_casadi.c/.h` —
+  CasADi-generated continuous dynamics and sparse Jacobians (once), the discrete model and the QP solver.
 - `main.c` — a closed loop against the generated discrete model; `Makefile`.
 
 ## Build
 
     make          # lib{n}.so and ./example (each source compiled once: `OPT ?= {OPT_FLAGS}`, `OPT_STEP ?= {OPT_STEP}`)
-    make run      # runs the closed loop, prints median step time and the final state
+    make run      # runs the closed loop, prints median and worst step time and the final state
+
+The condensing's products use SSE2 vectors, and AVX2+FMA where the CPU has them (checked once at run time,
+so one build runs on any x86-64); `make SIMD=sse2` leaves the AVX2 path out, `make SIMD=none` builds plain
+C loops for compilers without GCC/Clang vector extensions.
 
 Several instances may run in one process: each `{n}_memory` is one controller (`{n}_init` ...
 `{n}_free`); at most `MAX_INSTANCES` (Makefile, default {MAX_INSTANCES}) are live at once.

@@ -292,3 +292,34 @@ def test_bench_export_prints_the_columns(tmp_path):
     assert rows[0]["example_median_s"] > 0
     for column in ("C kB", "build s", "C ms", "example ms", "Python ms", "max|du|"):
         assert column in lines[0]
+
+
+# --- the step's own code paths (issue 18: the fast step) ---------------------------------------------------------
+
+
+def test_linear_model_uses_its_constant_discrete_model(tmp_path):
+    """A linear model exports its generated constant (A_d, B_d, w_d) instead of RK4 sensitivities."""
+    problem = _problem("pendulum:linear")
+    ocp = problem.ocp(knots=5, horizon=40)
+    info = export(ocp, tmp_path / "lin")
+    assert "#define MODEL_RK4 0" in (info.out_dir / "mpc.c").read_text()
+    build(info.out_dir)
+    with ExportedMPC(ocp, info.out_dir) as c:
+        _compare(problem, ocp, c, "goal", seeds=[0, 1], steps=8)
+
+
+@pytest.mark.parametrize("simd", ["sse2", "none"])
+def test_vector_code_paths_match_linear_mpc(simd, tmp_path):
+    """`make SIMD=sse2` (no AVX2 path) and `SIMD=none` (plain C) give LinearMPC's step too: nlink:3 fills whole
+    register tiles, the bounded pendulum only remainders; the split times add up to about the step."""
+    for name, kw, lin in (("nlink:3", {}, "goal"),
+                          ("pendulum", {"x_min": [-np.inf, -6.0], "x_max": [np.inf, 6.0]}, "plan")):
+        problem = _problem(name)
+        ocp = problem.ocp(knots=5, horizon=50, **kw)
+        info = export(ocp, tmp_path / f"{simd}-{name.replace(':', '')}", linearization=lin)
+        subprocess.run(["make", "-s", f"SIMD={simd}", "lib"], cwd=info.out_dir, check=True, capture_output=True)
+        with ExportedMPC(ocp, info.out_dir) as c:
+            _compare(problem, ocp, c, lin, seeds=[0], steps=6)
+            sol = c.solve(*problem.sample(1))
+            parts = sum(sol.times[k] for k in ("model", "build", "solve"))
+            assert 0 < parts <= c.step_seconds
