@@ -595,33 +595,31 @@ typedef double vec4 __attribute__((vector_size(32), aligned(8)));
 #endif
 #endif
 
+/* One sweep over NX of B's rows through the register block (rows: MR, a constant the compiler unrolls,
+   or mr). */
+#define TILE_SWEEP(rows, VT, W, NC)                                                                           \
+  for (k = 0; k < NX; ++k) {                                                                                  \
+    VT b[NC / W];                                                                                             \
+    for (v = 0; v < NC / W; ++v) b[v] = *(const VT*) (B + k * ldb + v * W);                                   \
+    for (r = 0; r < (rows); ++r) {                                                                            \
+      const double a = A[r * ars + k * aks];                                                                  \
+      for (v = 0; v < NC / W; ++v) c[r][v] += a * b[v];                                                       \
+    }                                                                                                         \
+  }
+
 /* A tile: C[0:mr, 0:NC] += A[0:mr, :] B[:, 0:NC], its MR x NC block of C in registers (vectors VT of W). */
 #define TILE(name, attr, VT, W, MR, NC)                                                                       \
-  attr static void name(int mr, const double* restrict A, int ars, int aks, const double* restrict B, int ldb, \
+  attr static void name(int mr, const double* restrict A, int ars, int aks, const double* restrict B, int ldb,\
                         double* restrict C, int ldc) {                                                        \
     VT c[MR][NC / W];                                                                                         \
     int r, v, k;                                                                                              \
     for (r = 0; r < MR; ++r) for (v = 0; v < NC / W; ++v) c[r][v] = (VT){0};                                  \
     if (mr == MR) {                                                                                           \
-      for (k = 0; k < NX; ++k) {                                                                              \
-        VT b[NC / W];                                                                                         \
-        for (v = 0; v < NC / W; ++v) b[v] = *(const VT*) (B + k * ldb + v * W);                               \
-        for (r = 0; r < MR; ++r) {                                                                            \
-          const double a = A[r * ars + k * aks];                                                              \
-          for (v = 0; v < NC / W; ++v) c[r][v] += a * b[v];                                                   \
-        }                                                                                                     \
-      }                                                                                                       \
+      TILE_SWEEP(MR, VT, W, NC)                                                                               \
     } else {                                                                                                  \
-      for (k = 0; k < NX; ++k) {                                                                              \
-        VT b[NC / W];                                                                                         \
-        for (v = 0; v < NC / W; ++v) b[v] = *(const VT*) (B + k * ldb + v * W);                               \
-        for (r = 0; r < mr; ++r) {                                                                            \
-          const double a = A[r * ars + k * aks];                                                              \
-          for (v = 0; v < NC / W; ++v) c[r][v] += a * b[v];                                                   \
-        }                                                                                                     \
-      }                                                                                                       \
+      TILE_SWEEP(mr, VT, W, NC)                                                                               \
     }                                                                                                         \
-    for (r = 0; r < mr; ++r) for (v = 0; v < NC / W; ++v) *(VT*) (C + r * ldc + v * W) += c[r][v];           \
+    for (r = 0; r < mr; ++r) for (v = 0; v < NC / W; ++v) *(VT*) (C + r * ldc + v * W) += c[r][v];            \
   }
 
 /* gemm_<sfx>: tiles of 8 columns, one of 4, and the last N mod 4 columns through a zero-padded copy of B's
