@@ -97,6 +97,8 @@ class _Transcription:
         self.u_rows = np.flatnonzero(np.tile(np.isfinite(ocp.u_min) | np.isfinite(ocp.u_max), p))
         self.u_lo = np.tile(ocp.u_min, p)[self.u_rows]
         self.u_hi = np.tile(ocp.u_max, p)[self.u_rows]
+        self._snap = [(np.where(np.isfinite(b), b, np.nan), 1e-13 * np.maximum(1.0, np.abs(b)))
+                      for b in (np.asarray(ocp.u_min, dtype=float), np.asarray(ocp.u_max, dtype=float))]
         # State bounds on x_1 … x_T.
         self.x_rows = np.flatnonzero(np.tile(np.isfinite(ocp.x_min) | np.isfinite(ocp.x_max), T))
         self.x_lo = np.tile(ocp.x_min, T)[self.x_rows]
@@ -110,11 +112,16 @@ class _Transcription:
 
     def q_knots(self, x_goal) -> np.ndarray:
         """Linear cost term of the knots, −(φᵀ1 ⊗ R u_g) with u_g the OCP's input goal."""
-        return -np.kron(self._phi_sum, self.ocp.R @ self.ocp.input_goal(x_goal))
+        return np.multiply.outer(-self._phi_sum, self.ocp.R @ self.ocp.input_goal(x_goal)).ravel()
 
     def knots(self, z: np.ndarray) -> np.ndarray:
-        """Knots (p, m) from a solution vector."""
-        return z[self._k0:self._k0 + self.p * self.m].reshape(self.p, self.m)
+        """Knots (p, m) from a solution vector, put on the input bounds where they are within rounding (1e-13
+        relative) of them or beyond: a solver's active bound comes back a few ulps either side of it."""
+        U = z[self._k0:self._k0 + self.p * self.m].reshape(self.p, self.m)
+        U = np.clip(U, self.ocp.u_min, self.ocp.u_max)
+        for bound, tol in self._snap:
+            U = np.where(np.abs(U - bound) <= tol, bound, U)
+        return U
 
     def slacks(self, z: np.ndarray) -> np.ndarray:
         """State-bound slacks (ns,) from a solution vector (empty with hard bounds)."""
@@ -220,17 +227,25 @@ class SparseQP(_Transcription):
 class CondensedQP(_Transcription):
     """The paper's small-matrix formulation: states eliminated, [x_1; …; x_T] = S z + v (Section V-B and V-E).
 
-    The build exploits the structure of S. The horizon splits into *pieces*, runs of inputs u_a … u_{a+L−1}
-    along which φ_i = φ_a + (i − a) Δ is affine in i (one piece per knot interval for piecewise-linear and
-    zero-order-hold bases). Inside a piece, with r_a = [x_a, S_a] the row block of [v S] at x_a,
+    The build exploits the structure of S and never forms it. The horizon splits into *pieces*, runs of inputs
+    u_a … u_{a+L−1} along which φ_i = φ_a + (i − a) Δ is affine in i (one piece per knot interval for
+    piecewise-linear and zero-order-hold bases). In deviation coordinates x̃ = x − x_goal (w̃_d = w_d + (A_d − I)
+    x_goal), inside a piece with y = [x̃_a; α; β; 1], α = (φ_a ⊗ I) z and β = (Δ ⊗ I) z,
 
-        [v S]_{a+s} = Λ_s R,   Λ_s = [A_d^s  E_s  F_s  e_s],   R = [r_a; φ_a ⊗ I; Δ ⊗ I; (1, 0 … 0)],
-        E_s = Σ_{t<s} A_d^t B_d,  F_s = Σ_{t<s} (s−1−t) A_d^t B_d,  e_s = Σ_{t<s} A_d^t w_d.
+        x̃_{a+s} = Λ_s y,   Λ_s = [A_d^s  E_s  F_s  e_s],
+        E_s = Σ_{t<s} A_d^t B_d,  F_s = Σ_{t<s} (s−1−t) A_d^t B_d,  e_s = Σ_{t<s} A_d^t w̃_d.
 
-    Λ_1 … Λ_L are the same for every piece, so with Γ_L = Σ_{s≤L} Λ_sᵀ Q Λ_s (goal folded into e_s) a
-    piece adds Rᵀ Γ_L R to the Gram matrix [[·, qᵀ], [q, P]] of Q^½ [v − x_goal, S]; S itself is never
-    formed. Knot j enters only from the first input it shapes, so R keeps only the knot columns already
-    active (S is block-lower-triangular in knot columns). The terminal weight adds its difference at x_T.
+    Λ_1 … Λ_L are the same for every piece and double: Λ_{s+k} = A_d^s Λ_k + [0, E_s, F_s + k E_s, e_s] (one
+    GEMM per doubling). A piece's state cost is yᵀ Γ_L y with Γ_L = Σ_{s≤L} Λ_sᵀ Q Λ_s (one GEMM). The cost to go
+    from piece i, x̃_aᵀ H x̃_a + 2 x̃_aᵀ G ẑ + ẑᵀ Z ẑ in ẑ = [1, z], then runs backwards over the pieces
+    (H starts as Q_T − Q, the terminal weight's difference): with Ĝ = Γ_L + Λ_Lᵀ H Λ_L and y's rows α, β, 1 a
+    constant E ẑ,
+
+        H ← Ĝ_xx,   G ← Ĝ_xu E + Λ_xᵀ G,   Z ← Z + Eᵀ Ĝ_uu E + Eᵀ Λ_uᵀ G + Gᵀ Λ_u E,
+
+    and x̃_0 = x_0 − x_goal closes it: P = Z_zz (+ the input cost), q = Z_z1 + G_zᵀ x̃_0. G's columns only reach
+    the knots of the pieces after it, so ẑ is kept internally as [1, z reversed] and G and Z grow from the
+    top-left corner. Rows of S (state bounds, :meth:`prediction`) run forward piece by piece when asked.
     """
 
     form = "condensed"
@@ -249,6 +264,7 @@ class CondensedQP(_Transcription):
         else:
             w, V = np.linalg.eigh(Q)
             self._qh, self._dQT = np.sqrt(np.clip(w, 0.0, None))[:, None] * V.T, QT - Q
+        self.R_knots = 0.5 * (self.R_knots + self.R_knots.T)  # exactly symmetric: P is returned as built
         self._pieces = _pieces(self.phi, n, m)
         self._lengths = sorted({piece[1] for piece in self._pieces})
         # Simple bounds on z (ProxQP's box): the knots' input bounds, then s ≥ 0.
@@ -261,6 +277,40 @@ class CondensedQP(_Transcription):
         ks, js = np.nonzero(used)
         self._stage_nz = (ks, js, self.phi[ks, js])
         self._SV = None  # [v S] by stage (T, n, 1 + p·m) of the last per-stage (LTV) prediction
+        self._plan()
+
+    def _plan(self):
+        """Buffers of the one-model build and each piece's rows α, β, 1 of y as E (2m+1, width) over the internal
+        ẑ = [1, z_{nz−1}, …, z_0], cut to the width its cost-to-go term G reaches."""
+        n, m, nz = self.n, self.m, self.nz
+        self._K = K = n + 2 * m + 1
+        L = self._lengths[-1]
+        # M^s = [[Λ_s], [0, T_s]] (K, K) side by side for s = 1 … L: the rows of Λ_s are filled at each build, the
+        # constant rows T_s (α + sβ, β, 1 from α, β, 1) here, so one GEMM Λ_k [M^1 … M^h] doubles Λ.
+        self._M = np.zeros((K, L, K))
+        for s in range(1, L + 1):
+            T = self._M[n:, s - 1, n:]
+            T[:] = np.eye(2 * m + 1)
+            T[:m, m:2 * m] = s * np.eye(m)
+        # With Q diagonal and positive the build runs in x̂ = Q^½ x̃ (Â = Q^½ A Q^-½, …): Γ_L is then the Gram
+        # matrix of the Λ̂_s themselves, with no scaled copy; otherwise W = Q^½ Λ_s.
+        self._hat = self.diagonal_Q and bool(np.all(self._qh > 0))
+        self._W = None if self._hat else np.empty((n, L * K))
+        self._G = np.zeros((n, nz + 1))  # the cost-to-go term G of the backward pass
+        self._H_end = np.diag(self._dQT / self._qh ** 2 if self._hat else self._dQT) if self.diagonal_Q \
+            else np.array(self._dQT)
+        E, width = [], 1
+        for _, _, c, rhs in reversed(self._pieces):
+            Ei = np.zeros((2 * m + 1, nz + 1))
+            Ei[:, 0] = rhs[n:, 0]
+            Ei[:, nz + 1 - c:] = rhs[n:, c:0:-1]  # z_t is internal column nz − t
+            cols = np.flatnonzero(Ei.any(axis=0))
+            width = max(width, int(cols[-1]) + 1 if cols.size else 1)
+            E.append(np.ascontiguousarray(Ei[:, :width]))
+        self._E = E[::-1]
+        self._g = np.zeros(n)
+        self._x0t = np.zeros(n)
+        self._SVc = None  # [v S] rows of the last one-model build, computed when asked
 
     def prediction(self, Ad, Bd, wd, x0):
         """S (T·n, p·m) and v (T·n,) with [x_1; …; x_T] = S z + v (the paper's recipe below its T=5, p=3
@@ -270,7 +320,7 @@ class CondensedQP(_Transcription):
             self._predict_ltv(Ad, Bd, wd, x0)
         else:
             self._SV = None
-            self._predict(Ad, Bd, wd, x0)
+            self._predict(Ad, Bd, wd, x0, np.zeros(self.n))
         SV = self._rows()
         return SV[:, 1:], SV[:, 0]
 
@@ -292,47 +342,49 @@ class CondensedQP(_Transcription):
             SV[k, :, :c + 1] += Ad[k] @ SV[k - 1, :, :c + 1]
         self._SV = SV
 
-    def _predict(self, Ad, Bd, wd, x0):
-        """Λ_1 … Λ_L and each piece's R for the affine model (self._Lam, the pieces' rhs buffers)."""
-        n, m, L = self.n, self.m, self._lengths[-1]
-        Ad = np.asarray(Ad, dtype=float)
-        Lam = np.empty((L, n, n + 2 * m + 1))
-        Apow = Lam[:, :, :n]
-        Apow[0] = Ad
+    def _predict(self, Ad, Bd, wd, x0, x_goal):
+        """Λ_1 … Λ_L of the affine model in deviation coordinates x − x_goal, by doubling (class docstring)."""
+        n, m, K, M = self.n, self.m, self._K, self._M
+        L = M.shape[1]
+        x0t = np.asarray(x0, dtype=float) - x_goal
+        wt = wd + Ad @ x_goal - x_goal
+        if self._hat:
+            qh = self._qh
+            np.multiply(Ad, np.outer(qh, 1.0 / qh), out=M[:n, 0, :n])
+            np.multiply(Bd, qh[:, None], out=M[:n, 0, n:n + m])
+            M[:n, 0, -1] = qh * wt
+            x0t = qh * x0t
+        else:
+            M[:n, 0, :n] = Ad
+            M[:n, 0, n:n + m] = Bd
+            M[:n, 0, -1] = wt
         k = 1
-        while k < L:  # A^{k+1 … k+h} = A^k A^{1 … h}
+        while k < L:  # Λ_{k+s} = Λ_k M^s, s = 1 … h: one GEMM
             h = min(k, L - k)
-            np.matmul(Apow[k - 1], Apow[:h], out=Apow[k:k + h])
+            np.matmul(M[:n, k - 1], M[:, :h].reshape(K, h * K), out=M[:n, k:k + h].reshape(n, h * K))
             k += h
-        Bw = np.column_stack([np.asarray(Bd, dtype=float), np.asarray(wd, dtype=float).ravel()])
-        G = np.empty((L, n, m + 1))  # A^t [B w], t = 0 … L−1
-        G[0] = Bw
-        np.matmul(Apow[:L - 1], Bw, out=G[1:])
-        # Running sums by row adds: numpy's cumsum along the first axis is ~2x slower on these small blocks.
-        for s in range(1, L):  # E_s and e_s: Σ_{t<s} A^t [B w]
-            G[s] += G[s - 1]
-        Lam[:, :, n:n + m] = G[:, :, :m]
-        Lam[:, :, -1] = G[:, :, m]
-        F = Lam[:, :, n + m:n + 2 * m]
-        F[0] = 0.0
-        for s in range(1, L):  # F_s = Σ_{t<s} E_t
-            np.add(F[s - 1], G[s - 1, :, :m], out=F[s])
-        prev = np.zeros((n, 1 + self.nz))
-        prev[:, 0] = x0
-        for _, Lp, c, rhs in self._pieces:
-            rhs[:n] = prev[:, :c + 1]
-            prev = np.zeros((n, 1 + self.nz))
-            prev[:, :c + 1] = Lam[Lp - 1] @ rhs
-        self._Lam, self._end = Lam, prev
+        self._g, self._x0t, self._SVc = x_goal, x0t, None
 
     def _rows(self) -> np.ndarray:
         """[v S] (T·n, 1 + p·m) of the last prediction, one GEMM per piece."""
         if self._SV is not None:
             return self._SV.reshape(self.T * self.n, -1)
-        n, SV = self.n, np.zeros((self.T, self.n, 1 + self.nz))
-        for a, Lp, c, rhs in self._pieces:
-            SV[a:a + Lp, :, :c + 1] = (self._Lam[:Lp].reshape(Lp * n, -1) @ rhs).reshape(Lp, n, c + 1)
-        return SV.reshape(self.T * n, -1)
+        if self._SVc is None:
+            n, K, M = self.n, self._K, self._M
+            L = M.shape[1]
+            Lam = M[:n].reshape(n * L, K)  # Λ_1 … Λ_L, rows by (state, s)
+            SV = np.zeros((self.T, n, 1 + self.nz))
+            prev = SV[0].copy()
+            prev[:, 0] = self._x0t
+            for a, Lp, c, rhs in self._pieces:
+                rhs[:n] = prev[:, :c + 1]
+                SV[a:a + Lp, :, :c + 1] = (Lam @ rhs).reshape(n, L, c + 1)[:, :Lp].transpose(1, 0, 2)
+                prev = SV[a + Lp - 1]
+            if self._hat:
+                SV /= self._qh[:, None]
+            SV[:, :, 0] += self._g
+            self._SVc = SV.reshape(self.T * n, -1)
+        return self._SVc
 
     def build(self, Ad, Bd, wd, x0, x_goal) -> QP:
         """P = SᵀQ̄S + φᵀφ⊗R and q = SᵀQ̄(v − x̄_goal) − (φᵀ1 ⊗ R u_goal); knot bounds (``box``), state bound rows.
@@ -346,7 +398,7 @@ class CondensedQP(_Transcription):
             P, q = self._cost_ltv(x_goal)
         else:
             self._SV = None
-            self._predict(Ad, Bd, wd, x0)
+            self._predict(Ad, Bd, wd, x0, x_goal)
             P, q = self._cost_lti(x_goal)
         return self._qp(P, q)
 
@@ -365,24 +417,42 @@ class CondensedQP(_Transcription):
         return P, Pq[1:, 0] + self.q_knots(x_goal)
 
     def _cost_lti(self, x_goal):
-        """P, q of the last (one-model) prediction, piece by piece as in the class docstring."""
-        n, nz, qh, Lam = self.n, self.nz, self._qh, self._Lam
-        W = qh[:, None] * Lam if self.diagonal_Q else np.matmul(qh, Lam)
-        W[:, :, -1] -= qh * x_goal if self.diagonal_Q else qh @ x_goal
-        Gam, done, s0 = {}, np.zeros((Lam.shape[2],) * 2), 0
-        for Lp in self._lengths:  # Γ_L for each piece length, accumulated over s
-            Ws = W[s0:Lp].reshape((Lp - s0) * n, -1)
-            done = done + Ws.T @ Ws
-            Gam[Lp], s0 = done, Lp
-        Pq = np.zeros((nz + 1, nz + 1))  # Gram matrix of Q^½ [v − x_goal, S]: [[·, qᵀ], [q, P]]
-        for _, Lp, c, rhs in self._pieces:
-            Pq[:c + 1, :c + 1] += rhs.T @ (Gam[Lp] @ rhs)
-        end = self._end - np.outer(x_goal, np.eye(1, nz + 1))
-        Pq += end.T @ (self._dQT[:, None] * end if self.diagonal_Q else self._dQT @ end)
-        P = Pq[1:, 1:] + self.R_knots
-        P += P.T
-        P *= 0.5
-        q = Pq[1:, 0] + self.q_knots(x_goal)
+        """P, q of the last (one-model) prediction: Γ_L, then the backward pass over the pieces (class docstring)."""
+        n, nz, K, M, W = self.n, self.nz, self._K, self._M, self._W
+        L = M.shape[1]
+        if self._hat:
+            W = M[:n].reshape(n, L * K)
+        elif self.diagonal_Q:
+            np.multiply(M[:n].reshape(n, L * K), self._qh[:, None], out=W)
+        else:
+            np.matmul(self._qh, M[:n].reshape(n, L * K), out=W)
+        Gam, s0 = {}, 0
+        for Lp in self._lengths:  # Γ_L for each piece length, accumulated over s (rows of W by (state, s))
+            Ws = W.reshape(n * L, K) if Lp - s0 == L else W.reshape(n, L, K)[:, s0:Lp].reshape(-1, K)
+            G = Ws.T @ Ws
+            if s0:
+                G += Gam[s0]
+            Gam[Lp], s0 = G, Lp
+        G, Zh = self._G, np.zeros((nz + 1, nz + 1))  # Z = Zh + Zhᵀ
+        G.fill(0.0)
+        H, wp = self._H_end, 0
+        for i in range(len(self._pieces) - 1, -1, -1):
+            Lp, E = self._pieces[i][1], self._E[i]
+            w, LamL = E.shape[1], M[:n, Lp - 1]
+            Gh = LamL.T @ (H @ LamL)
+            Gh += Gam[Lp]  # Ĝ = Γ_L + Λ_Lᵀ H Λ_L
+            Y = Gh[:, n:] @ E
+            Y[n:] *= 0.5  # Ĝ_uu enters Zh halved
+            if wp:
+                Y += LamL.T @ G[:, :w]  # rows :n the new G, rows n: ½ Ĝ_uu E + Λ_uᵀ G
+            Zh[:w, :w] += E.T @ Y[n:]
+            H = Gh[:n, :n]
+            G[:, :w] = Y[:n]
+            wp = w
+        Zh[0, :wp] += self._x0t @ G[:, :wp]
+        S = Zh[1:, 1:]
+        P = (S + S.T)[::-1, ::-1] + self.R_knots
+        q = (Zh[1:, 0] + Zh[0, 1:])[::-1] + self.q_knots(x_goal)
         return P, q
 
     def _qp(self, P, q) -> QP:
@@ -391,33 +461,46 @@ class CondensedQP(_Transcription):
             ns = self.ns
             P = np.pad(P, ((0, ns), (0, ns)))
             P[self.nz:, self.nz:] += self.slack_quad * np.eye(ns)
-            q = np.r_[q, np.full(ns, self.slack_weight)]
+            q = np.concatenate([q, np.full(ns, self.slack_weight)])
             SV = self._rows()[self.x_rows]
             vr = SV[:, 0]
             Cs, ls, us = self._soft_rows(SV[:, 1:], self.x_lo - vr, self.x_hi - vr)
             C = np.vstack([self._box_C, Cs])
-            l = np.r_[self.u_lo, np.zeros(ns), ls]
-            u = np.r_[self.u_hi, np.full(ns, np.inf), us]
+            l = np.concatenate([self.u_lo, np.zeros(ns), ls])
+            u = np.concatenate([self.u_hi, np.full(ns, np.inf), us])
             return QP(P, q, self.A, self.b, C, l, u, box=self._box)
         if self.x_rows.size:
             SV = self._rows()[self.x_rows]
-            C, vr = np.vstack([self._box_C, SV[:, 1:]]), SV[:, 0]
+            vr = SV[:, 0]
+            C = np.vstack([self._box_C, SV[:, 1:]])
+            l = np.concatenate([self.u_lo, self.x_lo - vr])
+            u = np.concatenate([self.u_hi, self.x_hi - vr])
         else:
-            C, vr = self._box_C, np.zeros(0)
-        l = np.r_[self.u_lo, self.x_lo - vr]
-        u = np.r_[self.u_hi, self.x_hi - vr]
+            C, l, u = self._box_C, self.u_lo.copy(), self.u_hi.copy()
         return QP(P, q, self.A, self.b, C, l, u, box=self.u_rows)
 
     def states(self, z: np.ndarray, x0) -> np.ndarray:
         """Predicted states x_0 … x_T (T+1, n) of the last built QP."""
         n, X = self.n, np.empty((self.T + 1, self.n))
         X[0] = x0
-        z1 = np.r_[1.0, z[:self.nz]]
+        z1 = np.concatenate([[1.0], z[:self.nz]])
         if self._SV is not None:
             X[1:] = self._SV @ z1
             return X
-        for a, Lp, c, rhs in self._pieces:
-            X[a + 1:a + Lp + 1] = (self._Lam[:Lp].reshape(Lp * n, -1) @ (rhs @ z1[:c + 1])).reshape(Lp, n)
+        K, M, y = self._K, self._M, np.empty(self._K)
+        L = M.shape[1]
+        Lam = M[:n].reshape(n * L, K)
+        xa = X[0] - self._g
+        if self._hat:
+            xa = xa * self._qh
+        for a, Lp, c, rhs in self._pieces:  # x̃_{a+s} = Λ_s y piece by piece
+            y[:n] = xa
+            y[n:] = rhs[n:] @ z1[:c + 1]
+            X[a + 1:a + Lp + 1] = (Lam @ y).reshape(n, L)[:, :Lp].T
+            xa = X[a + Lp]
+        if self._hat:
+            X[1:] /= self._qh
+        X[1:] += self._g
         return X
 
 
