@@ -244,17 +244,18 @@ def _gram_schedule(lengths) -> list[int]:
 
     ``DOUBLE`` takes Γ_s, Λ_s to Γ_2s = Γ_s + (Â^s)ᵀ Γ_s Â^s, Λ_2s = Λ_s Â^s; ``INC`` to Γ_s+1 = Γ_s + W_s+1ᵀW_s+1;
     ``RESET`` restarts from s = 1; ``SAVE + i`` stores Γ_L, Λ_L as length i. L is reached by its binary digits
-    (a doubling per digit, an increment per one) or by increments from the length before, whichever costs
-    less (a doubling costs about 2.5 increments at robot scale).
+    (a doubling per digit, an increment per one; the first doubling, from s = 1, is an increment) or by
+    increments from the length before, whichever costs less (a doubling costs about 2.5 increments at robot
+    scale).
     """
     ops, s = [], 1
     for i, L in enumerate(lengths):
         bits = bin(L)[3:]
-        chain = 2.5 * len(bits) + bits.count("1")
+        chain = 2.5 * len(bits) - 1.5 * bool(bits) + bits.count("1")
         if L - s > chain:
             ops.append(_RESET)
-            for bit in bits:
-                ops.append(_DOUBLE)
+            for k, bit in enumerate(bits):
+                ops.append(_INC if k == 0 else _DOUBLE)  # from s = 1 a stage costs half a doubling
                 if bit == "1":
                     ops.append(_INC)
         else:
