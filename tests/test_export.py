@@ -144,14 +144,15 @@ def test_nlink7_generated_c_is_small(tmp_path):
 
 @pytest.mark.parametrize("variant", ["zoh", "identity", "full_q_and_goal_gain"])
 def test_condensing_variants_match_linear_mpc(variant, tmp_path):
-    """Other bases (other pieces), a non-diagonal Q and an input goal linear in the goal (u_goal + K goal)."""
+    """Other bases (other pieces), non-diagonal Q and Q_T and an input goal linear in the goal (u_goal + K goal)."""
     problem = make("pendulum")
     if variant == "zoh":
         ocp = problem.ocp(knots=4, horizon=30, parameterization="zoh")
     elif variant == "identity":
         ocp = problem.ocp(knots=None, horizon=12)
     else:
-        ocp = problem.ocp(knots=5, horizon=40, Q=[[10.0, 1.0], [1.0, 1.0]], u_goal=[0.2], u_goal_gain=[[0.5, 0.0]])
+        ocp = problem.ocp(knots=5, horizon=40, Q=[[10.0, 1.0], [1.0, 1.0]], Q_terminal=[[30.0, 2.0], [2.0, 3.0]],
+                          u_goal=[0.2], u_goal_gain=[[0.5, 0.0]])
     info = export(ocp, tmp_path / variant, linearization="plan")
     build(info.out_dir)
     with ExportedMPC(ocp, info.out_dir) as c:
