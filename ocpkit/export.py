@@ -226,16 +226,28 @@ def _model_functions(ocp: OCP, name: str):
     graph, with sparse-times-dense products instead of a symbolic derivative of the whole step.
     """
     model = ocp.model
-    disc = model.discrete(ocp.dt, ocp.substeps)
-    xs, us = ca.SX.sym("x", ocp.nx), ca.SX.sym("u", ocp.nu)
-    step = ca.Function(f"{name}_model", [xs, us], [disc(xs, us)], ["x", "u"], ["x_next"])
     if model.linear:
+        xs, us = ca.SX.sym("x", ocp.nx), ca.SX.sym("u", ocp.nu)
         Ad, Bd, wd = model.affine(ocp.dt, ocp.substeps)(xs, us)
+        step = model.discrete(ocp.dt, ocp.substeps)(xs, us)
         return (ca.Function(f"{name}_affine", [xs, us], [ca.densify(Ad), ca.densify(Bd), ca.densify(wd)],
-                            ["x", "u"], ["Ad", "Bd", "wd"]), step, None)
+                            ["x", "u"], ["Ad", "Bd", "wd"]),
+                ca.Function(f"{name}_model", [xs, us], [step], ["x", "u"], ["x_next"]), None)
     x, u = model.x, model.u
     fx, fu = ca.jacobian(model.xdot, x), ca.jacobian(model.xdot, u)
     fj = ca.Function(f"{name}_fjac", [x, u], [model.xdot, fx, fu], ["x", "u"], ["xdot", "fx", "fu"])
+    # The example's discrete model: RK4 calling f (generated once), not f inlined four times per substep.
+    f = ca.Function(f"{name}_f", [x, u], [model.xdot], ["x", "u"], ["xdot"])
+    h = ocp.dt / ocp.substeps
+    X, U = ca.MX.sym("x", ocp.nx), ca.MX.sym("u", ocp.nu)
+    xm = X
+    for _ in range(ocp.substeps):
+        q1 = f(xm, U)
+        q2 = f(xm + h / 2 * q1, U)
+        q3 = f(xm + h / 2 * q2, U)
+        q4 = f(xm + h * q3, U)
+        xm = xm + h / 6 * (q1 + 2 * q2 + 2 * q3 + q4)
+    step = ca.Function(f"{name}_model", [X, U], [xm], ["x", "u"], ["x_next"])
     return fj, step, (fx.sparsity().get_triplet(), fu.sparsity().get_triplet())
 
 
@@ -589,10 +601,10 @@ static int fallback(mem_t* m, double* u_out, int status) {
 #endif
 #if (defined(__GNUC__) || defined(__clang__)) && OCPKIT_SIMD >= 1
 #define VECTOR_EXT 1
-typedef double vec2 __attribute__((vector_size(16), aligned(8)));
+typedef double vec2 __attribute__((vector_size(16), aligned(8), may_alias));
 #if (defined(__x86_64__) || defined(__i386__)) && OCPKIT_SIMD >= 2
 #define HAVE_AVX2_PATH 1
-typedef double vec4 __attribute__((vector_size(32), aligned(8)));
+typedef double vec4 __attribute__((vector_size(32), aligned(8), may_alias));
 #endif
 #endif
 
