@@ -57,14 +57,14 @@ def test_switched_model_equals_the_vm(background):
 
 def test_controller_keeps_solving_while_the_compile_runs(background, monkeypatch):
     gate, started = threading.Event(), threading.Event()
-    real = compiled.compile_function
+    real = compiled._compile_out_of_process
 
     def held(fn, flags="-O1"):
         started.set()
         assert gate.wait(300)
         return real(fn, flags)
 
-    monkeypatch.setattr(compiled, "compile_function", held)
+    monkeypatch.setattr(compiled, "_compile_out_of_process", held)
     problem = make("nlink:2")
     ocp = problem.ocp(horizon=30, knots=4)
     ctrl, ref = LinearMPC(ocp), LinearMPC(problem.ocp(horizon=30, knots=4, compiled=False))
@@ -126,3 +126,37 @@ def test_exit_during_a_background_compile_leaves_no_compiler_nor_scratch(tmp_pat
     assert out.returncode == 0, out.stderr
     if out.stdout.strip() == "1":  # it exited while the compiler ran
         assert not list((tmp_path / "compiled").glob("*/.build-*"))
+
+
+def test_background_compile_hashes_and_generates_out_of_process(background, monkeypatch):
+    # The 13-link model's serialization is 23 MB: as a Python string, copied and encoded for the hash, it held the
+    # GIL for tens of ms and paused a running control loop. The parent process must not serialize at all.
+    import casadi as ca
+
+    def refuse(self, *args):
+        raise AssertionError("serialize() called in the control loop's process during a background compile")
+
+    problem = make("nlink:2")
+    ocp = problem.ocp(horizon=20, knots=3)
+    fn = ocp.affine()
+    assert isinstance(fn, SwitchingFunction)
+    monkeypatch.setattr(ca.Function, "serialize", refuse)
+    assert fn.wait(300) is not None, fn._future.exception()
+    monkeypatch.undo()
+    vm = problem.ocp(horizon=20, knots=3, compiled=False).affine()
+    x, u = problem.sample(0)[0], np.zeros(ocp.nu)
+    for va, ref in zip(fn(x, u), vm(x, u)):
+        _close(va, ref)
+    # The same cache entry as a foreground compile: compiled=True finds it and builds nothing.
+    before = sorted(p.stat().st_mtime_ns for p in (background / "compiled").glob("*/*.so"))
+    problem.ocp(horizon=20, knots=3, compiled=True).affine()
+    assert sorted(p.stat().st_mtime_ns for p in (background / "compiled").glob("*/*.so")) == before
+
+
+def test_background_compile_error_is_one_line(background, monkeypatch):
+    monkeypatch.setenv("CC", "false")  # a "compiler" that is on PATH and fails
+    problem = make("nlink:2")
+    fn = problem.ocp(horizon=20, knots=3).affine()
+    assert isinstance(fn, SwitchingFunction)
+    with pytest.warns(RuntimeWarning, match="compiling affine with `false` failed"):
+        assert fn.wait(300) is None
