@@ -49,7 +49,7 @@ def _add_controller_args(p):
     p.add_argument("--solver", default="qp", help="solver name (default qp)")
     p.add_argument("--form", choices=("sparse", "condensed"), help="qp: QP transcription (default condensed)")
     p.add_argument("--qp", choices=("proxqp", "osqp", "daqp", "hpipm"),
-                   help="qp: QP backend (default proxqp; daqp: condensed form; hpipm: sparse traditional)")
+                   help="qp: QP backend (default daqp for condensed, proxqp for sparse; hpipm: sparse traditional)")
     p.add_argument("--method", choices=("ipopt", "sqp"), help="ipopt: NLP method (default ipopt)")
     p.add_argument("--population", type=int, help="empc/cem/mppi: rollouts per generation")
     p.add_argument("--generations", type=int, help="empc/cem/mppi: generations per control step")

@@ -217,6 +217,20 @@ class Controller:
                 self.plan = sol.knots  # the fallback plan, so repeated failures keep advancing it
             return sol
 
+    def warm_up(self, x, goal) -> Solution:
+        """One step from x towards ``goal`` without the time budget (``time_limit``, where the solver has one).
+
+        The first step of a new controller measures what its operations cost and so is not bounded; call this
+        once before a real-time loop (with its first state and goal) and every step of the loop is."""
+        limit = getattr(self, "time_limit", None)
+        if limit is not None:
+            self.time_limit = None
+        try:
+            return self.solve(x, goal)
+        finally:
+            if limit is not None:
+                self.time_limit = limit
+
     def _verified(self, sol: Solution) -> Solution:
         """``sol`` if it is a usable success (u and knots finite, within the input bounds up to BOUND_TOL, then
         clipped to them); otherwise the fallback with a non-success status. Failures pass through."""

@@ -126,7 +126,7 @@ class NonlinearMPC(Controller):
     def __init__(self, ocp: OCP, *, dynamics: str = "nonlinear", method: str = "ipopt", max_iter: int | None = None,
                  time_limit: float | None = None, options: dict | None = None, warm_start: bool = True,
                  raise_on_fail: bool = False, linearization: str = "goal", iterations: int = 1, tol: float = 0.0,
-                 form: str = "condensed", qp: str = "proxqp", state_bounds: str | None = None):
+                 form: str = "condensed", qp: str | None = None, state_bounds: str | None = None):
         if not isinstance(ocp, OCP):
             raise TypeError(f"ocp must be an ocpkit OCP, got {type(ocp).__name__}")
         choice(dynamics, DYNAMICS, "dynamics")

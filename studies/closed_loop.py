@@ -13,7 +13,7 @@ from ocpkit.simulate import simulate
 
 
 def trial(problem: str, seed: int, solver: str = "qp", knots: int | None = None, horizon: int | None = None,
-          error_multiplier: float = 1.0, form: str = "condensed", qp: str = "proxqp", duration: float | None = None,
+          error_multiplier: float = 1.0, form: str = "condensed", qp: str | None = None, duration: float | None = None,
           options: dict | None = None) -> dict:
     """Run MPC on ``problem`` from the seeded start to goal and measure it (paper Sections III–IV, VII).
 

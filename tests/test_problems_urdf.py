@@ -117,6 +117,15 @@ def test_arm_with_fingers_reaches_its_goal(panda):
     assert np.abs(traj.x[-1, 7:9] - goal[7:9]).max() <= 1e-3          # m
 
 
+def test_model_error_half_still_solves(panda):
+    """Error multiplier 0.5 halves the fingers' mass: QP gradients near 1e8, where an absolute 1e-9 tolerance
+    alone was never met (every step 10,000 iterations and the fallback; a robustness study looked hung)."""
+    ctrl = LinearMPC(panda.ocp(knots=2, error=0.5))
+    x0, goal = panda.sample(0)
+    traj = simulate(panda.plant(), ctrl, x0, goal, 0.3)
+    assert traj.fallbacks == 0 and max(s.iterations for s in traj.solutions) < 10_000
+
+
 def test_bad_urdf_options_name_the_argument(tmp_path):
     with pytest.raises(ValueError, match=re.escape("has no joint 'panda_finger3'; its joints: panda_joint1")):
         Problem.from_urdf(PANDA, locked_joints=["panda_finger3"])

@@ -162,3 +162,12 @@ def test_every_realtime_row_acceptable():
     rows = realtime_rows()
     bad = [(r.case, r.solver, r.detail) for r in rows if not r.acceptable]
     assert not bad, bad
+
+
+@pytest.mark.parametrize("qp", ["proxqp", "osqp"])
+def test_warm_up_makes_the_first_budgeted_step_bounded(qp):
+    ctrl = LinearMPC(PENDULUM.ocp(horizon=100, knots=5), qp=qp, time_limit=1e-6)
+    assert ctrl.warm_up(X0, GOAL).ok and ctrl.time_limit == 1e-6  # outside the budget, which is restored
+    t0 = time.perf_counter()
+    sol = ctrl.solve(X0, GOAL)
+    assert time.perf_counter() - t0 < 0.5 and sol.status == LIMITED and "budget" in sol.raw_status

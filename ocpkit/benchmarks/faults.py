@@ -249,7 +249,7 @@ def budget_rows(budgets=(1e-3, 5e-3, 50e-3), steps=10, labels=tuple(BUDGET_SOLVE
 
 
 def _budgeted(ctrl, label, name, xs, goal, budgets):
-    ctrl.solve(xs[0], goal)  # calibration: the one unbounded step of a new controller
+    ctrl.warm_up(xs[0], goal)  # calibration: the one unbounded step of a new controller
     rows = []
     for budget in budgets:
         ctrl.time_limit = budget
