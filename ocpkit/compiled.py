@@ -95,14 +95,21 @@ _compiling: dict = {}  # running compiler processes -> their scratch folders (en
 def _run_compiler(command: list[str], scratch: Path) -> None:
     """subprocess.run(command, check=True) that a background compile cut short by the interpreter's exit does not
     outlive: the compiler is stopped and its scratch folder removed (see :func:`_stop_compilers`)."""
-    with subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) as proc:
+    code, out, err = _tracked(command, scratch)
+    if code:
+        raise subprocess.CalledProcessError(code, command, out, err)
+
+
+def _tracked(command: list[str], scratch: Path | None, **popen) -> tuple[int, str, str]:
+    """(exit status, stdout, stderr) of ``command``, listed in ``_compiling`` while it runs (``scratch`` its folder,
+    or None for a background compile's child process) so that the interpreter's exit ends it."""
+    with subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **popen) as proc:
         _compiling[proc] = scratch
         try:
             out, err = proc.communicate()
         finally:
             _compiling.pop(proc, None)
-    if proc.returncode:
-        raise subprocess.CalledProcessError(proc.returncode, command, out, err)
+    return proc.returncode, out, err
 
 
 @atexit.register
@@ -128,20 +135,14 @@ def _compile_out_of_process(fn: ca.Function, flags: str = "-O1") -> ca.Function:
     with tempfile.TemporaryDirectory(prefix="ocpkit-compile-") as tmp:
         saved = Path(tmp) / f"{fn.name()}.casadi"
         fn.save(str(saved))
-        package = str(Path(__file__).resolve().parents[1])
-        env = {**os.environ, "PYTHONPATH": os.pathsep.join([package, os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep)}
+        path = [str(Path(__file__).resolve().parents[1]), os.environ.get("PYTHONPATH", "")]
+        env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in path if p)}
         command = [sys.executable, "-c", "import sys; from ocpkit.compiled import _child; _child(*sys.argv[1:])",
                    str(saved), flags]
-        with subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
-                              cwd=tmp, start_new_session=True) as proc:
-            _compiling[proc] = None
-            try:
-                out, err = proc.communicate()
-            finally:
-                _compiling.pop(proc, None)
-    if proc.returncode:
+        code, out, err = _tracked(command, None, env=env, cwd=tmp, start_new_session=True)
+    if code:
         lines = [line for line in err.strip().splitlines() if line.strip()]
-        last = lines[-1] if lines else f"exit status {proc.returncode}"
+        last = lines[-1] if lines else f"exit status {code}"
         if last.startswith("ocpkit.compiled.CompileError: "):
             raise CompileError(last.removeprefix("ocpkit.compiled.CompileError: "))
         raise CompileError(f"the background compile of {fn.name()} failed: {last[:300]}")
