@@ -48,21 +48,36 @@ class OperationCosts:
     predicted time fits in what is left; one never measured is predicted free, so the first step of a new
     controller calibrates (it is not bounded: documented in LinearMPC). ``like`` names a measured operation that
     stands in for one not yet measured (a backend's update for its init: 10 ms of sparse ProxQP update ran
-    into a 5 ms budget when it was predicted free)."""
+    into a 5 ms budget when it was predicted free).
+
+    An operation that does not fit is not run, so it is not measured again: one slow measurement (a first call,
+    a moment of load) would lock it out for good (nlink:13 at a 5 ms budget: every step "limited" after a 5.2 ms
+    first build, against 1.5 ms later). Each refusal therefore lowers its prediction by SKIP_DECAY until it is
+    tried and measured again: an operation that really is too slow costs one overrun per about
+    log(cost/left)/−log(SKIP_DECAY) refused steps (70 at twice the time left)."""
+
+    SKIP_DECAY = 0.99
 
     def __init__(self, like: dict | None = None):
         self._seen: dict[str, deque] = {}
         self._like = dict(like or {})  # op -> a measured op that bounds it until it is measured itself
+        self._decay: dict[str, float] = {}  # op -> SKIP_DECAY ** (refusals since it was last measured)
 
     def add(self, op: str, seconds: float) -> None:
         self._seen.setdefault(op, deque(maxlen=5)).append(seconds)
+        self._decay.pop(op, None)
 
     def predict(self, op: str) -> float:
         seen = self._seen.get(op) or self._seen.get(self._like.get(op))
-        return float(np.median(seen)) if seen else 0.0
+        return self._decay.get(op, 1.0) * float(np.median(seen)) if seen else 0.0
 
     def fits(self, op: str, left: float | None) -> bool:
-        return left is None or (left > 0.0 and self.predict(op) <= left)
+        if left is None:
+            return True
+        if left > 0.0 and self.predict(op) <= left:
+            return True
+        self._decay[op] = self._decay.get(op, 1.0) * self.SKIP_DECAY
+        return False
 
 
 class _ThreadLimit:
@@ -217,16 +232,21 @@ class Controller:
                 self.plan = sol.knots  # the fallback plan, so repeated failures keep advancing it
             return sol
 
-    def warm_up(self, x, goal) -> Solution:
-        """One step from x towards ``goal`` without the time budget (``time_limit``, where the solver has one).
+    def warm_up(self, x, goal, steps: int = 2) -> Solution:
+        """``steps`` steps from x towards ``goal`` without the time budget (``time_limit``, where the solver has
+        one); the last one's solution.
 
         The first step of a new controller measures what its operations cost and so is not bounded; call this
-        once before a real-time loop (with its first state and goal) and every step of the loop is."""
+        once before a real-time loop (with its first state and goal) and every step of the loop is. The second
+        step is warm, as the loop's will be, and outweighs the first's one-off costs in the measurements."""
+        steps = integer(steps, "steps", 1)
         limit = getattr(self, "time_limit", None)
         if limit is not None:
             self.time_limit = None
         try:
-            return self.solve(x, goal)
+            for _ in range(steps):
+                sol = self.solve(x, goal)
+            return sol
         finally:
             if limit is not None:
                 self.time_limit = limit

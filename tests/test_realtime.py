@@ -7,7 +7,7 @@ from threadpoolctl import threadpool_info
 
 from ocpkit import problems
 from ocpkit.benchmarks.faults import beyond_bounds_rows, huge_state_rows, realtime_rows, two_threads_rows
-from ocpkit.controller import LIMITED, NAN, SUCCESS, Controller, Solution
+from ocpkit.controller import LIMITED, NAN, SUCCESS, Controller, OperationCosts, Solution
 from ocpkit.solvers.nlp import NonlinearMPC
 from ocpkit.solvers.qp import LinearMPC
 
@@ -171,3 +171,15 @@ def test_warm_up_makes_the_first_budgeted_step_bounded(qp):
     t0 = time.perf_counter()
     sol = ctrl.solve(X0, GOAL)
     assert time.perf_counter() - t0 < 0.5 and sol.status == LIMITED and "budget" in sol.raw_status
+
+
+def test_one_slow_measurement_does_not_lock_an_operation_out():
+    costs = OperationCosts()
+    costs.add("build", 5.2e-3)  # a slow first call
+    refused = 0
+    while not costs.fits("build", 5e-3):
+        refused += 1
+        assert refused < 100
+    assert refused == 4  # 5.2 ms × 0.99^4 ≤ 5 ms: tried again, and measured again
+    costs.add("build", 1.5e-3)
+    assert costs.predict("build") == pytest.approx(np.median([5.2e-3, 1.5e-3]))

@@ -22,7 +22,7 @@ import numpy as np
 
 from ocpkit.compiled import SwitchingFunction
 from ocpkit.problems import make
-from ocpkit.solvers.qp import LinearMPC
+from ocpkit.solvers.qp import DEFAULT_QP, LinearMPC
 
 
 BASE = "ocpkit condensed knots proxqp"
@@ -105,7 +105,8 @@ def load_medians(problem="nlink:13", horizon=100, knots=5, steps=30, busy=2, see
 def bench_load(problem="nlink:13", horizon=100, knots=5, steps=30, busy=2, out=print) -> dict:
     """Print the step's median quiet and under load (:func:`load_medians`) and the loaded/quiet ratio."""
     med = load_medians(problem, horizon, knots, steps, busy)
-    out(f"{problem} T={horizon} condensed knots({knots}) proxqp, median whole step, quiet vs {busy} busy processes:")
+    out(f"{problem} T={horizon} condensed knots({knots}) {DEFAULT_QP['condensed']} (the default), median whole step, "
+        f"quiet vs {busy} busy processes:")
     for threads in (1, None):
         q, l = med[(threads, "quiet")], med[(threads, "loaded")]
         name = "BLAS threads 1 (default)" if threads == 1 else "BLAS threads unlimited"
