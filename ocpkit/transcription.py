@@ -312,6 +312,21 @@ class CondensedQP(_Transcription):
         self._x0t = np.zeros(n)
         self._SVc = None  # [v S] rows of the last one-model build, computed when asked
 
+    def build_flops(self) -> int:
+        """Floating-point operations of one one-model :meth:`build` as implemented (a multiply-add counts 2): the
+        doubling of Λ, the Gram matrix Γ_L and the backward pass over the pieces."""
+        n, m, K, L = self.n, self.m, self._K, self._lengths[-1]
+        flops = 2 * n * K * K * (L - 1) + 2 * n * L * K * K
+        if not self._hat:
+            flops += (1 if self.diagonal_Q else 2 * n) * n * L * K  # W = Q^½ Λ
+        wp = 0
+        for E in reversed(self._E):
+            w = E.shape[1]
+            flops += 2 * n * n * K + 2 * n * K * K + 2 * K * (2 * m + 1) * w + 2 * w * (2 * m + 1) * w
+            flops += 2 * K * n * w if wp else 0
+            wp = w
+        return int(flops)
+
     def prediction(self, Ad, Bd, wd, x0):
         """S (T·n, p·m) and v (T·n,) with [x_1; …; x_T] = S z + v (the paper's recipe below its T=5, p=3
         example, evaluated piece by piece as in the class docstring; stage by stage for per-stage models)."""

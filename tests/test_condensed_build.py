@@ -109,3 +109,12 @@ def test_per_stage_models_equal_reference():
     P_ref, q_ref, _, _ = _reference(ocp, Ad, Bd, wd, x0, goal)
     np.testing.assert_allclose(qp.P, P_ref, rtol=0, atol=1e-12 * np.abs(P_ref).max())
     np.testing.assert_allclose(qp.q, q_ref, rtol=0, atol=1e-12 * np.abs(q_ref).max())
+
+
+def test_build_flops_counts_the_dominant_products():
+    n, m, T, p = 5, 2, 20, 5
+    Q = np.eye(n)
+    ocp, *_ = _case(n, m, T, "linear", p, Q, Q, seed=1)
+    tr = CondensedQP(ocp)
+    K, L = n + 2 * m + 1, tr._lengths[-1]
+    assert tr.build_flops() > 2 * n * K * K * (L - 1) + 2 * n * L * K * K  # doubling and Γ_L, then the pieces
