@@ -60,14 +60,21 @@ class QP:
     def check(self) -> str | None:
         """Why this QP must not reach a backend (non-finite data, l > u, asymmetric P), or None."""
         dense = [_values(M) for M in (self.P, self.A, self.C)] + [self.q, self.b]
-        for name, values in zip(("P", "A", "C", "q", "b"), dense):
-            if not np.all(np.isfinite(values)):
-                return f"non-finite entries in {name}"
+        # A finite sum of sums has no inf or NaN entry below it (one would make it inf or NaN): the per-array test
+        # only runs when it is not (or overflowed).
+        with np.errstate(over="ignore", invalid="ignore"):
+            finite = np.isfinite(sum(float(values.sum()) for values in dense))
+        if not finite:
+            for name, values in zip(("P", "A", "C", "q", "b"), dense):
+                if not np.all(np.isfinite(values)):
+                    return f"non-finite entries in {name}"
         if np.isnan(self.l).any() or np.isnan(self.u).any():
             return "NaN in the bounds l, u"
         if (self.l > self.u).any():
             return f"lower bound above upper bound in {int((self.l > self.u).sum())} constraint rows"
         P = self.P
+        if not sp.issparse(P) and np.array_equal(P, P.T):
+            return None
         asym = abs(P - P.T).max() if sp.issparse(P) else np.abs(P - P.T).max(initial=0.0)
         if asym > 1e-9 * max(1.0, abs(P).max() if sp.issparse(P) else np.abs(P).max(initial=0.0)):
             return "P is not symmetric"

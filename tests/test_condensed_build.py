@@ -118,3 +118,25 @@ def test_build_flops_counts_the_dominant_products():
     tr = CondensedQP(ocp)
     K, L = n + 2 * m + 1, tr._lengths[-1]
     assert tr.build_flops() > 2 * n * K * K * (L - 1) + 2 * n * L * K * K  # doubling and Γ_L, then the pieces
+
+
+def test_qp_check_names_the_problem_and_passes_large_finite_data():
+    import copy
+
+    Q = np.eye(5)
+    ocp, Ad, Bd, wd, x0, goal = _case(5, 2, 20, "linear", 5, Q, Q, seed=2, u_min=-1.0, u_max=1.0)
+    qp = CondensedQP(ocp).build(Ad, Bd, wd, x0, goal)
+    assert qp.check() is None
+    for field, value, message in [("P", np.inf, "non-finite entries in P"), ("q", np.nan, "non-finite entries in q"),
+                                  ("C", -np.inf, "non-finite entries in C"), ("l", np.nan, "NaN in the bounds")]:
+        bad = copy.deepcopy(qp)
+        getattr(bad, field).flat[1] = value
+        assert message in bad.check()
+    bad = copy.deepcopy(qp)
+    bad.P[0, 1] += 1.0
+    assert bad.check() == "P is not symmetric"
+    big = copy.deepcopy(qp)  # finite entries whose sum overflows, and infinite bounds: nothing to report
+    big.P[0, 1] = big.P[1, 0] = big.P[2, 2] = 1e308
+    big.l, big.u = np.full_like(qp.l, -np.inf), np.full_like(qp.u, np.inf)
+    with np.errstate(all="raise"):
+        assert big.check() is None
