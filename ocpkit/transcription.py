@@ -104,8 +104,8 @@ class _Transcription:
         self.u_rows = np.flatnonzero(np.tile(np.isfinite(ocp.u_min) | np.isfinite(ocp.u_max), p))
         self.u_lo = np.tile(ocp.u_min, p)[self.u_rows]
         self.u_hi = np.tile(ocp.u_max, p)[self.u_rows]
-        self._snap = [(np.where(np.isfinite(b), b, np.nan), 1e-13 * np.maximum(1.0, np.abs(b)))
-                      for b in (np.asarray(ocp.u_min, dtype=float), np.asarray(ocp.u_max, dtype=float))]
+        lo, hi = (np.broadcast_to(np.asarray(b, dtype=float), (p, m)) for b in (ocp.u_min, ocp.u_max))
+        self._snap = (lo, hi, *(np.where(np.isfinite(b), 1e-13 * np.maximum(1.0, np.abs(b)), -1.0) for b in (lo, hi)))
         # State bounds on x_1 … x_T.
         self.x_rows = np.flatnonzero(np.tile(np.isfinite(ocp.x_min) | np.isfinite(ocp.x_max), T))
         self.x_lo = np.tile(ocp.x_min, T)[self.x_rows]
@@ -124,10 +124,10 @@ class _Transcription:
     def knots(self, z: np.ndarray) -> np.ndarray:
         """Knots (p, m) from a solution vector, put on the input bounds where they are within rounding (1e-13
         relative) of them or beyond: a solver's active bound comes back a few ulps either side of it."""
-        U = z[self._k0:self._k0 + self.p * self.m].reshape(self.p, self.m)
-        U = np.clip(U, self.ocp.u_min, self.ocp.u_max)
-        for bound, tol in self._snap:
-            U = np.where(np.abs(U - bound) <= tol, bound, U)
+        lo, hi, tol_lo, tol_hi = self._snap
+        U = np.clip(z[self._k0:self._k0 + self.p * self.m].reshape(self.p, self.m), lo, hi)
+        np.copyto(U, lo, where=U - lo <= tol_lo)
+        np.copyto(U, hi, where=hi - U <= tol_hi)
         return U
 
     def slacks(self, z: np.ndarray) -> np.ndarray:
@@ -509,17 +509,19 @@ class CondensedQP(_Transcription):
         if self._SV is not None:
             X[1:] = self._SV @ z1
             return X
-        K, M, y = self._K, self._M, np.empty(self._K)
+        K, M, pieces = self._K, self._M, self._pieces
         L = M.shape[1]
-        Lam = M[:n].reshape(n * L, K)
+        Y = np.empty((K, len(pieces)))  # each piece's y = [x̃_a; α; β; 1], x̃_a from Λ_L of the piece before
         xa = X[0] - self._g
         if self._hat:
             xa = xa * self._qh
-        for a, Lp, c, rhs in self._pieces:  # x̃_{a+s} = Λ_s y piece by piece
-            y[:n] = xa
-            y[n:] = rhs[n:] @ z1[:c + 1]
-            X[a + 1:a + Lp + 1] = (Lam @ y).reshape(n, L)[:, :Lp].T
-            xa = X[a + Lp]
+        for i, (_, Lp, c, rhs) in enumerate(pieces):
+            Y[:n, i] = xa
+            Y[n:, i] = rhs[n:] @ z1[:c + 1]
+            xa = M[:n, Lp - 1] @ Y[:, i]
+        Xs = (M[:n].reshape(n * L, K) @ Y).reshape(n, L, len(pieces))  # x̃_{a+s} = Λ_s y, all pieces in one GEMM
+        for i, (a, Lp, _, _) in enumerate(pieces):
+            X[a + 1:a + Lp + 1] = Xs[:, :Lp, i].T
         if self._hat:
             X[1:] /= self._qh
         X[1:] += self._g
