@@ -179,6 +179,8 @@ class Controller:
         self.raise_on_fail = bool(raise_on_fail)
         self.threads = threads
         self.state_limit = state_limit(ocp)
+        bound = np.abs(np.concatenate([ocp.u_min, ocp.u_max]))
+        self._input_scale = max(1.0, float(bound[np.isfinite(bound)].max(initial=0.0)))  # BOUND_TOL's scale
         self._lock = threading.RLock()
         self._step_start = None  # perf_counter at the start of the step in flight (time budgets count from it)
         self._affine_model = None  # the OCP's affine model, bound to numpy buffers at its first use
@@ -260,10 +262,9 @@ class Controller:
         u, knots = np.asarray(sol.u, dtype=float), np.asarray(sol.knots, dtype=float)
         if not (np.all(np.isfinite(u)) and np.all(np.isfinite(knots))):
             return self._rejected(NAN, f"{sol.raw_status} with non-finite result", sol)
-        excess = max(float(np.max(np.r_[(ocp.u_min - u), (u - ocp.u_max)], initial=0.0)),
-                     float(np.max(np.r_[(ocp.u_min - knots).ravel(), (knots - ocp.u_max).ravel()], initial=0.0)))
-        bound = np.abs(np.r_[ocp.u_min, ocp.u_max])
-        if excess > BOUND_TOL * max(1.0, float(bound[np.isfinite(bound)].max(initial=0.0))):
+        excess = max(float((ocp.u_min - knots).max(initial=0.0)), float((knots - ocp.u_max).max(initial=0.0)),
+                     float((ocp.u_min - u).max(initial=0.0)), float((u - ocp.u_max).max(initial=0.0)))
+        if excess > BOUND_TOL * self._input_scale:
             return self._rejected(LIMITED, f"{sol.raw_status} but an input bound violated by {excess:.3g}", sol)
         sol.u = np.clip(u, ocp.u_min, ocp.u_max)
         sol.knots = np.clip(knots, ocp.u_min, ocp.u_max)

@@ -22,9 +22,10 @@ from ocpkit.model import Model
 from ocpkit.parameterization import Parameterization
 
 # The default path (``compiled`` not given) compiles the affine model in the background only from this size up
-# (CasADi VM instructions): below it the VM takes tens of µs and a compile would only cost CPU. nlink:3 has 7k,
-# nlink:7 67k, nlink:13 264k.
-BACKGROUND_MIN_INSTRUCTIONS = 20_000
+# (CasADi VM instructions of the continuous Jacobian, Model.jacobian, which the affine model evaluates 4 times
+# per RK4 step): below it the VM takes tens of µs and a compile would only cost CPU. nlink:3 has 822, nlink:5 3k,
+# nlink:7 6.5k, nlink:13 24k.
+BACKGROUND_MIN_INSTRUCTIONS = 2_000
 
 
 class OCP:
@@ -87,7 +88,7 @@ class OCP:
         """The affine model (x̄, ū) -> (A_d, B_d, w_d) of :meth:`discrete`.
 
         ``compiled=True``: compiled C, compiled here and now (see :mod:`ocpkit.compiled`: about 2x faster for large
-        robots after a one-off compile, cached by hash). ``compiled=False``: CasADi's SX virtual machine.
+        robots after a one-off compile, cached by hash). ``compiled=False``: CasADi's virtual machine.
         Not given (default): the virtual machine, which switches by itself to the compiled C as soon as a compile
         started in the background at this first call finishes (models of ``BACKGROUND_MIN_INSTRUCTIONS`` and
         more; a :class:`ocpkit.compiled.SwitchingFunction`); without a C compiler, the VM with one warning."""
@@ -96,7 +97,7 @@ class OCP:
             if self._compiled_affine is None:
                 self._compiled_affine = compile_function(fn)
             return self._compiled_affine
-        if self.compiled is None and fn.n_instructions() >= BACKGROUND_MIN_INSTRUCTIONS:
+        if self.compiled is None and self.model.jacobian.n_instructions() >= BACKGROUND_MIN_INSTRUCTIONS:
             if self._compiled_affine is None:
                 future = compile_in_background(fn)
                 self._compiled_affine = fn if future is None else SwitchingFunction(fn, future)

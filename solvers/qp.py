@@ -337,8 +337,8 @@ class _DAQP:
         dense = (lambda M: M.toarray() if sp.issparse(M) else np.asarray(M, dtype=float))
         rows = [dense(qp.C)[k:]] + ([dense(qp.A)] if qp.b.size else [])
         A = np.ascontiguousarray(np.vstack(rows)) if sum(r.shape[0] for r in rows) else np.zeros((0, n))
-        bu = np.clip(np.r_[hi, qp.u[k:], qp.b], -self.INF, self.INF)
-        bl = np.clip(np.r_[lo, qp.l[k:], qp.b], -self.INF, self.INF)
+        bu = np.clip(np.concatenate([hi, qp.u[k:], qp.b]), -self.INF, self.INF)
+        bl = np.clip(np.concatenate([lo, qp.l[k:], qp.b]), -self.INF, self.INF)
         sense = np.zeros(bu.size, dtype=np.int32)
         sense[bu.size - qp.b.size:] = 5  # equality: active and immutable
         if warm is not None and len(warm) == 2 and warm[1].shape == bu.shape:
@@ -591,7 +591,7 @@ def _violation(qp: QP, z: np.ndarray) -> float:
 
 def _scale(qp: QP) -> float:
     """1 + the largest finite magnitude of the QP's right-hand sides (b, l, u)."""
-    v = np.abs(np.r_[qp.b, qp.l, qp.u])
+    v = np.abs(np.concatenate([qp.b, qp.l, qp.u]))
     return 1.0 + float(v[np.isfinite(v)].max(initial=0.0))
 
 

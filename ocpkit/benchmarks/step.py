@@ -155,7 +155,7 @@ def _one(problem, T, p, steps, seed, peers, rounds):
                 times[name].append(time.perf_counter() - t0)
                 status[name].add(str(st).rsplit(".", 1)[-1])
                 agree[name] = max(agree[name], float(np.abs(mpc.getNextInput() - u0[k]).max()))
-    flops = _build_flops(ctrls[BASE].transcription)
+    flops = ctrls[BASE].transcription.build_flops()
     base = float(np.median(times[BASE]))
     out = []
     for name, t in times.items():
@@ -207,22 +207,13 @@ def _peers(ocp, goal, model) -> dict:
     return mpcs
 
 
-def _build_flops(tr) -> int:
-    """Floating-point operations of CondensedQP.build (multiply-adds count 2) as implemented."""
-    n, m, L = tr.n, tr.m, tr._lengths[-1]
-    K = n + 2 * m + 1
-    flops = 2 * (L - 1) * n ** 3 + 2 * (L - 1) * n * n * (m + 1)  # A^s by doubling, A^t [B w]
-    flops += 2 * L * n * K * K  # Γ_L = Σ Λᵀ Q Λ (requested as a full product)
-    for _, _, c, _ in tr._pieces:
-        flops += 2 * (K * K * (c + 1) + K * (c + 1) ** 2 + n * K * (c + 1))  # Γ R, Rᵀ(Γ R), end row
-    c = tr._pieces[-1][2]
-    return int(flops + 2 * n * (c + 1) ** 2)
-
-
 def _gemm_rate(size=1000, repeats=5) -> float:
-    """Dense GEMM rate of this machine (GFLOP/s, numpy's BLAS, best of ``repeats``)."""
+    """Dense GEMM rate of one core (GFLOP/s, numpy's BLAS on 1 thread as in a step, best of ``repeats``)."""
+    from threadpoolctl import threadpool_limits
+
     a, b = np.random.default_rng(0).normal(size=(2, size, size))
-    best = min(_timed(lambda: a @ b) for _ in range(repeats))
+    with threadpool_limits(1):
+        best = min(_timed(lambda: a @ b) for _ in range(repeats))
     return 2 * size ** 3 / best / 1e9
 
 
