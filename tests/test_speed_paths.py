@@ -101,11 +101,11 @@ def test_hpipm_needs_sparse_traditional():
 
 
 def test_bench_step_runs_every_solver_in_rounds():
-    from ocpkit.benchmarks.step import BASE, DAQP, VM, bench_step
+    from ocpkit.benchmarks.step import BASE, PROXQP, VM, bench_step
 
     lines = []
     rows = bench_step(links=(1,), horizons=(10, 20), knots=3, steps=3, rounds=2, peers=False, out=lines.append)
-    assert {r["solver"] for r in rows} >= {BASE, DAQP, VM, "ocpkit sparse traditional hpipm",
+    assert {r["solver"] for r in rows} >= {BASE, PROXQP, VM, "ocpkit sparse traditional hpipm",
                                            "ocpkit sparse traditional osqp"}
     assert all(r["status"] == "success" and r["p25"] <= r["median"] <= r["p75"] for r in rows)
     assert [r["ratio"] for r in rows if r["solver"] == BASE] == [1.0, 1.0]

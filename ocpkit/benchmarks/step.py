@@ -25,9 +25,9 @@ from ocpkit.problems import make
 from ocpkit.solvers.qp import DEFAULT_QP, LinearMPC
 
 
-BASE = "ocpkit condensed knots proxqp"
-DAQP = "ocpkit condensed knots daqp"
-VM = "ocpkit condensed knots proxqp, VM model"
+BASE = "ocpkit condensed knots daqp"  # the default QP of the condensed form
+PROXQP = "ocpkit condensed knots proxqp"
+VM = "ocpkit condensed knots daqp, VM model"
 
 
 def wait_compiled(ocp, timeout: float | None = None) -> bool:
@@ -118,7 +118,7 @@ def _one(problem, T, p, steps, seed, peers, rounds):
     ocp_k, ocp_t = problem.ocp(horizon=T, knots=p), problem.ocp(horizon=T)
     x, goal = problem.sample(seed)
     F = ocp_k.discrete()
-    ref = LinearMPC(ocp_k, form="condensed", qp="proxqp")
+    ref = LinearMPC(ocp_k)
     xs = []
     for _ in range(steps):  # the replayed closed loop
         xs.append(x)
@@ -126,9 +126,9 @@ def _one(problem, T, p, steps, seed, peers, rounds):
     models = [ref.affine_model(x, goal, "goal") for x in xs]  # what affine_mpc is given at each step
     wait_compiled(ocp_k)  # the default model after its background compile (cached by hash: once per model)
     ocp_vm = problem.ocp(horizon=T, knots=p, compiled=False)  # CasADi's SX virtual machine throughout
-    ctrls = {BASE: LinearMPC(ocp_k, form="condensed", qp="proxqp"),
-             DAQP: LinearMPC(ocp_k, form="condensed", qp="daqp"),
-             VM: LinearMPC(ocp_vm, form="condensed", qp="proxqp"),
+    ctrls = {BASE: LinearMPC(ocp_k, form="condensed", qp="daqp"),
+             PROXQP: LinearMPC(ocp_k, form="condensed", qp="proxqp"),
+             VM: LinearMPC(ocp_vm, form="condensed", qp="daqp"),
              "ocpkit sparse traditional hpipm": LinearMPC(ocp_t, form="sparse", qp="hpipm"),
              "ocpkit sparse traditional osqp": LinearMPC(ocp_t, form="sparse", qp="osqp")}
     peer = _peers(ocp_k, goal, models[0]) if peers else {}
