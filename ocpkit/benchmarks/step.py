@@ -136,6 +136,7 @@ def _one(problem, T, p, steps, seed, peers, rounds):
     parts = {name: {"model": [], "build": [], "solve": []} for name in ctrls if name.startswith("ocpkit condensed")}
     u0 = [None] * steps
     agree, status = {name: 0.0 for name in peer}, {name: set() for name in times}
+    iterations = {name: [] for name in peer}
     for r in range(rounds):
         for name, ctrl in _rotated(ctrls, r):
             ctrl.reset()
@@ -148,12 +149,15 @@ def _one(problem, T, p, steps, seed, peers, rounds):
                 for part, values in parts.get(name, {}).items():
                     values.append(sol.times[part])
         for name, mpc in _rotated(peer, r):
+            mpc.resetWarmStart()
             for k, (x, model) in enumerate(zip(xs, models)):
-                mpc.setModelDiscrete(np.asfortranarray(model[0]), np.asfortranarray(model[1]), model[2])
+                A, B = np.asfortranarray(model[0]), np.asfortranarray(model[1])
                 t0 = time.perf_counter()
+                mpc.setModelDiscrete(A, B, model[2])
                 st = mpc.solve(x)
                 times[name].append(time.perf_counter() - t0)
                 status[name].add(str(st).rsplit(".", 1)[-1])
+                iterations[name].append(mpc.getSolveInfo().iterations)
                 agree[name] = max(agree[name], float(np.abs(mpc.getNextInput() - u0[k]).max()))
     flops = ctrls[BASE].transcription.build_flops()
     base = float(np.median(times[BASE]))
@@ -163,7 +167,8 @@ def _one(problem, T, p, steps, seed, peers, rounds):
         row = {"problem": problem.name, "horizon": T, "solver": name, "median": float(np.median(t)),
                "p25": float(np.percentile(t, 25)), "p75": float(np.percentile(t, 75)),
                "ratio": float(np.median(t)) / base, "status": ",".join(sorted(status[name])),
-               "u0_diff": agree.get(name)}
+               "u0_diff": agree.get(name),
+               "iterations": float(np.median(iterations[name])) if name in iterations else None}
         if name in parts:
             row.update({part: float(np.median(v)) for part, v in parts[name].items()}, flops=flops)
         out.append(row)
@@ -188,22 +193,23 @@ def _peers(ocp, goal, model) -> dict:
         return {}
     n, m, T, p = ocp.nx, ocp.nu, ocp.horizon, ocp.knots
     mpcs = {}
-    for name, cls in (("affine_mpc CondensedMPC (OSQP)", ampc.CondensedMPC), ("affine_mpc SparseMPC (OSQP)", ampc.SparseMPC)):
-        mpc = cls(n, m, ampc.Parameterization.linearInterp(T, p), ampc.Options(use_input_cost=True))
-        mpc.setModelDiscrete(np.asfortranarray(model[0]), np.asfortranarray(model[1]), model[2])
-        mpc.setInputLimits(ocp.u_min, ocp.u_max)
-        mpc.setWeights(np.diag(ocp.Q).copy(), np.diag(ocp.Q_terminal).copy(), np.diag(ocp.R).copy())
-        mpc.setReferenceState(goal)
-        mpc.setReferenceInput(ocp.input_goal(goal))
-        # Same accuracy as ocpkit's solves (1e-9). affine_mpc weighs R on the control points, ocpkit on every
-        # step's input: with knots u0 differs slightly (6e-3 at nlink:7, T=100, p=5); traditional MPC agrees
-        # to 3e-8 (measured).
-        settings = ampc.OSQPSettings()
-        settings.eps_abs = settings.eps_rel = 1e-9
-        settings.max_iter = 100_000
-        if not mpc.initializeSolver(settings):
-            continue
-        mpcs[name] = mpc
+    for form, cls in (("CondensedMPC", ampc.CondensedMPC), ("SparseMPC", ampc.SparseMPC)):
+        for accuracy in ("its defaults", "eps 1e-9"):
+            mpc = cls(n, m, ampc.Parameterization.linearInterp(T, p), ampc.Options(use_input_cost=True))
+            mpc.setModelDiscrete(np.asfortranarray(model[0]), np.asfortranarray(model[1]), model[2])
+            mpc.setInputLimits(ocp.u_min, ocp.u_max)
+            mpc.setWeights(np.diag(ocp.Q).copy(), np.diag(ocp.Q_terminal).copy(), np.diag(ocp.R).copy())
+            mpc.setReferenceState(goal)
+            mpc.setReferenceInput(ocp.input_goal(goal))
+            # Its recommended OSQP settings (eps 1e-6, 4000 iterations), and ocpkit's accuracy (1e-9). affine_mpc
+            # weighs R on the control points, ocpkit on every step's input: with knots u0 differs slightly (6e-3 at
+            # nlink:7, T=100, p=5); traditional MPC agrees to 3e-8 (measured).
+            settings = ampc.OSQPSettings()
+            if accuracy != "its defaults":
+                settings.eps_abs = settings.eps_rel = 1e-9
+                settings.max_iter = 100_000
+            if mpc.initializeSolver(settings):
+                mpcs[f"affine_mpc {form} (OSQP, {accuracy})"] = mpc
     return mpcs
 
 
@@ -225,14 +231,17 @@ def _timed(f) -> float:
 
 def _print(rows, gemm, knots, out):
     out(f"Whole MPC step (affine model + build + solve), ms: median [p25, p75]; ratio = median / ocpkit condensed "
-        f"knots({knots}); u0 = max |u0 − ocpkit's u0| over the replayed steps. affine_mpc rows time its "
-        f"solve() only, given ocpkit's affine model (its linearization is not counted).")
+        f"knots({knots}); u0 = max |u0 − ocpkit's u0| over the replayed steps; it = median QP iterations. affine_mpc "
+        f"rows time its setModelDiscrete() + solve(), given ocpkit's affine model (its linearization is not "
+        f"counted).")
     out(f"Dense GEMM (1000³, numpy BLAS) in this run: {gemm:.1f} GFLOP/s")
-    out(f"{'problem':10} {'T':>4} {'solver':46} {'median':>9} {'p25':>9} {'p75':>9} {'ratio':>8} {'u0':>9}  status")
+    out(f"{'problem':10} {'T':>4} {'solver':46} {'median':>9} {'p25':>9} {'p75':>9} {'ratio':>8} {'u0':>9} "
+        f"{'it':>6}  status")
     for r in rows:
         u0 = "" if r["u0_diff"] is None else f"{r['u0_diff']:9.1e}"
+        it = "" if r["iterations"] is None else f"{r['iterations']:6.0f}"
         out(f"{r['problem']:10} {r['horizon']:>4} {r['solver']:46} {1e3 * r['median']:9.3f} {1e3 * r['p25']:9.3f} "
-            f"{1e3 * r['p75']:9.3f} {r['ratio']:8.2f} {u0:>9}  {r['status']}")
+            f"{1e3 * r['p75']:9.3f} {r['ratio']:8.2f} {u0:>9} {it:>6}  {r['status']}")
     out("ocpkit condensed knots, medians (ms) of the parts and the build's rate (default model: compiled after "
         "its background compile; vm: compiled=False):")
     parts = {(r["problem"], r["horizon"], r["solver"]): r for r in rows if "flops" in r}
