@@ -50,13 +50,13 @@ class OperationCosts:
     stands in for one not yet measured (a backend's update for its init: 10 ms of sparse ProxQP update ran
     into a 5 ms budget when it was predicted free).
 
-    An operation that does not fit is not run, so it is not measured again: one slow measurement (a first call,
+    An operation that does not fit is not run, so it is not measured again: slow measurements (a first call,
     a moment of load) would lock it out for good (nlink:13 at a 5 ms budget: every step "limited" after a 5.2 ms
-    first build, against 1.5 ms later). Each refusal therefore lowers its prediction by SKIP_DECAY until it is
-    tried and measured again: an operation that really is too slow costs one overrun per about
-    log(cost/left)/−log(SKIP_DECAY) refused steps (70 at twice the time left)."""
+    first build, against 1.5 ms later). Each refusal therefore lowers its prediction by SKIP_DECAY, down to
+    SKIP_FLOOR of the measured time, until it is tried and measured again: an operation is retried only where at
+    least half its measured time is left, so a retry overruns the time left by at most that much again."""
 
-    SKIP_DECAY = 0.99
+    SKIP_DECAY, SKIP_FLOOR = 0.99, 0.5
 
     def __init__(self, like: dict | None = None):
         self._seen: dict[str, deque] = {}
@@ -76,7 +76,7 @@ class OperationCosts:
             return True
         if left > 0.0 and self.predict(op) <= left:
             return True
-        self._decay[op] = self._decay.get(op, 1.0) * self.SKIP_DECAY
+        self._decay[op] = max(self.SKIP_FLOOR, self._decay.get(op, 1.0) * self.SKIP_DECAY)
         return False
 
 

@@ -347,9 +347,11 @@ class NonlinearMPC(Controller):
         t2 = time.perf_counter()
         times["build"] = t2 - t1
         left = self.remaining(self.time_limit)
-        if not self._costs.fits("iteration", left):
+        # A solve costs at least its set-up and one iteration (max_wall_time is checked after an iteration): two.
+        if not self._costs.fits("iteration", None if left is None else left / 2):
             return self.fallback(LIMITED, f"time budget: {1e3 * max(left, 0.0):.3g} ms left, an IPOPT iteration "
-                                          f"measured at {1e3 * self._costs.predict('iteration'):.3g} ms", times)
+                                          f"measured at {1e3 * self._costs.predict('iteration'):.3g} ms (a solve "
+                                          f"is at least two)", times)
         try:
             res = self._solver(**args)
         except Exception as exc:  # a solver that throws must not stop the control loop

@@ -183,3 +183,5 @@ def test_one_slow_measurement_does_not_lock_an_operation_out():
     assert refused == 4  # 5.2 ms × 0.99^4 ≤ 5 ms: tried again, and measured again
     costs.add("build", 1.5e-3)
     assert costs.predict("build") == pytest.approx(np.median([5.2e-3, 1.5e-3]))
+    # Never below half the measured time: an operation more than twice the time left is never retried.
+    assert not any(costs.fits("build", 0.49 * costs.predict("build")) for _ in range(1000))
