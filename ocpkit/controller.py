@@ -35,11 +35,15 @@ STATE_SCALE = 1e6
 BOUND_TOL = 1e-6
 
 
+def bound_scale(lower, upper) -> float:
+    """max(1, the largest finite |bound|): the scale of a pair of bound vectors."""
+    finite = np.abs(np.concatenate([lower, upper]))
+    return max(1.0, float(finite[np.isfinite(finite)].max(initial=0.0)))
+
+
 def state_limit(ocp: OCP) -> float:
     """|x|, |goal| beyond which a step is answered "nan" without a solve: STATE_SCALE × the problem's scale."""
-    finite = np.abs(np.r_[ocp.x_min, ocp.x_max])
-    finite = finite[np.isfinite(finite)]
-    return STATE_SCALE * max(1.0, float(finite.max(initial=0.0)))
+    return STATE_SCALE * bound_scale(ocp.x_min, ocp.x_max)
 
 
 class OperationCosts:
@@ -61,7 +65,7 @@ class OperationCosts:
     def __init__(self, like: dict | None = None):
         self._seen: dict[str, deque] = {}
         self._like = dict(like or {})  # op -> a measured op that bounds it until it is measured itself
-        self._decay: dict[str, float] = {}  # op -> SKIP_DECAY ** (refusals since it was last measured)
+        self._decay: dict[str, float] = {}  # op -> max(SKIP_FLOOR, SKIP_DECAY ** refusals since last measured)
 
     def add(self, op: str, seconds: float) -> None:
         self._seen.setdefault(op, deque(maxlen=5)).append(seconds)
@@ -179,8 +183,7 @@ class Controller:
         self.raise_on_fail = bool(raise_on_fail)
         self.threads = threads
         self.state_limit = state_limit(ocp)
-        bound = np.abs(np.concatenate([ocp.u_min, ocp.u_max]))
-        self._input_scale = max(1.0, float(bound[np.isfinite(bound)].max(initial=0.0)))  # BOUND_TOL's scale
+        self._input_scale = bound_scale(ocp.u_min, ocp.u_max)  # BOUND_TOL's scale
         self._lock = threading.RLock()
         self._step_start = None  # perf_counter at the start of the step in flight (time budgets count from it)
         self._affine_model = None  # the OCP's affine model, bound to numpy buffers at its first use

@@ -221,9 +221,9 @@ def _model_functions(ocp: OCP, name: str):
 
     A linear model's discretization is a constant (matrix exponential): ``<name>_affine`` (x, ū) -> (A_d, B_d,
     w_d) is small. A nonlinear one is RK4 over ``substeps``: ``<name>_fjac`` (x, u) -> (f, ∂f/∂x, ∂f/∂u) is
-    generated once, its Jacobians kept sparse, and the C step propagates the sensitivities through the four
-    stages (dk/dx = J_x(x_s, u) dx_s/dx, …) — the same derivative ``ocp.affine()`` takes of the unrolled RK4
-    graph, with sparse-times-dense products instead of a symbolic derivative of the whole step.
+    generated once (:attr:`Model.jacobian`), its Jacobians kept sparse, and the C step propagates the
+    sensitivities through the four stages (dk/dx = J_x(x_s, u) dx_s/dx, …) — the forward sensitivities
+    ``ocp.affine()`` propagates with dense products, here sparse-times-dense.
     """
     model = ocp.model
     if model.linear:
@@ -233,9 +233,8 @@ def _model_functions(ocp: OCP, name: str):
         return (ca.Function(f"{name}_affine", [xs, us], [ca.densify(Ad), ca.densify(Bd), ca.densify(wd)],
                             ["x", "u"], ["Ad", "Bd", "wd"]),
                 ca.Function(f"{name}_model", [xs, us], [step], ["x", "u"], ["x_next"]), None)
-    x, u = model.x, model.u
-    fx, fu = ca.jacobian(model.xdot, x), ca.jacobian(model.xdot, u)
-    fj = ca.Function(f"{name}_fjac", [x, u], [model.xdot, fx, fu], ["x", "u"], ["xdot", "fx", "fu"])
+    x, u, jac = model.x, model.u, model.jacobian
+    fj = ca.Function(f"{name}_fjac", [x, u], jac(x, u), ["x", "u"], ["xdot", "fx", "fu"])
     # The example's discrete model: RK4 calling f (generated once), not f inlined four times per substep.
     f = ca.Function(f"{name}_f", [x, u], [model.xdot], ["x", "u"], ["xdot"])
     h = ocp.dt / ocp.substeps
@@ -248,7 +247,7 @@ def _model_functions(ocp: OCP, name: str):
         q4 = f(xm + h * q3, U)
         xm = xm + h / 6 * (q1 + 2 * q2 + 2 * q3 + q4)
     step = ca.Function(f"{name}_model", [X, U], [xm], ["x", "u"], ["x_next"])
-    return fj, step, (fx.sparsity().get_triplet(), fu.sparsity().get_triplet())
+    return fj, step, (jac.sparsity_out(1).get_triplet(), jac.sparsity_out(2).get_triplet())
 
 
 def _gram_schedule(lengths) -> list[int]:

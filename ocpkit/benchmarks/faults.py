@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ocpkit import problems, solvers
+from ocpkit.benchmarks.step import load_medians, wait_compiled
 from ocpkit.controller import SUCCESS
 from ocpkit.problems.pendulum import Pendulum
 
@@ -251,8 +252,6 @@ def budget_rows(budgets=(1e-3, 5e-3, 50e-3), steps=10, labels=tuple(BUDGET_SOLVE
 
 
 def _budgeted(ctrl, label, name, xs, goal, budgets):
-    from ocpkit.benchmarks.step import wait_compiled
-
     wait_compiled(ctrl.ocp)  # the steady state: the compiled affine model in place
     ctrl.warm_up(xs[0], goal)  # calibration: the unbounded steps of a new controller
     rows = []
@@ -377,8 +376,6 @@ def two_threads_rows(labels=("qp condensed daqp", "qp condensed proxqp", "qp spa
 
 def loaded_row(busy=2, steps=30) -> RealTimeRow:
     """nlink:13 T=100 condensed knots step: median beside ``busy`` busy processes ≤ 2 × the quiet median."""
-    from ocpkit.benchmarks.step import load_medians
-
     med = load_medians(steps=steps, busy=busy)
     q, l = med[(1, "quiet")], med[(1, "loaded")]
     return RealTimeRow("loaded machine", "qp condensed daqp",

@@ -207,8 +207,8 @@ def _peers(ocp, goal, model) -> dict:
             mpc.setReferenceState(goal)
             mpc.setReferenceInput(ocp.input_goal(goal))
             # Its recommended OSQP settings (eps 1e-6, 4000 iterations), and ocpkit's accuracy (1e-9). affine_mpc
-            # weighs R on the control points, ocpkit on every step's input: with knots u0 differs slightly (6e-3 at
-            # nlink:7, T=100, p=5); traditional MPC agrees to 3e-8 (measured).
+            # weighs R on the control points, ocpkit on every step's input: with knots u0 differs slightly (0.05 at
+            # nlink:7, T=100, p=5, over the replayed loop); traditional MPC agrees to 3e-8 (measured).
             settings = ampc.OSQPSettings()
             if accuracy != "its defaults":
                 settings.eps_abs = settings.eps_rel = 1e-9
