@@ -101,16 +101,18 @@ def test_hpipm_needs_sparse_traditional():
 
 
 def test_bench_step_runs_every_solver_in_rounds():
-    from ocpkit.benchmarks.step import BASE, PROXQP, VM, bench_step
+    from ocpkit.benchmarks.step import BASE, PROXQP, PYTHON, VM, bench_step
 
     lines = []
-    rows = bench_step(links=(1,), horizons=(10, 20), knots=3, steps=3, rounds=2, peers=False, out=lines.append)
-    assert {r["solver"] for r in rows} >= {BASE, PROXQP, VM, "ocpkit sparse traditional hpipm",
+    rows = bench_step(links=(1,), horizons=(10, 20), knots=3, steps=3, rounds=2, peers=False, busy=0, fresh=0,
+                      out=lines.append)
+    assert {r["solver"] for r in rows} >= {BASE, PYTHON, PROXQP, VM, "ocpkit sparse traditional hpipm",
                                            "ocpkit sparse traditional osqp"}
     assert all(r["status"] == "success" and r["p25"] <= r["median"] <= r["p75"] for r in rows)
     assert [r["ratio"] for r in rows if r["solver"] == BASE] == [1.0, 1.0]
-    parts = [r for r in rows if "flops" in r]  # the three condensed variants report their parts
-    assert len(parts) == 6 and all(r["model"] + r["build"] + r["solve"] <= r["median"] * 1.5 for r in parts)
+    parts = [r for r in rows if "flops" in r]  # the four condensed variants report their parts
+    assert len(parts) == 8 and all(r["step"] == "Python" for r in parts)  # nlink:1: too small for the C step
+    assert all(r["model"] + r["build"] + r["solve"] <= r["median"] * 1.5 for r in parts)
     assert any("solve(T=20)/solve(T=10)" in line for line in lines)
     floors = [line for line in lines if line.startswith("  ") and "best step" in line]
     assert len(floors) == 2 and all("nlink:1" in line and "%" in line for line in floors)

@@ -217,7 +217,8 @@ def _counts(statuses) -> str:
 BUDGET_SOLVERS = {  # label -> (options, knots): nlink:13, T = 100
     "qp condensed proxqp": ({"form": "condensed", "qp": "proxqp"}, 5),
     "qp condensed osqp": ({"form": "condensed", "qp": "osqp"}, 5),
-    "qp condensed daqp": ({"form": "condensed", "qp": "daqp"}, 5),
+    "qp condensed daqp": ({"form": "condensed", "qp": "daqp"}, 5),  # the default: the compiled C step
+    "qp condensed daqp, Python step": ({"form": "condensed", "qp": "daqp", "native": False}, 5),
     "qp sparse proxqp": ({"form": "sparse", "qp": "proxqp"}, 5),
     "qp sparse osqp": ({"form": "sparse", "qp": "osqp"}, 5),
     "qp sparse hpipm (p=T)": ({"form": "sparse", "qp": "hpipm"}, None),
@@ -252,7 +253,10 @@ def budget_rows(budgets=(1e-3, 5e-3, 50e-3), steps=10, labels=tuple(BUDGET_SOLVE
 
 
 def _budgeted(ctrl, label, name, xs, goal, budgets):
-    wait_compiled(ctrl.ocp)  # the steady state: the compiled affine model in place
+    if hasattr(ctrl, "wait_native"):  # the steady state: the C step, or the compiled affine model, in place
+        ctrl.wait_native()
+    else:
+        wait_compiled(ctrl.ocp)
     ctrl.warm_up(xs[0], goal)  # calibration: the unbounded steps of a new controller
     rows = []
     for budget in budgets:

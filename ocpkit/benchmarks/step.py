@@ -7,14 +7,20 @@ as in a control loop. Each replay runs one controller alone, as a real loop woul
 ``rounds`` rounds alternate the controllers in rotated order, so all see the same machine load. affine_mpc gets the identical affine
 model (A_d, B_d, w_d) ocpkit linearized at that state and is timed on its solve() alone.
 
-ocpkit's condensed rows use the default affine model (CasADi's VM until the background compile of
-``ocpkit.compiled`` finishes, then compiled C) timed after the switch; the "VM model" row keeps the VM
-(``compiled=False``). The floor estimate is build FLOPs / GEMM rate + the fastest QP solve + the compiled model.
+The default row is LinearMPC as constructed without options, timed once its background builds have finished:
+for models from nlink:5 up the whole step as compiled C (:mod:`ocpkit.native`), below it the Python step. The
+"Python step" row keeps the Python step (``native=False``) with the default affine model (CasADi's VM until the
+background compile of ``ocpkit.compiled`` finishes, then compiled C); the "VM model" row the Python step on the VM
+throughout (``compiled=False``). The floor estimate is build FLOPs / GEMM rate + the fastest QP solve + the
+compiled model.
 """
 from __future__ import annotations
 
+import json
+import os
 import subprocess
 import sys
+import tempfile
 import time
 from contextlib import contextmanager
 
@@ -25,7 +31,8 @@ from ocpkit.problems import make
 from ocpkit.solvers.qp import DEFAULT_QP, LinearMPC
 
 
-BASE = "ocpkit condensed knots daqp"  # the default QP of the condensed form
+BASE = "ocpkit condensed knots daqp (default)"  # the default QP of the condensed form, the default step
+PYTHON = "ocpkit condensed knots daqp, Python step"
 PROXQP = "ocpkit condensed knots proxqp"
 VM = "ocpkit condensed knots daqp, VM model"
 
@@ -39,9 +46,10 @@ def wait_compiled(ocp, timeout: float | None = None) -> bool:
 
 
 def bench_step(links=(1, 2, 4, 7, 10, 13), horizons=(50, 100), knots=5, steps=20, rounds=5, seed=0, peers=True,
-               busy=2, out=print) -> list[dict]:
+               busy=2, fresh=10.0, out=print) -> list[dict]:
     """Medians and spread (ms) of a whole step per configuration; ratios to ocpkit's condensed knots step.
-    With ``busy`` > 0, then the nlink:13 T=100 step quiet and beside ``busy`` busy processes (:func:`bench_load`)."""
+    With ``busy`` > 0, then the nlink:13 T=100 step quiet and beside ``busy`` busy processes (:func:`bench_load`);
+    with ``fresh`` > 0, the first ``fresh`` seconds of a closed loop after a fresh install (:func:`bench_fresh`)."""
     rows = []
     gemm = _gemm_rate()
     for N in links:
@@ -51,7 +59,56 @@ def bench_step(links=(1, 2, 4, 7, 10, 13), horizons=(50, 100), knots=5, steps=20
     _print(rows, gemm, knots, out)
     if busy:
         bench_load(busy=busy, knots=knots, out=out)
+    if fresh:
+        bench_fresh(seconds=fresh, knots=knots, out=out)
     return rows
+
+
+def bench_fresh(problem="nlink:13", horizon=100, knots=5, seconds=10.0, seed=0, out=print) -> dict:
+    """The first ``seconds`` of a closed loop as after a fresh install (an empty cache: each run in its own process
+    with its own new cache folder), on the default path (the Python step on the VM until the background compiles
+    finish, then the C step) and on the VM path (``compiled=False``): step-time median and maximum per second."""
+    runs = {}
+    for label, compiled in (("default", None), ("VM (compiled=False)", False)):
+        with tempfile.TemporaryDirectory(prefix="ocpkit-fresh-") as cache:
+            code = ("import json, sys; from ocpkit.benchmarks.step import _closed_loop; "
+                    "print(json.dumps(_closed_loop(*json.loads(sys.argv[1]))))")
+            args = json.dumps([problem, horizon, knots, seconds, seed, compiled])
+            proc = subprocess.run([sys.executable, "-c", code, args], capture_output=True, text=True,
+                                  env={**os.environ, "OCPKIT_CACHE_DIR": cache}, check=True)
+            runs[label] = json.loads(proc.stdout.strip().splitlines()[-1])
+    out(f"{problem} T={horizon} condensed knots({knots}), the first {seconds:g} s of a closed loop after a fresh "
+        f"install (empty cache), step time median / max per second, ms:")
+    out(f"  {'second':>6}  " + "  ".join(f"{label:>24}" for label in runs) + "  default/VM (medians)")
+    for k in range(int(np.ceil(seconds))):
+        cells, medians = [], []
+        for at, wall, path in (map(np.asarray, runs[label]) for label in runs):
+            w = wall[(at >= k) & (at < k + 1)]
+            medians.append(np.median(w) if w.size else np.nan)
+            c_share = f" C {np.mean(path[(at >= k) & (at < k + 1)]):4.0%}" if w.size else ""
+            cells.append(f"{1e3 * medians[-1]:7.3f} / {1e3 * w.max():7.3f}{c_share if path.any() else ''}")
+        out(f"  {k:>6}  " + "  ".join(f"{c:>24}" for c in cells) + f"  {medians[0] / medians[1]:6.2f}")
+    return runs
+
+
+def _closed_loop(problem, horizon, knots, seconds, seed, compiled) -> tuple[list, list, list]:
+    """(start of each step since the loop began (s), its wall time (s), whether it ran in C) over ``seconds`` of a
+    closed loop of a newly constructed default LinearMPC on the OCP's discrete model."""
+    prob = make(problem)
+    ocp = prob.ocp(horizon=horizon, knots=knots, compiled=compiled)
+    x, goal = prob.sample(seed)
+    F = ocp.discrete()
+    begin = time.perf_counter()
+    ctrl = LinearMPC(ocp)
+    at, wall, path = [], [], []
+    while time.perf_counter() - begin < seconds:
+        t0 = time.perf_counter()
+        sol = ctrl.solve(x, goal)
+        at.append(t0 - begin)
+        wall.append(time.perf_counter() - t0)
+        path.append(ctrl.native)
+        x = np.asarray(F(x, sol.u)).ravel()
+    return at, wall, path
 
 
 @contextmanager
@@ -82,8 +139,9 @@ def load_medians(problem="nlink:13", horizon=100, knots=5, steps=30, busy=2, see
     for _ in range(steps):
         xs.append(x)
         x = np.asarray(F(x, ref.solve(x, goal).u)).ravel()
-    wait_compiled(ocp)
     ctrls = {1: LinearMPC(ocp), None: LinearMPC(ocp, threads=None)}
+    for ctrl in ctrls.values():
+        ctrl.wait_native()  # the default step once built (the C step from nlink:5 up)
 
     def replay(ctrl):
         ctrl.reset()
@@ -126,11 +184,13 @@ def _one(problem, T, p, steps, seed, peers, rounds):
     models = [ref.affine_model(x, goal, "goal") for x in xs]  # what affine_mpc is given at each step
     wait_compiled(ocp_k)  # the default model after its background compile (cached by hash: once per model)
     ocp_vm = problem.ocp(horizon=T, knots=p, compiled=False)  # CasADi's SX virtual machine throughout
-    ctrls = {BASE: LinearMPC(ocp_k, form="condensed", qp="daqp"),
+    ctrls = {BASE: LinearMPC(ocp_k),
+             PYTHON: LinearMPC(ocp_k, native=False),
              PROXQP: LinearMPC(ocp_k, form="condensed", qp="proxqp"),
              VM: LinearMPC(ocp_vm, form="condensed", qp="daqp"),
              "ocpkit sparse traditional hpipm": LinearMPC(ocp_t, form="sparse", qp="hpipm"),
              "ocpkit sparse traditional osqp": LinearMPC(ocp_t, form="sparse", qp="osqp")}
+    ctrls[BASE].wait_native()  # the default step once its background build has finished (cached: once per OCP)
     peer = _peers(ocp_k, goal, models[0]) if peers else {}
     times = {name: [] for name in [*ctrls, *peer]}
     parts = {name: {"model": [], "build": [], "solve": []} for name in ctrls if name.startswith("ocpkit condensed")}
@@ -172,7 +232,8 @@ def _one(problem, T, p, steps, seed, peers, rounds):
                "u0_diff": agree.get(name),
                "iterations": float(np.median(iterations[name])) if name in iterations else None}
         if name in parts:
-            row.update({part: float(np.median(v)) for part, v in parts[name].items()}, flops=flops)
+            row.update({part: float(np.median(v)) for part, v in parts[name].items()}, flops=flops,
+                       step="C" if ctrls[name].native else "Python")
         out.append(row)
     return out
 
@@ -247,18 +308,20 @@ def _print(rows, gemm, knots, out):
         it = "" if r["iterations"] is None else f"{r['iterations']:6.0f}"
         out(f"{r['problem']:10} {r['horizon']:>4} {r['solver']:46} {1e3 * r['median']:9.3f} {1e3 * r['p25']:9.3f} "
             f"{1e3 * r['p75']:9.3f} {r['ratio']:8.2f} {u0:>9} {it:>6}  {r['status']}")
-    out("ocpkit condensed knots, medians (ms) of the parts and the build's rate (default model: compiled after "
-        "its background compile; vm: compiled=False):")
+    out("ocpkit condensed knots, medians (ms) of the parts and the build's rate (C: the compiled C step, timed in C; "
+        "Python: the Python step, its model compiled after its background compile; vm: compiled=False):")
     parts = {(r["problem"], r["horizon"], r["solver"]): r for r in rows if "flops" in r}
     for (name, T, solver), r in parts.items():
         gf = r["flops"] / r["build"] / 1e9
         shortest = min(t for (nm, t, sv) in parts if nm == name and sv == solver)
         ratio = "" if T == shortest else \
             f"  solve(T={T})/solve(T={shortest}) = {r['solve'] / parts[(name, shortest, solver)]['solve']:.2f}"
-        tag = solver.removeprefix("ocpkit condensed knots ").replace(", VM model", " vm")
-        out(f"  {name:10} T={T:<4} {tag:10} model {1e3 * r['model']:.3f}  "
-            f"build {1e3 * r['build']:.3f} ({r['flops'] / 1e6:.2f} MFLOP, {gf:.1f} GFLOP/s = "
-            f"{100 * gf / gemm:.0f}% of GEMM)  solve {1e3 * r['solve']:.3f}{ratio}")
+        tag = (solver.removeprefix("ocpkit condensed knots ").replace(", VM model", " vm")
+               .replace(", Python step", "").replace(" (default)", "")) + f" {r['step']}"
+        rate = ("by doubling, fewer FLOPs" if r["step"] == "C" else
+                f"{r['flops'] / 1e6:.2f} MFLOP, {gf:.1f} GFLOP/s = {100 * gf / gemm:.0f}% of GEMM")
+        out(f"  {name:10} T={T:<4} {tag:13} model {1e3 * r['model']:.3f}  build {1e3 * r['build']:.3f} ({rate})  "
+            f"solve {1e3 * r['solve']:.3f}{ratio}")
     out("Floor estimate = build FLOPs / GEMM rate + fastest QP solve + compiled model; fraction = floor / best step:")
     for name, T in dict.fromkeys((nm, t) for nm, t, _ in parts):
         mine = [r for (nm, t, _), r in parts.items() if (nm, t) == (name, T)]

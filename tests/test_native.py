@@ -1,0 +1,85 @@
+"""LinearMPC's compiled C step (ocpkit.native): the same step as the Python one, its fallbacks, budget and cache."""
+import numpy as np
+import pytest
+
+from ocpkit import native, problems
+from ocpkit.controller import LIMITED, SUCCESS
+from ocpkit.export import check_tools
+from ocpkit.solvers.qp import LinearMPC
+
+try:
+    check_tools()
+except Exception as exc:  # noqa: BLE001
+    pytest.skip(f"no C toolchain: {exc}", allow_module_level=True)
+
+PROBLEM = problems.make("nlink:2")
+
+
+@pytest.fixture(scope="module")
+def ocp():
+    return PROBLEM.ocp(knots=4, horizon=40)
+
+
+def test_c_step_equals_python_step_along_a_closed_loop(ocp):
+    c, py = LinearMPC(ocp, native=True), LinearMPC(ocp, native=False)
+    assert c.native and not py.native
+    x, goal = PROBLEM.sample(3)
+    F = ocp.discrete()
+    for _ in range(60):
+        a, b = c.solve(x, goal), py.solve(x, goal)
+        assert a.status == b.status == SUCCESS
+        np.testing.assert_allclose(a.u, b.u, atol=1e-8)
+        np.testing.assert_allclose(a.knots, b.knots, atol=1e-8)
+        assert set(a.times) == {"model", "build", "solve", "total"} and a.times["total"] >= a.times["solve"] > 0
+        x = np.asarray(F(x, a.u)).ravel()
+
+
+def test_controllers_of_one_ocp_share_one_build(ocp):
+    a, b = LinearMPC(ocp, native=True), LinearMPC(ocp, native=True)
+    assert a.native and b.native
+    assert a._native is not b._native and a._native.out_dir == b._native.out_dir  # own memory, one library
+
+
+def test_configurations_without_a_c_step_say_why(ocp):
+    bounded = PROBLEM.ocp(knots=4, horizon=40, x_min=[-1.0] * 4, x_max=[1.0] * 4)
+    for kwargs, why in (({"form": "sparse"}, "form 'sparse'"), ({"qp": "proxqp"}, "qp 'proxqp'"),
+                        ({"linearization": "plan"}, "linearization 'plan'")):
+        with pytest.raises(ValueError, match=f"native=True.*{why}"):
+            LinearMPC(ocp, native=True, **kwargs)
+    with pytest.raises(ValueError, match="soft state bounds"):
+        LinearMPC(bounded, native=True)
+    assert LinearMPC(bounded, native=True, state_bounds="hard").native
+    assert not LinearMPC(bounded).native  # default soft bounds: the Python step, no error
+    with pytest.raises(TypeError, match="native"):
+        LinearMPC(ocp, native="yes")
+
+
+def test_budget_too_small_for_the_c_step_gives_the_fallback(ocp):
+    c = LinearMPC(ocp, native=True)
+    x, goal = PROBLEM.sample(1)
+    first = c.warm_up(x, goal)
+    c.time_limit = 1e-9
+    sol = c.solve(x, goal)
+    assert sol.status == LIMITED and sol.fallback and "C step" in sol.raw_status
+    np.testing.assert_allclose(sol.knots, np.clip(ocp.parameterization.shift(first.knots), ocp.u_min, ocp.u_max))
+
+
+def test_changing_max_iter_returns_to_the_python_step(ocp):
+    c = LinearMPC(ocp, native=True)
+    c.max_iter = 50
+    assert not c.native
+    x, goal = PROBLEM.sample(2)
+    assert c.solve(x, goal).status == SUCCESS
+
+
+def test_damaged_cache_entry_is_rebuilt(ocp, tmp_path, monkeypatch):
+    monkeypatch.setenv("OCPKIT_CACHE_DIR", str(tmp_path))
+    monkeypatch.setattr(native, "_builds", {})
+    fresh = PROBLEM.ocp(knots=4, horizon=40)
+    folder = native.start(fresh, eps=1e-9, max_iter=1000, wait=True).result()
+    library = folder / f"lib{native.NAME}.so"
+    library.write_bytes(b"not a library")
+    monkeypatch.setattr(native, "_builds", {})
+    with pytest.warns(RuntimeWarning, match="damaged cache entry"):
+        again = native.start(PROBLEM.ocp(knots=4, horizon=40), eps=1e-9, max_iter=1000, wait=True).result()
+    assert again == folder and library.read_bytes()[:4] == b"\x7fELF"
