@@ -395,8 +395,8 @@ def realtime_rows() -> list[RealTimeRow]:
 
 
 def format_realtime(rows: list[RealTimeRow]) -> str:
-    lines = [f"{'case':20} {'solver':24} {'wall ms':>9}  {'ok':3} statuses | detail | criterion"]
+    lines = [f"{'case':20} {'solver':30} {'wall ms':>9}  {'ok':3} statuses | detail | criterion"]
     for r in rows:
-        lines.append(f"{r.case:20} {r.solver:24} {1e3 * r.seconds:9.2f}  {'yes' if r.acceptable else 'BAD':3} "
+        lines.append(f"{r.case:20} {r.solver:30} {1e3 * r.seconds:9.2f}  {'yes' if r.acceptable else 'BAD':3} "
                      f"{r.statuses} | {r.detail} | {r.criterion}")
     return "\n".join(lines)
