@@ -2,9 +2,10 @@
 
 Each control step linearizes the model about the current state and the input the previous plan
 expected now, builds the chosen transcription from the affine model (A_d, B_d, w_d), and solves the QP
-with ProxQP (dense backend for the condensed form, sparse for the sparse form) or OSQP, the paper's own
-solver. Input bounds are imposed on the knots, which keeps the whole piecewise-linear (or
-zero-order-hold) input trajectory within bounds because every u_k is a convex combination of knots.
+with DAQP (the condensed form's default), ProxQP (dense backend for the condensed form, sparse for the sparse
+form), OSQP (the paper's own solver) or HPIPM. Input bounds are imposed on the knots, which keeps the whole
+piecewise-linear (or zero-order-hold) input trajectory within bounds because every u_k is a convex combination of
+knots. In the default configuration a robot's step runs as compiled C once it is built (:mod:`ocpkit.native`).
 """
 from __future__ import annotations
 
