@@ -441,7 +441,8 @@ class LinearMPC(Controller):
     condensed QP and DAQP solve in C, :mod:`ocpkit.native`), loaded through ctypes — nlink:13, T = 100: 0.3 ms
     instead of 0.8 ms. It serves the default configuration: condensed form, DAQP, linearization "goal", no soft
     state bounds (none in the OCP, or ``state_bounds="hard"``), an input goal linear in the goal. None (default)
-    follows the OCP's ``compiled`` policy: for models from BACKGROUND_MIN_INSTRUCTIONS up the library is built in
+    follows the OCP's ``compiled`` policy: for models from BACKGROUND_MIN_INSTRUCTIONS up and knot QPs of at most
+    ``ocpkit.native.MAX_VARIABLES`` variables (where it pays: not the traditional QP) the library is built in
     the background (seconds; cached by hash, once per OCP) while the Python step runs, and the next step after it
     is ready runs in C. True builds it here and now (a ValueError where the configuration has no C step);
     False keeps the Python step. The C step cannot be stopped from outside: with a ``time_limit`` it starts only
