@@ -21,7 +21,7 @@ from concurrent.futures import Future
 from pathlib import Path
 
 from ocpkit.cache import cache_dir, entry_ok, remove_entry, seal
-from ocpkit.compiled import _tracked
+from ocpkit.compiled import _tracked, compiler_available
 from ocpkit.export import BuildError, check_tools, export
 from ocpkit.ocp import BACKGROUND_MIN_INSTRUCTIONS, OCP
 
@@ -57,13 +57,14 @@ def wanted(ocp: OCP) -> bool:
 def start(ocp: OCP, *, eps: float, max_iter: int, wait: bool = False) -> Future | None:
     """A Future of the folder holding ``lib<NAME>.so``, the exported condensed DAQP step of ``ocp`` (DAQP tolerance
     ``eps``, ``max_iter`` iterations). ``wait``: built here and now (BuildError if it cannot be); otherwise built in
-    the background, and None with one warning where ``cc`` or ``make`` is missing."""
+    the background, and None where ``cc`` or ``make`` is missing (one warning for ``make``: a missing compiler is
+    said once by :mod:`ocpkit.compiled` when the Python step's model cannot be compiled either)."""
     try:
         check_tools()
     except BuildError as exc:
         if wait:
             raise
-        if str(exc) not in _warned:
+        if compiler_available() and str(exc) not in _warned:
             _warned.add(str(exc))
             warnings.warn(f"LinearMPC keeps its Python step: {exc}", RuntimeWarning, stacklevel=3)
         return None

@@ -83,3 +83,17 @@ def test_damaged_cache_entry_is_rebuilt(ocp, tmp_path, monkeypatch):
     with pytest.warns(RuntimeWarning, match="damaged cache entry"):
         again = native.start(PROBLEM.ocp(knots=4, horizon=40), eps=1e-9, max_iter=1000, wait=True).result()
     assert again == folder and library.read_bytes()[:4] == b"\x7fELF"
+
+
+def test_without_a_compiler_the_python_step_runs_and_one_line_says_so(monkeypatch):
+    import warnings
+
+    monkeypatch.setenv("CC", "no-such-cc")
+    problem = problems.make("nlink:5")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        ctrl = LinearMPC(problem.ocp(knots=3, horizon=20))
+        x, goal = problem.sample(0)
+        assert ctrl.solve(x, goal).status == SUCCESS and not ctrl.native
+    messages = [str(w.message) for w in caught if issubclass(w.category, RuntimeWarning)]
+    assert len(messages) == 1 and "no C compiler (`no-such-cc`)" in messages[0]
