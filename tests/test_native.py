@@ -97,3 +97,27 @@ def test_without_a_compiler_the_python_step_runs_and_one_line_says_so(monkeypatc
         assert ctrl.solve(x, goal).status == SUCCESS and not ctrl.native
     messages = [str(w.message) for w in caught if issubclass(w.category, RuntimeWarning)]
     assert len(messages) == 1 and "no C compiler (`no-such-cc`)" in messages[0]
+
+
+def test_two_threads_on_one_c_step_give_the_sequential_answers(ocp):
+    import threading
+
+    ctrl, ref = LinearMPC(ocp, native=True), LinearMPC(ocp, native=True)
+    rng = np.random.default_rng(0)
+    goal = PROBLEM.sample(0)[1]
+    states = [rng.uniform(-1, 1, ocp.nx) for _ in range(80)]
+    answers = {}
+
+    def run(part):
+        for i in part:
+            answers[i] = ctrl.solve(states[i], goal)
+
+    threads = [threading.Thread(target=run, args=(range(k, 80, 2),)) for k in (0, 1)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    for i, x in enumerate(states):  # the goal-linearized C step does not depend on the previous step's plan
+        expected = ref.solve(x, goal)
+        assert answers[i].status == expected.status == SUCCESS
+        np.testing.assert_allclose(answers[i].u, expected.u, atol=1e-10)
