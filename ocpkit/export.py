@@ -2,7 +2,8 @@
 
 One control step of the paper's condensed convex MPC (Section V-B, V-E) — affine model about (x, ū),
 condensed QP  min ½ zᵀPz + qᵀz  s.t. knot and state bounds, QP solve, first input — from the same
-description every Python solver uses. ū is the input goal u_g = u_goal + K x_goal (``linearization="goal"``)
+description every Python solver uses. ū is the input goal u_g = u_goal + K x_goal (+ h(x_goal), a problem's
+goal input such as gravity compensation, generated into the C) (``linearization="goal"``)
 or the input the previous plan expects now, ``u_at(shift(plan), 0)`` (``"plan"``), exactly as
 :class:`~ocpkit.solvers.qp.LinearMPC` does, so the exported step reproduces LinearMPC's QP and solution.
 
@@ -76,7 +77,7 @@ _SOLVER_NOTE = {
     "daqp": "CasADi's DAQP code starts DAQP cold and runs its setup, which allocates, inside every step.",
     "osqp": "OSQP is set up (allocating) once in `init` and warm-started; `step` does not allocate.",
 }
-_UBAR = {"goal": "the input goal u_g = u_goal + K goal",
+_UBAR = {"goal": "the input goal u_g = u_goal + K goal (+ the problem's goal input h(goal))",
          "plan": "the input the previous plan expects now (the input goal at a cold start)"}
 _CASADI_DIR = Path(ca.__file__).resolve().parent
 _LIBS = {"qrqp": "", "daqp": "$(CASADI_DIR)/libdaqpstat.a", "osqp": "$(CASADI_DIR)/libosqpstatic.a"}
@@ -145,9 +146,6 @@ def export(ocp: OCP, out_dir, *, form: str = "condensed", qp: str = "daqp", name
         raise ValueError(f"qp={qp!r} with form={form!r} cannot be exported: {why}; "
                          f"supported: {sorted(SUPPORTED)}")
     choice(linearization, LINEARIZATIONS, "linearization")
-    if getattr(ocp, "goal_input", None) is not None:
-        raise ValueError("ocp.goal_input is set: the exported step supports a constant input goal only, or one "
-                         "linear in the goal (u_goal + K goal)")
     if not (isinstance(name, str) and name.isidentifier() and name.isascii()):
         raise ValueError(f"name must be a C identifier, got {name!r}")
     eps = positive(eps, "eps")
@@ -165,6 +163,9 @@ def export(ocp: OCP, out_dir, *, form: str = "condensed", qp: str = "daqp", name
     solver = _conic(qp, name, tr.nz, na, eps, max_iter, polish)
     cg = ca.CodeGenerator(f"{name}_casadi.c", {"with_header": True, "casadi_int": "long long int"})
     all_f = [solver, lin, model]
+    if getattr(ocp, "goal_input", None) is not None:  # h(x_goal) of u_g = u_goal + K x_goal + h(x_goal)
+        xg = ca.MX.sym("x_goal", ocp.nx)
+        all_f.append(ca.Function(f"{name}_goal_input", [xg], [ocp.goal_input(xg)], ["x_goal"], ["u"]))
     for f in all_f:
         cg.add(f)
     cg.generate(str(out) + "/")
@@ -452,6 +453,7 @@ def _constants(tr: CondensedQP, linearization: str, jac) -> str:
         f"#define NGRAM_OPS {len(ops)}",
         _c_const("int", "GRAM_OPS", ops),
         f"#define HAS_K {int(np.any(K))}",
+        f"#define HAS_GOAL_INPUT {int(getattr(ocp, 'goal_input', None) is not None)}",
         f"#define LIN_PLAN {int(linearization == 'plan')}",
         f"#define NPIECE {len(pieces)}",
         f"#define NB {bounded.size}",
@@ -554,8 +556,9 @@ static int any_above(const double* lo, const double* hi, int n) {
 
 static double clip(double v, double lo, double hi) { return v < lo ? lo : (v > hi ? hi : v); }
 
-/* u_g = u_goal + K goal: the input the cost pulls towards. */
-static void input_goal(const double* goal, double* ug) {
+/* u_g = u_goal + K goal (+ h(goal), the problem's goal input: gravity compensation): the input the cost pulls
+   towards. Returns nonzero if h failed. */
+static int input_goal(mem_t* m, const double* goal, double* ug) {
   int i;
   for (i = 0; i < NU; ++i) {
     double s = U_GOAL[i];
@@ -565,7 +568,17 @@ static void input_goal(const double* goal, double* ug) {
 #endif
     ug[i] = s;
   }
-  (void) goal;
+#if HAS_GOAL_INPUT
+  {
+    double h[NU];
+    m->arg[0] = goal; m->res[0] = h;
+    if (${name}_goal_input(m->arg, m->res, (casadi_int*) m->iw, m->w, 0)) return 1;
+    for (i = 0; i < NU; ++i) ug[i] += h[i];
+  }
+#else
+  (void) m; (void) goal;
+#endif
+  return 0;
 }
 
 /* Controller.fallback: previous plan shifted (input goal at a cold start), clipped; the next step starts cold. */
@@ -990,7 +1003,11 @@ int ${name}_step_timed(mem_t* m, const double* x, const double* goal, double* u_
   int i, j, rc;
   double t0 = 0, t1 = 0, t2 = 0;
   if (t) { t[0] = t[1] = t[2] = 0; t0 = seconds(); }
-  input_goal(goal, m->ug);
+  if (input_goal(m, goal, m->ug) || !all_finite(m->ug, NU)) {
+    for (i = 0; i < NU; ++i) if (!isfinite(m->ug[i])) m->ug[i] = 0;  /* the cold fallback's input, as in Python */
+    *status = fallback(m, u_out, ${N}_NAN);
+    return *status;
+  }
   /* affine model about (x, u_bar) */
   for (i = 0; i < NU; ++i) {
     double s = m->ug[i];
@@ -1355,10 +1372,6 @@ def export_problem(problem_name: str, form: str = "condensed", knots: int | None
 
     problem = make(problem_name)
     ocp = problem.ocp(knots=knots, horizon=horizon)
-    if getattr(ocp, "goal_input", None) is not None:
-        raise ValueError(f"{problem_name}: its input goal depends on the goal nonlinearly ({ocp.goal_input.name()}); "
-                         "the exported C step supports a constant input goal only, or one linear in the goal "
-                         "(u_goal + K goal) (for a URDF robot: gravity_compensation=False)")
     _check_out_dir(Path(out_dir), force)  # before sampling and code generation
     x0, goal = problem.sample(seed)
     return export(ocp, out_dir, form=form, qp=qp, x0=x0, goal=goal, steps=steps, force=force)

@@ -102,8 +102,8 @@ class GoalInputOCP(OCP):
     """An OCP whose input goal is u_g(x_goal) = u_goal + K x_goal + h(x_goal) with a CasADi Function h.
 
     Everything that reads the input goal — the QPs' expansion point and R term, the fallback, IPOPT's and
-    EMPC's stage cost — goes through :meth:`input_goal` and ``stage_cost``, both extended here. The exported C
-    step supports a constant input goal only (``ocpkit.export`` refuses this OCP's problem).
+    EMPC's stage cost — goes through :meth:`input_goal` and ``stage_cost``, both extended here; the exported C
+    step generates h into its C (``ocpkit.export``).
     """
 
     def __init__(self, *args, goal_input: ca.Function, **kwargs):

@@ -440,7 +440,7 @@ class LinearMPC(Controller):
     ``native`` runs the whole step as compiled C: the exported step of :mod:`ocpkit.export` (the same affine model,
     condensed QP and DAQP solve in C, :mod:`ocpkit.native`), loaded through ctypes — nlink:13, T = 100: 0.3 ms
     instead of 0.8 ms. It serves the default configuration: condensed form, DAQP, linearization "goal", no soft
-    state bounds (none in the OCP, or ``state_bounds="hard"``), an input goal linear in the goal. None (default)
+    state bounds (none in the OCP, or ``state_bounds="hard"``). None (default)
     follows the OCP's ``compiled`` policy: for models from BACKGROUND_MIN_INSTRUCTIONS up and knot QPs of at most
     ``ocpkit.native.MAX_VARIABLES`` variables (where it pays: not the traditional QP) the library is built in
     the background (seconds; cached by hash, once per OCP) while the Python step runs, and the next step after it
@@ -511,13 +511,11 @@ class LinearMPC(Controller):
 
     def _no_native_step(self) -> str | None:
         """Why this configuration has no exported C step (None: it has one)."""
-        ocp = self.ocp
         for bad, why in ((self.form != "condensed", f"form {self.form!r} (the C step is the condensed QP)"),
                          (self.qp_name != "daqp", f"qp {self.qp_name!r} (the C step solves with DAQP)"),
                          (self.linearization != "goal", f"linearization {self.linearization!r} (the C step "
                                                          f"linearizes about the input goal)"),
-                         (self.transcription.soft, "soft state bounds (the C step keeps them hard)"),
-                         (getattr(ocp, "goal_input", None) is not None, "an input goal nonlinear in the goal")):
+                         (self.transcription.soft, "soft state bounds (the C step keeps them hard)")):
             if bad:
                 return why
         return None

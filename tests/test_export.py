@@ -31,7 +31,7 @@ def _compare(problem, ocp, exported, linearization, seeds, steps, tol=1e-6):
     for seed in seeds:
         x, goal = problem.sample(seed)
         ref = LinearMPC(ocp, form="condensed", eps=1e-12 if problem.name.startswith("pendulum") else 1e-10,
-                        linearization=linearization)
+                        linearization=linearization, native=False)  # the Python step: an independent path
         exported.reset()
         for k in range(steps):
             a, b = ref.solve(x, goal), exported.solve(x, goal)

@@ -121,3 +121,24 @@ def test_two_threads_on_one_c_step_give_the_sequential_answers(ocp):
         expected = ref.solve(x, goal)
         assert answers[i].status == expected.status == SUCCESS
         np.testing.assert_allclose(answers[i].u, expected.u, atol=1e-10)
+
+
+def test_goal_input_is_generated_into_the_c_step(ocp):
+    """An input goal nonlinear in the goal (gravity compensation's kind): the same step in C as in Python."""
+    import casadi as ca
+
+    from ocpkit.problem import GoalInputOCP
+
+    xg = ca.SX.sym("x_goal", ocp.nx)
+    h = ca.Function("h", [xg], [ca.vertcat(3 * ca.sin(xg[0]), ca.cos(xg[1]) * xg[0])])
+    gocp = GoalInputOCP(ocp.model, ocp.dt, ocp.horizon, ocp.Q, ocp.R, u_min=ocp.u_min, u_max=ocp.u_max,
+                        parameterization=ocp.parameterization, goal_input=h)
+    c, py = LinearMPC(gocp, native=True), LinearMPC(gocp, native=False)
+    x, goal = PROBLEM.sample(4)
+    F = gocp.discrete()
+    for _ in range(30):
+        a, b = c.solve(x, goal), py.solve(x, goal)
+        assert a.status == b.status == SUCCESS
+        np.testing.assert_allclose(a.u, b.u, atol=1e-8)
+        x = np.asarray(F(x, a.u)).ravel()
+    assert np.abs(gocp.input_goal(goal) - ocp.input_goal(goal)).max() > 0.1  # h changed the problem

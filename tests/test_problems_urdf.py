@@ -140,7 +140,7 @@ def test_bad_urdf_options_name_the_argument(tmp_path):
         Problem.from_urdf(tmp_path / "bad.urdf")
 
 
-def test_urdf_spec_and_export_refusal(tmp_path):
+def test_urdf_spec_and_export_with_gravity_compensation(tmp_path):
     p = make(f"urdf:{PANDA}")
     assert isinstance(p, URDFRobot) and p.chain.n == 9 and p.name == "urdf:panda"
     from ocpkit.export import export_problem
@@ -148,9 +148,10 @@ def test_urdf_spec_and_export_refusal(tmp_path):
     spec = tmp_path / "arm.py"
     spec.write_text(f"from ocpkit import Problem\n\ndef Arm():\n    return Problem.from_urdf({PANDA!r}, "
                     f"locked_joints={FINGERS!r})\n")
-    assert make(f"{spec}:Arm").chain.n == 7
-    with pytest.raises(ValueError, match="constant input goal only"):
-        export_problem(f"{spec}:Arm", out_dir=tmp_path / "out")
+    arm = make(f"{spec}:Arm")
+    assert arm.chain.n == 7
+    info = export_problem(f"{spec}:Arm", out_dir=tmp_path / "out", horizon=30, steps=5)
+    assert "HAS_GOAL_INPUT 1" in (info.out_dir / "mpc.c").read_text()  # g(q_goal) generated into the C
 
 
 def test_readme_urdf_section_runs_as_written(monkeypatch, capsys):
