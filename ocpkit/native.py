@@ -3,16 +3,19 @@
 The Python step of the condensed knot QP spends most of a robot's step in per-call overheads (nlink:13, T = 100:
 0.8 ms in Python, 0.3 ms as the exported C step). :func:`start` exports the step of an OCP (condensed form,
 DAQP, linearization about the input goal) to a scratch folder — code generation in this process, 0.1 s at
-nlink:13 — and keys it by the hash of the generated files. A cached library is used at once; otherwise ``make``
-builds it in a background thread through a child process at lower priority (``nice`` +10, one compile job, so a
-running control loop keeps a core), and the finished library is moved into the cache atomically with its content
-hash beside it (a damaged entry is rebuilt). Several controllers of one OCP share one build.
+nlink:13 — and keys it by the hash of the generated files. A cached library is used at once; otherwise a child
+process in a session of its own builds it with ``make`` at lower priority (``nice`` +10, one compile job, so a
+running control loop keeps a core) and moves it into the cache atomically with its content hash beside it (a
+damaged entry is rebuilt). The child outlives this process if need be: a script shorter than the build finds the
+C step ready on its next run. Several controllers of one OCP share one build.
 """
 from __future__ import annotations
 
 import hashlib
 import os
 import shutil
+import subprocess
+import sys
 import tempfile
 import threading
 import warnings
@@ -21,7 +24,7 @@ from concurrent.futures import Future
 from pathlib import Path
 
 from ocpkit.cache import cache_dir, entry_ok, remove_entry, seal
-from ocpkit.compiled import _tracked, compiler_available
+from ocpkit.compiled import compiler_available
 from ocpkit.export import BuildError, check_tools, export
 from ocpkit.ocp import BACKGROUND_MIN_INSTRUCTIONS, OCP
 
@@ -117,29 +120,56 @@ def _key(source: Path) -> str:
 
 
 def _build(scratch: Path, folder: Path, future: Future, background: bool = True) -> None:
-    """Resolve ``future`` with ``folder`` once it holds a sound library: the cached one, or one built in ``scratch``
-    (at lower priority in the background; a caller that waits gets full priority: niced on a busy machine the
-    Panda's build took 33 s instead of 4)."""
+    """Resolve ``future`` with ``folder`` once it holds a sound library: the cached one, or one built from ``scratch``.
+
+    In the background the build is a child process in a session of its own at lower priority: it finishes and
+    fills the cache even when this process exits first (a short script's next run finds the C step ready). A
+    caller that waits builds here at full priority (niced on a busy machine the Panda's build took 33 s, not 4)."""
     try:
         library = folder / f"lib{NAME}.so"
         if not entry_ok(library):
             if library.exists():
                 warnings.warn(f"damaged cache entry {library} (its content does not match the hash recorded beside "
                               f"it): rebuilding it", RuntimeWarning, stacklevel=2)
-            source = scratch / "src"
-            nice = ["nice", "-n", "10"] if background else []
-            code, out, err = _tracked([*nice, "make", "-s", "-C", str(source), "-j1", "lib", *MAKE_VARS], scratch)
-            if code:
-                raise BuildError(f"make lib failed in the exported C step of LinearMPC: "
-                                 f"{(err.strip() or out.strip()).splitlines()[-1:]}")
-            built = source / library.name
-            seal(built)
-            folder.mkdir(mode=0o700, exist_ok=True)
-            remove_entry(library)
-            os.replace(built.with_name(built.name + ".sha256"), library.with_name(library.name + ".sha256"))
-            os.replace(built, library)
-        future.set_result(folder)
+            if not background:
+                _install(str(scratch), str(folder), "")
+            else:
+                path = [str(Path(__file__).resolve().parents[1]), os.environ.get("PYTHONPATH", "")]
+                env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in path if p)}
+                command = [sys.executable, "-c", "import sys; from ocpkit.native import _install; "
+                           "_install(*sys.argv[1:])", str(scratch), str(folder), "nice"]
+                code = subprocess.run(command, env=env, cwd=scratch, start_new_session=True,
+                                      stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                      stderr=subprocess.DEVNULL).returncode
+                if code:
+                    log = scratch / "build.log"
+                    lines = log.read_text().strip().splitlines() if log.exists() else []
+                    raise BuildError(f"building LinearMPC's C step failed: {lines[-1] if lines else code}")
     except BaseException as exc:  # noqa: BLE001 - handed to the Future; LinearMPC warns and keeps its Python step
-        future.set_exception(exc)
-    finally:
         shutil.rmtree(scratch, ignore_errors=True)
+        future.set_exception(exc)
+        return
+    shutil.rmtree(scratch, ignore_errors=True)  # before the Future resolves: its waiter may exit at once
+    future.set_result(folder)
+
+
+def _install(scratch: str, folder: str, nice: str) -> None:
+    """Build the exported step in ``scratch`` (``make``, niced if ``nice``) and move the library into the cache
+    ``folder`` with its content hash beside it; then remove ``scratch``. A failure leaves its last line in
+    ``scratch``/build.log."""
+    scratch, folder = Path(scratch), Path(folder)
+    if nice:
+        os.nice(10)
+    with open(scratch / "build.log", "w") as log:
+        code = subprocess.run(["make", "-s", "-C", str(scratch / "src"), "-j1", "lib", *MAKE_VARS],
+                              stdout=log, stderr=subprocess.STDOUT).returncode
+    if code:
+        lines = (scratch / "build.log").read_text().strip().splitlines()
+        raise BuildError(lines[-1] if lines else f"make exit status {code}")
+    built, library = scratch / "src" / f"lib{NAME}.so", folder / f"lib{NAME}.so"
+    seal(built)
+    folder.mkdir(mode=0o700, exist_ok=True)
+    remove_entry(library)
+    os.replace(built.with_name(built.name + ".sha256"), library.with_name(library.name + ".sha256"))
+    os.replace(built, library)
+    shutil.rmtree(scratch, ignore_errors=True)

@@ -142,3 +142,26 @@ def test_goal_input_is_generated_into_the_c_step(ocp):
         np.testing.assert_allclose(a.u, b.u, atol=1e-8)
         x = np.asarray(F(x, a.u)).ravel()
     assert np.abs(gocp.input_goal(goal) - ocp.input_goal(goal)).max() > 0.1  # h changed the problem
+
+
+def test_background_build_fills_the_cache_even_after_the_process_exits(tmp_path):
+    """A script shorter than the build: its child process finishes the build, and the next run finds it."""
+    import os
+    import subprocess
+    import sys
+    import time
+
+    env = {**os.environ, "OCPKIT_CACHE_DIR": str(tmp_path)}
+    script = ("from ocpkit import problems; from ocpkit.solvers.qp import LinearMPC; "
+              "p = problems.make('nlink:2'); c = LinearMPC(p.ocp(knots=3, horizon=20, compiled=True)); "
+              "print(c.native)")
+    out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, check=True,
+                         cwd=tmp_path)
+    assert out.stdout.strip() == "False"  # it exited before the build finished
+    deadline = time.monotonic() + 120
+    while not list(tmp_path.glob(f"native/*/lib{native.NAME}.so.sha256")) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    script = script.replace("print(c.native)", "print(c.wait_native(60))")
+    out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, check=True,
+                         cwd=tmp_path)
+    assert out.stdout.strip() == "True" and not list(tmp_path.glob("native/.build-*"))
