@@ -20,18 +20,24 @@ def ocp():
     return PROBLEM.ocp(knots=4, horizon=40)
 
 
-def test_c_step_equals_python_step_along_a_closed_loop(ocp):
+def _same_closed_loop(ocp, seed, steps):
+    """The C step and the Python step from the same states: the same status, u and knots every step."""
     c, py = LinearMPC(ocp, native=True), LinearMPC(ocp, native=False)
     assert c.native and not py.native
-    x, goal = PROBLEM.sample(3)
+    x, goal = PROBLEM.sample(seed)
     F = ocp.discrete()
-    for _ in range(60):
+    for _ in range(steps):
         a, b = c.solve(x, goal), py.solve(x, goal)
         assert a.status == b.status == SUCCESS
         np.testing.assert_allclose(a.u, b.u, atol=1e-8)
         np.testing.assert_allclose(a.knots, b.knots, atol=1e-8)
         assert set(a.times) == {"model", "build", "solve", "total"} and a.times["total"] >= a.times["solve"] > 0
         x = np.asarray(F(x, a.u)).ravel()
+    return goal
+
+
+def test_c_step_equals_python_step_along_a_closed_loop(ocp):
+    _same_closed_loop(ocp, seed=3, steps=60)
 
 
 def test_controllers_of_one_ocp_share_one_build(ocp):
@@ -133,14 +139,7 @@ def test_goal_input_is_generated_into_the_c_step(ocp):
     h = ca.Function("h", [xg], [ca.vertcat(3 * ca.sin(xg[0]), ca.cos(xg[1]) * xg[0])])
     gocp = GoalInputOCP(ocp.model, ocp.dt, ocp.horizon, ocp.Q, ocp.R, u_min=ocp.u_min, u_max=ocp.u_max,
                         parameterization=ocp.parameterization, goal_input=h)
-    c, py = LinearMPC(gocp, native=True), LinearMPC(gocp, native=False)
-    x, goal = PROBLEM.sample(4)
-    F = gocp.discrete()
-    for _ in range(30):
-        a, b = c.solve(x, goal), py.solve(x, goal)
-        assert a.status == b.status == SUCCESS
-        np.testing.assert_allclose(a.u, b.u, atol=1e-8)
-        x = np.asarray(F(x, a.u)).ravel()
+    goal = _same_closed_loop(gocp, seed=4, steps=30)
     assert np.abs(gocp.input_goal(goal) - ocp.input_goal(goal)).max() > 0.1  # h changed the problem
 
 
