@@ -567,7 +567,8 @@ class LinearMPC(Controller):
         self._backend.reset()
 
     def __repr__(self):
-        return f"LinearMPC({self.form}, {self.qp_name}, {self.ocp!r})"
+        step = ", C step" if getattr(self, "_native", None) is not None else ""  # once built and loaded
+        return f"LinearMPC({self.form}, {self.qp_name}{step}, {self.ocp!r})"
 
     def reset(self) -> None:
         super().reset()
