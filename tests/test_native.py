@@ -47,17 +47,26 @@ def test_controllers_of_one_ocp_share_one_build(ocp):
 
 
 def test_configurations_without_a_c_step_say_why(ocp):
-    bounded = PROBLEM.ocp(knots=4, horizon=40, x_min=[-1.0] * 4, x_max=[1.0] * 4)
     for kwargs, why in (({"form": "sparse"}, "form 'sparse'"), ({"qp": "proxqp"}, "qp 'proxqp'"),
                         ({"linearization": "plan"}, "linearization 'plan'")):
         with pytest.raises(ValueError, match=f"native=True.*{why}"):
             LinearMPC(ocp, native=True, **kwargs)
-    with pytest.raises(ValueError, match="soft state bounds"):
-        LinearMPC(bounded, native=True)
-    assert LinearMPC(bounded, native=True, state_bounds="hard").native
-    assert not LinearMPC(bounded).native  # default soft bounds: the Python step, no error
     with pytest.raises(TypeError, match="native"):
         LinearMPC(ocp, native="yes")
+
+
+def test_soft_state_bounds_c_step_then_the_soft_qp_in_python():
+    """Soft bounds (the default): the C step solves the hard QP; where that fails (a start past a bound) the soft
+    QP is solved in Python — the Python step's answers throughout."""
+    bounded = PROBLEM.ocp(knots=4, horizon=40, x_min=[-np.inf, -np.inf, -2.0, -2.0], x_max=[np.inf, np.inf, 2.0, 2.0])
+    c, py = LinearMPC(bounded, native=True), LinearMPC(bounded, native=False)
+    assert c.native
+    goal = PROBLEM.sample(0)[1]
+    for x in ([0.3, -0.2, 0.5, 0.0], [0.0, 0.0, 6.0, -4.0]):  # inside the bounds; far past them
+        a, b = c.solve(x, goal), py.solve(x, goal)
+        assert a.status == b.status == SUCCESS
+        np.testing.assert_allclose(a.u, b.u, atol=1e-8)
+    assert b.x_pred is not None and np.abs(b.x_pred[1, 2:]).max() > 2.0  # the second start: the soft QP
 
 
 def test_budget_too_small_for_the_c_step_gives_the_fallback(ocp):

@@ -150,6 +150,18 @@ def test_soft_bounds_recover_a_start_outside_them():
     assert LinearMPC(ocp, state_bounds="hard").solve([0.0, 3.0], GOAL).status != SUCCESS
 
 
+@pytest.mark.parametrize("x0", [[0.5, 0.0], [0.0, 3.0]], ids=["hard QP feasible", "hard QP infeasible"])
+def test_daqp_hard_first_equals_the_soft_qp(x0):
+    """DAQP solves the hard QP and the soft one only where that is infeasible: ProxQP's soft QP, the same answer."""
+    ocp = PENDULUM.ocp(knots=3, x_min=[-np.inf, -1.0], x_max=[np.inf, 1.0])
+    daqp, proxqp = LinearMPC(ocp, qp="daqp"), LinearMPC(ocp, qp="proxqp", eps=1e-10)
+    assert len(daqp._transcriptions) == 2 and len(proxqp._transcriptions) == 1
+    a, b = daqp.solve(x0, GOAL), proxqp.solve(x0, GOAL)
+    assert a.ok and b.ok
+    np.testing.assert_allclose(a.knots, b.knots, atol=1e-6)
+    np.testing.assert_allclose(a.x_pred, b.x_pred, atol=1e-5)
+
+
 def test_hpipm_takes_hard_state_bounds_only():
     ocp = PENDULUM.ocp(x_min=[-np.inf, -1.0], x_max=[np.inf, 1.0])
     with pytest.raises(ValueError, match="hard"):
