@@ -62,10 +62,14 @@ def write_entry(path: Path, data: bytes) -> Path:
     return path
 
 
-def seal(path: Path) -> None:
-    """Record the content hash of an entry written by other means (a compiler's output, say)."""
+def install(built: Path, path: Path) -> Path:
+    """Move a file built elsewhere (a compiler's output, in a scratch folder on the same file system) into the
+    cache as entry ``path``: its content hash first, then the file, each atomically (a reader in between sees a
+    hash without its file, or the old file with the new hash: not sound, so rebuilt, never loaded)."""
     path = Path(path)
-    _atomic_write(path.with_name(path.name + _HASH_SUFFIX), digest(path.read_bytes()).encode())
+    _atomic_write(path.with_name(path.name + _HASH_SUFFIX), digest(Path(built).read_bytes()).encode())
+    os.replace(built, path)
+    return path
 
 
 def entry_ok(path: Path) -> bool:
@@ -77,12 +81,6 @@ def entry_ok(path: Path) -> bool:
     except OSError:
         return False
     return bool(data) and recorded == digest(data)
-
-
-def remove_entry(path: Path) -> None:
-    for p in (Path(path), Path(path).with_name(Path(path).name + _HASH_SUFFIX)):
-        with contextlib.suppress(FileNotFoundError):
-            p.unlink()
 
 
 def _atomic_write(path: Path, data: bytes) -> None:

@@ -31,7 +31,7 @@ from pathlib import Path
 
 import casadi as ca
 
-from ocpkit.cache import _atomic_write, cache_dir, digest, entry_ok
+from ocpkit.cache import cache_dir, entry_ok, install
 
 
 class CompileError(RuntimeError):
@@ -81,8 +81,7 @@ def _build(fn: ca.Function, flags: str, folder: Path, library: Path) -> None:
         except subprocess.CalledProcessError as exc:
             message = " ".join(exc.stderr.split())[:300]
             raise CompileError(f"compiling {fn.name()} with `{compiler}` failed: {message}") from None
-        _atomic_write(library.with_name(library.name + ".sha256"), digest(partial.read_bytes()).encode())
-        os.replace(partial, library)
+        install(partial, library)
         with contextlib.suppress(OSError):
             shutil.copy(scratch / source, folder / source)  # kept for the curious reader; never compiled from
     finally:

@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ocpkit._checks import choice, integer, positive
+from ocpkit.compiled import SwitchingFunction
 from ocpkit.numeric import BufferedFunction
 from ocpkit.ocp import OCP
 
@@ -261,6 +262,14 @@ class Controller:
         finally:
             if limit is not None:
                 self.time_limit = limit
+
+    def wait_compiled(self, timeout: float | None = None) -> bool:
+        """Block until the OCP's affine model has switched to compiled C after its background compile (tests,
+        benchmarks: the steady state); whether compiled code is in place (False: it stays on the VM)."""
+        fn = self.ocp.affine()
+        if isinstance(fn, SwitchingFunction):
+            return fn.wait(timeout) is not None
+        return fn.class_name() == "External"
 
     def _verified(self, sol: Solution) -> Solution:
         """``sol`` if it is a usable success (u and knots finite, within the input bounds up to BOUND_TOL, then

@@ -23,7 +23,7 @@ import weakref
 from concurrent.futures import Future
 from pathlib import Path
 
-from ocpkit.cache import cache_dir, entry_ok, remove_entry, seal
+from ocpkit.cache import cache_dir, entry_ok, install
 from ocpkit.compiled import compiler_available
 from ocpkit.export import BuildError, check_tools, export
 from ocpkit.ocp import BACKGROUND_MIN_INSTRUCTIONS, OCP
@@ -166,10 +166,6 @@ def _install(scratch: str, folder: str, nice: str) -> None:
     if code:
         lines = (scratch / "build.log").read_text().strip().splitlines()
         raise BuildError(lines[-1] if lines else f"make exit status {code}")
-    built, library = scratch / "src" / f"lib{NAME}.so", folder / f"lib{NAME}.so"
-    seal(built)
     folder.mkdir(mode=0o700, exist_ok=True)
-    remove_entry(library)
-    os.replace(built.with_name(built.name + ".sha256"), library.with_name(library.name + ".sha256"))
-    os.replace(built, library)
+    install(scratch / "src" / f"lib{NAME}.so", folder / f"lib{NAME}.so")
     shutil.rmtree(scratch, ignore_errors=True)

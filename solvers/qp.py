@@ -538,17 +538,12 @@ class LinearMPC(Controller):
         """Whether the next step runs as the compiled C step (its library built and loaded)."""
         return self._native_step() is not None
 
-    def wait_native(self, timeout: float | None = None) -> bool:
-        """Block until the background build of the C step has finished (tests, benchmarks); whether steps now run
-        in C. Without a C step, the background compile of the Python step's affine model is waited for."""
+    def wait_compiled(self, timeout: float | None = None) -> bool:
+        """Block until the background build of the C step has finished and it is loaded (then True: steps run in
+        C); without a C step, until the Python step's affine model is compiled (:meth:`Controller.wait_compiled`)."""
         if self._native_build is not None:
             self._native_loaded.wait(timeout)
-        if self.native:
-            return True
-        affine = self.ocp.affine()
-        if hasattr(affine, "wait"):
-            affine.wait(timeout)
-        return False
+        return self.native or super().wait_compiled(timeout)
 
     def _native_step(self):
         """The loaded C step (an ExportedMPC); None: the Python step."""
@@ -657,15 +652,15 @@ class LinearMPC(Controller):
             return self._fail(NAN, f"non-finite affine model at x = {x.tolist()}", times)
         transcriptions = transcriptions or self._transcriptions
         for tr in transcriptions:
-            left = _left(deadline)
-            if tr is not transcriptions[0] and left is not None and left <= 0:
-                return self._fail(LIMITED, f"time budget exceeded before the soft QP ({res.raw_status})", times)
+            soft = tr is not self._transcriptions[0]  # the soft QP after an infeasible hard one: its own build time
+            if soft and not self._costs.fits("soft QP build", _left(deadline)):
+                res = _skipped("soft QP build", self._costs, deadline, 0)
+                return self._fail(LIMITED, res.raw_status, times)
             t1 = time.perf_counter()
             qp = tr.build(*model, x, goal)
             t2 = time.perf_counter()
             times["build"] += t2 - t1
-            if tr is self._transcriptions[0]:
-                self._costs.add("prepare", t2 - t0)
+            self._costs.add("soft QP build" if soft else "prepare", t2 - (t1 if soft else t0))
             problem = qp.check()
             if problem is not None:
                 return self._fail(INFEASIBLE if "above" in problem else NAN, problem, times)

@@ -24,8 +24,8 @@ def trial(problem: str, seed: int, solver: str = "qp", knots: int | None = None,
     ocp = pb.ocp(knots=knots, horizon=horizon, error=error_multiplier)
     opts = {"form": form, "qp": qp} if solver == "qp" else {}
     ctrl = solvers.make(solver, ocp, **opts, **(options or {}))
-    if hasattr(ctrl, "wait_native"):  # time the steady state: LinearMPC's C step (or compiled model) once built
-        ctrl.wait_native()
+    if solver == "qp":  # time the steady state: LinearMPC's C step (or compiled model) once built
+        ctrl.wait_compiled()
     x0, goal = pb.sample(seed)
     traj = simulate(pb.plant(), ctrl, x0, goal, duration or pb.duration)
     steps = step_metrics(traj)

@@ -169,7 +169,7 @@ def test_background_build_fills_the_cache_even_after_the_process_exits(tmp_path)
     deadline = time.monotonic() + 120
     while not list(tmp_path.glob(f"native/*/lib{native.NAME}.so.sha256")) and time.monotonic() < deadline:
         time.sleep(0.2)
-    script = script.replace("print(c.native)", "print(c.wait_native(60))")
+    script = script.replace("print(c.native)", "print(c.wait_compiled(60))")
     out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, check=True,
                          cwd=tmp_path)
     assert out.stdout.strip() == "True" and not list(tmp_path.glob("native/.build-*"))

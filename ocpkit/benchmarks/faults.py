@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ocpkit import problems, solvers
-from ocpkit.benchmarks.step import load_medians, wait_compiled
+from ocpkit.benchmarks.step import load_medians
 from ocpkit.controller import SUCCESS
 from ocpkit.problems.pendulum import Pendulum
 
@@ -253,10 +253,7 @@ def budget_rows(budgets=(1e-3, 5e-3, 50e-3), steps=10, labels=tuple(BUDGET_SOLVE
 
 
 def _budgeted(ctrl, label, name, xs, goal, budgets):
-    if hasattr(ctrl, "wait_native"):  # the steady state: the C step, or the compiled affine model, in place
-        ctrl.wait_native()
-    else:
-        wait_compiled(ctrl.ocp)
+    ctrl.wait_compiled()  # the steady state: LinearMPC's C step, or the compiled affine model, in place
     ctrl.warm_up(xs[0], goal)  # calibration: the unbounded steps of a new controller
     rows = []
     for budget in budgets:

@@ -26,7 +26,6 @@ from contextlib import contextmanager
 
 import numpy as np
 
-from ocpkit.compiled import SwitchingFunction
 from ocpkit.problems import make
 from ocpkit.solvers.qp import DEFAULT_QP, LinearMPC
 
@@ -35,14 +34,6 @@ BASE = "ocpkit condensed knots daqp (default)"  # the default QP of the condense
 PYTHON = "ocpkit condensed knots daqp, Python step"
 PROXQP = "ocpkit condensed knots proxqp"
 VM = "ocpkit condensed knots daqp, VM model"
-
-
-def wait_compiled(ocp, timeout: float | None = None) -> bool:
-    """Block until the OCP's default affine model has switched to compiled C (True), or stays on the VM (False)."""
-    fn = ocp.affine()
-    if isinstance(fn, SwitchingFunction):
-        return fn.wait(timeout) is not None
-    return fn.class_name() == "External"
 
 
 def bench_step(links=(1, 2, 4, 7, 10, 13), horizons=(50, 100), knots=5, steps=20, rounds=5, seed=0, peers=True,
@@ -141,7 +132,7 @@ def load_medians(problem="nlink:13", horizon=100, knots=5, steps=30, busy=2, see
         x = np.asarray(F(x, ref.solve(x, goal).u)).ravel()
     ctrls = {1: LinearMPC(ocp), None: LinearMPC(ocp, threads=None)}
     for ctrl in ctrls.values():
-        ctrl.wait_native()  # the default step once built (the C step from nlink:5 up)
+        ctrl.wait_compiled()  # the default step once built (the C step from nlink:5 up)
 
     def replay(ctrl):
         ctrl.reset()
@@ -182,7 +173,6 @@ def _one(problem, T, p, steps, seed, peers, rounds):
         xs.append(x)
         x = np.asarray(F(x, ref.solve(x, goal).u)).ravel()
     models = [ref.affine_model(x, goal, "goal") for x in xs]  # what affine_mpc is given at each step
-    wait_compiled(ocp_k)  # the default model after its background compile (cached by hash: once per model)
     ocp_vm = problem.ocp(horizon=T, knots=p, compiled=False)  # CasADi's SX virtual machine throughout
     ctrls = {BASE: LinearMPC(ocp_k),
              PYTHON: LinearMPC(ocp_k, native=False),
@@ -190,7 +180,8 @@ def _one(problem, T, p, steps, seed, peers, rounds):
              VM: LinearMPC(ocp_vm, form="condensed", qp="daqp"),
              "ocpkit sparse traditional hpipm": LinearMPC(ocp_t, form="sparse", qp="hpipm"),
              "ocpkit sparse traditional osqp": LinearMPC(ocp_t, form="sparse", qp="osqp")}
-    ctrls[BASE].wait_native()  # the default step once its background build has finished (cached: once per OCP)
+    for name in (BASE, PYTHON):  # the default step once built (cached: once per OCP); the Python step's model
+        ctrls[name].wait_compiled()  # after its background compile (cached by hash: once per model)
     peer = _peers(ocp_k, goal, models[0]) if peers else {}
     times = {name: [] for name in [*ctrls, *peer]}
     parts = {name: {"model": [], "build": [], "solve": []} for name in ctrls if name.startswith("ocpkit condensed")}
