@@ -304,10 +304,13 @@ class GaussianSampling(SamplingMPC):
         def generation(key: ti.u32, counter: ti.u32, distribution: ti.types.ndarray(), out: ti.types.ndarray()):
             for i in range(N):
                 v = ti.Vector([ti.cast(distribution[0, r], F) for r in ti.static(range(d))], dt=F)
-                if ti.static(seeded) and 1 <= i <= seeded:
-                    for j, a in ti.static(ti.ndrange(p, m)):
-                        v[j * m + a] = seeds[i - 1, j, a]
-                elif i > seeded:
+                # Only a compile-time condition drops the seeds' code where there are none ("paper": seeds is
+                # None): `ti.static(seeded) and …` is a run-time `and`, whose body Taichi still compiles.
+                if ti.static(seeded > 0):
+                    if 1 <= i <= seeded:
+                        for j, a in ti.static(ti.ndrange(p, m)):
+                            v[j * m + a] = seeds[i - 1, j, a]
+                if i > seeded:
                     eps = ti.Vector([ti.cast(normal(key, counter, i, c), F) for c in ti.static(range(d))], dt=F)
                     for r in ti.static(range(d)):
                         acc = ti.cast(0.0, F)
