@@ -1,4 +1,5 @@
 """The study runner and its store: resume after SIGKILL, failures, parallel = serial, exports."""
+import contextlib
 import json
 import os
 import signal
@@ -217,6 +218,13 @@ def blocked(x, seed):
 
 
 def interrupted_study(out):
+    """Entry point of the subprocess that the Ctrl-C test interrupts.
+
+    Ctrl-C in a terminal reaches a Python whose SIGINT handler raises KeyboardInterrupt. A process started in
+    the background by a non-interactive shell (`nohup pytest &`, CI runners) inherits SIGINT as *ignored*, and
+    Python then leaves it ignored: the test's SIGINT would do nothing. So the handler is set here, explicitly,
+    before any worker starts (the workers' log files, which the test waits for, come after it)."""
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     run(Study("slow", blocked, grid(x=range(6), seeds=1)), out, workers=2, progress=False)
 
 
@@ -226,15 +234,24 @@ def test_ctrl_c_stops_workers_promptly_and_keeps_finished_trials(tmp_path, monke
     monkeypatch.setenv(LOG, str(log))
     code = f"import test_study; test_study.interrupted_study({str(out)!r})"
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(Path(__file__).parent), *sys.path])}
-    process = subprocess.Popen([sys.executable, "-c", code], env=env)
-    # Events, not clocks: trials 0 and 1 are stored and both workers are inside trials that never return.
-    wait_for(lambda: len(stored_keys(out)) == 2 and len(_worker_pids(log)) == 2)
-    process.send_signal(signal.SIGINT)
-    # The process can end only if it stops its busy workers instead of waiting for them (the timeout is a
-    # hang guard, not a speed limit).
-    assert process.wait(timeout=HANG_GUARD) != 0
-    assert stored_keys(out) == {canonical_key({"x": x, "seed": 0}) for x in (0, 1)}
-    wait_for(lambda: not any(_alive(pid) for pid in _worker_pids(log)))
+    # Its own process group (the study process, its workers, multiprocessing's resource tracker), so that
+    # whatever it started is killed on every way out of this test, a failed assertion included.
+    process = subprocess.Popen([sys.executable, "-c", code], env=env, start_new_session=True)
+    try:
+        # Events, not clocks: trials 0 and 1 are stored and both workers are inside trials that never return.
+        wait_for(lambda: len(stored_keys(out)) == 2 and len(_worker_pids(log)) == 2)
+        workers = _worker_pids(log)
+        process.send_signal(signal.SIGINT)
+        # The process can end only if it stops its busy workers instead of waiting for them (the timeout is a
+        # hang guard, not a speed limit).
+        assert process.wait(timeout=HANG_GUARD) != 0
+        assert stored_keys(out) == {canonical_key({"x": x, "seed": 0}) for x in (0, 1)}
+        # The study process joins its workers before it exits: none outlives it (no wait needed).
+        assert not [pid for pid in workers if _alive(pid)]
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(process.pid, signal.SIGKILL)
+        process.wait()
 
 
 def _worker_pids(log: Path) -> set:
