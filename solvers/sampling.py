@@ -277,6 +277,12 @@ class GaussianSampling(SamplingMPC):
     variant candidates 1 and 2 are the seeds. G is diag(std) in input coordinates ("paper") or
     L⁻ᵀ diag(std) with std in whitened units ("preconditioned"): see :meth:`_sample`.
 
+    Preconditioned, each control step's μ starts at the cheapest by rollout of the incumbent (the shifted
+    mean, or the holding input at a cold start) and the seeds (:meth:`_start_distribution`). A Gaussian of
+    σ whitened units moves its mean by about σ per generation, and a seed among the elites weighs only
+    1/num_elites in CEM's refit: from an incumbent far from the knot QP's optimum (the cart-pole's holding
+    input: ~600 whitened units, 10³× the Newton candidate's cost) CEM never arrived while the plant fell.
+
     ``sigma``: with "paper", the initial std in input units (scalar or per input; default 10 % of each
     input's range); with "preconditioned", in whitened units (a scalar; default 1: a draw then adds
     about ‖ε‖² ≈ p·m to the rollout cost of the QP's quadratic model).
@@ -323,10 +329,27 @@ class GaussianSampling(SamplingMPC):
 
         self._gaussian_kernel = generation
         self._distribution = np.empty((1 + d, d), dtype=eng.ntype)
+        if self.preconditioned:
+            centers = min(N, 1 + SEEDS)  # a population smaller than that has fewer seeds
+
+            @ti.kernel
+            def evaluate_centers(mean: ti.types.ndarray(), out: ti.types.ndarray()):
+                for i in range(centers):  # the incumbent, then the seeds, as in the population
+                    for j, a in ti.static(ti.ndrange(p, m)):
+                        v = ti.cast(mean[j, a], F)
+                        if i >= 1:
+                            v = seeds[i - 1, j, a]
+                        knots[i, j, a] = ti.min(ti.max(v, lo[a]), hi[a])
+                    out[i] = rollout(i)
+
+            self._evaluate_centers = evaluate_centers
+            self._center_cost = np.empty(centers, dtype=eng.ntype)
 
     def _start_distribution(self, mean: np.ndarray, cold: bool) -> np.ndarray:
-        """This step's starting mean: the shifted one, or at a cold start the holding input
-        (preconditioned) or the input goal (paper); the std restarts at σ."""
+        """This step's starting mean; the std restarts at σ. The incumbent is the shifted mean, or at a cold
+        start the holding input (preconditioned) or the input goal (paper). Preconditioned, the incumbent and
+        the seeds are rolled out first (one small launch, counted as ``generations``) and the cheapest starts
+        the search; a tie keeps the incumbent."""
         ocp = self.ocp
         if not cold:
             start = self._shifted(mean)
@@ -336,6 +359,12 @@ class GaussianSampling(SamplingMPC):
             start = self.goal_knots(self._goal)
         d = ocp.knots * ocp.nu
         self.std = np.full(d, self.sigma) if self.preconditioned else np.tile(self.sigma, ocp.knots)
+        if self.preconditioned:
+            cost = self._center_cost
+            self._launch(self._evaluate_centers, np.ascontiguousarray(start, dtype=self.engine.ntype), cost)
+            best = int(np.argmin(np.nan_to_num(cost.astype(np.float64), nan=np.inf)))  # first of equals
+            pre = self.preconditioner
+            start = (start, pre.newton, pre.hold)[best]
         return start
 
     def _sample(self, mean: np.ndarray) -> None:
