@@ -28,10 +28,15 @@ process, each with its own QP-solver memory slot (``MAX_INSTANCES`` in the Makef
 QP solvers (CasADi conic plugins with code generation in CasADi 3.8):
 
 * ``qrqp`` — CasADi's own active-set solver, generated as plain C: the folder needs nothing else. It can
-  report success at a point outside the bounds (seen on nlink:3, T = 50), so every step checks the bound
-  violation of the returned point and treats more than ``FEAS_TOL`` as a failure.
+  report success at a point outside the bounds (seen on nlink:3, T = 50).
 * ``daqp`` (default) — links CasADi's shipped ``libdaqpstat.a`` (headers under ``casadi/include``); DAQP's setup
-  runs inside each step and allocates there.
+  runs inside each step and allocates there. CasADi 3.8's generated call ignores a failed set-up (DAQP's
+  factorization refusing a Hessian that is not positive definite) and then reads an uninitialized success flag:
+  in some processes the step reported success with the previous, zero answer. :func:`_fix_daqp_setup` makes the
+  generated function return the set-up's flag.
+
+Whatever the solver says, a "solved" answer is accepted only if its KKT certificate holds (:mod:`ocpkit.certificate`,
+computed in C: stationarity, primal feasibility, complementarity and dual sign of the answer and its multipliers).
 * ``osqp`` — links CasADi's shipped ``libosqpstatic.a``; set up once at init, updated each step; quiet
   (verbose and polishing off unless ``polish=True``).
 * ``hpipm`` — refused: CasADi's HPIPM interface needs a stage-wise OCP structure, which the condensed
@@ -52,6 +57,8 @@ import casadi as ca
 import numpy as np
 
 from ocpkit._checks import array, choice, integer, positive
+from ocpkit.certificate import TESTS, Certificate
+from ocpkit.certificate import TOL as CERT_TOL
 from ocpkit.controller import STATUSES, SUCCESS, Controller, Solution
 from ocpkit.ocp import OCP
 from ocpkit.transcription import CondensedQP
@@ -67,8 +74,9 @@ _UNSUPPORTED_WHY = {
     "sparse": "only the condensed (small-matrix) form is exported; the sparse form is solved in Python by "
               "LinearMPC(form='sparse')",
 }
-FEAS_TOL = 1e-6  # largest bound violation accepted from a QP solver that reports success
-_VIOLATED = 9999  # solver return code the C step reports for a "solved" point violating bounds
+# The C step's solver return for a "solved" answer whose certificate failed: _CERT_CODE + the test's index in
+# ocpkit.certificate.TESTS.
+_CERT_CODE = 9001
 MAX_INSTANCES = 16  # QP-solver memory slots per loaded library (CASADI_MAX_NUM_THREADS); a Makefile variable
 OPT_FLAGS = "-O2"  # the Makefile's OPT default (generated model and QP solver)
 OPT_STEP = "-O3"  # the Makefile's OPT_STEP default (the condensing loops: -O3 vectorizes them)
@@ -169,6 +177,8 @@ def export(ocp: OCP, out_dir, *, form: str = "condensed", qp: str = "daqp", name
     for f in all_f:
         cg.add(f)
     cg.generate(str(out) + "/")
+    if qp == "daqp":
+        _fix_daqp_setup(out / f"{name}_casadi.c")
 
     sizes = {
         "NX": ocp.nx, "NU": ocp.nu, "KNOTS": ocp.knots, "HORIZON": ocp.horizon, "NZ": tr.nz, "NA": na,
@@ -251,6 +261,29 @@ def _model_functions(ocp: OCP, name: str):
     return fj, step, (jac.sparsity_out(1).get_triplet(), jac.sparsity_out(2).get_triplet())
 
 
+# DAQP's exit flags (daqp/include/constants.h), and the ocpkit status of each failure.
+DAQP_EXIT = {1: "optimal", 2: "soft optimal", -1: "infeasible", -2: "cycling", -3: "unbounded",
+             -4: "iteration limit", -5: "nonconvex", -6: "overdetermined initial working set", -7: "time limit"}
+# CasADi 3.8's generated DAQP call: casadi_daqp_solve returns 1 after a failed set-up, which its caller ignores
+# before reading d_qp.success, never set on that path. Fixed, the generated function returns DAQP's exit flag on
+# any failure (set-up or solve) and 0 on success.
+_DAQP_FIX = (("  if (flag<0) return 1;\n", "  if (flag<0) { d->return_status = flag; return 1; }\n"),
+             ("  casadi_daqp_solve(d, arg, res, iw, w);\n  if (!d_qp.success) {\n    return -1;\n  }\n",
+              "  d_qp.success = 0;\n  casadi_daqp_solve(d, arg, res, iw, w);\n"
+              "  if (!d_qp.success) return d->return_status == 1 ? -1 : d->return_status;\n"))
+
+
+def _fix_daqp_setup(path: Path) -> None:
+    """Make CasADi's generated DAQP function report a failed set-up and DAQP's exit flag (see the module
+    docstring). Where CasADi generates other code the file is left as it is: the C step's certificate still refuses
+    a stale answer, and the test suite notices (tests/test_certificate.py)."""
+    text = path.read_text()
+    if all(text.count(old) == 1 for old, _ in _DAQP_FIX):
+        for old, new in _DAQP_FIX:
+            text = text.replace(old, new)
+        path.write_text(text)
+
+
 def _gram_schedule(lengths) -> list[int]:
     """Operations that build Γ_L for each piece length L from Γ_1 (codes of the C step's ``GRAM_OPS``).
 
@@ -300,7 +333,7 @@ def _conic(qp: str, name: str, nz: int, na: int, eps: float, max_iter: int, poli
 # ---------------------------------------------------------------------------------------------------
 # The C around it
 
-def _header(name: str, s: dict, ocp: OCP, form: str, qp: str, lin: str, feas_tol: float = FEAS_TOL) -> str:
+def _header(name: str, s: dict, ocp: OCP, form: str, qp: str, lin: str, cert_tol: float = CERT_TOL) -> str:
     N = name.upper()
     defs = "\n".join(f"#define {N}_{k} {v}" for k, v in s.items())
     return f"""/* {name}.h — exported MPC step for {ocp!r}, {form} QP solved by CasADi's {qp}.
@@ -334,10 +367,13 @@ extern "C" {{
 #define {N}_NA1 ({N}_NA > 0 ? {N}_NA : 1)
 #define {N}_NZ1 ({N}_NZ + 1)
 #define {N}_NB1 ({N}_NB > 0 ? {N}_NB : 1)
-/* Bound violation above which a reported solution is rejected (status {N}_EXCEPTION, solver return
-   {N}_VIOLATED). */
-#define {N}_FEAS_TOL {feas_tol!r}
-#define {N}_VIOLATED {_VIOLATED}
+/* A "solved" answer is accepted only if its KKT certificate holds (ocpkit.certificate): stationarity, primal
+   feasibility, complementarity and dual sign each within CERT_TOL relative to the data. Otherwise the status is
+   {N}_LIMITED and {name}_solver_return gives the failed test's code ({name}_certificate the residuals). With
+   DAQP a failed solve's return is DAQP's exit flag: -1 infeasible, -3 unbounded ({N}_INFEASIBLE), -5 nonconvex
+   (Hessian not positive definite) and -6 ({N}_EXCEPTION), -2 cycling, -4 iteration limit ({N}_LIMITED). */
+#define {N}_CERT_TOL {cert_tol!r}
+enum {{ {N}_CERT_STATIONARITY = {_CERT_CODE}, {N}_CERT_PRIMAL, {N}_CERT_COMPLEMENTARITY, {N}_CERT_DUAL_SIGN }};
 
 enum {{ {N}_SUCCESS = 0, {N}_LIMITED = 1, {N}_INFEASIBLE = 2, {N}_NAN = 3, {N}_EXCEPTION = 4 }};
 
@@ -364,6 +400,7 @@ typedef struct {{
   double z[{N}_NZ], lam_x[{N}_NZ], lam_a[{N}_NA1];           /* last solution: warm start */
   double z_new[{N}_NZ], lam_x_new[{N}_NZ], lam_a_new[{N}_NA1];
   double plan[{N}_NZ];                                       /* knots of the current plan */
+  double cert[4];                                            /* the last solve's certificate residuals */
   double has_plan, warm;                                     /* 0 or 1 */
   int solver_mem, solver_rc;
 }} {name}_memory;
@@ -381,8 +418,17 @@ int {name}_step_timed({name}_memory* mem, const double* x, const double* goal, d
                       double* t);
 /* Copy the current plan's knots (the solution, or the fallback plan after a failure). */
 void {name}_knots(const {name}_memory* mem, double* knots);
-/* The QP solver's raw return code of the last step (0: solved). */
+/* The QP solver's raw return code of the last step (0: solved and certified; see CERT_TOL above). */
 int {name}_solver_return(const {name}_memory* mem);
+/* The QP solver's name ("daqp", "qrqp", "osqp"). */
+const char* {name}_qp_solver(void);
+/* The last solve's certificate residuals: stationarity, primal feasibility, complementarity, dual sign. */
+void {name}_certificate(const {name}_memory* mem, double* residuals);
+/* The condensed QP min ½ zᵀhz + gᵀz s.t. lba <= a z <= uba, lbx <= z <= ubx (h: NZ x NZ, a: NA x NZ, both
+   column-major) solved cold and certified as a step's is: writes z and *status, returns *status; the plan is
+   kept, the next step starts cold. For tests of the solver and its certificate on QPs of one's own. */
+int {name}_solve_qp({name}_memory* mem, const double* h, const double* g, const double* a, const double* lba,
+                    const double* uba, const double* lbx, const double* ubx, double* z, int* status);
 /* One step of the generated discrete model x_next = F(x, u) the controller predicts with. */
 int {name}_model_step({name}_memory* mem, const double* x, const double* u, double* x_next);
 /* Give the instance's QP solver memory slot back (safe to call twice); the slot is reused by a later init. */
@@ -967,21 +1013,97 @@ static int affine_model(mem_t* m, const double* x, const double* u) {
   return 0;
 }
 
-/* Largest bound violation of z (CasADi's qrqp can report success at an infeasible point). */
-static double violation(const mem_t* m, const double* z) {
-  double v = 0.0;
-  int r, j;
-  for (j = 0; j < NZ; ++j) {
-    if (LBX[j] - z[j] > v) v = LBX[j] - z[j];
-    if (z[j] - UBX[j] > v) v = z[j] - UBX[j];
+static double amax(double a, double b) { return a > b ? a : b; }
+
+/* One bound row l <= v <= u with multiplier lam (> 0 at an active upper bound): its primal scale, violation,
+   complementarity gap and wrong-sign multiplier folded into s[0..3]. */
+static void bound_row(double v, double l, double u, double lam, double* s) {
+  if (isfinite(l) || isfinite(u)) s[0] = amax(s[0], fabs(v));
+  if (isfinite(l)) { s[0] = amax(s[0], fabs(l)); s[1] = amax(s[1], l - v); }
+  if (isfinite(u)) { s[0] = amax(s[0], fabs(u)); s[1] = amax(s[1], v - u); }
+  if (lam > 0) { if (isfinite(u)) s[2] = amax(s[2], lam * fabs(u - v)); else s[3] = amax(s[3], lam); }
+  if (lam < 0) { if (isfinite(l)) s[2] = amax(s[2], -lam * fabs(v - l)); else s[3] = amax(s[3], -lam); }
+}
+
+/* The KKT certificate of the QP's answer (z_new, lam_x_new, lam_a_new), as ocpkit.certificate computes it, in
+   CasADi's multiplier convention h z + g + aᵀ lam_a + lam_x = 0: m->cert = the relative residuals of
+   stationarity, primal feasibility, complementarity and dual sign; returns the code of the first one above
+   CERT_TOL (or NaN), 0 when all hold. A stale or zero answer fails stationarity. */
+static int certify(mem_t* m) {
+  const double *z = m->z_new, *lx = m->lam_x_new, *la = m->lam_a_new;
+  double s[4] = {0, 0, 0, 0}, norms[4] = {0, 0, 0, 0}, stat = 0, s_d, s_p;
+  int i, j, r;
+  for (i = 0; i < NZ; ++i) {
+    double hz = 0, al = 0;
+    for (j = 0; j < NZ; ++j) hz += m->h[i + NZ * j] * z[j];
+    for (r = 0; r < NA; ++r) al += m->a[r + NA * i] * la[r];
+    norms[0] = amax(norms[0], fabs(hz)); norms[1] = amax(norms[1], fabs(m->g[i]));
+    norms[2] = amax(norms[2], fabs(al)); norms[3] = amax(norms[3], fabs(lx[i]));
+    stat = amax(stat, fabs(hz + m->g[i] + al + lx[i]));
+    bound_row(z[i], m->lbx[i], m->ubx[i], lx[i], s);
   }
   for (r = 0; r < NA; ++r) {
     double az = 0;
     for (j = 0; j < NZ; ++j) az += m->a[r + NA * j] * z[j];
-    if (m->lba[r] - az > v) v = m->lba[r] - az;
-    if (az - m->uba[r] > v) v = az - m->uba[r];
+    bound_row(az, m->lba[r], m->uba[r], la[r], s);
   }
-  return v;
+  s_d = 1 + amax(amax(norms[0], norms[1]), amax(norms[2], norms[3]));
+  s_p = 1 + s[0];
+  m->cert[0] = stat / s_d;
+  m->cert[1] = s[1] / s_p;
+  m->cert[2] = s[2] / (s_d * s_p);
+  m->cert[3] = s[3] / s_d;
+  for (i = 0; i < 4; ++i) if (!(m->cert[i] <= ${N}_CERT_TOL)) return ${N}_CERT_STATIONARITY + i;
+  return 0;
+}
+
+/* The QP in m (h, g, a, lba, uba, lbx, ubx) checked, solved (warm-started from the last solution where m->warm)
+   and certified: its status. On a success z_new and the multipliers hold the answer; otherwise
+   m->solver_rc says why (the solver's return, or a certificate code). */
+static int solve_qp(mem_t* m) {
+  int rc;
+  m->solver_rc = 0;
+  if (!all_finite(m->h, NZ * NZ) || !all_finite(m->g, NZ) || !all_finite(m->a, NA * NZ)
+      || any_nan(m->lba, NA) || any_nan(m->uba, NA) || any_nan(m->lbx, NZ) || any_nan(m->ubx, NZ))
+    return ${N}_NAN;
+  if (any_above(m->lba, m->uba, NA) || any_above(m->lbx, m->ubx, NZ)) return ${N}_INFEASIBLE;
+  m->arg[0] = m->h; m->arg[1] = m->g; m->arg[2] = m->a; m->arg[3] = m->lba; m->arg[4] = m->uba;
+  m->arg[5] = m->lbx; m->arg[6] = m->ubx;
+  m->arg[7] = m->warm ? m->z : 0; m->arg[8] = m->warm ? m->lam_x : 0; m->arg[9] = m->warm ? m->lam_a : 0;
+  m->arg[10] = 0; m->arg[11] = 0;
+  m->res[0] = m->z_new; m->res[1] = 0; m->res[2] = m->lam_a_new; m->res[3] = m->lam_x_new;
+  rc = ${name}_qp_solve(m->arg, m->res, (casadi_int*) m->iw, m->w, m->solver_mem);
+  m->solver_rc = rc;
+  if (rc) return $status_of_rc;
+  if (!all_finite(m->z_new, NZ)) return ${N}_NAN;
+  rc = certify(m);
+  if (rc) {
+    m->solver_rc = rc;
+    return ${N}_LIMITED;
+  }
+  return ${N}_SUCCESS;
+}
+
+int ${name}_solve_qp(mem_t* m, const double* h, const double* g, const double* a, const double* lba,
+                     const double* uba, const double* lbx, const double* ubx, double* z, int* status) {
+  memcpy(m->h, h, sizeof m->h);
+  memcpy(m->g, g, sizeof m->g);
+  if (NA) {
+    memcpy(m->a, a, NA * NZ * sizeof(double));
+    memcpy(m->lba, lba, NA * sizeof(double));
+    memcpy(m->uba, uba, NA * sizeof(double));
+  }
+  memcpy(m->lbx, lbx, sizeof m->lbx);
+  memcpy(m->ubx, ubx, sizeof m->ubx);
+  m->warm = 0;
+  *status = solve_qp(m);
+  memcpy(z, m->z_new, sizeof m->z_new);
+  return *status;
+}
+
+void ${name}_certificate(const mem_t* m, double* residuals) {
+  int i;
+  for (i = 0; i < 4; ++i) residuals[i] = m->cert[i];
 }
 
 /* Seconds on a monotonic clock (0 where there is none: the split then reads 0). */
@@ -1028,35 +1150,10 @@ int ${name}_step_timed(mem_t* m, const double* x, const double* goal, double* u_
   if (t) { t1 = seconds(); t[0] = t1 - t0; }
   condense(m, x, goal);
   if (t) { t2 = seconds(); t[1] = t2 - t1; }
-  if (!all_finite(m->h, NZ * NZ) || !all_finite(m->g, NZ) || !all_finite(m->a, NA * NZ)
-      || any_nan(m->lba, NA) || any_nan(m->uba, NA)) {
-    *status = fallback(m, u_out, ${N}_NAN);
-    return *status;
-  }
-  if (any_above(m->lba, m->uba, NA) || any_above(m->lbx, m->ubx, NZ)) {
-    *status = fallback(m, u_out, ${N}_INFEASIBLE);
-    return *status;
-  }
-  /* QP solve, warm-started from the previous solution */
-  m->arg[0] = m->h; m->arg[1] = m->g; m->arg[2] = m->a; m->arg[3] = m->lba; m->arg[4] = m->uba;
-  m->arg[5] = m->lbx; m->arg[6] = m->ubx;
-  m->arg[7] = m->warm ? m->z : 0; m->arg[8] = m->warm ? m->lam_x : 0; m->arg[9] = m->warm ? m->lam_a : 0;
-  m->arg[10] = 0; m->arg[11] = 0;
-  m->res[0] = m->z_new; m->res[1] = 0; m->res[2] = m->lam_a_new; m->res[3] = m->lam_x_new;
-  rc = ${name}_qp_solve(m->arg, m->res, (casadi_int*) m->iw, m->w, m->solver_mem);
+  rc = solve_qp(m);
   if (t) t[2] = seconds() - t2;
-  m->solver_rc = rc;
-  if (!all_finite(m->z_new, NZ)) {
-    *status = fallback(m, u_out, ${N}_NAN);
-    return *status;
-  }
-  if (rc) {
-    *status = fallback(m, u_out, ($infeasible) ? ${N}_INFEASIBLE : ${N}_LIMITED);
-    return *status;
-  }
-  if (!(violation(m, m->z_new) <= ${N}_FEAS_TOL)) {
-    m->solver_rc = ${N}_VIOLATED;
-    *status = fallback(m, u_out, ${N}_EXCEPTION);
+  if (rc != ${N}_SUCCESS) {
+    *status = fallback(m, u_out, rc);
     return *status;
   }
   for (i = 0; i < NZ; ++i) { m->plan[i] = m->z[i] = m->z_new[i]; m->lam_x[i] = m->lam_x_new[i]; }
@@ -1079,6 +1176,8 @@ void ${name}_knots(const mem_t* m, double* knots) {
 
 int ${name}_solver_return(const mem_t* m) { return m->solver_rc; }
 
+const char* ${name}_qp_solver(void) { return "$qp"; }
+
 int ${name}_model_step(mem_t* m, const double* x, const double* u, double* x_next) {
   m->arg[0] = x; m->arg[1] = u; m->res[0] = x_next;
   return ${name}_model(m->arg, m->res, (casadi_int*) m->iw, m->w, 0);
@@ -1093,9 +1192,12 @@ void ${name}_dims(int* nx, int* nu, int* knots, int* horizon) {
 
 
 def _wrapper(name: str, qp: str, linearization: str, tr: CondensedQP, jac) -> str:
-    # qrqp returns 4 when it finds no search direction (an infeasible or degenerate QP).
-    infeasible = "rc == 4" if qp == "qrqp" else "0"
-    return _WRAPPER.substitute(name=name, N=name.upper(), infeasible=infeasible,
+    N = name.upper()
+    status_of_rc = {  # qrqp returns 4 when it finds no search direction (an infeasible or degenerate QP)
+        "qrqp": f"rc == 4 ? {N}_INFEASIBLE : {N}_LIMITED",
+        "daqp": f"(rc == -1 || rc == -3) ? {N}_INFEASIBLE : (rc == -5 || rc == -6) ? {N}_EXCEPTION : {N}_LIMITED",
+    }.get(qp, f"{N}_LIMITED")
+    return _WRAPPER.substitute(name=name, N=N, status_of_rc=status_of_rc, qp=qp,
                                constants=_constants(tr, linearization, jac))
 
 
@@ -1214,8 +1316,9 @@ Generated by `ocpkit.export` for `{ocp!r}`: {info.form} QP ({info.knots} knots x
 `{info.qp}` (tolerance {eps:g}, at most {max_iter} iterations).
 
 Each `{n}_step` linearizes the model about the current state x and u_bar, {_UBAR[info.linearization]},
-builds the condensed QP (paper Section V-B/V-E), solves it and returns the first input. A solution
-that violates the bounds by more than {FEAS_TOL:g} counts as a failure. On a failure it returns the previous
+builds the condensed QP (paper Section V-B/V-E), solves it and returns the first input. A solution counts
+only if its KKT certificate holds (stationarity, primal feasibility, complementarity and dual sign within
+{CERT_TOL:g} relative to the data; `{n}_certificate` gives the residuals). On a failure it returns the previous
 plan advanced one step, clipped to the input bounds, and the next step starts cold.
 {_SOLVER_NOTE[info.qp]}
 
@@ -1288,6 +1391,13 @@ class ExportedMPC(Controller):
         self._model = getattr(lib, f"{name}_model_step")
         self._model.argtypes = [ctypes.c_void_p, dbl, dbl, dbl]
         self._rc = getattr(lib, f"{name}_solver_return")
+        self._certificate = getattr(lib, f"{name}_certificate")
+        self._certificate.argtypes = [ctypes.c_void_p, dbl]
+        solver_name = getattr(lib, f"{name}_qp_solver")
+        solver_name.restype = ctypes.c_char_p
+        self.qp = solver_name().decode()
+        self._solve_qp = getattr(lib, f"{name}_solve_qp")
+        self._solve_qp.argtypes = [ctypes.c_void_p] + [dbl] * 8 + [ctypes.c_void_p]
         self._lib, self.name, self.out_dir = lib, name, Path(out_dir)
         self._free = getattr(lib, f"{name}_free")
         self._open = False
@@ -1345,6 +1455,31 @@ class ExportedMPC(Controller):
             raise RuntimeError("generated discrete model failed")
         return out
 
+    def certificate(self) -> Certificate:
+        """The KKT certificate the C code computed for its last QP solve (:mod:`ocpkit.certificate`)."""
+        self._check_open()
+        out = np.zeros(4)
+        self._certificate(self._mem, out)
+        return Certificate(*out)
+
+    def solve_qp(self, qp) -> tuple[str, np.ndarray]:
+        """(status, z) of the C step's QP solve and certificate on ``qp``, a condensed knot QP of this library's size
+        (an :class:`ocpkit.transcription.QP` with the knot bounds as its box and state-bound rows after them) — to
+        test the solver and the certificate in C on QPs of one's own. The next step starts cold."""
+        self._check_open()
+        nz = self.ocp.knots * self.ocp.nu
+        k = 0 if qp.box is None else len(qp.box)
+        if qp.n != nz or qp.b.size:
+            raise ValueError(f"qp must have {nz} variables and no equality rows, got {qp.n} and {qp.b.size}")
+        lbx, ubx = np.full(nz, -np.inf), np.full(nz, np.inf)
+        lbx[qp.box], ubx[qp.box] = qp.l[:k], qp.u[:k]
+        C = np.asarray(qp.C.toarray() if hasattr(qp.C, "toarray") else qp.C, dtype=float)[k:]
+        col = (lambda v: np.ascontiguousarray(v, dtype=float))
+        z, status = np.empty(nz), ctypes.c_int()
+        self._solve_qp(self._mem, col(np.asarray(qp.P, dtype=float).T), col(qp.q), col(C.T), col(qp.l[k:]),
+                       col(qp.u[k:]), col(lbx), col(ubx), z, ctypes.addressof(status))
+        return STATUSES[status.value], z
+
     def _solve(self, x: np.ndarray, goal: np.ndarray) -> Solution:
         self._check_open()
         u = np.empty(self.ocp.nu)
@@ -1357,10 +1492,22 @@ class ExportedMPC(Controller):
         self._knots(self._mem, knots)
         status = STATUSES[self._status.value]
         rc = self._rc(self._mem)
-        raw = ("solved point violates the bounds" if rc == _VIOLATED else f"{self.name}_qp_solve returned {rc}")
+        raw = _explain_rc(self.name, self.qp, rc, self.certificate().residuals)
         model, build_s, solve = (float(t) for t in self._split)
         return Solution(u=u, knots=knots.reshape(self.ocp.knots, self.ocp.nu), status=status, raw_status=raw,
                         times={"model": model, "build": build_s, "solve": solve}, fallback=status != SUCCESS)
+
+
+def _explain_rc(name: str, qp: str, rc: int, residuals) -> str:
+    """The raw status of a C step whose solver (``qp``) returned ``rc`` (``residuals``: its certificate)."""
+    if _CERT_CODE <= rc < _CERT_CODE + len(TESTS):
+        test = TESTS[rc - _CERT_CODE]
+        return (f"{name}_qp_solve returned 0 but certificate failed: {test} residual "
+                f"{residuals[rc - _CERT_CODE]:.3g} > {CERT_TOL:.0e}")
+    if qp == "daqp" and rc in DAQP_EXIT:
+        why = " (Hessian not positive definite)" if rc == -5 else ""
+        return f"{name}_qp_solve returned {rc}: DAQP {DAQP_EXIT[rc]}{why}"
+    return f"{name}_qp_solve returned {rc}"
 
 
 def export_problem(problem_name: str, form: str = "condensed", knots: int | None = 5, horizon: int | None = 100,

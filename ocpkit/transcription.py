@@ -47,6 +47,9 @@ class QP:
     l: np.ndarray
     u: np.ndarray
     box: np.ndarray | None = None  # z indices of C's first rows when those are unit rows (simple bounds on z)
+    # P positive semidefinite by construction (the sparse form's: Q, Q_T ⪰ 0 and R ≻ 0 checked by the OCP);
+    # otherwise P depends on the model's numbers and :meth:`not_definite` tells whether it is numerically so.
+    convex: bool = False
 
     @property
     def n(self) -> int:
@@ -78,6 +81,22 @@ class QP:
         asym = abs(P - P.T).max() if sp.issparse(P) else np.abs(P - P.T).max(initial=0.0)
         if asym > 1e-9 * max(1.0, abs(P).max() if sp.issparse(P) else np.abs(P).max(initial=0.0)):
             return "P is not symmetric"
+        return None
+
+
+    def not_definite(self) -> str | None:
+        """Why P is not numerically positive definite (its Cholesky factorization fails), or None.
+
+        The condensed P = SᵀQ̄S + φᵀφ⊗R is positive definite in exact arithmetic (R ≻ 0); where the prediction model is
+        so unstable that rounding makes it indefinite (a 7-DoF arm whose model's RK4 step diverges: |eig A_d| = 4.9
+        a step, P up to 7e69), no QP solver's answer means anything. ProxQP reported such QPs "solved" at a saddle
+        point; DAQP refuses them in its own factorization."""
+        P = self.P.toarray() if sp.issparse(self.P) else self.P
+        try:
+            np.linalg.cholesky(P)
+        except np.linalg.LinAlgError:
+            scale = float(np.abs(np.diag(P)).max(initial=0.0))
+            return f"Hessian not positive definite (Cholesky failed; largest diagonal entry {scale:.3g})"
         return None
 
 
@@ -224,7 +243,7 @@ class SparseQP(_Transcription):
         q[n * (T + 1):self.nz - self.ns] = self.q_knots(x_goal)
         q[self.nz - self.ns:] = self.slack_weight
         b = np.r_[-np.asarray(x0, dtype=float), -wd.ravel() if ltv else np.tile(-wd, T)]
-        return QP(self.P, q, A, b, self.C, self.l, self.u)
+        return QP(self.P, q, A, b, self.C, self.l, self.u, convex=True)
 
     def states(self, z: np.ndarray) -> np.ndarray:
         """Predicted states x_0 … x_T (T+1, n) from a solution vector."""

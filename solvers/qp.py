@@ -20,6 +20,7 @@ import scipy.sparse as sp
 
 from ocpkit import native as _native
 from ocpkit._checks import choice, integer, positive
+from ocpkit.certificate import certify
 from ocpkit.controller import (EXCEPTION, INFEASIBLE, LIMITED, NAN, SUCCESS, Controller, OperationCosts,
                                Solution, check_linearization)
 from ocpkit.export import ExportedMPC
@@ -33,11 +34,15 @@ DEFAULT_QP = {"condensed": "daqp", "sparse": "proxqp"}  # LinearMPC's qp=None, b
 
 @dataclass
 class _Result:
+    """A backend's answer: z, its warm start (``duals``, backend-specific), status, and the multipliers in the
+    convention of :mod:`ocpkit.certificate` (y of the equality rows, w of the bound rows; None: not returned)."""
     z: np.ndarray
     duals: tuple
     status: str
     raw_status: str
     iterations: int
+    y: np.ndarray | None = None
+    w: np.ndarray | None = None
 
 
 def _left(deadline: float | None) -> float | None:
@@ -70,6 +75,8 @@ class _ProxQP:
     CHUNK_OUTER, CHUNK_INNER = 5, 50
     WARM_INNER = 500
     GAP_REL = 1e-12
+
+    factorizes = False  # whether the backend itself refuses a P that is not positive definite
 
     def __init__(self, sparse: bool, max_iter: int, eps: float):
         import proxsuite
@@ -162,15 +169,25 @@ class _ProxQP:
             # ProxQP's infeasibility test misfires from a warm start far from the new solution (a soft-bounded,
             # always feasible QP was reported infeasible): confirm it from a cold start.
             return self._cold_again(qp, deadline, max_iter - iterations, iterations)
+        duals = (np.array(r.x), np.array(r.y), np.array(r.z))
         if not chunks:
-            return _Result(np.array(r.x), (np.array(r.x), np.array(r.y), np.array(r.z)), LIMITED, why, 0)
+            return _Result(duals[0], duals, LIMITED, why, 0)
         status = {out.PROXQP_SOLVED: SUCCESS, out.PROXQP_MAX_ITER_REACHED: LIMITED,
                   out.PROXQP_PRIMAL_INFEASIBLE: INFEASIBLE, out.PROXQP_DUAL_INFEASIBLE: INFEASIBLE,
                   out.PROXQP_SOLVED_CLOSEST_PRIMAL_FEASIBLE: INFEASIBLE}.get(r.info.status, EXCEPTION)
         raw = str(r.info.status).rsplit(".", 1)[-1]
         if status == LIMITED and why is not None:
             raw = f"{why} ({raw})"
-        return _Result(np.array(r.x), (np.array(r.x), np.array(r.y), np.array(r.z)), status, raw, int(iterations))
+        return _Result(duals[0], duals, status, raw, int(iterations), y=duals[1], w=self._bound_duals(qp, duals[2], key[3]))
+
+    @staticmethod
+    def _bound_duals(qp: QP, z_in: np.ndarray, has_box: bool) -> np.ndarray:
+        """ProxQP's inequality multipliers as w of the QP's rows C: with a box, its rows are the box's (last n of
+        ProxQP's z, picked at the boxed variables) and then the general rows (the first ones)."""
+        if not has_box:
+            return z_in
+        k = len(qp.box)
+        return np.r_[z_in[z_in.size - qp.n:][qp.box], z_in[: qp.l.size - k]]
 
     def _cold_again(self, qp: QP, deadline: float | None, max_iter: int, spent: int) -> _Result:
         """The QP again from a cold start, with ``max_iter`` inner iterations left (``spent`` already used)."""
@@ -188,6 +205,8 @@ class _OSQP:
     time left of the step is OSQP's ``time_limit`` on every solve (OSQP counts its update time in it); the
     setup and the update (numeric refactorization) start only if their measured time fits.
     """
+
+    factorizes = False  # whether the backend itself refuses a P that is not positive definite
 
     def __init__(self, max_iter: int, eps: float):
         import osqp
@@ -243,7 +262,7 @@ class _OSQP:
                   S.OSQP_DUAL_INFEASIBLE_INACCURATE: INFEASIBLE}.get(r.info.status_val, EXCEPTION)
         z = np.array(r.x, dtype=float) if r.x is not None else np.full(qp.n, np.nan)
         y = np.array(r.y, dtype=float) if r.y is not None else np.zeros(lb.size)
-        return _Result(z, (z, y), status, r.info.status, int(r.info.iter))
+        return _Result(z, (z, y), status, r.info.status, int(r.info.iter), y=y[: qp.b.size], w=y[qp.b.size:])
 
 
 class _HPIPM:
@@ -253,6 +272,8 @@ class _HPIPM:
     box bounds, the dynamics rows its stage gaps. Its residual tolerance is max(eps, 1e-6): at nlink:13, T=100
     HPIPM reached 1e-6 in about 10 iterations and did not reach 1e-8 within 200 (measured here).
     """
+
+    factorizes = False  # whether the backend itself refuses a P that is not positive definite
 
     def __init__(self, tr, max_iter: int, eps: float):
         n, m, T = tr.n, tr.m, tr.T
@@ -304,9 +325,12 @@ class _HPIPM:
                3: "HPIPM NaN"}.get(code, f"HPIPM status {code}")
         if status == SUCCESS and deadline is not None and time.perf_counter() > deadline:
             status, raw = LIMITED, f"time budget exceeded ({raw})"
-        z = np.empty(qp.n)
+        z, lam_x = np.empty(qp.n), np.empty(qp.n)
         z[perm] = np.asarray(r["x"]).ravel()
-        return _Result(z, (z,), status, raw, int(stats.get("iter_count", 0)))
+        lam_x[perm] = np.asarray(r["lam_x"]).ravel()
+        # CasADi's convention Hz + g + Aᵀλ_a + λ_x = 0: the dynamics rows' λ_a, and x_0 = x0 (rows −I z = b) as bounds
+        y = np.r_[-lam_x[:n], np.asarray(r["lam_a"]).ravel()]
+        return _Result(z, (z,), status, raw, int(stats.get("iter_count", 0)), y=y, w=lam_x[sel])
 
 
 class _DAQP:
@@ -321,6 +345,8 @@ class _DAQP:
              -2: (LIMITED, "cycling"), -3: (INFEASIBLE, "unbounded"), -4: (LIMITED, "iteration limit"),
              -5: (EXCEPTION, "nonconvex"), -6: (EXCEPTION, "overdetermined initial working set"),
              -7: (LIMITED, "time limit")}
+
+    factorizes = True  # whether the backend itself refuses a P that is not positive definite
 
     def __init__(self, max_iter: int, eps: float):
         import daqp
@@ -373,7 +399,10 @@ class _DAQP:
             status, raw = LIMITED, f"time budget exceeded ({raw})"
         z = np.array(z, dtype=float)
         lam = np.array(info.get("lam", np.zeros(bu.size)), dtype=float)
-        return _Result(z, (z, lam), status, raw, int(info.get("iterations", 0)))
+        # λ = [simple bounds on z; the other bound rows; equality rows]: w of C's rows (box first), y of A's
+        n_free = bu.size - qp.b.size
+        w = np.r_[lam[:n][qp.box] if k else np.zeros(0), lam[n:n_free]]
+        return _Result(z, (z, lam), status, raw, int(info.get("iterations", 0)), y=lam[n_free:], w=w)
 
 
 def _upper_csc(P):
@@ -439,8 +468,10 @@ class LinearMPC(Controller):
     and OSQP hit their iteration limits; about u_goal = 0 the same robot gives eigenvalues 0.06…6e4, and
     in closed loop on nlink:7 "goal" was never worse (3 seeded trials, 0 vs 118 fallbacks).
 
-    Every "success" is verified: the QP's solution must satisfy its equality and bound rows to within
-    FEAS_TOL (relative to the data's scale), and Controller.solve checks u against the input bounds.
+    Every "success" is proven: the backend's answer and multipliers must pass the KKT certificate of
+    :mod:`ocpkit.certificate` (stationarity, primal feasibility, complementarity, dual sign, each within
+    ``certificate.TOL`` relative to the data), otherwise the step is "limited" with the test that failed; and
+    Controller.solve checks u against the input bounds.
 
     ``native`` runs the whole step as compiled C: the exported step of :mod:`ocpkit.export` (the same affine model,
     condensed QP and DAQP solve in C, :mod:`ocpkit.native`), loaded through ctypes — nlink:13, T = 100: 0.3 ms
@@ -454,8 +485,6 @@ class LinearMPC(Controller):
     if its measured time fits. On a failure it gives the same fallback as the Python step; it does not report the
     QP's iterations (0) nor the predicted states. Changing ``max_iter`` returns to the Python step.
     """
-
-    FEAS_TOL = 1e-6
 
     def __init__(self, ocp: OCP, *, form: str = "condensed", qp: str | None = None, max_iter: int = 10_000,
                  eps: float = 1e-9, time_limit: float | None = None, warm_start: bool = True,
@@ -664,6 +693,10 @@ class LinearMPC(Controller):
             problem = qp.check()
             if problem is not None:
                 return self._fail(INFEASIBLE if "above" in problem else NAN, problem, times)
+            if not (qp.convex or self._backend.factorizes):
+                problem = qp.not_definite()
+                if problem is not None:
+                    return self._fail(EXCEPTION, problem, times)
             try:
                 res = self._backend.solve(qp, self._warm if self.warm_start else None, deadline)
             except Exception as exc:  # a backend that throws must not stop the control loop
@@ -676,10 +709,10 @@ class LinearMPC(Controller):
             if not np.isfinite(res.z).all():
                 res.status, res.raw_status = NAN, f"{res.raw_status} with non-finite solution"
             else:
-                violation = _violation(qp, res.z)
-                if violation > self.FEAS_TOL * _scale(qp):  # an inaccurate "solution": no warm start from it
-                    return self._fail(LIMITED, f"{res.raw_status} but constraints violated by {violation:.3g}",
-                                      times, res.iterations)
+                why = certify(qp, res.z, res.y, res.w).failed()
+                if why is not None:  # not a solution (or an inaccurate one): no warm start from it
+                    return self._fail(LIMITED, f"{res.raw_status} but certificate failed: {why}", times,
+                                      res.iterations)
         if res.status != SUCCESS:
             return self._fail(res.status, res.raw_status, times, res.iterations, keep=res)
         self._warm = res.duals
@@ -701,23 +734,6 @@ class LinearMPC(Controller):
         else:
             self._discard()
         return self.fallback(status, raw, times, iterations)
-
-
-def _violation(qp: QP, z: np.ndarray) -> float:
-    """Largest violation of the QP's equality and bound rows at z."""
-    worst = 0.0
-    if qp.b.size:
-        worst = float(np.abs(qp.A @ z - qp.b).max())
-    if qp.l.size:
-        Cz = qp.C @ z
-        worst = max(worst, float(np.max(qp.l - Cz, initial=0.0)), float(np.max(Cz - qp.u, initial=0.0)))
-    return worst
-
-
-def _scale(qp: QP) -> float:
-    """1 + the largest finite magnitude of the QP's right-hand sides (b, l, u)."""
-    v = np.abs(np.concatenate([qp.b, qp.l, qp.u]))
-    return 1.0 + float(v[np.isfinite(v)].max(initial=0.0))
 
 
 SOLVERS = {"qp": LinearMPC}
