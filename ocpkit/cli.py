@@ -14,13 +14,23 @@ from pathlib import Path
 
 import numpy as np
 
-from ocpkit import problems, solvers
-from ocpkit.controller import Controller
+from ocpkit import problems, solvers, studies
+from ocpkit.controller import LINEARIZATIONS, TRAJECTORY, Controller
 
 
 _SPEC_HELP = ("problem spec: a registered name (pendulum, pendulum:linear, nlink:N with N = 1…13, puma560, baxter, "
               "urdf:FILE), package.module:Name or path/to/file.py:Name (a Problem subclass, instance or factory; "
               "':arg' passes through)")
+# Knot points p of solve, simulate and export unless --knots or --parameterization identity says otherwise: the
+# README's examples and the C step's size (traditional MPC, p = T, makes EMPC compile for minutes).
+DEFAULT_KNOTS = 5
+# The solvers' own choices, written out so that `ocpkit --help` does not import every solver (half a second);
+# tests/test_cli.py checks them against solvers.nlp.METHODS/DYNAMICS, solvers.qp.QP_SOLVERS, solvers.sampling.VARIANTS.
+NLP_METHODS = ("ipopt", "sqp", "fatrop", "rti")
+DYNAMICS = ("nonlinear", "affine")
+QP_BACKENDS = ("proxqp", "osqp", "daqp", "hpipm")
+VARIANTS = ("preconditioned", "paper")
+SAMPLING = ("empc", "cem", "mppi")
 # Studies that take --problem, and benchmarks that take --problem (their `problems` argument).
 _PROBLEM_STUDIES = ("knots", "horizon", "robustness")
 _PROBLEM_BENCHMARKS = ("qp", "export", "nlp")
@@ -44,21 +54,44 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"ocpkit: error: {message}\n")
 
 
-def _add_controller_args(p):
+def _add_problem_args(p):
+    """The problem and its OCP, the same in solve, simulate and export."""
     p.add_argument("problem", help=_SPEC_HELP)
-    p.add_argument("--solver", default="qp", help="solver name (default qp)")
-    p.add_argument("--form", choices=("sparse", "condensed"), help="qp: QP transcription (default condensed)")
-    p.add_argument("--qp", choices=("proxqp", "osqp", "daqp", "hpipm"),
-                   help="qp: QP backend (default daqp for condensed, proxqp for sparse; hpipm: sparse traditional)")
-    p.add_argument("--method", choices=("ipopt", "sqp"), help="ipopt: NLP method (default ipopt)")
+    p.add_argument("--knots", type=int, default=None,
+                   help=f"knot points p (default {DEFAULT_KNOTS}, or T when the horizon is shorter); traditional MPC "
+                        f"(one knot per step, p = T) is --parameterization identity")
+    p.add_argument("--parameterization", default="linear", choices=("linear", "zoh", "identity"),
+                   help="input between the knots: linear (default, the paper's piecewise-linear), zoh (move blocking) "
+                        "or identity (traditional MPC, p = T; takes no --knots)")
+    p.add_argument("--horizon", type=int, default=None, help="horizon T in steps (default: the problem's)")
+
+
+def _add_controller_args(p):
+    _add_problem_args(p)
+    p.add_argument("--solver", default="qp", help=f"solver: {', '.join(solvers.names())} (default qp)")
+    p.add_argument("--form", choices=("sparse", "condensed"),
+                   help="qp, ipopt --method rti: QP transcription (default condensed)")
+    p.add_argument("--qp", choices=QP_BACKENDS,
+                   help="qp, ipopt --method rti: QP backend (default daqp for condensed, proxqp for sparse; hpipm: "
+                        "sparse traditional)")
+    p.add_argument("--method", choices=NLP_METHODS,
+                   help="ipopt: how the NLP is solved: ipopt (interior point, default), sqp (CasADi's SQP), fatrop "
+                        "(interior point with a Riccati recursion over the stages) or rti (real-time iteration: "
+                        "--iterations Gauss-Newton SQP steps per control step on the knot QP)")
+    p.add_argument("--iterations", type=int,
+                   help="ipopt --method rti: SQP iterations per control step (default 1, the real-time iteration)")
+    p.add_argument("--dynamics", choices=DYNAMICS,
+                   help="ipopt --method ipopt|sqp: the prediction model (default nonlinear); empc/cem/mppi: the "
+                        "rollout model (default affine, re-linearized every step)")
+    p.add_argument("--linearization", choices=LINEARIZATIONS + (TRAJECTORY,),
+                   help="the affine model's expansion point: goal (default: about the goal's input), plan (the "
+                        "input the previous plan expects now) or, qp only, trajectory (stage by stage along the "
+                        "shifted plan); qp, ipopt --dynamics affine, empc/cem/mppi")
     p.add_argument("--population", type=int, help="empc/cem/mppi: rollouts per generation")
     p.add_argument("--generations", type=int, help="empc/cem/mppi: generations per control step")
     p.add_argument("--arch", choices=("auto", "cpu", "cuda"), help="empc/cem/mppi: Taichi arch (default auto)")
-    p.add_argument("--variant", choices=("preconditioned", "paper"),
+    p.add_argument("--variant", choices=VARIANTS,
                    help="empc/cem/mppi: preconditioned by the knot QP (default) or the paper's plain algorithm")
-    p.add_argument("--knots", type=int, default=None, help="knot points p (default: traditional MPC, p = T)")
-    p.add_argument("--parameterization", default="linear", choices=("linear", "zoh", "identity"))
-    p.add_argument("--horizon", type=int, default=None, help="horizon T in steps (default: the problem's)")
     p.add_argument("--error", type=float, default=1.0, help="model error multiplier of the controller's model")
     p.add_argument("--compiled", action="store_true", default=None,
                    help="compile the affine model to C before the first step (default: large models start on "
@@ -103,23 +136,25 @@ def _parser() -> argparse.ArgumentParser:
     demo.add_argument("--seed", type=int, default=0)
     demo.add_argument("--out", default="results/demo", help="folder for the figure")
     st = sub.add_parser("study", help="run one of the paper's studies (resumable) and write its report")
-    st.add_argument("name", help="study name: knots, horizon, robustness, …")
+    st.add_argument("name", choices=studies.NAMES, metavar="NAME", help=f"the study: {', '.join(studies.NAMES)}")
     st.add_argument("--problem", action="append", metavar="SPEC",
                     help=f"{', '.join(_PROBLEM_STUDIES)}: run on this problem instead of the paper's (repeatable; "
                          f"quick size: a test-sized grid). {_SPEC_HELP}")
     _add_study_args(st)
-    rep = sub.add_parser("reproduce", help="run every study and write report.md")
+    rep = sub.add_parser("reproduce", help=f"run every study ({', '.join(studies.NAMES)}) and write report.md")
     size = rep.add_mutually_exclusive_group()
     size.add_argument("--quick", dest="size", action="store_const", const="quick", help="minutes (default)")
     size.add_argument("--full", dest="size", action="store_const", const="full", help="paper scale")
     rep.set_defaults(size="quick")
     _add_study_args(rep, size=False)
     exp = sub.add_parser("export", help="generate, build and check a C MPC step")
-    exp.add_argument("problem", help=_SPEC_HELP)
-    exp.add_argument("--form", default="condensed", choices=("sparse", "condensed"))
-    exp.add_argument("--knots", type=int, default=5)
-    exp.add_argument("--horizon", type=int, default=None)
-    exp.add_argument("--qp", default="daqp", choices=("daqp", "qrqp", "osqp", "hpipm"))
+    _add_problem_args(exp)
+    exp.add_argument("--form", default="condensed", choices=("sparse", "condensed"),
+                     help="QP transcription (default condensed, the one exported)")
+    exp.add_argument("--qp", default="daqp", choices=("daqp", "qrqp", "osqp", "hpipm"),
+                     help="QP backend (default daqp)")
+    exp.add_argument("--linearization", default="goal", choices=LINEARIZATIONS,
+                     help="the affine model's expansion point, as solve's: goal (default) or plan")
     exp.add_argument("--seed", type=int, default=0, help="seed of the example closed loop's start and goal")
     exp.add_argument("--out", default="export", help="output folder (absent or empty unless --force)")
     exp.add_argument("--force", action="store_true", help="export into a non-empty --out, overwriting its files")
@@ -135,27 +170,86 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
-# Which solver-specific command-line options each solver takes.
-_SAMPLING_OPTIONS = ("population", "generations", "arch", "variant")
-_SOLVER_OPTIONS = {"qp": ("form", "qp"), "ipopt": ("method",), "empc": _SAMPLING_OPTIONS, "cem": _SAMPLING_OPTIONS,
-                   "mppi": _SAMPLING_OPTIONS}
+# Solver-specific options: where each applies, as (test of the configuration, where it applies in words). A given
+# option that does not apply is an error naming it and the solver, never silently dropped.
+_SOLVER_OPTIONS = {
+    "form": (lambda c: c.solver == "qp" or c.method == "rti", "solver qp, and solver ipopt with --method rti"),
+    "qp": (lambda c: c.solver == "qp" or c.method == "rti", "solver qp, and solver ipopt with --method rti"),
+    "method": (lambda c: c.solver == "ipopt", "solver ipopt"),
+    "iterations": (lambda c: c.method == "rti", "solver ipopt with --method rti"),
+    "dynamics": (lambda c: c.method in ("ipopt", "sqp") or c.solver in SAMPLING,
+                 f"solver ipopt with --method ipopt or sqp, and solvers {', '.join(SAMPLING)}"),
+    "linearization": (lambda c: c.solver == "qp" or c.dynamics == "affine" or c.variant == "preconditioned",
+                      f"solver qp, solver ipopt with --method ipopt or sqp and --dynamics affine, and solvers "
+                      f"{', '.join(SAMPLING)} unless --dynamics nonlinear --variant paper (they linearize nothing)"),
+    **{name: (lambda c: c.solver in SAMPLING, f"solvers {', '.join(SAMPLING)}")
+       for name in ("population", "generations", "arch", "variant")},
+}
+
+
+class _Config:
+    """The solver configuration the command line asks for, with the solvers' defaults filled in (None: not
+    this solver's setting)."""
+
+    def __init__(self, args):
+        self.solver = args.solver
+        self.method = (args.method or "ipopt") if args.solver == "ipopt" else None
+        self.dynamics = self.variant = None
+        if self.method in ("ipopt", "sqp"):
+            self.dynamics = args.dynamics or "nonlinear"
+        elif args.solver in SAMPLING:
+            self.dynamics, self.variant = args.dynamics or "affine", args.variant or "preconditioned"
+
+    def describe(self, option: str) -> str:
+        """The configuration in the words of the command line, with what decides whether ``option`` applies."""
+        settings = [f"--method {self.method}"] if self.method else []
+        if option == "linearization":
+            settings += [f"--{k} {v}" for k, v in (("dynamics", self.dynamics), ("variant", self.variant)) if v]
+        return f"solver {self.solver!r}" + (f" with {' '.join(settings)}" if settings else "")
 
 
 def _solver_options(args) -> dict:
-    given = {k: getattr(args, k) for opts in _SOLVER_OPTIONS.values() for k in opts if getattr(args, k) is not None}
-    accepted = _SOLVER_OPTIONS.get(args.solver, ())
-    stray = sorted(set(given) - set(accepted))
-    if stray:
-        raise ValueError(f"--{stray[0]} does not apply to solver {args.solver!r}")
+    """The solver's keyword arguments from the command line; an option that does not apply to the chosen solver
+    (and method, dynamics, variant) is a ValueError naming both."""
+    if args.solver not in solvers.names():
+        raise ValueError(f"unknown solver {args.solver!r}; known: {', '.join(solvers.names())}")
+    config = _Config(args)
+    given = {k: getattr(args, k) for k in _SOLVER_OPTIONS if getattr(args, k) is not None}
+    for option in given:
+        applies, where = _SOLVER_OPTIONS[option]
+        if not applies(config):
+            why = " (--method rti always linearizes along its iterate)" if option == "linearization" and \
+                config.method == "rti" else ""
+            raise ValueError(f"--{option} does not apply to {config.describe(option)}{why}: it applies to {where}")
+    if given.get("linearization") == TRAJECTORY and args.solver != "qp":
+        raise ValueError(f"--linearization trajectory applies to solver qp only; {config.describe('')} takes "
+                         f"{' or '.join(LINEARIZATIONS)}")
     return given
 
 
+def _knots(problem, args) -> int | None:
+    """The knot count p of the OCP (None: traditional MPC, p = T): --knots, or DEFAULT_KNOTS capped at the horizon."""
+    if args.parameterization == "identity":
+        if args.knots is not None:
+            raise ValueError(f"--knots {args.knots} does not apply to --parameterization identity (traditional MPC "
+                             f"has one knot per step, p = T); give one of them")
+        return None
+    if args.knots is not None:
+        return args.knots
+    T = problem.horizon if args.horizon is None else args.horizon
+    return min(DEFAULT_KNOTS, T) if T >= 1 else DEFAULT_KNOTS  # a bad horizon: the OCP's own check names it
+
+
+def _ocp(problem, args, **options):
+    return problem.ocp(knots=_knots(problem, args), horizon=args.horizon, parameterization=args.parameterization,
+                       **options)
+
+
 def _controller(args) -> tuple:
-    options = _solver_options(args) if args.solver in _SOLVER_OPTIONS else {}
+    options = _solver_options(args)
     problem = problems.make(args.problem)
     _check_size(problem, args)
-    ocp = problem.ocp(knots=args.knots, horizon=args.horizon, error=args.error,
-                      parameterization=args.parameterization, compiled=args.compiled)
+    ocp = _ocp(problem, args, error=args.error, compiled=args.compiled)
     return problem, ocp, solvers.make(args.solver, ocp, **options)
 
 
@@ -164,8 +258,8 @@ def _solve(args):
     x0, goal = problem.sample(args.seed)
     sol = ctrl.solve(x0, goal)
     if args.json:
-        print(json.dumps({"problem": args.problem, "solver": args.solver, "x0": x0.tolist(), "goal": goal.tolist(),
-                          **sol.to_dict()}))
+        print(json.dumps({"problem": args.problem, "solver": args.solver, "controller": repr(ctrl),
+                          "x0": x0.tolist(), "goal": goal.tolist(), **sol.to_dict()}))
     else:
         print(f"{ctrl!r}\nx0 = {x0}, goal = {goal}\nu = {sol.u}  status = {sol.status} ({sol.raw_status}), "
               f"{sol.iterations} iterations, total {1e3 * sol.times['total']:.3f} ms")
@@ -209,8 +303,9 @@ def _simulate(args):
     traj, cost = _run_closed_loop(problem, ctrl, args.seed, args.duration)
     fig = plots.closed_loop({repr(ctrl): traj}, args.out, title=f"{args.problem}, seed {args.seed}",
                             **_labels(problem))
-    summary = {"problem": args.problem, "solver": args.solver, "actual_cost": cost, "fallbacks": traj.fallbacks,
-               "steps": len(traj.solutions), "total_time": _time_summary(traj), "figure": str(fig)}
+    summary = {"problem": args.problem, "solver": args.solver, "controller": repr(ctrl), "actual_cost": cost,
+               "fallbacks": traj.fallbacks, "steps": len(traj.solutions), "total_time": _time_summary(traj),
+               "figure": str(fig)}
     if args.json:
         print(json.dumps(summary))
     else:
@@ -348,33 +443,35 @@ def _bench(args):
 
 
 def _export(args):
-    from ocpkit.export import BuildError, build, check_tools, export_problem
+    from ocpkit.export import BuildError, build, check_tools, export
 
     try:
         check_tools()  # before any work: a missing cc or make is one line
-        exported = export_problem(args.problem, args.form, args.knots, args.horizon, args.qp, args.out,
-                                  seed=args.seed, force=args.force)
+        problem = problems.make(args.problem)
+        ocp = _ocp(problem, args)
+        x0, goal = problem.sample(args.seed)
+        exported = export(ocp, args.out, form=args.form, qp=args.qp, linearization=args.linearization, x0=x0,
+                          goal=goal, force=args.force)
         build(args.out)
     except BuildError as exc:
         print(f"ocpkit: error: {exc}", file=sys.stderr)
         return 2
-    du, steps, failures = _round_trip(args, exported)
+    du, steps, failures = _round_trip(problem, ocp, args, exported)
     ok = failures == 0 and du <= 1e-6
-    print(f"exported and built {args.problem} ({args.form}, knots {args.knots}, {args.qp}) in {exported.out_dir}; "
+    print(f"exported and built {args.problem} ({args.form}, {ocp.parameterization.kind} with {ocp.knots} knots over "
+          f"T = {ocp.horizon}, {args.qp}, linearization {args.linearization}) in {exported.out_dir}; "
           f"see {Path(args.out) / 'README.md'}\nround trip: the compiled step vs LinearMPC over {steps} closed-loop "
           f"steps from seed {args.seed}: max |du| = {du:.2e}, {failures} non-successes — "
           f"{'agree' if ok else 'DISAGREE'}")
     return 0 if ok else 1
 
 
-def _round_trip(args, exported, steps: int = 20):
+def _round_trip(problem, ocp, args, exported, steps: int = 20):
     """The compiled step (through ctypes) and LinearMPC in Python on the same closed loop (the discrete model,
     driven by LinearMPC's input): their largest first-input difference and the steps where either failed."""
     from ocpkit.export import ExportedMPC
     from ocpkit.solvers.qp import LinearMPC
 
-    problem = problems.make(args.problem)
-    ocp = problem.ocp(knots=args.knots, horizon=args.horizon)
     c = ExportedMPC(ocp, exported.out_dir, name=exported.name)
     py = LinearMPC(ocp, form="condensed", eps=1e-10, linearization=exported.linearization)
     F = ocp.discrete()
@@ -438,7 +535,8 @@ def _available_memory() -> float | None:
 
 
 def _check_size(problem, args) -> None:
-    """Refuse an MPC problem whose dense matrices cannot fit in memory; warn when one solve will take long.
+    """Refuse an MPC problem whose dense matrices cannot fit in memory; warn when one solve will take long (solve and
+    simulate, whose arguments were checked by _solver_options).
 
     Dense storage (8-byte floats): the T×p basis, and for the condensed QP the (T·nx)×(p·nu) prediction matrix
     and the (p·nu)² Hessian. Time (condensed, the default): about 2 ns × ((p·nu)³ + T·nx·(p·nu)²), fitted to
@@ -448,9 +546,11 @@ def _check_size(problem, args) -> None:
         return  # the OCP's own check names the bad value
     model = problem.model()
     nx, nu = model.nx, model.nu
-    p = T if args.knots is None or args.parameterization == "identity" else max(1, args.knots)
-    condensed = args.solver == "qp" and (args.form or "condensed") == "condensed"
-    entries = T * p + (T * nx * p * nu + (p * nu) ** 2 if condensed or args.solver != "qp" else 0)
+    knots = _knots(problem, args)
+    p = T if knots is None else max(1, knots)
+    qp_based = args.solver == "qp" or args.method == "rti"
+    condensed = qp_based and (args.form or "condensed") == "condensed"
+    entries = T * p + (T * nx * p * nu + (p * nu) ** 2 if condensed or not qp_based else 0)
     need = 8.0 * entries
     have = _available_memory()
     size = f"horizon T = {T}, p = {p} knots, nx = {nx}, nu = {nu}"

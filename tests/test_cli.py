@@ -4,6 +4,7 @@ import sys
 
 import pytest
 
+from ocpkit import cli, solvers, studies
 from ocpkit.cli import main
 
 
@@ -62,7 +63,8 @@ def _no_cuda_driver() -> bool:
     (["study", "knots", "--out", "o", "--scheduler", "tcp://127.0.0.1:1"],
      "cannot reach the Dask scheduler at tcp://127.0.0.1:1"),
     (["study", "knots", "--out", "o", "--trial-timeout", "-1"], "--trial-timeout must be a positive number"),
-    (["solve", "pendulum", "--horizon", "100000"], "needs about 298.0 GiB for its dense matrices"),
+    (["solve", "pendulum", "--horizon", "100000", "--parameterization", "identity"],
+     "needs about 298.0 GiB for its dense matrices"),
     pytest.param(["solve", "pendulum", "--solver", "empc", "--arch", "cuda"], "this machine has none",
                  marks=pytest.mark.skipif(not _no_cuda_driver(), reason="a CUDA driver is present")),
 ])
@@ -95,3 +97,164 @@ def test_study_exports_one_file_and_resumes_with_flags(tmp_path):
     res = run(*args, "--retry-failed", "--reuse-stale", cwd=tmp_path)  # every trial stored: nothing to run
     assert res.returncode == 0, res.stderr
     assert "report: o/knots.md" in res.stdout
+
+
+# --- every solver method and option of the Python API, with the same defaults in solve, simulate and export ---
+
+
+@pytest.fixture
+def made(monkeypatch):
+    """Records the (solver name, OCP, options) the command line hands to solvers.make, which still builds it."""
+    calls = []
+    real = solvers.make
+
+    def make(name, ocp, **options):
+        calls.append((name, ocp, options))
+        return real(name, ocp, **options)
+    monkeypatch.setattr(solvers, "make", make)
+    return calls
+
+
+def test_the_command_lines_choices_are_the_solvers():
+    from ocpkit.solvers import nlp, qp
+
+    assert cli.NLP_METHODS == nlp.METHODS and cli.DYNAMICS == nlp.DYNAMICS
+    assert sorted(cli.QP_BACKENDS) == sorted(qp.QP_SOLVERS)
+    assert set(cli.SAMPLING) | {"qp", "ipopt"} == set(solvers.names())  # a new solver must be placed in the table
+    sampling = pytest.importorskip("ocpkit.solvers.sampling")  # starts Taichi
+    assert cli.VARIANTS == sampling.VARIANTS
+
+
+@pytest.mark.parametrize("args,options", [
+    (["--solver", "ipopt"], {}),
+    (["--solver", "ipopt", "--method", "ipopt"], {"method": "ipopt"}),
+    (["--solver", "ipopt", "--method", "sqp"], {"method": "sqp"}),
+    (["--solver", "ipopt", "--method", "fatrop"], {"method": "fatrop"}),
+    (["--solver", "ipopt", "--method", "rti"], {"method": "rti"}),
+    (["--solver", "ipopt", "--method", "rti", "--iterations", "3", "--form", "sparse", "--qp", "osqp"],
+     {"method": "rti", "iterations": 3, "form": "sparse", "qp": "osqp"}),
+    (["--solver", "ipopt", "--method", "sqp", "--dynamics", "affine", "--linearization", "plan"],
+     {"method": "sqp", "dynamics": "affine", "linearization": "plan"}),
+    (["--linearization", "goal"], {"linearization": "goal"}),
+    (["--linearization", "plan"], {"linearization": "plan"}),
+    (["--linearization", "trajectory", "--form", "sparse"], {"linearization": "trajectory", "form": "sparse"}),
+])
+def test_solve_takes_every_method_and_linearization(args, options, made, capsys):
+    assert main(["solve", "pendulum", "--horizon", "20", "--seed", "1", "--json", *args]) == 0
+    out = json.loads(capsys.readouterr().out)
+    [(name, _, given)] = made
+    assert name == args[args.index("--solver") + 1] if "--solver" in args else name == "qp"
+    assert given == options and out["status"] == "success"
+    ctrl = out["controller"]
+    if name == "ipopt":
+        assert ctrl.startswith(f"NonlinearMPC({options.get('method', 'ipopt')}, {options.get('dynamics', 'nonlinear')}")
+    else:
+        assert ctrl.startswith("LinearMPC(")
+
+
+def test_rti_iterations_reach_the_iteration(made, capsys):
+    """--iterations K is RealTimeIteration's: K SQP steps per control step (here until its tolerance 0 stops)."""
+    rc = [main(["solve", "pendulum", "--horizon", "20", "--seed", "1", "--json", "--solver", "ipopt", "--method",
+                "rti", "--iterations", str(k)]) for k in (1, 4)]
+    one, four = (json.loads(line) for line in capsys.readouterr().out.splitlines())
+    assert rc == [0, 0] and [opts["iterations"] for _, _, opts in made] == [1, 4]
+    assert four["iterations"] > one["iterations"]  # QP iterations summed over the SQP steps
+
+
+@pytest.mark.parametrize("command", ["solve", "simulate"])
+def test_solve_and_simulate_default_to_five_knots(command, made, tmp_path, capsys):
+    extra = ["--duration", "0.05", "--out", str(tmp_path / "f.png")] if command == "simulate" else []
+    assert main([command, "pendulum", "--horizon", "20", "--json", *extra]) == 0
+    assert made[-1][1].knots == cli.DEFAULT_KNOTS == 5 and made[-1][1].horizon == 20
+    assert main([command, "pendulum", "--horizon", "3", "--json", *extra]) == 0  # capped at a shorter horizon
+    assert made[-1][1].knots == 3
+    assert main([command, "pendulum", "--horizon", "20", "--parameterization", "identity", "--json", *extra]) == 0
+    ocp = made[-1][1]
+    assert ocp.knots == 20 and ocp.parameterization.kind == "identity"  # traditional MPC
+    capsys.readouterr()
+
+
+def test_export_defaults_to_the_same_knots_and_takes_the_linearization(tmp_path, capsys):
+    assert main(["export", "pendulum", "--horizon", "10", "--out", str(tmp_path / "a")]) == 0
+    out = capsys.readouterr().out
+    assert "linear with 5 knots over T = 10" in out and "linearization goal" in out and "agree" in out
+    assert main(["export", "pendulum", "--horizon", "10", "--parameterization", "zoh", "--knots", "3",
+                 "--linearization", "plan", "--out", str(tmp_path / "b")]) == 0
+    out = capsys.readouterr().out
+    assert "zoh with 3 knots over T = 10" in out and "linearization plan" in out and "agree" in out
+
+
+@pytest.mark.parametrize("command", ["solve", "simulate", "export"])
+def test_help_says_the_default_knots(command, capsys):
+    with pytest.raises(SystemExit) as exit_:
+        main([command, "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert exit_.value.code == 0
+    assert "knot points p (default 5, or T when the horizon is shorter)" in text
+    assert "traditional MPC (one knot per step, p = T) is --parameterization identity" in text
+
+
+@pytest.mark.parametrize("args,message", [
+    (["--iterations", "3"], "--iterations does not apply to solver 'qp': it applies to solver ipopt with --method rti"),
+    (["--solver", "ipopt", "--iterations", "3"], "--iterations does not apply to solver 'ipopt' with --method ipopt:"),
+    (["--solver", "ipopt", "--method", "sqp", "--iterations", "3"],
+     "--iterations does not apply to solver 'ipopt' with --method sqp:"),
+    (["--solver", "cem", "--iterations", "2"], "--iterations does not apply to solver 'cem':"),
+    (["--method", "rti"], "--method does not apply to solver 'qp': it applies to solver ipopt"),
+    (["--solver", "ipopt", "--method", "fatrop", "--form", "sparse"],
+     "--form does not apply to solver 'ipopt' with --method fatrop: it applies to solver qp, and solver ipopt with "
+     "--method rti"),
+    (["--solver", "ipopt", "--qp", "osqp"], "--qp does not apply to solver 'ipopt' with --method ipopt:"),
+    (["--solver", "ipopt", "--linearization", "plan"],
+     "--linearization does not apply to solver 'ipopt' with --method ipopt --dynamics nonlinear:"),
+    (["--solver", "ipopt", "--method", "rti", "--linearization", "trajectory"],
+     "--linearization does not apply to solver 'ipopt' with --method rti (--method rti always linearizes along its "
+     "iterate)"),
+    (["--solver", "ipopt", "--method", "sqp", "--dynamics", "affine", "--linearization", "trajectory"],
+     "--linearization trajectory applies to solver qp only; solver 'ipopt' with --method sqp takes goal or plan"),
+    (["--solver", "empc", "--linearization", "trajectory"],
+     "--linearization trajectory applies to solver qp only; solver 'empc' takes goal or plan"),
+    (["--solver", "mppi", "--dynamics", "nonlinear", "--variant", "paper", "--linearization", "plan"],
+     "--linearization does not apply to solver 'mppi' with --dynamics nonlinear --variant paper:"),
+    (["--solver", "ipopt", "--method", "rti", "--dynamics", "affine"],
+     "--dynamics does not apply to solver 'ipopt' with --method rti:"),
+    (["--dynamics", "affine"], "--dynamics does not apply to solver 'qp':"),
+    (["--population", "8"], "--population does not apply to solver 'qp': it applies to solvers empc, cem, mppi"),
+    (["--knots", "3", "--parameterization", "identity"],
+     "--knots 3 does not apply to --parameterization identity"),
+])
+@pytest.mark.parametrize("command", ["solve", "simulate"])
+def test_an_option_that_does_not_apply_is_refused(command, args, message, made, tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    assert main([command, "pendulum", *args]) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1
+    assert not made and not any(tmp_path.iterdir())  # refused before any controller or output
+
+
+def test_export_refuses_knots_with_traditional_mpc(tmp_path, capsys):
+    assert main(["export", "pendulum", "--knots", "3", "--parameterization", "identity", "--out",
+                 str(tmp_path / "e")]) == 2
+    assert "--knots 3 does not apply to --parameterization identity" in capsys.readouterr().err
+    assert not (tmp_path / "e").exists()
+
+
+def test_study_help_names_every_registered_study(monkeypatch, capsys):
+    for command in ("study", "reproduce"):
+        with pytest.raises(SystemExit):
+            main([command, "--help"]) if command == "study" else main(["--help"])
+        text = " ".join(capsys.readouterr().out.split())
+        assert all(name in text for name in studies.NAMES), text
+    # Derived from the registry, not written out: a study added to it appears in the help and is accepted.
+    monkeypatch.setattr(studies, "NAMES", (*studies.NAMES, "brand_new"))
+    with pytest.raises(SystemExit):
+        main(["study", "--help"])
+    assert "brand_new" in " ".join(capsys.readouterr().out.split())
+    assert cli._parser().parse_args(["study", "brand_new"]).name == "brand_new"
+
+
+def test_an_unknown_study_is_one_line_naming_the_studies(tmp_path):
+    res = run("study", "knot", cwd=tmp_path)
+    assert res.returncode == 2 and "Traceback" not in res.stderr
+    assert "invalid choice: 'knot'" in res.stderr and all(name in res.stderr for name in studies.NAMES)
+    assert len(res.stderr.strip().splitlines()) == 1
