@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ocpkit._checks import choice, integer, positive
+from ocpkit.certificate import Certificate
 from ocpkit.compiled import SwitchingFunction
 from ocpkit.numeric import BufferedFunction
 from ocpkit.ocp import OCP
@@ -155,6 +156,7 @@ class Solution:
     x_pred: np.ndarray | None = None
     times: dict = field(default_factory=lambda: {"model": 0.0, "build": 0.0, "solve": 0.0, "total": 0.0})
     fallback: bool = False
+    certificate: Certificate | None = None  # the KKT certificate of a QP step's answer (None: no QP solved)
 
     @property
     def ok(self) -> bool:

@@ -1492,10 +1492,12 @@ class ExportedMPC(Controller):
         self._knots(self._mem, knots)
         status = STATUSES[self._status.value]
         rc = self._rc(self._mem)
-        raw = _explain_rc(self.name, self.qp, rc, self.certificate().residuals)
+        certificate = self.certificate() if status == SUCCESS or rc >= _CERT_CODE else None  # a QP solved
+        raw = _explain_rc(self.name, self.qp, rc, certificate.residuals if certificate else ())
         model, build_s, solve = (float(t) for t in self._split)
         return Solution(u=u, knots=knots.reshape(self.ocp.knots, self.ocp.nu), status=status, raw_status=raw,
-                        times={"model": model, "build": build_s, "solve": solve}, fallback=status != SUCCESS)
+                        times={"model": model, "build": build_s, "solve": solve}, fallback=status != SUCCESS,
+                        certificate=certificate)
 
 
 def _explain_rc(name: str, qp: str, rc: int, residuals) -> str:

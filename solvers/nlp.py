@@ -45,7 +45,7 @@ DYNAMICS = ("nonlinear", "affine")
 _STATUS = {
     "Solve_Succeeded": SUCCESS,
     "Solved_To_Acceptable_Level": SUCCESS,
-    "Feasible_Point_Found": SUCCESS,
+    "Feasible_Point_Found": LIMITED,  # a feasible point of a square problem, no optimality claimed
     "Maximum_Iterations_Exceeded": LIMITED,
     "Maximum_CpuTime_Exceeded": LIMITED,
     "Maximum_WallTime_Exceeded": LIMITED,
@@ -81,7 +81,7 @@ class RealTimeIteration(LinearMPC):
     def _solve(self, x: np.ndarray, goal: np.ndarray) -> Solution:
         deadline, par = self._deadline(), self.ocp.parameterization
         times = {"model": 0.0, "build": 0.0, "solve": 0.0}
-        along, sol, qp_iterations = self.shifted_plan(x, goal), None, 0
+        along, sol, qp_iterations, moved, done = self.shifted_plan(x, goal), None, 0, np.inf, 0
         for i in range(self.iterations):
             new = self._qp_step(x, goal, along, deadline, times)
             qp_iterations += new.iterations
@@ -93,10 +93,15 @@ class RealTimeIteration(LinearMPC):
                 break
             moved = (np.inf if sol is None else
                      max(np.abs(new.knots - sol.knots).max(), np.abs(new.x_pred - sol.x_pred).max()))
-            sol = new
+            sol, done = new, i + 1
             if moved <= self.tol:
                 break
             along = (np.vstack([x, sol.x_pred[1:-1]]), par.inputs(sol.knots))
+        # Each iteration's QP is certified; the NLP's KKT point only where the iteration converged.
+        converged = (f"converged (last iteration moved the plan {moved:.2g} <= tol {self.tol:g})"
+                     if moved <= self.tol else "not iterated to convergence"
+                     + (f" (last iteration moved the plan {moved:.2g})" if np.isfinite(moved) else ""))
+        sol.raw_status = f"RTI {done} of {self.iterations} iterations, {converged}; QP: {sol.raw_status}"
         sol.iterations, sol.times = qp_iterations, times
         return sol
 

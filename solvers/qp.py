@@ -709,7 +709,8 @@ class LinearMPC(Controller):
             if not np.isfinite(res.z).all():
                 res.status, res.raw_status = NAN, f"{res.raw_status} with non-finite solution"
             else:
-                why = certify(qp, res.z, res.y, res.w).failed()
+                certificate = certify(qp, res.z, res.y, res.w)
+                why = certificate.failed()
                 if why is not None:  # not a solution (or an inaccurate one): no warm start from it
                     return self._fail(LIMITED, f"{res.raw_status} but certificate failed: {why}", times,
                                       res.iterations)
@@ -721,7 +722,7 @@ class LinearMPC(Controller):
         u = ocp.parameterization.u_at(knots, 0)
         self._x_plan = x_pred
         return Solution(u=u, knots=knots, status=SUCCESS, raw_status=res.raw_status, iterations=res.iterations,
-                        x_pred=x_pred, times=times)
+                        x_pred=x_pred, times=times, certificate=certificate)
 
     def _fail(self, status, raw, times, iterations=0, keep: _Result | None = None) -> Solution:
         """Fallback solution. After "limited" the backend's workspace stays and its (finite) iterate is the next

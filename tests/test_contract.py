@@ -1,0 +1,167 @@
+"""One contract for every registered controller (``ocpkit.solvers.configurations()``: each solver × variant × form
+and backend × linearization), on a shipped, a user-declared and a URDF problem:
+
+* it constructs and steps; every status is one of STATUSES, ``fallback`` is set exactly when it is not a success,
+  u is finite and within the input bounds;
+* a QP step's success carries a KKT certificate that holds (:mod:`ocpkit.certificate`);
+* in closed loop on the pendulum it reaches the goal;
+* where two configurations claim the same optimum they agree: every QP backend and form, the C step and IPOPT over
+  the affine model on the knot QP about the input goal; IPOPT, SQP, fatrop and iterated RTI on the NLP.
+
+A solver or variant joins by being listed in ``ocpkit.solvers.CONFIGURATIONS``. The default run takes every
+configuration on the pendulum (closed loop) and on one other problem each (a few steps); ``pytest -m slow`` the
+whole grid.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from ocpkit import solvers
+from ocpkit.controller import STATUSES
+from ocpkit.problem import Problem
+from ocpkit.problems import make
+from ocpkit.simulate import simulate
+from ocpkit.solvers.qp import LinearMPC
+
+from conftest import readme_block
+
+CONFIGS = solvers.configurations()
+OTHERS = ("nlink:3", "cartpole", "arm")
+HORIZON, KNOTS = 20, 3
+SAMPLING = ("empc", "cem", "mppi")
+
+
+class _Arm:
+    """The Panda of tests/data with its fingers locked: a 7-DoF URDF arm."""
+
+    def __call__(self):
+        from pathlib import Path
+
+        urdf = Path(__file__).parent / "data" / "panda" / "panda.urdf"
+        return Problem.from_urdf(urdf, locked_joints=["panda_finger_joint1", "panda_finger_joint2"])
+
+
+@pytest.fixture(scope="module")
+def problems(tmp_path_factory):
+    cartpole = tmp_path_factory.mktemp("contract") / "cartpole.py"
+    cartpole.write_text(readme_block("Declare your own problem"))
+    cache = {}
+
+    def get(name):
+        if name not in cache:
+            cache[name] = (make(f"{cartpole}:CartPole") if name == "cartpole" else _Arm()() if name == "arm"
+                           else make(name))
+        return cache[name]
+    return get
+
+
+def _ocp(problem, config, horizon=HORIZON):
+    return problem.ocp(knots=horizon if config.knots == "horizon" else KNOTS, horizon=horizon)
+
+
+def _check_step(controller, sol):
+    ocp = controller.ocp
+    assert sol.status in STATUSES, sol.status
+    assert sol.fallback == (not sol.ok), (sol.status, sol.fallback)
+    assert sol.u.shape == (ocp.nu,) and np.isfinite(sol.u).all(), sol.u
+    assert np.all(sol.u >= ocp.u_min - 1e-9) and np.all(sol.u <= ocp.u_max + 1e-9), sol.u
+    if sol.ok and isinstance(controller, LinearMPC):  # every QP step (RTI included): a proven success
+        assert sol.certificate is not None and sol.certificate.holds, (sol.raw_status, sol.certificate)
+    if not sol.ok:
+        assert sol.raw_status, "a failure names its reason"
+
+
+def _grid(slow: bool):
+    """(configuration, problem) pairs: the pendulum for all, and one other problem each by rotation (the sampling
+    planners' Taichi kernels of the 7-DoF arm take minutes to compile: the slow grid only)."""
+    pairs = []
+    for i, config in enumerate(CONFIGS):
+        others = OTHERS if slow else (OTHERS[i % len(OTHERS)],)
+        for name in others:
+            if config.solver in SAMPLING and name == "arm" and not slow:
+                name = "nlink:3"
+            pairs.append(pytest.param(config, name, id=f"{config.label}-{name}"))
+    return pairs
+
+
+def test_every_registered_solver_has_configurations():
+    assert set(solvers.names()) == set(solvers.CONFIGURATIONS), "register a solver's configurations with it"
+    assert all(c.solver in solvers.names() for c in CONFIGS)
+
+
+@pytest.mark.parametrize("config", [pytest.param(c, id=c.label) for c in CONFIGS])
+def test_contract_closed_loop_on_the_pendulum(config, problems):
+    """Every configuration brings the pendulum to a goal it can hold, every step within the contract."""
+    problem = problems("pendulum")
+    ocp = _ocp(problem, config, horizon=40)
+    controller = config.make(ocp)
+    controller.wait_compiled()
+    x0, goal = np.array([0.0, 0.0]), np.array([1.0, 0.0])
+    traj = simulate(problem.plant(), controller, x0, goal, duration=2.0)
+    for sol in traj.solutions:
+        _check_step(controller, sol)
+    oks = sum(sol.ok for sol in traj.solutions)
+    assert oks >= 0.9 * len(traj.solutions), (oks, {s.raw_status for s in traj.solutions if not s.ok})
+    assert abs(traj.x[-1, 0] - goal[0]) < 0.05, traj.x[-1]
+
+
+def _steps(config, name, problems, steps=3):
+    """``steps`` closed-loop steps from the problem's seed-0 start, each within the contract."""
+    problem = problems(name)
+    ocp = _ocp(problem, config)
+    controller = config.make(ocp)
+    controller.wait_compiled()
+    x, goal = problem.sample(0)
+    traj = simulate(problem.plant(), controller, x, goal, duration=steps * ocp.dt)
+    assert len(traj.solutions) == steps
+    for sol in traj.solutions:
+        _check_step(controller, sol)
+
+
+@pytest.mark.parametrize("config, name", _grid(slow=False))
+def test_contract_steps(config, name, problems):
+    _steps(config, name, problems)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("config, name", _grid(slow=True))
+def test_contract_steps_whole_grid(config, name, problems):
+    _steps(config, name, problems, steps=10)
+
+
+def _reference(problem, config, optimum):
+    """The reference knots for a configuration's claimed optimum at the problem's seed-0 start (cold)."""
+    ocp = _ocp(problem, config)
+    x, goal = problem.sample(0)
+    if optimum == "convex":
+        ref = LinearMPC(ocp, native=False, eps=1e-12).solve(x, goal)
+    else:
+        ref = solvers.make("ipopt", ocp, options={"tol": 1e-10}).solve(x, goal)
+    assert ref.ok, ref.raw_status
+    return ref.knots
+
+
+@pytest.mark.parametrize("name, optimum", [(name, "convex") for name in ("pendulum", "nlink:3", "cartpole", "arm")]
+                         + [(name, "nlp") for name in ("pendulum", "nlink:3", "cartpole")]
+                         + [pytest.param("arm", "nlp", marks=pytest.mark.slow)])  # IPOPT on the arm: seconds a solve
+def test_contract_configurations_agree_on_their_optimum(name, optimum, problems):
+    """From a cold start, every configuration that claims an optimum finds the same knots as the reference
+    (the condensed knot QP solved by DAQP to 1e-12; IPOPT to 1e-10 on the NLP)."""
+    problem = problems(name)
+    x, goal = problem.sample(0)
+    refs, bad = {}, []
+    for config in (c for c in CONFIGS if c.optimum == optimum):
+        key = (config.optimum, config.knots)
+        if key not in refs:
+            refs[key] = _reference(problem, config, config.optimum)
+        controller = config.make(_ocp(problem, config))
+        controller.wait_compiled()
+        sol = controller.solve(x, goal)
+        scale = max(1.0, float(np.abs(refs[key]).max()))
+        # HPIPM stops at residuals of 1e-6 (solvers/qp.py), the NLP solvers at their own tolerances: 1e-3
+        tol = (1e-5 if config.optimum == "convex" and config.options.get("qp") != "hpipm" else 1e-3) * scale
+        if not sol.ok or np.abs(sol.knots - refs[key]).max() > tol:
+            bad.append((config.label, sol.status, sol.raw_status[:80],
+                        float(np.abs(sol.knots - refs[key]).max()) if sol.ok else None))
+    assert not bad, bad
