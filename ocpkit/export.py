@@ -61,7 +61,7 @@ from ocpkit.certificate import TESTS, Certificate
 from ocpkit.certificate import TOL as CERT_TOL
 from ocpkit.controller import STATUSES, SUCCESS, Controller, Solution
 from ocpkit.ocp import OCP
-from ocpkit.transcription import CondensedQP
+from ocpkit.transcription import ROUNDING_MARGIN, CondensedQP
 
 FORMS = ("condensed", "sparse")
 QP_SOLVERS = ("qrqp", "daqp", "osqp", "hpipm")
@@ -77,6 +77,7 @@ _UNSUPPORTED_WHY = {
 # The C step's solver return for a "solved" answer whose certificate failed: _CERT_CODE + the test's index in
 # ocpkit.certificate.TESTS.
 _CERT_CODE = 9001
+_ILL_CONDITIONED = 9000  # a QP refused before its solve: Hessian ill-conditioned (QP.not_definite)
 MAX_INSTANCES = 16  # QP-solver memory slots per loaded library (CASADI_MAX_NUM_THREADS); a Makefile variable
 OPT_FLAGS = "-O2"  # the Makefile's OPT default (generated model and QP solver)
 OPT_STEP = "-O3"  # the Makefile's OPT_STEP default (the condensing loops: -O3 vectorizes them)
@@ -374,6 +375,9 @@ extern "C" {{
    (Hessian not positive definite) and -6 ({N}_EXCEPTION), -2 cycling, -4 iteration limit ({N}_LIMITED). */
 #define {N}_CERT_TOL {cert_tol!r}
 enum {{ {N}_CERT_STATIONARITY = {_CERT_CODE}, {N}_CERT_PRIMAL, {N}_CERT_COMPLEMENTARITY, {N}_CERT_DUAL_SIGN }};
+/* The solver return of a QP refused before its solve (status {N}_EXCEPTION): rounding in its Hessian beyond
+   1 % of the curvature the input weight gives (the prediction model diverges over the horizon). */
+#define {N}_ILL_CONDITIONED {_ILL_CONDITIONED}
 
 enum {{ {N}_SUCCESS = 0, {N}_LIMITED = 1, {N}_INFEASIBLE = 2, {N}_NAN = 3, {N}_EXCEPTION = 4 }};
 
@@ -506,6 +510,8 @@ def _constants(tr: CondensedQP, linearization: str, jac) -> str:
         _c_const("double", "U_GOAL", ocp.u_goal),
         _c_const("double", "R_IN", ocp.R),
         _c_const("double", "R_KNOTS", tr.R_knots),
+        f"#define CURVATURE {_c_num(tr.curvature)}  /* P's curvature in exact arithmetic (QP.not_definite) */",
+        f"#define ROUNDING_MARGIN {_c_num(ROUNDING_MARGIN)}",
         _c_const("double", "PHI_SUM", tr._phi_sum),
         _c_const("double", "PHI0", phi[0]),
         _c_const("double", "SHIFT", M),
@@ -541,6 +547,7 @@ _WRAPPER = Template(r"""/* $name.c — one MPC step: the affine model (generated
 #if !defined(_WIN32) && !defined(_POSIX_C_SOURCE)
 #define _POSIX_C_SOURCE 199309L /* clock_gettime for ${name}_step_timed */
 #endif
+#include <float.h>
 #include <math.h>
 #include <string.h>
 #include <time.h>
@@ -1057,6 +1064,15 @@ static int certify(mem_t* m) {
   return 0;
 }
 
+/* Rounding in h (NZ ε max h_ii) beyond ROUNDING_MARGIN of the curvature h has in exact arithmetic (φᵀφ⊗R): the
+   prediction model diverges over the horizon and no solver's answer means anything (QP.not_definite). */
+static int ill_conditioned(const mem_t* m) {
+  double big = 0;
+  int i;
+  for (i = 0; i < NZ; ++i) big = amax(big, fabs(m->h[i * (NZ + 1)]));
+  return !(NZ * DBL_EPSILON * big <= ROUNDING_MARGIN * CURVATURE);
+}
+
 /* The QP in m (h, g, a, lba, uba, lbx, ubx) checked, solved (warm-started from the last solution where m->warm)
    and certified: its status. On a success z_new and the multipliers hold the answer; otherwise
    m->solver_rc says why (the solver's return, or a certificate code). */
@@ -1067,6 +1083,10 @@ static int solve_qp(mem_t* m) {
       || any_nan(m->lba, NA) || any_nan(m->uba, NA) || any_nan(m->lbx, NZ) || any_nan(m->ubx, NZ))
     return ${N}_NAN;
   if (any_above(m->lba, m->uba, NA) || any_above(m->lbx, m->ubx, NZ)) return ${N}_INFEASIBLE;
+  if (ill_conditioned(m)) {
+    m->solver_rc = ${N}_ILL_CONDITIONED;
+    return ${N}_EXCEPTION;
+  }
   m->arg[0] = m->h; m->arg[1] = m->g; m->arg[2] = m->a; m->arg[3] = m->lba; m->arg[4] = m->uba;
   m->arg[5] = m->lbx; m->arg[6] = m->ubx;
   m->arg[7] = m->warm ? m->z : 0; m->arg[8] = m->warm ? m->lam_x : 0; m->arg[9] = m->warm ? m->lam_a : 0;
@@ -1506,6 +1526,9 @@ def _explain_rc(name: str, qp: str, rc: int, residuals) -> str:
         test = TESTS[rc - _CERT_CODE]
         return (f"{name}_qp_solve returned 0 but certificate failed: {test} residual "
                 f"{residuals[rc - _CERT_CODE]:.3g} > {CERT_TOL:.0e}")
+    if rc == _ILL_CONDITIONED:
+        return (f"{name}: Hessian ill-conditioned (rounding beyond {ROUNDING_MARGIN:g} x the input weight's "
+                f"curvature): the prediction model diverges over the horizon")
     if qp == "daqp" and rc in DAQP_EXIT:
         why = " (Hessian not positive definite)" if rc == -5 else ""
         return f"{name}_qp_solve returned {rc}: DAQP {DAQP_EXIT[rc]}{why}"

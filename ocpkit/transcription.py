@@ -35,6 +35,10 @@ from ocpkit._checks import positive
 from ocpkit.ocp import OCP
 
 
+# A QP whose rounding in P (n·ε·max P_ii) exceeds this fraction of its exact-arithmetic curvature is refused.
+ROUNDING_MARGIN = 0.01
+
+
 @dataclass
 class QP:
     """min ½ zᵀPz + qᵀz  s.t.  A z = b,  l ≤ C z ≤ u  (P, A, C dense arrays or scipy CSC matrices)."""
@@ -50,6 +54,8 @@ class QP:
     # P positive semidefinite by construction (the sparse form's: Q, Q_T ⪰ 0 and R ≻ 0 checked by the OCP);
     # otherwise P depends on the model's numbers and :meth:`not_definite` tells whether it is numerically so.
     convex: bool = False
+    # The curvature P has in exact arithmetic at least (the condensed P ⪰ φᵀφ⊗R): 0 where not known.
+    curvature: float = 0.0
 
     @property
     def n(self) -> int:
@@ -84,14 +90,24 @@ class QP:
         return None
 
 
-    def not_definite(self) -> str | None:
-        """Why P is not numerically positive definite (its Cholesky factorization fails), or None.
+    def not_definite(self, factorize: bool = True) -> str | None:
+        """Why P is not numerically positive definite, or None: rounding in P beyond 1/ROUNDING_MARGIN of the
+        curvature it has in exact arithmetic (``curvature``), or (``factorize``) a failed Cholesky factorization.
 
-        The condensed P = SᵀQ̄S + φᵀφ⊗R is positive definite in exact arithmetic (R ≻ 0); where the prediction model is
-        so unstable that rounding makes it indefinite (a 7-DoF arm whose model's RK4 step diverges: |eig A_d| = 4.9
-        a step, P up to 7e69), no QP solver's answer means anything. ProxQP reported such QPs "solved" at a saddle
-        point; DAQP refuses them in its own factorization."""
+        The condensed P = SᵀQ̄S + φᵀφ⊗R is positive definite in exact arithmetic (R ≻ 0). Where the prediction model
+        is so unstable that P's entries reach 1e18 and more (a 7-DoF arm whose model's RK4 step diverges: |eig A_d|
+        = 4.9 a step), rounding — n·ε·max P_ii — exceeds the curvature R gives: P is indefinite or its small
+        eigenvalues are noise, and the "optimum" is arbitrary (DAQP in C and in Python both reported optimal, with
+        knots 1e4 apart, both KKT points to 1e-15). ProxQP reported indefinite ones "solved" at a saddle point."""
         P = self.P.toarray() if sp.issparse(self.P) else self.P
+        if self.curvature > 0:
+            rounding = self.n * np.finfo(float).eps * float(np.abs(np.diag(P)).max(initial=0.0))
+            if not rounding <= ROUNDING_MARGIN * self.curvature:
+                return (f"Hessian ill-conditioned: its rounding {rounding:.3g} (n·ε·max P_ii) exceeds "
+                        f"{ROUNDING_MARGIN:g} x the curvature {self.curvature:.3g} the input weight gives: the "
+                        f"prediction model diverges over the horizon")
+        if not factorize:
+            return None
         try:
             np.linalg.cholesky(P)
         except np.linalg.LinAlgError:
@@ -291,6 +307,10 @@ class CondensedQP(_Transcription):
             w, V = np.linalg.eigh(Q)
             self._qh, self._dQT = np.sqrt(np.clip(w, 0.0, None))[:, None] * V.T, QT - Q
         self.R_knots = 0.5 * (self.R_knots + self.R_knots.T)  # exactly symmetric: P is returned as built
+        # P ⪰ φᵀφ⊗R (and the slacks' weight): its curvature in exact arithmetic (QP.not_definite)
+        self.curvature = float(np.linalg.eigvalsh(self.R_knots).min())
+        if self.ns:
+            self.curvature = min(self.curvature, self.slack_quad)
         self._pieces = _pieces(self.phi, n, m)
         self._lengths = sorted({piece[1] for piece in self._pieces})
         # Simple bounds on z (ProxQP's box): the knots' input bounds, then s ≥ 0.
@@ -509,7 +529,7 @@ class CondensedQP(_Transcription):
             C = np.vstack([self._box_C, Cs])
             l = np.concatenate([self.u_lo, np.zeros(ns), ls])
             u = np.concatenate([self.u_hi, np.full(ns, np.inf), us])
-            return QP(P, q, self.A, self.b, C, l, u, box=self._box)
+            return QP(P, q, self.A, self.b, C, l, u, box=self._box, curvature=self.curvature)
         if self.x_rows.size:
             SV = self._rows()[self.x_rows]
             vr = SV[:, 0]
@@ -518,7 +538,7 @@ class CondensedQP(_Transcription):
             u = np.concatenate([self.u_hi, self.x_hi - vr])
         else:
             C, l, u = self._box_C, self.u_lo.copy(), self.u_hi.copy()
-        return QP(P, q, self.A, self.b, C, l, u, box=self.u_rows)
+        return QP(P, q, self.A, self.b, C, l, u, box=self.u_rows, curvature=self.curvature)
 
     def states(self, z: np.ndarray, x0) -> np.ndarray:
         """Predicted states x_0 … x_T (T+1, n) of the last built QP."""

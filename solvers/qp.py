@@ -23,7 +23,7 @@ from ocpkit._checks import choice, integer, positive
 from ocpkit.certificate import certify
 from ocpkit.controller import (EXCEPTION, INFEASIBLE, LIMITED, NAN, SUCCESS, Controller, OperationCosts,
                                Solution, check_linearization)
-from ocpkit.export import ExportedMPC
+from ocpkit.export import DAQP_EXIT, ExportedMPC
 from ocpkit.numeric import BufferedFunction
 from ocpkit.ocp import OCP
 from ocpkit.transcription import QP, TRANSCRIPTIONS
@@ -76,7 +76,7 @@ class _ProxQP:
     WARM_INNER = 500
     GAP_REL = 1e-12
 
-    factorizes = False  # whether the backend itself refuses a P that is not positive definite
+    factorizes = False
 
     def __init__(self, sparse: bool, max_iter: int, eps: float):
         import proxsuite
@@ -206,7 +206,7 @@ class _OSQP:
     setup and the update (numeric refactorization) start only if their measured time fits.
     """
 
-    factorizes = False  # whether the backend itself refuses a P that is not positive definite
+    factorizes = False
 
     def __init__(self, max_iter: int, eps: float):
         import osqp
@@ -273,7 +273,7 @@ class _HPIPM:
     HPIPM reached 1e-6 in about 10 iterations and did not reach 1e-8 within 200 (measured here).
     """
 
-    factorizes = False  # whether the backend itself refuses a P that is not positive definite
+    factorizes = False
 
     def __init__(self, tr, max_iter: int, eps: float):
         n, m, T = tr.n, tr.m, tr.T
@@ -341,12 +341,10 @@ class _DAQP:
     outside: with a deadline it starts only if its measured time fits."""
 
     INF = 1e30  # DAQP's "no bound"
-    _EXIT = {1: (SUCCESS, "optimal"), 2: (SUCCESS, "soft optimal"), -1: (INFEASIBLE, "infeasible"),
-             -2: (LIMITED, "cycling"), -3: (INFEASIBLE, "unbounded"), -4: (LIMITED, "iteration limit"),
-             -5: (EXCEPTION, "nonconvex"), -6: (EXCEPTION, "overdetermined initial working set"),
-             -7: (LIMITED, "time limit")}
+    _STATUS = {1: SUCCESS, 2: SUCCESS, -1: INFEASIBLE, -2: LIMITED, -3: INFEASIBLE, -4: LIMITED, -5: EXCEPTION,
+               -6: EXCEPTION, -7: LIMITED}  # DAQP's exit flags (named in ocpkit.export.DAQP_EXIT)
 
-    factorizes = True  # whether the backend itself refuses a P that is not positive definite
+    factorizes = True  # the backend itself refuses a P that is not positive definite (LinearMPC checks for the others)
 
     def __init__(self, max_iter: int, eps: float):
         import daqp
@@ -393,8 +391,9 @@ class _DAQP:
             z, _, flag, info = self._daqp.solve(H, np.asarray(qp.q, dtype=float), A, bu, bl, sense, **settings)
         self.costs.add(op, time.perf_counter() - start)
         self._measured.add(op)
-        status, raw = self._EXIT.get(flag, (EXCEPTION, f"exit flag {flag}"))
-        raw = f"DAQP {raw}"
+        status, raw = self._STATUS.get(flag, EXCEPTION), f"DAQP {DAQP_EXIT.get(flag, f'exit flag {flag}')}"
+        if flag == -5:
+            raw += " (Hessian not positive definite)"
         if status == SUCCESS and deadline is not None and time.perf_counter() > deadline:
             status, raw = LIMITED, f"time budget exceeded ({raw})"
         z = np.array(z, dtype=float)
@@ -693,8 +692,8 @@ class LinearMPC(Controller):
             problem = qp.check()
             if problem is not None:
                 return self._fail(INFEASIBLE if "above" in problem else NAN, problem, times)
-            if not (qp.convex or self._backend.factorizes):
-                problem = qp.not_definite()
+            if not qp.convex:
+                problem = qp.not_definite(factorize=not self._backend.factorizes)
                 if problem is not None:
                     return self._fail(EXCEPTION, problem, times)
             try:

@@ -122,9 +122,15 @@ def _infeasible(qp):
               np.r_[qp.l, 1.0, -np.inf], np.r_[qp.u, np.inf, -1.0], box=qp.box)
 
 
+def _ill_conditioned(qp):
+    """P scaled by 1e20 (as a diverging prediction model makes it), its exact-arithmetic curvature unchanged."""
+    return QP(qp.P * 1e20, qp.q, qp.A, qp.b, qp.C, qp.l, qp.u, box=qp.box, curvature=qp.curvature)
+
+
 # A QP of the built one's size: with a direction of negative curvature; with a singular P and a linear cost along
-# its null space, unbounded; with two bound rows that contradict each other.
-CRAFTED = {"indefinite": _indefinite, "rank-deficient": _rank_deficient, "infeasible": _infeasible}
+# its null space, unbounded; with two bound rows that contradict each other; with rounding beyond its curvature.
+CRAFTED = {"indefinite": _indefinite, "rank-deficient": _rank_deficient, "infeasible": _infeasible,
+           "ill-conditioned": _ill_conditioned}
 
 
 @pytest.mark.parametrize("kind", CRAFTED)
@@ -136,7 +142,8 @@ def test_python_step_never_succeeds_on_a_bad_qp(form, qp, kind):
     assert not sol.ok and sol.fallback, (kind, sol.raw_status)
     assert sol.raw_status  # the reason, named
     if kind != "infeasible" and form == "condensed":
-        assert any(why in sol.raw_status for why in ("positive definite", "nonconvex", "unbounded")), sol.raw_status
+        assert any(why in sol.raw_status for why in ("positive definite", "nonconvex", "unbounded", "conditioned")), \
+            sol.raw_status
 
 
 @pytest.fixture(scope="module")
@@ -186,6 +193,8 @@ def test_c_step_never_succeeds_on_a_bad_qp(c_step, kind):
         bad = _box_qp(qp.P, qp.q, qp.l[: qp.n], qp.u[: qp.n], C, lo, hi)
     status, _ = step.solve_qp(bad)
     assert status != SUCCESS, kind
+    if kind == "ill-conditioned":
+        assert status == "exception"
 
 
 @needs_cc
@@ -229,8 +238,8 @@ DIVERGING_ARM = textwrap.dedent('''
 def test_diverging_arm_c_step_never_succeeds_in_fresh_processes():
     """The arm of the report (light wrist, damping 1, half the inertia: the model's RK4 step diverges, the QP's
     Hessian reaches 7e69 and is numerically indefinite): in each fresh process the C step says "exception"
-    (DAQP nonconvex), never success."""
+    (DAQP nonconvex, or its Hessian refused as ill-conditioned before), never success."""
     for _ in range(3):
         out = subprocess.run([sys.executable, "-c", DIVERGING_ARM], capture_output=True, text=True, timeout=600,
                              check=True, cwd=Path(__file__).resolve().parents[1]).stdout
-        assert "success" not in out and "DAQP nonconvex" in out, out
+        assert "success" not in out and ("DAQP nonconvex" in out or "ill-conditioned" in out), out
