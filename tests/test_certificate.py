@@ -134,9 +134,10 @@ CRAFTED = {"indefinite": _indefinite, "rank-deficient": _rank_deficient, "infeas
 
 
 @pytest.mark.parametrize("kind", CRAFTED)
-@pytest.mark.parametrize("form, qp", BACKENDS)
+@pytest.mark.parametrize("form, qp", BACKENDS + [("sparse", "hpipm")])
 def test_python_step_never_succeeds_on_a_bad_qp(form, qp, kind):
-    c = LinearMPC(_pendulum_ocp(), form=form, qp=qp, state_bounds="hard", native=False, max_iter=2000)
+    ocp = _pendulum_ocp(knots=10) if qp == "hpipm" else _pendulum_ocp()  # HPIPM: traditional MPC, p = T
+    c = LinearMPC(ocp, form=form, qp=qp, state_bounds="hard", native=False, max_iter=2000)
     _feed(c, CRAFTED[kind])
     sol = c.solve(np.array([0.0, 0.5]), np.array([1.0, 0.0]))
     assert not sol.ok and sol.fallback, (kind, sol.raw_status)
