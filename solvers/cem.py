@@ -5,8 +5,9 @@ cheapest candidates and refits the Gaussian to them (Rubinstein's CEM, as in MuJ
 cross-entropy planner). The preconditioned variant (default) draws and refits in the coordinates
 whitened by the knot QP's Hessian and evaluates the seeds in every population
 (:mod:`ocpkit.solvers.sampling`); "paper" uses per-parameter stds in input coordinates. The mean
-carries over to the next control step shifted one step in time; the std restarts at σ each step.
-u is the mean's input at t = 0.
+carries over to the next control step shifted one step in time; preconditioned, the step starts from
+whichever of it and the seeds rolls out cheapest (the refit alone moves the mean only about σ per
+generation). The std restarts at σ each step. u is the mean's input at t = 0.
 """
 from __future__ import annotations
 

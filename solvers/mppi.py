@@ -5,7 +5,8 @@ the population out and moves the nominal to the exponentially weighted average �
 w_i ∝ exp(−(J_i − min J)/λ). The preconditioned variant (default) draws the noise with covariance
 σ²P⁻¹ from the knot QP's Hessian and evaluates the seeds in every population
 (:mod:`ocpkit.solvers.sampling`); "paper" uses N(0, σ²) per parameter. The nominal carries over to the
-next control step shifted one step in time; u is its input at t = 0.
+next control step shifted one step in time (preconditioned: unless a seed rolls out cheaper, which then
+starts the step); u is its input at t = 0.
 """
 # No "from __future__ import annotations": Taichi reads kernel annotations as types.
 import numpy as np

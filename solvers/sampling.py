@@ -12,8 +12,9 @@ rollout cost of affine dynamics is exactly twice it plus a constant), factors P 
 *seeds* evaluated in every population: the box-constrained optimum of that QP (a Newton candidate,
 :func:`ocpkit.boxqp.solve_box_qp`) and the input that holds the goal (u_g corrected for gravity and
 other static loads). Perturbations are drawn as L⁻ᵀε (covariance ∝ P⁻¹), so every direction costs
-alike. The fitness stays the rollout, so ``dynamics="nonlinear"`` and any CasADi stage cost keep
-working; the QP only shapes the search. ``variant="paper"`` is the plain algorithm: isotropic
+alike. CEM and MPPI start each step's Gaussian at the cheapest by rollout of their incumbent and the
+seeds (:class:`GaussianSampling`). The fitness stays the rollout, so ``dynamics="nonlinear"`` and any
+CasADi stage cost keep working; the QP only shapes the search. ``variant="paper"`` is the plain algorithm: isotropic
 sampling in input coordinates, no seeds.
 
 Timings: ``model`` is the linearization; ``build`` the preconditioner's QP; ``solve`` the rest
