@@ -404,6 +404,12 @@ class _DAQP:
         return _Result(z, (z, lam), status, raw, int(info.get("iterations", 0)), y=lam[n_free:], w=w)
 
 
+def _spectral_radius(ocp: OCP, x: np.ndarray, goal: np.ndarray) -> float:
+    """max |eig A_d| of the OCP's affine model about (x, u_g(goal))."""
+    Ad = np.asarray(ocp.affine()(x, ocp.input_goal(goal))[0], dtype=float)
+    return float(np.abs(np.linalg.eigvals(Ad)).max())
+
+
 def _upper_csc(P):
     """Upper triangle of P as CSC with a pattern that depends only on the shape (dense) or on P's pattern."""
     if sp.issparse(P):
@@ -523,6 +529,7 @@ class LinearMPC(Controller):
         self.max_iter = max_iter
         super().__init__(ocp, raise_on_fail=raise_on_fail, threads=threads)
         self._native = self._native_build = self._native_failure = None
+        self._diagnosed = None  # the ill-conditioning diagnosis (_divergence), once computed
         self._native_loaded = threading.Event()  # set once the build has finished and its loading was tried
         if native is not None and not isinstance(native, bool):
             raise TypeError(f"native must be True, False or None, got {native!r}")
@@ -617,10 +624,20 @@ class LinearMPC(Controller):
         self._x_plan = None
         self._backend.reset()
 
+    def _divergence(self) -> str:
+        """Why a QP is ill-conditioned, said once per controller (an eigenvalue problem: not on every failed step)."""
+        if self._diagnosed is None:
+            rho = _spectral_radius(self.ocp, self._x_now, self._goal)
+            self._diagnosed = (f" (|eig A_d| = {rho:.3g} a step: the model's RK4 step of {self.ocp.dt:g} s "
+                               f"diverges; more substeps, e.g. problem.ocp(..., substeps={2 * self.ocp.substeps}), "
+                               f"may help)" if rho > 2 else f" (|eig A_d| = {rho:.3g} a step)")
+        return self._diagnosed
+
     def _deadline(self) -> float | None:
         return None if self._time_limit is None else self._step_start + self._time_limit
 
     def _solve(self, x: np.ndarray, goal: np.ndarray) -> Solution:
+        self._x_now = x
         step = self._native_step()
         if step is not None:
             return self._c_step(step, x, goal, self._deadline())
@@ -728,6 +745,8 @@ class LinearMPC(Controller):
         warm start: resetting it made every later step start cold, so a budget between the warm and the cold
         solve time never succeeded again. Any other failure leaves a clean workspace (no stale warm start)."""
         self._x_plan = None  # the plan advances by the fallback now, not by the predictions
+        if "ill-conditioned" in raw:
+            raw = f"{raw}{self._divergence()}"
         if status == LIMITED and keep is not None:
             if keep.duals and all(np.isfinite(d).all() for d in keep.duals):
                 self._warm = keep.duals
