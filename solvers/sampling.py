@@ -206,6 +206,11 @@ class SamplingMPC(Controller):
                 self.counter += 1
                 done += 1
             knots = self._result() if done else None
+        except ti.TaichiCompilationError:
+            # A kernel that does not compile is a bug, the same at every step: raised, never a fallback at every
+            # step (variant="paper" of CEM and MPPI ran whole closed loops on the fallback input that way).
+            self._warm = False
+            raise
         except Exception as exc:  # a failed step must not raise inside the control loop
             self._close_times(start)
             self._warm = False

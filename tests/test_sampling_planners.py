@@ -3,6 +3,7 @@ CEM brings an open-loop unstable system (the README's cart-pole) to its goal, on
 import casadi as ca
 import numpy as np
 import pytest
+import taichi as ti
 
 from ocpkit import Model, Problem, problems
 from ocpkit.controller import SUCCESS
@@ -48,6 +49,22 @@ def test_paper_variant_solves(cls):
     sol = ctrl.solve(x0, goal)
     assert sol.status == SUCCESS and not sol.fallback, sol.raw_status
     assert sol.knots.shape == (5, 1) and np.all(np.abs(sol.knots) <= ocp.u_max)
+
+
+def test_a_kernel_that_does_not_compile_raises_instead_of_falling_back():
+    """A compilation error is the same at every step: it surfaces at the first solve, not as a fallback per step."""
+    ocp = problems.make("pendulum").ocp(knots=3)
+    ctrl = CrossEntropyMPC(ocp, population=8, num_elites=2)
+    missing = None
+
+    @ti.kernel
+    def broken(key: ti.u32, counter: ti.u32, distribution: ti.types.ndarray(), out: ti.types.ndarray()):
+        for i in range(8):
+            out[i] = missing[i]
+
+    ctrl._gaussian_kernel = broken
+    with pytest.raises(ti.TaichiCompilationError):
+        ctrl.solve(np.zeros(2), np.ones(2))
 
 
 @pytest.mark.parametrize("cls", [CrossEntropyMPC, MPPI])
