@@ -14,8 +14,8 @@ rollout cost of affine dynamics is exactly twice it plus a constant), factors P 
 other static loads). Perturbations are drawn as L⁻ᵀε (covariance ∝ P⁻¹), so every direction costs
 alike. CEM and MPPI start each step's Gaussian at the cheapest by rollout of their incumbent and the
 seeds (:class:`GaussianSampling`). The fitness stays the rollout, so ``dynamics="nonlinear"`` and any
-CasADi stage cost keep working; the QP only shapes the search. ``variant="paper"`` is the plain algorithm: isotropic
-sampling in input coordinates, no seeds.
+CasADi stage cost keep working; the QP only shapes the search. ``variant="paper"`` is the plain
+algorithm: isotropic sampling in input coordinates, no seeds.
 
 Timings: ``model`` is the linearization; ``build`` the preconditioner's QP; ``solve`` the rest
 (``factor``, ``seed`` — the Newton and holding candidates —, ``copies`` between host and device and
@@ -336,7 +336,7 @@ class GaussianSampling(SamplingMPC):
         self._gaussian_kernel = generation
         self._distribution = np.empty((1 + d, d), dtype=eng.ntype)
         if self.preconditioned:
-            centers = min(N, 1 + SEEDS)  # a population smaller than that has fewer seeds
+            centers = min(N, 1 + SEEDS)  # as in the population: a smaller one holds fewer seeds
 
             @ti.kernel
             def evaluate_centers(mean: ti.types.ndarray(), out: ti.types.ndarray()):
