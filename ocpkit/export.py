@@ -48,6 +48,7 @@ import ctypes
 import os
 import shutil
 import subprocess
+import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -124,9 +125,20 @@ class Export:
 
 
 def _check_out_dir(out: Path, force: bool) -> None:
-    """``out`` must be absent or an empty folder unless ``force``: a user's files are never overwritten silently."""
+    """``out`` must be absent or an empty folder unless ``force``: a user's files are never overwritten silently.
+
+    ``out`` itself must not be a symbolic link (links above it are ordinary paths) and, with ``force``, must hold
+    none: the export and ``make`` replace files by name, and a link there would lead them elsewhere."""
+    if out.is_symlink():
+        target = Path(os.path.realpath(out))
+        kind = "a folder" if target.is_dir() else "a file" if target.exists() else "nothing (a dangling link)"
+        raise ValueError(f"out_dir {str(out)!r} is a symbolic link to {target} ({kind}); the export replaces the "
+                         f"files of the folder it names and never follows a link there: to export into {target}, "
+                         f"name it (--out {target})")
     if out.exists() and not out.is_dir():
         raise ValueError(f"out_dir {str(out)!r} is a file, not a folder; name a new or empty folder")
+    if out.is_dir():
+        _refuse_links(out)
     if out.is_dir() and not force:
         held = sorted(p.name for p in out.iterdir())
         if held:
@@ -135,12 +147,54 @@ def _check_out_dir(out: Path, force: bool) -> None:
                              "or pass force=True (--force) to overwrite the exported files in it")
 
 
+def _refuse_links(out: Path) -> None:
+    """A ValueError naming the symbolic links directly in ``out``: nothing is exported or built through a link."""
+    links = sorted(p for p in out.iterdir() if p.is_symlink())
+    if links:
+        shown = ", ".join(f"{p.name} -> {os.readlink(p)}" for p in links[:3])
+        more = f" and {len(links) - 3} more" if len(links) > 3 else ""
+        raise ValueError(f"out_dir {str(out)!r} holds symbolic links ({shown}{more}); ocpkit never writes through "
+                         "a link, even with --force: remove them or name a new folder")
+
+
+def _umask() -> int:
+    """This process' umask, read without changing it (os.umask would, for every thread): Linux /proc, else 022."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError):
+        pass
+    return 0o022
+
+
+def _place(source: Path, target: Path) -> None:
+    """Move the new file ``source`` onto ``target`` (same folder or file system) in one rename: an existing
+    ``target`` — a file, a hard link, a symbolic link — is replaced, never opened or written."""
+    os.chmod(source, 0o666 & ~_umask())
+    os.replace(source, target)
+
+
+def _write(path: Path, text: str) -> None:
+    """Write ``text`` as the file ``path`` by creating a new file beside it and renaming it into place."""
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(text)
+        _place(Path(tmp), path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
 def export(ocp: OCP, out_dir, *, form: str = "condensed", qp: str = "daqp", name: str = "mpc",
            eps: float = 1e-9, max_iter: int = 1000, linearization: str = "goal", x0=None, goal=None,
            steps: int = 100, force: bool = False, polish: bool = False) -> Export:
     """Write C sources, header, Makefile, example ``main.c`` and README for the MPC step of ``ocp``.
 
-    ``out_dir`` must be absent or empty unless ``force`` (then the exported files in it are overwritten).
+    ``out_dir`` must be absent or empty unless ``force`` (then the exported files in it are replaced: each is
+    written as a new file renamed into place); it must not be a symbolic link nor hold one.
     ``eps`` is the QP solver's tolerance, ``max_iter`` its iteration limit, ``polish`` OSQP's solution
     polishing; ``linearization`` "goal" linearizes about (x, u_g), "plan" about (x, ū) as LinearMPC's option
     of that name; ``x0``, ``goal`` and ``steps`` set the closed loop the example runs against the generated
@@ -177,9 +231,17 @@ def export(ocp: OCP, out_dir, *, form: str = "condensed", qp: str = "daqp", name
         all_f.append(ca.Function(f"{name}_goal_input", [xg], [ocp.goal_input(xg)], ["x_goal"], ["u"]))
     for f in all_f:
         cg.add(f)
-    cg.generate(str(out) + "/")
-    if qp == "daqp":
-        _fix_daqp_setup(out / f"{name}_casadi.c")
+    # CasADi opens its files by name: it writes into a private scratch folder, whose files are then renamed into
+    # ``out`` (a link or hard link already there is replaced, never written through).
+    scratch = Path(tempfile.mkdtemp(dir=out, prefix=".ocpkit-gen-"))
+    try:
+        cg.generate(str(scratch) + "/")
+        if qp == "daqp":
+            _fix_daqp_setup(scratch / f"{name}_casadi.c")
+        for path in sorted(scratch.iterdir()):
+            _place(path, out / path.name)
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
 
     sizes = {
         "NX": ocp.nx, "NU": ocp.nu, "KNOTS": ocp.knots, "HORIZON": ocp.horizon, "NZ": tr.nz, "NA": na,
@@ -190,11 +252,11 @@ def export(ocp: OCP, out_dir, *, form: str = "condensed", qp: str = "daqp", name
         "SZ_IW": max(f.sz_iw() for f in all_f), "SZ_W": max(f.sz_w() for f in all_f),
     }
     info = Export(out, name, form, qp, linearization, ocp.nx, ocp.nu, ocp.knots, ocp.horizon, na)
-    (out / f"{name}.h").write_text(_header(name, sizes, ocp, form, qp, linearization))
-    (out / f"{name}.c").write_text(_wrapper(name, qp, linearization, tr, jac))
-    (out / "main.c").write_text(_example(name, x0, goal, steps, ocp.dt))
-    (out / "Makefile").write_text(_makefile(name, qp))
-    (out / "README.md").write_text(_readme(info, ocp, eps, max_iter))
+    _write(out / f"{name}.h", _header(name, sizes, ocp, form, qp, linearization))
+    _write(out / f"{name}.c", _wrapper(name, qp, linearization, tr, jac))
+    _write(out / "main.c", _example(name, x0, goal, steps, ocp.dt))
+    _write(out / "Makefile", _makefile(name, qp))
+    _write(out / "README.md", _readme(info, ocp, eps, max_iter))
     return info
 
 
@@ -209,12 +271,13 @@ def check_tools() -> None:
 def build(out_dir, *, target: str = "lib", jobs: int = 2) -> Path:
     """Run the folder's own Makefile (``make lib`` by default, ``jobs`` compiles in parallel); return the folder.
 
-    Raises ValueError if the folder holds no exported Makefile, :class:`BuildError` if ``cc`` or ``make`` is
-    missing or the build fails.
+    Raises ValueError if the folder holds no exported Makefile or holds a symbolic link (make would write through
+    it), :class:`BuildError` if ``cc`` or ``make`` is missing or the build fails.
     """
     out = Path(out_dir)
     if not (out / "Makefile").is_file():
         raise ValueError(f"out_dir {str(out)!r} holds no exported Makefile")
+    _refuse_links(out)  # make writes its objects and library by name
     check_tools()
     proc = subprocess.run(["make", "-s", "-C", str(out), f"-j{integer(jobs, 'jobs', 1)}", target],
                           capture_output=True, text=True)
@@ -282,7 +345,7 @@ def _fix_daqp_setup(path: Path) -> None:
     if all(text.count(old) == 1 for old, _ in _DAQP_FIX):
         for old, new in _DAQP_FIX:
             text = text.replace(old, new)
-        path.write_text(text)
+        _write(path, text)
 
 
 def _gram_schedule(lengths) -> list[int]:

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import subprocess
 from pathlib import Path
@@ -248,6 +249,84 @@ def test_cli_export_refuses_a_users_folder_and_a_file(tmp_path, monkeypatch, cap
     assert main(["export", "pendulum", "--knots", "3", "--horizon", "10", "--out", "f.txt"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "is a file" in err
+
+
+# --- links in the output folder (issue 28) ------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("force", [False, True])
+def test_a_symlink_in_out_dir_is_refused_and_its_target_untouched(force, tmp_path):
+    ocp = make("pendulum").ocp(knots=3, horizon=10)
+    victim = tmp_path / "victim.h"
+    victim.write_text("/* the user's own header */\n")
+    out = tmp_path / "gen"
+    out.mkdir()
+    (out / "mpc.h").symlink_to(victim)
+    with pytest.raises(ValueError, match=r"symbolic link.*mpc\.h -> .*victim\.h"):
+        export(ocp, out, force=force)
+    assert victim.read_text() == "/* the user's own header */\n"
+    assert (out / "mpc.h").is_symlink() and sorted(p.name for p in out.iterdir()) == ["mpc.h"]
+
+
+def test_cli_export_force_refuses_a_symlink_in_one_line(tmp_path, monkeypatch, capsys):
+    from ocpkit.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    Path("victim.c").write_text("int x;\n")
+    Path("gen").mkdir()
+    Path("gen/mpc_casadi.c").symlink_to(tmp_path / "victim.c")
+    assert main(["export", "pendulum", "--knots", "3", "--horizon", "10", "--out", "gen", "--force"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "symbolic link" in err and "mpc_casadi.c" in err, err
+    assert Path("victim.c").read_text() == "int x;\n"
+
+
+def test_out_dir_that_is_a_symlink_is_refused_naming_its_target(tmp_path):
+    ocp = make("pendulum").ocp(knots=3, horizon=10)
+    real = tmp_path / "real"
+    real.mkdir()
+    (tmp_path / "link").symlink_to(real)
+    with pytest.raises(ValueError, match=f"symbolic link to {re.escape(str(real))}.*--out {re.escape(str(real))}"):
+        export(ocp, tmp_path / "link")
+    assert list(real.iterdir()) == []
+    (tmp_path / "dangling").symlink_to(tmp_path / "nowhere")
+    with pytest.raises(ValueError, match="symbolic link"):
+        export(ocp, tmp_path / "dangling", force=True)
+    assert not (tmp_path / "nowhere").exists()
+    # a link above the folder is an ordinary path: the export goes where it leads
+    info = export(ocp, tmp_path / "link" / "sub")
+    assert (real / "sub" / "Makefile").is_file() and info.out_dir == tmp_path / "link" / "sub"
+
+
+def test_force_replaces_files_and_never_writes_into_them(tmp_path):
+    """--force renames new files into place: a file of the folder hard-linked elsewhere keeps its content there,
+    both for ocpkit's own files and for CasADi's generated ones, and no scratch file is left behind."""
+    ocp = make("pendulum").ocp(knots=3, horizon=10)
+    out = tmp_path / "gen"
+    export(ocp, out)
+    names = sorted(p.name for p in out.iterdir())
+    mode = (out / "mpc.c").stat().st_mode & 0o777
+    for name in ("mpc.h", "mpc_casadi.c", "Makefile"):
+        (tmp_path / f"keep-{name}").write_text("mine\n")
+        (out / name).unlink()
+        os.link(tmp_path / f"keep-{name}", out / name)
+    export(ocp, out, force=True)
+    for name in ("mpc.h", "mpc_casadi.c", "Makefile"):
+        assert (tmp_path / f"keep-{name}").read_text() == "mine\n", name
+        assert (out / name).read_text() != "mine\n" and (out / name).stat().st_nlink == 1
+    assert sorted(p.name for p in out.iterdir()) == names
+    assert (out / "mpc.h").stat().st_mode & 0o777 == mode == (out / "mpc_casadi.c").stat().st_mode & 0o777
+
+
+def test_build_refuses_a_symlink_make_would_write_through(tmp_path):
+    ocp = make("pendulum").ocp(knots=3, horizon=10)
+    info = export(ocp, tmp_path / "gen")
+    victim = tmp_path / "victim.o"
+    victim.write_text("keep\n")
+    (info.out_dir / "mpc.o").symlink_to(victim)
+    with pytest.raises(ValueError, match=r"symbolic link.*mpc\.o"):
+        build(info.out_dir)
+    assert victim.read_text() == "keep\n"
 
 
 @pytest.mark.parametrize("missing", ["cc", "make"])
