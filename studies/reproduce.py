@@ -74,6 +74,8 @@ def _header(size, scheduler, workers, timings, wall, compute, n_runs) -> str:
 
 
 def _version(package: str) -> str:
+    if package == "ocpkit":  # the running source's version (an editable install's metadata may lag it)
+        return study_runner.package_version()
     try:
         return metadata.version(package)
     except metadata.PackageNotFoundError:
