@@ -50,7 +50,7 @@ CREATE TABLE IF NOT EXISTS trials (
 """
 # Columns added after the first release: older stores gain them (NULL for their trials) when opened for writing.
 _ADDED_COLUMNS = {"ocpkit_version": "TEXT",   # the package version that computed the trial
-                  "code_hash": "TEXT"}        # hash of the study's code (see ocpkit.study.code_hash)
+                  "code_hash": "TEXT"}        # hash of the code the trial ran (see ocpkit.provenance; manifest in code)
 _CLAIMS = """
 CREATE TABLE IF NOT EXISTS claims (
     study   TEXT NOT NULL,
@@ -58,6 +58,12 @@ CREATE TABLE IF NOT EXISTS claims (
     owner   TEXT NOT NULL,     -- host:pid:token of the claiming process
     expires REAL NOT NULL,     -- Unix time; the heartbeat pushes it forward
     PRIMARY KEY (study, key)
+)
+"""
+_CODE = """
+CREATE TABLE IF NOT EXISTS code (
+    hash     TEXT PRIMARY KEY, -- a trials.code_hash
+    manifest TEXT NOT NULL     -- JSON: the files and dependency versions it hashes (see ocpkit.provenance)
 )
 """
 _RUNS = """
@@ -193,6 +199,7 @@ class Store:
                 self._con.execute(_SCHEMA)
                 self._con.execute(_CLAIMS)
                 self._con.execute(_RUNS)
+                self._con.execute(_CODE)
                 have = {r[1] for r in self._con.execute("PRAGMA table_info(trials)")}
                 for name, kind in _ADDED_COLUMNS.items():
                     if name not in have:
@@ -287,6 +294,31 @@ class Store:
             "SELECT key, status, finished, ocpkit_version, code_hash FROM trials WHERE study = ?",
             (study,)).fetchall())
         return {r[0]: tuple(r[1:]) for r in rows}
+
+    def record_code(self, manifests: Mapping[str, Mapping]) -> None:
+        """Keep the manifest of each code hash ({hash: manifest}), so a later run can say what changed."""
+        self._writable()
+        rows = [(h, json.dumps(m, sort_keys=True)) for h, m in manifests.items()]
+
+        def insert():
+            with self._con:
+                self._con.executemany("INSERT OR IGNORE INTO code VALUES (?, ?)", rows)
+        self._guard("write", insert)
+
+    def code(self, hashes) -> dict[str, dict]:
+        """{hash: manifest} of those of ``hashes`` whose manifest was recorded."""
+        hashes = [h for h in set(hashes) if h]
+
+        def read():
+            try:
+                return [r for i in range(0, len(hashes), 500) for r in self._con.execute(
+                    f"SELECT hash, manifest FROM code WHERE hash IN ({', '.join('?' * len(hashes[i:i + 500]))})",
+                    hashes[i:i + 500])]
+            except sqlite3.OperationalError as exc:
+                if "no such table" in str(exc):  # a read-only store from before manifests were recorded
+                    return []
+                raise
+        return {h: json.loads(m) for h, m in self._guard("read", read)}
 
     def write(self, study: str, params: Mapping, result: Mapping | None = None, *, status: str = "ok",
               error: str | None = None, traceback: str | None = None, wall_time: float | None = None,

@@ -6,13 +6,13 @@ interrupted study resumes where it stopped and a trial that raises is stored as 
 Before a trial starts, the parent **claims** it in the store (a lease renewed by a heartbeat),
 so several processes on one folder share the grid and run each trial once, and the trials of
 a claimant that died are taken over. Each trial records the package version and a hash of the
-study's code; resuming refuses trials computed by other code unless told what to do with them.
+code it runs (its module, the ocpkit and user modules that imports, the user files its parameters name)
+and of the numerical libraries' versions (:mod:`ocpkit.provenance`); resuming refuses trials computed by
+other code, naming what changed, unless told what to do with them.
 """
 from __future__ import annotations
 
 import contextlib
-import hashlib
-import inspect
 import itertools
 import multiprocessing
 import os
@@ -27,13 +27,12 @@ from collections.abc import Callable, Iterable, Mapping
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
-from importlib import metadata
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
 from tqdm.auto import tqdm
 
+from . import __version__, provenance
 from ._checks import choice, integer
 from .kernels import CPU_THREADS
 from .store import RESERVED, Store, StoreError, canonical_key, now, owner_id, split_result
@@ -44,7 +43,7 @@ LEASE = 60.0  # seconds a claim lives without a heartbeat
 
 
 class StaleTrialsError(ValueError):
-    """Stored trials were computed by another package version or other study code."""
+    """Stored trials were computed by another package version, other code or other dependency versions."""
 
 
 class TrialTimeout(Exception):
@@ -52,25 +51,14 @@ class TrialTimeout(Exception):
 
 
 def package_version() -> str:
-    """The installed ocpkit version ("unknown" when not installed)."""
-    try:
-        return metadata.version("ocpkit")
-    except metadata.PackageNotFoundError:
-        return "unknown"
+    """The ocpkit version running (``ocpkit.__version__``, which the package metadata is built from)."""
+    return __version__
 
 
-def code_hash(fn) -> str:
-    """A hash of the study's code: the source file of the module defining ``fn`` (its bytecode if it has none)."""
-    module = sys.modules.get(getattr(fn, "__module__", None) or "")
-    data = None
-    with contextlib.suppress(TypeError, OSError):
-        source = inspect.getsourcefile(module) if module is not None else None
-        if source:
-            data = Path(source).read_bytes()
-    if data is None:
-        code = getattr(fn, "__code__", None)
-        data = code.co_code + repr(code.co_consts).encode() if code is not None else repr(fn).encode()
-    return hashlib.sha256(data).hexdigest()[:16]
+def code_hash(fn, params: Mapping | None = None) -> str:
+    """The hash a trial of ``fn`` with ``params`` is stored with: of the code it runs and the numerical
+    libraries' versions (see :mod:`ocpkit.provenance`)."""
+    return provenance.manifest_hash(provenance.manifest(fn, params))
 
 
 @dataclass(frozen=True)
@@ -144,10 +132,10 @@ def run(study: Study, out_dir, *, workers: int | None = None, scheduler: str | N
     committed as it arrives; a trial that raises (or kills its worker, or runs longer than
     ``trial_timeout`` seconds) is stored as failed and the rest go on. Stored failures are
     skipped like successes unless ``retry_failed``. Stored trials computed by another package
-    version or other study code (see :func:`code_hash`) make the run raise
-    :class:`StaleTrialsError` unless ``stale`` is "reuse" (keep them) or "rerun" (compute them
-    again). On Ctrl-C the workers are stopped and KeyboardInterrupt propagates; every trial
-    finished before it stays stored. At the end the store is checkpointed, so ``results.sqlite``
+    version, other code or other versions of the numerical libraries (see :func:`code_hash`) make
+    the run raise :class:`StaleTrialsError`, naming what changed, unless ``stale`` is "reuse" (keep
+    them) or "rerun" (compute them again). On Ctrl-C the workers are stopped and KeyboardInterrupt
+    propagates; every trial finished before it stays stored. At the end the store is checkpointed, so ``results.sqlite``
     alone holds every trial. Columns as in :meth:`Store.load`, rows in grid order.
     """
     if not isinstance(study, Study):
@@ -165,24 +153,31 @@ def run(study: Study, out_dir, *, workers: int | None = None, scheduler: str | N
             raise ValueError(f"trial_timeout must be a positive number of seconds, got {trial_timeout!r}")
     if isinstance(lease, bool) or not isinstance(lease, (int, float)) or not lease > 0:
         raise ValueError(f"lease must be a positive number of seconds, got {lease!r}")
-    version, code = package_version(), code_hash(study.fn)
+    version = package_version()
+    keys = {canonical_key(p): p for p in study.trials}
+    current = provenance.manifests(study.fn, study.trials)  # hashed once per run, each file read once per process
+    codes = {key: code for key, (code, _) in zip(keys, current)}
+    manifests = dict(current)
     with Store(out_dir) as store:
-        keys = {canonical_key(p): p for p in study.trials}
         stored = store.provenance(study.name)
-        old = {k: row for k, row in stored.items() if k in keys and (row[2], row[3]) != (version, code)}
+        old = {k: row for k, row in stored.items() if k in keys and (row[2], row[3]) != (version, codes[k])}
         if old and stale == "refuse":
-            raise StaleTrialsError(_stale_message(study.name, store.path, old, len(stored), version, code))
+            raise StaleTrialsError(_stale_message(study.name, store.path, old, len(stored), version, codes, manifests,
+                                                  store.code(row[3] for row in old.values())))
         run_start, owner = now(), owner_id()
 
         def done(key, row) -> bool:
             if row is None:
                 return False
-            redo = (row[0] == "failed" and retry_failed) or (stale == "rerun" and (row[2], row[3]) != (version, code))
+            redo = (row[0] == "failed" and retry_failed) or \
+                (stale == "rerun" and (row[2], row[3]) != (version, codes[key]))
             return not (redo and row[1] < run_start)  # redone by any process since this run began: done
 
         todo = [k for k in keys if not done(k, stored.get(k))]
         if todo and store.readonly:
             store._writable()
+        if todo:
+            store.record_code({codes[k]: manifests[codes[k]] for k in todo})
         source = _Claims(store, study.name, todo, keys, owner, lease, done)
         executed, t0 = 0, time.perf_counter()
         if not todo:
@@ -197,7 +192,8 @@ def run(study: Study, out_dir, *, workers: int | None = None, scheduler: str | N
             heartbeat = _Heartbeat(store.path.parent, owner, lease) if todo else None
             try:
                 for params, outcome in finished:
-                    store.write(study.name, params, **outcome, version=version, code=code, owner=owner)
+                    store.write(study.name, params, **outcome, version=version, code=codes[canonical_key(params)],
+                                owner=owner)
                     executed += 1
                     if outcome["status"] == "failed":
                         failed += 1
@@ -227,12 +223,20 @@ def failure_summary(df: pd.DataFrame, top: int = 5) -> str:
         f"- {count}× `{(err.splitlines() or [''])[0][:200]}`" for err, count in errors.items()) + "\n"
 
 
-def _stale_message(name, path, old, n_stored, version, code) -> str:
-    versions = sorted({f"ocpkit {row[2] or '?'} / code {row[3] or '?'}" for row in old.values()})
+def _stale_message(name, path, old, n_stored, version, codes, manifests, recorded) -> str:
+    """Why stored trials ``old`` ({key: provenance row}) are stale: the versions, modules, files and dependency
+    versions that changed since they were computed (``recorded``: the stored manifests by code hash)."""
+    reasons = {}
+    for key, row in old.items():
+        if row[2] != version:
+            reasons[f"ocpkit {row[2] or '?'} → {version}"] = None
+        if row[3] != codes[key]:
+            reasons.update(dict.fromkeys(provenance.changes(recorded.get(row[3]), manifests[codes[key]])))
+    reasons = list(reasons)
+    text = "; ".join(reasons[:6]) + (f"; and {len(reasons) - 6} more differences" if len(reasons) > 6 else "")
     return (f"{len(old)} of the {n_stored} stored trials of study {name!r} in {path} were computed by other code "
-            f"({', '.join(versions[:3])}{', …' if len(versions) > 3 else ''}; now ocpkit {version} / code {code}): "
-            f"pass --reuse-stale (stale='reuse') to keep them, --rerun-stale (stale='rerun') to compute them again, "
-            f"or choose another --out")
+            f"({text or 'unknown'}): pass --reuse-stale (stale='reuse') to keep them, --rerun-stale (stale='rerun') "
+            f"to compute them again, or choose another --out")
 
 
 class _Claims:

@@ -1,0 +1,347 @@
+"""What computed a study trial: the code it runs and the versions of the numerical libraries under it.
+
+A trial's **manifest** names the source files the trial may execute, each with a hash of its bytes, and the
+versions of :data:`DEPENDENCIES`. Its files are
+
+* the module defining the trial function and, following ``import`` statements (at any depth, inside functions
+  too), every module of ocpkit and of the user's own code (a file outside the standard library and
+  site-packages) that it imports. A package that imports its submodules by computed name
+  (``import_module(f"ocpkit.solvers.{name}")``) counts all of them when it is itself imported by name (``from
+  ocpkit import solvers``), not when it is only the folder of a module (``ocpkit.studies`` of
+  ``ocpkit.studies.closed_loop``);
+* files named by the trial's parameters: a problem spec ``path/to/file.py:Name`` (and the user modules that file
+  imports), ``urdf:robot.urdf``, a ``package.module:Name`` of the user's code.
+
+Other third-party code is neither hashed nor versioned, and a module imported by a name computed at run time
+outside those patterns is not seen. A trial's code hash (:func:`manifest_hash`) is a hash of its manifest; the
+study runner stores both, so a resumed study can say which modules or versions changed (:func:`changes`).
+
+Hashing reads each file once per process and again only when its size, inode or modification time changes: a
+closed-loop trial's manifest (about 45 files) takes ~40 ms the first time, ~2 ms after.
+"""
+from __future__ import annotations
+
+import ast
+import functools
+import hashlib
+import importlib.util
+import json
+import os
+import site
+import sys
+import sysconfig
+from collections.abc import Mapping
+from importlib import metadata
+
+# The numerical libraries whose version is part of every manifest (distribution names, as pip knows them).
+DEPENDENCIES = ("casadi", "numpy", "scipy", "proxsuite", "osqp", "daqp", "pin", "taichi", "control")
+
+_FILES: dict[str, tuple] = {}   # path -> (stat signature, digest, import references)
+
+
+@functools.cache
+def dependency_versions() -> dict[str, str | None]:
+    """{distribution: installed version, None when not installed} for :data:`DEPENDENCIES` (read once per process)."""
+    versions = {}
+    for name in DEPENDENCIES:
+        try:
+            versions[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            versions[name] = None
+    return versions
+
+
+def manifest(fn, params: Mapping | None = None) -> dict:
+    """The manifest of trial function ``fn`` run with ``params``:
+    ``{"code": {module name or file as named in params: sha256[:16]}, "dependencies": {name: version}}``."""
+    return _manifest(fn, _param_references(params or {}, {}))
+
+
+def manifests(fn, trials) -> list[tuple[str, dict]]:
+    """(code hash, manifest) of each parameter dict of ``trials``: one manifest per distinct set of files and
+    modules the parameters name, each file read once."""
+    seen, by_refs, out = {}, {}, []
+    for params in trials:
+        refs = _param_references(params, seen)
+        if refs not in by_refs:
+            m = _manifest(fn, refs)
+            by_refs[refs] = (manifest_hash(m), m)
+        out.append(by_refs[refs])
+    return out
+
+
+def _manifest(fn, refs: tuple) -> dict:
+    walk = _Walk()
+    name = getattr(fn, "__module__", None) or ""
+    path = _locate(name) if name else None
+    if path is not None:
+        walk.visit(name, name, path, explicit=True)
+        if "." in name:
+            walk.module(name.rpartition(".")[0], explicit=False)
+    else:  # no source file to hash (a function built at run time): its bytecode stands in for it
+        code = getattr(fn, "__code__", None)
+        data = code.co_code + repr(code.co_consts).encode() if code is not None else repr(fn).encode()
+        walk.code[getattr(fn, "__qualname__", repr(fn))] = hashlib.sha256(data).hexdigest()[:16]
+    for kind, target in refs:
+        if kind == "file":
+            walk.visit(target, None, target, explicit=True)
+        else:
+            walk.module(target, explicit=True)
+    return {"code": dict(sorted(walk.code.items())), "dependencies": dict(dependency_versions())}
+
+
+def _param_references(params: Mapping, seen: dict) -> tuple:
+    """The sorted ("file", path) and ("module", name) references of a trial's parameter strings (``seen`` caches
+    them by string within one call)."""
+    refs = set()
+    for text in _strings(params):
+        if text not in seen:
+            seen[text] = _references(text)
+        refs.update(seen[text])
+    return tuple(sorted(refs))
+
+
+def manifest_hash(manifest: Mapping) -> str:
+    """The code hash of a trial: a hash of its manifest (16 hex digits)."""
+    return hashlib.sha256(json.dumps(manifest, sort_keys=True, separators=(",", ":")).encode()).hexdigest()[:16]
+
+
+def changes(old: Mapping | None, new: Mapping) -> list[str]:
+    """What differs from manifest ``old`` to ``new``, as phrases naming the modules, files and versions
+    (["its code was recorded without a manifest …"] when ``old`` is None)."""
+    if old is None:
+        return ["code recorded before ocpkit 0.2.0 or by another program, without the list of its files, so what "
+                "changed is unknown"]
+    phrases = []
+    was, now = old.get("code", {}), new.get("code", {})
+    for verb, names in (("changed", [k for k in was if k in now and was[k] != now[k]]),
+                        ("now also runs", [k for k in now if k not in was]),
+                        ("no longer runs", [k for k in was if k not in now])):
+        if names:
+            names = sorted(names)
+            phrases.append(f"{verb} {', '.join(names[:8])}" + (f" and {len(names) - 8} more" if len(names) > 8 else ""))
+    was, now = old.get("dependencies", {}), new.get("dependencies", {})
+    for name in [*now, *(k for k in was if k not in now)]:
+        if was.get(name) != now.get(name):
+            phrases.append(f"{name} {was.get(name) or 'not installed'} → {now.get(name) or 'not installed'}")
+    return phrases
+
+
+class _Walk:
+    """Source files reached from the roots through their imports: ``code`` maps each one's label to its digest."""
+
+    def __init__(self):
+        self.code: dict[str, str] = {}
+        self.seen: dict[str, bool] = {}   # path -> reached as an explicitly imported module
+
+    def module(self, name: str, explicit: bool) -> None:
+        """Module ``name`` and its parent packages (importing a.b.c runs a/__init__.py and a/b/__init__.py)."""
+        path = _locate(name)
+        if path is None or not _followed(name, path):
+            return
+        if "." in name:
+            self.module(name.rpartition(".")[0], explicit=False)
+        self.visit(name, name, path, explicit)
+
+    def visit(self, label: str, name: str | None, path: str, explicit: bool) -> None:
+        """The file ``path`` (module ``name``, None for a file loaded by path) and what it imports."""
+        key = os.path.abspath(path)
+        if key in self.seen and (self.seen[key] or not explicit):
+            return
+        again = key in self.seen
+        self.seen[key] = explicit
+        digest, refs = _read(path)
+        if not again:
+            self.code[label] = digest
+        package = os.path.basename(path) == "__init__.py"
+        for ref in refs:
+            if ref[0] == "import" and not again:
+                self.module(ref[1], explicit=True)
+            elif ref[0] == "from" and not again:
+                base = _absolute(name, package, ref[1], ref[2])
+                base_path = _locate(base) if base is not None else None
+                if base_path is None or not _followed(base, base_path):
+                    continue
+                submodules = [f"{base}.{n}" for n in ref[3] if n != "*" and _locate(f"{base}.{n}")]
+                self.module(base, explicit=len(submodules) < len(ref[3]))  # an attribute of base is used
+                for sub in submodules:
+                    self.module(sub, explicit=True)
+            elif ref[0] == "dynamic" and explicit:  # import_module(f"pkg.{name}"): any submodule of pkg
+                for sub in _submodules(ref[1]):
+                    self.module(sub, explicit=True)
+
+
+def _read(path: str) -> tuple[str, tuple]:
+    """(sha256[:16] of the file's bytes, its import references), cached until the file's stat changes."""
+    try:
+        st = os.stat(path)
+        signature = (st.st_mtime_ns, st.st_size, st.st_ino, st.st_ctime_ns)
+    except OSError:
+        return "missing", ()
+    key = os.path.abspath(path)
+    cached = _FILES.get(key)
+    if cached is not None and cached[0] == signature:
+        return cached[1], cached[2]
+    try:
+        with open(path, "rb") as f:
+            data = f.read()
+    except OSError:
+        return "unreadable", ()
+    refs = _imports(data) if path.endswith(".py") else ()
+    _FILES[key] = (signature, hashlib.sha256(data).hexdigest()[:16], refs)
+    return _FILES[key][1], refs
+
+
+def _imports(source: bytes) -> tuple:
+    """("import", name), ("from", level, module, names) and ("dynamic", package) references of a Python source."""
+    try:
+        tree = ast.parse(source)
+    except (SyntaxError, ValueError):
+        return ()  # the trial fails on it; its digest still records it
+    refs = []
+    for node in _statements(tree.body):
+        if isinstance(node, ast.Import):
+            refs.extend(("import", alias.name) for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            refs.append(("from", node.level, node.module or "", tuple(alias.name for alias in node.names)))
+    if b"import_module" in source or b"__import__" in source:  # walking every expression is the slow part
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Call) and node.args and _is_import_call(node.func):
+                arg = node.args[0]
+                if isinstance(arg, ast.Constant) and isinstance(arg.value, str) and not arg.value.startswith("."):
+                    refs.append(("import", arg.value))
+                elif isinstance(arg, ast.JoinedStr) and arg.values and isinstance(arg.values[0], ast.Constant):
+                    prefix = str(arg.values[0].value)
+                    if prefix.endswith(".") and not prefix.startswith("."):
+                        refs.append(("dynamic", prefix[:-1]))
+    return tuple(refs)
+
+
+def _statements(body):
+    """Every statement in ``body``, nested ones (in functions, classes, if/try/with/for/match blocks) too."""
+    for node in body:
+        yield node
+        for field in ("body", "orelse", "finalbody", "handlers", "cases"):
+            children = getattr(node, field, None)
+            if isinstance(children, list):
+                yield from _statements(children)
+
+
+def _is_import_call(func) -> bool:
+    name = func.id if isinstance(func, ast.Name) else func.attr if isinstance(func, ast.Attribute) else None
+    return name in ("import_module", "__import__")
+
+
+def _absolute(name: str | None, package: bool, level: int, module: str) -> str | None:
+    """The absolute module of ``from <level dots><module> import …`` in module ``name``."""
+    if not level:
+        return module or None
+    if not name or name == "__main__":
+        return None
+    parts = name.split(".") if package else name.split(".")[:-1]
+    if level - 1 > len(parts) or (level - 1 == len(parts) and not module):
+        return None
+    parts = parts[:len(parts) - (level - 1)]
+    return ".".join(parts + ([module] if module else [])) or None
+
+
+def _locate(name: str) -> str | None:
+    """The source file of module ``name``, found without importing anything new (None if there is none)."""
+    module = sys.modules.get(name)
+    if module is not None:
+        path = getattr(module, "__file__", None)
+        return path if path and os.path.isfile(path) else None
+    parent, _, child = name.rpartition(".")
+    if not parent:
+        try:
+            spec = importlib.util.find_spec(name)
+        except (ImportError, ValueError):
+            return None
+        return spec.origin if spec is not None and spec.has_location and os.path.isfile(spec.origin) else None
+    parent_path = _locate(parent)
+    if parent_path is None or os.path.basename(parent_path) != "__init__.py":
+        return None
+    for folder in _package_dirs(parent, parent_path):
+        for path in (os.path.join(folder, child + ".py"), os.path.join(folder, child, "__init__.py")):
+            if os.path.isfile(path):
+                return path
+    if parent in sys.modules:  # a subpackage mapped elsewhere (an editable install's package-dir); nothing runs
+        try:
+            spec = importlib.util.find_spec(name)
+        except (ImportError, ValueError):
+            return None
+        return spec.origin if spec is not None and spec.has_location and os.path.isfile(spec.origin) else None
+    return None
+
+
+def _package_dirs(name: str, init_path: str) -> list[str]:
+    return list(getattr(sys.modules.get(name), "__path__", None) or [os.path.dirname(init_path)])
+
+
+def _submodules(package: str) -> list[str]:
+    """The modules and subpackages directly inside ``package``."""
+    path = _locate(package)
+    if path is None or os.path.basename(path) != "__init__.py":
+        return []
+    names = set()
+    for folder in _package_dirs(package, path):
+        try:
+            entries = os.listdir(folder)
+        except OSError:
+            continue
+        for entry in entries:
+            if entry.endswith(".py") and entry != "__init__.py" and entry[:-3].isidentifier():
+                names.add(f"{package}.{entry[:-3]}")
+            elif entry.isidentifier() and os.path.isfile(os.path.join(folder, entry, "__init__.py")):
+                names.add(f"{package}.{entry}")
+    return sorted(names)
+
+
+def _followed(name: str, path: str) -> bool:
+    """ocpkit's modules and the user's: not the standard library's or an installed package's."""
+    if name == "ocpkit" or name.startswith("ocpkit."):
+        return True
+    real = os.path.realpath(path)
+    return not any(real.startswith(folder) for folder in _library_dirs())
+
+
+@functools.cache
+def _library_dirs() -> tuple[str, ...]:
+    folders = {path for key, path in sysconfig.get_paths().items() if key in ("stdlib", "platstdlib", "purelib",
+                                                                              "platlib")}
+    folders.update(getattr(site, "getsitepackages", list)())
+    folders.add(site.getusersitepackages() or "")
+    return tuple(os.path.join(os.path.realpath(f), "") for f in folders if f)
+
+
+def _strings(value):
+    """The strings inside parameters (values of nested dicts and lists)."""
+    if isinstance(value, str):
+        yield value
+    elif isinstance(value, Mapping):
+        for item in value.values():
+            yield from _strings(item)
+    elif isinstance(value, (list, tuple)):
+        for item in value:
+            yield from _strings(item)
+
+
+def _references(text: str) -> tuple:
+    """("file", path) and ("module", name) a parameter string names: ``file.py:Name``, ``urdf:robot.urdf``, a file
+    path, ``package.module:Name`` (one that resolves to the user's code)."""
+    found = []
+    if ".py:" in text:
+        path = text.rpartition(".py:")[0] + ".py"
+        if os.path.isfile(path):
+            found.append(("file", path))
+        return tuple(found)
+    for candidate in (text, text.partition(":")[2]):
+        if candidate and ("/" in candidate or "." in os.path.basename(candidate)) and os.path.isfile(candidate):
+            found.append(("file", candidate))
+            break
+    module = text.partition(":")[0]
+    if ":" in text and module and all(part.isidentifier() for part in module.split(".")):
+        path = _locate(module)
+        if path is not None and _followed(module, path):
+            found.append(("module", module))
+    return tuple(found)
