@@ -122,6 +122,8 @@ def _add_study_args(p, size=True):
 
 def _parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="ocpkit", description="Parameterized and GPU-parallelized real-time MPC.")
+    parser.add_argument("--debug", action="store_true",
+                        help="on an error, print its full traceback (anywhere on the command line)")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
     solve = sub.add_parser("solve", help="one MPC solve from a seeded random state and goal")
     _add_controller_args(solve)
@@ -470,6 +472,7 @@ def _round_trip(problem, ocp, args, exported, steps: int = 20):
     """The compiled step (through ctypes) and LinearMPC in Python on the same closed loop (the discrete model,
     driven by LinearMPC's input): their largest first-input difference and the steps where either failed."""
     from ocpkit.export import ExportedMPC
+    from ocpkit.problem import check_dynamics
     from ocpkit.solvers.qp import LinearMPC
 
     c = ExportedMPC(ocp, exported.out_dir, name=exported.name)
@@ -477,11 +480,17 @@ def _round_trip(problem, ocp, args, exported, steps: int = 20):
     F = ocp.discrete()
     x, goal = problem.sample(args.seed)
     du, failures = 0.0, 0
-    for _ in range(steps):
+    for k in range(steps):
         a, b = py.solve(x, goal), c.solve(x, goal)
         failures += (not a.ok) + (not b.ok)
         du = max(du, float(np.abs(a.u - b.u).max()))
-        x = np.asarray(F(x, a.u)).ravel()
+        x_next = np.asarray(F(x, a.u)).ravel()
+        if not np.isfinite(x_next).all():  # NaN dynamics are named as such (DynamicsError), else the step diverged
+            check_dynamics(ocp.model, x, a.u, dt=ocp.dt, substeps=ocp.substeps,
+                           context=f"the round trip's closed loop, step {k + 1}")
+            raise ValueError(f"the round trip's closed loop diverged at step {k + 1}: the discrete model "
+                             f"from x = {x.tolist()}, u = {a.u.tolist()} is not finite")
+        x = x_next
     return du, steps, failures
 
 
@@ -578,8 +587,26 @@ def _one_line_error(exc: BaseException) -> bool:
     return any(kind is not None and isinstance(exc, kind) for kind in kinds)
 
 
+def _debug_first(argv) -> list[str]:
+    """The arguments with ``--debug`` moved to the front, where the top-level parser takes it, so that it may be
+    written anywhere (``ocpkit solve X --debug``); arguments after ``--`` are left alone."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    end = argv.index("--") if "--" in argv else len(argv)
+    if "--debug" in argv[:end]:
+        argv = ["--debug", *(a for a in argv[:end] if a != "--debug"), *argv[end:]]
+    return argv
+
+
+def _error_line(exc: BaseException, debug: bool) -> str:
+    """The one line an error is shown as; a failure inside the user's own code points at --debug."""
+    from ocpkit.problem import ProblemError
+
+    hint = isinstance(exc, ProblemError) and exc.__cause__ is not None and not debug
+    return f"ocpkit: error: {exc}" + (" (--debug prints its traceback)" if hint else "")
+
+
 def main(argv=None) -> int:
-    args = _parser().parse_args(argv)
+    args = _parser().parse_args(_debug_first(argv))
     try:
         commands = {"solve": _solve, "simulate": _simulate, "demo": _demo, "study": _study,
                     "reproduce": _reproduce, "export": _export, "bench": _bench}
@@ -587,7 +614,11 @@ def main(argv=None) -> int:
     except Exception as exc:
         if not _one_line_error(exc):
             raise
-        print(f"ocpkit: error: {exc}", file=sys.stderr)
+        if args.debug:
+            import traceback
+
+            traceback.print_exception(exc, file=sys.stderr)
+        print(_error_line(exc, args.debug), file=sys.stderr)
         return 2
 
 

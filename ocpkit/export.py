@@ -62,6 +62,7 @@ from ocpkit.certificate import TESTS, Certificate
 from ocpkit.certificate import TOL as CERT_TOL
 from ocpkit.controller import STATUSES, SUCCESS, Controller, Solution
 from ocpkit.ocp import OCP
+from ocpkit.problem import check_dynamics
 from ocpkit.transcription import ROUNDING_MARGIN, CondensedQP
 
 FORMS = ("condensed", "sparse")
@@ -198,7 +199,8 @@ def export(ocp: OCP, out_dir, *, form: str = "condensed", qp: str = "daqp", name
     ``eps`` is the QP solver's tolerance, ``max_iter`` its iteration limit, ``polish`` OSQP's solution
     polishing; ``linearization`` "goal" linearizes about (x, u_g), "plan" about (x, ū) as LinearMPC's option
     of that name; ``x0``, ``goal`` and ``steps`` set the closed loop the example runs against the generated
-    discrete model.
+    discrete model (where given, the dynamics must be finite there: else a DynamicsError names them, before any
+    file is written).
     """
     if not isinstance(ocp, OCP):
         raise TypeError(f"ocp must be an ocpkit OCP, got {type(ocp).__name__}")
@@ -214,8 +216,12 @@ def export(ocp: OCP, out_dir, *, form: str = "condensed", qp: str = "daqp", name
     eps = positive(eps, "eps")
     max_iter = integer(max_iter, "max_iter", 1)
     steps = integer(steps, "steps", 1)
+    given = {"the example's start x0": x0 is not None, "the example's goal": goal is not None}
     x0 = np.zeros(ocp.nx) if x0 is None else ocp.check_state(x0, "x0")
     goal = np.zeros(ocp.nx) if goal is None else ocp.check_state(goal, "goal")
+    for x, label in zip((x0, goal), given):
+        if given[label]:  # where the example's closed loop runs: NaN dynamics there are named before any work
+            check_dynamics(ocp.model, x, ocp.input_goal(goal), context=label)
     out = Path(out_dir)
     _check_out_dir(out, bool(force))
     out.mkdir(parents=True, exist_ok=True)

@@ -8,6 +8,11 @@ code: :meth:`Problem.from_urdf` (a :class:`URDFRobot`).
 """
 from __future__ import annotations
 
+import inspect
+import os
+import sys
+import sysconfig
+import traceback
 from functools import cached_property
 from pathlib import Path
 
@@ -18,6 +23,135 @@ from ocpkit._checks import positive
 from ocpkit.model import Model
 from ocpkit.ocp import OCP
 from ocpkit.parameterization import Parameterization
+
+
+class ProblemError(ValueError):
+    """A problem's own code failed: importing its file or module, making it, or its dynamics returned NaN.
+
+    The message is one line naming the spec, the user's file and line (``where``, "file:line", or None where no
+    line of the user's code is known) and the exception; ``__cause__`` is the original exception (its traceback is
+    what ``ocpkit --debug`` prints)."""
+
+    def __init__(self, message: str, where: str | None = None):
+        super().__init__(message)
+        self.where = where
+
+
+class NotAProblemError(ProblemError, TypeError):
+    """A spec's factory returned, or its name is, something other than a :class:`Problem` (also a TypeError)."""
+
+
+class DynamicsError(ProblemError, FloatingPointError):
+    """A model's dynamics returned NaN or inf at a finite state and input: ``x``, ``u`` and the entries ``rows`` of
+    ẋ (also a FloatingPointError, what :func:`~ocpkit.simulate.simulate` raised before)."""
+
+    def __init__(self, message: str, where: str | None = None, *, x=None, u=None, rows=()):
+        super().__init__(message, where)
+        self.x, self.u, self.rows = x, u, tuple(rows)
+
+
+def _shown(path: str) -> str:
+    """``path`` relative to the working directory when it lies below it, else as given."""
+    try:
+        rel = os.path.relpath(path)
+    except ValueError:
+        return path
+    return rel if not rel.startswith("..") else path
+
+
+def where_defined(obj) -> str | None:
+    """"file:line" of the source of a function or class (None where Python does not know it)."""
+    obj = inspect.unwrap(obj) if callable(obj) else obj
+    code = getattr(getattr(obj, "__func__", obj), "__code__", None)
+    try:
+        if code is not None:
+            return f"{_shown(code.co_filename)}:{code.co_firstlineno}"
+        return f"{_shown(inspect.getsourcefile(obj))}:{inspect.getsourcelines(obj)[1]}"
+    except (TypeError, OSError):
+        return None
+
+
+def _library_dirs() -> tuple[str, ...]:
+    """Folders of code that is not the user's: ocpkit's packages, the standard library and installed packages."""
+    dirs = {os.path.realpath(p) for key in ("stdlib", "platstdlib", "purelib", "platlib")
+            if (p := sysconfig.get_paths().get(key))}
+    for name in ("ocpkit", "ocpkit.problems", "ocpkit.solvers", "ocpkit.studies"):
+        module = sys.modules.get(name)
+        dirs.update(os.path.realpath(p) for p in getattr(module, "__path__", ()))
+    return tuple(d.rstrip(os.sep) + os.sep for d in dirs)
+
+
+def where_raised(exc: BaseException, own=()) -> str | None:
+    """"file:line" in the user's code where ``exc`` was raised: a SyntaxError's own line, else the innermost frame of
+    its traceback in one of the files ``own`` or outside ocpkit, the standard library and installed packages."""
+    if isinstance(exc, SyntaxError) and exc.filename and not str(exc.filename).startswith("<") and exc.lineno:
+        return f"{_shown(exc.filename)}:{exc.lineno}"
+    own = {os.path.realpath(f) for f in own}
+    library = _library_dirs()
+    for frame in reversed(traceback.extract_tb(exc.__traceback__)):
+        name = frame.filename
+        if name.startswith("<"):
+            continue
+        real = os.path.realpath(name)
+        if real in own or not real.startswith(library):
+            return f"{_shown(name)}:{frame.lineno}"
+    return None
+
+
+def describe(exc: BaseException) -> str:
+    """``Type: message`` of an exception on one line (a SyntaxError's message without its location)."""
+    text = exc.msg if isinstance(exc, SyntaxError) and exc.msg else str(exc)
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    text = lines[0] + (" …" if len(lines) > 1 else "") if lines else ""
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+
+
+def check_dynamics(model: Model, x, u, *, dt: float | None = None, substeps: int = 1, context: str = "") -> None:
+    """Raise :class:`DynamicsError` where ``model``'s ẋ = f(x, u) is NaN or inf at a finite point: at (x, u), and
+    with ``dt`` at every stage of the RK4 step (``substeps`` of them) from there. A stage that is itself non-finite
+    (the integration overflowed) ends the search: the dynamics did not return NaN there, the step diverged."""
+    x = np.asarray(x, dtype=float).ravel()
+    u = np.asarray(u, dtype=float).ravel()
+
+    def f(point):
+        if not (np.isfinite(point).all() and np.isfinite(u).all()):
+            return None
+        value = np.asarray(model.f(point, u), dtype=float).ravel()
+        if not np.isfinite(value).all():
+            raise _dynamics_error(model, point, u, value, context)
+        return value
+
+    if f(x) is None or dt is None:
+        return
+    h = float(dt) / substeps
+    xk = x
+    for _ in range(substeps):
+        k1 = f(xk)
+        k2 = f(xk + h / 2 * k1)
+        if k2 is None:
+            return
+        k3 = f(xk + h / 2 * k2)
+        if k3 is None:
+            return
+        k4 = f(xk + h * k3)
+        if k4 is None:
+            return
+        xk = xk + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+        if f(xk) is None:
+            return
+
+
+def _dynamics_error(model: Model, x, u, value, context: str) -> DynamicsError:
+    rows = np.flatnonzero(~np.isfinite(value))
+    what = "NaN" if np.isnan(value).any() else "inf"
+    entries = ", ".join(f"xdot[{i}]" for i in rows[:4]) + (" …" if len(rows) > 4 else "")
+    origin = getattr(model, "origin", None)
+    who = origin[0] if origin else f"the dynamics of model {model.name!r}"
+    fmt = lambda v: "[" + ", ".join(repr(float(a)) for a in v) + "]"  # noqa: E731  exact: a NaN may lie at an edge
+    where = origin[1] if origin else None
+    notes = "; ".join(n for n in ((f"{who.split('(')[0]} is at {where}" if where else ""), context) if n)
+    return DynamicsError(f"{who} returned {what} in {entries} at x = {fmt(x)}, u = {fmt(u)}"
+                         + (f" ({notes})" if notes else ""), where, x=x.copy(), u=u.copy(), rows=rows)
 
 
 class Problem:
@@ -66,6 +200,8 @@ class Problem:
             if not isinstance(model, Model):
                 raise TypeError(f"{type(self).__name__}.dynamics({error}) must return an ocpkit.Model, "
                                 f"got {type(model).__name__}")
+            # who made it, for a message naming the user's hook when its ẋ is NaN (check_dynamics)
+            model.origin = (f"{type(self).__name__}.dynamics(error)", where_defined(type(self).dynamics))
             self._models[error] = model
         return self._models[error]
 

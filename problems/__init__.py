@@ -19,7 +19,7 @@ import sys
 from importlib import import_module
 from pathlib import Path
 
-from ocpkit.problem import Problem
+from ocpkit.problem import NotAProblemError, Problem, ProblemError, _shown, describe, where_defined, where_raised
 
 # family -> module defining it (imported only when the family is used)
 _FAMILIES = {"pendulum": "pendulum", "nlink": "nlink", "puma560": "puma560", "baxter": "baxter"}
@@ -80,6 +80,8 @@ def make(spec: str) -> Problem:
             module = import_module(family)
         except ImportError as exc:
             raise ValueError(f"problem spec {spec!r}: cannot import module {family!r}: {exc}") from None
+        except Exception as exc:  # the user's module raised while it was imported
+            raise _failed(spec, f"importing module {family!r}", exc) from exc
         return _build(_attribute(module, name, spec), arg or None, spec)
     raise ValueError(f"unknown problem {spec!r}; known: {', '.join(names())}, or a Problem of your own as "
                      "'package.module:Name' or 'path/to/file.py:Name'")
@@ -107,8 +109,10 @@ def _load_file(path: str, spec: str):
         sys.modules[module_name] = module   # before exec: dataclasses and pickling look the module up
         try:
             loader_spec.loader.exec_module(module)
-        except BaseException:
+        except BaseException as exc:
             del sys.modules[module_name]
+            if isinstance(exc, Exception):  # the user's file raised (or is not valid Python) while it was imported
+                raise _failed(spec, f"importing {_shown(str(file))}", exc, own=[file]) from exc
             raise
     return sys.modules[module_name]
 
@@ -131,12 +135,27 @@ def _build(obj, arg, spec: str) -> Problem:
             raise ValueError(f"problem spec {spec!r}: {type(obj).__name__} is an instance and takes no argument")
         problem = obj
     elif callable(obj):
-        problem = obj() if arg is None else obj(arg)
+        call = f"{getattr(obj, '__qualname__', type(obj).__name__)}({'' if arg is None else repr(arg)})"
+        try:
+            problem = obj() if arg is None else obj(arg)
+        except ProblemError:
+            raise
+        except Exception as exc:  # the user's class or factory raised
+            raise _failed(spec, call, exc) from exc
     else:
-        raise TypeError(f"problem spec {spec!r} names {obj!r}, not a Problem subclass, instance or factory")
+        raise NotAProblemError(f"problem spec {spec!r} names {obj!r}, not a Problem subclass, instance or factory")
     if not isinstance(problem, Problem):
-        raise TypeError(f"problem spec {spec!r} made {type(problem).__name__}, not an ocpkit.Problem")
+        where = where_defined(obj)
+        raise NotAProblemError(f"problem spec {spec!r}: {call} returned {type(problem).__name__}, not an ocpkit.Problem"
+                               + (f" ({call.split('(')[0]} is defined at {where})" if where else ""), where)
     return problem
+
+
+def _failed(spec: str, doing: str, exc: Exception, own=()) -> ProblemError:
+    """The one-line ProblemError for user code that raised while ``doing``: the spec, file:line and the exception."""
+    where = where_raised(exc, own)
+    at = f" at {where}" if where else ""
+    return ProblemError(f"problem spec {spec!r}: {doing} failed{at}: {describe(exc)}", where)
 
 
 def filename(spec: str) -> str:
