@@ -446,7 +446,10 @@ class LinearMPC(Controller):
     OSQP gets the time left as its own limit, ProxQP iterates in chunks checking the clock between them, and
     any operation that cannot be stopped from outside (the affine model and build, a backend's init, update
     or factorization, HPIPM's whole solve) starts only if its measured time (median of its last five) fits in
-    what is left. A step that hits either limit returns status "limited" with the fallback input and keeps
+    what is left. Without a ``time_limit`` the budget is :attr:`ceiling`: 10 s, or 0.1 ms per QP variable where that
+    is more (the sparse traditional QP at nlink:13, T = 100: 10 s; the pendulum's sparse QP at T = 10⁶: 300 s); ``time_limit=float("inf")``
+    removes it (a benchmark timing slow formulations to the end). A step that hits either limit
+    returns status "limited" with the fallback input and keeps
     the backend's workspace and iterate, so the next, warm step can fit again. The first step of a new (or
     reset) controller may have nothing measured yet and is not bounded: it calibrates (``warm_up`` runs it
     outside the budget before a real-time loop).
@@ -490,6 +493,8 @@ class LinearMPC(Controller):
     if its measured time fits. On a failure it gives the same fallback as the Python step; it does not report the
     QP's iterations (0) nor the predicted states. Changing ``max_iter`` returns to the Python step.
     """
+
+    CEILING_MIN, CEILING_PER_VARIABLE = 10.0, 1e-4  # seconds: the default budget (:attr:`ceiling`)
 
     def __init__(self, ocp: OCP, *, form: str = "condensed", qp: str | None = None, max_iter: int = 10_000,
                  eps: float = 1e-9, time_limit: float | None = None, warm_start: bool = True,
@@ -597,7 +602,8 @@ class LinearMPC(Controller):
 
     @time_limit.setter
     def time_limit(self, value: float | None) -> None:
-        self._time_limit = None if value is None else positive(value, "time_limit")
+        self._time_limit = (None if value is None else float("inf") if value == float("inf")
+                            else positive(value, "time_limit"))
 
     @property
     def max_iter(self) -> int:
@@ -633,8 +639,18 @@ class LinearMPC(Controller):
                                f"may help)" if rho > 2 else f" (|eig A_d| = {rho:.3g} a step)")
         return self._diagnosed
 
+    @property
+    def ceiling(self) -> float:
+        """The step's budget when no ``time_limit`` is given (seconds): CEILING_MIN, or CEILING_PER_VARIABLE per QP
+        variable where that is more. No MPC step is of use after it; it bounds the solvers that run on where nobody
+        set a budget (sparse ProxQP ran 30-75 s on nlink:3 at x = 9e5, and 36 s with max_iter=5 on nlink:13)."""
+        tr = self.transcription
+        variables = tr.nz + (tr.ns if self.form == "condensed" else 0)
+        return max(self.CEILING_MIN, self.CEILING_PER_VARIABLE * variables)
+
     def _deadline(self) -> float | None:
-        return None if self._time_limit is None else self._step_start + self._time_limit
+        limit = self.ceiling if self._time_limit is None else self._time_limit
+        return None if limit == float("inf") else self._step_start + limit
 
     def _solve(self, x: np.ndarray, goal: np.ndarray) -> Solution:
         self._x_now = x

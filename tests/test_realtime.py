@@ -197,3 +197,29 @@ def test_one_slow_measurement_does_not_lock_an_operation_out():
     assert costs.predict("build") == pytest.approx(np.median([5.2e-3, 1.5e-3]))
     # Never below half the measured time: an operation more than twice the time left is never retried.
     assert not any(costs.fits("build", 0.49 * costs.predict("build")) for _ in range(1000))
+
+
+def test_default_ceiling_stops_an_unbudgeted_step():
+    """No time_limit: the step still stops at LinearMPC's ceiling (sparse ProxQP at x = 9e5 on nlink:3 ran 30-75 s
+    before). The ceiling is lowered for the test; time_limit=inf removes it."""
+    problem = problems.make("nlink:3")
+    ocp = problem.ocp(knots=5)
+    ctrl = LinearMPC(ocp, form="sparse", native=False)
+    assert ctrl.ceiling == LinearMPC.CEILING_MIN  # a small QP: the floor
+    ctrl.CEILING_MIN = 0.5
+    x = np.zeros(ocp.nx)
+    x[0] = 9e5
+    t0 = time.perf_counter()
+    sol = ctrl.solve(x, np.zeros(ocp.nx))
+    wall = time.perf_counter() - t0
+    assert sol.status == LIMITED and "time budget" in sol.raw_status, sol.raw_status
+    assert wall < 0.5 + 1.0  # the budget and at most one uninterruptible chunk beyond it
+    ctrl.time_limit = float("inf")
+    assert ctrl._deadline() is None
+
+
+def test_ceiling_grows_with_the_qp():
+    ctrl = LinearMPC(problems.make("pendulum").ocp(knots=5, horizon=200), form="sparse", native=False)
+    assert ctrl.ceiling == LinearMPC.CEILING_MIN
+    ctrl.CEILING_MIN = 0.0  # the floor lowered: what is left is the per-variable part
+    assert ctrl.ceiling == pytest.approx(LinearMPC.CEILING_PER_VARIABLE * (201 * 2 + 5))

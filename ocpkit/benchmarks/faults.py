@@ -311,24 +311,39 @@ def spiral_row(steps=50, links=7, horizon=100, knots=None) -> RealTimeRow:
                        _counts(statuses), ok, "≥ 90% of the steps succeed")
 
 
+BEYOND_TOL = 1e-3  # a success's predicted states beyond a soft bound by more than this count as beyond it
+
+
 def beyond_bounds_rows(labels=("qp condensed daqp", "qp condensed proxqp", "qp condensed osqp", "qp sparse proxqp",
                                "qp sparse osqp"),
                        duration=1.0) -> list[RealTimeRow]:
     """Pendulum with |q| ≤ 1 and goal q = 1.5 (soft state bounds, the default): from rest the angle must end at
-    the bound (within 0.02) and every step succeed."""
+    the bound (within 0.02) and no success may predict a state beyond it. The exact and interior-point backends must
+    succeed on every step; OSQP, first-order, is accepted with its success rate reported (at eps 1e-9 its ADMM needs
+    10⁴–6.5·10⁴ iterations on this QP: README, "for state bounds that may be active, use DAQP or ProxQP") as long
+    as each step stays within the default budget."""
     from ocpkit.simulate import simulate
 
     ocp = PENDULUM.ocp(knots=5, x_min=[-1.0, -np.inf], x_max=[1.0, np.inf])
     rows = []
     for label in labels:
+        ctrl = _controller(label, ocp)
         t0 = time.perf_counter()
-        traj = simulate(PENDULUM.plant(), _controller(label, ocp), [0.0, 0.0], [1.5, 0.0], duration)
+        traj = simulate(PENDULUM.plant(), ctrl, [0.0, 0.0], [1.5, 0.0], duration)
         wall = time.perf_counter() - t0
         q_end, n_ok = float(traj.x[-1, 0]), traj.statuses.count(SUCCESS)
-        ok = abs(q_end - 1.0) <= 0.02 and n_ok == len(traj.statuses)
+        beyond = max((float(np.abs(s.x_pred[:, 0]).max()) for s in traj.solutions
+                      if s.ok and s.x_pred is not None), default=0.0)
+        first_order = "osqp" in label
+        slowest = float(traj.times().max())
+        ok = (abs(q_end - 1.0) <= 0.02 and beyond <= 1.0 + BEYOND_TOL
+              and (slowest <= ctrl.ceiling if first_order else n_ok == len(traj.statuses)))
+        rule = ("success rate reported, each step within the default budget" if first_order
+                else "all steps succeed")
         rows.append(RealTimeRow("goal beyond bounds", label, f"q_end {q_end:.4f}, {n_ok}/{len(traj.statuses)} "
-                                f"success, max |q| {np.abs(traj.x[:, 0]).max():.4f}", wall, _counts(traj.statuses),
-                                ok, "|q_end − 1| ≤ 0.02, all steps succeed"))
+                                f"success, max |q| {np.abs(traj.x[:, 0]).max():.4f}, successes' predictions "
+                                f"|q| ≤ {beyond:.4f}", wall, _counts(traj.statuses),
+                                ok, f"|q_end − 1| ≤ 0.02, no success predicts |q| > 1 + {BEYOND_TOL:g}, {rule}"))
     return rows
 
 

@@ -16,7 +16,8 @@ def bench_qp(problems=("pendulum:linear", "pendulum", "nlink:3", "nlink:7"), hor
     for name in problems:
         problem = make(name)
         for T in horizons:
-            configs = {(form, p): LinearMPC(problem.ocp(horizon=T, knots=p), form=form, qp=qp, warm_start=False)
+            configs = {(form, p): LinearMPC(problem.ocp(horizon=T, knots=p), form=form, qp=qp, warm_start=False,
+                                               time_limit=float("inf"))
                        for form in ("sparse", "condensed") for p in (None, knots)}
             times = {key: {part: [] for part in PARTS} for key in configs}
             for s in range(samples):
