@@ -16,8 +16,9 @@ Other third-party code is neither hashed nor versioned, and a module imported by
 outside those patterns is not seen. A trial's code hash (:func:`manifest_hash`) is a hash of its manifest; the
 study runner stores both, so a resumed study can say which modules or versions changed (:func:`changes`).
 
-Hashing reads each file once per process and again only when its size, inode or modification time changes: a
-closed-loop trial's manifest (about 45 files) takes ~40 ms the first time, ~2 ms after.
+Hashing reads and parses each file once per process, and again only when its size, inode or times change: a
+closed-loop trial's manifest (37 files) took ~0.2 s the first time and ~15 ms after on a busy 2-core machine;
+the study runner computes it once per run (once per distinct set of files the trials' parameters name).
 """
 from __future__ import annotations
 

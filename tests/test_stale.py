@@ -159,15 +159,26 @@ def test_a_closed_loop_trials_manifest_covers_the_solvers_and_problems_it_may_ru
     assert all(len(digest) == 16 for digest in code.values())
 
 
-def test_hashing_is_cached_per_process():
+def test_hashing_is_cached_per_process(tmp_path, monkeypatch):
+    """Each file is read and parsed once per process; again only when its stat changes."""
     from ocpkit import provenance
     from ocpkit.studies import closed_loop
 
-    provenance.manifest(closed_loop.trial)
+    first = provenance.manifest(closed_loop.trial)
+
+    def parse(source):
+        raise AssertionError("a file was parsed again although it did not change")
+    monkeypatch.setattr(provenance, "_imports", parse)
     t0 = time.perf_counter()
     for _ in range(5):
-        provenance.manifest(closed_loop.trial)
-    assert (time.perf_counter() - t0) / 5 < 0.05  # files are re-read only when their stat changes
+        assert provenance.manifest(closed_loop.trial) == first
+    assert (time.perf_counter() - t0) / 5 < 0.2  # stats and look-ups only (~15 ms on a busy 2-core machine)
+    monkeypatch.undo()
+    helper = tmp_path / "cached_helper.py"
+    helper.write_text("import json\n")
+    assert provenance._read(str(helper))[1] == (("import", "json"),)
+    _touch_later(helper, "import csv\n")
+    assert provenance._read(str(helper))[1] == (("import", "csv"),)  # changed: read again
 
 
 def test_a_change_in_the_users_problem_file_is_refused_naming_it(cartpole_dir):
