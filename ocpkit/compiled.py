@@ -3,7 +3,10 @@
 The SX virtual machine evaluates a 13-link robot's RK4 affine model (264k instructions) in about 0.6 ms; the
 same Function compiled at -O1 takes about 0.3 ms, at the price of a one-off compile of tens of seconds,
 cached on disk by the Function's hash so it is paid once per model. The library is checked against the content
-hash recorded beside it before it is loaded; a damaged one (truncated, empty) is rebuilt with a warning.
+hash recorded beside it before it is loaded; a damaged one (truncated, empty) is rebuilt with a warning, and one
+that does not load (another machine's) is removed and compiled once more. One compile per entry machine-wide: the
+compiler runs under the entry's lock (:func:`ocpkit.cache.entry_lock`). A read-only cache is used as it is; a
+Function it lacks raises :class:`ocpkit.cache.CacheReadOnlyError` (in the background: the VM, one warning).
 
 :func:`compile_in_background` runs that compile in a child process at lower priority (``nice`` +10), and
 :class:`SwitchingFunction` evaluates the Function on the virtual machine until the compiled twin is ready, then on the
@@ -18,6 +21,7 @@ import atexit
 import contextlib
 import hashlib
 import os
+import platform
 import shutil
 import signal
 import subprocess
@@ -31,7 +35,8 @@ from pathlib import Path
 
 import casadi as ca
 
-from ocpkit.cache import cache_dir, entry_ok, install
+from ocpkit.cache import (CacheReadOnlyError, cache_dir, entry_lock, entry_ok, evict, install, load_problem,
+                          read_only_error, warn_read_only)
 
 
 class CompileError(RuntimeError):
@@ -42,22 +47,60 @@ def compile_function(fn: ca.Function, flags: str = "-O1") -> ca.Function:
     """``fn`` as compiled C (same inputs, outputs and results), built once and cached."""
     if not isinstance(fn, ca.Function):
         raise TypeError(f"fn must be a casadi.Function, got {type(fn).__name__}")
+    return _load(fn.name(), _library(fn, flags), lambda: _library(fn, flags))
+
+
+def prebuild(fn: ca.Function, flags: str = "-O1") -> Path:
+    """The cached library of ``fn`` compiled with ``flags`` (what the default background compile of an OCP's
+    affine model loads), compiled first unless a sound one that loads is there; ``ocpkit build`` fills a cache
+    with it ahead of deployment."""
+    if not isinstance(fn, ca.Function):
+        raise TypeError(f"fn must be a casadi.Function, got {type(fn).__name__}")
     library = _library(fn, flags)
-    return ca.external(fn.name(), str(library))
+    _load(fn.name(), library, lambda: _library(fn, flags))
+    return library
+
+
+def _load(name: str, library: Path, rebuild) -> ca.Function:
+    """``ca.external`` of the cached ``library``; where it does not load (its hash matched: a library built for
+    another machine, say) the entry is removed, ``rebuild()`` compiles it once more and that one is loaded."""
+    seen = library.stat()
+    problem = load_problem(library, name)
+    if problem is None:
+        return ca.external(name, str(library))
+    warnings.warn(f"compiled cache entry {library} does not load ({problem}): removed, compiling it again",
+                  RuntimeWarning, stacklevel=3)
+    evict(library, seen)
+    library = rebuild()
+    problem = load_problem(library, name)
+    if problem is not None:
+        raise CompileError(f"{name}, compiled again into {library}, does not load: {problem}")
+    return ca.external(name, str(library))
 
 
 def _library(fn: ca.Function, flags: str) -> Path:
-    """The cached library of ``fn`` compiled with ``flags``, built first unless a sound one is there."""
-    key = hashlib.sha256((fn.serialize() + flags).encode()).hexdigest()[:20]
+    """The cached library of ``fn`` compiled with ``flags``, built first (under the entry's lock) unless a sound one
+    is there; :class:`CacheReadOnlyError` where it is not and the cache is read-only."""
+    key = hashlib.sha256((fn.serialize() + flags + _PLATFORM).encode()).hexdigest()[:20]
     folder = cache_dir("compiled") / key
     library = folder / f"{fn.name()}.so"
-    if not entry_ok(library):
-        recorded = library.with_name(library.name + ".sha256")
-        if library.exists() and (recorded.exists() or library.stat().st_size == 0):  # not merely from before hashes
-            warnings.warn(f"damaged compiled cache entry {library} (its content does not match the hash recorded "
-                          f"beside it): rebuilding it", RuntimeWarning, stacklevel=2)
-        _build(fn, flags, folder, library)
+    if entry_ok(library):
+        return library
+    try:
+        with entry_lock(folder):
+            if not entry_ok(library):  # else compiled by another process while this one waited
+                recorded = library.with_name(library.name + ".sha256")
+                if library.exists() and (recorded.exists() or library.stat().st_size == 0):  # not from before hashes
+                    warnings.warn(f"damaged compiled cache entry {library} (its content does not match the hash "
+                                  f"recorded beside it): rebuilding it", RuntimeWarning, stacklevel=2)
+                _build(fn, flags, folder, library)
+    except CacheReadOnlyError:
+        state = "is damaged" if library.exists() else "is not in the cache"
+        raise read_only_error(f"the compiled {fn.name()} ({library}) {state}", folder.parent) from None
     return library
+
+
+_PLATFORM = f"|{sys.platform}|{platform.machine()}"  # one library per architecture in a cache that machines share
 
 
 def _build(fn: ca.Function, flags: str, folder: Path, library: Path) -> None:
@@ -79,6 +122,9 @@ def _build(fn: ca.Function, flags: str, folder: Path, library: Path) -> None:
             raise CompileError(f"compiling {fn.name()} needs a C compiler, and `{compiler}` was not found on PATH: "
                                f"install one (e.g. apt install gcc) or run without --compiled") from None
         except subprocess.CalledProcessError as exc:
+            if exc.returncode < 0:
+                raise CompileError(f"compiling {fn.name()} with `{compiler}` failed: the compiler was killed by "
+                                   f"{_signal_name(-exc.returncode)}") from None
             message = " ".join(exc.stderr.split())[:300]
             raise CompileError(f"compiling {fn.name()} with `{compiler}` failed: {message}") from None
         install(partial, library)
@@ -128,9 +174,21 @@ def _stop_compilers() -> None:
         shutil.rmtree(scratch, ignore_errors=True)
 
 
+def _signal_name(number: int) -> str:
+    try:
+        return signal.Signals(number).name
+    except ValueError:
+        return f"signal {number}"
+
+
 def _compile_out_of_process(fn: ca.Function, flags: str = "-O1") -> ca.Function:
     """:func:`compile_function` (``fn``, ``flags``) with the hashing, code generation and compiler in a child process
     (its own process group, ``nice`` +10); the Function reaches it through ``Function.save``."""
+    return _load(fn.name(), _library_out_of_process(fn, flags), lambda: _library_out_of_process(fn, flags))
+
+
+def _library_out_of_process(fn: ca.Function, flags: str) -> Path:
+    """:func:`_library` (``fn``, ``flags``) in a child process."""
     with tempfile.TemporaryDirectory(prefix="ocpkit-compile-") as tmp:
         saved = Path(tmp) / f"{fn.name()}.casadi"
         fn.save(str(saved))
@@ -139,13 +197,18 @@ def _compile_out_of_process(fn: ca.Function, flags: str = "-O1") -> ca.Function:
         command = [sys.executable, "-c", "import sys; from ocpkit.compiled import _child; _child(*sys.argv[1:])",
                    str(saved), flags]
         code, out, err = _tracked(command, None, env=env, cwd=tmp, start_new_session=True)
+    if code < 0:
+        raise CompileError(f"the background compile of {fn.name()} failed: its process was killed by "
+                           f"{_signal_name(-code)}")
     if code:
         lines = [line for line in err.strip().splitlines() if line.strip()]
         last = lines[-1] if lines else f"exit status {code}"
-        if last.startswith("ocpkit.compiled.CompileError: "):
-            raise CompileError(last.removeprefix("ocpkit.compiled.CompileError: "))
+        for kind in (CompileError, CacheReadOnlyError):
+            prefix = f"{kind.__module__}.{kind.__name__}: "
+            if last.startswith(prefix):
+                raise kind(last.removeprefix(prefix))
         raise CompileError(f"the background compile of {fn.name()} failed: {last[:300]}")
-    return ca.external(fn.name(), out.strip().splitlines()[-1])
+    return Path(out.strip().splitlines()[-1])
 
 
 def _child(saved: str, flags: str) -> None:
@@ -215,6 +278,9 @@ class SwitchingFunction(ca.Function):
             exc = self._future.exception()
             if exc is not None:
                 self._failed = True
+                if isinstance(exc, CacheReadOnlyError) and not getattr(self._future, "warned", False):
+                    self._future.warned = True
+                    warn_read_only(exc, f"{self.name()} stays on CasADi's virtual machine", stacklevel=3)
                 if not getattr(self._future, "warned", False):
                     self._future.warned = True
                     warnings.warn(f"{self.name()} stays on CasADi's virtual machine: {exc}", RuntimeWarning,

@@ -6,14 +6,20 @@ DAQP, linearization about the input goal) to a scratch folder — code generatio
 nlink:13 — and keys it by the hash of the generated files. A cached library is used at once; otherwise a child
 process in a session of its own builds it with ``make`` at lower priority (``nice`` +10, one compile job, so a
 running control loop keeps a core) and moves it into the cache atomically with its content hash beside it (a
-damaged entry is rebuilt). The child outlives this process if need be: a script shorter than the build finds the
-C step ready on its next run. Several controllers of one OCP share one build.
+damaged entry is rebuilt; one that does not load is removed and built once more). The child outlives this process
+if need be: a script shorter than the build finds the C step ready on its next run. Several controllers of one OCP
+share one build, and so do processes: the builder holds the entry's lock file (:func:`ocpkit.cache.entry_lock`),
+and another process's build child waits for it and finds the library built. A read-only cache is used as it is:
+its sound library is loaded, and where it has none the Python step runs (one warning); ``ocpkit build`` fills a
+cache ahead of deployment.
 """
 from __future__ import annotations
 
 import hashlib
 import os
+import platform
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
@@ -23,7 +29,8 @@ import weakref
 from concurrent.futures import Future
 from pathlib import Path
 
-from ocpkit.cache import cache_dir, entry_ok, install
+from ocpkit.cache import (CacheReadOnlyError, cache_dir, entry_lock, entry_ok, evict, install, load_problem,
+                          read_only_error, scratch_dir, warn_read_only)
 from ocpkit.compiled import compiler_available
 from ocpkit.export import BuildError, check_tools, export
 from ocpkit.ocp import BACKGROUND_MIN_INSTRUCTIONS, OCP
@@ -35,7 +42,7 @@ SLOTS = 64  # controllers of one OCP live at once in one process (the library's 
 MAKE_VARS = (f"MAX_INSTANCES={SLOTS}", "OPT=-O1")
 
 _builds: dict[str, Future] = {}  # by the hash of the generated files
-_by_ocp: "weakref.WeakKeyDictionary[OCP, dict]" = weakref.WeakKeyDictionary()  # {(eps, max_iter): Future}
+_by_ocp: "weakref.WeakKeyDictionary[OCP, dict]" = weakref.WeakKeyDictionary()  # {(eps, max_iter): Future or None}
 _builds_lock = threading.Lock()
 _warned = set()
 
@@ -59,92 +66,140 @@ def wanted(ocp: OCP) -> bool:
 
 def start(ocp: OCP, *, eps: float, max_iter: int, wait: bool = False) -> Future | None:
     """A Future of the folder holding ``lib<NAME>.so``, the exported condensed DAQP step of ``ocp`` (DAQP tolerance
-    ``eps``, ``max_iter`` iterations). ``wait``: built here and now (BuildError if it cannot be); otherwise built in
-    the background, and None where ``cc`` or ``make`` is missing (one warning for ``make``: a missing compiler is
-    said once by :mod:`ocpkit.compiled` when the Python step's model cannot be compiled either)."""
-    try:
-        check_tools()
-    except BuildError as exc:
-        if wait:
-            raise
-        if compiler_available() and str(exc) not in _warned:
-            _warned.add(str(exc))
-            warnings.warn(f"LinearMPC keeps its Python step: {exc}", RuntimeWarning, stacklevel=3)
+    ``eps``, ``max_iter`` iterations).
+
+    A sound cached library that loads is used as it is: no compiler needed, and the cache may be read-only. One
+    whose hash matches but which does not load (another machine's, a damaged one) is removed and built once more.
+    Otherwise it is built — ``wait``: here and now (BuildError if it cannot be, :class:`ocpkit.cache.
+    CacheReadOnlyError` where the cache is read-only); else in the background — and the result is None where
+    it cannot be: ``cc`` or ``make`` missing (one warning for ``make``: a missing compiler is said once by
+    :mod:`ocpkit.compiled` when the Python step's model cannot be compiled either), or a read-only cache (one
+    warning per process, :func:`ocpkit.cache.warn_read_only`)."""
+    runs = _by_ocp.setdefault(ocp, {})
+    known = runs.get((eps, max_iter), False)
+    if known is None and not wait:
         return None
-    known = _by_ocp.get(ocp, {}).get((eps, max_iter))
-    if known is not None and not (wait and known.done() and known.exception() is not None):
+    if known and not (wait and known.done() and known.exception() is not None):
         if wait:
             known.result()
         return known
-    future = _start(ocp, eps, max_iter, wait)
-    _by_ocp.setdefault(ocp, {})[(eps, max_iter)] = future
+    future = runs[(eps, max_iter)] = _start(ocp, eps, max_iter, wait)
     return future
 
 
-def _start(ocp: OCP, eps: float, max_iter: int, wait: bool) -> Future:
-    """:func:`start` for an OCP met the first time: export, hash, and build unless a build of that hash exists."""
+def built(ocp: OCP) -> list[Path]:
+    """The cache folders of the C steps built (or found) for ``ocp`` in this process, each holding ``lib<NAME>.so``."""
+    return [f.result() for f in _by_ocp.get(ocp, {}).values()
+            if f is not None and f.done() and not f.cancelled() and f.exception() is None]
+
+
+def _start(ocp: OCP, eps: float, max_iter: int, wait: bool) -> Future | None:
+    """:func:`start` for an OCP met the first time: export, hash, then the cached library or a build."""
     root = cache_dir("native")
-    scratch = Path(tempfile.mkdtemp(dir=root, prefix=f".build-{os.getpid()}-"))
+    try:
+        scratch, writable = scratch_dir(root, f".build-{os.getpid()}-"), True
+    except CacheReadOnlyError:  # generated all the same: its hash names the entry to look for
+        scratch, writable = Path(tempfile.mkdtemp(prefix="ocpkit-native-")), False
     try:
         export(ocp, scratch / "src", name=NAME, qp="daqp", eps=eps, max_iter=max_iter, linearization="goal")
+        key = _key(scratch / "src")
     except BaseException:
         shutil.rmtree(scratch, ignore_errors=True)
         raise
-    key = _key(scratch / "src")
+    folder = root / key
     with _builds_lock:
         future = _builds.get(key)
-        if future is None or (future.done() and future.exception() is not None and wait):
+        shared = future is not None and not (wait and future.done() and future.exception() is not None)
+        if not shared:
             future = _builds[key] = Future()
             future.set_running_or_notify_cancel()
-            owner = True
-        else:
-            owner = False
-    if not owner:
+    if shared:
         shutil.rmtree(scratch, ignore_errors=True)
-    elif wait:
-        _build(scratch, root / key, future, background=False)
-    else:
-        threading.Thread(target=_build, args=(scratch, root / key, future), name=f"ocpkit-native-{key[:8]}",
-                         daemon=True).start()
+        if wait:
+            future.result()
+        return future
+    try:
+        if not writable:
+            shutil.rmtree(scratch, ignore_errors=True)
+            _check_read_only_entry(folder, root)
+            future.set_result(folder)
+            return future
+        if not entry_ok(folder / f"lib{NAME}.so"):
+            check_tools()  # a sound cached library needs neither cc nor make
+    except (CacheReadOnlyError, BuildError) as exc:
+        shutil.rmtree(scratch, ignore_errors=True)
+        with _builds_lock:
+            if _builds.get(key) is future:
+                del _builds[key]
+        future.set_exception(exc)
+        if wait:
+            raise
+        if isinstance(exc, CacheReadOnlyError):
+            warn_read_only(exc, "LinearMPC runs its Python step", stacklevel=4)
+        elif compiler_available() and str(exc) not in _warned:
+            _warned.add(str(exc))
+            warnings.warn(f"LinearMPC keeps its Python step: {exc}", RuntimeWarning, stacklevel=4)
+        return None
     if wait:
+        _build(scratch, folder, future, background=False)
         future.result()
+    else:
+        threading.Thread(target=_build, args=(scratch, folder, future), name=f"ocpkit-native-{key[:8]}",
+                         daemon=True).start()
     return future
 
 
 def _key(source: Path) -> str:
-    """The hash of the generated files and of the build's settings."""
-    h = hashlib.sha256(" ".join(MAKE_VARS).encode())
+    """The hash of the generated files, of the build's settings and of the platform (a cache shared by machines
+    of two architectures keeps one library for each)."""
+    h = hashlib.sha256(" ".join((*MAKE_VARS, sys.platform, platform.machine())).encode())
     for path in sorted(source.iterdir()):
         h.update(path.name.encode() + b"\0" + path.read_bytes())
     return h.hexdigest()[:20]
 
 
+def _check_read_only_entry(folder: Path, root: Path) -> None:
+    """Raise :class:`CacheReadOnlyError` unless the read-only cache's library in ``folder`` is sound and loads."""
+    library = folder / f"lib{NAME}.so"
+    if not entry_ok(library):
+        state = ("is damaged (its content does not match the hash recorded beside it)" if library.exists() else
+                 "is not in the cache")
+        raise read_only_error(f"LinearMPC's C step for this OCP ({library}) {state}", root)
+    problem = _load_problem(library)
+    if problem is not None:
+        raise read_only_error(f"LinearMPC's cached C step {library} does not load ({problem})", root)
+
+
+def _load_problem(library: Path) -> str | None:
+    """None if ``library`` loads in this process and has the C step's entry point, else why not."""
+    return load_problem(library, f"{NAME}_step_timed")
+
+
 def _build(scratch: Path, folder: Path, future: Future, background: bool = True) -> None:
-    """Resolve ``future`` with ``folder`` once it holds a sound library: the cached one, or one built from ``scratch``.
+    """Resolve ``future`` with ``folder`` once it holds a sound library that loads: the cached one, or one built
+    from ``scratch``; a cached library that does not load is removed and built once more.
 
     In the background the build is a child process in a session of its own at lower priority: it finishes and
     fills the cache even when this process exits first (a short script's next run finds the C step ready). A
     caller that waits builds here at full priority (niced on a busy machine the Panda's build took 33 s, not 4)."""
+    library = folder / f"lib{NAME}.so"
     try:
-        library = folder / f"lib{NAME}.so"
-        if not entry_ok(library):
-            if library.exists():
-                warnings.warn(f"damaged cache entry {library} (its content does not match the hash recorded beside "
-                              f"it): rebuilding it", RuntimeWarning, stacklevel=2)
-            if not background:
-                _install(str(scratch), str(folder), "")
-            else:
-                path = [str(Path(__file__).resolve().parents[1]), os.environ.get("PYTHONPATH", "")]
-                env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in path if p)}
-                command = [sys.executable, "-c", "import sys; from ocpkit.native import _install; "
-                           "_install(*sys.argv[1:])", str(scratch), str(folder), "nice"]
-                code = subprocess.run(command, env=env, cwd=scratch, start_new_session=True,
-                                      stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                                      stderr=subprocess.DEVNULL).returncode
-                if code:
-                    log = scratch / "build.log"
-                    lines = log.read_text().strip().splitlines() if log.exists() else []
-                    raise BuildError(f"building LinearMPC's C step failed: {lines[-1] if lines else code}")
+        if entry_ok(library):
+            seen, problem = library.stat(), _load_problem(library)
+            if problem is None:
+                shutil.rmtree(scratch, ignore_errors=True)
+                future.set_result(folder)
+                return
+            warnings.warn(f"cache entry {library} does not load ({problem}): removed, building it again",
+                          RuntimeWarning, stacklevel=2)
+            evict(library, seen)
+        elif library.exists():
+            warnings.warn(f"damaged cache entry {library} (its content does not match the hash recorded beside "
+                          f"it): rebuilding it", RuntimeWarning, stacklevel=2)
+        _make(scratch, folder, background)
+        problem = _load_problem(library) if entry_ok(library) else "no sound library after the build"
+        if problem is not None:
+            raise BuildError(f"LinearMPC's C step {library}, built again, does not load: {problem}")
     except BaseException as exc:  # noqa: BLE001 - handed to the Future; LinearMPC warns and keeps its Python step
         shutil.rmtree(scratch, ignore_errors=True)
         future.set_exception(exc)
@@ -153,19 +208,69 @@ def _build(scratch: Path, folder: Path, future: Future, background: bool = True)
     future.set_result(folder)
 
 
-def _install(scratch: str, folder: str, nice: str) -> None:
-    """Build the exported step in ``scratch`` (``make``, niced if ``nice``) and move the library into the cache
-    ``folder`` with its content hash beside it; then remove ``scratch``. A failure leaves its last line in
-    ``scratch``/build.log."""
-    scratch, folder = Path(scratch), Path(folder)
-    if nice:
-        os.nice(10)
-    with open(scratch / "build.log", "w") as log:
-        code = subprocess.run(["make", "-s", "-C", str(scratch / "src"), "-j1", "lib", *MAKE_VARS],
-                              stdout=log, stderr=subprocess.STDOUT).returncode
+def _make(scratch: Path, folder: Path, background: bool) -> None:
+    """Build the library of ``scratch`` into the cache ``folder`` (:func:`_install`): here, or in a child process
+    at ``nice`` +10 in a session of its own. BuildError naming what failed, or which signal killed what."""
+    check_tools()
+    if not background:
+        try:
+            _install(scratch, folder)
+        except BuildError as exc:
+            raise BuildError(f"building LinearMPC's C step failed: {exc}") from None
+        return
+    path = [str(Path(__file__).resolve().parents[1]), os.environ.get("PYTHONPATH", "")]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in path if p)}
+    command = [sys.executable, "-c", "import sys; from ocpkit.native import _child; _child(*sys.argv[1:])",
+               str(scratch), str(folder)]
+    child = subprocess.Popen(command, env=env, cwd=scratch, start_new_session=True, stdin=subprocess.DEVNULL,
+                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    code = child.wait()
+    if code < 0:
+        raise BuildError(f"building LinearMPC's C step failed: its build process (pid {child.pid}) was killed by "
+                         f"{_signal_name(-code)}")
     if code:
-        lines = (scratch / "build.log").read_text().strip().splitlines()
-        raise BuildError(lines[-1] if lines else f"make exit status {code}")
-    folder.mkdir(mode=0o700, exist_ok=True)
-    install(scratch / "src" / f"lib{NAME}.so", folder / f"lib{NAME}.so")
+        error, log = scratch / "error", scratch / "build.log"
+        lines = (error.read_text() if error.exists() else log.read_text() if log.exists() else "").strip()
+        lines = lines.splitlines()
+        raise BuildError(f"building LinearMPC's C step failed: {lines[-1] if lines else f'exit status {code}'}")
+
+
+def _signal_name(number: int) -> str:
+    try:
+        return signal.Signals(number).name
+    except ValueError:
+        return f"signal {number}"
+
+
+def _child(scratch: str, folder: str) -> None:
+    """The background build's child process: :func:`_install` at ``nice`` +10; a failure's one line in
+    ``scratch``/error for the parent."""
+    try:
+        _install(scratch, folder, nice=True)
+    except BaseException as exc:
+        Path(scratch, "error").write_text(f"{exc}\n" if str(exc) else f"{type(exc).__name__}\n")
+        raise SystemExit(1) from None
+
+
+def _install(scratch: str | Path, folder: str | Path, nice: bool = False) -> None:
+    """Build the exported step in ``scratch`` (``make``, niced if ``nice``) and move the library into the cache
+    ``folder`` with its content hash beside it; then remove ``scratch``. Under the entry's lock: where another
+    process built the library meanwhile, nothing is built. A failure leaves make's output in ``scratch``/build.log
+    and raises BuildError with its last line, or naming the signal that killed make."""
+    scratch, folder = Path(scratch), Path(folder)
+    library = folder / f"lib{NAME}.so"
+    with entry_lock(folder):
+        if not entry_ok(library):
+            if nice:
+                os.nice(10)
+            with open(scratch / "build.log", "w") as log:
+                code = subprocess.run(["make", "-s", "-C", str(scratch / "src"), "-j1", "lib", *MAKE_VARS],
+                                      stdout=log, stderr=subprocess.STDOUT).returncode
+            if code < 0:
+                raise BuildError(f"make was killed by {_signal_name(-code)}")
+            if code:
+                lines = (scratch / "build.log").read_text().strip().splitlines()
+                raise BuildError(lines[-1] if lines else f"make exit status {code}")
+            folder.mkdir(mode=0o700, exist_ok=True)
+            install(scratch / "src" / f"lib{NAME}.so", library)
     shutil.rmtree(scratch, ignore_errors=True)

@@ -58,3 +58,54 @@ def test_entries_are_checked_against_their_hash(tmp_path):
     path.write_bytes(b"import os; os.system('planted')\n")
     assert not entry_ok(path)
     assert not entry_ok(tmp_path / "missing.py")
+
+
+def test_an_entry_lock_waits_for_its_holder_and_not_for_a_dead_one(tmp_path):
+    """One build per entry machine-wide: a second builder waits for the holder (a TimeoutError naming its pid
+    after its timeout), and a holder killed with SIGKILL leaves no lock behind (the kernel releases a flock)."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from ocpkit.cache import entry_lock
+
+    entry = tmp_path / "native" / "0123abcd"
+    holder = subprocess.Popen([sys.executable, "-c", "import sys, time; from pathlib import Path; "
+                               "from ocpkit.cache import entry_lock\n"
+                               "with entry_lock(Path(sys.argv[1])):\n print('locked', flush=True); time.sleep(300)",
+                               str(entry)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "locked"
+        with pytest.raises(TimeoutError, match=f"pid {holder.pid}.*building cache entry"):
+            with entry_lock(entry, timeout=0.3):
+                pass
+        holder.send_signal(signal.SIGKILL)
+        holder.wait(10)
+        start = time.monotonic()
+        with entry_lock(entry, timeout=5) as waited:
+            assert not waited and time.monotonic() - start < 1
+    finally:
+        holder.kill()
+        holder.wait()
+
+
+def test_a_compiled_library_that_does_not_load_is_evicted_and_rebuilt_once(cache):
+    from ocpkit import compiled
+
+    fn = square_fn()
+    library = compiled._library(fn, "-O1")  # compiled, not loaded by this process
+    write_entry(library, b"\x7fELF\x01\x01\x01" + bytes(9) + b"\x03\x00\x03\x00" + bytes(200))  # a 32-bit ELF
+    with pytest.warns(RuntimeWarning, match="does not load.*wrong ELF class.*compiling it again"):
+        f = compile_function(fn)
+    np.testing.assert_allclose(np.asarray(f([1.0, 2.0])).ravel(), [2.0, 5.0])
+    assert entry_ok(library) and library.read_bytes()[4] == 2  # ELFCLASS64
+
+
+def test_a_killed_compiler_is_named(cache, tmp_path, monkeypatch):
+    killed = tmp_path / "killed-cc"
+    killed.write_text("#!/bin/sh\nkill -KILL $$\n")
+    killed.chmod(0o755)
+    monkeypatch.setenv("CC", str(killed))
+    with pytest.raises(CompileError, match="the compiler was killed by SIGKILL"):
+        compile_function(square_fn())

@@ -1,4 +1,7 @@
 """LinearMPC's compiled C step (ocpkit.native): the same step as the Python one, its fallbacks, budget and cache."""
+import os
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -93,16 +96,18 @@ def test_damaged_cache_entry_is_rebuilt(ocp, tmp_path, monkeypatch):
     fresh = PROBLEM.ocp(knots=4, horizon=40)
     folder = native.start(fresh, eps=1e-9, max_iter=1000, wait=True).result()
     library = folder / f"lib{native.NAME}.so"
-    library.write_bytes(b"not a library")
+    (folder / "damaged").write_bytes(b"not a library")  # a new file under the name: the loaded one stays mapped
+    os.replace(folder / "damaged", library)
     monkeypatch.setattr(native, "_builds", {})
     with pytest.warns(RuntimeWarning, match="damaged cache entry"):
         again = native.start(PROBLEM.ocp(knots=4, horizon=40), eps=1e-9, max_iter=1000, wait=True).result()
     assert again == folder and library.read_bytes()[:4] == b"\x7fELF"
 
 
-def test_without_a_compiler_the_python_step_runs_and_one_line_says_so(monkeypatch):
+def test_without_a_compiler_the_python_step_runs_and_one_line_says_so(monkeypatch, tmp_path):
     import warnings
 
+    monkeypatch.setenv("OCPKIT_CACHE_DIR", str(tmp_path))  # an empty cache (a cached C step needs no compiler)
     monkeypatch.setenv("CC", "no-such-cc")
     problem = problems.make("nlink:5")
     with warnings.catch_warnings(record=True) as caught:
@@ -173,3 +178,91 @@ def test_background_build_fills_the_cache_even_after_the_process_exits(tmp_path)
     out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, check=True,
                          cwd=tmp_path)
     assert out.stdout.strip() == "True" and not list(tmp_path.glob("native/.build-*"))
+
+
+# --- Cache entries: one that does not load is evicted and rebuilt once; one build per entry machine-wide; a killed
+# build says so. `make` is replaced on PATH by a script that logs each build (and can be killed) before the real one.
+
+def _make_wrapper(folder, monkeypatch, body: str) -> Path:
+    """A `make` first on PATH that runs ``body`` (sh; $LOG is a file in ``folder``) and then the real make."""
+    import shutil
+
+    real = shutil.which("make")
+    bin_dir = folder / "bin"
+    bin_dir.mkdir(parents=True)
+    wrapper = bin_dir / "make"
+    log = folder / "make.log"
+    wrapper.write_text(f"#!/bin/sh\nLOG={log}\n{body}\nexec {real} \"$@\"\n")
+    wrapper.chmod(0o755)
+    monkeypatch.setenv("PATH", f"{bin_dir}{os.pathsep}{os.environ['PATH']}")
+    return log
+
+
+ELF32 = b"\x7fELF\x01\x01\x01" + bytes(9) + b"\x03\x00\x03\x00" + bytes(200)  # a 32-bit x86 ELF header
+
+
+def test_a_cached_library_that_does_not_load_is_evicted_and_rebuilt_once(tmp_path, monkeypatch):
+    """A library whose hash matches but which the loader refuses ("wrong ELF class": another machine's) was
+    warned about on every run and never rebuilt; now it is removed and built again, once."""
+    import subprocess
+    import sys
+    import warnings
+
+    from ocpkit.cache import write_entry
+
+    monkeypatch.setenv("OCPKIT_CACHE_DIR", str(tmp_path / "cache"))
+    # LinearMPC's entry (its eps and max_iter), built by another process: this one must not have loaded the
+    # library path before (dlopen keeps a library by its name).
+    script = ("from ocpkit import problems, native; p = problems.make('nlink:2'); "
+              "print(native.start(p.ocp(knots=4, horizon=30), eps=1e-9, max_iter=10_000, wait=True).result())")
+    folder = Path(subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True,
+                                 env=os.environ).stdout.split()[-1])
+    library = folder / f"lib{native.NAME}.so"
+    write_entry(library, ELF32)  # garbage with a matching hash
+    log = _make_wrapper(tmp_path, monkeypatch, 'echo build >> "$LOG"')
+    monkeypatch.setattr(native, "_builds", {})
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        ctrl = LinearMPC(PROBLEM.ocp(knots=4, horizon=30, compiled=True))
+        assert ctrl.wait_compiled(120) and ctrl.native
+    messages = [str(w.message) for w in caught if issubclass(w.category, RuntimeWarning)]
+    assert len(messages) == 1 and "wrong ELF class" in messages[0] and "building it again" in messages[0], messages
+    assert log.read_text().count("build") == 1 and library.read_bytes()[4] == 2  # ELFCLASS64
+    x, goal = PROBLEM.sample(0)
+    assert ctrl.solve(x, goal).status == SUCCESS
+
+
+def test_concurrent_scripts_build_one_entry_once(tmp_path, monkeypatch):
+    """Four short scripts started together: one build (the entry's lock), and all four then run the C step."""
+    import subprocess
+    import sys
+
+    monkeypatch.setenv("OCPKIT_CACHE_DIR", str(tmp_path / "cache"))
+    log = _make_wrapper(tmp_path, monkeypatch, 'echo build >> "$LOG"; sleep 1')  # widen the window
+    script = ("from ocpkit import problems; from ocpkit.solvers.qp import LinearMPC; "
+              "p = problems.make('nlink:2'); c = LinearMPC(p.ocp(knots=3, horizon=25, compiled=True)); "
+              "print(c.wait_compiled(180))")
+    procs = [subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                              text=True, env=os.environ) for _ in range(4)]
+    outs = [p.communicate(timeout=300) for p in procs]
+    assert [out.strip() for out, _ in outs] == ["True"] * 4, [err[-500:] for _, err in outs]
+    assert log.read_text().count("build") == 1
+    assert not list((tmp_path / "cache").glob("native/.build-*"))
+
+
+def test_a_killed_build_says_it_was_killed(tmp_path, monkeypatch):
+    """make killed (here and now), and the background build's own process killed: each named with its signal,
+    not the last line make printed ("CC mpc.c")."""
+    from ocpkit.export import BuildError
+
+    monkeypatch.setenv("OCPKIT_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.setattr(native, "_builds", {})
+    _make_wrapper(tmp_path / "a", monkeypatch, 'echo "CC mpc.c"; kill -KILL $$')
+    with pytest.raises(BuildError, match="make was killed by SIGKILL"):
+        native.start(PROBLEM.ocp(knots=3, horizon=31), eps=1e-9, max_iter=1000, wait=True)
+    # The background build's own process (make's parent, the child that runs it) killed.
+    _make_wrapper(tmp_path / "b", monkeypatch, 'if grep -q "ocpkit.native import _child" /proc/$PPID/cmdline; then '
+                                               'kill -KILL $PPID; exit 1; fi')
+    future = native.start(PROBLEM.ocp(knots=3, horizon=32), eps=1e-9, max_iter=1000)
+    with pytest.raises(BuildError, match=r"its build process \(pid \d+\) was killed by SIGKILL"):
+        future.result(120)

@@ -48,7 +48,7 @@ def init(arch: str = "auto") -> str:
         with contextlib.redirect_stdout(sys.stderr):
             threads = {"cpu_max_num_threads": _cpu_threads()} if os.environ.get(CPU_THREADS) else {}
             ti.init(arch=ti.cuda if use_cuda else ti.cpu, default_fp=ti.f64,
-                    offline_cache=True, log_level=ti.WARN, unrolling_limit=0, **threads)
+                    log_level=ti.WARN, unrolling_limit=0, **_offline_cache(), **threads)
     running = current_arch()
     if arch == "cuda" and running != "cuda" and not started_before:
         raise ArchUnavailable("arch 'cuda' was asked for, but Taichi found no usable CUDA GPU (the driver loads, "
@@ -57,6 +57,26 @@ def init(arch: str = "auto") -> str:
         raise RuntimeError(f"arch={arch!r} requested but Taichi already runs on {running!r} in "
                            f"this process (it can be started only once)")
     return running
+
+
+def _offline_cache() -> dict:
+    """ti.init's offline-cache settings: Taichi's kernel cache (``$TI_OFFLINE_CACHE_FILE_PATH``,
+    ~/.cache/taichi/ticache) where it can be written. On a read-only one Taichi cannot take its lock, so it neither
+    loads nor stores kernels, and warns three times a run to "run 'ti cache clean'" (even with the cache off): there,
+    the cache is off and pointed at a folder of this process's own, removed at exit."""
+    import atexit
+    import shutil
+    import tempfile
+
+    path = os.environ.get("TI_OFFLINE_CACHE_FILE_PATH") or impl.default_cfg().offline_cache_file_path
+    try:
+        os.makedirs(path, exist_ok=True)
+        with tempfile.TemporaryFile(dir=path):
+            return {"offline_cache": True}
+    except OSError:
+        private = tempfile.mkdtemp(prefix="ocpkit-ticache-")
+        atexit.register(shutil.rmtree, private, True)
+        return {"offline_cache": False, "offline_cache_file_path": private}
 
 
 def _cpu_threads() -> int:

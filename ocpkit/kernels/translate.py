@@ -27,6 +27,7 @@ import numpy as np
 import taichi as ti
 
 from ocpkit.cache import cache_dir as shared_cache_dir
+from ocpkit.cache import read_only
 from ocpkit.kernels import runtime
 
 # Bumped whenever the generated text changes, so stale cache files are never imported.
@@ -179,7 +180,7 @@ def translate(function: ca.Function, *, precision: str = "float64") -> TaichiFun
             if cached is not None:
                 warnings.warn(f"kernel cache entry {path} differs from its translation (damaged or modified): "
                               "rewritten", RuntimeWarning, stacklevel=2)
-            _write_atomically(path, text)
+            path = _write_atomically(path, text)
     module = _import(path, module_name)
     return TaichiFunction(
         name=function.name(),
@@ -263,13 +264,36 @@ def _literal(value: float) -> str:
     return repr(float(value))  # repr round-trips a double exactly
 
 
-def _write_atomically(path: Path, text: str) -> None:
-    # Other processes (Dask workers, parallel tests) may generate the same file at once.
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
+def _write_atomically(path: Path, text: str) -> Path:
+    """Write the generated module (other processes, Dask workers or parallel tests, may generate the same file at
+    once); where the cache is read-only, into a folder of this process's own instead (the text is regenerated
+    every run anyway: nothing is lost but the file). Returns the path written."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
+    except OSError as exc:
+        if not read_only(exc):
+            raise
+        path = _private_dir() / path.name
+        fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
     with os.fdopen(fd, "w") as handle:
         handle.write(text)
     os.replace(tmp, path)
+    return path
+
+
+_private = []
+
+
+def _private_dir() -> Path:
+    """A folder of this process's own for generated modules a read-only cache cannot take (removed at exit)."""
+    if not _private:
+        import atexit
+        import shutil
+
+        _private.append(Path(tempfile.mkdtemp(prefix="ocpkit-kernels-")))
+        atexit.register(shutil.rmtree, _private[0], True)
+    return _private[0]
 
 
 def _import(path: Path, module_name: str):
