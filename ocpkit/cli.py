@@ -1,4 +1,4 @@
-"""The `ocpkit` command line: solve, simulate, demo, study, reproduce, export and bench.
+"""The `ocpkit` command line: solve, simulate, demo, study, reproduce, export, build and bench.
 
 Wherever a problem is named, a problem spec is accepted: a registered name (``pendulum``, ``nlink:7``, …),
 ``package.module:Name`` or ``path/to/file.py:Name`` (see :mod:`ocpkit.problems`).
@@ -160,6 +160,10 @@ def _parser() -> argparse.ArgumentParser:
     exp.add_argument("--seed", type=int, default=0, help="seed of the example closed loop's start and goal")
     exp.add_argument("--out", default="export", help="output folder (absent or empty unless --force)")
     exp.add_argument("--force", action="store_true", help="export into a non-empty --out, overwriting its files")
+    pre = sub.add_parser("build", help="fill the cache with a problem's default C step and compiled model ahead of "
+                                       "deployment (a read-only cache is then used as it is)")
+    _add_problem_args(pre)
+    pre.add_argument("--error", type=float, default=1.0, help="model error multiplier of the controller's model")
     bench = sub.add_parser("bench", help="benchmarks that print medians and ratios")
     bench.add_argument("what", choices=tuple(_BENCHMARKS))
     bench.add_argument("--quick", action="store_true", help="a smaller grid (minutes instead of tens)")
@@ -444,6 +448,46 @@ def _bench(args):
     return 0
 
 
+def _prebuild(args):
+    """`ocpkit build`: what the default LinearMPC of the problem's OCP loads from the cache — its C step and the
+    compiled affine model of its Python step — built into the cache unless there (and loading), paths printed."""
+    import time
+
+    from ocpkit import compiled, native
+    from ocpkit.cache import cache_root
+    from ocpkit.ocp import BACKGROUND_MIN_INSTRUCTIONS
+    from ocpkit.solvers.qp import LinearMPC
+
+    problem = problems.make(args.problem)
+    ocp = _ocp(problem, args, error=args.error)
+    print(f"cache: {cache_root()} (set OCPKIT_CACHE_DIR to fill another)")
+    size = ocp.model.jacobian.n_instructions()
+    start = time.time()
+    if native.wanted(ocp):
+        LinearMPC(ocp, native=True)  # builds the C step here and now (or finds it), and loads it
+        for folder in native.built(ocp):
+            library = folder / f"lib{native.NAME}.so"
+            print(f"C step (LinearMPC: condensed, daqp, linearization goal): {library} ({_how(library, start)})")
+    else:
+        why = ("a linear model" if ocp.model.linear else
+               f"a model of {size} VM instructions, below {BACKGROUND_MIN_INSTRUCTIONS}"
+               if size < BACKGROUND_MIN_INSTRUCTIONS else
+               f"a knot QP of {ocp.knots * ocp.nu} variables, over ocpkit.native.MAX_VARIABLES = {native.MAX_VARIABLES}")
+        print(f"C step: none (the default LinearMPC keeps its Python step here: {why})")
+    if size >= BACKGROUND_MIN_INSTRUCTIONS:
+        start = time.time()
+        library = compiled.prebuild(ocp.model.affine(ocp.dt, ocp.substeps))
+        print(f"compiled affine model (the Python step's): {library} ({_how(library, start)})")
+    else:
+        print(f"compiled affine model: none (a model of {size} VM instructions, below {BACKGROUND_MIN_INSTRUCTIONS}, "
+              f"stays on CasADi's VM)")
+    return 0
+
+
+def _how(library: Path, start: float) -> str:
+    return "built now" if library.stat().st_mtime >= start - 0.05 else "already in the cache"
+
+
 def _export(args):
     from ocpkit.export import BuildError, build, check_tools, export
 
@@ -620,7 +664,8 @@ def main(argv=None) -> int:
     args = _parser().parse_args(_debug_first(argv))
     try:
         commands = {"solve": _solve, "simulate": _simulate, "demo": _demo, "study": _study,
-                    "reproduce": _reproduce, "export": _export, "bench": _bench}
+                    "reproduce": _reproduce, "export": _export, "bench": _bench,
+                    "build": _prebuild}
         return commands[args.command](args)
     except Exception as exc:
         if not _one_line_error(exc):
