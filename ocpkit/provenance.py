@@ -4,8 +4,8 @@ A trial's **manifest** names the source files the trial may execute, each with a
 versions of :data:`DEPENDENCIES`. Its files are
 
 * the module defining the trial function and, following ``import`` statements (at any depth, inside functions
-  too), every module of ocpkit and of the user's own code (a file outside the standard library and
-  site-packages) that it imports. A package that imports its submodules by computed name
+  too), every module of ocpkit, of the trial's own top-level package and of the user's own code (a file outside
+  the standard library and site-packages) that it imports. A package that imports its submodules by computed name
   (``import_module(f"ocpkit.solvers.{name}")``) counts all of them when it is itself imported by name (``from
   ocpkit import solvers``), not when it is only the folder of a module (``ocpkit.studies`` of
   ``ocpkit.studies.closed_loop``);
@@ -72,8 +72,8 @@ def manifests(fn, trials) -> list[tuple[str, dict]]:
 
 
 def _manifest(fn, refs: tuple) -> dict:
-    walk = _Walk()
     name = getattr(fn, "__module__", None) or ""
+    walk = _Walk(name.partition(".")[0])
     path = _locate(name) if name else None
     if path is not None:
         walk.visit(name, name, path, explicit=True)
@@ -109,7 +109,7 @@ def manifest_hash(manifest: Mapping) -> str:
 
 def changes(old: Mapping | None, new: Mapping) -> list[str]:
     """What differs from manifest ``old`` to ``new``, as phrases naming the modules, files and versions
-    (["its code was recorded without a manifest …"] when ``old`` is None)."""
+    (one phrase saying so when ``old`` is None: trials stored before manifests were kept)."""
     if old is None:
         return ["code recorded before ocpkit 0.2.0 or by another program, without the list of its files, so what "
                 "changed is unknown"]
@@ -131,14 +131,15 @@ def changes(old: Mapping | None, new: Mapping) -> list[str]:
 class _Walk:
     """Source files reached from the roots through their imports: ``code`` maps each one's label to its digest."""
 
-    def __init__(self):
+    def __init__(self, package: str):
+        self.package = package            # the trial's top-level package: followed even when installed
         self.code: dict[str, str] = {}
         self.seen: dict[str, bool] = {}   # path -> reached as an explicitly imported module
 
     def module(self, name: str, explicit: bool) -> None:
         """Module ``name`` and its parent packages (importing a.b.c runs a/__init__.py and a/b/__init__.py)."""
         path = _locate(name)
-        if path is None or not _followed(name, path):
+        if path is None or not (_followed(name, path) or (self.package and name.partition(".")[0] == self.package)):
             return
         if "." in name:
             self.module(name.rpartition(".")[0], explicit=False)
@@ -161,7 +162,7 @@ class _Walk:
             elif ref[0] == "from" and not again:
                 base = _absolute(name, package, ref[1], ref[2])
                 base_path = _locate(base) if base is not None else None
-                if base_path is None or not _followed(base, base_path):
+                if base_path is None or not (_followed(base, base_path) or base.partition(".")[0] == self.package):
                     continue
                 submodules = [f"{base}.{n}" for n in ref[3] if n != "*" and _locate(f"{base}.{n}")]
                 self.module(base, explicit=len(submodules) < len(ref[3]))  # an attribute of base is used
