@@ -96,7 +96,7 @@ def _library(fn: ca.Function, flags: str) -> Path:
                 _build(fn, flags, folder, library)
     except CacheReadOnlyError:
         state = "is damaged" if library.exists() else "is not in the cache"
-        raise read_only_error(f"the compiled {fn.name()} ({library}) {state}", folder.parent) from None
+        raise read_only_error(f"the compiled function {fn.name()!r} ({library}) {state}", folder.parent) from None
     return library
 
 

@@ -99,7 +99,15 @@ def _start(ocp: OCP, eps: float, max_iter: int, wait: bool) -> Future | None:
     try:
         scratch, writable = scratch_dir(root, f".build-{os.getpid()}-"), True
     except CacheReadOnlyError:  # generated all the same: its hash names the entry to look for
-        scratch, writable = Path(tempfile.mkdtemp(prefix="ocpkit-native-")), False
+        try:
+            scratch, writable = Path(tempfile.mkdtemp(prefix="ocpkit-native-")), False
+        except OSError as exc:  # a read-only root without a writable temporary folder
+            error = read_only_error(f"LinearMPC's C step cannot be looked up: its code is generated to a temporary "
+                                    f"folder, and none can be written ({exc.strerror or exc}; set TMPDIR)", root)
+            if wait:
+                raise error from None
+            warn_read_only(error, "LinearMPC runs its Python step", stacklevel=4)
+            return None
     try:
         export(ocp, scratch / "src", name=NAME, qp="daqp", eps=eps, max_iter=max_iter, linearization="goal")
         key = _key(scratch / "src")
