@@ -68,9 +68,13 @@ def _load(name: str, library: Path, rebuild) -> ca.Function:
     problem = load_problem(library, name)
     if problem is None:
         return ca.external(name, str(library))
+    try:
+        evict(library, seen)
+    except CacheReadOnlyError as exc:
+        raise read_only_error(f"the compiled function {name!r} ({library}) does not load ({problem})",
+                              library.parent.parent) from exc
     warnings.warn(f"compiled cache entry {library} does not load ({problem}): removed, compiling it again",
                   RuntimeWarning, stacklevel=3)
-    evict(library, seen)
     library = rebuild()
     problem = load_problem(library, name)
     if problem is not None:
