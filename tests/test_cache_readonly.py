@@ -215,3 +215,13 @@ def test_taichi_kernels_on_a_simulated_read_only_cache(read_only, taichi_arch):
     assert kernel.path.exists() and not kernel.path.is_relative_to(root)
     (out,) = kernel(np.array([[0.5, 2.0]]))
     np.testing.assert_allclose(out.ravel(), [np.sin(0.5) * 2.0 + 1.5])
+
+
+@pytest.mark.slow
+def test_every_cache_row_of_bench_faults_acceptable():
+    from ocpkit.benchmarks.faults import cache_rows
+
+    rows = cache_rows(out=lambda line: None)
+    assert len(rows) == (3 if readonly.method() else 1)
+    bad = [(r.case, r.solver, r.detail) for r in rows if not r.acceptable]
+    assert not bad, bad
