@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ocpkit import problems, solvers, studies
+from ocpkit import __version__, problems, solvers, studies
 from ocpkit.controller import LINEARIZATIONS, TRAJECTORY, Controller
 
 
@@ -124,6 +124,7 @@ def _parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="ocpkit", description="Parameterized and GPU-parallelized real-time MPC.")
     parser.add_argument("--debug", action="store_true",
                         help="on an error, print its full traceback (anywhere on the command line)")
+    parser.add_argument("--version", action="version", version=f"ocpkit {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
     solve = sub.add_parser("solve", help="one MPC solve from a seeded random state and goal")
     _add_controller_args(solve)

@@ -271,3 +271,11 @@ def test_sparse_proxqp_with_knots_on_a_long_horizon_is_announced_before_work(cap
     args = cli._parser().parse_args(["solve", "pendulum", "--horizon", "1000000", "--form", "sparse", "--qp", "osqp"])
     cli._check_size(make("pendulum"), args)
     assert "ProxQP" not in capsys.readouterr().err
+
+
+def test_version(capsys):
+    from ocpkit import __version__, cli
+
+    with pytest.raises(SystemExit) as exit_:
+        cli.main(["--version"])
+    assert exit_.value.code == 0 and capsys.readouterr().out.strip() == f"ocpkit {__version__}"
