@@ -71,7 +71,7 @@ def _run_read_only(folder: Path, root: Path, command: list[str], timeout: float 
 def test_a_read_only_cache_with_a_sound_entry_is_used_as_it_is(tmp_path):
     root = tmp_path / "cache"
     filled = subprocess.run([sys.executable, "-c", SCRIPT], env=_env(root), capture_output=True, text=True,
-                            timeout=600)  # the C step built in the background by a first run, as it is today
+                            timeout=600, cwd=tmp_path)  # not the checkout: it would shadow the installed ocpkit  # the C step built in the background by a first run, as it is today
     assert filled.returncode == 0 and json.loads(filled.stdout.splitlines()[-1])["compiled"], filled.stderr
     before = _listing(root)
 
@@ -92,7 +92,8 @@ def test_ocpkit_build_fills_a_cache_for_a_read_only_deployment(tmp_path):
     C step is loaded at once and so is the compiled model (the Python step's, here with native=False)."""
     root = tmp_path / "cache"
     args = [SPEC, "--knots", str(KNOTS), "--horizon", str(HORIZON)]
-    built = subprocess.run([*OCPKIT, "build", *args], env=_env(root), capture_output=True, text=True, timeout=600)
+    built = subprocess.run([*OCPKIT, "build", *args], env=_env(root), capture_output=True, text=True, timeout=600,
+                           cwd=tmp_path)
     assert built.returncode == 0, built.stderr
     lines = built.stdout.splitlines()
     (step,) = [line for line in lines if line.startswith("C step")]

@@ -221,7 +221,7 @@ DIVERGING_ARM = textwrap.dedent('''
 
     class Panda(URDFRobot):
         def __init__(self):
-            super().__init__("tests/data/panda/panda.urdf", damping=1.0, friction=0.0, gravity_compensation=False,
+            super().__init__(sys.argv[1], damping=1.0, friction=0.0, gravity_compensation=False,
                              locked_joints=["panda_finger_joint1", "panda_finger_joint2"])
         def defaults(self):
             d = super().defaults(); d["Q_terminal"] = 10 * d["Q"]; return d
@@ -236,11 +236,12 @@ DIVERGING_ARM = textwrap.dedent('''
 
 @needs_cc
 @pytest.mark.slow
-def test_diverging_arm_c_step_never_succeeds_in_fresh_processes():
+def test_diverging_arm_c_step_never_succeeds_in_fresh_processes(tmp_path):
     """The arm of the report (light wrist, damping 1, half the inertia: the model's RK4 step diverges, the QP's
     Hessian reaches 7e69 and is numerically indefinite): in each fresh process the C step says "exception"
     (DAQP nonconvex, or its Hessian refused as ill-conditioned before), never success."""
     for _ in range(3):
-        out = subprocess.run([sys.executable, "-c", DIVERGING_ARM], capture_output=True, text=True, timeout=600,
-                             check=True, cwd=Path(__file__).resolve().parents[1]).stdout
+        urdf = Path(__file__).resolve().parent / "data" / "panda" / "panda.urdf"
+        out = subprocess.run([sys.executable, "-c", DIVERGING_ARM, str(urdf)], capture_output=True, text=True,
+                             timeout=600, check=True, cwd=tmp_path).stdout  # not the checkout: it shadows ocpkit
         assert "success" not in out and ("DAQP nonconvex" in out or "ill-conditioned" in out), out

@@ -216,7 +216,7 @@ def test_a_cached_library_that_does_not_load_is_evicted_and_rebuilt_once(tmp_pat
     script = ("from ocpkit import problems, native; p = problems.make('nlink:2'); "
               "print(native.start(p.ocp(knots=4, horizon=30), eps=1e-9, max_iter=10_000, wait=True).result())")
     folder = Path(subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True,
-                                 env=os.environ).stdout.split()[-1])
+                                 env=os.environ, cwd=tmp_path).stdout.split()[-1])
     library = folder / f"lib{native.NAME}.so"
     write_entry(library, ELF32)  # garbage with a matching hash
     log = _make_wrapper(tmp_path, monkeypatch, 'echo build >> "$LOG"')
@@ -243,7 +243,7 @@ def test_concurrent_scripts_build_one_entry_once(tmp_path, monkeypatch):
               "p = problems.make('nlink:2'); c = LinearMPC(p.ocp(knots=3, horizon=25, compiled=True)); "
               "print(c.wait_compiled(180))")
     procs = [subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                              text=True, env=os.environ) for _ in range(4)]
+                              text=True, env=os.environ, cwd=tmp_path) for _ in range(4)]
     outs = [p.communicate(timeout=300) for p in procs]
     assert [out.strip() for out, _ in outs] == ["True"] * 4, [err[-500:] for _, err in outs]
     assert log.read_text().count("build") == 1

@@ -518,11 +518,12 @@ def cache_rows(out=print) -> list[RealTimeRow]:
             filled, empty = tmp / "filled", tmp / "empty"
             empty.mkdir(mode=0o700)
             subprocess.run([sys.executable, "-m", "ocpkit.cli", "build", "nlink:13", "--knots", "5"], check=True,
-                           env={**os.environ, "OCPKIT_CACHE_DIR": str(filled)}, capture_output=True, timeout=900)
+                           env={**os.environ, "OCPKIT_CACHE_DIR": str(filled)}, capture_output=True, timeout=900,
+                           cwd=tmp)  # the scripts run outside any checkout, which would shadow the installed ocpkit
             for label, root in (("sound entry", filled), ("no entry", empty)):
                 before = sorted(p.name for p in root.rglob("*"))
                 run = readonly.run(root, _cache_script(0), env={**os.environ, "OCPKIT_CACHE_DIR": str(root)},
-                                   capture_output=True, text=True, timeout=600)
+                                   capture_output=True, text=True, timeout=600, cwd=tmp)
                 r = _script_result(run)
                 written = sorted(p.name for p in root.rglob("*")) != before
                 if "error" in r:
@@ -564,7 +565,8 @@ def _concurrent_row(tmp, scripts: int = 4) -> RealTimeRow:
     (bin_dir / "make").chmod(0o755)
     env = {**os.environ, "OCPKIT_CACHE_DIR": str(root), "PATH": f"{bin_dir}{os.pathsep}{os.environ['PATH']}"}
     t0 = time.perf_counter()
-    procs = [subprocess.Popen(_cache_script(300), env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    procs = [subprocess.Popen(_cache_script(300), env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                              cwd=tmp)
              for _ in range(scripts)]
     results = []
     for proc in procs:
