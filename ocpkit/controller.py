@@ -69,12 +69,20 @@ class OperationCosts:
         self._seen: dict[str, deque] = {}
         self._like = dict(like or {})  # op -> a measured op that bounds it until it is measured itself
         self._decay: dict[str, float] = {}  # op -> max(SKIP_FLOOR, SKIP_DECAY ** refusals since last measured)
+        self._twice: dict[str, str] = {}  # op -> an op of half its size, until it is measured itself
 
     def add(self, op: str, seconds: float) -> None:
         self._seen.setdefault(op, deque(maxlen=5)).append(seconds)
         self._decay.pop(op, None)
 
+    def double_of(self, op: str, smaller: str) -> None:
+        """Until ``op`` is measured, predict it at twice ``smaller`` (an operation of twice its size)."""
+        if op not in self._seen:
+            self._twice[op] = smaller
+
     def predict(self, op: str) -> float:
+        if op not in self._seen and op in self._twice:
+            return 2.0 * self.predict(self._twice[op])
         seen = self._seen.get(op) or self._seen.get(self._like.get(op))
         # statistics.median, not np.median: numpy's first median call in a process took 1-2 ms (lazy set-up),
         # which the first budgeted step paid (a 1 ms budget overran to 2.4 ms).

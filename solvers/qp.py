@@ -62,9 +62,13 @@ class _ProxQP:
     (warm-started from its previous result); knot bounds go to the dense backend as box constraints.
 
     ProxQP's own ``max_iter`` counts outer (BCL) iterations only, each allowing ``max_iter_in`` inner ones
-    (15 M inner iterations at x = 1e20 on the pendulum), so it is run in chunks of at most CHUNK_OUTER outer ×
-    CHUNK_INNER inner iterations, continuing from the previous iterate: ``max_iter`` caps the total inner
-    iterations, and with a deadline a chunk (or the init/update) starts only if its measured time fits.
+    (15 M inner iterations at x = 1e20 on the pendulum), so it is run in chunks of outer × CHUNK_INNER inner
+    iterations, continuing from the previous iterate: ``max_iter`` caps the total inner iterations, and with a
+    deadline a chunk (or the init/update) starts only if its measured time fits. A chunk restarts ProxQP's
+    BCL tolerances, so chunks of a fixed 5 outer iterations never converged on a QP that needs more (the
+    pendulum with an active hard state bound: 10,000 iterations, where one solve takes 13): the outer count
+    starts at CHUNK_OUTER and doubles after every chunk that ends at its limit, each size timed on its own
+    (one not yet measured is predicted at twice the size below it).
 
     A warm start from the previous step can leave ProxQP stalled with zero residuals and an open duality gap
     (the pendulum driven against a soft state bound: 10,000 iterations on every later step, where a cold solve
@@ -72,7 +76,7 @@ class _ProxQP:
     QP is solved again from a cold start with what is left of the iterations and the budget.
     """
 
-    CHUNK_OUTER, CHUNK_INNER = 5, 50
+    CHUNK_OUTER, CHUNK_MAX_OUTER, CHUNK_INNER = 5, 640, 50
     WARM_INNER = 500
     GAP_REL = 1e-12
 
@@ -142,7 +146,7 @@ class _ProxQP:
         warm_started = reuse or bool(first)
         costs.add(op, time.perf_counter() - t)
         out = px.QPSolverOutput
-        iterations, chunks, why = 0, 0, None
+        iterations, chunks, why, outer = 0, 0, None, self.CHUNK_OUTER
         while True:
             left_iter = max_iter - iterations
             if left_iter <= 0:
@@ -150,16 +154,20 @@ class _ProxQP:
                 break
             if warm_started and iterations >= self.WARM_INNER:  # stalled from the warm start
                 return self._cold_again(qp, deadline, left_iter, iterations)
-            if not costs.fits("chunk", _left(deadline)):
+            chunk = f"chunk x{outer}"
+            if not costs.fits(chunk, _left(deadline)):
                 why = (f"time budget reached after {iterations} iterations (a chunk measured at "
-                       f"{1e3 * costs.predict('chunk'):.3g} ms)")
+                       f"{1e3 * costs.predict(chunk):.3g} ms)")
                 break
             s.max_iter_in = min(self.CHUNK_INNER, left_iter)
-            s.max_iter = max(1, min(self.CHUNK_OUTER, left_iter // (s.max_iter_in + 1)))
+            s.max_iter = max(1, min(outer, left_iter // (s.max_iter_in + 1)))
             t = time.perf_counter()
             solver.solve(*first) if first else solver.solve()
-            costs.add("chunk", time.perf_counter() - t)
+            costs.add(chunk, time.perf_counter() - t)
             first, chunks = (), chunks + 1
+            if outer < self.CHUNK_MAX_OUTER:
+                outer *= 2
+                costs.double_of(f"chunk x{outer}", chunk)
             s.initial_guess = px.InitialGuess.WARM_START_WITH_PREVIOUS_RESULT
             iterations += solver.results.info.iter
             if solver.results.info.status != out.PROXQP_MAX_ITER_REACHED:

@@ -223,3 +223,11 @@ def test_ceiling_grows_with_the_qp():
     assert ctrl.ceiling == LinearMPC.CEILING_MIN
     ctrl.CEILING_MIN = 0.0  # the floor lowered: what is left is the per-variable part
     assert ctrl.ceiling == pytest.approx(LinearMPC.CEILING_PER_VARIABLE * (201 * 2 + 5))
+
+
+def test_proxqp_chunks_converge_where_a_solve_needs_many_outer_iterations():
+    """Chunks of a fixed 5 outer iterations restarted ProxQP's BCL tolerances every time and never converged on the
+    pendulum against an active hard state bound (10,000 iterations, where one solve takes 13)."""
+    ocp = PENDULUM.ocp(knots=3, horizon=10, x_min=[-np.inf, -1.0], x_max=[np.inf, 1.0])
+    sol = LinearMPC(ocp, qp="proxqp", state_bounds="hard", native=False).solve([0.0, 0.0], [np.pi, 0.0])
+    assert sol.ok and sol.iterations < 100, (sol.raw_status, sol.iterations)
