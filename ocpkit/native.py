@@ -152,8 +152,11 @@ def _start(ocp: OCP, eps: float, max_iter: int, wait: bool) -> Future | None:
         _build(scratch, folder, future, background=False)
         future.result()
     else:
-        threading.Thread(target=_build, args=(scratch, folder, future), name=f"ocpkit-native-{key[:8]}",
-                         daemon=True).start()
+        # The build's child process starts here, not in the thread: a script that exits right after the
+        # constructor ends its daemon threads, and one that had not spawned the child yet left the build undone.
+        child = None if entry_ok(folder / f"lib{NAME}.so") else _spawn(scratch, folder)
+        threading.Thread(target=_build, args=(scratch, folder, future, True, child),
+                         name=f"ocpkit-native-{key[:8]}", daemon=True).start()
     return future
 
 
@@ -183,16 +186,20 @@ def _load_problem(library: Path) -> str | None:
     return load_problem(library, f"{NAME}_step_timed")
 
 
-def _build(scratch: Path, folder: Path, future: Future, background: bool = True) -> None:
+def _build(scratch: Path, folder: Path, future: Future, background: bool = True,
+           child: subprocess.Popen | None = None) -> None:
     """Resolve ``future`` with ``folder`` once it holds a sound library that loads: the cached one, or one built
     from ``scratch``; a cached library that does not load is removed and built once more.
 
     In the background the build is a child process in a session of its own at lower priority: it finishes and
     fills the cache even when this process exits first (a short script's next run finds the C step ready). A
-    caller that waits builds here at full priority (niced on a busy machine the Panda's build took 33 s, not 4)."""
+    caller that waits builds here at full priority (niced on a busy machine the Panda's build took 33 s, not 4).
+    ``child``: that child, already started (:func:`_spawn`)."""
     library = folder / f"lib{NAME}.so"
     try:
-        if entry_ok(library):
+        if child is not None:
+            _make(scratch, folder, background, child)
+        elif entry_ok(library):
             seen, problem = library.stat(), _load_problem(library)
             if problem is None:
                 shutil.rmtree(scratch, ignore_errors=True)
@@ -204,7 +211,8 @@ def _build(scratch: Path, folder: Path, future: Future, background: bool = True)
         elif library.exists():
             warnings.warn(f"damaged cache entry {library} (its content does not match the hash recorded beside "
                           f"it): rebuilding it", RuntimeWarning, stacklevel=2)
-        _make(scratch, folder, background)
+        if child is None:
+            _make(scratch, folder, background)
         problem = _load_problem(library) if entry_ok(library) else "no sound library after the build"
         if problem is not None:
             raise BuildError(f"LinearMPC's C step {library}, built again, does not load: {problem}")
@@ -216,9 +224,20 @@ def _build(scratch: Path, folder: Path, future: Future, background: bool = True)
     future.set_result(folder)
 
 
-def _make(scratch: Path, folder: Path, background: bool) -> None:
+def _spawn(scratch: Path, folder: Path) -> subprocess.Popen:
+    """The background build's child process (:func:`_child`), in a session of its own so that it outlives us."""
+    path = [str(Path(__file__).resolve().parents[1]), os.environ.get("PYTHONPATH", "")]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in path if p)}
+    command = [sys.executable, "-c", "import sys; from ocpkit.native import _child; _child(*sys.argv[1:])",
+               str(scratch), str(folder)]
+    return subprocess.Popen(command, env=env, cwd=scratch, start_new_session=True, stdin=subprocess.DEVNULL,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+
+def _make(scratch: Path, folder: Path, background: bool, child: subprocess.Popen | None = None) -> None:
     """Build the library of ``scratch`` into the cache ``folder`` (:func:`_install`): here, or in a child process
-    at ``nice`` +10 in a session of its own. BuildError naming what failed, or which signal killed what."""
+    at ``nice`` +10 in a session of its own (``child``, if already started). BuildError naming what failed, or
+    which signal killed what."""
     check_tools()
     if not background:
         try:
@@ -226,12 +245,7 @@ def _make(scratch: Path, folder: Path, background: bool) -> None:
         except BuildError as exc:
             raise BuildError(f"building LinearMPC's C step failed: {exc}") from None
         return
-    path = [str(Path(__file__).resolve().parents[1]), os.environ.get("PYTHONPATH", "")]
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in path if p)}
-    command = [sys.executable, "-c", "import sys; from ocpkit.native import _child; _child(*sys.argv[1:])",
-               str(scratch), str(folder)]
-    child = subprocess.Popen(command, env=env, cwd=scratch, start_new_session=True, stdin=subprocess.DEVNULL,
-                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    child = child or _spawn(scratch, folder)
     code = child.wait()
     if code < 0:
         raise BuildError(f"building LinearMPC's C step failed: its build process (pid {child.pid}) was killed by "
