@@ -60,7 +60,7 @@ import numpy as np
 from ocpkit._checks import array, choice, integer, positive
 from ocpkit.certificate import TESTS, Certificate
 from ocpkit.certificate import TOL as CERT_TOL
-from ocpkit.controller import STATUSES, SUCCESS, Controller, Solution
+from ocpkit.controller import EXCEPTION, INFEASIBLE, LIMITED, STATUSES, SUCCESS, Controller, Solution
 from ocpkit.ocp import OCP
 from ocpkit.problem import check_dynamics
 from ocpkit.transcription import ROUNDING_MARGIN, CondensedQP
@@ -331,9 +331,12 @@ def _model_functions(ocp: OCP, name: str):
     return fj, step, (jac.sparsity_out(1).get_triplet(), jac.sparsity_out(2).get_triplet())
 
 
-# DAQP's exit flags (daqp/include/constants.h), and the ocpkit status of each failure.
-DAQP_EXIT = {1: "optimal", 2: "soft optimal", -1: "infeasible", -2: "cycling", -3: "unbounded",
-             -4: "iteration limit", -5: "nonconvex", -6: "overdetermined initial working set", -7: "time limit"}
+# DAQP's exit flags (daqp/include/constants.h): their names and ocpkit statuses, for the Python step
+# (solvers/qp.py) and the C step's failures alike.
+DAQP_EXIT = {1: ("optimal", SUCCESS), 2: ("soft optimal", SUCCESS), -1: ("infeasible", INFEASIBLE),
+             -2: ("cycling", LIMITED), -3: ("unbounded", INFEASIBLE), -4: ("iteration limit", LIMITED),
+             -5: ("nonconvex", EXCEPTION), -6: ("overdetermined initial working set", EXCEPTION),
+             -7: ("time limit", LIMITED)}
 # CasADi 3.8's generated DAQP call: casadi_daqp_solve returns 1 after a failed set-up, which its caller ignores
 # before reading d_qp.success, never set on that path. Fixed, the generated function returns DAQP's exit flag on
 # any failure (set-up or solve) and 0 on success.
@@ -341,6 +344,12 @@ _DAQP_FIX = (("  if (flag<0) return 1;\n", "  if (flag<0) { d->return_status = f
              ("  casadi_daqp_solve(d, arg, res, iw, w);\n  if (!d_qp.success) {\n    return -1;\n  }\n",
               "  d_qp.success = 0;\n  casadi_daqp_solve(d, arg, res, iw, w);\n"
               "  if (!d_qp.success) return d->return_status == 1 ? -1 : d->return_status;\n"))
+
+
+def daqp_exit_name(flag: int) -> str:
+    """DAQP's exit flag in words, as a raw status."""
+    name = DAQP_EXIT[flag][0] if flag in DAQP_EXIT else f"exit flag {flag}"
+    return f"DAQP {name}" + (" (Hessian not positive definite)" if flag == -5 else "")
 
 
 def _fix_daqp_setup(path: Path) -> None:
@@ -1282,10 +1291,12 @@ void ${name}_dims(int* nx, int* nu, int* knots, int* horizon) {
 
 def _wrapper(name: str, qp: str, linearization: str, tr: CondensedQP, jac) -> str:
     N = name.upper()
-    status_of_rc = {  # qrqp returns 4 when it finds no search direction (an infeasible or degenerate QP)
-        "qrqp": f"rc == 4 ? {N}_INFEASIBLE : {N}_LIMITED",
-        "daqp": f"(rc == -1 || rc == -3) ? {N}_INFEASIBLE : (rc == -5 || rc == -6) ? {N}_EXCEPTION : {N}_LIMITED",
-    }.get(qp, f"{N}_LIMITED")
+    # a nonzero return: qrqp's 4 is "no search direction" (an infeasible or degenerate QP); DAQP's failed exit
+    # flags as DAQP_EXIT says (its successes return 0)
+    failures = {"qrqp": {4: INFEASIBLE},
+                "daqp": {flag: status for flag, (_, status) in DAQP_EXIT.items() if status != SUCCESS}}.get(qp, {})
+    status_of_rc = "".join(f"rc == {rc} ? {N}_{status.upper()} : " for rc, status in failures.items()
+                           if status != LIMITED) + f"{N}_LIMITED"
     return _WRAPPER.substitute(name=name, N=N, status_of_rc=status_of_rc, qp=qp,
                                constants=_constants(tr, linearization, jac))
 
@@ -1599,8 +1610,7 @@ def _explain_rc(name: str, qp: str, rc: int, residuals) -> str:
         return (f"{name}: Hessian ill-conditioned (rounding beyond {ROUNDING_MARGIN:g} x the input weight's "
                 f"curvature): the prediction model diverges over the horizon")
     if qp == "daqp" and rc in DAQP_EXIT:
-        why = " (Hessian not positive definite)" if rc == -5 else ""
-        return f"{name}_qp_solve returned {rc}: DAQP {DAQP_EXIT[rc]}{why}"
+        return f"{name}_qp_solve returned {rc}: {daqp_exit_name(rc)}"
     return f"{name}_qp_solve returned {rc}"
 
 

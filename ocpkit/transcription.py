@@ -89,9 +89,8 @@ class QP:
             return "P is not symmetric"
         return None
 
-
     def not_definite(self, factorize: bool = True) -> str | None:
-        """Why P is not numerically positive definite, or None: rounding in P beyond 1/ROUNDING_MARGIN of the
+        """Why P is not numerically positive definite, or None: rounding in P beyond ROUNDING_MARGIN × the
         curvature it has in exact arithmetic (``curvature``), or (``factorize``) a failed Cholesky factorization.
 
         The condensed P = SᵀQ̄S + φᵀφ⊗R is positive definite in exact arithmetic (R ≻ 0). Where the prediction model

@@ -23,7 +23,7 @@ from ocpkit._checks import choice, integer, positive
 from ocpkit.certificate import certify
 from ocpkit.controller import (EXCEPTION, INFEASIBLE, LIMITED, NAN, SUCCESS, Controller, OperationCosts,
                                Solution, check_linearization)
-from ocpkit.export import DAQP_EXIT, ExportedMPC
+from ocpkit.export import DAQP_EXIT, ExportedMPC, daqp_exit_name
 from ocpkit.numeric import BufferedFunction
 from ocpkit.ocp import OCP
 from ocpkit.transcription import QP, TRANSCRIPTIONS
@@ -186,7 +186,8 @@ class _ProxQP:
         raw = str(r.info.status).rsplit(".", 1)[-1]
         if status == LIMITED and why is not None:
             raw = f"{why} ({raw})"
-        return _Result(duals[0], duals, status, raw, int(iterations), y=duals[1], w=self._bound_duals(qp, duals[2], key[3]))
+        return _Result(duals[0], duals, status, raw, int(iterations), y=duals[1],
+                       w=self._bound_duals(qp, duals[2], key[3]))
 
     @staticmethod
     def _bound_duals(qp: QP, z_in: np.ndarray, has_box: bool) -> np.ndarray:
@@ -349,9 +350,6 @@ class _DAQP:
     outside: with a deadline it starts only if its measured time fits."""
 
     INF = 1e30  # DAQP's "no bound"
-    _STATUS = {1: SUCCESS, 2: SUCCESS, -1: INFEASIBLE, -2: LIMITED, -3: INFEASIBLE, -4: LIMITED, -5: EXCEPTION,
-               -6: EXCEPTION, -7: LIMITED}  # DAQP's exit flags (named in ocpkit.export.DAQP_EXIT)
-
     factorizes = True  # the backend itself refuses a P that is not positive definite (LinearMPC checks for the others)
 
     def __init__(self, max_iter: int, eps: float):
@@ -399,9 +397,7 @@ class _DAQP:
             z, _, flag, info = self._daqp.solve(H, np.asarray(qp.q, dtype=float), A, bu, bl, sense, **settings)
         self.costs.add(op, time.perf_counter() - start)
         self._measured.add(op)
-        status, raw = self._STATUS.get(flag, EXCEPTION), f"DAQP {DAQP_EXIT.get(flag, f'exit flag {flag}')}"
-        if flag == -5:
-            raw += " (Hessian not positive definite)"
+        status, raw = DAQP_EXIT.get(flag, ("", EXCEPTION))[1], daqp_exit_name(flag)
         if status == SUCCESS and deadline is not None and time.perf_counter() > deadline:
             status, raw = LIMITED, f"time budget exceeded ({raw})"
         z = np.array(z, dtype=float)
@@ -412,9 +408,9 @@ class _DAQP:
         return _Result(z, (z, lam), status, raw, int(info.get("iterations", 0)), y=lam[n_free:], w=w)
 
 
-def _spectral_radius(ocp: OCP, x: np.ndarray, goal: np.ndarray) -> float:
-    """max |eig A_d| of the OCP's affine model about (x, u_g(goal))."""
-    Ad = np.asarray(ocp.affine()(x, ocp.input_goal(goal))[0], dtype=float)
+def _spectral_radius(ocp: OCP, goal: np.ndarray) -> float:
+    """max |eig A_d| of the OCP's affine model about the goal and its input (x_goal, u_g(x_goal))."""
+    Ad = np.asarray(ocp.affine()(goal, ocp.input_goal(goal))[0], dtype=float)
     return float(np.abs(np.linalg.eigvals(Ad)).max())
 
 
@@ -455,9 +451,9 @@ class LinearMPC(Controller):
     any operation that cannot be stopped from outside (the affine model and build, a backend's init, update
     or factorization, HPIPM's whole solve) starts only if its measured time (median of its last five) fits in
     what is left. Without a ``time_limit`` the budget is :attr:`ceiling`: 10 s, or 0.1 ms per QP variable where that
-    is more (the sparse traditional QP at nlink:13, T = 100: 10 s; the pendulum's sparse QP at T = 10⁶: 300 s); ``time_limit=float("inf")``
-    removes it (a benchmark timing slow formulations to the end). A step that hits either limit
-    returns status "limited" with the fallback input and keeps
+    is more (the sparse traditional QP at nlink:13, T = 100: 10 s; the pendulum's sparse QP at T = 10⁶: 300 s);
+    ``time_limit=float("inf")`` removes it (a benchmark timing slow formulations to the end). A step that hits
+    either limit returns status "limited" with the fallback input and keeps
     the backend's workspace and iterate, so the next, warm step can fit again. The first step of a new (or
     reset) controller may have nothing measured yet and is not bounded: it calibrates (``warm_up`` runs it
     outside the budget before a real-time loop).
@@ -641,7 +637,7 @@ class LinearMPC(Controller):
     def _divergence(self) -> str:
         """Why a QP is ill-conditioned, said once per controller (an eigenvalue problem: not on every failed step)."""
         if self._diagnosed is None:
-            rho = _spectral_radius(self.ocp, self._x_now, self._goal)
+            rho = _spectral_radius(self.ocp, self._goal)
             self._diagnosed = (f" (|eig A_d| = {rho:.3g} a step: the model's RK4 step of {self.ocp.dt:g} s "
                                f"diverges; more substeps, e.g. problem.ocp(..., substeps={2 * self.ocp.substeps}), "
                                f"may help)" if rho > 2 else f" (|eig A_d| = {rho:.3g} a step)")
@@ -661,7 +657,6 @@ class LinearMPC(Controller):
         return None if limit == float("inf") else self._step_start + limit
 
     def _solve(self, x: np.ndarray, goal: np.ndarray) -> Solution:
-        self._x_now = x
         step = self._native_step()
         if step is not None:
             return self._c_step(step, x, goal, self._deadline())

@@ -14,6 +14,8 @@ whole grid.
 """
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -32,14 +34,10 @@ HORIZON, KNOTS = 20, 3
 SAMPLING = ("empc", "cem", "mppi")
 
 
-class _Arm:
+def _arm():
     """The Panda of tests/data with its fingers locked: a 7-DoF URDF arm."""
-
-    def __call__(self):
-        from pathlib import Path
-
-        urdf = Path(__file__).parent / "data" / "panda" / "panda.urdf"
-        return Problem.from_urdf(urdf, locked_joints=["panda_finger_joint1", "panda_finger_joint2"])
+    urdf = Path(__file__).parent / "data" / "panda" / "panda.urdf"
+    return Problem.from_urdf(urdf, locked_joints=["panda_finger_joint1", "panda_finger_joint2"])
 
 
 @pytest.fixture(scope="module")
@@ -50,7 +48,7 @@ def problems(tmp_path_factory):
 
     def get(name):
         if name not in cache:
-            cache[name] = (make(f"{cartpole}:CartPole") if name == "cartpole" else _Arm()() if name == "arm"
+            cache[name] = (make(f"{cartpole}:CartPole") if name == "cartpole" else _arm() if name == "arm"
                            else make(name))
         return cache[name]
     return get
