@@ -282,14 +282,20 @@ class URDFRobot(Problem):
       weight Q (a heavier one, 10 Q, made the condensed QP of the Panda's light wrist so ill-conditioned —
       condition ~1e9 — that ProxQP ran into its iteration limit on most steps of some starts). ``sample(seed)``: at rest, q0 uniform in the middle half of each joint's range (±π/2 for
       an unlimited joint), the goal q0 plus a uniform step of up to ±``step`` per joint, within the limits.
+    * ``end_effector``: the frame that task terms aim (``kinematics``, an :class:`ocpkit.kinematics.Kinematics`,
+      holds every URDF link and joint); None: the deepest link fixed to the last joint of the first serial
+      branch (the Panda's ``panda_hand_tcp``). ``link_radius`` (m, an attribute) sizes
+      :func:`ocpkit.kinematics.spheres_along_links`.
     The error multiplier scales M(q) in the controller's model (not g(q), as for the paper's robots).
     """
+
+    link_radius = 0.06
 
     def __init__(self, urdf, *, locked_joints=(), locked_positions=None, damping=None, friction=None,
                  effort_limits=None, gravity: bool = True, gravity_compensation: bool = True,
                  position_bounds: bool = False, name: str | None = None, dt: float = 0.01, horizon: int = 50,
                  duration: float = 2.0, q_weight: float = 100.0, qd_weight: float = 1.0, r_weight: float = 1e-3,
-                 step: float = 0.5):
+                 step: float = 0.5, end_effector: str | None = None):
         from ocpkit.rigid_body import Chain, load_urdf
 
         self.urdf = str(urdf)
@@ -317,6 +323,18 @@ class URDFRobot(Problem):
                              "by URDFRobot yet; lock them or give them limits")
         self.q_min = np.where(np.isfinite(lo) & (lo < hi), lo, -np.inf)
         self.q_max = np.where(np.isfinite(hi) & (lo < hi), hi, np.inf)
+        kin = self.kinematics
+        if end_effector is not None and end_effector not in kin.frames:
+            raise ValueError(f"end_effector {end_effector!r} is not a frame of {self.urdf}; its frames: "
+                             f"{', '.join(kin.frames)}")
+        self.end_effector = end_effector or kin.tip() or kin.joints[-1]
+
+    @cached_property
+    def kinematics(self):
+        """The URDF's frames as CasADi expressions of q (an :class:`ocpkit.kinematics.Kinematics`)."""
+        from ocpkit.kinematics import Kinematics
+
+        return Kinematics(self.pin_model)
 
     @property
     def joint_names(self) -> list[str]:

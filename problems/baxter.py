@@ -11,12 +11,14 @@ BSD licence), trimmed to the right arm and its gripper in ``problems/data/baxter
 from __future__ import annotations
 
 import math
+from functools import cached_property
 from importlib import resources
 
 import casadi as ca
 import numpy as np
 
 from ocpkit._checks import integer, positive
+from ocpkit.kinematics import Kinematics
 from ocpkit.model import Model
 from ocpkit.problem import Problem
 from ocpkit.rigid_body import Chain
@@ -88,11 +90,15 @@ class Baxter(Problem):
     Q = diag(10 per angle, 0.1 per rate), R = 1e-3 I (small, since R pulls q_des towards 0: it leaves a
     steady-state error of about R/Q ≈ 1e-4 of the goal angle), terminal weight 10 Q. Start: at rest,
     uniform in the middle half of each joint's range; goal: a step of up to ±0.5 rad on every joint at
-    once, within the joint limits (seeded).
+    once, within the joint limits (seeded). ``kinematics``: the URDF's frames (``end_effector``
+    "right_gripper", the URDF's endpoint between the fingertips); ``link_radius`` for
+    :func:`ocpkit.kinematics.spheres_along_links`.
     """
 
     horizon = 100
     duration = 3.0
+    end_effector = "right_gripper"
+    link_radius = 0.07
 
     def __init__(self):
         self.name = "baxter"
@@ -104,6 +110,10 @@ class Baxter(Problem):
         self.kp, self.kd = np.array(KP), np.array(KD)
         self.q_min = np.array(self.pin_model.lowerPositionLimit)
         self.q_max = np.array(self.pin_model.upperPositionLimit)
+
+    @cached_property
+    def kinematics(self) -> Kinematics:
+        return Kinematics(self.pin_model)
 
     def _servo(self, error: float):
         x, u = ca.SX.sym("x", 14), ca.SX.sym("u", 7)

@@ -5,10 +5,13 @@ so g(q) = 0. State x = [q, q̇] (relative joint angles), input τ (joint torques
 """
 from __future__ import annotations
 
+from functools import cached_property
+
 import casadi as ca
 import numpy as np
 
 from ocpkit._checks import integer, positive
+from ocpkit.kinematics import Kinematics
 from ocpkit.model import Model
 from ocpkit.problem import Problem
 from ocpkit.rigid_body import Chain
@@ -20,6 +23,7 @@ def planar_chain(links: int, mass: float = 1.0, length: float = 0.25):
     Each rod has mass m and length l, its centre of mass at l/2 along the link's x axis and a rotational
     inertia about its centre of mass of diag(0, m l²/12, m l²/12) (thin uniform rod along x). Joint i+1
     sits at the tip of link i. Gravity is zero: it would act along −z, parallel to every joint axis.
+    Frames: one per joint (``joint1`` …) and ``tip``, the end of the last link (x = l in its joint's frame).
     """
     import pinocchio as pin
 
@@ -29,11 +33,14 @@ def planar_chain(links: int, mass: float = 1.0, length: float = 0.25):
     model.name = f"nlink{links}"
     model.gravity = pin.Motion.Zero()
     rod = pin.Inertia(mass, np.array([length / 2, 0.0, 0.0]), np.diag([0.0, 1.0, 1.0]) * mass * length**2 / 12)
-    parent = 0
+    parent, frame = 0, 0
     for i in range(links):
         offset = pin.SE3(np.eye(3), np.array([length if i else 0.0, 0.0, 0.0]))
         parent = model.addJoint(parent, pin.JointModelRZ(), offset, f"joint{i + 1}")
         model.appendBodyToJoint(parent, rod, pin.SE3.Identity())
+        frame = model.addJointFrame(parent, frame)
+    model.addFrame(pin.Frame("tip", parent, frame, pin.SE3(np.eye(3), np.array([length, 0.0, 0.0])),
+                             pin.FrameType.OP_FRAME))
     return model
 
 
@@ -45,9 +52,13 @@ class NLink(Problem):
     use T = 100 over 10 s), Q = I (angles and rates alike: lighter rate weights let the 0.5 s horizon
     ring on 7 links), R = 0.01 I, terminal weight 100 Q.
     Start and goal: at rest, every joint angle uniform in [−π/2, π/2] (seeded).
+    ``kinematics``: its frames (``end_effector`` "tip", the end of the last link); ``link_radius`` for
+    :func:`ocpkit.kinematics.spheres_along_links`.
     """
 
     duration = 10.0
+    end_effector = "tip"
+    link_radius = 0.05
 
     def __init__(self, links: int = 2, *, damping: float = 0.01, tau_max: float = 2.0,
                  sample_range: float = np.pi / 2):
@@ -58,7 +69,12 @@ class NLink(Problem):
             raise ValueError(f"damping must be finite and >= 0, got {damping!r}")
         self.tau_max = positive(tau_max, "tau_max")
         self.sample_range = positive(sample_range, "sample_range")
-        self.chain = Chain(planar_chain(self.links))
+        self.pin_model = planar_chain(self.links)
+        self.chain = Chain(self.pin_model)
+
+    @cached_property
+    def kinematics(self) -> Kinematics:
+        return Kinematics(self.pin_model)
 
     def dynamics(self, error: float) -> Model:
         n = self.links

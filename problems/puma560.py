@@ -9,9 +9,12 @@ PUMA 560 arm", Proc. IEEE ICRA 1986. Torque limits are the maximum joint torques
 """
 from __future__ import annotations
 
+from functools import cached_property
+
 import casadi as ca
 import numpy as np
 
+from ocpkit.kinematics import Kinematics
 from ocpkit.model import Model
 from ocpkit.problem import Problem
 from ocpkit.rigid_body import Chain
@@ -37,17 +40,21 @@ def puma560_model():
     Joint i's frame is DH frame i−1 rotated by q_i about its z axis; link i's inertia, given in DH frame i,
     is moved into it by the constant DH offset Tz(d_i) Tx(a_i) Rx(α_i). Rotor inertias reflected through
     the gears (G² J_m) form the armature, added to M(q)'s diagonal. Gravity −9.81 m/s² along base z.
+    Frames: one per joint (``joint1`` …) and ``tool``, DH frame 6 (the toolbox's ``fkine`` without a tool
+    transform): with d₆ = 0 it lies at the wrist centre, where the axes of joints 4, 5 and 6 meet.
     """
     import pinocchio as pin
 
     model = pin.Model()
     model.name = "puma560"
-    parent, offset = 0, pin.SE3.Identity()
+    parent, offset, frame = 0, pin.SE3.Identity(), 0
     for i, (d, a, alpha) in enumerate(DH):
         parent = model.addJoint(parent, pin.JointModelRZ(), offset, f"joint{i + 1}")
+        frame = model.addJointFrame(parent, frame)
         offset = pin.SE3(np.eye(3), np.array([a, 0.0, d])) * pin.SE3(_rot_x(alpha), np.zeros(3))
         body = pin.Inertia(MASS[i], np.array(COM[i]), np.diag(INERTIA[i]))
         model.appendBodyToJoint(parent, offset.act(body), pin.SE3.Identity())
+    model.addFrame(pin.Frame("tool", parent, frame, offset, pin.FrameType.OP_FRAME))
     model.armature = np.array(MOTOR_INERTIA) * np.array(GEAR) ** 2
     model.lowerPositionLimit = np.deg2rad([lo for lo, _ in Q_LIMITS_DEG])
     model.upperPositionLimit = np.deg2rad([hi for _, hi in Q_LIMITS_DEG])
@@ -67,10 +74,13 @@ class Puma560(Problem):
     4.0, 0.41, 0.43, 0.22 N·m·s); Coulomb friction is left out (non-smooth). |τ_i| ≤ τ_max,i.
     Defaults: dt = 0.01 s, T = 50, 1 s closed loop (the paper's setup), Q = diag(100 per angle,
     1 per rate), R = 1e-3 I, terminal weight 10 Q. Start and goal at rest, joint angles uniform in the
-    middle half of each joint's range (seeded).
+    middle half of each joint's range (seeded). ``kinematics``: its frames (``end_effector`` "tool", DH frame
+    6 at the wrist centre); ``link_radius`` for :func:`ocpkit.kinematics.spheres_along_links`.
     """
 
     duration = 1.0
+    end_effector = "tool"
+    link_radius = 0.08
 
     def __init__(self):
         self.name = "puma560"
@@ -78,6 +88,10 @@ class Puma560(Problem):
         self.chain = Chain(self.pin_model)
         self.damping = np.array(MOTOR_VISCOUS) * np.array(GEAR) ** 2
         self.tau_max = np.array(TAU_MAX)
+
+    @cached_property
+    def kinematics(self) -> Kinematics:
+        return Kinematics(self.pin_model)
 
     def dynamics(self, error: float) -> Model:
         x, u = ca.SX.sym("x", 12), ca.SX.sym("u", 6)
