@@ -227,15 +227,21 @@ class Controller:
         """Forget the previous plan (cold start)."""
         self.plan: np.ndarray | None = None  # knots (p, m) of the last successful solve
         self._goal = np.zeros(self.ocp.nx)
+        self.task_goal = np.zeros(self.ocp.ng)
 
     def solve(self, x, goal) -> Solution:
-        """Solve the MPC problem from state x towards goal state ``goal``; return the first input and more."""
+        """Solve the MPC problem from state x towards ``goal``; return the first input and more.
+
+        ``goal`` is the goal state, or with a task (``ocp.task``) the goal vector [x_goal; targets] of
+        :meth:`OCP.goal`. Solvers' ``_solve`` receive x_goal; the whole vector is ``self.task_goal``."""
         x = self.ocp.check_state(x, "x")
-        goal = self.ocp.check_state(goal, "goal")
+        full = self.ocp.check_goal(goal)
+        goal = full[:self.ocp.nx]
         with self._lock, _ThreadLimit(self._threads):
             start = self._step_start = time.perf_counter()
             self._goal = goal  # for the fallback's cold-start input
-            big = max(np.abs(x).max(initial=0.0), np.abs(goal).max(initial=0.0))
+            self.task_goal = full
+            big = max(np.abs(x).max(initial=0.0), np.abs(full).max(initial=0.0))
             if big > self._state_limit:
                 sol = self.fallback(NAN, f"state or goal magnitude {big:.3g} beyond state_limit "
                                          f"{self._state_limit:.3g}: no solver run")

@@ -211,6 +211,9 @@ def export(ocp: OCP, out_dir, *, form: str = "condensed", qp: str = "daqp", name
         raise ValueError(f"qp={qp!r} with form={form!r} cannot be exported: {why}; "
                          f"supported: {sorted(SUPPORTED)}")
     choice(linearization, LINEARIZATIONS, "linearization")
+    if ocp.task_functions is not None:
+        raise ValueError(f"an OCP with a task (terms {ocp.terms[2:]}, {ocp.task.pairs} obstacle pairs) cannot be "
+                         "exported yet: the C step has the joint-space cost only; use LinearMPC's Python step")
     if not (isinstance(name, str) and name.isidentifier() and name.isascii()):
         raise ValueError(f"name must be a C identifier, got {name!r}")
     eps = positive(eps, "eps")

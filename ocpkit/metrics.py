@@ -11,11 +11,17 @@ def actual_cost(traj: Trajectory, ocp: OCP) -> float:
     """The MPC objective evaluated on the states and inputs actually applied (paper eq. actual_cost).
 
     Σ_{i=0}^{H} J(x_i, u_i) with J the OCP's stage cost: every recorded state x_0 … x_H against the
-    goal and every applied input u_0 … u_{H−1} against the input goal.
+    goal and every applied input u_0 … u_{H−1} against the input goal. With a task (``ocp.task``) its active
+    stage terms are added at (x_i, u_i), i = 0 … H−1, towards the goal's targets (obstacles are not a cost here).
     """
-    ex = traj.x - traj.goal
-    eu = traj.u - ocp.input_goal(traj.goal)
-    return float(np.einsum("ij,jk,ik->", ex, ocp.Q, ex) + np.einsum("ij,jk,ik->", eu, ocp.R, eu))
+    x_goal = traj.goal[:ocp.nx]
+    ex = traj.x - x_goal
+    eu = traj.u - ocp.input_goal(x_goal)
+    cost = float(np.einsum("ij,jk,ik->", ex, ocp.Q, ex) + np.einsum("ij,jk,ik->", eu, ocp.R, eu))
+    if ocp.task_functions is not None and traj.u.shape[0]:
+        H, targets = traj.u.shape[0], np.repeat(traj.goal[ocp.nx:, None], traj.u.shape[0], axis=1)
+        cost += float(np.sum(ocp.task_functions.stage_cost.map(H)(traj.x[:-1].T, traj.u.T, targets)))
+    return cost
 
 
 def actual_cost_ratio(traj: Trajectory, reference: Trajectory, ocp: OCP) -> float:

@@ -10,6 +10,10 @@ x_0 is the measured state, so its cost term is a constant and is left out. The i
 u_g = u_goal + K x_goal with K = ``u_goal_gain`` (zero by default, the paper's u_goal = 0): for a robot whose
 inputs are servo set points (Baxter) the input that holds the goal is the goal position itself. Every solver reads this one
 description: the QPs through its affine model, IPOPT through F, EMPC through the translated kernels.
+
+The two quadratic sums are the cost's built-in terms "state" and "input"; a :class:`ocpkit.task.Task` adds named,
+weighted terms (frame position and orientation targets, joint-limit barriers, user residuals) and obstacles. The
+goal is then [x_goal; the terms' targets] (``ng`` entries, :meth:`OCP.goal`); without a task it is x_goal.
 """
 from __future__ import annotations
 
@@ -20,6 +24,7 @@ from ocpkit._checks import array, bounds, integer, positive, weight
 from ocpkit.compiled import SwitchingFunction, compile_function, compile_in_background
 from ocpkit.model import Model
 from ocpkit.parameterization import Parameterization
+from ocpkit.task import Task
 
 # The default path (``compiled`` not given) compiles the affine model in the background only from this size up
 # (CasADi VM instructions of the continuous Jacobian, Model.jacobian, which the affine model evaluates 4 times
@@ -33,7 +38,8 @@ class OCP:
 
     def __init__(self, model: Model, dt: float, horizon: int, Q, R, *, Q_terminal=None, u_goal=None,
                  u_goal_gain=None, u_min=None, u_max=None, x_min=None, x_max=None,
-                 parameterization: Parameterization | None = None, substeps: int = 1, compiled: bool | None = None):
+                 parameterization: Parameterization | None = None, substeps: int = 1, compiled: bool | None = None,
+                 task: Task | None = None):
         if not isinstance(model, Model):
             raise TypeError(f"model must be an ocpkit Model, got {type(model).__name__}")
         n, m = model.nx, model.nu
@@ -67,10 +73,58 @@ class OCP:
                                       + ca.bilin(ca.DM(self.R), eu, eu)], ["x", "u", "x_goal"], ["l"])
         self.terminal_cost = ca.Function("terminal_cost", [x, xg], [ca.bilin(ca.DM(self.Q_terminal), ex, ex)],
                                          ["x", "x_goal"], ["l_T"])
+        if task is not None and not isinstance(task, Task):
+            raise TypeError(f"task must be an ocpkit.task.Task or None, got {type(task).__name__}")
+        self.task = task
+        # The task's Functions (None without a task, or with no active term and no obstacle: nothing changes)
+        self.task_functions = None if task is None or not (task.active_terms or task.obstacles) else task.compile(n, m)
+        self.ng = n + (0 if task is None else task.target_size)
+        self._full_costs = None
 
     def __repr__(self):
         return (f"OCP({self.model.name!r}, dt={self.dt}, horizon={self.horizon}, "
                 f"{self.parameterization.kind} knots={self.knots})")
+
+    @property
+    def terms(self) -> list[str]:
+        """The cost's active terms by name: "state" and "input" (Q, R), then the task's."""
+        return ["state", "input"] + ([t.name for t in self.task.active_terms] if self.task else [])
+
+    def goal(self, x_goal=None, **targets) -> np.ndarray:
+        """The goal vector [x_goal; targets in the task's order] (x_goal zero where not given); every target named."""
+        x_goal = np.zeros(self.nx) if x_goal is None else self.check_state(x_goal, "x_goal")
+        sizes = self.task.targets if self.task is not None else {}
+        unknown = sorted(set(targets) - set(sizes))
+        if unknown:
+            raise ValueError(f"no task term named {unknown[0]!r} takes a target; targets: {sorted(sizes) or 'none'}")
+        missing = [name for name in sizes if name not in targets]
+        if missing:
+            raise ValueError(f"goal needs a target for {', '.join(repr(m) for m in missing)}")
+        # a rotation target may come as a 3 × 3 matrix: its rows, in order
+        parts = [x_goal] + [array(np.ravel(targets[name]), name, (size,)) for name, size in sizes.items()]
+        return np.concatenate(parts)
+
+    def check_goal(self, goal, name: str = "goal") -> np.ndarray:
+        """The goal as a finite float64 vector of ``ng`` entries (x_goal, then the task's targets)."""
+        if self.ng != self.nx and np.size(goal) == self.nx:
+            raise ValueError(f"{name} has {self.nx} entries (a state) but this OCP's task needs {self.ng}: "
+                             f"x_goal and the targets {sorted(self.task.targets)}; build it with ocp.goal(...)")
+        return array(goal, name, (self.ng,))
+
+    def full_costs(self) -> tuple[ca.Function, ca.Function]:
+        """(stage (x, u, goal) -> l, terminal (x, goal) -> l_T): every active term of the cost, goal of ``ng``
+        entries. Without a task, ``stage_cost`` and ``terminal_cost`` themselves."""
+        if self.ng == self.nx and self.task_functions is None:
+            return self.stage_cost, self.terminal_cost
+        if self._full_costs is None:
+            n, tf = self.nx, self.task_functions
+            x, u, g = ca.SX.sym("x", n), ca.SX.sym("u", self.nu), ca.SX.sym("goal", self.ng)
+            l, l_T = self.stage_cost(x, u, g[:n]), self.terminal_cost(x, g[:n])
+            if tf is not None:
+                l, l_T = l + tf.stage_cost(x, u, g[n:]), l_T + tf.terminal_cost(x, g[n:])
+            self._full_costs = (ca.Function("stage_cost", [x, u, g], [l], ["x", "u", "goal"], ["l"]),
+                                ca.Function("terminal_cost", [x, g], [l_T], ["x", "goal"], ["l_T"]))
+        return self._full_costs
 
     @property
     def has_state_bounds(self) -> bool:

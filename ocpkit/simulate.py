@@ -54,7 +54,7 @@ def simulate(plant: Model, controller: Controller, x0, goal, duration: float, *,
     steps = int(round(duration / dt))
     step = plant.rk4(dt, integer(plant_substeps, "plant_substeps", 1))
     x0 = ocp.check_state(x0, "x0")
-    goal = ocp.check_state(goal, "goal")
+    goal = ocp.check_goal(goal)
     xs = np.empty((steps + 1, ocp.nx))
     us = np.empty((steps, ocp.nu))
     xs[0] = x0

@@ -291,9 +291,10 @@ class CondensedQP(_Transcription):
 
     form = "condensed"
 
-    def __init__(self, ocp: OCP, *, soft: bool = False, slack_weight: float = 1e3):
+    def __init__(self, ocp: OCP, *, soft: bool = False, slack_weight: float = 1e3, obstacles: bool = True):
         super().__init__(ocp, soft=soft, slack_weight=slack_weight)
         n, m, p = self.n, self.m, self.p
+        self.task = None if ocp.task_functions is None else _TaskRows(ocp, obstacles)
         self.nz = m * p  # the knots; the slacks (if any) follow them in z
         self.A = np.zeros((0, self.nz + self.ns))
         self.b = np.zeros(0)
@@ -446,11 +447,13 @@ class CondensedQP(_Transcription):
             self._SVc = SV.reshape(self.T * n, -1)
         return self._SVc
 
-    def build(self, Ad, Bd, wd, x0, x_goal) -> QP:
+    def build(self, Ad, Bd, wd, x0, x_goal, *, targets=None, knots=None) -> QP:
         """P = SᵀQ̄S + φᵀφ⊗R and q = SᵀQ̄(v − x̄_goal) − (φᵀ1 ⊗ R u_goal); knot bounds (``box``), state bound rows.
 
         (A_d, B_d, w_d) is one affine model for all stages (the piece-wise build of the class docstring) or one
-        per stage, (T, n, n), (T, n, m), (T, n) (LTV: [v S] stage by stage, then one Gram product)."""
+        per stage, (T, n, n), (T, n, m), (T, n) (LTV: [v S] stage by stage, then one Gram product).
+        With a task (``ocp.task``) its terms and obstacles are linearized about the plan ``knots`` (p, m) and
+        its predicted states, towards ``targets`` (the goal's entries after x_goal): see :class:`_TaskRows`."""
         Ad, Bd, wd, ltv = _model(Ad, Bd, wd, self.n, self.m, self.T)
         x_goal = np.asarray(x_goal, dtype=float)
         if ltv:
@@ -460,7 +463,14 @@ class CondensedQP(_Transcription):
             self._SV = None
             self._predict(Ad, Bd, wd, x0, x_goal)
             P, q = self._cost_lti(x_goal)
-        return self._qp(P, q)
+        if self.task is None:
+            return self._qp(P, q)
+        if knots is None or targets is None:
+            raise ValueError("this OCP has a task: build(...) needs targets= and knots= (the plan to linearize about)")
+        SV = self._rows().reshape(self.T, self.n, -1)
+        rows = self.task.add(P, q, SV, np.asarray(x0, dtype=float), np.asarray(targets, dtype=float),
+                             np.asarray(knots, dtype=float))
+        return self.task.constrain(self._qp(P, q), rows)
 
     def _cost_ltv(self, x_goal):
         """P, q from the stage rows [v S]: the Gram matrix of Q^½ [v − x_goal, S], Q_T's difference at x_T."""
@@ -564,6 +574,83 @@ class CondensedQP(_Transcription):
             X[1:] /= self._qh
         X[1:] += self._g
         return X
+
+
+class _TaskRows:
+    """A task's terms and obstacles in the condensed QP, Gauss–Newton about a plan (ocpkit.task).
+
+    With the plan's knots z̄, states x̄_k = S_k z̄ + v_k (the QP's own prediction, x̄_0 = x_0) and inputs ū_k = Φ_k z̄
+    (Φ_k = φ_k ⊗ I), each residual is replaced by its linearization r_k + G_k (z − z̄), G_k = ∂r/∂x S_k + ∂r/∂u Φ_k,
+    whose weighted squares add G_kᵀWG_k to P and G_kᵀW(r_k − G_k z̄) to q (P and q are those of the cost J itself;
+    the QP's objective is ½J). An obstacle clearance d_k − margin ≥ 0 at x_k becomes the row
+    d_k + D_k S_k (z − z̄) + s_k ≥ 0 for every pair within ``ACTIVATION`` of its margin at the plan, with one slack
+    s_k ≥ 0 per such stage costing obstacle_weight·(s_k + ½s_k²) in J."""
+
+    def __init__(self, ocp: OCP, obstacles: bool):
+        from ocpkit.task import ACTIVATION
+
+        tf = ocp.task_functions
+        self.T, self.n, self.m, self.p = ocp.horizon, ocp.nx, ocp.nu, ocp.knots
+        self.phi = ocp.parameterization.basis
+        self.stage = tf.stage_residual.map(self.T) if tf.stage_weight.size else None
+        self.terminal = tf.terminal_residual if tf.terminal_weight.size else None
+        self.ws, self.wt = tf.stage_weight, tf.terminal_weight
+        self.clearance = tf.clearance.map(self.T) if obstacles and tf.pairs else None
+        self.pairs, self.weight, self.activation = tf.pairs, ocp.task.obstacle_weight, ACTIVATION
+
+    def add(self, P, q, SV, x0, targets, knots):
+        """Add the terms' Gauss–Newton model to P and q (in place); the obstacle rows (C, lower bound, stage)."""
+        T, n, m, p = self.T, self.n, self.m, self.p
+        zbar = knots.ravel()
+        S = SV[:, :, 1:]
+        X = np.vstack([x0, SV @ np.r_[1.0, zbar]])  # x̄_0 … x̄_T
+        U = self.phi @ knots
+        if self.stage is not None:
+            r, rx, ru = (np.asarray(a) for a in self.stage(X[:-1].T, U.T, np.repeat(targets[:, None], T, axis=1)))
+            nr = r.shape[0]
+            Jx, Ju = rx.reshape(nr, T, n).transpose(1, 0, 2), ru.reshape(nr, T, m).transpose(1, 0, 2)
+            G = np.einsum("kj,kra->krja", self.phi, Ju).reshape(T, nr, p * m)
+            G[1:] += Jx[1:] @ S[:-1]
+            self._accumulate(P, q, G.reshape(T * nr, -1), r.T.ravel(), np.tile(self.ws, T), zbar)
+        if self.terminal is not None:
+            r, rx = (np.asarray(a) for a in self.terminal(X[-1], targets))
+            self._accumulate(P, q, rx @ S[-1], r.ravel(), self.wt, zbar)
+        if self.clearance is None:
+            return None
+        d, dx = (np.asarray(a) for a in self.clearance(X[1:].T))
+        D = dx.reshape(self.pairs, T, n).transpose(1, 0, 2)  # (T, pairs, n)
+        near = d.T < self.activation  # (T, pairs)
+        if not near.any():
+            return None
+        k, i = np.nonzero(near)
+        C = np.einsum("ra,raj->rj", D[k, i], S[k])
+        return C, C @ zbar - d.T[k, i], k
+
+    @staticmethod
+    def _accumulate(P, q, G, r, w, zbar):
+        WG = w[:, None] * G
+        P += G.T @ WG
+        q += WG.T @ (r - G @ zbar)
+
+    def constrain(self, qp: QP, rows) -> QP:
+        """``qp`` with the obstacle rows and their stages' slacks appended (after every other variable)."""
+        if rows is None:
+            return qp
+        C_rows, lo, stage = rows
+        stages, slack_of = np.unique(stage, return_inverse=True)
+        ne, n0 = stages.size, qp.n
+        w = 0.5 * self.weight  # J's weight·(s + ½s²) in the QP's ½J
+        P = np.pad(qp.P, ((0, ne), (0, ne)))
+        P[n0:, n0:] += w * np.eye(ne)
+        q = np.r_[qp.q, np.full(ne, w)]
+        E = np.zeros((C_rows.shape[0], ne))
+        E[np.arange(C_rows.shape[0]), slack_of] = 1.0
+        rows = np.hstack([C_rows, np.zeros((C_rows.shape[0], n0 - C_rows.shape[1])), E])
+        C = np.vstack([np.pad(qp.C, ((0, 0), (0, ne))), rows, np.hstack([np.zeros((ne, n0)), np.eye(ne)])])
+        l = np.r_[qp.l, lo, np.zeros(ne)]
+        u = np.r_[qp.u, np.full(lo.size + ne, np.inf)]
+        A = np.pad(qp.A, ((0, 0), (0, ne)))
+        return QP(P, q, A, qp.b, C, l, u, box=qp.box, curvature=min(qp.curvature, w))
 
 
 def _model(Ad, Bd, wd, n: int, m: int, T: int):

@@ -83,7 +83,7 @@ class RealTimeIteration(LinearMPC):
         times = {"model": 0.0, "build": 0.0, "solve": 0.0}
         along, sol, qp_iterations, moved, done = self.shifted_plan(x, goal), None, 0, np.inf, 0
         for i in range(self.iterations):
-            new = self._qp_step(x, goal, along, deadline, times)
+            new = self._qp_step(x, goal, along, deadline, times, knots=None if sol is None else sol.knots)
             qp_iterations += new.iterations
             if not new.ok:
                 if sol is None:
@@ -140,6 +140,9 @@ class NonlinearMPC(Controller):
             raise TypeError(f"options must be a dict or None, got {type(options).__name__}")
         if method in ("rti", "fatrop") and dynamics != "nonlinear":
             raise ValueError(f"method {method!r} solves the nonlinear dynamics; dynamics 'affine' is for ipopt/sqp")
+        if method == "fatrop" and ocp.task_functions is not None and ocp.task_functions.pairs:
+            raise ValueError("method 'fatrop' takes a task's cost terms but not its obstacles (stage constraints are "
+                             "not declared to fatrop yet): use method 'ipopt' or 'rti'")
         if method != "rti" and (iterations != 1 or tol != 0.0):
             raise ValueError(f"iterations and tol are options of method 'rti', not {method!r}")
         self.dynamics, self.method = dynamics, method
@@ -191,6 +194,7 @@ class NonlinearMPC(Controller):
         """The NLP over w = [x_1 … x_T, U_0 … U_{p−1}] with parameters (x_0, x_goal[, A_d, B_d, w_d])."""
         n, m, T, p = ocp.nx, ocp.nu, ocp.horizon, ocp.knots
         self._nX = n * T
+        self._gaps, self._pairs = n * T, 0  # the gap rows, then the clearance rows (pairs per stage) of g
         self._order = None  # fatrop: positions of [x_1 … x_T, U] in its stage-ordered w
         if self.method == "rti":
             self._rti.max_iter, self._rti.time_limit = self.max_iter, self.time_limit
@@ -201,8 +205,9 @@ class NonlinearMPC(Controller):
         # Function, not for T inlined copies (inlining a 7-link RK4 step 50 times takes minutes to build).
         X = ca.MX.sym("X", n, T)  # columns x_1 … x_T
         U = ca.MX.sym("U", m, p)  # columns U_0 … U_{p−1}: vec(U) is the knots (p, m) row by row
-        x0, xg = ca.MX.sym("x0", n), ca.MX.sym("x_goal", n)
-        params = [x0, xg]
+        x0, goal = ca.MX.sym("x0", n), ca.MX.sym("goal", ocp.ng)
+        xg = goal if ocp.ng == n else goal[:n]  # the joint-space goal: without targets the very same graph
+        params = [x0, goal]
         # u = φ U, column k is u_k; φ kept sparse so u_k depends structurally on its own knots only.
         inputs = ca.mtimes(U, ca.sparsify(ca.DM(ocp.parameterization.basis.T)))
         starts = ca.horzcat(x0, X[:, :-1])
@@ -216,8 +221,18 @@ class NonlinearMPC(Controller):
         J = ocp.stage_cost(xg, inputs[:, 0], xg) + ocp.terminal_cost(X[:, T - 1], xg)
         if T > 1:
             J += ca.sum2(ocp.stage_cost.map(T - 1)(X[:, : T - 1], inputs[:, 1:], ca.repmat(xg, 1, T - 1)))
-        nlp = {"x": ca.vertcat(ca.vec(X), ca.vec(U)), "p": ca.vertcat(*params), "f": J,
-               "g": ca.vec(predicted - X)}
+        rows = [ca.vec(predicted - X)]
+        tf = ocp.task_functions
+        if tf is not None:  # the task's terms at (x_k, u_k), k = 0 … T−1, and x_T; clearances ≥ 0 at x_1 … x_T
+            targets = goal[n:]
+            J += ca.sum2(tf.stage_cost.map(T)(starts, inputs, ca.repmat(targets, 1, T))) + tf.terminal_cost(X[:, T - 1],
+                                                                                                     targets)
+            if tf.pairs:
+                rows.append(ca.vec(tf.clearance.map(T)(X)[0]))
+                self._pairs = tf.pairs
+        nlp = {"x": ca.vertcat(ca.vec(X), ca.vec(U)), "p": ca.vertcat(*params), "f": J, "g": ca.vertcat(*rows)}
+        self._lbg = np.zeros(self._gaps + self._pairs * T)
+        self._ubg = np.r_[np.zeros(self._gaps), np.full(self._pairs * T, np.inf)]
         # Input bounds on the knots, as LinearMPC: with a convex-combination basis they bound every u_k.
         self._lbx = np.r_[np.tile(ocp.x_min, T), np.tile(ocp.u_min, p)]
         self._ubx = np.r_[np.tile(ocp.x_max, T), np.tile(ocp.u_max, p)]
@@ -235,7 +250,8 @@ class NonlinearMPC(Controller):
         stage-0 controls are the knots U and stages 1 … T−1 hold (x_k, C_k) with C_k = U carried by gap rows
         C_{k+1} = C_k, so each stage's input u_k = φ_k C_k is a function of that stage's variables only."""
         n, m, T, p = ocp.nx, ocp.nu, ocp.horizon, ocp.knots
-        x0, xg = ca.MX.sym("x0", n), ca.MX.sym("x_goal", n)
+        x0, goal = ca.MX.sym("x0", n), ca.MX.sym("goal", ocp.ng)
+        xg, targets, tf = goal if ocp.ng == n else goal[:n], goal[n:], ocp.task_functions
         F, phi = ocp.discrete(), ocp.parameterization.basis
         traditional = ocp.parameterization.kind == "identity"
         c = m if traditional else p * m  # the controls of stage 0 / the carried block of stages 1 … T−1
@@ -261,6 +277,8 @@ class NonlinearMPC(Controller):
         inputs = [carried[k] if traditional else ca.mtimes(ca.kron(ca.DM(phi[k:k + 1]), ca.DM.eye(m)), carried[k])
                   for k in range(T)]
         J = ocp.stage_cost(xg, inputs[0], xg) + ocp.terminal_cost(states[-1], xg)
+        if tf is not None:
+            J += tf.terminal_cost(states[-1], targets) + tf.stage_cost(x0, inputs[0], targets)
         prev = x0
         for k in range(T):
             gap = states[k] - F(prev, inputs[k])  # fatrop's sign: +I on the next stage's variables
@@ -269,6 +287,8 @@ class NonlinearMPC(Controller):
             gaps.append(gap)
             if 0 < k:
                 J += ocp.stage_cost(states[k - 1], inputs[k], xg)
+                if tf is not None:
+                    J += tf.stage_cost(states[k - 1], inputs[k], targets)
             prev = states[k]
         # Knots from stage 0 (traditional: u_k is the control of stage k, columns of the knots (T, m)).
         if traditional:
@@ -281,7 +301,8 @@ class NonlinearMPC(Controller):
         lo[self._order] = np.r_[np.tile(ocp.x_min, T), np.tile(ocp.u_min, p)]
         hi[self._order] = np.r_[np.tile(ocp.x_max, T), np.tile(ocp.u_max, p)]
         self._lbx, self._ubx = lo, hi
-        nlp = {"x": ca.vertcat(*blocks), "p": ca.vertcat(x0, xg), "f": J, "g": ca.vertcat(*gaps)}
+        nlp = {"x": ca.vertcat(*blocks), "p": ca.vertcat(x0, goal), "f": J, "g": ca.vertcat(*gaps)}
+        self._lbg = self._ubg = 0.0
         nx = [0] + [n if traditional else n + c] * (T - 1) + [n]
         nu = [c] + [m if traditional else 0] * (T - 1) + [0]
         fatrop = {"print_level": 0, "max_iter": self.max_iter, "tol": 1e-8}
@@ -325,11 +346,11 @@ class NonlinearMPC(Controller):
 
     def _solve(self, x: np.ndarray, goal: np.ndarray) -> Solution:
         if self._rti is not None:
-            return self._rti.solve(x, goal)
+            return self._rti.solve(x, self.task_goal)
         ocp, times = self.ocp, {"model": 0.0, "build": 0.0, "solve": 0.0}
         n, m, T, p = ocp.nx, ocp.nu, ocp.horizon, ocp.knots
         t0 = time.perf_counter()
-        params = [x, goal]
+        params = [x, self.task_goal]
         if self.dynamics == "affine":
             model = self.affine_model(x, goal, self.linearization)
             if model is None:
@@ -346,7 +367,8 @@ class NonlinearMPC(Controller):
             for start in self._copies:
                 w[start:start + p * m] = w0[self._nX:]
             w0 = w
-        args = {"x0": w0, "p": np.concatenate(params), "lbx": self._lbx, "ubx": self._ubx, "lbg": 0.0, "ubg": 0.0}
+        args = {"x0": w0, "p": np.concatenate(params), "lbx": self._lbx, "ubx": self._ubx, "lbg": self._lbg,
+                "ubg": self._ubg}
         if lam_x0 is not None:
             args.update(lam_x0=lam_x0, lam_g0=lam_g0)
         t2 = time.perf_counter()
@@ -401,8 +423,11 @@ class NonlinearMPC(Controller):
         if ocp.parameterization.kind == "identity":
             lam_u = _shift_blocks(lam_u, ocp.nu)
         # Knot bound multipliers stay put otherwise: knots sit at fixed fractions of the horizon.
+        lam_gaps, lam_clear = lam_g[:self._gaps], lam_g[self._gaps:]
+        if self._pairs:
+            lam_clear = _shift_blocks(lam_clear, self._pairs)
         return (np.r_[_shift_blocks(w[: self._nX], n), shifted.ravel()],
-                np.r_[_shift_blocks(lam_x[: self._nX], n), lam_u], _shift_blocks(lam_g, n))
+                np.r_[_shift_blocks(lam_x[: self._nX], n), lam_u], np.r_[_shift_blocks(lam_gaps, n), lam_clear])
 
     def _fail(self, status, raw, times, iterations=0) -> Solution:
         """Fallback solution and a cold start for the next step (no stale warm start)."""

@@ -529,6 +529,9 @@ class LinearMPC(Controller):
         if qp == "hpipm" and not (form == "sparse" and ocp.knots == ocp.horizon):
             raise ValueError(f"qp 'hpipm' needs form 'sparse' and the identity parameterization (knots = horizon, "
                              f"traditional MPC), got form {form!r} with {ocp.knots} knots over {ocp.horizon} steps")
+        if ocp.task_functions is not None and form != "condensed":
+            raise ValueError(f"a task's terms and obstacles enter the condensed QP (Gauss-Newton about the plan): "
+                             f"pass form='condensed', got form {form!r}")
         if qp == "daqp" and form != "condensed":
             raise ValueError(f"qp 'daqp' is a dense solver: it needs form 'condensed', got form {form!r}")
         eps = positive(eps, "eps")
@@ -567,7 +570,9 @@ class LinearMPC(Controller):
 
     def _no_native_step(self) -> str | None:
         """Why this configuration has no exported C step (None: it has one)."""
-        for bad, why in ((self.form != "condensed", f"form {self.form!r} (the C step is the condensed QP)"),
+        for bad, why in ((self.ocp.task_functions is not None, "a task (its terms and obstacle rows are built in "
+                                                              "Python)"),
+                         (self.form != "condensed", f"form {self.form!r} (the C step is the condensed QP)"),
                          (self.qp_name != "daqp", f"qp {self.qp_name!r} (the C step solves with DAQP)"),
                          (self.linearization != "goal", f"linearization {self.linearization!r} (the C step "
                                                          f"linearizes about the input goal)"),
@@ -695,9 +700,10 @@ class LinearMPC(Controller):
         return xs, us
 
     def _qp_step(self, x: np.ndarray, goal: np.ndarray, along, deadline: float | None,
-                 times: dict | None = None, transcriptions: tuple | None = None) -> Solution:
+                 times: dict | None = None, transcriptions: tuple | None = None, knots=None) -> Solution:
         """One QP step: the affine model (about x, or per stage along ``along`` = (x̄, ū)), the build, the solve
-        of each of ``transcriptions`` (default: this controller's) until one is not infeasible."""
+        of each of ``transcriptions`` (default: this controller's) until one is not infeasible. A task's terms are
+        linearized about ``knots`` (default: the last plan shifted a step, or the input goal at a cold start)."""
         ocp, times = self.ocp, times or {"model": 0.0, "build": 0.0, "solve": 0.0}
         if not self._costs.fits("prepare", _left(deadline)):
             res = _skipped("prepare", self._costs, deadline, 0)
@@ -715,13 +721,18 @@ class LinearMPC(Controller):
         if model is None:
             return self._fail(NAN, f"non-finite affine model at x = {x.tolist()}", times)
         transcriptions = transcriptions or self._transcriptions
+        task = {}
+        if ocp.task_functions is not None:
+            if knots is None:
+                knots = self.goal_knots(goal) if self.plan is None else ocp.parameterization.shift(self.plan)
+            task = {"targets": self.task_goal[ocp.nx:], "knots": knots}
         for tr in transcriptions:
             soft = tr is not self._transcriptions[0]  # the soft QP after an infeasible hard one: its own build time
             if soft and not self._costs.fits("soft QP build", _left(deadline)):
                 res = _skipped("soft QP build", self._costs, deadline, 0)
                 return self._fail(LIMITED, res.raw_status, times)
             t1 = time.perf_counter()
-            qp = tr.build(*model, x, goal)
+            qp = tr.build(*model, x, goal, **task)
             t2 = time.perf_counter()
             times["build"] += t2 - t1
             self._costs.add("soft QP build" if soft else "prepare", t2 - (t1 if soft else t0))

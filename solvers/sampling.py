@@ -52,7 +52,9 @@ class Preconditioner:
 
     def __init__(self, ocp):
         self.ocp = ocp
-        self.transcription = CondensedQP(ocp)
+        # A task's terms enter by Gauss-Newton about the warm start; its obstacles stay in the rollouts' penalty
+        # (the box-constrained Newton candidate has no other rows).
+        self.transcription = CondensedQP(ocp, obstacles=False)
         self.lo, self.hi = np.tile(ocp.u_min, ocp.knots), np.tile(ocp.u_max, ocp.knots)
         x, u = ocp.model.x, ocp.model.u
         f = ocp.model.xdot
@@ -72,12 +74,16 @@ class Preconditioner:
             self._hold_goal = goal.copy()
         return self._hold
 
-    def update(self, model, x, goal, warm: np.ndarray | None, times: dict) -> None:
+    def update(self, model, x, goal, warm: np.ndarray | None, times: dict, targets=None) -> None:
         """Build, factor and seed for the affine ``model`` = (A_d, B_d, w_d) at state x; ``warm`` (p, m)
-        starts the Newton candidate (the holding input if None). Adds its parts to ``times``."""
+        starts the Newton candidate (the holding input if None) and, with a task, is where its terms are
+        linearized towards ``targets``. Adds its parts to ``times``."""
         p, m = self.ocp.knots, self.ocp.nu
         t0 = time.perf_counter()
-        qp = self.transcription.build(*model, x, goal)
+        task = {}
+        if self.transcription.task is not None:
+            task = {"targets": targets, "knots": np.tile(self.holding_input(goal), (p, 1)) if warm is None else warm}
+        qp = self.transcription.build(*model, x, goal, **task)
         t1 = time.perf_counter()
         self.P, self.q = qp.P, qp.q
         try:
@@ -106,8 +112,8 @@ class SamplingMPC(Controller):
     ``population`` candidates per generation, ``generations`` per control step; ``variant``
     "preconditioned" (default) or "paper" (module docstring); ``dynamics`` "affine" (re-linearized
     each step) or "nonlinear" (the discrete model F in the kernel); ``stage_cost``/``terminal_cost``
-    replace the OCP's quadratic costs in the fitness (any CasADi Function of (x, u, x_goal) /
-    (x, x_goal), non-smooth allowed); ``seed`` makes runs repeatable. ``linearization`` picks the
+    replace the OCP's cost in the fitness (any CasADi Function of (x, u, goal) / (x, goal), goal of ``ocp.ng``
+    entries, non-smooth allowed; default: the OCP's terms and, with a task's obstacles, their penalty); ``seed`` makes runs repeatable. ``linearization`` picks the
     affine model's expansion input as in LinearMPC. ``time_limit`` (s) stops the generations once
     exceeded (a launched generation always completes): the step then returns the best candidate so
     far with status "limited". ``threads`` limits BLAS/OpenMP threads inside a step (see Controller);
@@ -191,9 +197,10 @@ class SamplingMPC(Controller):
         try:
             if self.preconditioned:
                 pre = self.preconditioner
-                pre.update(model, x, goal, None if self.plan is None else self._shifted(self.plan), times)
+                pre.update(model, x, goal, None if self.plan is None else self._shifted(self.plan), times,
+                           self.task_goal[ocp.nx:])
             t = time.perf_counter()
-            self.engine.load(x, goal, model if self._affine else None)
+            self.engine.load(x, self.task_goal, model if self._affine else None)
             if self.preconditioned:
                 np.concatenate([pre.whiten.ravel(), pre.newton.ravel(), pre.hold.ravel()],
                                out=self._upload_buffer, casting="same_kind")

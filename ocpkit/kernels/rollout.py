@@ -25,14 +25,27 @@ from ocpkit.kernels.translate import translate
 DYNAMICS = ("affine", "nonlinear")
 
 
+def fitness(ocp):
+    """(stage (x, u, goal), terminal (x, goal)): the OCP's cost over its whole goal vector, plus with a task's
+    obstacles their exact penalty (ocpkit.task) at every state x_0 … x_T."""
+    stage, terminal = ocp.full_costs()
+    tf = ocp.task_functions
+    if tf is None or not tf.pairs:
+        return stage, terminal
+    x, u, g = ca.SX.sym("x", ocp.nx), ca.SX.sym("u", ocp.nu), ca.SX.sym("goal", ocp.ng)
+    return (ca.Function("fitness", [x, u, g], [stage(x, u, g) + tf.penalty(x)]),
+            ca.Function("fitness_T", [x, g], [terminal(x, g) + tf.penalty(x)]))
+
+
 class Rollout:
     """Rollout engine for ``num_sims`` candidates of ``ocp`` on the Taichi runtime.
 
     ``knots`` (num_sims, p, m) is a device field; ``rollout(i)`` is a ``@ti.func`` that
     simulates candidate i and returns its cost, for solver kernels that generate candidates
     and roll them out in one launch; ``picked`` (num_picked, p, m) receives the candidates
-    chosen by :meth:`pick` (parents, elites). ``stage_cost`` (x, u, x_goal) -> scalar and
-    ``terminal_cost`` (x, x_goal) -> scalar default to the OCP's quadratic ones.
+    chosen by :meth:`pick` (parents, elites). ``stage_cost`` (x, u, goal) -> scalar and
+    ``terminal_cost`` (x, goal) -> scalar default to :func:`fitness` (the OCP's cost; with a task, its terms and
+    its obstacles' penalty); goal has ``ocp.ng`` entries.
 
     Each Taichi call that moves an array costs tens of microseconds of launch overhead, more
     than a small population's rollouts, so a control step moves its data in as few calls as
@@ -57,10 +70,13 @@ class Rollout:
         T, p = basis.shape
         self.num_sims, self.nx, self.nu, self.horizon, self.num_knots = int(num_sims), n, m, T, p
         self.dynamics, self.precision = dynamics, precision
-        stage_cost = ocp.stage_cost if stage_cost is None else stage_cost
-        terminal_cost = ocp.terminal_cost if terminal_cost is None else terminal_cost
-        _check_signature("stage_cost", stage_cost, [(n, 1), (m, 1), (n, 1)], [(1, 1)])
-        _check_signature("terminal_cost", terminal_cost, [(n, 1), (n, 1)], [(1, 1)])
+        ng = self.ng = ocp.ng
+        if stage_cost is None or terminal_cost is None:
+            stage_default, terminal_default = fitness(ocp)
+            stage_cost = stage_default if stage_cost is None else stage_cost
+            terminal_cost = terminal_default if terminal_cost is None else terminal_cost
+        _check_signature("stage_cost", stage_cost, [(n, 1), (m, 1), (ng, 1)], [(1, 1)])
+        _check_signature("terminal_cost", terminal_cost, [(n, 1), (ng, 1)], [(1, 1)])
         stage = translate(stage_cost, precision=precision).func
         terminal = translate(terminal_cost, precision=precision).func
 
@@ -70,7 +86,7 @@ class Rollout:
         self._basis = ti.field(F, shape=(T, p))
         self._basis.from_numpy(basis.astype(self.ntype))
         self._x0 = ti.field(F, shape=n)
-        self._goal = ti.field(F, shape=n)
+        self._goal = ti.field(F, shape=ng)
         if dynamics == "affine":
             self._A = ti.field(F, shape=(n, n))
             self._B = ti.field(F, shape=(n, m))
@@ -118,7 +134,7 @@ class Rollout:
         @ti.func
         def rollout(i):
             x = ti.Vector([x0[r] for r in ti.static(range(n))], dt=F)
-            g = ti.Vector([goal[r] for r in ti.static(range(n))], dt=F)
+            g = ti.Vector([goal[r] for r in ti.static(range(ng))], dt=F)
             U = ti.Matrix([[knots[i, j, a] for a in ti.static(range(m))] for j in ti.static(range(p))], dt=F)
             J = ti.cast(0.0, F)
             for k in range(T):
@@ -158,30 +174,32 @@ class Rollout:
             ti.loop_config(serialize=serial)
             for r in range(n):
                 x0[r] = values[r]
+            ti.loop_config(serialize=serial)
+            for r in range(ng):
                 goal[r] = values[n + r]
             if ti.static(affine):
                 ti.loop_config(serialize=serial)
                 for r in range(n):
                     for c in range(n):
-                        A[r, c] = values[2 * n + r * n + c]
+                        A[r, c] = values[n + ng + r * n + c]
                     for c in range(m):
-                        B[r, c] = values[2 * n + n * n + r * m + c]
-                    w[r] = values[2 * n + n * n + n * m + r]
+                        B[r, c] = values[n + ng + n * n + r * m + c]
+                    w[r] = values[n + ng + n * n + n * m + r]
 
         self._upload = upload
-        self._upload_buffer = np.empty(2 * n + model_size, dtype=self.ntype)
+        self._upload_buffer = np.empty(n + ng + model_size, dtype=self.ntype)
         self.rollout = rollout
         self._evaluate_all = evaluate_all
         self._gather = gather
 
     def load(self, x0: np.ndarray, goal: np.ndarray, affine=None) -> None:
-        """Copy the initial state x_0, the goal state and, with affine dynamics, this control
-        step's model ``affine`` = (A_d, B_d, w_d) for x⁺ = A_d x + B_d u + w_d to the device."""
+        """Copy the initial state x_0, the goal (ng entries: the goal state, then a task's targets) and, with
+        affine dynamics, this control step's model ``affine`` = (A_d, B_d, w_d) for x⁺ = A_d x + B_d u + w_d to the device."""
         n, m = self.nx, self.nu
         if (affine is None) != (self.dynamics != "affine"):
             raise ValueError("affine (A_d, B_d, w_d) is required with dynamics='affine' and "
                              f"not accepted with dynamics={self.dynamics!r}")
-        parts = [_vector("x0", x0, n), _vector("goal", goal, n)]
+        parts = [_vector("x0", x0, n), _vector("goal", goal, self.ng)]
         if affine is not None:
             A_d, B_d, w_d = affine
             parts += [_matrix("A_d", A_d, (n, n)).ravel(), _matrix("B_d", B_d, (n, m)).ravel(),

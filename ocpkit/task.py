@@ -1,0 +1,326 @@
+"""A task beyond the joint-space goal: named, weighted cost terms and spherical obstacles, for every controller.
+
+The OCP's cost (ocpkit.ocp) is a sum of named terms. Two are built in and always there — "state",
+(x − x_goal)ᵀQ(x − x_goal), and "input", (u − u_g)ᵀR(u − u_g) — and a :class:`Task` adds more, each a
+weighted least-squares residual in the style of Crocoddyl's ``CostModelSum``::
+
+    term_i = Σ_k r_i(x_k, u_k, target_i)ᵀ W_i r_i(x_k, u_k, target_i)   (stage, k = 0 … T−1; terminal: x_T)
+
+with W_i = diag(weight) and ``active`` switching a term off. Targets are part of the goal: with a task the goal
+vector that ``solve(x, goal)`` takes is [x_goal; target_1; target_2; …] (:meth:`ocpkit.ocp.OCP.goal` builds it
+by name), so a frame-position target moves at run time like a joint goal.
+
+Obstacles are spheres in the world; the robot is approximated by spheres fixed in its frames
+(:mod:`ocpkit.kinematics`). Each pair's clearance d = ‖c_robot(q) − c_obstacle‖ − r_robot − r_obstacle must stay
+at or above ``margin`` at x_1 … x_T. Each controller takes this in the way that suits it:
+
+* NonlinearMPC (IPOPT, SQP): nonlinear inequality constraints d ≥ margin at every predicted state.
+* LinearMPC and real-time iteration: the constraints linearized about the plan, as rows of the QP, softened as the
+  state bounds are (an exact penalty): one slack s_k ≥ 0 per stage with a pair within ``activation`` of its
+  margin, cost ``obstacle_weight``·(s_k + ½s_k²).
+* EMPC, CEM, MPPI: the same penalty in the rollout fitness, with h_k = max(0, margin − min d at x_k) in place of
+  the slack: ``obstacle_weight``·(h_k + ½h_k²) per stage (``penalty``).
+
+Residuals are CasADi expressions, so the QPs take their Gauss–Newton model (ocpkit.transcription), IPOPT their
+exact derivatives and the sampling kernels their translation (ocpkit.kernels.translate).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import casadi as ca
+import numpy as np
+
+from ocpkit._checks import positive
+
+# A stage's linearized obstacle rows enter the QP only where some pair's clearance at the plan is within this
+# many metres of the margin (a plan this far from every obstacle will not reach one within a step).
+ACTIVATION = 0.25
+
+
+def _vector(value, name: str, size: int | None = None) -> np.ndarray:
+    a = np.atleast_1d(np.asarray(value, dtype=float)).ravel()
+    if size is not None and a.size == 1 and size > 1:
+        a = np.full(size, float(a[0]))
+    if (size is not None and a.size != size) or not np.isfinite(a).all():
+        raise ValueError(f"{name} must be {size or 'some'} finite number(s), got {np.asarray(value).tolist()}")
+    return a
+
+
+class Term:
+    """A named least-squares cost term r(x, u, target)ᵀ diag(weight) r at the stages and/or the terminal state.
+
+    ``residual(x, u, target)`` returns a CasADi column (x, u, target are SX columns of nx, nu and
+    ``target_size`` entries; a terminal term's residual must not depend on u). ``weight`` is a scalar or one
+    value per residual entry (≥ 0); ``terminal_weight`` (default ``weight``) weights x_T when ``terminal``.
+    ``active=False`` keeps the term declared but leaves it out of every controller's cost."""
+
+    def __init__(self, name: str, residual, weight=1.0, *, target_size: int = 0, stage: bool = True,
+                 terminal: bool = False, terminal_weight=None, active: bool = True):
+        if not isinstance(name, str) or not name.isidentifier():
+            raise ValueError(f"a term's name must be a Python identifier (it names its target), got {name!r}")
+        if name in ("state", "input", "x_goal"):
+            raise ValueError(f"term name {name!r} is taken by the OCP's built-in terms")
+        if not callable(residual):
+            raise TypeError(f"term {name!r}: residual must be callable (x, u, target) -> CasADi column")
+        if not (stage or terminal):
+            raise ValueError(f"term {name!r} is neither a stage nor a terminal term")
+        self.name, self.residual = name, residual
+        self.target_size = int(target_size)
+        self.stage, self.terminal, self.active = bool(stage), bool(terminal), bool(active)
+        self._weight, self._terminal_weight = weight, terminal_weight
+
+    def __repr__(self):
+        where = "+".join(w for w, on in (("stage", self.stage), ("terminal", self.terminal)) if on)
+        return f"{type(self).__name__}({self.name!r}, {where}{'' if self.active else ', inactive'})"
+
+    def expression(self, x, u, target):
+        """The residual column and its weights (stage, terminal) for these symbols."""
+        r = ca.vec(self.residual(x, u, target))
+        if not isinstance(r, ca.SX):
+            r = ca.SX(r)
+        w = _vector(self._weight, f"term {self.name!r}: weight", r.numel())
+        wT = w if self._terminal_weight is None else _vector(self._terminal_weight,
+                                                             f"term {self.name!r}: terminal_weight", r.numel())
+        if (w < 0).any() or (wT < 0).any():
+            raise ValueError(f"term {self.name!r}: weights must be >= 0")
+        if self.terminal and ca.depends_on(r, u):
+            raise ValueError(f"term {self.name!r} is a terminal term but its residual depends on u")
+        return r, w, wT
+
+
+def FramePosition(kinematics, frame: str, weight=1.0, *, name: str = "position", stage: bool = True,
+                  terminal: bool = True, terminal_weight=None, active: bool = True) -> Term:
+    """p_frame(q) − target: a frame's world position (3 entries) towards a target point given in the goal."""
+    kinematics.position(ca.SX.sym("q", kinematics.n), frame)  # an unknown frame fails here, with its name
+    return Term(name, lambda x, u, target: kinematics.position(x[:kinematics.n], frame) - target, weight,
+                target_size=3, stage=stage, terminal=terminal, terminal_weight=terminal_weight, active=active)
+
+
+def FrameOrientation(kinematics, frame: str, weight=1.0, *, name: str = "orientation", stage: bool = True,
+                     terminal: bool = True, terminal_weight=None, active: bool = True) -> Term:
+    """½ vee(R_tᵀR − RᵀR_t): a frame's orientation R(q) towards a target rotation R_t (the goal carries its 9
+    entries row by row). It is sin θ times the rotation axis of R_tᵀR: zero at the target, smooth everywhere."""
+    kinematics.position(ca.SX.sym("q", kinematics.n), frame)
+
+    def residual(x, u, target):
+        R = kinematics.placement(x[:kinematics.n], frame)[0]
+        # The target is R_t row by row; CasADi's reshape fills column by column, so it gives R_tᵀ.
+        A = ca.mtimes(ca.reshape(target, 3, 3), R)
+        A = A - A.T  # 2 sin θ [a]x for R_tᵀR = exp(θ [a]x)
+        return 0.5 * ca.vertcat(A[2, 1], A[0, 2], A[1, 0])
+
+    return Term(name, residual, weight, target_size=9, stage=stage, terminal=terminal,
+                terminal_weight=terminal_weight, active=active)
+
+
+def JointLimitBarrier(q_min, q_max, weight=1e3, *, margin: float = 0.05, name: str = "joint_limits",
+                      terminal: bool = True, active: bool = True) -> Term:
+    """A C¹ barrier at the joint limits: max(0, q − (q_max − margin)) + min(0, q − (q_min + margin)) per joint
+    (zero inside the limits shrunk by ``margin``, linear beyond: quadratic cost). Infinite limits are skipped."""
+    lo, hi = np.asarray(q_min, dtype=float).ravel(), np.asarray(q_max, dtype=float).ravel()
+    if lo.shape != hi.shape or (lo > hi).any():
+        raise ValueError(f"q_min and q_max must have one entry per joint and q_min <= q_max, got {lo} and {hi}")
+    idx = np.flatnonzero(np.isfinite(lo) & np.isfinite(hi))
+    margin = float(margin)
+
+    def residual(x, u, target):
+        q = x[ca.DM(idx.tolist())] if idx.size else ca.SX(0, 1)
+        return (ca.fmax(0, q - ca.DM(hi[idx] - margin)) + ca.fmin(0, q - ca.DM(lo[idx] + margin)))
+
+    return Term(name, residual, weight, terminal=terminal, active=active)
+
+
+def UserTerm(name: str, residual, weight=1.0, *, target_size: int = 0, stage: bool = True, terminal: bool = False,
+             terminal_weight=None, active: bool = True) -> Term:
+    """Any residual: a callable (x, u, target) -> CasADi column, or a casadi.Function of (x, u) or (x, u, target)."""
+    if isinstance(residual, ca.Function):
+        fn = residual
+        if fn.n_in() not in (2, 3) or fn.n_out() != 1:
+            raise ValueError(f"term {name!r}: a Function residual takes (x, u) or (x, u, target) and returns one "
+                             f"column; got {fn.n_in()} inputs and {fn.n_out()} outputs")
+        residual = (lambda x, u, t: fn(x, u)) if fn.n_in() == 2 else (lambda x, u, t: fn(x, u, t))
+    return Term(name, residual, weight, target_size=target_size, stage=stage, terminal=terminal,
+                terminal_weight=terminal_weight, active=active)
+
+
+@dataclass(frozen=True)
+class Sphere:
+    """An obstacle: a ball of ``radius`` (m) about ``center`` (x, y, z in the world frame)."""
+
+    center: tuple
+    radius: float
+
+    def __post_init__(self):
+        object.__setattr__(self, "center", tuple(_vector(self.center, "Sphere center", 3)))
+        object.__setattr__(self, "radius", positive(self.radius, "Sphere radius"))
+
+    @classmethod
+    def parse(cls, text: str) -> "Sphere":
+        """A sphere from "x,y,z,r" (the CLI's ``--obstacle``)."""
+        try:
+            values = [float(v) for v in str(text).split(",")]
+        except ValueError:
+            values = []
+        if len(values) != 4:
+            raise ValueError(f"an obstacle is 'x,y,z,r' (centre and radius in metres), got {text!r}")
+        return cls(tuple(values[:3]), values[3])
+
+
+@dataclass
+class Task:
+    """Cost terms and obstacles added to an OCP (see the module docstring).
+
+    ``terms``: :class:`Term` s (names unique). ``obstacles``: :class:`Sphere` s; they need ``kinematics`` (an
+    :class:`ocpkit.kinematics.Kinematics`) and ``robot`` (its :class:`~ocpkit.kinematics.RobotSphere` s).
+    ``margin`` is the clearance kept (m); ``obstacle_weight`` the exact penalty's weight in the QPs and the
+    sampling planners' fitness."""
+
+    terms: list = field(default_factory=list)
+    obstacles: list = field(default_factory=list)
+    kinematics: object = None
+    robot: list = field(default_factory=list)
+    margin: float = 0.01
+    obstacle_weight: float = 1e4
+
+    def __post_init__(self):
+        self.terms, self.obstacles, self.robot = list(self.terms), list(self.obstacles), list(self.robot)
+        names = [t.name for t in self.terms]
+        for t in self.terms:
+            if not isinstance(t, Term):
+                raise TypeError(f"Task terms must be ocpkit.task.Term, got {type(t).__name__}")
+        if len(set(names)) != len(names):
+            raise ValueError(f"Task term names must be unique, got {names}")
+        for o in self.obstacles:
+            if not isinstance(o, Sphere):
+                raise TypeError(f"Task obstacles must be ocpkit.task.Sphere, got {type(o).__name__}")
+        if self.obstacles and (self.kinematics is None or not self.robot):
+            raise ValueError("a Task with obstacles needs kinematics= and robot= (the robot's spheres, e.g. "
+                             "ocpkit.kinematics.spheres_along_links(problem.kinematics, problem.link_radius))")
+        self.margin = float(self.margin)
+        if not np.isfinite(self.margin):
+            raise ValueError(f"margin must be finite, got {self.margin!r}")
+        self.obstacle_weight = positive(self.obstacle_weight, "obstacle_weight")
+
+    @property
+    def active_terms(self) -> list:
+        return [t for t in self.terms if t.active]
+
+    @property
+    def targets(self) -> dict:
+        """Target name -> size, in the goal vector's order (every declared term, active or not)."""
+        return {t.name: t.target_size for t in self.terms if t.target_size}
+
+    @property
+    def target_size(self) -> int:
+        return sum(self.targets.values())
+
+    @property
+    def pairs(self) -> int:
+        """Robot-sphere/obstacle pairs: the clearances per state."""
+        return len(self.robot) * len(self.obstacles)
+
+    def compile(self, nx: int, nu: int) -> "CompiledTask":
+        return CompiledTask(self, nx, nu)
+
+
+class CompiledTask:
+    """A task's CasADi Functions for an OCP of nx states and nu inputs (built once by the OCP).
+
+    Goal-target vector g (``size`` entries, the targets in order). Functions:
+
+    * ``stage_cost`` (x, u, g) -> Σ_i r_iᵀW_ir_i and ``terminal_cost`` (x, g) -> the terminal terms' sum;
+    * ``stage_residual`` (x, u, g) -> (r, ∂r/∂x, ∂r/∂u) and ``terminal_residual`` (x, g) -> (r, ∂r/∂x) with the
+      weights ``stage_weight``, ``terminal_weight`` (Gauss–Newton, the QPs);
+    * ``clearance`` (x) -> (d − margin per pair, its Jacobian) and ``penalty`` (x) -> the sampling planners' exact
+      penalty of one state (zero without obstacles).
+    """
+
+    def __init__(self, task: Task, nx: int, nu: int):
+        self.task, self.nx, self.nu = task, nx, nu
+        self.size = task.target_size
+        x, u, g = ca.SX.sym("x", nx), ca.SX.sym("u", nu), ca.SX.sym("g", self.size)
+        stage, terminal, ws, wt, offset = [], [], [], [], 0
+        for term in task.terms:
+            target = g[offset:offset + term.target_size]
+            offset += term.target_size
+            if not term.active:
+                continue
+            r, w, wT = term.expression(x, u, target)
+            if term.stage:
+                stage.append(r)
+                ws.append(w)
+            if term.terminal:
+                terminal.append(r)
+                wt.append(wT)
+        rs, rt = ca.vertcat(*stage) if stage else ca.SX(0, 1), ca.vertcat(*terminal) if terminal else ca.SX(0, 1)
+        self.stage_weight = np.concatenate(ws) if ws else np.zeros(0)
+        self.terminal_weight = np.concatenate(wt) if wt else np.zeros(0)
+        self.stage_residual = ca.Function("task_stage_residual", [x, u, g],
+                                          [rs, ca.jacobian(rs, x), ca.jacobian(rs, u)], ["x", "u", "g"],
+                                          ["r", "r_x", "r_u"])
+        self.terminal_residual = ca.Function("task_terminal_residual", [x, g], [rt, ca.jacobian(rt, x)],
+                                             ["x", "g"], ["r", "r_x"])
+        self.stage_cost = ca.Function("task_stage_cost", [x, u, g], [ca.dot(rs, ca.DM(self.stage_weight) * rs)],
+                                      ["x", "u", "g"], ["l"])
+        self.terminal_cost = ca.Function("task_terminal_cost", [x, g], [ca.dot(rt, ca.DM(self.terminal_weight) * rt)],
+                                         ["x", "g"], ["l_T"])
+        self.pairs = task.pairs
+        d = self._clearances(x) if self.pairs else ca.SX(0, 1)
+        self.clearance = ca.Function("clearance", [x], [d, ca.jacobian(d, x)], ["x"], ["d", "d_x"])
+        if self.pairs:
+            h = ca.fmax(0, -ca.mmin(d))
+            pen = task.obstacle_weight * (h + 0.5 * h * h)
+        else:
+            pen = ca.SX(0)
+        self.penalty = ca.Function("obstacle_penalty", [x], [pen], ["x"], ["penalty"])
+        self.has_cost = bool(stage or terminal)
+
+    def _clearances(self, x):
+        """d − margin for every (robot sphere, obstacle) pair, robot spheres outer."""
+        from ocpkit.kinematics import sphere_centers
+
+        task = self.task
+        kin = task.kinematics
+        centers = sphere_centers(kin, task.robot)(x[:kin.n])  # 3 × k
+        out = []
+        for i, s in enumerate(task.robot):
+            for o in task.obstacles:
+                diff = centers[:, i] - ca.DM(o.center)
+                out.append(ca.sqrt(ca.dot(diff, diff)) - (s.radius + o.radius + task.margin))
+        return ca.vertcat(*out)
+
+
+def reach(problem, obstacles=(), *, frame: str | None = None, position_weight: float = 1e3,
+          terminal_weight: float | None = None, margin: float = 0.01, link_radius: float | None = None,
+          obstacle_weight: float = 1e5, **ocp_options):
+    """The OCP "bring ``frame`` to a point, clear of ``obstacles``" for a robot problem with ``kinematics``.
+
+    Cost: the frame-position term "position" (``position_weight`` per m² at every stage, ``terminal_weight``,
+    default 10×, at x_T), the problem's velocity weights as the "state" term (its joint-angle weights set to
+    zero: the posture is free) and its input term. Obstacles (:class:`Sphere` s, or "x,y,z,r" strings) are kept
+    ``margin`` away from spheres of ``link_radius`` (default the problem's) along the robot's links. Other
+    keywords go to ``problem.ocp`` (``knots``, ``horizon``, ...). The goal is ``ocp.goal(x_ref, position=p)``."""
+    from ocpkit.kinematics import spheres_along_links
+
+    kinematics = getattr(problem, "kinematics", None)
+    if kinematics is None:
+        raise ValueError(f"{problem!r} has no kinematics: a reach task needs a robot problem with frames "
+                         "(nlink, puma560, baxter, a URDF)")
+    frame = frame or problem.end_effector
+    obstacles = [o if isinstance(o, Sphere) else Sphere.parse(o) for o in obstacles]
+    radius = problem.link_radius if link_radius is None else positive(link_radius, "link_radius")
+    weight = positive(position_weight, "position_weight")
+    terminal = 10 * weight if terminal_weight is None else positive(terminal_weight, "terminal_weight")
+    task = Task([FramePosition(kinematics, frame, weight, terminal_weight=terminal)], obstacles,
+                kinematics=kinematics if obstacles else None,
+                robot=spheres_along_links(kinematics, radius) if obstacles else (), margin=margin,
+                obstacle_weight=obstacle_weight)
+    defaults = problem.defaults()
+    nq = kinematics.n
+    if "Q" not in ocp_options:
+        Q = np.array(defaults["Q"], dtype=float)
+        Q[:nq, :] = 0.0
+        Q[:, :nq] = 0.0
+        ocp_options.update(Q=Q, Q_terminal=Q)
+    return problem.ocp(task=task, **ocp_options)
