@@ -6,8 +6,10 @@ Wherever a problem is named, a problem spec is accepted: a registered name (``pe
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
+import re
 import sys
 import tempfile
 from pathlib import Path
@@ -101,6 +103,22 @@ def _add_controller_args(p):
     p.add_argument("--seed", type=int, default=0, help="seed of the random start and goal")
 
 
+def _add_task_args(p):
+    """A task-space target (ocpkit.task.reach) instead of the seeded joint-space goal: solve and simulate."""
+    p.add_argument("--target", metavar="X,Y,Z",
+                   help="bring the end effector (or --frame) to this point (m, world frame) from the seeded start "
+                        "instead of the seeded joint goal (ocpkit.task.reach; a robot problem with kinematics)")
+    p.add_argument("--obstacle", action="append", metavar="X,Y,Z,R",
+                   help="with a target: a sphere (centre and radius, m, world frame) the robot keeps clear of "
+                        "(repeatable)")
+    p.add_argument("--frame", metavar="NAME", help="with a target: the frame brought to it (default: the "
+                                                    "problem's end effector)")
+    p.add_argument("--task", metavar="FILE",
+                   help="a TOML reach task: target = [x, y, z], optional frame, margin, position_weight, "
+                        "terminal_weight, link_radius, obstacle_weight and [[obstacle]] tables (center = [x, y, z], "
+                        "radius = r); --target and --frame override its values, --obstacle adds to its obstacles")
+
+
 def _add_study_args(p, size=True):
     if size:
         p.add_argument("--size", default="quick", choices=("quick", "full"))
@@ -128,11 +146,13 @@ def _parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
     solve = sub.add_parser("solve", help="one MPC solve from a seeded random state and goal")
     _add_controller_args(solve)
+    _add_task_args(solve)
     solve.add_argument("--json", action="store_true", help="print one JSON object")
     sim = sub.add_parser("simulate", help="closed loop: actual cost, solve times, a figure")
     _add_controller_args(sim)
     sim.add_argument("--duration", type=float, default=None, help="seconds (default: the problem's)")
     sim.add_argument("--out", default="results/simulate.png", help="figure path")
+    _add_task_args(sim)
     sim.add_argument("--json", action="store_true", help="print one JSON object")
     demo = sub.add_parser("demo", help="closed-loop pendulum with every available controller")
     demo.add_argument("--problem", default="pendulum")
@@ -252,36 +272,236 @@ def _ocp(problem, args, **options):
                        **options)
 
 
-def _controller(args) -> tuple:
+# --- task-space targets: --target, --obstacle, --frame, --task (ocpkit.task.reach) --------------------------------
+
+# The keys of a --task file beside target, frame and [[obstacle]]: reach()'s keyword arguments, all positive but
+# margin (any finite number: the clearance kept, m).
+_TASK_NUMBERS = ("margin", "position_weight", "terminal_weight", "link_radius", "obstacle_weight")
+_TASK_KEYS = ("target", "frame", "obstacle") + _TASK_NUMBERS
+# A value of --target or --obstacle that argparse would take for an option ("-0.3,0.5,0"): see _attach_values.
+_NUMBERS = re.compile(r"^-[0-9.][0-9.eE+-]*(,\s*[-+]?[0-9.][0-9.eE+-]*)*$")
+
+
+@dataclasses.dataclass
+class _Reach:
+    """A reach task from the command line: the target point, the frame (None: the problem's end effector), the
+    obstacles (ocpkit.task.Sphere) and reach()'s other options; ``source`` names where target and frame came from."""
+
+    target: np.ndarray
+    frame: str | None
+    obstacles: list
+    options: dict
+    source: dict
+
+
+def _point(text, option: str, form: str = "'x,y,z'") -> np.ndarray:
+    """x,y,z (m) from "x,y,z" or a list of three numbers."""
+    try:
+        values = [float(v) for v in (text.split(",") if isinstance(text, str) else text)]
+    except (TypeError, ValueError):
+        values = []
+    if len(values) != 3 or not np.isfinite(values).all():
+        raise ValueError(f"{option} is {form} (the end effector's target point in metres, world frame), got {text!r}")
+    return np.array(values)
+
+
+def _number(value, where: str, positive: bool) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value) or \
+            (positive and value <= 0):
+        raise ValueError(f"{where} must be a {'positive' if positive else 'finite'} number, got {value!r}")
+    return float(value)
+
+
+def _read_task_file(path) -> dict:
+    """A --task TOML file as {target, frame, obstacles, options}, every value checked (errors name the file)."""
+    import tomllib
+
+    from ocpkit.task import Sphere
+
+    where = f"--task {path}"
+    try:
+        with open(path, "rb") as f:
+            data = tomllib.load(f)
+    except FileNotFoundError:
+        raise ValueError(f"{where}: no such file") from None
+    except IsADirectoryError:
+        raise ValueError(f"{where}: is a folder; give a TOML file") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ValueError(f"{where}: not valid TOML: {exc}") from None
+    unknown = sorted(set(data) - set(_TASK_KEYS))
+    if unknown:
+        raise ValueError(f"{where}: unknown key {unknown[0]!r}; a task file has {', '.join(_TASK_KEYS)}")
+    out = {"target": None, "frame": None, "obstacles": [], "options": {}}
+    if "target" in data:
+        out["target"] = _point(data["target"], f"{where}: target", "[x, y, z]")
+    if "frame" in data:
+        if not isinstance(data["frame"], str) or not data["frame"]:
+            raise ValueError(f"{where}: frame must be a frame name (a string), got {data['frame']!r}")
+        out["frame"] = data["frame"]
+    obstacles = data.get("obstacle", [])
+    if not isinstance(obstacles, list) or not all(isinstance(o, dict) for o in obstacles):
+        raise ValueError(f"{where}: obstacles are [[obstacle]] tables with center = [x, y, z] and radius = r")
+    for k, o in enumerate(obstacles, 1):
+        if set(o) != {"center", "radius"}:
+            raise ValueError(f"{where}: obstacle {k} has the keys {sorted(o)}; it needs exactly center = [x, y, z] "
+                             f"and radius = r (m)")
+        center = o["center"]
+        if not isinstance(center, list) or len(center) != 3 or not all(
+                isinstance(c, (int, float)) and not isinstance(c, bool) for c in center):
+            raise ValueError(f"{where}: obstacle {k}: center must be [x, y, z] (m), got {center!r}")
+        radius = _number(o["radius"], f"{where}: obstacle {k}: radius", positive=True)
+        try:
+            out["obstacles"].append(Sphere(tuple(float(c) for c in center), radius))
+        except ValueError as exc:
+            raise ValueError(f"{where}: obstacle {k}: {exc}") from None
+    for key in _TASK_NUMBERS:
+        if key in data:
+            out["options"][key] = _number(data[key], f"{where}: {key}", positive=key != "margin")
+    return out
+
+
+def _reach_task(args) -> _Reach | None:
+    """The reach task that --target, --obstacle, --frame and --task ask for (None: none, the seeded joint goal)."""
+    from ocpkit.task import Sphere
+
+    file = _read_task_file(args.task) if args.task else {"target": None, "frame": None, "obstacles": [],
+                                                              "options": {}}
+    source = {"target": "--target", "frame": "--frame"}
+    target = None
+    if args.target is not None:
+        target = _point(args.target, "--target")
+    elif file["target"] is not None:
+        target, source["target"] = file["target"], f"--task {args.task}"
+    if target is None:
+        given = [o for o, v in (("--obstacle", args.obstacle), ("--frame", args.frame)) if v]
+        if given:
+            raise ValueError(f"{given[0]} needs --target x,y,z (or a --task file with target = [x, y, z]): it "
+                             f"belongs to a reach task")
+        if args.task:
+            raise ValueError(f"--task {args.task}: no target = [x, y, z] in the file (nor --target)")
+        return None
+    obstacles = list(file["obstacles"])
+    for text in args.obstacle or ():
+        try:
+            obstacles.append(Sphere.parse(text))
+        except ValueError as exc:
+            raise ValueError(f"--obstacle {text}: {exc}") from None
+    frame = args.frame
+    if frame is None and file["frame"] is not None:
+        frame, source["frame"] = file["frame"], f"--task {args.task}: frame"
+    return _Reach(target, frame, obstacles, file["options"], source)
+
+
+def _reach_ocp(problem, args, task: _Reach, **options):
+    """ocpkit.task.reach for the command line's task, after the checks that name its options."""
+    from ocpkit.task import reach
+
+    kinematics = getattr(problem, "kinematics", None)
+    if kinematics is None:
+        raise ValueError(f"{task.source['target']}: {args.problem} has no kinematics (no frames to bring to a "
+                         f"point); a reach task needs a robot problem: nlink:N, puma560, baxter, urdf:FILE")
+    if task.frame is None:
+        task.frame = getattr(problem, "end_effector", None)
+        if task.frame is None:
+            raise ValueError(f"{args.problem} names no end effector; give --frame NAME, one of its frames: "
+                             f"{', '.join(kinematics.frames)}")
+    else:
+        try:
+            kinematics.function(task.frame)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"{task.source['frame']} {task.frame!r}: {exc}") from None
+    return reach(problem, task.obstacles, frame=task.frame, knots=_knots(problem, args), horizon=args.horizon,
+                 parameterization=args.parameterization, **task.options, **options)
+
+
+def _reach_report(problem, ocp, task: _Reach, xs, dt: float | None = None) -> dict:
+    """How the states ``xs`` (N, nx) did on the task: the frame's distance to the target at the last state, and the
+    smallest clearance — distance from a robot sphere's surface to an obstacle's — over all states (negative: they
+    overlap, a collision)."""
+    xs = np.atleast_2d(np.asarray(xs, dtype=float))
+    kin = problem.kinematics
+    fk = kin.function(task.frame).map(len(xs))
+    positions = np.asarray(fk(xs[:, :kin.n].T)[0]).T  # (N, 3)
+    report = {"frame": task.frame, "target": task.target.tolist(), "final_position": positions[-1].tolist(),
+              "final_distance": float(np.linalg.norm(positions[-1] - task.target)),
+              "obstacles": [[*map(float, o.center), float(o.radius)] for o in task.obstacles],
+              "margin": ocp.task.margin,
+              "min_clearance": None, "collisions": 0, "first_collision": None, "states": len(xs)}
+    if task.obstacles:
+        d = np.asarray(ocp.task_functions.clearance.map(len(xs))(xs.T)[0]) + ocp.task.margin  # (pairs, N)
+        closest = d.min(axis=0)
+        hit = np.flatnonzero(closest < 0)
+        report.update(min_clearance=float(closest.min()), collisions=int(hit.size),
+                      first_collision=None if not hit.size else int(hit[0]) if dt is None else float(hit[0] * dt))
+    return report
+
+
+def _reach_line(report: dict, what: str) -> str:
+    """The report as one line of text."""
+    line = (f"reach: {report['frame']} {report['final_distance']:.4f} m from the target "
+            f"{_fmt(report['target'])} {what}")
+    n = len(report["obstacles"])
+    if not n:
+        return line + "; no obstacles"
+    first = report["first_collision"]
+    when = "" if first is None else f", first at t = {first:.2f} s" if isinstance(first, float) else \
+        f", first at step {first}"
+    collided = (f"COLLIDED in {report['collisions']} of {report['states']} states{when}" if report["collisions"]
+                else f"no collision in {report['states']} states")
+    return (line + f"; min clearance {report['min_clearance']:.4f} m to {n} obstacle{'s' * (n > 1)} "
+                   f"(margin {report['margin']:g} m); {collided}")
+
+
+def _fmt(v) -> str:
+    return "(" + ", ".join(f"{a:g}" for a in v) + ")"
+
+
+def _controller(args, task: _Reach | None = None) -> tuple:
     options = _solver_options(args)
     problem = problems.make(args.problem)
     _check_size(problem, args)
-    ocp = _ocp(problem, args, error=args.error, compiled=args.compiled)
+    if task is None:
+        ocp = _ocp(problem, args, error=args.error, compiled=args.compiled)
+    else:
+        ocp = _reach_ocp(problem, args, task, error=args.error, compiled=args.compiled)
     return problem, ocp, solvers.make(args.solver, ocp, **options)
 
 
+def _start(problem, ocp, seed: int, task: _Reach | None) -> tuple:
+    """The seeded start and goal; with a reach task the goal is the target, at rest (joint velocities zero)."""
+    x0, goal = problem.sample(seed)
+    return (x0, goal) if task is None else (x0, ocp.goal(x0, position=task.target))
+
+
 def _solve(args):
-    problem, ocp, ctrl = _controller(args)
-    x0, goal = problem.sample(args.seed)
+    task = _reach_task(args)
+    problem, ocp, ctrl = _controller(args, task)
+    x0, goal = _start(problem, ocp, args.seed, task)
     sol = ctrl.solve(x0, goal)
+    extra = {}
+    if task is not None:  # the plan: the OCP's model from x0 under the solved knots, x_0 … x_T
+        extra["reach"] = _reach_report(problem, ocp, task, ctrl.rollout(x0, ocp.parameterization.inputs(sol.knots)))
     if args.json:
         print(json.dumps({"problem": args.problem, "solver": args.solver, "controller": repr(ctrl),
-                          "x0": x0.tolist(), "goal": goal.tolist(), **sol.to_dict()}))
+                          "x0": x0.tolist(), "goal": goal.tolist(), **sol.to_dict(), **extra}))
     else:
         print(f"{ctrl!r}\nx0 = {x0}, goal = {goal}\nu = {sol.u}  status = {sol.status} ({sol.raw_status}), "
               f"{sol.iterations} iterations, total {1e3 * sol.times['total']:.3f} ms")
+        if task is not None:
+            print(_reach_line(extra["reach"], f"at the plan's end (x_T, T = {ocp.horizon}, the OCP's model)"))
     return 0 if sol.ok else 1
 
 
-def _run_closed_loop(problem, ctrl: Controller, seed: int, duration: float | None = None):
-    """The closed loop from the seeded start, after one untimed solve that compiles what the controller needs
-    (Taichi kernels take seconds): said on stderr when it takes over a second, never counted in the step times."""
+def _run_closed_loop(problem, ctrl: Controller, seed: int, duration: float | None = None, start=None):
+    """The closed loop from the seeded start (or ``start``, (x0, goal)), after one untimed solve that compiles what
+    the controller needs (Taichi kernels take seconds): said on stderr when it takes over a second, never counted
+    in the step times."""
     import time
 
     from ocpkit.metrics import actual_cost
     from ocpkit.simulate import simulate
 
-    x0, goal = problem.sample(seed)
+    x0, goal = problem.sample(seed) if start is None else start
     start = time.perf_counter()
     ctrl.solve(x0, goal)  # simulate() resets the controller: this solve only compiles and warms up
     first = time.perf_counter() - start
@@ -306,13 +526,22 @@ def _simulate(args):
     from ocpkit import plots
 
     _check_output_file(args.out, "--out")
-    problem, ocp, ctrl = _controller(args)
-    traj, cost = _run_closed_loop(problem, ctrl, args.seed, args.duration)
-    fig = plots.closed_loop({repr(ctrl): traj}, args.out, title=f"{args.problem}, seed {args.seed}",
-                            **_labels(problem))
+    task = _reach_task(args)
+    problem, ocp, ctrl = _controller(args, task)
+    traj, cost = _run_closed_loop(problem, ctrl, args.seed, args.duration, start=_start(problem, ocp, args.seed, task))
+    shown, title = traj, f"{args.problem}, seed {args.seed}"
+    if task is not None:
+        # the joint angles have no goal in a reach task (x_goal's angles are the start's, weighted zero): none drawn
+        goal = traj.goal.copy()
+        goal[:problem.kinematics.n] = np.nan
+        shown = dataclasses.replace(traj, goal=goal)
+        title += f", {task.frame} to {_fmt(task.target)}"
+    fig = plots.closed_loop({repr(ctrl): shown}, args.out, title=title, **_labels(problem))
     summary = {"problem": args.problem, "solver": args.solver, "controller": repr(ctrl), "actual_cost": cost,
                "fallbacks": traj.fallbacks, "steps": len(traj.solutions), "total_time": _time_summary(traj),
                "figure": str(fig)}
+    if task is not None:
+        summary["reach"] = _reach_report(problem, ocp, task, traj.x, dt=float(traj.t[1] - traj.t[0]))
     if args.json:
         print(json.dumps(summary))
     else:
@@ -320,6 +549,8 @@ def _simulate(args):
               f"total solve time median {summary['total_time']['median_ms']:.3f} ms "
               f"(p90 {summary['total_time']['p90_ms']:.3f}, max {summary['total_time']['max_ms']:.3f})\n"
               f"figure: {fig}")
+        if task is not None:
+            print(_reach_line(summary["reach"], f"after {traj.t[-1]:g} s"))
     return 0
 
 
@@ -661,8 +892,22 @@ def _error_line(exc: BaseException, debug: bool) -> str:
     return f"ocpkit: error: {exc}" + (" (--debug prints its traceback)" if hint else "")
 
 
+def _attach_values(argv) -> list[str]:
+    """``--target -0.3,0.5,0`` as ``--target=-0.3,0.5,0`` (and so --obstacle): argparse takes a value that starts
+    with '-' and is not one plain number for an option ("expected one argument")."""
+    out = []
+    for k, a in enumerate(argv):
+        if a == "--":
+            return out + list(argv[k:])
+        if out and out[-1] in ("--target", "--obstacle") and _NUMBERS.match(a):
+            out[-1] = f"{out[-1]}={a}"
+        else:
+            out.append(a)
+    return out
+
+
 def main(argv=None) -> int:
-    args = _parser().parse_args(_debug_first(argv))
+    args = _parser().parse_args(_attach_values(_debug_first(argv)))
     try:
         commands = {"solve": _solve, "simulate": _simulate, "demo": _demo, "study": _study,
                     "reproduce": _reproduce, "export": _export, "bench": _bench,

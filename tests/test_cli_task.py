@@ -1,0 +1,146 @@
+"""Task-space targets on the command line (--target, --obstacle, --frame, --task) and the README's reach example."""
+import json
+import re
+
+import numpy as np
+import pytest
+
+from conftest import README, readme_block
+from ocpkit import cli
+from ocpkit.cli import main
+
+# nlink:3 (planar, z = 0): the tip from seed 0's start, (0.43, -0.21), round a ball to (0.3, 0.5); without the ball
+# the tip's path passes through it.
+SCENE = ["nlink:3", "--target", "0.3,0.5,0", "--obstacle", "0.55,0.2,0,0.08"]
+TOML = """
+target = [0.3, 0.5, 0.0]
+frame = "tip"
+margin = 0.01
+[[obstacle]]
+center = [0.55, 0.2, 0.0]
+radius = 0.08
+"""
+
+
+def _simulate(args, tmp_path, capsys) -> dict:
+    assert main(["simulate", *args, "--duration", "1.5", "--out", str(tmp_path / "sim.png"), "--json"]) == 0
+    return json.loads(capsys.readouterr().out)
+
+
+def test_target_and_obstacle_flags(tmp_path, capsys):
+    reach = _simulate(SCENE, tmp_path, capsys)["reach"]
+    assert reach["frame"] == "tip" and reach["target"] == [0.3, 0.5, 0.0] and reach["states"] == 151
+    assert reach["obstacles"] == [[0.55, 0.2, 0.0, 0.08]] and reach["margin"] == 0.01
+    assert reach["final_distance"] < 0.01, reach
+    assert 0 < reach["min_clearance"] < 0.02 and reach["collisions"] == 0, reach  # the ball was in the way
+    # the text summary says the same in one line
+    assert main(["simulate", *SCENE, "--duration", "1.5", "--out", str(tmp_path / "sim.png")]) == 0
+    line = capsys.readouterr().out.strip().splitlines()[-1]
+    assert re.fullmatch(r"reach: tip 0\.00\d\d m from the target \(0\.3, 0\.5, 0\) after 1\.5 s; min clearance "
+                        r"0\.0\d{3} m to 1 obstacle \(margin 0\.01 m\); no collision in 151 states", line), line
+
+
+def test_task_file_is_the_flags(tmp_path, capsys):
+    task = tmp_path / "reach.toml"
+    task.write_text(TOML)
+    flags = _simulate(SCENE, tmp_path, capsys)
+    from_file = _simulate(["nlink:3", "--task", str(task)], tmp_path, capsys)
+    assert from_file["reach"] == flags["reach"] and from_file["actual_cost"] == flags["actual_cost"]
+
+
+def test_flags_override_the_file_and_negative_values(tmp_path, capsys):
+    task = tmp_path / "reach.toml"
+    task.write_text(TOML)
+    # --target replaces the file's, --obstacle adds a second ball; "-0.3,…" is a value, not an option
+    assert main(["solve", "nlink:3", "--task", str(task), "--target", "-0.3,0.5,0", "--obstacle", "-0.6,0,0,0.05",
+                 "--json"]) == 0
+    reach = json.loads(capsys.readouterr().out)["reach"]
+    assert reach["target"] == [-0.3, 0.5, 0.0] and len(reach["obstacles"]) == 2
+    assert reach["obstacles"][1] == [-0.6, 0.0, 0.0, 0.05] and reach["states"] == 51  # solve: the plan, x_0 … x_T
+
+
+def test_solve_reports_its_plan(capsys):
+    assert main(["solve", *SCENE, "--frame", "joint3"]) == 0
+    out = capsys.readouterr().out
+    assert re.search(r"reach: joint3 \d\.\d{4} m from the target \(0\.3, 0\.5, 0\) at the plan's end \(x_T, T = 50, "
+                     r"the OCP's model\); min clearance -?\d\.\d{4} m to 1 obstacle", out), out
+
+
+def _bad_files(tmp_path):
+    files = {"bad.toml": "target = [1, 2,\n", "key.toml": "target = [0.3, 0.5, 0]\ngoal = 1\n",
+             "none.toml": "margin = 0.02\n",
+             "obstacle.toml": "target = [0.3, 0.5, 0]\n[[obstacle]]\ncentre = [1, 2, 3]\n",
+             "radius.toml": "target = [0.3, 0.5, 0]\n[[obstacle]]\ncenter = [1, 2, 3]\nradius = -1\n",
+             "weight.toml": "target = [0.3, 0.5, 0]\nposition_weight = 0\n", "short.toml": "target = [0.3, 0.5]\n",
+             "frame.toml": "target = [0.3, 0.5, 0]\nframe = \"hand\"\n"}
+    for name, text in files.items():
+        (tmp_path / name).write_text(text)
+
+
+@pytest.mark.parametrize("args,message", [
+    (["nlink:3", "--target", "0.3,0.5,0", "--obstacle", "1,2,3"],
+     "--obstacle 1,2,3: an obstacle is 'x,y,z,r' (centre and radius in metres), got '1,2,3'"),
+    (["nlink:3", "--target", "0.3,0.5,0", "--obstacle", "1,2,3,-1"], "--obstacle 1,2,3,-1: Sphere radius"),
+    (["nlink:3", "--obstacle", "1,2,3,0.1"], "--obstacle needs --target x,y,z"),
+    (["nlink:3", "--frame", "tip"], "--frame needs --target x,y,z"),
+    (["nlink:3", "--target", "0.3,0.5"], "--target is 'x,y,z' (the end effector's target point in metres, world "
+                                         "frame), got '0.3,0.5'"),
+    (["pendulum", "--target", "0.3,0.5,0"], "--target: pendulum has no kinematics"),
+    (["nlink:3", "--target", "0.3,0.5,0", "--frame", "tipp"], "--frame 'tipp': unknown frame 'tipp'; did you mean "
+                                                              "'tip'?"),
+    (["nlink:3", "--task", "missing.toml"], "--task missing.toml: no such file"),
+    (["nlink:3", "--task", "bad.toml"], "--task bad.toml: not valid TOML"),
+    (["nlink:3", "--task", "key.toml"], "--task key.toml: unknown key 'goal'; a task file has target, frame"),
+    (["nlink:3", "--task", "none.toml"], "--task none.toml: no target = [x, y, z] in the file"),
+    (["nlink:3", "--task", "obstacle.toml"], "--task obstacle.toml: obstacle 1 has the keys ['centre']"),
+    (["nlink:3", "--task", "radius.toml"], "--task radius.toml: obstacle 1: radius must be a positive number"),
+    (["nlink:3", "--task", "weight.toml"], "--task weight.toml: position_weight must be a positive number, got 0"),
+    (["nlink:3", "--task", "short.toml"], "--task short.toml: target is [x, y, z] (the end effector's target point"),
+    (["nlink:3", "--task", "frame.toml"], "--task frame.toml: frame 'hand': unknown frame 'hand'; the model's "
+                                          "frames: universe, joint1, joint2, joint3, tip"),
+    (["pendulum", "--task", "short.toml"], "--task short.toml: target is [x, y, z]"),
+])
+@pytest.mark.parametrize("command", ["solve", "simulate"])
+def test_bad_input_is_one_line_naming_the_option(command, args, message, tmp_path, monkeypatch, capsys):
+    _bad_files(tmp_path)
+    monkeypatch.chdir(tmp_path)
+    assert main([command, *args, "--out", "sim.png"] if command == "simulate" else [command, *args]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("ocpkit: error: ") and message in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "sim.png").exists()
+
+
+def test_attach_values():
+    assert cli._attach_values(["simulate", "x", "--target", "-1,2,3", "--obstacle", "-1e-1,-2,0,0.5", "--frame",
+                               "-x"]) == ["simulate", "x", "--target=-1,2,3", "--obstacle=-1e-1,-2,0,0.5", "--frame",
+                                          "-x"]
+    assert cli._attach_values(["--target", "--json"]) == ["--target", "--json"]
+
+
+def test_readme_reach_example(tmp_path, monkeypatch, capsys):
+    """The README's Python example runs and prints what the README says; its TOML file is the example's task, and
+    the command line with it reaches the same point."""
+    root = README.parent
+    monkeypatch.chdir(root)  # the example names tests/data/panda/panda.urdf
+    exec(compile(readme_block("Reach a point around a sphere"), "README.md", "exec"), {})
+    printed = capsys.readouterr().out.strip()
+    distance, clearance = map(float, re.fullmatch(r"final distance (\S+) m, min clearance (\S+) m", printed).groups())
+    assert distance < 0.01 and 0 < clearance < 0.02
+    section = README.read_text().split("## Reach a point around a sphere")[1]
+    assert f"It prints `{printed}`" in section
+    toml = re.search(r"```toml\n(.*?)```", section, re.S).group(1)
+    (tmp_path / "reach.toml").write_text(toml)
+    task = cli._read_task_file(tmp_path / "reach.toml")
+    assert task["target"].tolist() == [0.4, 0.0, 0.3] and [(o.center, o.radius) for o in task["obstacles"]] == \
+        [((0.4, -0.25, 0.35), 0.08)]
+    (tmp_path / "arm.py").write_text(
+        "from ocpkit import Problem\n\n\ndef Arm():\n"
+        f"    return Problem.from_urdf({str(root / 'tests/data/panda/panda.urdf')!r},\n"
+        "                             locked_joints=['panda_finger_joint1', 'panda_finger_joint2'])\n")
+    monkeypatch.chdir(tmp_path)
+    assert main(["simulate", "arm.py:Arm", "--task", "reach.toml", "--duration", "2", "--out", "arm.png",
+                 "--json"]) == 0
+    reach = json.loads(capsys.readouterr().out)["reach"]
+    assert reach["frame"] == "panda_hand_tcp" and reach["collisions"] == 0
+    assert np.isclose(reach["final_distance"], distance, atol=5e-4), (reach, distance)
+    assert np.isclose(reach["min_clearance"], clearance, atol=5e-4), (reach, clearance)
