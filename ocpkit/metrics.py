@@ -20,7 +20,7 @@ def actual_cost(traj: Trajectory, ocp: OCP) -> float:
     cost = float(np.einsum("ij,jk,ik->", ex, ocp.Q, ex) + np.einsum("ij,jk,ik->", eu, ocp.R, eu))
     if ocp.task_functions is not None and traj.u.shape[0]:
         H, targets = traj.u.shape[0], np.repeat(traj.goal[ocp.nx:, None], traj.u.shape[0], axis=1)
-        cost += float(np.sum(ocp.task_functions.stage_cost.map(H)(traj.x[:-1].T, traj.u.T, targets)))
+        cost += float(np.asarray(ocp.task_functions.stage_cost.map(H)(traj.x[:-1].T, traj.u.T, targets)).sum())
     return cost
 
 

@@ -34,7 +34,7 @@ class BufferedFunction:
         self._outputs = []
         for i in range(fn.n_out()):
             sparsity = fn.sparsity_out(i)
-            where = None if sparsity.is_dense() else tuple(np.asarray(v) for v in sparsity.get_triplet())
+            where = None if sparsity.is_dense() else tuple(np.asarray(v, dtype=np.intp) for v in sparsity.get_triplet())
             self._outputs.append((tuple(fn.size_out(i)), where))
 
     def __call__(self, *args) -> tuple[np.ndarray, ...]:

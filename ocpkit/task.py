@@ -35,7 +35,7 @@ from ocpkit._checks import positive
 
 # A stage's linearized obstacle rows enter the QP only where some pair's clearance at the plan is within this
 # many metres of the margin (a plan this far from every obstacle will not reach one within a step).
-ACTIVATION = 0.25
+ACTIVATION = 0.1
 
 
 def _vector(value, name: str, size: int | None = None) -> np.ndarray:
@@ -296,8 +296,9 @@ def reach(problem, obstacles=(), *, frame: str | None = None, position_weight: f
           obstacle_weight: float = 1e5, **ocp_options):
     """The OCP "bring ``frame`` to a point, clear of ``obstacles``" for a robot problem with ``kinematics``.
 
-    Cost: the frame-position term "position" (``position_weight`` per m² at every stage, ``terminal_weight``,
-    default 10×, at x_T), the problem's velocity weights as the "state" term (its joint-angle weights set to
+    Cost: the frame-position term "position" (``position_weight`` per m² at every stage and, ``terminal_weight``,
+    by default the same, at x_T: ten times as much made the light-wristed Panda's condensed QP ill-conditioned
+    beyond what a QP solver can answer), the problem's velocity weights as the "state" term (its joint-angle weights set to
     zero: the posture is free) and its input term. Obstacles (:class:`Sphere` s, or "x,y,z,r" strings) are kept
     ``margin`` away from spheres of ``link_radius`` (default the problem's) along the robot's links. Other
     keywords go to ``problem.ocp`` (``knots``, ``horizon``, ...). The goal is ``ocp.goal(x_ref, position=p)``."""
@@ -311,7 +312,7 @@ def reach(problem, obstacles=(), *, frame: str | None = None, position_weight: f
     obstacles = [o if isinstance(o, Sphere) else Sphere.parse(o) for o in obstacles]
     radius = problem.link_radius if link_radius is None else positive(link_radius, "link_radius")
     weight = positive(position_weight, "position_weight")
-    terminal = 10 * weight if terminal_weight is None else positive(terminal_weight, "terminal_weight")
+    terminal = weight if terminal_weight is None else positive(terminal_weight, "terminal_weight")
     task = Task([FramePosition(kinematics, frame, weight, terminal_weight=terminal)], obstacles,
                 kinematics=kinematics if obstacles else None,
                 robot=spheres_along_links(kinematics, radius) if obstacles else (), margin=margin,

@@ -592,6 +592,9 @@ class LinearMPC(Controller):
         C); without a C step, until the Python step's affine model is compiled (:meth:`Controller.wait_compiled`)."""
         if self._native_build is not None:
             self._native_loaded.wait(timeout)
+        for tr in self._transcriptions:
+            if getattr(tr, "task", None) is not None:
+                tr.task.wait(timeout)
         return self.native or super().wait_compiled(timeout)
 
     def _native_step(self):

@@ -128,6 +128,36 @@ def test_contract_steps_whole_grid(config, name, problems):
     _steps(config, name, problems, steps=10)
 
 
+# Configurations that cannot take a task say so at construction (the sparse QP, HPIPM's traditional form, the C step
+# and fatrop with obstacles); every other one steps within the contract on a reach task with an obstacle.
+TASK_REFUSALS = ("form='condensed'", "no C step: a task", "not its obstacles")
+
+
+@pytest.mark.parametrize("config", [pytest.param(c, id=c.label) for c in CONFIGS])
+def test_contract_with_a_task(config, problems):
+    """Every configuration takes the same task — the tip of nlink:3 to a point, a ball on the way — or refuses it at
+    construction with an error that says why; its steps keep the contract and never report success in collision
+    at the plan it returns."""
+    from ocpkit.task import Sphere, reach
+
+    problem = problems("nlink:3")
+    x0 = np.r_[0.3, 0.4, 0.3, 0.0, 0.0, 0.0]
+    tip = problem.kinematics.function(problem.end_effector)
+    target = np.asarray(tip([1.7, 0.3, 0.2])[0]).ravel()
+    start = np.asarray(tip(x0[:3])[0]).ravel()
+    ocp = reach(problem, [Sphere(tuple(0.5 * (start + target)), 0.04)], knots=HORIZON if config.knots == "horizon"
+                else KNOTS, horizon=HORIZON)
+    try:
+        controller = config.make(ocp)
+    except ValueError as exc:
+        assert any(why in str(exc) for why in TASK_REFUSALS), str(exc)
+        return
+    traj = simulate(problem.plant(), controller, x0, ocp.goal(x0, position=target), duration=3 * ocp.dt)
+    for sol in traj.solutions:
+        _check_step(controller, sol)
+    assert sum(sol.ok for sol in traj.solutions) >= 2, [sol.raw_status for sol in traj.solutions]
+
+
 def _reference(problem, config, optimum):
     """The reference knots for a configuration's claimed optimum at the problem's seed-0 start (cold)."""
     ocp = _ocp(problem, config)
