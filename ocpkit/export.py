@@ -21,6 +21,12 @@ dimension only through the model):
   and every product is one small GEMM kernel whose tiles of C stay in vector registers (GCC/Clang vector
   extensions: SSE2, plus AVX2+FMA chosen at run time on CPUs that have them; ``make SIMD=sse2|none``).
   Constants (Q^½, R, the basis' pieces, bounds, the Γ schedule) are static arrays.
+* With a task (:mod:`ocpkit.task`: cost terms such as a frame's position, no obstacles) its stage and terminal
+  residuals and their dense Jacobians are generated per stage (``<name>_task_stage``, ``<name>_task_terminal``),
+  and the step adds their Gauss–Newton model about the plan to the condensed QP as
+  :class:`ocpkit.transcription._TaskRows` does (``task_terms`` in ``<name>.c``: [v S] rows of every state, piece
+  by piece). The step's goal is then the whole goal vector [x_goal; targets] (``ocp.goal(...)``, ``NG`` entries).
+  A task with obstacles is refused (its linearized obstacle rows are not in the C step).
 
 All memory of one controller lives in a caller-owned struct (``<name>_memory``): several instances run in one
 process, each with its own QP-solver memory slot (``MAX_INSTANCES`` in the Makefile, 16 by default).
@@ -44,11 +50,13 @@ computed in C: stationarity, primal feasibility, complementarity and dual sign o
 """
 from __future__ import annotations
 
+import copy
 import ctypes
 import os
 import shutil
 import subprocess
 import tempfile
+import textwrap
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -198,10 +206,10 @@ def export(ocp: OCP, out_dir, *, form: str = "condensed", qp: str = "daqp", name
     written as a new file renamed into place); it must not be a symbolic link nor hold one.
     ``eps`` is the QP solver's tolerance, ``max_iter`` its iteration limit, ``polish`` OSQP's solution
     polishing; ``linearization`` "goal" linearizes about (x, u_g), "plan" about (x, ū) as LinearMPC's option
-    of that name; ``x0``, ``goal`` and ``steps`` set the closed loop the example runs against the generated
-    discrete model (where given, the dynamics must be finite there: else a DynamicsError names them, before any
-    file is written).
-    """
+    of that name; ``x0``, ``goal`` (with a task the goal vector [x_goal; targets] of ``ocp.goal``) and ``steps``
+    set the closed loop the example runs against the generated discrete model (where given, the dynamics must be
+    finite there: else a DynamicsError names them, before any file is written). A task's cost terms are
+    exported; a task with obstacles is refused (ValueError)."""
     if not isinstance(ocp, OCP):
         raise TypeError(f"ocp must be an ocpkit OCP, got {type(ocp).__name__}")
     choice(form, FORMS, "form")
@@ -211,9 +219,11 @@ def export(ocp: OCP, out_dir, *, form: str = "condensed", qp: str = "daqp", name
         raise ValueError(f"qp={qp!r} with form={form!r} cannot be exported: {why}; "
                          f"supported: {sorted(SUPPORTED)}")
     choice(linearization, LINEARIZATIONS, "linearization")
-    if ocp.task_functions is not None:
-        raise ValueError(f"an OCP with a task (terms {ocp.terms[2:]}, {ocp.task.pairs} obstacle pairs) cannot be "
-                         "exported yet: the C step has the joint-space cost only; use LinearMPC's Python step")
+    tf = ocp.task_functions
+    if tf is not None and tf.pairs:
+        raise ValueError(f"an OCP with obstacles (task terms {ocp.terms[2:]}, {tf.pairs} robot-sphere/obstacle "
+                         "pairs) cannot be exported: the C step has the task's cost terms but not its linearized "
+                         "obstacle rows; use LinearMPC's Python step, or a task without obstacles")
     if not (isinstance(name, str) and name.isidentifier() and name.isascii()):
         raise ValueError(f"name must be a C identifier, got {name!r}")
     eps = positive(eps, "eps")
@@ -221,15 +231,21 @@ def export(ocp: OCP, out_dir, *, form: str = "condensed", qp: str = "daqp", name
     steps = integer(steps, "steps", 1)
     given = {"the example's start x0": x0 is not None, "the example's goal": goal is not None}
     x0 = np.zeros(ocp.nx) if x0 is None else ocp.check_state(x0, "x0")
-    goal = np.zeros(ocp.nx) if goal is None else ocp.check_state(goal, "goal")
-    for x, label in zip((x0, goal), given):
+    # With a task the goal is [x_goal; targets] (ocp.goal): the step's goal input has ng entries.
+    ng = ocp.ng if tf is not None else ocp.nx
+    if goal is None:
+        goal = np.zeros(ng)
+    else:
+        goal = ocp.check_goal(goal) if tf is not None else ocp.check_state(goal, "goal")
+    for x, label in zip((x0, goal[:ocp.nx]), given):
         if given[label]:  # where the example's closed loop runs: NaN dynamics there are named before any work
-            check_dynamics(ocp.model, x, ocp.input_goal(goal), context=label)
+            check_dynamics(ocp.model, x, ocp.input_goal(goal[:ocp.nx]), context=label)
     out = Path(out_dir)
     _check_out_dir(out, bool(force))
     out.mkdir(parents=True, exist_ok=True)
 
-    tr = CondensedQP(ocp)
+    # The joint-space condensing's data; the task's terms are generated below (its Python rows not needed).
+    tr = CondensedQP(_without_task(ocp) if tf is not None else ocp)
     na = tr.x_rows.size
     lin, model, jac = _model_functions(ocp, name)
     solver = _conic(qp, name, tr.nz, na, eps, max_iter, polish)
@@ -238,6 +254,9 @@ def export(ocp: OCP, out_dir, *, form: str = "condensed", qp: str = "daqp", name
     if getattr(ocp, "goal_input", None) is not None:  # h(x_goal) of u_g = u_goal + K x_goal + h(x_goal)
         xg = ca.MX.sym("x_goal", ocp.nx)
         all_f.append(ca.Function(f"{name}_goal_input", [xg], [ocp.goal_input(xg)], ["x_goal"], ["u"]))
+    task = _task_functions(tf, name) if tf is not None else None
+    if task is not None:
+        all_f += task
     for f in all_f:
         cg.add(f)
     # CasADi opens its files by name: it writes into a private scratch folder, whose files are then renamed into
@@ -260,10 +279,12 @@ def export(ocp: OCP, out_dir, *, form: str = "condensed", qp: str = "daqp", name
         "SZ_ARG": max(f.sz_arg() for f in all_f), "SZ_RES": max(f.sz_res() for f in all_f),
         "SZ_IW": max(f.sz_iw() for f in all_f), "SZ_W": max(f.sz_w() for f in all_f),
     }
+    if task is not None:
+        sizes.update(NG=ng, NRS=tf.stage_weight.size, NRT=tf.terminal_weight.size)
     info = Export(out, name, form, qp, linearization, ocp.nx, ocp.nu, ocp.knots, ocp.horizon, na)
     _write(out / f"{name}.h", _header(name, sizes, ocp, form, qp, linearization))
-    _write(out / f"{name}.c", _wrapper(name, qp, linearization, tr, jac))
-    _write(out / "main.c", _example(name, x0, goal, steps, ocp.dt))
+    _write(out / f"{name}.c", _wrapper(name, qp, linearization, tr, jac, tf))
+    _write(out / "main.c", _example(name, x0, goal, steps, ocp.dt, task=tf is not None))
     _write(out / "Makefile", _makefile(name, qp))
     _write(out / "README.md", _readme(info, ocp, eps, max_iter))
     return info
@@ -332,6 +353,30 @@ def _model_functions(ocp: OCP, name: str):
         xm = xm + h / 6 * (q1 + 2 * q2 + 2 * q3 + q4)
     step = ca.Function(f"{name}_model", [X, U], [xm], ["x", "u"], ["x_next"])
     return fj, step, (jac.sparsity_out(1).get_triplet(), jac.sparsity_out(2).get_triplet())
+
+
+def _without_task(ocp: OCP) -> OCP:
+    """``ocp`` seen without its task (a shallow copy): the joint-space condensing the C step builds first. (A
+    CondensedQP of the OCP itself would set up the task's Python rows, and compile them, for nothing.)"""
+    bare = copy.copy(ocp)
+    bare.task_functions = None
+    return bare
+
+
+def _task_functions(tf, name: str) -> list:
+    """The task's residuals for the C step (``tf``: :class:`ocpkit.task.CompiledTask`, no obstacles), generated
+    per stage: ``<name>_task_stage`` (x, u, targets) -> (r, ∂r/∂x, ∂r/∂u) and ``<name>_task_terminal``
+    (x, targets) -> (r, ∂r/∂x), the Jacobians dense (column-major); a part without terms is left out."""
+    x, u, g = ca.SX.sym("x", tf.nx), ca.SX.sym("u", tf.nu), ca.SX.sym("g", tf.size)
+    out = []
+    if tf.stage_weight.size:
+        r, rx, ru = tf.stage_residual(x, u, g)
+        out.append(ca.Function(f"{name}_task_stage", [x, u, g], [r, ca.densify(rx), ca.densify(ru)],
+                               ["x", "u", "g"], ["r", "r_x", "r_u"]))
+    if tf.terminal_weight.size:
+        r, rx = tf.terminal_residual(x, g)
+        out.append(ca.Function(f"{name}_task_terminal", [x, g], [r, ca.densify(rx)], ["x", "g"], ["r", "r_x"]))
+    return out
 
 
 # DAQP's exit flags (daqp/include/constants.h): their names and ocpkit statuses, for the Python step
@@ -418,10 +463,26 @@ def _conic(qp: str, name: str, nz: int, na: int, eps: float, max_iter: int, poli
 def _header(name: str, s: dict, ocp: OCP, form: str, qp: str, lin: str, cert_tol: float = CERT_TOL) -> str:
     N = name.upper()
     defs = "\n".join(f"#define {N}_{k} {v}" for k, v in s.items())
+    task = "NG" in s
+    about = (f"\n * The task's cost terms ({', '.join(ocp.terms[2:])}) enter the QP by Gauss–Newton about the plan "
+             f"(the\n * previous plan shifted a step; the input goal at a cold start) and its predicted states."
+             if task else "")
+    arrays = (f"x: {N}_NX doubles; goal: {N}_NG doubles, x_goal then the task's targets\n * "
+              f"({', '.join(f'{k}: {v}' for k, v in ocp.task.targets.items()) or 'none'}; ocpkit's ocp.goal(...)); "
+              f"u: {N}_NU" if task else f"x, goal: {N}_NX doubles; u: {N}_NU")
+    task_mem = (f"  /* the task's terms: the plan z̄ linearized about, Λ_1 … Λ_LMAX of all states and a piece's\n"
+                f"     [v S] rows, a stage's x̄, ū, residual and Jacobians (column-major) and\n"
+                f"     G = ∂r/∂x S + ∂r/∂u Φ (row-major) */\n"
+                f"  double zbar[{N}_NZ], tx[{N}_NX], tu[{N}_NU], tr[{N}_NR1], trx[{N}_NR1 * {N}_NX], "
+                f"tru[{N}_NR1 * {N}_NU];\n"
+                f"  double LamA[{N}_LMAX * {N}_NX * {N}_NL], SVp[{N}_LMAX * {N}_NX * {N}_NZ1], G[{N}_NR1 * {N}_NZ];\n"
+                if task else "")
+    nr1 = (f"#define {N}_NR1 ({N}_NRS > {N}_NRT ? {N}_NRS : {N}_NRT)  /* residual entries, stage or terminal */\n"
+           if task else "")
     return f"""/* {name}.h — exported MPC step for {ocp!r}, {form} QP solved by CasADi's {qp}.
  *
  * Generated by ocpkit.export. One control step: affine model about (x, u_bar), condensed QP, QP solve,
- * first input. u_bar: {_UBAR[lin]}.
+ * first input. u_bar: {_UBAR[lin]}.{about}
  *
  * Usage (any number of instances, up to MAX_INSTANCES in the Makefile live at once per process):
  *   {name}_memory* mem = malloc(sizeof *mem);   // caller-owned: all work space, the plan, warm start
@@ -430,7 +491,7 @@ def _header(name: str, s: dict, ocp: OCP, form: str, qp: str, lin: str, cert_tol
  *   {name}_step(mem, x, goal, u, &status);      // each control period
  *   {name}_free(mem);                           // gives the QP solver's memory slot back
  *
- * Arrays: x, goal: {N}_NX doubles; u: {N}_NU; knots: {N}_KNOTS x {N}_NU row-major (knot j, input i at
+ * Arrays: {arrays}; knots: {N}_KNOTS x {N}_NU row-major (knot j, input i at
  * j*{N}_NU + i). Statuses (the same set as ocpkit.controller.STATUSES) are {N}_SUCCESS ... below. On any
  * failure the step returns the safe fallback input (previous plan advanced one step, clipped to the input
  * bounds) and the next step starts without warm start. Instances share no mutable state except the QP
@@ -449,7 +510,7 @@ extern "C" {{
 #define {N}_NA1 ({N}_NA > 0 ? {N}_NA : 1)
 #define {N}_NZ1 ({N}_NZ + 1)
 #define {N}_NB1 ({N}_NB > 0 ? {N}_NB : 1)
-/* A "solved" answer is accepted only if its KKT certificate holds (ocpkit.certificate): stationarity, primal
+{nr1}/* A "solved" answer is accepted only if its KKT certificate holds (ocpkit.certificate): stationarity, primal
    feasibility, complementarity and dual sign each within CERT_TOL relative to the data. Otherwise the status is
    {N}_LIMITED and {name}_solver_return gives the failed test's code ({name}_certificate the residuals). With
    DAQP a failed solve's return is DAQP's exit flag: -1 infeasible, -3 unbounded ({N}_INFEASIBLE), -5 nonconvex
@@ -486,7 +547,7 @@ typedef struct {{
   double z_new[{N}_NZ], lam_x_new[{N}_NZ], lam_a_new[{N}_NA1];
   double plan[{N}_NZ];                                       /* knots of the current plan */
   double cert[4];                                            /* the last solve's certificate residuals */
-  double has_plan, warm;                                     /* 0 or 1 */
+{task_mem}  double has_plan, warm;                                     /* 0 or 1 */
   int solver_mem, solver_rc;
 }} {name}_memory;
 
@@ -551,9 +612,9 @@ def _c_const(kind: str, name: str, values) -> str:
     return f"static const {kind} {name}[{values.size}] = {body};"
 
 
-def _constants(tr: CondensedQP, linearization: str, jac) -> str:
-    """The step's constants: input goal, shift, bounds, weights, the basis' pieces, the Gram schedule and, for
-    a nonlinear model, RK4's step and the Jacobians' sparsity."""
+def _constants(tr: CondensedQP, linearization: str, jac, tf=None) -> str:
+    """The step's constants: input goal, shift, bounds, weights, the basis' pieces, the Gram schedule, for
+    a nonlinear model RK4's step and the Jacobians' sparsity, and with a task (``tf``) its weights and the basis."""
     ocp = tr.ocp
     n, m, p = tr.n, tr.m, tr.p
     phi = tr.phi
@@ -620,6 +681,13 @@ def _constants(tr: CondensedQP, linearization: str, jac) -> str:
     if bounded.size:
         lines += [_c_const("int", "XB_COMP", bounded), _c_const("double", "XB_LO", ocp.x_min[bounded]),
                   _c_const("double", "XB_HI", ocp.x_max[bounded])]
+    if tf is not None:  # the task's Gauss-Newton terms: φ_k of every stage (exact, not the pieces' φ_a + sΔ)
+        stage, terminal = tf.stage_weight.size, tf.terminal_weight.size
+        lines += [f"#define TASK_STAGE {int(bool(stage))}", f"#define TASK_TERMINAL {int(bool(terminal))}"]
+        if stage:
+            lines += [_c_const("double", "TASK_PHI", phi), _c_const("double", "TASK_WS", tf.stage_weight)]
+        if terminal:
+            lines.append(_c_const("double", "TASK_WT", tf.terminal_weight))
     return "\n".join(lines)
 
 
@@ -1022,7 +1090,7 @@ static void condense(mem_t* m, const double* x, const double* xg) {
     m->ubx[i] = UBX[i];
   }
 }
-
+${task_c}
 #if MODEL_RK4
 /* D = J_x S + [0 J_u] with the Jacobians' nonzeros (fx, fu) at (FX_I, FX_J), (FU_I, FU_J); S, D row-major
    NX x (NX + NU): a row of S, contiguous, per nonzero (compiled twice like gemm: SSE2 and AVX2). */
@@ -1249,7 +1317,7 @@ int ${name}_step_timed(mem_t* m, const double* x, const double* goal, double* u_
     return *status;
   }
   if (t) { t1 = seconds(); t[0] = t1 - t0; }
-  condense(m, x, goal);
+  condense(m, x, goal);${task_call}
   if (t) { t2 = seconds(); t[1] = t2 - t1; }
   rc = solve_qp(m);
   if (t) t[2] = seconds() - t2;
@@ -1292,7 +1360,145 @@ void ${name}_dims(int* nx, int* nu, int* knots, int* horizon) {
 """)
 
 
-def _wrapper(name: str, qp: str, linearization: str, tr: CondensedQP, jac) -> str:
+# The task's terms in C (ocpkit.transcription._TaskRows.add): inserted after condense where the OCP has a task.
+_TASK = Template(r"""/* The task's cost terms, Gauss–Newton about the plan (ocpkit.transcription._TaskRows.add).
+   The plan: knots z̄, the previous plan shifted a step (at a cold start the input goal at every knot, clipped to
+   the input bounds); its states x̄_k = S_k z̄ + v_k from the QP's own [v S] rows (x̄_0 = x) and inputs
+   ū_k = Φ_k z̄ (Φ_k = φ_k ⊗ I). Each residual r_k (weights w) enters as r_k + G_k (z − z̄),
+   G_k = ∂r/∂x S_k + ∂r/∂u Φ_k: h += G_kᵀ W G_k, g += G_kᵀ W (r_k − G_k z̄) (h, g: the QP of the cost itself,
+   as condense builds them). */
+
+/* The upper triangle of h (column-major) += Gᵀ W G and g += Gᵀ W (r − G z̄) for G (nr x NZ, row-major, zero past
+   its first ncol columns) in m->G and r in m->tr. */
+static void task_add(mem_t* m, const double* w, int nr, int ncol) {
+  double we[${N}_NR1], wg[${N}_NR1];
+  int k, i, j;
+  for (k = 0; k < nr; ++k) {
+    const double* gk = m->G + k * NZ;
+    double e = m->tr[k];
+    for (j = 0; j < ncol; ++j) e -= gk[j] * m->zbar[j];
+    we[k] = w[k] * e;
+  }
+  for (j = 0; j < ncol; ++j) {
+    double* hj = m->h + NZ * j;
+    double gj = 0;
+    for (k = 0; k < nr; ++k) {
+      wg[k] = w[k] * m->G[k * NZ + j];
+      gj += m->G[k * NZ + j] * we[k];
+    }
+    m->g[j] += gj;
+    for (k = 0; k < nr; ++k) {
+      const double* gk = m->G + k * NZ;
+      const double c = wg[k];
+      if (c != 0) for (i = 0; i <= j; ++i) hj[i] += gk[i] * c;
+    }
+  }
+}
+
+#if TASK_STAGE
+/* Stage k's residual at (x̄_k, ū_k) and its terms; S: S_k's rows (row stride lds, its first c columns nonzero;
+   none at k = 0). Returns nonzero if the residual's evaluation failed. */
+static int task_stage(mem_t* m, int k, const double* xk, const double* S, int lds, int c, const double* targets) {
+  const double* phi = TASK_PHI + k * NP;
+  int a, b, i, j, col, ncol = c;
+  for (i = 0; i < NU; ++i) {
+    double s = 0;
+    for (j = 0; j < NP; ++j) s += phi[j] * m->zbar[j * NU + i];
+    m->tu[i] = s;
+  }
+  m->arg[0] = xk; m->arg[1] = m->tu; m->arg[2] = targets;
+  m->res[0] = m->tr; m->res[1] = m->trx; m->res[2] = m->tru;
+  if (${name}_task_stage(m->arg, m->res, (casadi_int*) m->iw, m->w, 0)) return 1;
+  for (a = 0; a < ${N}_NRS; ++a) {
+    double* ga = m->G + a * NZ;
+    for (col = 0; col < NZ; ++col) ga[col] = 0;
+    for (j = 0; j < NP; ++j)
+      if (phi[j] != 0) {
+        for (i = 0; i < NU; ++i) ga[j * NU + i] += phi[j] * m->tru[a + ${N}_NRS * i];
+        if (ncol < (j + 1) * NU) ncol = (j + 1) * NU;
+      }
+    for (b = 0; S && b < NX; ++b) {
+      const double v = m->trx[a + ${N}_NRS * b];
+      if (v != 0) for (col = 0; col < c; ++col) ga[col] += v * S[b * lds + col];
+    }
+  }
+  task_add(m, TASK_WS, ${N}_NRS, ncol);
+  return 0;
+}
+#endif
+
+#if TASK_TERMINAL
+/* The terminal residual at x̄_T and its terms; S: S_T's rows as in task_stage. */
+static int task_terminal(mem_t* m, const double* xT, const double* S, int lds, int c, const double* targets) {
+  int a, b, col;
+  m->arg[0] = xT; m->arg[1] = targets;
+  m->res[0] = m->tr; m->res[1] = m->trx;
+  if (${name}_task_terminal(m->arg, m->res, (casadi_int*) m->iw, m->w, 0)) return 1;
+  for (a = 0; a < ${N}_NRT; ++a) {
+    double* ga = m->G + a * NZ;
+    for (col = 0; col < NZ; ++col) ga[col] = 0;
+    for (b = 0; b < NX; ++b) {
+      const double v = m->trx[a + ${N}_NRT * b];
+      if (v != 0) for (col = 0; col < c; ++col) ga[col] += v * S[b * lds + col];
+    }
+  }
+  task_add(m, TASK_WT, ${N}_NRT, c);
+  return 0;
+}
+#endif
+
+/* The task's terms added to the QP condense built (goal: x_goal, then the targets). [v S] rows run forward piece
+   by piece as in condense, for every state (Λ_1 … Λ_LMAX times the piece's R; m->prev holds [v S] at the piece's
+   start). Returns nonzero if a residual's evaluation failed. */
+static int task_terms(mem_t* m, const double* x, const double* goal) {
+  const double* targets = goal + NX;
+  double* prev = m->prev;
+  int pc, i, j, l, s, col;
+  for (j = 0; j < NP; ++j)
+    for (i = 0; i < NU; ++i) {
+      double v = 0;
+      if (m->has_plan) for (l = 0; l < NP; ++l) v += SHIFT[j * NP + l] * m->plan[l * NU + i];
+      else v = clip(m->ug[i], LBX[j * NU + i], UBX[j * NU + i]);
+      m->zbar[j * NU + i] = v;
+    }
+  memcpy(m->LamA, m->Lam1, sizeof m->Lam1);
+  for (s = 1; s < LMAX; ++s) times_ahat(m->LamA + (s - 1) * NX * NL, NX, NL, m->Lam1, 1, m->LamA + s * NX * NL);
+#if TASK_STAGE
+  if (task_stage(m, 0, x, 0, 0, 0, targets)) return 1;
+#endif
+  for (i = 0; i < NX * NZ1; ++i) prev[i] = 0;
+  for (i = 0; i < NX; ++i) prev[i * NZ1] = x[i];
+  for (pc = 0; pc < NPIECE; ++pc) {
+    const int a = PIECE_A[pc], Lp = PIECE_L[pc], c = PIECE_C[pc], cp = PIECE_CP[pc];
+    times_r(m->LamA, Lp * NX, NL, prev, cp, PIECE_PHI + pc * NP, PIECE_DELTA + pc * NP, c, m->SVp, NZ1);
+    for (s = 0; s < Lp; ++s) {
+      const double* rows = m->SVp + s * NX * NZ1;  /* [v S] at x_{a+s+1}: its first 1 + c columns */
+      for (i = 0; i < NX; ++i) {
+        double v = rows[i * NZ1];
+        for (col = 0; col < c; ++col) v += rows[i * NZ1 + 1 + col] * m->zbar[col];
+        m->tx[i] = v;
+      }
+      if (a + s + 1 < ${N}_HORIZON) {
+#if TASK_STAGE
+        if (task_stage(m, a + s + 1, m->tx, rows + 1, NZ1, c, targets)) return 1;
+#endif
+      } else {
+#if TASK_TERMINAL
+        if (task_terminal(m, m->tx, rows + 1, NZ1, c, targets)) return 1;
+#endif
+      }
+    }
+    for (i = 0; i < NX; ++i)
+      for (col = 0; col < NZ1; ++col) prev[i * NZ1 + col] = col <= c ? m->SVp[((Lp - 1) * NX + i) * NZ1 + col] : 0.0;
+  }
+  for (j = 0; j < NZ; ++j)  /* the lower triangle from the upper */
+    for (i = 0; i < j; ++i) m->h[j + NZ * i] = m->h[i + NZ * j];
+  return 0;
+}
+""")
+
+
+def _wrapper(name: str, qp: str, linearization: str, tr: CondensedQP, jac, tf=None) -> str:
     N = name.upper()
     # a nonzero return: qrqp's 4 is "no search direction" (an infeasible or degenerate QP); DAQP's failed exit
     # flags as DAQP_EXIT says (its successes return 0)
@@ -1300,12 +1506,19 @@ def _wrapper(name: str, qp: str, linearization: str, tr: CondensedQP, jac) -> st
                 "daqp": {flag: status for flag, (_, status) in DAQP_EXIT.items() if status != SUCCESS}}.get(qp, {})
     status_of_rc = "".join(f"rc == {rc} ? {N}_{status.upper()} : " for rc, status in failures.items()
                            if status != LIMITED) + f"{N}_LIMITED"
+    task_c, task_call = "", ""
+    if tf is not None:
+        task_c = "\n" + _TASK.substitute(name=name, N=N)
+        task_call = (f"\n  if (task_terms(m, x, goal)) {{  /* a residual's evaluation failed */\n"
+                     f"    *status = fallback(m, u_out, {N}_EXCEPTION);\n    return *status;\n  }}")
     return _WRAPPER.substitute(name=name, N=N, status_of_rc=status_of_rc, qp=qp,
-                               constants=_constants(tr, linearization, jac))
+                               constants=_constants(tr, linearization, jac, tf), task_c=task_c,
+                               task_call=task_call)
 
 
-def _example(name: str, x0, goal, steps: int, dt: float) -> str:
+def _example(name: str, x0, goal, steps: int, dt: float, task: bool = False) -> str:
     N = name.upper()
+    ng = f"{N}_NG" if task else f"{N}_NX"  # with a task the goal is [x_goal; targets]
     return f"""/* main.c — closed loop of the exported MPC against the generated discrete model ({steps} steps). */
 #define _POSIX_C_SOURCE 199309L /* clock_gettime under -std=c99 */
 #include <stdio.h>
@@ -1327,7 +1540,7 @@ static int cmp(const void* a, const void* b) {{
 int main(void) {{
   static {name}_memory mem;
   double x[{N}_NX] = {_c_array(x0)};
-  const double goal[{N}_NX] = {_c_array(goal)};
+  const double goal[{ng}] = {_c_array(goal)};
   double u[{N}_NU], x_next[{N}_NX], times[{steps}];
   int k, i, status, failures = 0;
   if ({name}_init(&mem)) {{ fprintf(stderr, "init failed\\n"); return 1; }}
@@ -1412,6 +1625,15 @@ def _readme(info: Export, ocp: OCP, eps: float, max_iter: int) -> str:
             f"CasADi's shipped {info.qp.upper()} headers and static library: `CASADI_DIR` in the Makefile "
             f"points at the casadi Python package (`python -c 'import casadi, os; "
             f"print(os.path.dirname(casadi.__file__))'`); override it with `make CASADI_DIR=...`.")
+    tf = ocp.task_functions
+    task = "" if tf is None else "\n\n" + textwrap.fill(
+        f"The task's cost terms ({', '.join(ocp.terms[2:])}) are part of the QP: `{n}_step`'s goal has "
+        f"{ocp.ng} entries (`{n.upper()}_NG`), x_goal then the targets "
+        f"({', '.join(f'`{k}`: {v}' for k, v in ocp.task.targets.items()) or 'none'}), as `ocp.goal(...)` "
+        f"builds it. Each residual r (its forward kinematics and Jacobians generated by CasADi into "
+        f"`{n}_casadi.c`) enters by Gauss–Newton about the plan — the previous plan shifted a step (the input goal "
+        f"at every knot at a cold start) and the states the QP predicts from it: r + G (z−z̄), "
+        f"G = ∂r/∂x S + ∂r/∂u Φ (`ocpkit.transcription._TaskRows`).", 110)
     return f"""# Exported MPC step `{n}`
 
 Generated by `ocpkit.export` for `{ocp!r}`: {info.form} QP ({info.knots} knots x {info.nu} inputs,
@@ -1423,7 +1645,7 @@ builds the condensed QP (paper Section V-B/V-E), solves it and returns the first
 only if its KKT certificate holds (stationarity, primal feasibility, complementarity and dual sign within
 {CERT_TOL:g} relative to the data; `{n}_certificate` gives the residuals). On a failure it returns the previous
 plan advanced one step, clipped to the input bounds, and the next step starts cold.
-{_SOLVER_NOTE[info.qp]}
+{_SOLVER_NOTE[info.qp]}{task}
 
 ## Files
 
@@ -1584,7 +1806,15 @@ class ExportedMPC(Controller):
         return STATUSES[status.value], z
 
     def _solve(self, x: np.ndarray, goal: np.ndarray) -> Solution:
+        """The C step from ``x``; ``goal``: x_goal, or the whole goal vector [x_goal; targets]. With a task the
+        step takes the whole vector: ``goal`` where it is one; from :meth:`solve` (x_goal, its own slice) the
+        :attr:`task_goal` it was given. Another caller with a task (LinearMPC) passes the whole vector."""
         self._check_open()
+        if self.ocp.task_functions is not None and np.size(goal) != self.ocp.ng:
+            if goal is not self._goal:
+                raise ValueError(f"this C step has a task: it needs the whole goal vector of {self.ocp.ng} entries "
+                                 f"[x_goal; targets] (ocp.goal(...)), got {np.size(goal)}")
+            goal = self.task_goal
         u = np.empty(self.ocp.nu)
         knots = np.empty(self.ocp.knots * self.ocp.nu)
         x, goal = np.ascontiguousarray(x), np.ascontiguousarray(goal)
