@@ -24,8 +24,8 @@ dimension only through the model):
 * With a task (:mod:`ocpkit.task`: cost terms such as a frame's position, no obstacles) its stage and terminal
   residuals and their dense Jacobians are generated per stage (``<name>_task_stage``, ``<name>_task_terminal``),
   and the step adds their Gauss–Newton model about the plan to the condensed QP as
-  :class:`ocpkit.transcription._TaskRows` does (``task_terms`` in ``<name>.c``: [v S] rows of every state, piece
-  by piece). The step's goal is then the whole goal vector [x_goal; targets] (``ocp.goal(...)``, ``NG`` entries).
+  :class:`ocpkit.transcription._TaskRows` does (``task_terms`` in ``<name>.c``: the plan's states and ∂r/∂x S
+  piece by piece, ∂r/∂x S as (∂r/∂x Λ_s) R). The step's goal is then the whole goal vector [x_goal; targets] (``ocp.goal(...)``, ``NG`` entries).
   A task with obstacles is refused (its linearized obstacle rows are not in the C step).
 
 All memory of one controller lives in a caller-owned struct (``<name>_memory``): several instances run in one
@@ -470,12 +470,13 @@ def _header(name: str, s: dict, ocp: OCP, form: str, qp: str, lin: str, cert_tol
     arrays = (f"x: {N}_NX doubles; goal: {N}_NG doubles, x_goal then the task's targets\n * "
               f"({', '.join(f'{k}: {v}' for k, v in ocp.task.targets.items()) or 'none'}; ocpkit's ocp.goal(...)); "
               f"u: {N}_NU" if task else f"x, goal: {N}_NX doubles; u: {N}_NU")
-    task_mem = (f"  /* the task's terms: the plan z̄ linearized about, Λ_1 … Λ_LMAX of all states and a piece's\n"
-                f"     [v S] rows, a stage's x̄, ū, residual and Jacobians (column-major) and\n"
-                f"     G = ∂r/∂x S + ∂r/∂u Φ (row-major) */\n"
-                f"  double zbar[{N}_NZ], tx[{N}_NX], tu[{N}_NU], tr[{N}_NR1], trx[{N}_NR1 * {N}_NX], "
+    task_mem = (f"  /* the task's terms: the plan z̄ linearized about, a stage's x̄, ū, a piece's y = R [1; z̄], the\n"
+                f"     residual and Jacobians (column-major), Λ_1 … Λ_LMAX of all states, ∂r/∂x Λ_s, its product\n"
+                f"     with R and G = ∂r/∂x S + ∂r/∂u Φ (row-major) */\n"
+                f"  double zbar[{N}_NZ], tx[{N}_NX], tu[{N}_NU], ty[{N}_NL], tr[{N}_NR1], trx[{N}_NR1 * {N}_NX], "
                 f"tru[{N}_NR1 * {N}_NU];\n"
-                f"  double LamA[{N}_LMAX * {N}_NX * {N}_NL], SVp[{N}_LMAX * {N}_NX * {N}_NZ1], G[{N}_NR1 * {N}_NZ];\n"
+                f"  double LamA[{N}_LMAX * {N}_NX * {N}_NL], JL[{N}_NR1 * {N}_NL], GX[{N}_NR1 * {N}_NZ1], "
+                f"G[{N}_NR1 * {N}_NZ];\n"
                 if task else "")
     nr1 = (f"#define {N}_NR1 ({N}_NRS > {N}_NRT ? {N}_NRS : {N}_NRT)  /* residual entries, stage or terminal */\n"
            if task else "")
@@ -1387,20 +1388,39 @@ static void task_add(mem_t* m, const double* w, int nr, int ncol) {
       gj += m->G[k * NZ + j] * we[k];
     }
     m->g[j] += gj;
-    for (k = 0; k < nr; ++k) {
-      const double* gk = m->G + k * NZ;
-      const double c = wg[k];
-      if (c != 0) for (i = 0; i <= j; ++i) hj[i] += gk[i] * c;
+    for (i = 0; i <= j; ++i) {
+      double v = 0;
+      for (k = 0; k < nr; ++k) v += m->G[k * NZ + i] * wg[k];
+      hj[i] += v;
     }
   }
 }
 
+/* G[:, :c] = ∂r/∂x S for S = Λ_s R, the rows of [v S] at a piece's state s (L: Λ_s; prev, cp, phi, del, c: the
+   piece's R as in condense) computed as (∂r/∂x Λ_s) R: nr rows through R instead of NX. */
+static void task_jacobian_x(mem_t* m, int nr, const double* L, const double* prev, int cp, const double* phi,
+                            const double* del, int c) {
+  int a, b, l, col;
+  for (a = 0; a < nr; ++a) {
+    double* jl = m->JL + a * NL;
+    for (l = 0; l < NL; ++l) jl[l] = 0;
+    for (b = 0; b < NX; ++b) {
+      const double v = m->trx[a + nr * b];
+      if (v != 0) for (l = 0; l < NL; ++l) jl[l] += v * L[b * NL + l];
+    }
+  }
+  times_r(m->JL, nr, NL, prev, cp, phi, del, c, m->GX, NZ1);
+  for (a = 0; a < nr; ++a)
+    for (col = 0; col < c; ++col) m->G[a * NZ + col] += m->GX[a * NZ1 + 1 + col];
+}
+
 #if TASK_STAGE
-/* Stage k's residual at (x̄_k, ū_k) and its terms; S: S_k's rows (row stride lds, its first c columns nonzero;
-   none at k = 0). Returns nonzero if the residual's evaluation failed. */
-static int task_stage(mem_t* m, int k, const double* xk, const double* S, int lds, int c, const double* targets) {
+/* Stage k's residual at (x̄_k, ū_k) and its terms; L: Λ_s of x_k in its piece (with prev, cp, p, d, c: the
+   piece's R), none at k = 0 (x_0 is given). Returns nonzero if the residual's evaluation failed. */
+static int task_stage(mem_t* m, int k, const double* xk, const double* L, const double* prev, int cp,
+                      const double* p, const double* d, int c, const double* targets) {
   const double* phi = TASK_PHI + k * NP;
-  int a, b, i, j, col, ncol = c;
+  int a, i, j, col, ncol = L ? c : 0;
   for (i = 0; i < NU; ++i) {
     double s = 0;
     for (j = 0; j < NP; ++j) s += phi[j] * m->zbar[j * NU + i];
@@ -1417,42 +1437,35 @@ static int task_stage(mem_t* m, int k, const double* xk, const double* S, int ld
         for (i = 0; i < NU; ++i) ga[j * NU + i] += phi[j] * m->tru[a + ${N}_NRS * i];
         if (ncol < (j + 1) * NU) ncol = (j + 1) * NU;
       }
-    for (b = 0; S && b < NX; ++b) {
-      const double v = m->trx[a + ${N}_NRS * b];
-      if (v != 0) for (col = 0; col < c; ++col) ga[col] += v * S[b * lds + col];
-    }
   }
+  if (L) task_jacobian_x(m, ${N}_NRS, L, prev, cp, p, d, c);
   task_add(m, TASK_WS, ${N}_NRS, ncol);
   return 0;
 }
 #endif
 
 #if TASK_TERMINAL
-/* The terminal residual at x̄_T and its terms; S: S_T's rows as in task_stage. */
-static int task_terminal(mem_t* m, const double* xT, const double* S, int lds, int c, const double* targets) {
-  int a, b, col;
+/* The terminal residual at x̄_T and its terms; L, prev, cp, p, d, c as in task_stage. */
+static int task_terminal(mem_t* m, const double* xT, const double* L, const double* prev, int cp, const double* p,
+                         const double* d, int c, const double* targets) {
+  int col;
   m->arg[0] = xT; m->arg[1] = targets;
   m->res[0] = m->tr; m->res[1] = m->trx;
   if (${name}_task_terminal(m->arg, m->res, (casadi_int*) m->iw, m->w, 0)) return 1;
-  for (a = 0; a < ${N}_NRT; ++a) {
-    double* ga = m->G + a * NZ;
-    for (col = 0; col < NZ; ++col) ga[col] = 0;
-    for (b = 0; b < NX; ++b) {
-      const double v = m->trx[a + ${N}_NRT * b];
-      if (v != 0) for (col = 0; col < c; ++col) ga[col] += v * S[b * lds + col];
-    }
-  }
+  for (col = 0; col < ${N}_NRT * NZ; ++col) m->G[col] = 0;
+  task_jacobian_x(m, ${N}_NRT, L, prev, cp, p, d, c);
   task_add(m, TASK_WT, ${N}_NRT, c);
   return 0;
 }
 #endif
 
-/* The task's terms added to the QP condense built (goal: x_goal, then the targets). [v S] rows run forward piece
-   by piece as in condense, for every state (Λ_1 … Λ_LMAX times the piece's R; m->prev holds [v S] at the piece's
-   start). Returns nonzero if a residual's evaluation failed. */
+/* The task's terms added to the QP condense built (goal: x_goal, then the targets). The plan's states run forward
+   piece by piece as in condense: x̄ = Λ_s y with y = R [1; z̄] the piece's augmented state [x̄_a; v; d; 1]
+   (Λ_1 … Λ_LMAX of all states; m->prev holds [v S] at the piece's start). Returns nonzero if a residual's
+   evaluation failed. */
 static int task_terms(mem_t* m, const double* x, const double* goal) {
   const double* targets = goal + NX;
-  double* prev = m->prev;
+  double *prev = m->prev, *y = m->ty;
   int pc, i, j, l, s, col;
   for (j = 0; j < NP; ++j)
     for (i = 0; i < NU; ++i) {
@@ -1464,32 +1477,46 @@ static int task_terms(mem_t* m, const double* x, const double* goal) {
   memcpy(m->LamA, m->Lam1, sizeof m->Lam1);
   for (s = 1; s < LMAX; ++s) times_ahat(m->LamA + (s - 1) * NX * NL, NX, NL, m->Lam1, 1, m->LamA + s * NX * NL);
 #if TASK_STAGE
-  if (task_stage(m, 0, x, 0, 0, 0, targets)) return 1;
+  if (task_stage(m, 0, x, 0, 0, 0, 0, 0, 0, targets)) return 1;
 #endif
   for (i = 0; i < NX * NZ1; ++i) prev[i] = 0;
   for (i = 0; i < NX; ++i) prev[i * NZ1] = x[i];
   for (pc = 0; pc < NPIECE; ++pc) {
     const int a = PIECE_A[pc], Lp = PIECE_L[pc], c = PIECE_C[pc], cp = PIECE_CP[pc];
-    times_r(m->LamA, Lp * NX, NL, prev, cp, PIECE_PHI + pc * NP, PIECE_DELTA + pc * NP, c, m->SVp, NZ1);
+    const double *phi = PIECE_PHI + pc * NP, *del = PIECE_DELTA + pc * NP;
+    for (i = 0; i < NX; ++i) {
+      double v = prev[i * NZ1];
+      for (col = 0; col < cp; ++col) v += prev[i * NZ1 + 1 + col] * m->zbar[col];
+      y[i] = v;
+    }
+    for (i = 0; i < NU; ++i) {
+      double v = 0, dv = 0;
+      for (j = 0; j < NP; ++j) { v += phi[j] * m->zbar[j * NU + i]; dv += del[j] * m->zbar[j * NU + i]; }
+      y[NX + i] = v;
+      y[NX + NU + i] = dv;
+    }
+    y[NL - 1] = 1;
     for (s = 0; s < Lp; ++s) {
-      const double* rows = m->SVp + s * NX * NZ1;  /* [v S] at x_{a+s+1}: its first 1 + c columns */
+      const double* L = m->LamA + s * NX * NL;  /* Λ_{s+1}: x_{a+s+1} = Λ_{s+1} y */
       for (i = 0; i < NX; ++i) {
-        double v = rows[i * NZ1];
-        for (col = 0; col < c; ++col) v += rows[i * NZ1 + 1 + col] * m->zbar[col];
+        double v = 0;
+        for (l = 0; l < NL; ++l) v += L[i * NL + l] * y[l];
         m->tx[i] = v;
       }
       if (a + s + 1 < ${N}_HORIZON) {
 #if TASK_STAGE
-        if (task_stage(m, a + s + 1, m->tx, rows + 1, NZ1, c, targets)) return 1;
+        if (task_stage(m, a + s + 1, m->tx, L, prev, cp, phi, del, c, targets)) return 1;
 #endif
       } else {
 #if TASK_TERMINAL
-        if (task_terminal(m, m->tx, rows + 1, NZ1, c, targets)) return 1;
+        if (task_terminal(m, m->tx, L, prev, cp, phi, del, c, targets)) return 1;
 #endif
       }
     }
+    /* [v S] at the piece's end: Λ_Lp R */
+    times_r(m->LamA + (Lp - 1) * NX * NL, NX, NL, prev, cp, phi, del, c, m->next, NZ1);
     for (i = 0; i < NX; ++i)
-      for (col = 0; col < NZ1; ++col) prev[i * NZ1 + col] = col <= c ? m->SVp[((Lp - 1) * NX + i) * NZ1 + col] : 0.0;
+      for (col = 0; col < NZ1; ++col) prev[i * NZ1 + col] = col <= c ? m->next[i * NZ1 + col] : 0.0;
   }
   for (j = 0; j < NZ; ++j)  /* the lower triangle from the upper */
     for (i = 0; i < j; ++i) m->h[j + NZ * i] = m->h[i + NZ * j];
