@@ -25,8 +25,9 @@ dimension only through the model):
   residuals and their dense Jacobians are generated per stage (``<name>_task_stage``, ``<name>_task_terminal``),
   and the step adds their Gauss–Newton model about the plan to the condensed QP as
   :class:`ocpkit.transcription._TaskRows` does (``task_terms`` in ``<name>.c``: the plan's states and ∂r/∂x S
-  piece by piece, ∂r/∂x S as (∂r/∂x Λ_s) R). The step's goal is then the whole goal vector [x_goal; targets] (``ocp.goal(...)``, ``NG`` entries).
-  A task with obstacles is refused (its linearized obstacle rows are not in the C step).
+  piece by piece, ∂r/∂x S as (∂r/∂x Λ_s) R). The step's goal is then the whole goal vector [x_goal; targets]
+  (``ocp.goal(...)``, ``NG`` entries). A task with obstacles is refused (its linearized obstacle rows are not in
+  the C step).
 
 All memory of one controller lives in a caller-owned struct (``<name>_memory``): several instances run in one
 process, each with its own QP-solver memory slot (``MAX_INSTANCES`` in the Makefile, 16 by default).
