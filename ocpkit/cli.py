@@ -35,7 +35,7 @@ VARIANTS = ("preconditioned", "paper")
 SAMPLING = ("empc", "cem", "mppi")
 # Studies that take --problem, and benchmarks that take --problem (their `problems` argument).
 _PROBLEM_STUDIES = ("knots", "horizon", "robustness")
-_PROBLEM_BENCHMARKS = ("qp", "export", "nlp")
+_PROBLEM_BENCHMARKS = ("qp", "export", "nlp", "task")
 
 # `ocpkit bench NAME`: module in ocpkit.benchmarks, function, keyword arguments of --quick.
 _BENCHMARKS = {
@@ -46,6 +46,7 @@ _BENCHMARKS = {
     "nlp": ("nlp", "bench_nlp", {"problems": ["pendulum", "nlink:2", "nlink:3"], "samples": 1, "steps": 5}),
     "faults": ("faults", "bench_faults", {}),
     "step": ("step", "bench_step", {"links": (1, 7, 13), "steps": 10}),
+    "task": ("task", "bench_task", {"problems": ("panda",), "steps": 100, "seeds": 1}),
 }
 
 

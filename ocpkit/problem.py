@@ -328,6 +328,8 @@ class URDFRobot(Problem):
                              "by URDFRobot yet; lock them or give them limits")
         self.q_min = np.where(np.isfinite(lo) & (lo < hi), lo, -np.inf)
         self.q_max = np.where(np.isfinite(hi) & (lo < hi), hi, np.inf)
+        velocity = np.asarray(self.pin_model.velocityLimit, dtype=float)
+        self.velocity_limit = np.where(velocity > 0, velocity, np.inf)  # the URDF's <limit velocity>; 0: none
         kin = self.kinematics
         if end_effector is not None and end_effector not in kin.frames:
             raise ValueError(f"end_effector {end_effector!r} is not a frame of {self.urdf}; its frames: "

@@ -15,9 +15,10 @@ Obstacles are spheres in the world; the robot is approximated by spheres fixed i
 at or above ``margin`` at x_1 … x_T. Each controller takes this in the way that suits it:
 
 * NonlinearMPC (IPOPT, SQP): nonlinear inequality constraints d ≥ margin at every predicted state.
-* LinearMPC and real-time iteration: the constraints linearized about the plan, as rows of the QP, softened as the
-  state bounds are (an exact penalty): one slack s_k ≥ 0 per stage with a pair within ``activation`` of its
-  margin, cost ``obstacle_weight``·(s_k + ½s_k²).
+* LinearMPC and real-time iteration: the constraints linearized about the plan, as rows of the QP for every pair
+  within ``ACTIVATION`` of its margin, treated as the state bounds are: DAQP solves them hard and, only where the
+  hard QP is infeasible (a start already inside the margin), softened; ProxQP and OSQP solve the soft QP, an exact
+  penalty: one slack s_k ≥ 0 per stage with such rows, cost ``obstacle_weight``·(s_k + ½s_k²).
 * EMPC, CEM, MPPI: the same penalty in the rollout fitness, with h_k = max(0, margin − min d at x_k) in place of
   the slack: ``obstacle_weight``·(h_k + ½h_k²) per stage (``penalty``).
 
@@ -293,7 +294,7 @@ class CompiledTask:
 
 def reach(problem, obstacles=(), *, frame: str | None = None, position_weight: float = 1e3,
           terminal_weight: float | None = None, margin: float = 0.01, link_radius: float | None = None,
-          obstacle_weight: float = 1e5, **ocp_options):
+          obstacle_weight: float = 1e5, velocity_limits: bool = True, **ocp_options):
     """The OCP "bring ``frame`` to a point, clear of ``obstacles``" for a robot problem with ``kinematics``.
 
     Cost: the frame-position term "position" (``position_weight`` per m² at every stage and, ``terminal_weight``,
@@ -301,7 +302,13 @@ def reach(problem, obstacles=(), *, frame: str | None = None, position_weight: f
     beyond what a QP solver can answer), the problem's velocity weights as the "state" term (its joint-angle weights set to
     zero: the posture is free) and its input term. Obstacles (:class:`Sphere` s, or "x,y,z,r" strings) are kept
     ``margin`` away from spheres of ``link_radius`` (default the problem's) along the robot's links. Other
-    keywords go to ``problem.ocp`` (``knots``, ``horizon``, ...). The goal is ``ocp.goal(x_ref, position=p)``."""
+    keywords go to ``problem.ocp`` (``knots``, ``horizon``, ...). The goal is ``ocp.goal(x_ref, position=p)``.
+
+    ``velocity_limits``: the robot's joint velocity limits (``problem.velocity_limit``, a URDF's ``<limit
+    velocity>``) as the OCP's state bounds — soft in LinearMPC, constraints for IPOPT, a penalty in the sampling
+    planners. Without them a reach across the workspace saturated the Panda's torques from the first step, its
+    joints passed 4 rad/s within 40 ms, the prediction model diverged and 17 of 24 closed loops failed (seeds 1–6,
+    four linearizations); with them, none."""
     from ocpkit.kinematics import spheres_along_links
 
     kinematics = getattr(problem, "kinematics", None)
@@ -324,4 +331,10 @@ def reach(problem, obstacles=(), *, frame: str | None = None, position_weight: f
         Q[:nq, :] = 0.0
         Q[:, :nq] = 0.0
         ocp_options.update(Q=Q, Q_terminal=Q)
+    limit = getattr(problem, "velocity_limit", None)
+    if velocity_limits and limit is not None and np.isfinite(limit).any() and not {"x_min", "x_max"} & set(ocp_options):
+        x_min, x_max = (np.array(defaults.get(key, np.full(2 * nq, sign * np.inf)), dtype=float)
+                        for key, sign in (("x_min", -1.0), ("x_max", 1.0)))
+        x_min[nq:], x_max[nq:] = np.maximum(x_min[nq:], -limit), np.minimum(x_max[nq:], limit)
+        ocp_options.update(x_min=x_min, x_max=x_max)
     return problem.ocp(task=task, **ocp_options)

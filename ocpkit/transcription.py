@@ -32,6 +32,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ocpkit._checks import positive
+from ocpkit.compiled import SwitchingFunction
 from ocpkit.ocp import OCP
 
 
@@ -294,7 +295,7 @@ class CondensedQP(_Transcription):
     def __init__(self, ocp: OCP, *, soft: bool = False, slack_weight: float = 1e3, obstacles: bool = True):
         super().__init__(ocp, soft=soft, slack_weight=slack_weight)
         n, m, p = self.n, self.m, self.p
-        self.task = None if ocp.task_functions is None else _TaskRows(ocp, obstacles)
+        self.task = None if ocp.task_functions is None else _TaskRows(ocp, obstacles, soft=bool(soft))
         self.nz = m * p  # the knots; the slacks (if any) follow them in z
         self.A = np.zeros((0, self.nz + self.ns))
         self.b = np.zeros(0)
@@ -583,23 +584,30 @@ class _TaskRows:
     (Φ_k = φ_k ⊗ I), each residual is replaced by its linearization r_k + G_k (z − z̄), G_k = ∂r/∂x S_k + ∂r/∂u Φ_k,
     whose weighted squares add G_kᵀWG_k to P and G_kᵀW(r_k − G_k z̄) to q (P and q are those of the cost J itself;
     the QP's objective is ½J). An obstacle clearance d_k − margin ≥ 0 at x_k becomes the row
-    d_k + D_k S_k (z − z̄) + s_k ≥ 0 for every pair within ``ACTIVATION`` of its margin at the plan, with one slack
-    s_k ≥ 0 per such stage costing obstacle_weight·(s_k + ½s_k²) in J."""
+    d_k + D_k S_k (z − z̄) ≥ 0 for every pair within ``ACTIVATION`` of its margin at the plan: a hard row, or with
+    ``soft`` the row d_k + D_k S_k (z − z̄) + s_k ≥ 0 with one slack s_k ≥ 0 per such stage costing
+    obstacle_weight·(s_k + ½s_k²) in J (an exact penalty, like the sampling planners' fitness). The compiled
+    functions are made once per OCP and shared by its QPs (hard and soft, the sampling planners' preconditioner)."""
 
-    def __init__(self, ocp: OCP, obstacles: bool):
+    def __init__(self, ocp: OCP, obstacles: bool, soft: bool = True):
         from ocpkit.task import ACTIVATION
 
         tf = ocp.task_functions
         self.T, self.n, self.m, self.p = ocp.horizon, ocp.nx, ocp.nu, ocp.knots
         self.phi = ocp.parameterization.basis
-        self._switching = []  # the functions still being compiled in the background
-        self.stage = self._fast(tf.stage_residual.map(self.T), ocp.compiled) if tf.stage_weight.size else None
-        self.terminal = self._fast(tf.terminal_residual, ocp.compiled) if tf.terminal_weight.size else None
+        shared = ocp.__dict__.setdefault("_task_rows_functions", {})
+        if not shared:
+            shared["stage"] = self._fast(tf.stage_residual.map(self.T), ocp.compiled) if tf.stage_weight.size else None
+            shared["terminal"] = self._fast(tf.terminal_residual, ocp.compiled) if tf.terminal_weight.size else None
+            shared["clearance"] = self._fast(tf.clearance.map(self.T), ocp.compiled) if tf.pairs else None
+        self._shared = shared
+        self.stage, self.terminal = shared["stage"], shared["terminal"]
         self.ws, self.wt = tf.stage_weight, tf.terminal_weight
-        self.clearance = self._fast(tf.clearance.map(self.T), ocp.compiled) if obstacles and tf.pairs else None
-        self.pairs, self.weight, self.activation = tf.pairs, ocp.task.obstacle_weight, ACTIVATION
+        self.clearance = shared["clearance"] if obstacles else None
+        self.pairs, self.weight, self.activation, self.soft = tf.pairs, ocp.task.obstacle_weight, ACTIVATION, soft
 
-    def _fast(self, fn, compiled):
+    @staticmethod
+    def _fast(fn, compiled):
         """``fn`` on numpy buffers, as compiled C with the OCP's ``compiled`` policy (as its affine model: True now,
         None in the background while the VM answers, False never): the task's forward kinematics and their
         Jacobians over the horizon took 8 ms a step on CasADi's VM for a 7-DoF arm with 23 spheres."""
@@ -612,13 +620,13 @@ class _TaskRows:
             future = compile_in_background(fn)
             if future is not None:
                 fn = SwitchingFunction(fn, future)
-                self._switching.append(fn)
         return BufferedFunction(fn)
 
     def wait(self, timeout: float | None = None) -> None:
         """Block until the background compiles of the task's functions have finished (tests, benchmarks)."""
-        for fn in self._switching:
-            fn.wait(timeout)
+        for fn in self._shared.values():
+            if fn is not None and isinstance(fn.fn, SwitchingFunction):
+                fn.fn.wait(timeout)
 
     def add(self, P, q, SV, x0, targets, knots):
         """Add the terms' Gauss–Newton model to P and q (in place); the obstacle rows (C, lower bound, stage)."""
@@ -655,10 +663,15 @@ class _TaskRows:
         q += WG.T @ (r - G @ zbar)
 
     def constrain(self, qp: QP, rows) -> QP:
-        """``qp`` with the obstacle rows and their stages' slacks appended (after every other variable)."""
+        """``qp`` with the obstacle rows, hard or (``soft``) with their stages' slacks appended after every other
+        variable."""
         if rows is None:
             return qp
         C_rows, lo, stage = rows
+        if not self.soft:
+            C = np.vstack([qp.C, np.hstack([C_rows, np.zeros((C_rows.shape[0], qp.n - C_rows.shape[1]))])])
+            return QP(qp.P, qp.q, qp.A, qp.b, C, np.r_[qp.l, lo], np.r_[qp.u, np.full(lo.size, np.inf)], box=qp.box,
+                      curvature=qp.curvature)
         stages, slack_of = np.unique(stage, return_inverse=True)
         ne, n0 = stages.size, qp.n
         w = 0.5 * self.weight  # J's weight·(s + ½s²) in the QP's ½J

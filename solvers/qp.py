@@ -480,6 +480,12 @@ class LinearMPC(Controller):
     and OSQP hit their iteration limits; about u_goal = 0 the same robot gives eigenvalues 0.06…6e4, and
     in closed loop on nlink:7 "goal" was never worse (3 seeded trials, 0 vs 118 fallbacks).
 
+    With a task (``ocp.task``: terms in task space, obstacles; :mod:`ocpkit.task`) the condensed QP carries the
+    terms' Gauss–Newton model about the plan (the last plan shifted a step; RTI: each iterate) and the obstacles'
+    clearances linearized there as rows — hard for DAQP, soft where those cannot be met or for the other backends
+    (:class:`ocpkit.transcription.CondensedQP`). The C step takes a task's terms, not its obstacles; the sparse form
+    takes no task (a ValueError).
+
     Every "success" is proven: the backend's answer and multipliers must pass the KKT certificate of
     :mod:`ocpkit.certificate` (stationarity, primal feasibility, complementarity, dual sign, each within
     ``certificate.TOL`` relative to the data), otherwise the step is "limited" with the test that failed; and
@@ -524,8 +530,12 @@ class LinearMPC(Controller):
         # same solution where the penalty is exact, and a few variables instead of two slacks per bounded state
         # per step (a 7-DoF arm with joint limits: 35 instead of 735, 0.3 ms instead of 363). The iterative
         # backends (ProxQP, OSQP) only stop at their limits on an infeasible QP: they solve the soft QP alone.
+        # A task's obstacle rows likewise: hard first, soft where the hard rows cannot be met (a start in the margin).
+        task = getattr(self.transcription, "task", None)
+        obstacles = task is not None and task.clearance is not None
         self._transcriptions = ((TRANSCRIPTIONS[form](ocp), self.transcription)
-                                if qp == "daqp" and self.transcription.soft else (self.transcription,))
+                                if qp == "daqp" and (self.transcription.soft or obstacles)
+                                else (self.transcription,))
         if qp == "hpipm" and not (form == "sparse" and ocp.knots == ocp.horizon):
             raise ValueError(f"qp 'hpipm' needs form 'sparse' and the identity parameterization (knots = horizon, "
                              f"traditional MPC), got form {form!r} with {ocp.knots} knots over {ocp.horizon} steps")
@@ -570,8 +580,8 @@ class LinearMPC(Controller):
 
     def _no_native_step(self) -> str | None:
         """Why this configuration has no exported C step (None: it has one)."""
-        for bad, why in ((self.ocp.task_functions is not None, "a task (its terms and obstacle rows are built in "
-                                                              "Python)"),
+        for bad, why in ((self.ocp.task_functions is not None and self.ocp.task_functions.pairs > 0,
+                          "a task with obstacles (its linearized obstacle rows are built in Python)"),
                          (self.form != "condensed", f"form {self.form!r} (the C step is the condensed QP)"),
                          (self.qp_name != "daqp", f"qp {self.qp_name!r} (the C step solves with DAQP)"),
                          (self.linearization != "goal", f"linearization {self.linearization!r} (the C step "
@@ -675,7 +685,7 @@ class LinearMPC(Controller):
         """The whole step (model, build, DAQP) as compiled C; a failure gives the Python step's fallback."""
         if not self._costs.fits("C step", _left(deadline)):
             return self.fallback(LIMITED, _skipped("C step", self._costs, deadline, 0).raw_status)
-        sol = step._solve(x, goal)
+        sol = step._solve(x, self.task_goal)
         self._costs.add("C step", step.step_seconds)
         self._warm, self._x_plan = None, None
         if sol.status == SUCCESS and deadline is not None and time.perf_counter() > deadline:

@@ -113,7 +113,8 @@ class SamplingMPC(Controller):
     "preconditioned" (default) or "paper" (module docstring); ``dynamics`` "affine" (re-linearized
     each step) or "nonlinear" (the discrete model F in the kernel); ``stage_cost``/``terminal_cost``
     replace the OCP's cost in the fitness (any CasADi Function of (x, u, goal) / (x, goal), goal of ``ocp.ng``
-    entries, non-smooth allowed; default: the OCP's terms and, with a task's obstacles, their penalty); ``seed`` makes runs repeatable. ``linearization`` picks the
+    entries, non-smooth allowed; default: :func:`ocpkit.kernels.rollout.fitness`, the OCP's terms and the exact
+    penalties of its state bounds and a task's obstacles); ``seed`` makes runs repeatable. ``linearization`` picks the
     affine model's expansion input as in LinearMPC. ``time_limit`` (s) stops the generations once
     exceeded (a launched generation always completes): the step then returns the best candidate so
     far with status "limited". ``threads`` limits BLAS/OpenMP threads inside a step (see Controller);
@@ -132,12 +133,13 @@ class SamplingMPC(Controller):
         self.linearization = check_linearization(linearization)
         self.population = integer(population, "population", 1)
         self.generations = integer(generations, "generations", 1)
-        if ocp.has_state_bounds:
-            raise ValueError(f"{type(self).__name__} does not enforce state bounds (x_min/x_max): express them "
-                             f"as a penalty in stage_cost, or use LinearMPC/NonlinearMPC")
         if not (np.isfinite(ocp.u_min).all() and np.isfinite(ocp.u_max).all()):
             raise ValueError(f"{type(self).__name__} samples within the input bounds, which must be "
                              f"finite; got u_min={ocp.u_min.tolist()}, u_max={ocp.u_max.tolist()}")
+        if (stage_cost is not None or terminal_cost is not None) and (ocp.has_state_bounds or ocp.task_functions):
+            raise ValueError(f"{type(self).__name__}: stage_cost/terminal_cost replace the whole fitness, which carries "
+                             "the OCP's state bounds and task as penalties: build yours on "
+                             "ocpkit.kernels.rollout.fitness(ocp), or leave them out of the OCP")
         self.key = seed_key(seed)
         self.engine = Rollout(ocp, self.population, num_picked=num_picked, dynamics=dynamics,
                               stage_cost=stage_cost, terminal_cost=terminal_cost,

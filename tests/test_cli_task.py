@@ -120,8 +120,7 @@ def test_attach_values():
 def test_readme_reach_example(tmp_path, monkeypatch, capsys):
     """The README's Python example runs and prints what the README says; its TOML file is the example's task, and
     the command line with it reaches the same point."""
-    root = README.parent
-    monkeypatch.chdir(root)  # the example names tests/data/panda/panda.urdf
+    monkeypatch.chdir(tmp_path)
     exec(compile(readme_block("Reach a point around a sphere"), "README.md", "exec"), {})
     printed = capsys.readouterr().out.strip()
     distance, clearance = map(float, re.fullmatch(r"final distance (\S+) m, min clearance (\S+) m", printed).groups())
@@ -133,12 +132,7 @@ def test_readme_reach_example(tmp_path, monkeypatch, capsys):
     task = cli._read_task_file(tmp_path / "reach.toml")
     assert task["target"].tolist() == [0.4, 0.0, 0.3] and [(o.center, o.radius) for o in task["obstacles"]] == \
         [((0.4, -0.25, 0.35), 0.08)]
-    (tmp_path / "arm.py").write_text(
-        "from ocpkit import Problem\n\n\ndef Arm():\n"
-        f"    return Problem.from_urdf({str(root / 'tests/data/panda/panda.urdf')!r},\n"
-        "                             locked_joints=['panda_finger_joint1', 'panda_finger_joint2'])\n")
-    monkeypatch.chdir(tmp_path)
-    assert main(["simulate", "arm.py:Arm", "--task", "reach.toml", "--duration", "2", "--out", "arm.png",
+    assert main(["simulate", "panda", "--task", "reach.toml", "--duration", "2", "--out", "arm.png",
                  "--json"]) == 0
     reach = json.loads(capsys.readouterr().out)["reach"]
     assert reach["frame"] == "panda_hand_tcp" and reach["collisions"] == 0

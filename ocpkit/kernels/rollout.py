@@ -25,16 +25,29 @@ from ocpkit.kernels.translate import translate
 DYNAMICS = ("affine", "nonlinear")
 
 
+# The state bounds' exact penalty in the fitness, per unit of violation: the soft QP's slack cost at LinearMPC's default
+# slack_weight (1e3 on the QP's objective, which is half the rollout cost J).
+STATE_BOUND_WEIGHT = 2e3
+
+
 def fitness(ocp):
-    """(stage (x, u, goal), terminal (x, goal)): the OCP's cost over its whole goal vector, plus with a task's
-    obstacles their exact penalty (ocpkit.task) at every state x_0 … x_T."""
+    """(stage (x, u, goal), terminal (x, goal)): the OCP's cost over its whole goal vector, plus at every state
+    x_0 … x_T the exact penalties of what the QPs hold as constraints: a task's obstacles (ocpkit.task) and the
+    state bounds, STATE_BOUND_WEIGHT·Σ_i (h_i + ½h_i²) with h_i the violation of component i's bound."""
     stage, terminal = ocp.full_costs()
     tf = ocp.task_functions
-    if tf is None or not tf.pairs:
-        return stage, terminal
     x, u, g = ca.SX.sym("x", ocp.nx), ca.SX.sym("u", ocp.nu), ca.SX.sym("goal", ocp.ng)
-    return (ca.Function("fitness", [x, u, g], [stage(x, u, g) + tf.penalty(x)]),
-            ca.Function("fitness_T", [x, g], [terminal(x, g) + tf.penalty(x)]))
+    penalty = tf.penalty(x) if tf is not None and tf.pairs else 0
+    if ocp.has_state_bounds:
+        rows = np.flatnonzero(np.isfinite(ocp.x_min) | np.isfinite(ocp.x_max)).tolist()
+        lo, hi = (np.where(np.isfinite(b[rows]), b[rows], 0.0) for b in (ocp.x_min, ocp.x_max))
+        h = (ca.fmax(0, ca.DM(lo) - x[rows]) * ca.DM(np.isfinite(ocp.x_min[rows]).astype(float))
+             + ca.fmax(0, x[rows] - ca.DM(hi)) * ca.DM(np.isfinite(ocp.x_max[rows]).astype(float)))
+        penalty = penalty + STATE_BOUND_WEIGHT * ca.sum1(h + 0.5 * h * h)
+    if isinstance(penalty, int):
+        return stage, terminal
+    return (ca.Function("fitness", [x, u, g], [stage(x, u, g) + penalty]),
+            ca.Function("fitness_T", [x, g], [terminal(x, g) + penalty]))
 
 
 class Rollout:

@@ -1,0 +1,85 @@
+"""``ocpkit bench task``: what a task in task space costs LinearMPC's step, against its joint-space step.
+
+For each robot, one closed loop per variant from the same seeded starts, steps interleaved round-robin so that the
+machine's load falls alike on every variant (each keeps its own state): the joint-space step (today's default: the C
+step where it applies, and the Python step), the reach task (frame-position term, :func:`ocpkit.task.reach`) and the
+reach task with a ball on the way. Every controller waits for its compiled parts first (the steady state). Printed:
+median and 95th-percentile step time, the ratio of medians to the joint-space default, the successes and the end
+effector's final distance to its target (the worst over the seeds).
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+
+def _scene(problem, seed: int):
+    """Start, target point (the end effector at the sampled goal) and a ball on the straight path between them."""
+    from ocpkit.task import Sphere
+
+    x0, goal = problem.sample(seed)
+    fk = problem.kinematics.function(problem.end_effector)
+    n = problem.kinematics.n
+    start, target = (np.asarray(fk(v[:n])[0], dtype=float).ravel() for v in (x0, goal))
+    radius = max(0.02, 0.15 * float(np.linalg.norm(target - start)))
+    return x0, goal, target, Sphere(tuple(0.5 * (start + target)), radius)
+
+
+def bench_task(problems=("panda", "nlink:7"), *, steps: int = 200, seeds: int = 2, knots: int = 5,
+               out=print) -> list[dict]:
+    """Per robot and variant: step-time median and p95 (ms), ratio to the joint-space default, successes."""
+    from ocpkit import problems as registry
+    from ocpkit.solvers.qp import LinearMPC
+    from ocpkit.task import reach
+
+    rows = []
+    out(f"{'robot':<10} {'variant':<24} {'median [ms]':>11} {'p95 [ms]':>9} {'ratio':>6} {'success':>9} "
+        f"{'worst final dist [m]':>20}")
+    for spec in problems:
+        problem = registry.make(spec)
+        fk = problem.kinematics.function(problem.end_effector)
+        n = problem.kinematics.n
+        times: dict = {}
+        stats: dict = {}
+        for seed in range(seeds):
+            x0, goal, target, ball = _scene(problem, seed)
+            joint = problem.ocp(knots=knots)
+            task, blocked = reach(problem, knots=knots), reach(problem, [ball], knots=knots)
+            variants = {"joint space (default)": (LinearMPC(joint), goal),
+                        "joint space (Python)": (LinearMPC(joint, native=False), goal),
+                        "reach": (LinearMPC(task), task.goal(x0, position=target)),
+                        "reach + ball": (LinearMPC(blocked), blocked.goal(x0, position=target))}
+            states, plant = {}, problem.plant().rk4(problem.dt, 10)
+            for name, (ctrl, _) in variants.items():
+                ctrl.wait_compiled()
+                states[name] = x0.copy()
+                stats.setdefault(name, {"ok": 0, "steps": 0, "dist": []})
+            for _ in range(steps):
+                for name, (ctrl, g) in variants.items():
+                    t = time.perf_counter()
+                    sol = ctrl.solve(states[name], g)
+                    times.setdefault(name, []).append(time.perf_counter() - t)
+                    states[name] = np.asarray(plant(states[name], sol.u), dtype=float).ravel()
+                    s = stats[name]
+                    s["ok"] += sol.ok
+                    s["steps"] += 1
+            for name in variants:
+                if name.startswith("reach"):
+                    stats[name]["dist"].append(float(np.linalg.norm(np.asarray(fk(states[name][:n])[0]).ravel()
+                                                                    - target)))
+        base = float(np.median(times["joint space (default)"]))
+        for name, t in times.items():
+            s, med = stats[name], float(np.median(t))
+            row = {"robot": problem.name, "variant": name, "median_s": med, "p95_s": float(np.percentile(t, 95)),
+                   "ratio": med / base, "success": s["ok"] / s["steps"],
+                   "final_distance": max(s["dist"]) if s["dist"] else float("nan")}
+            rows.append(row)
+            dist = f"{row['final_distance']:.4f}" if s["dist"] else "-"
+            out(f"{problem.name:<10} {name:<24} {1e3 * med:>11.3f} {1e3 * row['p95_s']:>9.3f} {row['ratio']:>6.2f} "
+                f"{s['ok']:>4}/{s['steps']:<4} {dist:>20}")
+    return rows
+
+
+if __name__ == "__main__":
+    bench_task()
