@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from importlib import import_module
 
-NAMES = ("knots", "horizon", "robustness", "solve_times", "comparison", "keepout", "baxter")
+NAMES = ("knots", "horizon", "robustness", "solve_times", "comparison", "keepout", "baxter", "reach")
 
 
 def get(name: str):

@@ -1,0 +1,71 @@
+"""The reach study on a tiny grid (3-link arm and keep-out ball), its scenarios and its keep-out term."""
+import numpy as np
+import pytest
+
+from ocpkit import problems
+from ocpkit import study as runner
+from ocpkit.studies import NAMES, get, reach
+
+TINY = {"seeds": {"nlink:3": 1, "baxter": 0, reach.KEEPOUT: 1},
+        "duration": {"nlink:3": 0.1, "baxter": 0.1, reach.KEEPOUT: 0.1},
+        "horizon": {"nlink:3": 20, "baxter": 20, reach.KEEPOUT: 20}, "population": 32, "arch": "cpu"}
+
+
+def test_reach_tiny(monkeypatch, tmp_path):
+    assert "reach" in NAMES and get("reach") is reach
+    monkeypatch.setitem(reach.SIZES, "quick", TINY)
+    df = runner.run(reach.study("quick"), tmp_path, workers=1, progress=False)
+    assert (df["status"] == "ok").all(), df["error"].dropna().tolist()
+    assert len(df) == len(reach.CONTROLLERS) + len(reach.KEEPOUT_CONTROLLERS)
+    arm = df[df["scenario"] == "nlink:3"]
+    # 0.1 s is too short to get there: nobody succeeds, nobody collides, every metric is recorded.
+    assert not arm["success"].any() and (arm["collision_steps"] == 0).all()
+    assert (arm["final_distance"] > reach.TOLERANCE).all() and (arm["min_clearance"] > 0).all()
+    assert (arm["step_max"] >= arm["step_median"]).all() and (arm["actual_cost"] > 0).all()
+    keep = df[df["scenario"] == reach.KEEPOUT]
+    assert (keep["actual_cost"] >= keep["quadratic_cost"]).all()
+    text = reach.report(df, tmp_path)
+    for piece in ("Reach: per robot and controller", "EMPC vs the gradient methods", "Keep-out verdict, as measured",
+                  "IPOPT and RTI reach ≥ 90 %", "within 1.2× of IPOPT", "were not tuned on"):
+        assert piece in text, piece
+    claims = text.split("Claim checks:")[1].strip().splitlines()[2:]
+    verdicts = [row.rsplit("|", 2)[-2].strip() for row in claims]
+    assert len(verdicts) == 3 and set(verdicts) <= {"held", "not held", "not tested at this size"}
+    assert "not tested at this size" in verdicts  # IPOPT did not succeed: no cost ratio
+    for stem in ("reach_success", "reach_step_time", "reach_paths_nlink3", "reach_keepout_cost"):
+        assert (tmp_path / f"{stem}.png").stat().st_size > 5000
+        assert (tmp_path / f"{stem}.pdf").exists()
+
+
+@pytest.mark.parametrize("robot", reach.ROBOTS)
+def test_scenarios_block_the_straight_path(robot):
+    pb = problems.make(robot)
+    n = pb.kinematics.n
+    for seed in range(3):
+        s = reach.scenario(robot, seed)
+        again = reach.scenario(robot, seed)
+        assert np.array_equal(s["x0"], again["x0"]) and s["obstacles"] == again["obstacles"]  # deterministic
+        p0, pg = reach.ee_positions(pb, np.vstack([s["x0"][:n], s["q_target"]]))
+        assert np.allclose(pg, s["target"]) and np.linalg.norm(pg - p0) >= reach.MIN_DISTANCE
+        assert reach.clearances(pb, s["obstacles"], np.vstack([s["x0"][:n], s["q_target"]])).min() >= reach.MARGIN
+        (o,) = s["obstacles"]
+        c = np.asarray(o.center)
+        t = np.clip(np.dot(c - p0, pg - p0) / np.dot(pg - p0, pg - p0), 0, 1)
+        # The end effector's sphere moving along the straight segment would hit the obstacle.
+        assert np.linalg.norm(p0 + t * (pg - p0) - c) < o.radius + pb.link_radius
+        if robot == "nlink:3":
+            assert abs(c[2]) < 1e-12 and abs(s["target"][2]) < 1e-12
+
+
+def test_squared_hinge_term_is_zero_outside_and_grows_inside():
+    import casadi as ca
+
+    term = reach.squared_hinge_term([0.0, 0.0, 0.0])
+    x, u = ca.SX.sym("x", 6), ca.SX.sym("u", 3)
+    r, w, _ = term.expression(x, u, ca.SX(0, 1))
+    f = ca.Function("r", [x], [r])
+    assert float(f([1.0, 0, 0, 0, 0, 0])) == 0.0
+    assert float(f([0.0] * 6)) == pytest.approx(reach.keepout.RADIUS + 0.01, abs=1e-5)
+    assert w[0] == reach.HINGE_WEIGHT and term.terminal
+    with pytest.raises(ValueError, match="controller must be one of"):
+        reach.trial("keepout", "IPOPT", 20, 0.1, 32, "cpu", 0)
