@@ -10,7 +10,6 @@ import shutil
 import subprocess
 import sys
 import textwrap
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -21,6 +20,7 @@ from ocpkit.export import ExportedMPC, build, export
 from ocpkit.problems import make
 from ocpkit.solvers.qp import LinearMPC
 from ocpkit.transcription import QP
+from ocpkit.problems.panda import urdf_path as panda_urdf
 
 BACKENDS = [("condensed", "daqp"), ("condensed", "proxqp"), ("condensed", "osqp"), ("sparse", "proxqp"),
             ("sparse", "osqp")]
@@ -241,7 +241,7 @@ def test_diverging_arm_c_step_never_succeeds_in_fresh_processes(tmp_path):
     Hessian reaches 7e69 and is numerically indefinite): in each fresh process the C step says "exception"
     (DAQP nonconvex, or its Hessian refused as ill-conditioned before), never success."""
     for _ in range(3):
-        urdf = Path(__file__).resolve().parent / "data" / "panda" / "panda.urdf"
+        urdf = panda_urdf()
         out = subprocess.run([sys.executable, "-c", DIVERGING_ARM, str(urdf)], capture_output=True, text=True,
                              timeout=600, check=True, cwd=tmp_path).stdout  # not the checkout: it shadows ocpkit
         assert "success" not in out and ("DAQP nonconvex" in out or "ill-conditioned" in out), out

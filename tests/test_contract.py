@@ -14,7 +14,6 @@ whole grid.
 """
 from __future__ import annotations
 
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -25,6 +24,7 @@ from ocpkit.problem import Problem
 from ocpkit.problems import make
 from ocpkit.simulate import simulate
 from ocpkit.solvers.qp import LinearMPC
+from ocpkit.problems.panda import urdf_path as panda_urdf
 
 from conftest import readme_block
 
@@ -35,8 +35,8 @@ SAMPLING = ("empc", "cem", "mppi")
 
 
 def _arm():
-    """The Panda of tests/data with its fingers locked: a 7-DoF URDF arm."""
-    urdf = Path(__file__).parent / "data" / "panda" / "panda.urdf"
+    """The shipped Panda URDF with its fingers locked: a 7-DoF URDF arm."""
+    urdf = panda_urdf()
     return Problem.from_urdf(urdf, locked_joints=["panda_finger_joint1", "panda_finger_joint2"])
 
 

@@ -16,11 +16,12 @@ from ocpkit.problems import make
 from ocpkit.simulate import simulate
 from ocpkit.solvers.qp import LinearMPC
 from ocpkit.task import reach
+from ocpkit.problems.panda import urdf_path as panda_urdf
 
 pytestmark = pytest.mark.skipif(shutil.which("cc") is None or shutil.which("make") is None,
                                 reason="needs cc and make")
 
-PANDA = "tests/data/panda/panda.urdf"
+PANDA = panda_urdf()
 
 
 def _target(problem, seed):

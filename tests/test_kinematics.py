@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 from functools import lru_cache
-from pathlib import Path
 
 import casadi as ca
 import numpy as np
@@ -13,8 +12,9 @@ from ocpkit import Problem
 from ocpkit.kinematics import (Kinematics, RobotSphere, collision_spheres, sphere_centers,
                                spheres_along_links)
 from ocpkit.problems import make
+from ocpkit.problems.panda import urdf_path as panda_urdf
 
-PANDA = str(Path(__file__).parent / "data" / "panda" / "panda.urdf")
+PANDA = panda_urdf()
 TOL = 1e-9
 ROBOTS = {"panda": lambda: Problem.from_urdf(PANDA), "puma560": lambda: make("puma560"),
           "baxter": lambda: make("baxter"), "nlink3": lambda: make("nlink:3"), "nlink7": lambda: make("nlink:7")}

@@ -13,8 +13,9 @@ from ocpkit import Problem, URDFRobot
 from ocpkit.problems import make
 from ocpkit.simulate import simulate
 from ocpkit.solvers.qp import LinearMPC
+from ocpkit.problems.panda import urdf_path as panda_urdf
 
-PANDA = str(Path(__file__).parent / "data" / "panda" / "panda.urdf")
+PANDA = panda_urdf()
 FINGERS = ["panda_finger_joint1", "panda_finger_joint2"]
 TOL = 1e-9
 

@@ -1,7 +1,6 @@
 """CasADi rigid-body dynamics against pinocchio, energy conservation, the error multiplier, robot problems."""
 from __future__ import annotations
 
-from pathlib import Path
 
 import casadi as ca
 import numpy as np
@@ -12,9 +11,10 @@ from ocpkit.problems.baxter import Baxter, baxter_arm_model
 from ocpkit.problems.nlink import NLink, planar_chain
 from ocpkit.problems.puma560 import Puma560, puma560_model
 from ocpkit.rigid_body import Chain
+from ocpkit.problems.panda import urdf_path as panda_urdf
 
 TOL = 1e-9
-PANDA_URDF = str(Path(__file__).parent / "data" / "panda" / "panda.urdf")
+PANDA_URDF = panda_urdf()
 
 
 def _random_chain(n=5, seed=3):
@@ -63,7 +63,7 @@ def _random_tree(n=7, seed=4):
 
 
 def _panda():
-    """The Franka Panda from its URDF (tests/data/panda): 7 revolute joints and two prismatic fingers, the
+    """The Franka Panda from its URDF (the shipped problems/data/panda): 7 revolute joints and two prismatic fingers, the
     second one on an unaligned (−y) axis, both children of the hand: a tree."""
     return pin.buildModelFromUrdf(PANDA_URDF)
 

@@ -27,17 +27,22 @@ def tiny(monkeypatch):
     monkeypatch.setattr(get("comparison"), "SAMPLE_LINKS", 1)
     monkeypatch.setitem(get("keepout").SIZES, "quick", {"seeds": 1, "duration": 0.2, "population": 32, "arch": "cpu"})
     monkeypatch.setitem(get("baxter").SIZES, "quick", {"seeds": 1, "duration": 0.2, "population": 32, "arch": "cpu"})
+    monkeypatch.setitem(get("reach").SIZES, "quick", {"seeds": {"nlink:3": 1, "baxter": 0, "keepout": 1},
+                                                      "duration": {"nlink:3": 0.1, "baxter": 0.1, "keepout": 0.1},
+                                                      "horizon": {"nlink:3": 20, "baxter": 20, "keepout": 20},
+                                                      "population": 32, "arch": "cpu"})
 
 
 def test_reproduce_quick_on_tiny_grids(tiny, tmp_path):
     report = reproduce("quick", tmp_path, workers=1, progress=False)
     text = report.read_text()
-    for title in ("Fig. 3", "Fig. 4", "Tables I–II", "Figs. 7–10", "Figs. 11–13", "keep-out zone", "Table III"):
+    for title in ("Fig. 3", "Fig. 4", "Tables I–II", "Figs. 7–10", "Figs. 11–13", "keep-out zone", "Table III",
+                  "Reaching past spherical obstacles"):
         assert title in text
     assert "wall time" in text and "casadi" in text and "failed" not in text
     # Every study section says how many trials stand behind it and ends with its claim checks.
     sections = text.split("\n## ")[1:]
-    assert len(sections) == 7
+    assert len(sections) == 8
     for part in sections:
         title = part.splitlines()[0]
         assert "trials succeeded (" in part, title
