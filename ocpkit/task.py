@@ -37,6 +37,9 @@ from ocpkit._checks import positive
 # A stage's linearized obstacle rows enter the QP only where some pair's clearance at the plan is within this
 # many metres of the margin (a plan this far from every obstacle will not reach one within a step).
 ACTIVATION = 0.1
+# reach()'s obstacle penalty weight (per metre of violation, and its square): far above the multipliers of a clearance
+# constraint under its default position weight, so the exact penalty keeps the constraint wherever it can be met.
+REACH_OBSTACLE_WEIGHT = 1e5
 
 
 def _vector(value, name: str, size: int | None = None) -> np.ndarray:
@@ -294,7 +297,7 @@ class CompiledTask:
 
 def reach(problem, obstacles=(), *, frame: str | None = None, position_weight: float = 1e3,
           terminal_weight: float | None = None, margin: float = 0.01, link_radius: float | None = None,
-          obstacle_weight: float = 1e5, velocity_limits: bool = True, **ocp_options):
+          obstacle_weight: float = REACH_OBSTACLE_WEIGHT, velocity_limits: bool = True, **ocp_options):
     """The OCP "bring ``frame`` to a point, clear of ``obstacles``" for a robot problem with ``kinematics``.
 
     Cost: the frame-position term "position" (``position_weight`` per m² at every stage and, ``terminal_weight``,

@@ -41,7 +41,7 @@ from ocpkit.simulate import simulate
 from ocpkit.studies import keepout
 from ocpkit.studies.report import Claim, markdown_table, section, timing_context, trials_line, verdict
 from ocpkit.study import Study, grid
-from ocpkit.task import Sphere, Task, UserTerm, reach
+from ocpkit.task import REACH_OBSTACLE_WEIGHT, Sphere, Task, UserTerm, reach
 
 NAME = "reach"
 TITLE = "Reaching past spherical obstacles (every controller, one task OCP) and the keep-out ball with a fair baseline"
@@ -337,8 +337,9 @@ def _reach_section(r, out_dir, figs, tables, notes, claims):
           f"the plan each step (dynamics 'affine', linearization 'plan'), on {sample or '–'}. The seeds were not "
           f"tuned on: they are 0 … n−1, and the first scenario each seed draws that passes the checks is used.")
     notes.append("How each controller holds the obstacle (ocpkit.task): IPOPT as a hard constraint d ≥ margin at "
-                 "every predicted state; RTI and LinearMPC as linearized, softened QP rows (exact penalty); EMPC, "
-                 "CEM and MPPI as the penalty 10⁴·(h + ½h²), h = max(0, margin − min clearance), in the rollout "
+                 "every predicted state; RTI and LinearMPC as QP rows linearized about the plan, hard for DAQP "
+                 "and softened (exact penalty) only where infeasible; EMPC, CEM and MPPI as the penalty "
+                 f"{REACH_OBSTACLE_WEIGHT:g}·(h + ½h²), h = max(0, margin − min clearance), in the rollout "
                  "fitness: a penalty, not a constraint, so a sampled plan that cuts the sphere can still be the "
                  "fittest when the target pulls hard enough. Cost ratios compare the task cost (position term, "
                  "velocities, inputs) and say nothing about collisions: read them with the success column.")
