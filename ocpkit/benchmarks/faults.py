@@ -52,6 +52,7 @@ SOLVERS = {
     "mppi": ("mppi", {"population": 64, "arch": "cpu"}),
 }
 ITERATIVE = {"qp", "ipopt"}  # solvers with an iteration limit
+SAMPLING = {"empc", "cem", "mppi"}  # state bounds as a penalty in the fitness: no hard bounds
 
 
 def _controller(label, ocp, **extra):
@@ -114,6 +115,8 @@ def run_case(case: str, label: str) -> Outcome | None:
     factory, x0, lift = _runtime_cases()[case]
     if lift == "max_iter" and SOLVERS[label][0] not in ITERATIVE:
         return None
+    if lift == "good start" and SOLVERS[label][0] in SAMPLING:
+        return None  # they hold state bounds as an exact penalty only (soft): this start is no fault for them
     try:
         ctrl = factory(label)
     except (ValueError, TypeError) as exc:
