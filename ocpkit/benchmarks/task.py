@@ -15,18 +15,26 @@ import numpy as np
 
 
 def _scene(problem, seed: int):
-    """Start, target point (the end effector at the sampled goal) and a ball on the straight path between them."""
-    from ocpkit.task import Sphere
+    """Start, target point (the end effector at a sampled goal) and a ball half-way on the straight path between
+    them, of radius 0.15 × their distance (at most 0.08 m), clear of the robot at the start and at the goal (else the
+    next sample: seed·1000 + 1, + 2, …)."""
+    from ocpkit.kinematics import spheres_along_links
+    from ocpkit.task import Sphere, Task
 
-    x0, goal = problem.sample(seed)
     fk = problem.kinematics.function(problem.end_effector)
     n = problem.kinematics.n
-    start, target = (np.asarray(fk(v[:n])[0], dtype=float).ravel() for v in (x0, goal))
-    radius = max(0.02, 0.15 * float(np.linalg.norm(target - start)))
-    return x0, goal, target, Sphere(tuple(0.5 * (start + target)), radius)
+    robot = spheres_along_links(problem.kinematics, problem.link_radius)
+    for draw in range(1000):
+        x0, goal = problem.sample(seed * 1000 + draw)
+        start, target = (np.asarray(fk(v[:n])[0], dtype=float).ravel() for v in (x0, goal))
+        ball = Sphere(tuple(0.5 * (start + target)), min(0.08, max(0.02, 0.15 * float(np.linalg.norm(target - start)))))
+        clearance = Task(obstacles=[ball], kinematics=problem.kinematics, robot=robot).compile(len(x0), 1).clearance
+        if min(float(np.min(clearance(v)[0])) for v in (x0, goal)) > 0.02:
+            return x0, goal, target, ball
+    raise ValueError(f"no clear scene for {problem!r} from seed {seed}")
 
 
-def bench_task(problems=("panda", "nlink:7"), *, steps: int = 200, seeds: int = 2, knots: int = 5,
+def bench_task(problems=("panda", "nlink:3"), *, steps: int = 200, seeds: int = 2, knots: int = 5,
                out=print) -> list[dict]:
     """Per robot and variant: step-time median and p95 (ms), ratio to the joint-space default, successes."""
     from ocpkit import problems as registry
