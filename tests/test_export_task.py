@@ -98,6 +98,7 @@ def test_a_task_with_obstacles_is_refused(tmp_path):
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.slow  # 10-30 s: the 7-DoF build; nlink:3 covers the same path in the default run
 def test_reach_c_step_equals_python_step_panda(tmp_path):
     arm = Problem.from_urdf(PANDA, locked_joints=["panda_finger_joint1", "panda_finger_joint2"])
     ocp = reach(arm, knots=5, compiled=False)

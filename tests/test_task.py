@@ -114,7 +114,8 @@ def test_iterated_rti_reaches_ipopts_optimum_with_an_active_obstacle(nlink3):
 
 
 @pytest.mark.parametrize("solver, options", [("qp", {}), ("qp", {"linearization": "trajectory"}),
-                                             ("ipopt", {"method": "rti"}), ("ipopt", {}),
+                                             ("ipopt", {"method": "rti"}),
+                                             pytest.param("ipopt", {}, marks=pytest.mark.slow),  # 1.5 s of IPOPT
                                              ("empc", {"population": 128, "arch": "cpu", "dynamics": "nonlinear"})])
 def test_reach_around_an_obstacle_in_closed_loop(nlink3, solver, options):
     """Every kind of controller brings the tip to the target without the true clearance going negative."""
