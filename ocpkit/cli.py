@@ -415,22 +415,39 @@ def _reach_ocp(problem, args, task: _Reach, **options):
                  parameterization=args.parameterization, **task.options, **options)
 
 
+def _reach_panels(problem, ocp, task: _Reach, xs) -> dict:
+    """The figure's task panel: the frame's distance to the target and (with obstacles) the smallest clearance, at
+    every state of ``xs``."""
+    positions, clearance = _reach_series(problem, ocp, task, xs)
+    panels = {f"{task.frame} to target": np.linalg.norm(positions - task.target, axis=1)}
+    if clearance is not None:
+        panels["min clearance"] = clearance
+    return panels
+
+
+def _reach_series(problem, ocp, task: _Reach, xs):
+    """The frame's positions (N, 3) along the states ``xs`` (N, nx) and the smallest clearance at each (None without
+    obstacles): distance from a robot sphere's surface to an obstacle's."""
+    xs = np.atleast_2d(np.asarray(xs, dtype=float))
+    kin = problem.kinematics
+    positions = np.asarray(kin.function(task.frame).map(len(xs))(xs[:, :kin.n].T)[0]).T
+    if not task.obstacles:
+        return positions, None
+    d = np.asarray(ocp.task_functions.clearance.map(len(xs))(xs.T)[0]) + ocp.task.margin  # (pairs, N)
+    return positions, d.min(axis=0)
+
+
 def _reach_report(problem, ocp, task: _Reach, xs, dt: float | None = None) -> dict:
     """How the states ``xs`` (N, nx) did on the task: the frame's distance to the target at the last state, and the
     smallest clearance — distance from a robot sphere's surface to an obstacle's — over all states (negative: they
     overlap, a collision)."""
-    xs = np.atleast_2d(np.asarray(xs, dtype=float))
-    kin = problem.kinematics
-    fk = kin.function(task.frame).map(len(xs))
-    positions = np.asarray(fk(xs[:, :kin.n].T)[0]).T  # (N, 3)
+    positions, closest = _reach_series(problem, ocp, task, xs)
     report = {"frame": task.frame, "target": task.target.tolist(), "final_position": positions[-1].tolist(),
               "final_distance": float(np.linalg.norm(positions[-1] - task.target)),
               "obstacles": [[*map(float, o.center), float(o.radius)] for o in task.obstacles],
               "margin": ocp.task.margin,
-              "min_clearance": None, "collisions": 0, "first_collision": None, "states": len(xs)}
-    if task.obstacles:
-        d = np.asarray(ocp.task_functions.clearance.map(len(xs))(xs.T)[0]) + ocp.task.margin  # (pairs, N)
-        closest = d.min(axis=0)
+              "min_clearance": None, "collisions": 0, "first_collision": None, "states": len(positions)}
+    if closest is not None:
         hit = np.flatnonzero(closest < 0)
         report.update(min_clearance=float(closest.min()), collisions=int(hit.size),
                       first_collision=None if not hit.size else int(hit[0]) if dt is None else float(hit[0] * dt))
@@ -537,7 +554,8 @@ def _simulate(args):
         goal[:problem.kinematics.n] = np.nan
         shown = dataclasses.replace(traj, goal=goal)
         title += f", {task.frame} to {_fmt(task.target)}"
-    fig = plots.closed_loop({repr(ctrl): shown}, args.out, title=title, **_labels(problem))
+    panels = None if task is None else _reach_panels(problem, ocp, task, traj.x)
+    fig = plots.closed_loop({repr(ctrl): shown}, args.out, title=title, task=panels, **_labels(problem))
     summary = {"problem": args.problem, "solver": args.solver, "controller": repr(ctrl), "actual_cost": cost,
                "fallbacks": traj.fallbacks, "steps": len(traj.solutions), "total_time": _time_summary(traj),
                "figure": str(fig)}

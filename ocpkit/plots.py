@@ -42,17 +42,20 @@ def log_axis(ax, axis: str = "y") -> None:
     which.set_minor_formatter(ticker.NullFormatter())
 
 
-def closed_loop(trajectories: dict, path, *, title: str = "", state_names=None, input_names=None) -> Path:
+def closed_loop(trajectories: dict, path, *, title: str = "", state_names=None, input_names=None,
+                task: dict | None = None) -> Path:
     """Joint positions against their goals and applied inputs, one line per labelled trajectory.
 
     Up to three joints get a panel each (position, then input); more joints share one position panel and one
-    input panel, a colour per joint and a line style per trajectory.
+    input panel, a colour per joint and a line style per trajectory. ``task`` (a reach task) adds a first panel:
+    label -> values at every recorded state of the first trajectory (the end effector's distance to its target,
+    the smallest clearance to the obstacles, on a line at zero).
     """
     first = next(iter(trajectories.values()))
     n_q = first.x.shape[1] // 2
     m = first.u.shape[1]
-    if n_q > 3:
-        return _closed_loop_compact(trajectories, path, title, n_q, m)
+    if n_q > 3 or task:
+        return _closed_loop_compact(trajectories, path, title, n_q, m, task)
     fig, axes = plt.subplots(n_q + m, 1, figsize=(8, 2.2 * (n_q + m)), sharex=True, squeeze=False)
     axes = axes[:, 0]
     for label, traj in trajectories.items():
@@ -72,10 +75,18 @@ def closed_loop(trajectories: dict, path, *, title: str = "", state_names=None, 
     return save(fig, path)
 
 
-def _closed_loop_compact(trajectories, path, title, n_q, m) -> Path:
-    fig, (ax_q, ax_u) = plt.subplots(2, 1, figsize=(9, 7), sharex=True)
+def _closed_loop_compact(trajectories, path, title, n_q, m, task=None) -> Path:
+    rows = 3 if task else 2
+    fig, axes = plt.subplots(rows, 1, figsize=(9, 3.2 * rows), sharex=True)
+    ax_q, ax_u = axes[-2:]
     styles = ["-", "--", ":", "-."]
     first = next(iter(trajectories.values()))
+    if task:
+        for k, (label, values) in enumerate(task.items()):
+            axes[0].plot(first.t, values, color=f"C{k}", label=label)
+        axes[0].axhline(0.0, color="k", lw=0.6)
+        axes[0].set_ylabel("task [m]")
+        axes[0].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     for k, (label, traj) in enumerate(trajectories.items()):
         ls = styles[k % len(styles)]
         for i in range(n_q):
@@ -86,13 +97,16 @@ def _closed_loop_compact(trajectories, path, title, n_q, m) -> Path:
         ax_u.plot([], [], color="k", ls=ls, label=label)
     for i in range(n_q):
         ax_q.axhline(first.goal[i], color=f"C{i % 10}", ls=(0, (1, 3)), lw=0.8)
-    ax_q.set_ylabel("joint positions (dotted: goals)")
+    ax_q.set_ylabel("joint positions" + ("" if np.isnan(first.goal[:n_q]).all() else " (dotted: goals)"))
     ax_u.set_ylabel("inputs")
     ax_u.set_xlabel("time [s]")
-    ax_q.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
-    ax_u.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    ax_q.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), ncol=1 + n_q // 8)
+    if len(trajectories) > 1:
+        ax_u.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    else:  # one controller: named under the title, where its long label does not squeeze the panels
+        title = f"{title}\n{next(iter(trajectories))}" if title else next(iter(trajectories))
     if title:
-        ax_q.set_title(title)
+        axes[0].set_title(title, fontsize=9)
     return save(fig, path)
 
 
