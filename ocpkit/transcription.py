@@ -586,8 +586,8 @@ class _TaskRows:
     the QP's objective is ½J). An obstacle clearance d_k − margin ≥ 0 at x_k becomes the row
     d_k + D_k S_k (z − z̄) ≥ 0 for every pair within ``ACTIVATION`` of its margin at the plan: a hard row, or with
     ``soft`` the row d_k + D_k S_k (z − z̄) + s_k ≥ 0 with one slack s_k ≥ 0 per such stage costing
-    obstacle_weight·(s_k + ½s_k²) in J (an exact penalty, like the sampling planners' fitness). The compiled
-    functions are made once per OCP and shared by its QPs (hard and soft, the sampling planners' preconditioner)."""
+    obstacle_weight·(s_k + ½s_k²) in J (an exact penalty, like the sampling planners' fitness). The functions are
+    the OCP's :meth:`~ocpkit.ocp.OCP.task_maps`."""
 
     def __init__(self, ocp: OCP, obstacles: bool, soft: bool = True):
         from ocpkit.task import ACTIVATION
@@ -595,36 +595,15 @@ class _TaskRows:
         tf = ocp.task_functions
         self.T, self.n, self.m, self.p = ocp.horizon, ocp.nx, ocp.nu, ocp.knots
         self.phi = ocp.parameterization.basis
-        shared = ocp.__dict__.setdefault("_task_rows_functions", {})
-        if not shared:
-            shared["stage"] = self._fast(tf.stage_residual.map(self.T), ocp.compiled) if tf.stage_weight.size else None
-            shared["terminal"] = self._fast(tf.terminal_residual, ocp.compiled) if tf.terminal_weight.size else None
-            shared["clearance"] = self._fast(tf.clearance.map(self.T), ocp.compiled) if tf.pairs else None
-        self._shared = shared
-        self.stage, self.terminal = shared["stage"], shared["terminal"]
+        self._maps = ocp.task_maps()
+        self.stage, self.terminal = self._maps["stage"], self._maps["terminal"]
         self.ws, self.wt = tf.stage_weight, tf.terminal_weight
-        self.clearance = shared["clearance"] if obstacles else None
+        self.clearance = self._maps["clearance"] if obstacles else None
         self.pairs, self.weight, self.activation, self.soft = tf.pairs, ocp.task.obstacle_weight, ACTIVATION, soft
-
-    @staticmethod
-    def _fast(fn, compiled):
-        """``fn`` on numpy buffers, as compiled C with the OCP's ``compiled`` policy (as its affine model: True now,
-        None in the background while the VM answers, False never): the task's forward kinematics and their
-        Jacobians over the horizon took 8 ms a step on CasADi's VM for a 7-DoF arm with 23 spheres."""
-        from ocpkit.compiled import SwitchingFunction, compile_function, compile_in_background
-        from ocpkit.numeric import BufferedFunction
-
-        if compiled:
-            fn = compile_function(fn)
-        elif compiled is None:
-            future = compile_in_background(fn)
-            if future is not None:
-                fn = SwitchingFunction(fn, future)
-        return BufferedFunction(fn)
 
     def wait(self, timeout: float | None = None) -> None:
         """Block until the background compiles of the task's functions have finished (tests, benchmarks)."""
-        for fn in self._shared.values():
+        for fn in self._maps.values():
             if fn is not None and isinstance(fn.fn, SwitchingFunction):
                 fn.fn.wait(timeout)
 
