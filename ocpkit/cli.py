@@ -428,13 +428,14 @@ def _reach_panels(problem, ocp, task: _Reach, xs) -> dict:
 def _reach_series(problem, ocp, task: _Reach, xs):
     """The frame's positions (N, 3) along the states ``xs`` (N, nx) and the smallest clearance at each (None without
     obstacles): distance from a robot sphere's surface to an obstacle's."""
+    from ocpkit.task import clearances
+
     xs = np.atleast_2d(np.asarray(xs, dtype=float))
     kin = problem.kinematics
-    positions = np.asarray(kin.function(task.frame).map(len(xs))(xs[:, :kin.n].T)[0]).T
+    positions = kin.positions(task.frame, xs[:, :kin.n])
     if not task.obstacles:
         return positions, None
-    d = np.asarray(ocp.task_functions.clearance.map(len(xs))(xs.T)[0]) + ocp.task.margin  # (pairs, N)
-    return positions, d.min(axis=0)
+    return positions, clearances(ocp.task.kinematics, ocp.task.robot, ocp.task.obstacles, xs[:, :kin.n])
 
 
 def _reach_report(problem, ocp, task: _Reach, xs, dt: float | None = None) -> dict:

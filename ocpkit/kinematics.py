@@ -114,6 +114,11 @@ class Kinematics:
             self._functions[frame] = ca.Function(name, [q], [p, R], ["q"], ["p", "R"])
         return self._functions[frame]
 
+    def positions(self, frame: str, q_rows) -> np.ndarray:
+        """The frame's world positions (N, 3) at the configurations ``q_rows`` (N, n), one mapped call."""
+        q_rows = np.atleast_2d(np.asarray(q_rows, dtype=float))
+        return np.asarray(self.function(frame).map(len(q_rows))(q_rows.T)[0]).T
+
     def _world(self, q, frames):
         """[(R, p)] of ``frames`` at the SX column q, sharing the joints' transforms between frames."""
         chain, memo = self.chain, {}

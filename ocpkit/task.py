@@ -278,7 +278,6 @@ class CompiledTask:
         else:
             pen = ca.SX(0)
         self.penalty = ca.Function("obstacle_penalty", [x], [pen], ["x"], ["penalty"])
-        self.has_cost = bool(stage or terminal)
 
     def _clearances(self, x):
         """d − margin for every (robot sphere, obstacle) pair, robot spheres outer."""
@@ -293,6 +292,22 @@ class CompiledTask:
                 diff = centers[:, i] - ca.DM(o.center)
                 out.append(ca.sqrt(ca.dot(diff, diff)) - (s.radius + o.radius + task.margin))
         return ca.vertcat(*out)
+
+
+def clearances(kinematics, robot, obstacles, q_rows) -> np.ndarray:
+    """The true clearance (m, no margin) at each configuration (rows of ``q_rows``, (N, n)): the smallest distance
+    between the surfaces of a robot sphere (:class:`ocpkit.kinematics.RobotSphere`) and an obstacle; negative: they
+    overlap, a collision."""
+    from ocpkit.kinematics import sphere_centers
+
+    q_rows = np.atleast_2d(np.asarray(q_rows, dtype=float))
+    radii = np.array([s.radius for s in robot])
+    C = np.asarray(sphere_centers(kinematics, robot).map(len(q_rows))(q_rows.T)).reshape(3, len(q_rows), len(robot))
+    out = np.full(len(q_rows), np.inf)
+    for o in obstacles:
+        d = np.linalg.norm(C - np.asarray(o.center)[:, None, None], axis=0) - radii[None, :] - o.radius
+        out = np.minimum(out, d.min(axis=1))
+    return out
 
 
 def reach(problem, obstacles=(), *, frame: str | None = None, position_weight: float = 1e3,

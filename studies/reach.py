@@ -34,7 +34,7 @@ import pandas as pd
 from ocpkit import plots, problems, solvers
 from ocpkit._checks import choice
 from ocpkit.kernels.runtime import current_arch
-from ocpkit.kinematics import sphere_centers, spheres_along_links
+from ocpkit.kinematics import spheres_along_links
 from ocpkit.metrics import actual_cost
 from ocpkit.plots import number
 from ocpkit.simulate import simulate
@@ -42,6 +42,7 @@ from ocpkit.studies import keepout
 from ocpkit.studies.report import Claim, markdown_table, section, timing_context, trials_line, verdict
 from ocpkit.study import Study, grid
 from ocpkit.task import REACH_OBSTACLE_WEIGHT, Sphere, Task, UserTerm, reach
+from ocpkit.task import clearances as task_clearances
 
 NAME = "reach"
 TITLE = "Reaching past spherical obstacles (every controller, one task OCP) and the keep-out ball with a fair baseline"
@@ -74,30 +75,10 @@ SIZES = {"quick": {"seeds": {"nlink:3": 4, "baxter": 1, KEEPOUT: 2}, "duration":
 
 # --- scenarios ------------------------------------------------------------------------------------------------
 
-def robot_spheres(pb):
-    """The robot's spheres (as :func:`ocpkit.task.reach` places them) and q -> their world centres (3 × k)."""
-    spheres = spheres_along_links(pb.kinematics, pb.link_radius)
-    return spheres, sphere_centers(pb.kinematics, spheres)
-
-
 def clearances(pb, obstacles, q_rows) -> np.ndarray:
-    """True clearance d (m, no margin) per configuration (rows of ``q_rows``): min over sphere/obstacle pairs."""
-    spheres, centres = robot_spheres(pb)
-    radii = np.array([s.radius for s in spheres])
-    q_rows = np.atleast_2d(q_rows)
-    C = np.asarray(centres.map(len(q_rows))(q_rows.T)).reshape(3, len(q_rows), len(spheres))
-    out = np.full(len(q_rows), np.inf)
-    for o in obstacles:
-        d = np.linalg.norm(C - np.asarray(o.center)[:, None, None], axis=0) - radii[None, :] - o.radius
-        out = np.minimum(out, d.min(axis=1))
-    return out
-
-
-def ee_positions(pb, q_rows) -> np.ndarray:
-    """End-effector world positions (rows) of the configurations ``q_rows``."""
-    fk = pb.kinematics.function(pb.end_effector)
-    q_rows = np.atleast_2d(q_rows)
-    return np.asarray(fk.map(len(q_rows))(q_rows.T)[0]).T
+    """True clearance d (m, no margin) per configuration (rows of ``q_rows``) of the robot's spheres as
+    :func:`ocpkit.task.reach` places them: min over sphere/obstacle pairs."""
+    return task_clearances(pb.kinematics, spheres_along_links(pb.kinematics, pb.link_radius), obstacles, q_rows)
 
 
 def scenario(robot: str, seed: int) -> dict:
@@ -107,7 +88,7 @@ def scenario(robot: str, seed: int) -> dict:
     n, radius = pb.kinematics.n, OBSTACLE_RADIUS[robot]
     for attempt in range(ATTEMPTS):
         x0, xg = pb.sample(seed + 1_000_003 * attempt)
-        p0, pg = ee_positions(pb, np.vstack([x0[:n], xg[:n]]))
+        p0, pg = pb.kinematics.positions(pb.end_effector, np.vstack([x0[:n], xg[:n]]))
         length = np.linalg.norm(pg - p0)
         if length < MIN_DISTANCE:
             continue
@@ -160,7 +141,7 @@ def reach_trial(robot: str, controller: str, horizon: int, duration: float, popu
     ctrl.solve(s["x0"], goal)  # compiles kernels and functions outside the timed run; simulate() resets ctrl
     traj = simulate(pb.plant(), ctrl, s["x0"], goal, duration)
     d = clearances(pb, s["obstacles"], traj.x[:, :n])
-    ee = ee_positions(pb, traj.x[:, :n])
+    ee = pb.kinematics.positions(pb.end_effector, traj.x[:, :n])
     distance = float(np.linalg.norm(ee[-1] - s["target"]))
     collisions = int((d < 0).sum())
     return {"success": bool(distance <= TOLERANCE and collisions == 0), "reached": bool(distance <= TOLERANCE),

@@ -45,7 +45,7 @@ def test_scenarios_block_the_straight_path(robot):
         s = reach.scenario(robot, seed)
         again = reach.scenario(robot, seed)
         assert np.array_equal(s["x0"], again["x0"]) and s["obstacles"] == again["obstacles"]  # deterministic
-        p0, pg = reach.ee_positions(pb, np.vstack([s["x0"][:n], s["q_target"]]))
+        p0, pg = pb.kinematics.positions(pb.end_effector, np.vstack([s["x0"][:n], s["q_target"]]))
         assert np.allclose(pg, s["target"]) and np.linalg.norm(pg - p0) >= reach.MIN_DISTANCE
         assert reach.clearances(pb, s["obstacles"], np.vstack([s["x0"][:n], s["q_target"]])).min() >= reach.MARGIN
         (o,) = s["obstacles"]

@@ -16,20 +16,19 @@ import numpy as np
 
 def _scene(problem, seed: int):
     """Start, target point (the end effector at a sampled goal) and a ball half-way on the straight path between
-    them, of radius 0.15 × their distance (at most 0.08 m), clear of the robot at the start and at the goal (else the
-    next sample: seed·1000 + 1, + 2, …)."""
+    them, of radius 0.15 × their distance (at most 0.08 m), at least 3 cm clear of the robot's link spheres at the start
+    and at the goal (else the next sample: seed·1000 + 1, + 2, …)."""
     from ocpkit.kinematics import spheres_along_links
-    from ocpkit.task import Sphere, Task
+    from ocpkit.task import Sphere, clearances
 
-    fk = problem.kinematics.function(problem.end_effector)
-    n = problem.kinematics.n
-    robot = spheres_along_links(problem.kinematics, problem.link_radius)
+    kin = problem.kinematics
+    robot = spheres_along_links(kin, problem.link_radius)
     for draw in range(1000):
         x0, goal = problem.sample(seed * 1000 + draw)
-        start, target = (np.asarray(fk(v[:n])[0], dtype=float).ravel() for v in (x0, goal))
+        ends = np.vstack([x0[:kin.n], goal[:kin.n]])
+        start, target = kin.positions(problem.end_effector, ends)
         ball = Sphere(tuple(0.5 * (start + target)), min(0.08, max(0.02, 0.15 * float(np.linalg.norm(target - start)))))
-        clearance = Task(obstacles=[ball], kinematics=problem.kinematics, robot=robot).compile(len(x0), 1).clearance
-        if min(float(np.min(clearance(v)[0])) for v in (x0, goal)) > 0.02:
+        if clearances(kin, robot, [ball], ends).min() > 0.03:
             return x0, goal, target, ball
     raise ValueError(f"no clear scene for {problem!r} from seed {seed}")
 
@@ -46,8 +45,7 @@ def bench_task(problems=("panda", "nlink:3"), *, steps: int = 200, seeds: int = 
         f"{'worst final dist [m]':>20}")
     for spec in problems:
         problem = registry.make(spec)
-        fk = problem.kinematics.function(problem.end_effector)
-        n = problem.kinematics.n
+        kin = problem.kinematics
         times: dict = {}
         stats: dict = {}
         for seed in range(seeds):
@@ -74,8 +72,8 @@ def bench_task(problems=("panda", "nlink:3"), *, steps: int = 200, seeds: int = 
                     s["steps"] += 1
             for name in variants:
                 if name.startswith("reach"):
-                    stats[name]["dist"].append(float(np.linalg.norm(np.asarray(fk(states[name][:n])[0]).ravel()
-                                                                    - target)))
+                    end = kin.positions(problem.end_effector, states[name][:kin.n])[0]
+                    stats[name]["dist"].append(float(np.linalg.norm(end - target)))
         base = float(np.median(times["joint space (default)"]))
         for name, t in times.items():
             s, med = stats[name], float(np.median(t))
