@@ -51,7 +51,6 @@ computed in C: stationarity, primal feasibility, complementarity and dual sign o
 """
 from __future__ import annotations
 
-import copy
 import ctypes
 import os
 import shutil
@@ -246,7 +245,7 @@ def export(ocp: OCP, out_dir, *, form: str = "condensed", qp: str = "daqp", name
     out.mkdir(parents=True, exist_ok=True)
 
     # The joint-space condensing's data; the task's terms are generated below (its Python rows not needed).
-    tr = CondensedQP(_without_task(ocp) if tf is not None else ocp)
+    tr = CondensedQP(ocp, task=False)
     na = tr.x_rows.size
     lin, model, jac = _model_functions(ocp, name)
     solver = _conic(qp, name, tr.nz, na, eps, max_iter, polish)
@@ -354,14 +353,6 @@ def _model_functions(ocp: OCP, name: str):
         xm = xm + h / 6 * (q1 + 2 * q2 + 2 * q3 + q4)
     step = ca.Function(f"{name}_model", [X, U], [xm], ["x", "u"], ["x_next"])
     return fj, step, (jac.sparsity_out(1).get_triplet(), jac.sparsity_out(2).get_triplet())
-
-
-def _without_task(ocp: OCP) -> OCP:
-    """``ocp`` seen without its task (a shallow copy): the joint-space condensing the C step builds first. (A
-    CondensedQP of the OCP itself would set up the task's Python rows, and compile them, for nothing.)"""
-    bare = copy.copy(ocp)
-    bare.task_functions = None
-    return bare
 
 
 def _task_functions(tf, name: str) -> list:
