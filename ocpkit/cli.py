@@ -21,7 +21,7 @@ from ocpkit.controller import LINEARIZATIONS, TRAJECTORY, Controller
 
 
 _SPEC_HELP = ("problem spec: a registered name (pendulum, pendulum:linear, nlink:N with N = 1…13, puma560, baxter, "
-              "urdf:FILE), package.module:Name or path/to/file.py:Name (a Problem subclass, instance or factory; "
+              "panda, urdf:FILE), package.module:Name or path/to/file.py:Name (a Problem subclass, instance or factory; "
               "':arg' passes through)")
 # Knot points p of solve, simulate and export unless --knots or --parameterization identity says otherwise: the
 # README's examples and the C step's size (traditional MPC, p = T, makes EMPC compile for minutes).
@@ -400,7 +400,7 @@ def _reach_ocp(problem, args, task: _Reach, **options):
     kinematics = getattr(problem, "kinematics", None)
     if kinematics is None:
         raise ValueError(f"{task.source['target']}: {args.problem} has no kinematics (no frames to bring to a "
-                         f"point); a reach task needs a robot problem: nlink:N, puma560, baxter, urdf:FILE")
+                         f"point); a reach task needs a robot problem: nlink:N, puma560, baxter, panda, urdf:FILE")
     if task.frame is None:
         task.frame = getattr(problem, "end_effector", None)
         if task.frame is None:

@@ -317,8 +317,8 @@ def reach(problem, obstacles=(), *, frame: str | None = None, position_weight: f
 
     Cost: the frame-position term "position" (``position_weight`` per m² at every stage and, ``terminal_weight``,
     by default the same, at x_T: ten times as much made the light-wristed Panda's condensed QP ill-conditioned
-    beyond what a QP solver can answer), the problem's velocity weights as the "state" term (its joint-angle weights set to
-    zero: the posture is free) and its input term. Obstacles (:class:`Sphere` s, or "x,y,z,r" strings) are kept
+    beyond what a QP solver can answer), the problem's velocity weights as the "state" term (its joint-angle
+    weights set to zero: the posture is free) and its input term. Obstacles (:class:`Sphere` s, or "x,y,z,r" strings) are kept
     ``margin`` away from spheres of ``link_radius`` (default the problem's) along the robot's links. Other
     keywords go to ``problem.ocp`` (``knots``, ``horizon``, ...). The goal is ``ocp.goal(x_ref, position=p)``.
 
@@ -332,7 +332,7 @@ def reach(problem, obstacles=(), *, frame: str | None = None, position_weight: f
     kinematics = getattr(problem, "kinematics", None)
     if kinematics is None:
         raise ValueError(f"{problem!r} has no kinematics: a reach task needs a robot problem with frames "
-                         "(nlink, puma560, baxter, a URDF)")
+                         "(nlink, puma560, baxter, panda, a URDF)")
     frame = frame or problem.end_effector
     obstacles = [o if isinstance(o, Sphere) else Sphere.parse(o) for o in obstacles]
     radius = problem.link_radius if link_radius is None else positive(link_radius, "link_radius")

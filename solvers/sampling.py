@@ -137,8 +137,8 @@ class SamplingMPC(Controller):
             raise ValueError(f"{type(self).__name__} samples within the input bounds, which must be "
                              f"finite; got u_min={ocp.u_min.tolist()}, u_max={ocp.u_max.tolist()}")
         if (stage_cost is not None or terminal_cost is not None) and (ocp.has_state_bounds or ocp.task_functions):
-            raise ValueError(f"{type(self).__name__}: stage_cost/terminal_cost replace the whole fitness, which carries "
-                             "the OCP's state bounds and task as penalties: build yours on "
+            raise ValueError(f"{type(self).__name__}: stage_cost/terminal_cost replace the whole fitness, which "
+                             "carries the OCP's state bounds and task as penalties: build yours on "
                              "ocpkit.kernels.rollout.fitness(ocp), or leave them out of the OCP")
         self.key = seed_key(seed)
         self.engine = Rollout(ocp, self.population, num_picked=num_picked, dynamics=dynamics,

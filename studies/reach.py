@@ -331,7 +331,8 @@ def _reach_section(r, out_dir, figs, tables, notes, claims):
     collided = int((missed["collision_steps"] > 0).sum())
     near_runs = ", ".join(f"{a} {b} seed {c}" for a, b, c in near[["scenario", "controller", "seed"]].values)
     notes.append(f"Misses, from the data: {len(missed)} of {len(r)} runs missed; {collided} collided; {len(near)} "
-                 f"ended within 2 cm (slow, not blocked: {near_runs or '–'}); {len(pressed)} ended ≥ 2 cm short after touching the margin (min clearance < 1.5× the "
+                 f"ended within 2 cm (slow, not blocked: {near_runs or '–'}); {len(pressed)} ended ≥ 2 cm short "
+                 "after touching the margin (min clearance < 1.5× the "
                  "margin): held in front of the sphere, a local minimum of the position cost under the obstacle "
                  "constraint, not an unsuccessful solve (fallback steps: "
                  f"{int(missed['fallbacks'].sum())}). LinearMPC's default linearization takes one model for the "

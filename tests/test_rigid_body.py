@@ -63,7 +63,7 @@ def _random_tree(n=7, seed=4):
 
 
 def _panda():
-    """The Franka Panda from its URDF (the shipped problems/data/panda): 7 revolute joints and two prismatic fingers, the
+    """The Franka Panda from its shipped URDF: 7 revolute joints and two prismatic fingers, the
     second one on an unaligned (−y) axis, both children of the hand: a tree."""
     return pin.buildModelFromUrdf(PANDA_URDF)
 

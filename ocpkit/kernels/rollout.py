@@ -207,7 +207,8 @@ class Rollout:
 
     def load(self, x0: np.ndarray, goal: np.ndarray, affine=None) -> None:
         """Copy the initial state x_0, the goal (ng entries: the goal state, then a task's targets) and, with
-        affine dynamics, this control step's model ``affine`` = (A_d, B_d, w_d) for x⁺ = A_d x + B_d u + w_d to the device."""
+        affine dynamics, this control step's model ``affine`` = (A_d, B_d, w_d) for x⁺ = A_d x + B_d u + w_d to the
+        device."""
         n, m = self.nx, self.nu
         if (affine is None) != (self.dynamics != "affine"):
             raise ValueError("affine (A_d, B_d, w_d) is required with dynamics='affine' and "
