@@ -75,7 +75,7 @@ from ocpkit.transcription import ROUNDING_MARGIN, CondensedQP
 
 FORMS = ("condensed", "sparse")
 QP_SOLVERS = ("qrqp", "daqp", "osqp", "hpipm")
-LINEARIZATIONS = ("goal", "plan")
+LINEARIZATIONS = ("goal", "plan", "trajectory")
 # (form, qp) pairs whose CasADi code generation is wired here; others get a ValueError saying why.
 SUPPORTED = {("condensed", "qrqp"), ("condensed", "daqp"), ("condensed", "osqp")}
 _UNSUPPORTED_WHY = {
@@ -97,6 +97,8 @@ _SOLVER_NOTE = {
     "osqp": "OSQP is set up (allocating) once in `init` and warm-started; `step` does not allocate.",
 }
 _UBAR = {"goal": "the input goal u_g = u_goal + K goal (+ the problem's goal input h(goal))",
+         "trajectory": "per stage k, the previous plan shifted one step (its inputs and predicted states; a "
+                       "rollout of the model at a cold start): real-time iteration",
          "plan": "the input the previous plan expects now (the input goal at a cold start)"}
 _CASADI_DIR = Path(ca.__file__).resolve().parent
 _LIBS = {"qrqp": "", "daqp": "$(CASADI_DIR)/libdaqpstat.a", "osqp": "$(CASADI_DIR)/libosqpstatic.a"}
@@ -199,14 +201,17 @@ def _write(path: Path, text: str) -> None:
 
 def export(ocp: OCP, out_dir, *, form: str = "condensed", qp: str = "daqp", name: str = "mpc",
            eps: float = 1e-9, max_iter: int = 1000, linearization: str = "goal", x0=None, goal=None,
-           steps: int = 100, force: bool = False, polish: bool = False) -> Export:
+           steps: int = 100, force: bool = False, polish: bool = False, iterations: int = 1,
+           tol: float = 0.0) -> Export:
     """Write C sources, header, Makefile, example ``main.c`` and README for the MPC step of ``ocp``.
 
     ``out_dir`` must be absent or empty unless ``force`` (then the exported files in it are replaced: each is
     written as a new file renamed into place); it must not be a symbolic link nor hold one.
     ``eps`` is the QP solver's tolerance, ``max_iter`` its iteration limit, ``polish`` OSQP's solution
     polishing; ``linearization`` "goal" linearizes about (x, u_g), "plan" about (x, ū) as LinearMPC's option
-    of that name; ``x0``, ``goal`` (with a task the goal vector [x_goal; targets] of ``ocp.goal``) and ``steps``
+    of that name, "trajectory" stage by stage along the shifted plan: the real-time iteration of
+    :class:`~ocpkit.solvers.nlp.RealTimeIteration`, ``iterations`` Gauss–Newton steps per control step, fewer
+    where one moves the plan (knots and predicted states, max norm) by at most ``tol``; ``x0``, ``goal`` (with a task the goal vector [x_goal; targets] of ``ocp.goal``) and ``steps``
     set the closed loop the example runs against the generated discrete model (where given, the dynamics must be
     finite there: else a DynamicsError names them, before any file is written). A task's cost terms are
     exported; a task with obstacles is refused (ValueError)."""
@@ -219,7 +224,16 @@ def export(ocp: OCP, out_dir, *, form: str = "condensed", qp: str = "daqp", name
         raise ValueError(f"qp={qp!r} with form={form!r} cannot be exported: {why}; "
                          f"supported: {sorted(SUPPORTED)}")
     choice(linearization, LINEARIZATIONS, "linearization")
+    iterations = integer(iterations, "iterations", 1)
+    if not (isinstance(tol, (int, float)) and np.isfinite(tol) and tol >= 0):
+        raise ValueError(f"tol must be a finite number >= 0, got {tol!r}")
+    if linearization != "trajectory" and (iterations != 1 or tol != 0):
+        raise ValueError(f"iterations and tol are options of linearization 'trajectory', not {linearization!r}")
     tf = ocp.task_functions
+    if tf is not None and linearization == "trajectory":
+        raise ValueError(f"an OCP with a task (terms {ocp.terms[2:]}) cannot be exported with linearization "
+                         "'trajectory': the C step's task terms are linearized about the goal's model; use "
+                         "linearization 'goal' or 'plan', or the Python step")
     if tf is not None and tf.pairs:
         raise ValueError(f"an OCP with obstacles (task terms {ocp.terms[2:]}, {tf.pairs} robot-sphere/obstacle "
                          "pairs) cannot be exported: the C step has the task's cost terms but not its linearized "
@@ -283,7 +297,7 @@ def export(ocp: OCP, out_dir, *, form: str = "condensed", qp: str = "daqp", name
         sizes.update(NG=ng, NRS=tf.stage_weight.size, NRT=tf.terminal_weight.size)
     info = Export(out, name, form, qp, linearization, ocp.nx, ocp.nu, ocp.knots, ocp.horizon, na)
     _write(out / f"{name}.h", _header(name, sizes, ocp, form, qp, linearization))
-    _write(out / f"{name}.c", _wrapper(name, qp, linearization, tr, jac, tf))
+    _write(out / f"{name}.c", _wrapper(name, qp, linearization, tr, jac, tf, iterations, float(tol)))
     _write(out / "main.c", _example(name, x0, goal, steps, ocp.dt, task=tf is not None))
     _write(out / "Makefile", _makefile(name, qp))
     _write(out / "README.md", _readme(info, ocp, eps, max_iter))
@@ -470,6 +484,18 @@ def _header(name: str, s: dict, ocp: OCP, form: str, qp: str, lin: str, cert_tol
                 f"  double LamA[{N}_LMAX * {N}_NX * {N}_NL], JL[{N}_NR1 * {N}_NL], GX[{N}_NR1 * {N}_NZ1], "
                 f"G[{N}_NR1 * {N}_NZ];\n"
                 if task else "")
+    rti = lin == "trajectory"
+    rti_mem = (f"  /* the real-time iteration: each stage's affine model Λ_k = [A_k B_k 0 w_k] (row-major) along x̄_k, ū_k\n"
+               f"     (the knots z̄ it linearizes about), the plan's predicted states x_0 … x_T and the last good\n"
+               f"     iterate's knots and states */\n"
+               f"  double LamK[{N}_HORIZON * {N}_NX * {N}_NL], xbar[{N}_HORIZON * {N}_NX], ubark[{N}_HORIZON * {N}_NU];\n"
+               f"  double zlin[{N}_NZ], xplan[({N}_HORIZON + 1) * {N}_NX], xgood[({N}_HORIZON + 1) * {N}_NX], "
+               f"zgood[{N}_NZ];\n"
+               f"  double has_xplan;                                          /* 0 or 1: xplan holds a plan */\n"
+               if rti else "")
+    rti_api = (f"/* The predicted states x_0 … x_T of the current plan ((HORIZON + 1) x NX row-major); returns 0, or 1 where\n"
+               f"   there is none (a cold start or a failed step: then the next step linearizes along a rollout). */\n"
+               f"int {name}_states(const {name}_memory* mem, double* x_pred);\n" if rti else "")
     nr1 = (f"#define {N}_NR1 ({N}_NRS > {N}_NRT ? {N}_NRS : {N}_NRT)  /* residual entries, stage or terminal */\n"
            if task else "")
     return f"""/* {name}.h — exported MPC step for {ocp!r}, {form} QP solved by CasADi's {qp}.
@@ -528,7 +554,8 @@ typedef struct {{
   double S[{N}_NX * ({N}_NX + {N}_NU)], Ss[{N}_NX * ({N}_NX + {N}_NU)], D[{N}_NX * ({N}_NX + {N}_NU)];
   double Dacc[{N}_NX * ({N}_NX + {N}_NU)];
   /* the condensing's work space: Λ_1, the running Λ_s and Γ_s, Γ_L and Λ_L per piece length */
-  double Lam1[{N}_NX * {N}_NL], LamS[{N}_NX * {N}_NL], LamT[{N}_NX * {N}_NL], W[{N}_NX * {N}_NL];
+  double Lam1[{N}_NX * {N}_NL], LamS[{N}_NX * {N}_NL], LamT[{N}_NX * {N}_NL];
+  double W[{N}_NX * ({N}_NL > {N}_NZ1 ? {N}_NL : {N}_NZ1)];
   double Gam1[{N}_NL * {N}_NL], GamS[{N}_NL * {N}_NL], Y[{N}_NL * ({N}_NL > {N}_NZ1 ? {N}_NL : {N}_NZ1)];
   double GamL[{N}_NLEN * {N}_NL * {N}_NL], LamL[{N}_NLEN * {N}_NX * {N}_NL];
   double LamB[{N}_LMAX * {N}_NB1 * {N}_NL], RB[{N}_LMAX * {N}_NB1 * {N}_NZ1];
@@ -540,7 +567,7 @@ typedef struct {{
   double z_new[{N}_NZ], lam_x_new[{N}_NZ], lam_a_new[{N}_NA1];
   double plan[{N}_NZ];                                       /* knots of the current plan */
   double cert[4];                                            /* the last solve's certificate residuals */
-{task_mem}  double has_plan, warm;                                     /* 0 or 1 */
+{task_mem}{rti_mem}  double has_plan, warm;                                     /* 0 or 1 */
   int solver_mem, solver_rc;
 }} {name}_memory;
 
@@ -568,7 +595,7 @@ void {name}_certificate(const {name}_memory* mem, double* residuals);
    kept, the next step starts cold. For tests of the solver and its certificate on QPs of one's own. */
 int {name}_solve_qp({name}_memory* mem, const double* h, const double* g, const double* a, const double* lba,
                     const double* uba, const double* lbx, const double* ubx, double* z, int* status);
-/* One step of the generated discrete model x_next = F(x, u) the controller predicts with. */
+{rti_api}/* One step of the generated discrete model x_next = F(x, u) the controller predicts with. */
 int {name}_model_step({name}_memory* mem, const double* x, const double* u, double* x_next);
 /* Give the instance's QP solver memory slot back (safe to call twice); the slot is reused by a later init. */
 void {name}_free({name}_memory* mem);
@@ -605,9 +632,10 @@ def _c_const(kind: str, name: str, values) -> str:
     return f"static const {kind} {name}[{values.size}] = {body};"
 
 
-def _constants(tr: CondensedQP, linearization: str, jac, tf=None) -> str:
+def _constants(tr: CondensedQP, linearization: str, jac, tf=None, iterations: int = 1, tol: float = 0.0) -> str:
     """The step's constants: input goal, shift, bounds, weights, the basis' pieces, the Gram schedule, for
-    a nonlinear model RK4's step and the Jacobians' sparsity, and with a task (``tf``) its weights and the basis."""
+    a nonlinear model RK4's step and the Jacobians' sparsity, with a task (``tf``) its weights and the basis, and
+    for the real-time iteration ("trajectory") the basis, each stage's active knot columns and the iterations."""
     ocp = tr.ocp
     n, m, p = tr.n, tr.m, tr.p
     phi = tr.phi
@@ -663,6 +691,12 @@ def _constants(tr: CondensedQP, linearization: str, jac, tf=None) -> str:
     ]
     if linearization == "plan":
         lines.append(_c_const("double", "W0", phi[0] @ M))
+    lines.append(f"#define LIN_TRAJ {int(linearization == 'trajectory')}")
+    if linearization == "trajectory":
+        # x_{k+1} depends on the knots of stages 0 … k only: its [v S] row has 1 + ACTIVE[k] nonzero columns.
+        last = np.maximum.accumulate([np.flatnonzero(row).max(initial=0) for row in phi])
+        lines += [f"#define ITERATIONS {iterations}", f"#define RTI_TOL {_c_num(tol)}",
+                  _c_const("double", "PHI_ALL", phi), _c_const("int", "ACTIVE", (last + 1) * m)]
     if np.any(tr._dQT):
         lines.append(_c_const("double", "DQT", tr._dQT))
     if jac is not None:
@@ -721,6 +755,9 @@ void ${name}_reset(mem_t* m) {
   for (i = 0; i < NZ; ++i) m->plan[i] = m->z[i] = m->lam_x[i] = 0;
   for (i = 0; i < ${N}_NA1; ++i) m->lam_a[i] = 0;
   m->has_plan = m->warm = 0;
+#if LIN_TRAJ
+  m->has_xplan = 0;
+#endif
   m->solver_rc = 0;
 }
 
@@ -794,6 +831,9 @@ static int fallback(mem_t* m, double* u_out, int status) {
   for (i = 0; i < NZ; ++i) m->plan[i] = m->z_new[i];
   m->has_plan = 1;
   m->warm = 0;
+#if LIN_TRAJ
+  m->has_xplan = 0;  /* the next step linearizes along a rollout of the fallback plan */
+#endif
   return status;
 }
 
@@ -923,27 +963,34 @@ static void times_ahat(const double* X, int rows, int ldx, const double* Lb, int
   gemm(rows, NL, X, ldx, 1, Lb, NL, out, NL, 0);
 }
 
-/* Γ += Wᵀ W with W = Q^½ (Λ - x_goal e_lastᵀ): the stage cost (x_s − x_goal)ᵀ Q (x_s − x_goal) as a form in ζ. */
-static void add_stage(mem_t* m, const double* Lam, const double* xg, double* Gam) {
+/* G += Wᵀ W (upper triangle; row stride ldg) with W = Q^½ (X − x_goal e_oneᵀ) over the first cols columns of X
+   (row stride ldx; column one multiplies 1): the stage cost (x_s − x_goal)ᵀ Q (x_s − x_goal) as a form in the
+   coordinates of X — ζ for Λ_s, [1; z] for the rows [v S] of the real-time iteration. */
+static void add_stage(mem_t* m, const double* X, int cols, int ldx, int one, const double* xg, double* G, int ldg) {
   double* W = m->W;
   int i, j, k;
 #if DIAG_Q
   for (i = 0; i < NX; ++i) {
-    for (j = 0; j < NL; ++j) W[i * NL + j] = QH[i] * Lam[i * NL + j];
-    W[i * NL + NL - 1] -= QH[i] * xg[i];
+    for (j = 0; j < cols; ++j) W[i * cols + j] = QH[i] * X[i * ldx + j];
+    W[i * cols + one] -= QH[i] * xg[i];
   }
   (void) k;
 #else
-  for (i = 0; i < NX * NL; ++i) W[i] = 0;
-  gemm(NX, NL, QH, NX, 1, Lam, NL, W, NL, 0);
+  for (i = 0; i < NX * cols; ++i) W[i] = 0;
+  gemm(NX, cols, QH, NX, 1, X, ldx, W, cols, 0);
   for (i = 0; i < NX; ++i) {
     double gx = 0;
     for (k = 0; k < NX; ++k) gx += QH[i * NX + k] * xg[k];
-    W[i * NL + NL - 1] -= gx;
+    W[i * cols + one] -= gx;
   }
   (void) j;
 #endif
-  gemm(NL, NL, W, 1, NL, W, NL, Gam, NL, 1);
+  gemm(cols, cols, W, 1, cols, W, cols, G, ldg, 1);
+}
+
+/* Γ += the stage cost of Λ (add_stage), both triangles: the doublings read Γ whole. */
+static void add_stage_gram(mem_t* m, const double* Lam, const double* xg, double* Gam) {
+  add_stage(m, Lam, NL, NL, NL - 1, xg, Gam, NL);
   symmetrize(Gam, NL);
 }
 
@@ -953,7 +1000,7 @@ static void grams(mem_t* m, const double* xg) {
   double *Lam = m->LamS, *tmp = m->LamT, *Gam = m->GamS, *sw;
   int op, i, s = 1;
   for (i = 0; i < NL * NL; ++i) m->Gam1[i] = 0;
-  add_stage(m, m->Lam1, xg, m->Gam1);
+  add_stage_gram(m, m->Lam1, xg, m->Gam1);
   memcpy(Lam, m->Lam1, sizeof m->Lam1);
   memcpy(Gam, m->Gam1, sizeof m->Gam1);
   for (op = 0; op < NGRAM_OPS; ++op) {
@@ -975,7 +1022,7 @@ static void grams(mem_t* m, const double* xg) {
       s *= 2;
     } else if (code == 2) {  /* one more stage */
       times_ahat(Lam, NX, NL, m->Lam1, 1, tmp);
-      add_stage(m, tmp, xg, Gam);
+      add_stage_gram(m, tmp, xg, Gam);
       s += 1;
     } else if (code == 3) {  /* restart from s = 1 */
       memcpy(Lam, m->Lam1, sizeof m->Lam1);
@@ -1006,10 +1053,12 @@ static void times_r(const double* X, int rows, int ldx, const double* prev, int 
   gemm(rows, cp + 1, X, ldx, 1, prev, NZ1, out, ldo, 0);
 }
 
+static void finish_qp(mem_t* m, double* prev, const double* xg);
+
 /* The condensed QP about the affine model Λ_1 (CondensedQP.build): h, g, state-bound rows a, lba, uba. */
 static void condense(mem_t* m, const double* x, const double* xg) {
   double *prev = m->prev, *next = m->next, *Pq = m->Pq, *Y = m->Y, *sw;
-  int pc, i, j, k, r, col, s, b;
+  int pc, i, r, col, s, b;
   grams(m, xg);
 #if NB > 0
   /* the bounded rows of Λ_1 … Λ_LMAX (row b of Λ_s at LamB[(s-1) NB + b]) */
@@ -1056,6 +1105,16 @@ static void condense(mem_t* m, const double* x, const double* xg) {
       for (col = c + 1; col < NZ1; ++col) next[i * NZ1 + col] = 0;
     sw = prev; prev = next; next = sw;
   }
+  finish_qp(m, prev, xg);
+}
+
+/* The QP from Pq (the upper triangle of Σ_s [1; z]ᵀ[v_s − x_goal, S_s]ᵀ Q [v_s − x_goal, S_s]) and the last
+   state's rows prev = [v_T S_T]: the terminal weight's extra (Q_T − Q), then P = S'QS + φᵀφ ⊗ R, q = S'Q(v − x_goal)
+   − φᵀ1 ⊗ R u_g and the knot bounds. */
+static void finish_qp(mem_t* m, double* prev, const double* xg) {
+  double* Pq = m->Pq;
+  int i, j, k, col;
+  (void) col;
   /* terminal weight: (Q_T − Q) on [v − x_goal, S] at x_T */
 #if HAS_DQT
   for (i = 0; i < NX; ++i) prev[i * NZ1] -= xg[i];
@@ -1112,9 +1171,9 @@ static void sensitivity_rate(const mem_t* m, const double* restrict S, double* r
 }
 #endif
 
-/* Λ_1 = [A_d B_d 0 w_d] (row-major) of the affine model about (x, ū): RK4 over SUBSTEPS with its sensitivities
-   (the generated f, ∂f/∂x, ∂f/∂u at each stage), or the generated constant model of a linear one. */
-static int affine_model(mem_t* m, const double* x, const double* u) {
+/* L = [A_d B_d 0 w_d] (row-major, NX x NL) of the affine model about (x, ū): RK4 over SUBSTEPS with its
+   sensitivities (the generated f, ∂f/∂x, ∂f/∂u at each stage), or the generated constant model of a linear one. */
+static int affine_model(mem_t* m, const double* x, const double* u, double* L) {
   int i, j;
 #if MODEL_RK4
   static const double C_STAGE[4] = {0.0, 0.5 * RK_H, 0.5 * RK_H, RK_H}, W_STAGE[4] = {1.0, 2.0, 2.0, 1.0};
@@ -1142,21 +1201,21 @@ static int affine_model(mem_t* m, const double* x, const double* u) {
   }
   for (i = 0; i < NX; ++i) {
     const double* si = m->S + i * (NX + NU);
-    double* L = m->Lam1 + i * NL;
+    double* Li = L + i * NL;
     double wi = m->xk[i];
-    for (j = 0; j < NX + NU; ++j) { L[j] = si[j]; wi -= si[j] * (j < NX ? x[j] : u[j - NX]); }
-    for (j = 0; j < NU; ++j) L[NX + NU + j] = 0;
-    L[NL - 1] = wi;
+    for (j = 0; j < NX + NU; ++j) { Li[j] = si[j]; wi -= si[j] * (j < NX ? x[j] : u[j - NX]); }
+    for (j = 0; j < NU; ++j) Li[NX + NU + j] = 0;
+    Li[NL - 1] = wi;
   }
 #else
   m->arg[0] = x; m->arg[1] = u;
   m->res[0] = m->Ad; m->res[1] = m->Bd; m->res[2] = m->wd;
   if (${name}_affine(m->arg, m->res, (casadi_int*) m->iw, m->w, 0)) return 1;
   for (i = 0; i < NX; ++i) {  /* Ad, Bd come column-major from CasADi */
-    double* L = m->Lam1 + i * NL;
-    for (j = 0; j < NX; ++j) L[j] = m->Ad[i + NX * j];
-    for (j = 0; j < NU; ++j) { L[NX + j] = m->Bd[i + NX * j]; L[NX + NU + j] = 0; }
-    L[NL - 1] = m->wd[i];
+    double* Li = L + i * NL;
+    for (j = 0; j < NX; ++j) Li[j] = m->Ad[i + NX * j];
+    for (j = 0; j < NU; ++j) { Li[NX + j] = m->Bd[i + NX * j]; Li[NX + NU + j] = 0; }
+    Li[NL - 1] = m->wd[i];
   }
 #endif
   return 0;
@@ -1279,6 +1338,168 @@ static double seconds(void) {
 #endif
 }
 
+#if LIN_TRAJ
+/* The real-time iteration (ocpkit.solvers.nlp.RealTimeIteration, LinearMPC's "trajectory" linearization): the
+   model linearized stage by stage along the shifted plan, the condensed QP of these time-varying models, and
+   ITERATIONS Gauss–Newton steps, each linearizing along the last one's solution. */
+
+/* ū_k = Σ_j φ_kj z_j for the stages k = 0 … HORIZON−1 (HORIZON x NU, row-major). */
+static void stage_inputs(const double* z, double* u) {
+  int k, j, i;
+  for (k = 0; k < ${N}_HORIZON; ++k)
+    for (i = 0; i < NU; ++i) {
+      double s = 0;
+      for (j = 0; j < NP; ++j) s += PHI_ALL[k * NP + j] * z[j * NU + i];
+      u[k * NU + i] = s;
+    }
+}
+
+/* The trajectory of the first iteration (LinearMPC.shifted_plan): knots z̄ = the plan shifted a step (the input goal
+   at a cold start), ū_k = Φ_k z̄, x̄_0 = x and x̄_k the plan's predicted x_{k+1} (a rollout where there is none). */
+static void shifted_plan(mem_t* m, const double* x) {
+  int j, l, i, k;
+  for (j = 0; j < NP; ++j)
+    for (i = 0; i < NU; ++i) {
+      double s = 0;
+      if (m->has_plan) for (l = 0; l < NP; ++l) s += SHIFT[j * NP + l] * m->plan[l * NU + i];
+      else s = m->ug[i];
+      m->zlin[j * NU + i] = s;
+    }
+  stage_inputs(m->zlin, m->ubark);
+  memcpy(m->xbar, x, NX * sizeof(double));
+  if (m->has_xplan)
+    for (k = 1; k < ${N}_HORIZON; ++k) memcpy(m->xbar + k * NX, m->xplan + (k + 1) * NX, NX * sizeof(double));
+}
+
+/* out = L [x; u; 0; 1] = A x + B u + w: the affine model's step. */
+static void affine_step(const double* L, const double* x, const double* u, double* out) {
+  int i, j;
+  for (i = 0; i < NX; ++i) {
+    const double* Li = L + i * NL;
+    double s = Li[NL - 1];
+    for (j = 0; j < NX; ++j) s += Li[j] * x[j];
+    for (j = 0; j < NU; ++j) s += Li[NX + j] * u[j];
+    out[i] = s;
+  }
+}
+
+/* Λ_k of every stage about (x̄_k, ū_k); with rollout, x̄_{k+1} = F(x̄_k, ū_k) as it goes. Returns a status. */
+static int stage_models(mem_t* m, int rollout) {
+  int k;
+  for (k = 0; k < ${N}_HORIZON; ++k) {
+    double* L = m->LamK + k * NX * NL;
+    if (!all_finite(m->xbar + k * NX, NX) || !all_finite(m->ubark + k * NU, NU)) return ${N}_NAN;
+    if (affine_model(m, m->xbar + k * NX, m->ubark + k * NU, L)) return ${N}_EXCEPTION;
+    if (!all_finite(L, NX * NL)) return ${N}_NAN;
+    if (rollout && k + 1 < ${N}_HORIZON) affine_step(L, m->xbar + k * NX, m->ubark + k * NU, m->xbar + (k + 1) * NX);
+  }
+  return ${N}_SUCCESS;
+}
+
+/* The condensed QP of the stage models (CondensedQP.build with one model per stage): the rows [v_k S_k] of
+   x_k = S_k z + v_k (prev, NX x NZ1: column 0 is v_k) advance by x_{k+1} = A_k x_k + B_k Φ_k z + w_k, only over the
+   columns of the knots active so far (ACTIVE), and each adds its stage cost to Pq. */
+static void condense_ltv(mem_t* m, const double* x, const double* xg) {
+  double *prev = m->prev, *next = m->next, *sw;
+  int i, j, k, u, b, cols = 0;
+  for (i = 0; i < NX * NZ1; ++i) prev[i] = next[i] = 0;
+  for (i = 0; i < NX; ++i) prev[i * NZ1] = x[i];
+  for (i = 0; i < NZ1 * NZ1; ++i) m->Pq[i] = 0;
+  for (k = 0; k < ${N}_HORIZON; ++k) {
+    const double* L = m->LamK + k * NX * NL;
+    const int c = ACTIVE[k];
+    for (i = 0; i < NX; ++i) {
+      double* nr = next + i * NZ1;
+      for (j = 0; j <= c; ++j) nr[j] = 0;
+      nr[0] = L[i * NL + NL - 1];
+      for (j = 0; j < NP; ++j) {
+        const double f = PHI_ALL[k * NP + j];
+        if (f != 0) for (u = 0; u < NU; ++u) nr[1 + j * NU + u] += f * L[i * NL + NX + u];
+      }
+    }
+    gemm(NX, cols + 1, L, NL, 1, prev, NZ1, next, NZ1, 0);
+    add_stage(m, next, c + 1, NZ1, 0, xg, m->Pq, NZ1);
+#if NB > 0
+    for (b = 0; b < NB; ++b) {  /* state-bound rows of x_{k+1}: row (k, b) at k*NB + b */
+      const int ri = k * NB + b;
+      const double* row = next + XB_COMP[b] * NZ1;
+      for (j = 0; j < NZ; ++j) m->a[ri + NA * j] = row[j + 1];
+      m->lba[ri] = XB_LO[b] - row[0];
+      m->uba[ri] = XB_HI[b] - row[0];
+    }
+#else
+    (void) b;
+#endif
+    cols = c;
+    sw = prev; prev = next; next = sw;
+  }
+  finish_qp(m, prev, xg);
+}
+
+static double max_change(const double* a, const double* b, int n) {
+  double d = 0;
+  int i;
+  for (i = 0; i < n; ++i) d = amax(d, fabs(a[i] - b[i]));
+  return d;
+}
+
+/* The iterations of one step: their summed split in t (where given). Returns the status; on success the plan,
+   its predicted states and the warm start hold the last good iterate. */
+static int rti(mem_t* m, const double* x, const double* goal, double* u_out, double* t) {
+  const int nxs = (${N}_HORIZON + 1) * NX;
+  int it, k, i, rc, done = 0;
+  double t0 = 0, t1 = 0, moved = INFINITY;
+  shifted_plan(m, x);
+  for (it = 0; it < ITERATIONS; ++it) {
+    if (t) t0 = seconds();
+    rc = stage_models(m, it == 0 && !m->has_xplan);
+    if (t) { t1 = seconds(); t[0] += t1 - t0; }
+    if (rc == ${N}_SUCCESS) {
+      condense_ltv(m, x, goal);
+      if (t) { t0 = seconds(); t[1] += t0 - t1; }
+      rc = solve_qp(m);
+      if (t) t[2] += seconds() - t0;
+    }
+    if (rc != ${N}_SUCCESS) {
+      if (!done) return fallback(m, u_out, rc);
+      /* the last good iterate stays the plan; the next step starts the QP cold, as after any failure */
+      memcpy(m->plan, m->zgood, sizeof m->zgood);
+      memcpy(m->xplan, m->xgood, sizeof m->xgood);
+      m->warm = 0;
+      break;
+    }
+    for (i = 0; i < NZ; ++i) { m->plan[i] = m->z[i] = m->z_new[i]; m->lam_x[i] = m->lam_x_new[i]; }
+    for (i = 0; i < NA; ++i) m->lam_a[i] = m->lam_a_new[i];
+    m->has_plan = m->warm = 1;
+    /* the predicted states x_0 … x_T through the stage models */
+    memcpy(m->xplan, x, NX * sizeof(double));
+    stage_inputs(m->plan, m->ubark);
+    for (k = 0; k < ${N}_HORIZON; ++k)
+      affine_step(m->LamK + k * NX * NL, m->xplan + k * NX, m->ubark + k * NU, m->xplan + (k + 1) * NX);
+    m->has_xplan = 1;
+    if (done) moved = amax(max_change(m->plan, m->zgood, NZ), max_change(m->xplan, m->xgood, nxs));
+    memcpy(m->zgood, m->plan, sizeof m->zgood);
+    memcpy(m->xgood, m->xplan, sizeof m->xgood);
+    done = it + 1;
+    if (moved <= RTI_TOL) break;
+    /* the next iteration linearizes along this one: x̄ = [x; x_1 … x_{T−1}], ū = Φ z (ubark, set above) */
+    memcpy(m->xbar + NX, m->xplan + NX, (${N}_HORIZON - 1) * NX * sizeof(double));
+  }
+  for (i = 0; i < NU; ++i) {
+    double s = 0;
+    for (k = 0; k < NP; ++k) s += PHI0[k] * m->plan[k * NU + i];
+    u_out[i] = s;
+  }
+  return ${N}_SUCCESS;
+}
+
+int ${name}_states(const mem_t* m, double* x_pred) {
+  if (!m->has_xplan) return 1;
+  memcpy(x_pred, m->xplan, sizeof m->xplan);
+  return 0;
+}
+#endif
+
 int ${name}_step(mem_t* m, const double* x, const double* goal, double* u_out, int* status) {
   return ${name}_step_timed(m, x, goal, u_out, status, 0);
 }
@@ -1292,6 +1513,12 @@ int ${name}_step_timed(mem_t* m, const double* x, const double* goal, double* u_
     *status = fallback(m, u_out, ${N}_NAN);
     return *status;
   }
+#if LIN_TRAJ
+  (void) j; (void) rc; (void) t0; (void) t1; (void) t2;
+  m->solver_rc = 0;
+  *status = rti(m, x, goal, u_out, t);
+  return *status;
+#else
   /* affine model about (x, u_bar) */
   for (i = 0; i < NU; ++i) {
     double s = m->ug[i];
@@ -1301,7 +1528,7 @@ int ${name}_step_timed(mem_t* m, const double* x, const double* goal, double* u_
     m->ubar[i] = s;
   }
   m->solver_rc = 0;
-  if (affine_model(m, x, m->ubar)) {
+  if (affine_model(m, x, m->ubar, m->Lam1)) {
     *status = fallback(m, u_out, ${N}_EXCEPTION);
     return *status;
   }
@@ -1329,6 +1556,7 @@ int ${name}_step_timed(mem_t* m, const double* x, const double* goal, double* u_
   }
   *status = ${N}_SUCCESS;
   return *status;
+#endif
 }
 
 void ${name}_knots(const mem_t* m, double* knots) {
@@ -1517,7 +1745,8 @@ static int task_terms(mem_t* m, const double* x, const double* goal) {
 """)
 
 
-def _wrapper(name: str, qp: str, linearization: str, tr: CondensedQP, jac, tf=None) -> str:
+def _wrapper(name: str, qp: str, linearization: str, tr: CondensedQP, jac, tf=None, iterations: int = 1,
+             tol: float = 0.0) -> str:
     N = name.upper()
     # a nonzero return: qrqp's 4 is "no search direction" (an infeasible or degenerate QP); DAQP's failed exit
     # flags as DAQP_EXIT says (its successes return 0)
@@ -1531,7 +1760,7 @@ def _wrapper(name: str, qp: str, linearization: str, tr: CondensedQP, jac, tf=No
         task_call = (f"\n  if (task_terms(m, x, goal)) {{  /* a residual's evaluation failed */\n"
                      f"    *status = fallback(m, u_out, {N}_EXCEPTION);\n    return *status;\n  }}")
     return _WRAPPER.substitute(name=name, N=N, status_of_rc=status_of_rc, qp=qp,
-                               constants=_constants(tr, linearization, jac, tf), task_c=task_c,
+                               constants=_constants(tr, linearization, jac, tf, iterations, tol), task_c=task_c,
                                task_call=task_call)
 
 
@@ -1744,6 +1973,11 @@ class ExportedMPC(Controller):
         self._solve_qp.argtypes = [ctypes.c_void_p] + [dbl] * 8 + [ctypes.c_void_p]
         self._lib, self.name, self.out_dir = lib, name, Path(out_dir)
         self._free = getattr(lib, f"{name}_free")
+        try:  # a "trajectory" step's predicted states
+            self._states = getattr(lib, f"{name}_states")
+            self._states.argtypes = [ctypes.c_void_p, dbl]
+        except AttributeError:
+            self._states = None
         self._open = False
         if getattr(lib, f"{name}_init")(self._mem):
             raise RuntimeError(f"{name}_init failed: all QP solver memory slots of {lib_path} are in use "
@@ -1847,9 +2081,14 @@ class ExportedMPC(Controller):
         certificate = self.certificate() if status == SUCCESS or rc >= _CERT_CODE else None  # a QP solved
         raw = _explain_rc(self.name, self.qp, rc, certificate.residuals if certificate else ())
         model, build_s, solve = (float(t) for t in self._split)
+        x_pred = None
+        if self._states is not None and status == SUCCESS:
+            x_pred = np.empty((self.ocp.horizon + 1, self.ocp.nx))
+            if self._states(self._mem, x_pred):
+                x_pred = None
         return Solution(u=u, knots=knots.reshape(self.ocp.knots, self.ocp.nu), status=status, raw_status=raw,
                         times={"model": model, "build": build_s, "solve": solve}, fallback=status != SUCCESS,
-                        certificate=certificate)
+                        certificate=certificate, x_pred=x_pred)
 
 
 def _explain_rc(name: str, qp: str, rc: int, residuals) -> str:

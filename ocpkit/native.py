@@ -42,7 +42,7 @@ SLOTS = 64  # controllers of one OCP live at once in one process (the library's 
 MAKE_VARS = (f"MAX_INSTANCES={SLOTS}", "OPT=-O1")
 
 _builds: dict[str, Future] = {}  # by the hash of the generated files
-_by_ocp: "weakref.WeakKeyDictionary[OCP, dict]" = weakref.WeakKeyDictionary()  # {(eps, max_iter): Future or None}
+_by_ocp: "weakref.WeakKeyDictionary[OCP, dict]" = weakref.WeakKeyDictionary()  # {settings: Future or None}
 _builds_lock = threading.Lock()
 _warned = set()
 
@@ -64,9 +64,11 @@ def wanted(ocp: OCP) -> bool:
             and ocp.knots * ocp.nu <= MAX_VARIABLES)
 
 
-def start(ocp: OCP, *, eps: float, max_iter: int, wait: bool = False) -> Future | None:
+def start(ocp: OCP, *, eps: float, max_iter: int, wait: bool = False, linearization: str = "goal",
+          iterations: int = 1, tol: float = 0.0) -> Future | None:
     """A Future of the folder holding ``lib<NAME>.so``, the exported condensed DAQP step of ``ocp`` (DAQP tolerance
-    ``eps``, ``max_iter`` iterations).
+    ``eps``, ``max_iter`` iterations; ``linearization``, ``iterations`` and ``tol`` as :func:`ocpkit.export.export`
+    takes them: "trajectory" is the real-time iteration's step).
 
     A sound cached library that loads is used as it is: no compiler needed, and the cache may be read-only. One
     whose hash matches but which does not load (another machine's, a damaged one) is removed and built once more.
@@ -76,14 +78,15 @@ def start(ocp: OCP, *, eps: float, max_iter: int, wait: bool = False) -> Future 
     :mod:`ocpkit.compiled` when the Python step's model cannot be compiled either), or a read-only cache (one
     warning per process, :func:`ocpkit.cache.warn_read_only`)."""
     runs = _by_ocp.setdefault(ocp, {})
-    known = runs.get((eps, max_iter), False)
+    settings = (eps, max_iter, linearization, iterations, tol)
+    known = runs.get(settings, False)
     if known is None and not wait:
         return None
     if known and not (wait and known.done() and known.exception() is not None):
         if wait:
             known.result()
         return known
-    future = runs[(eps, max_iter)] = _start(ocp, eps, max_iter, wait)
+    future = runs[settings] = _start(ocp, settings, wait)
     return future
 
 
@@ -93,7 +96,7 @@ def built(ocp: OCP) -> list[Path]:
             if f is not None and f.done() and not f.cancelled() and f.exception() is None]
 
 
-def _start(ocp: OCP, eps: float, max_iter: int, wait: bool) -> Future | None:
+def _start(ocp: OCP, settings: tuple, wait: bool) -> Future | None:
     """:func:`start` for an OCP met the first time: export, hash, then the cached library or a build."""
     root = cache_dir("native")
     try:
@@ -109,7 +112,9 @@ def _start(ocp: OCP, eps: float, max_iter: int, wait: bool) -> Future | None:
             warn_read_only(error, "LinearMPC runs its Python step", stacklevel=4)
             return None
     try:
-        export(ocp, scratch / "src", name=NAME, qp="daqp", eps=eps, max_iter=max_iter, linearization="goal")
+        eps, max_iter, linearization, iterations, tol = settings
+        export(ocp, scratch / "src", name=NAME, qp="daqp", eps=eps, max_iter=max_iter, linearization=linearization,
+               iterations=iterations, tol=tol)
         key = _key(scratch / "src")
     except BaseException:
         shutil.rmtree(scratch, ignore_errors=True)

@@ -65,20 +65,31 @@ class RealTimeIteration(LinearMPC):
     Iteration i + 1 linearizes at iteration i's QP solution (x̄_0 = x, x̄_k its predicted states, ū its inputs);
     ``tol`` > 0 stops early once the knots and predicted states move less than ``tol`` (max norm). When an
     iteration after the first fails (a time budget, a QP limit), the previous iteration's plan is returned:
-    every iterate is a usable plan, the point of RTI."""
+    every iterate is a usable plan, the point of RTI.
+
+    Where LinearMPC builds its C step (:mod:`ocpkit.native`: DAQP, a robot-sized model, no task) the whole
+    iteration runs as compiled C (:func:`ocpkit.export.export` with linearization "trajectory"), the same steps to
+    rounding: until it is built, and after a failed step's soft-bound retry, in Python."""
 
     def __init__(self, ocp: OCP, *, iterations: int = 1, tol: float = 0.0, **options):
         options.setdefault("state_bounds", "soft")
-        super().__init__(ocp, linearization="trajectory", **options)
         self.iterations = integer(iterations, "iterations", 1)
         if not (isinstance(tol, (int, float)) and np.isfinite(tol) and tol >= 0):
             raise ValueError(f"tol must be a finite number >= 0, got {tol!r}")
         self.tol = float(tol)
+        super().__init__(ocp, linearization="trajectory", **options)
+
+    def _native_options(self) -> dict:
+        return {"iterations": self.iterations, "tol": self.tol}
 
     def __repr__(self):
-        return f"RealTimeIteration({self.iterations}, {self.form}, {self.qp_name}, {self.ocp!r})"
+        step = ", C step" if getattr(self, "_native", None) is not None else ""  # once built and loaded
+        return f"RealTimeIteration({self.iterations}, {self.form}, {self.qp_name}{step}, {self.ocp!r})"
 
     def _solve(self, x: np.ndarray, goal: np.ndarray) -> Solution:
+        step = self._native_step()
+        if step is not None:  # the same iterations as compiled C (ocpkit.export, linearization "trajectory")
+            return self._c_step(step, x, goal, self._deadline())
         deadline, par = self._deadline(), self.ocp.parameterization
         times = {"model": 0.0, "build": 0.0, "solve": 0.0}
         along, sol, qp_iterations, moved, done = self.shifted_plan(x, goal), None, 0, np.inf, 0

@@ -23,9 +23,9 @@ def ocp():
     return PROBLEM.ocp(knots=4, horizon=40)
 
 
-def _same_closed_loop(ocp, seed, steps):
+def _same_closed_loop(ocp, seed, steps, **options):
     """The C step and the Python step from the same states: the same status, u and knots every step."""
-    c, py = LinearMPC(ocp, native=True), LinearMPC(ocp, native=False)
+    c, py = LinearMPC(ocp, native=True, **options), LinearMPC(ocp, native=False, **options)
     assert c.native and not py.native
     x, goal = PROBLEM.sample(seed)
     F = ocp.discrete()
@@ -43,6 +43,10 @@ def test_c_step_equals_python_step_along_a_closed_loop(ocp):
     _same_closed_loop(ocp, seed=3, steps=60)
 
 
+def test_c_step_linearized_about_the_plan_equals_python_step(ocp):
+    _same_closed_loop(ocp, seed=4, steps=30, linearization="plan")
+
+
 def test_controllers_of_one_ocp_share_one_build(ocp):
     a, b = LinearMPC(ocp, native=True), LinearMPC(ocp, native=True)
     assert a.native and b.native
@@ -50,8 +54,7 @@ def test_controllers_of_one_ocp_share_one_build(ocp):
 
 
 def test_configurations_without_a_c_step_say_why(ocp):
-    for kwargs, why in (({"form": "sparse"}, "form 'sparse'"), ({"qp": "proxqp"}, "qp 'proxqp'"),
-                        ({"linearization": "plan"}, "linearization 'plan'")):
+    for kwargs, why in (({"form": "sparse"}, "form 'sparse'"), ({"qp": "proxqp"}, "qp 'proxqp'")):
         with pytest.raises(ValueError, match=f"native=True.*{why}"):
             LinearMPC(ocp, native=True, **kwargs)
     with pytest.raises(TypeError, match="native"):
