@@ -177,8 +177,11 @@ def _parser() -> argparse.ArgumentParser:
                      help="QP transcription (default condensed, the one exported)")
     exp.add_argument("--qp", default="daqp", choices=("daqp", "qrqp", "osqp", "hpipm"),
                      help="QP backend (default daqp)")
-    exp.add_argument("--linearization", default="goal", choices=LINEARIZATIONS,
-                     help="the affine model's expansion point, as solve's: goal (default) or plan")
+    exp.add_argument("--linearization", default="goal", choices=LINEARIZATIONS + (TRAJECTORY,),
+                     help="the affine model's expansion point, as solve's: goal (default), plan, or trajectory (the "
+                          "real-time iteration: per stage along the shifted plan)")
+    exp.add_argument("--iterations", type=int, default=1,
+                     help="--linearization trajectory: Gauss-Newton iterations per control step (default 1)")
     exp.add_argument("--seed", type=int, default=0, help="seed of the example closed loop's start and goal")
     exp.add_argument("--out", default="export", help="output folder (absent or empty unless --force)")
     exp.add_argument("--force", action="store_true", help="export into a non-empty --out, overwriting its files")
@@ -749,7 +752,7 @@ def _export(args):
         ocp = _ocp(problem, args)
         x0, goal = problem.sample(args.seed)
         exported = export(ocp, args.out, form=args.form, qp=args.qp, linearization=args.linearization, x0=x0,
-                          goal=goal, force=args.force)
+                          goal=goal, force=args.force, iterations=args.iterations)
         build(args.out)
     except BuildError as exc:
         print(f"ocpkit: error: {exc}", file=sys.stderr)
@@ -758,8 +761,8 @@ def _export(args):
     ok = failures == 0 and du <= 1e-6
     print(f"exported and built {args.problem} ({args.form}, {ocp.parameterization.kind} with {ocp.knots} knots over "
           f"T = {ocp.horizon}, {args.qp}, linearization {args.linearization}) in {exported.out_dir}; "
-          f"see {Path(args.out) / 'README.md'}\nround trip: the compiled step vs LinearMPC over {steps} closed-loop "
-          f"steps from seed {args.seed}: max |du| = {du:.2e}, {failures} non-successes — "
+          f"see {Path(args.out) / 'README.md'}\nround trip: the compiled step vs the same step in Python over {steps} "
+          f"closed-loop steps from seed {args.seed}: max |du| = {du:.2e}, {failures} non-successes — "
           f"{'agree' if ok else 'DISAGREE'}")
     return 0 if ok else 1
 
@@ -769,10 +772,14 @@ def _round_trip(problem, ocp, args, exported, steps: int = 20):
     driven by LinearMPC's input): their largest first-input difference and the steps where either failed."""
     from ocpkit.export import ExportedMPC
     from ocpkit.problem import check_dynamics
+    from ocpkit.solvers.nlp import RealTimeIteration
     from ocpkit.solvers.qp import LinearMPC
 
     c = ExportedMPC(ocp, exported.out_dir, name=exported.name)
-    py = LinearMPC(ocp, form="condensed", eps=1e-10, linearization=exported.linearization)
+    if exported.linearization == "trajectory":
+        py = RealTimeIteration(ocp, iterations=args.iterations, eps=1e-10, native=False)
+    else:
+        py = LinearMPC(ocp, form="condensed", eps=1e-10, linearization=exported.linearization, native=False)
     F = ocp.discrete()
     x, goal = problem.sample(args.seed)
     du, failures = 0.0, 0

@@ -55,3 +55,12 @@ def test_trajectory_export_refuses_what_it_cannot_do(tmp_path):
         export(tasked, tmp_path / "c", linearization="trajectory")
     why = RealTimeIteration(tasked)._no_native_step()
     assert why is not None and "task" in why
+
+
+def test_cli_exports_the_real_time_iteration(tmp_path, capsys):
+    from ocpkit.cli import main
+
+    rc = main(["export", "nlink:3", "--horizon", "30", "--linearization", "trajectory", "--iterations", "2",
+               "--out", str(tmp_path / "rti")])
+    out = capsys.readouterr().out
+    assert rc == 0 and "linearization trajectory" in out and "agree" in out
