@@ -198,6 +198,9 @@ def _parser() -> argparse.ArgumentParser:
                        help=f"{'/'.join(_PROBLEM_BENCHMARKS)}: benchmark this problem (repeatable). {_SPEC_HELP}")
     bench.add_argument("--busy", type=int, help="step: busy processes for the quiet-vs-loaded comparison (default 2; "
                                                 "0 skips it)")
+    bench.add_argument("--controller", action="append", metavar="NAME",
+                       help="nlp: a controller column (repeatable; default ipopt fatrop rti1 rti3 lti ltv); crocoddyl "
+                            "adds Crocoddyl's FDDP and its per-solve table (pip install \"ocpkit[peers]\")")
     return parser
 
 
@@ -691,6 +694,10 @@ def _bench(args):
         if args.busy < 0:
             raise ValueError(f"--busy must be >= 0, got {args.busy}")
         options["busy"] = args.busy
+    if args.controller:
+        if args.what != "nlp":
+            raise ValueError("--controller applies to `ocpkit bench nlp` only")
+        options["controllers"] = tuple(args.controller)
     kwargs = dict(quick) if args.quick else {}
     if args.problem:
         if args.what not in _PROBLEM_BENCHMARKS:
