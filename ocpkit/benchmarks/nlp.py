@@ -10,6 +10,12 @@ closed loop, not a better optimizer.
 A problem named "cartpole" (the README's user-declared cart-pole, x = [p, θ, ṗ, θ̇], θ = 0 upright) is run
 as a swing-up: from hanging, θ = π, to the sampled goal. By default the bench reads that cart-pole from the
 README's "Declare your own problem" section when the package runs from its source tree.
+
+The peer "crocoddyl" (Crocoddyl's FDDP, :mod:`ocpkit.benchmarks.crocoddyl_peer`; ``pip install "ocpkit[peers]"``)
+is a controller column when asked for. It solves traditional MPC (p = T) on the same horizon, and its dynamics
+have no joint damping or friction, so with it every problem of the run, for every controller and the plant, is
+made without them; problems it cannot model (no pinocchio model, servo inputs) run without its row. After the
+closed-loop table it prints its per-solve comparison (:func:`ocpkit.benchmarks.crocoddyl_peer.compare`).
 """
 from __future__ import annotations
 
@@ -21,11 +27,15 @@ import numpy as np
 
 from ocpkit import problems as registry
 from ocpkit._checks import integer
+from ocpkit.benchmarks import crocoddyl_peer
 from ocpkit.metrics import actual_cost
 from ocpkit.simulate import simulate
 
 ROBOTS = ("nlink:3", "nlink:7", "puma560", "baxter")
 CONTROLLERS = ("ipopt", "fatrop", "rti1", "rti3", "lti", "ltv")
+PEERS = ("crocoddyl",)  # other libraries' controllers, run only when asked for
+# Warm steps of the peers' per-solve comparison at most (IPOPT at p = T takes a second a solve on the Puma).
+PER_SOLVE_STEPS = 10
 
 
 def readme_cartpole() -> str | None:
@@ -55,11 +65,13 @@ def default_problems() -> list[str]:
     return chosen + ([cartpole] if cartpole else [])
 
 
-def controller(kind: str, ocp):
-    """One of CONTROLLERS for ``ocp``."""
+def controller(kind: str, ocp, problem=None):
+    """One of CONTROLLERS or PEERS for ``ocp`` (the peer "crocoddyl": on ``problem``'s p = T OCP of that horizon)."""
     from ocpkit.solvers.nlp import NonlinearMPC
     from ocpkit.solvers.qp import LinearMPC
 
+    if kind == "crocoddyl":
+        return crocoddyl_peer.CrocoddylMPC(problem, problem.ocp(knots=None, horizon=ocp.horizon))
     if kind == "ipopt":
         return NonlinearMPC(ocp)
     if kind == "fatrop":
@@ -81,21 +93,30 @@ def bench_nlp(problems=None, knots: int | None = 5, horizon: int | None = 50, sa
     ``compiled`` evaluates the affine model as compiled C (RTI's and LTV's T per-stage models, LinearMPC's one):
     the one-off compile (cached) is done before any controller runs and printed, never counted in a step.
     Without "ipopt" in ``controllers`` (a problem where IPOPT takes seconds a step) the cost ratio is NaN.
+    "crocoddyl" (PEERS) adds Crocoddyl's FDDP, p = T, on the problems without damping and friction (see the module
+    docstring), then its per-solve table over ``samples`` seeds and min(``steps``, PER_SOLVE_STEPS) MPC steps;
+    the rows returned are the closed-loop table's.
     """
     if isinstance(problems, str):
         raise TypeError(f"problems must be a list of problem names, got the string {problems!r}")
     names = default_problems() if problems is None else list(problems)
     samples, steps = integer(samples, "samples", 1), integer(steps, "steps", 1)
     controllers = tuple(controllers)
-    unknown = [c for c in controllers if c not in CONTROLLERS]
+    unknown = [c for c in controllers if c not in CONTROLLERS + PEERS]
     if unknown or not controllers:
-        raise ValueError(f"controllers must be among {CONTROLLERS}, got {controllers}")
-    rows = []
+        raise ValueError(f"controllers must be among {CONTROLLERS + PEERS}, got {controllers}")
+    peer = "crocoddyl" in controllers
+    if peer:
+        crocoddyl_peer.require()
+        if echo:
+            print("crocoddyl: every problem runs without joint damping and friction (Crocoddyl's free dynamics have "
+                  "none); its rows are traditional MPC (knots T)", flush=True)
+    rows, compared = [], []
     if echo:
         print(f"{'problem':<22}{'knots':>6}{'T':>5} {'controller':<8}{'build s':>9}{'step ms':>9}{'p90 ms':>8}"
               f"{'cost/ipopt':>11}{'fallbk':>7}{'final err':>10}", flush=True)
     for name in names:
-        prob = registry.make(name)
+        prob = crocoddyl_peer.undamped(name) if peer else registry.make(name)
         swing = prob.name == "cartpole"
         p, T = (10, None) if swing else (knots, horizon)
         ocp = prob.ocp(knots=p, horizon=T, compiled=compiled) if compiled else prob.ocp(knots=p, horizon=T)
@@ -114,7 +135,14 @@ def bench_nlp(problems=None, knots: int | None = 5, horizon: int | None = 50, sa
         results = {}
         for kind in controllers:
             t0 = time.perf_counter()
-            ctrl = controller(kind, ocp)
+            try:
+                ctrl = controller(kind, ocp, prob)
+            except ValueError as exc:
+                if kind not in PEERS:
+                    raise
+                if echo:
+                    print(f"{name}: no {kind} row: {exc}", flush=True)
+                continue
             build = time.perf_counter() - t0
             times, cost, fallbacks, errors = [], 0.0, 0, []
             for x0, goal in cases:
@@ -124,12 +152,15 @@ def bench_nlp(problems=None, knots: int | None = 5, horizon: int | None = 50, sa
                 cost += actual_cost(traj, ocp)
                 fallbacks += traj.fallbacks
                 errors.append(float(np.abs(traj.x[-1] - goal).max()))
-            results[kind] = {"problem": prob.name if swing else name, "knots": "T" if ocp.knots == ocp.horizon
-                             else ocp.knots, "horizon": ocp.horizon, "controller": kind, "build_s": build,
+            own = ctrl.ocp
+            results[kind] = {"problem": prob.name if swing else name, "knots": "T" if own.knots == own.horizon
+                             else own.knots, "horizon": own.horizon, "controller": kind, "build_s": build,
                              "step_ms": 1e3 * float(np.median(times)), "p90_ms": 1e3 * float(np.percentile(times, 90)),
                              "cost": cost, "fallbacks": fallbacks, "final_error": float(np.median(errors)),
                              "swing_up": swing, "steps": len(times)}
-        for kind in controllers:
+        if peer and "crocoddyl" in results:
+            compared.append(name)
+        for kind in results:
             row = results[kind]
             row["cost_ratio"] = row["cost"] / results["ipopt"]["cost"] if "ipopt" in results else float("nan")
             rows.append(row)
@@ -138,4 +169,7 @@ def bench_nlp(problems=None, knots: int | None = 5, horizon: int | None = 50, sa
                 print(f"{label:<22}{row['knots']!s:>6}{row['horizon']:>5} {kind:<8}{row['build_s']:>9.2f}"
                       f"{row['step_ms']:>9.2f}{row['p90_ms']:>8.2f}{row['cost_ratio']:>11.4f}{row['fallbacks']:>7d}"
                       f"{row['final_error']:>10.4f}", flush=True)
+    if compared and echo:  # a printed table: without echo nobody would see it
+        crocoddyl_peer.compare(compared, horizon=horizon, knots=knots, seeds=samples,
+                               steps=max(2, min(steps, PER_SOLVE_STEPS)), echo=echo)
     return rows
