@@ -20,9 +20,9 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
-from ocpkit._checks import array, bounds, integer, positive, weight
+from ocpkit._checks import array, bounds, choice, integer, positive, weight
 from ocpkit.compiled import SwitchingFunction, compile_function, compile_in_background
-from ocpkit.model import Model
+from ocpkit.model import INTEGRATORS, Model
 from ocpkit.numeric import BufferedFunction
 from ocpkit.parameterization import Parameterization
 from ocpkit.task import Task
@@ -35,12 +35,17 @@ BACKGROUND_MIN_INSTRUCTIONS = 2_000
 
 
 class OCP:
-    """A validated MPC problem; see the module docstring for the objective and constraints."""
+    """A validated MPC problem; see the module docstring for the objective and constraints.
+
+    ``integrator`` is how the controller predicts a nonlinear model over a step dt (``substeps`` sub-steps each):
+    "rk4" or "euler" (semi-implicit for x = [q, q̇]; one Jacobian a sub-step instead of four, see
+    :data:`ocpkit.model.INTEGRATORS`). The plant the simulator integrates is not affected.
+    """
 
     def __init__(self, model: Model, dt: float, horizon: int, Q, R, *, Q_terminal=None, u_goal=None,
                  u_goal_gain=None, u_min=None, u_max=None, x_min=None, x_max=None,
-                 parameterization: Parameterization | None = None, substeps: int = 1, compiled: bool | None = None,
-                 task: Task | None = None):
+                 parameterization: Parameterization | None = None, substeps: int = 1, integrator: str = "rk4",
+                 compiled: bool | None = None, task: Task | None = None):
         if not isinstance(model, Model):
             raise TypeError(f"model must be an ocpkit Model, got {type(model).__name__}")
         n, m = model.nx, model.nu
@@ -48,6 +53,7 @@ class OCP:
         self.dt = positive(dt, "dt")
         self.horizon = integer(horizon, "horizon", 1)
         self.substeps = integer(substeps, "substeps", 1)
+        self.integrator = choice(integrator, INTEGRATORS, "integrator")
         self.compiled = None if compiled is None else bool(compiled)
         self.nx, self.nu = n, m
         self.Q = weight(Q, "Q", n, definite=False)
@@ -84,8 +90,9 @@ class OCP:
         self._task_maps = None  # task_maps(), once made
 
     def __repr__(self):
+        integrator = "" if self.integrator == "rk4" else f", integrator={self.integrator!r}"
         return (f"OCP({self.model.name!r}, dt={self.dt}, horizon={self.horizon}, "
-                f"{self.parameterization.kind} knots={self.knots})")
+                f"{self.parameterization.kind} knots={self.knots}{integrator})")
 
     @property
     def terms(self) -> list[str]:
@@ -138,7 +145,7 @@ class OCP:
 
     def discrete(self) -> ca.Function:
         """The discrete model F(x, u) -> x⁺ every solver predicts with."""
-        return self.model.discrete(self.dt, self.substeps)
+        return self.model.discrete(self.dt, self.substeps, self.integrator)
 
     def affine(self) -> ca.Function:
         """The affine model (x̄, ū) -> (A_d, B_d, w_d) of :meth:`discrete`.
@@ -148,7 +155,7 @@ class OCP:
         Not given (default): the virtual machine, which switches by itself to the compiled C as soon as a compile
         started in the background at this first call finishes (models of ``BACKGROUND_MIN_INSTRUCTIONS`` and
         more; a :class:`ocpkit.compiled.SwitchingFunction`); without a C compiler, the VM with one warning."""
-        fn = self.model.affine(self.dt, self.substeps)
+        fn = self.model.affine(self.dt, self.substeps, self.integrator)
         if not (self.compiled or (self.compiled is None
                                   and self.model.jacobian.n_instructions() >= BACKGROUND_MIN_INSTRUCTIONS)):
             return fn
