@@ -341,7 +341,7 @@ def _model_functions(ocp: OCP, name: str):
     A linear model's discretization is a constant (matrix exponential): ``<name>_affine`` (x, ū) -> (A_d, B_d,
     w_d) is small. A nonlinear one is RK4 over ``substeps``: ``<name>_fjac`` (x, u) -> (f, ∂f/∂x, ∂f/∂u) is
     generated once (:attr:`Model.jacobian`), its Jacobians kept sparse, and the C step propagates the
-    sensitivities through the four stages (dk/dx = J_x(x_s, u) dx_s/dx, …) — the forward sensitivities
+    sensitivities through the four stages (integrator "euler": its one step, also in C) (dk/dx = J_x(x_s, u) dx_s/dx, …) — the forward sensitivities
     ``ocp.affine()`` propagates with dense products, here sparse-times-dense.
     """
     model = ocp.model
@@ -354,17 +354,19 @@ def _model_functions(ocp: OCP, name: str):
                 ca.Function(f"{name}_model", [xs, us], [step], ["x", "u"], ["x_next"]), None)
     x, u, jac = model.x, model.u, model.jacobian
     fj = ca.Function(f"{name}_fjac", [x, u], jac(x, u), ["x", "u"], ["xdot", "fx", "fu"])
-    # The example's discrete model: RK4 calling f (generated once), not f inlined four times per substep.
-    f = ca.Function(f"{name}_f", [x, u], [model.xdot], ["x", "u"], ["xdot"])
-    h = ocp.dt / ocp.substeps
     X, U = ca.MX.sym("x", ocp.nx), ca.MX.sym("u", ocp.nu)
-    xm = X
-    for _ in range(ocp.substeps):
-        q1 = f(xm, U)
-        q2 = f(xm + h / 2 * q1, U)
-        q3 = f(xm + h / 2 * q2, U)
-        q4 = f(xm + h * q3, U)
-        xm = xm + h / 6 * (q1 + 2 * q2 + 2 * q3 + q4)
+    if ocp.integrator == "rk4":  # the example's discrete model: RK4 calling f (generated once), not f inlined 4 times
+        f = ca.Function(f"{name}_f", [x, u], [model.xdot], ["x", "u"], ["xdot"])
+        h = ocp.dt / ocp.substeps
+        xm = X
+        for _ in range(ocp.substeps):
+            q1 = f(xm, U)
+            q2 = f(xm + h / 2 * q1, U)
+            q3 = f(xm + h / 2 * q2, U)
+            q4 = f(xm + h * q3, U)
+            xm = xm + h / 6 * (q1 + 2 * q2 + 2 * q3 + q4)
+    else:
+        xm = ocp.discrete()(X, U)
     step = ca.Function(f"{name}_model", [X, U], [xm], ["x", "u"], ["x_next"])
     return fj, step, (jac.sparsity_out(1).get_triplet(), jac.sparsity_out(2).get_triplet())
 
@@ -661,6 +663,8 @@ def _constants(tr: CondensedQP, linearization: str, jac, tf=None, iterations: in
         f"#define DIAG_Q {int(tr.diagonal_Q)}",
         f"#define HAS_DQT {int(np.any(tr._dQT))}",
         f"#define MODEL_RK4 {int(jac is not None)}",
+        f"#define EULER {int(ocp.integrator == 'euler')}",
+        f"#define EULER_NQ {ocp.model.second_order or 0}",  # semi-implicit over q = x[:nq]; 0: explicit Euler
         f"#define SUBSTEPS {ocp.substeps}",
         f"#define RK_H {_c_num(ocp.dt / ocp.substeps)}",
         f"#define NGRAM_OPS {len(ops)}",
@@ -1175,7 +1179,30 @@ static void sensitivity_rate(const mem_t* m, const double* restrict S, double* r
    sensitivities (the generated f, ∂f/∂x, ∂f/∂u at each stage), or the generated constant model of a linear one. */
 static int affine_model(mem_t* m, const double* x, const double* u, double* L) {
   int i, j;
-#if MODEL_RK4
+#if MODEL_RK4 && EULER
+  /* Euler over SUBSTEPS (integrator "euler"), its sensitivities S = ∂x/∂(x_0, u) alongside: semi-implicit for
+     x = [q, q̇] (EULER_NQ = nq entries of q), q̇⁺ = q̇ + h q̈(x, u), q⁺ = q + h q̇⁺; explicit (EULER_NQ = 0),
+     x⁺ = x + h f(x, u). One f, ∂f/∂x, ∂f/∂u a substep instead of RK4's four. */
+  const int nS = NX * (NX + NU), w = NX + NU;
+  int sub;
+  for (i = 0; i < NX; ++i) m->xk[i] = x[i];
+  for (i = 0; i < nS; ++i) m->S[i] = 0;
+  for (i = 0; i < NX; ++i) m->S[i * w + i] = 1;
+  for (sub = 0; sub < SUBSTEPS; ++sub) {
+    m->arg[0] = m->xk; m->arg[1] = u;
+    m->res[0] = m->kq; m->res[1] = m->fx; m->res[2] = m->fu;
+    if (${name}_fjac(m->arg, m->res, (casadi_int*) m->iw, m->w, 0)) return 1;
+    sensitivity_rate(m, m->S, m->D);
+    for (i = EULER_NQ; i < NX; ++i) {
+      m->xk[i] += RK_H * m->kq[i];
+      for (j = 0; j < w; ++j) m->S[i * w + j] += RK_H * m->D[i * w + j];
+    }
+    for (i = 0; i < EULER_NQ; ++i) {  /* with the new q̇ */
+      m->xk[i] += RK_H * m->xk[EULER_NQ + i];
+      for (j = 0; j < w; ++j) m->S[i * w + j] += RK_H * m->S[(EULER_NQ + i) * w + j];
+    }
+  }
+#elif MODEL_RK4
   static const double C_STAGE[4] = {0.0, 0.5 * RK_H, 0.5 * RK_H, RK_H}, W_STAGE[4] = {1.0, 2.0, 2.0, 1.0};
   const int nS = NX * (NX + NU);
   int sub, q;
@@ -1199,6 +1226,8 @@ static int affine_model(mem_t* m, const double* x, const double* u, double* L) {
     for (i = 0; i < NX; ++i) m->xk[i] += RK_H / 6 * m->kacc[i];
     for (i = 0; i < nS; ++i) m->S[i] += RK_H / 6 * m->Dacc[i];
   }
+#endif
+#if MODEL_RK4
   for (i = 0; i < NX; ++i) {
     const double* si = m->S + i * (NX + NU);
     double* Li = L + i * NL;

@@ -11,11 +11,12 @@ from ocpkit.solvers.qp import LinearMPC
 from ocpkit.task import FramePosition, Task
 
 
-@pytest.mark.parametrize("name, horizon, iterations, tol", [("nlink:3", 40, 1, 0.0), ("puma560", 50, 1, 0.0),
-                                                            ("panda", 30, 1, 0.0), ("nlink:3", 40, 3, 1e-6)])
-def test_c_step_equals_python_rti_in_closed_loop(name, horizon, iterations, tol):
+@pytest.mark.parametrize("name, horizon, iterations, tol, integrator", [
+    ("nlink:3", 40, 1, 0.0, "rk4"), ("puma560", 50, 1, 0.0, "rk4"), ("panda", 30, 1, 0.0, "rk4"),
+    ("nlink:3", 40, 3, 1e-6, "rk4"), ("puma560", 50, 1, 0.0, "euler"), ("panda", 30, 2, 0.0, "euler")])
+def test_c_step_equals_python_rti_in_closed_loop(name, horizon, iterations, tol, integrator):
     prob = problems.make(name)
-    ocp = prob.ocp(knots=5, horizon=horizon)
+    ocp = prob.ocp(knots=5, horizon=horizon, integrator=integrator)
     c = RealTimeIteration(ocp, iterations=iterations, tol=tol, native=True)
     py = RealTimeIteration(ocp, iterations=iterations, tol=tol, native=False)
     assert "C step" in repr(c) and "C step" not in repr(py)
