@@ -136,7 +136,8 @@ class ShootingOCP:
     ``problem`` supplies the pinocchio model (``pin_model``) of ``ocp.model``; ``ocp`` must be traditional MPC
     (p = T), without a task or state bounds (FDDP has none), with diagonal Q, Q_T and R and, for "rk4", RK4 in
     one step per dt. ``set(x0, goal)`` rebuilds the node models when the goal changes and moves x0 otherwise;
-    ``nodes`` and ``trajectory`` translate between ocpkit's (x_0 … x_T, u_0 … u_{T−1}) and the node lists.
+    ``nodes`` and ``trajectory`` translate between ocpkit's (x_0 … x_T, u_0 … u_{T−1}) and the node lists,
+    ``rollout`` makes the node lists of inputs and their states by Crocoddyl's dynamics.
     """
 
     def __init__(self, problem, ocp: OCP, integrator: str = "rk4"):
@@ -243,13 +244,23 @@ class ShootingOCP:
 
     def nodes(self, states, inputs):
         """Node lists (xs, us) of ocpkit's states x_0 … x_T (T+1, n) and inputs (T, m)."""
-        X, U = np.asarray(states, dtype=float), np.asarray(inputs, dtype=float)
+        X = np.asarray(states, dtype=float)
         if self.integrator == "euler":
-            return list(X), list(U)
-        none = np.zeros(0)
-        xs = [X[0]] + [X[k] for k in range(1, len(U)) for _ in (0, 1)] + [X[-1]]
-        us = [U[0]] + [u for k in range(1, len(U)) for u in (none, U[k])]
-        return xs, us
+            return list(X), self._input_nodes(inputs)
+        xs = [X[0]] + [X[k] for k in range(1, len(X) - 1) for _ in (0, 1)] + [X[-1]]
+        return xs, self._input_nodes(inputs)
+
+    def rollout(self, inputs):
+        """Node lists (xs, us) of ``inputs`` (T, m), xs their rollout from x0 by Crocoddyl's own dynamics."""
+        us = self._input_nodes(inputs)
+        return list(self.problem.rollout(us)), us
+
+    def _input_nodes(self, inputs):
+        U = np.asarray(inputs, dtype=float)
+        if self.integrator == "euler":
+            return list(U)
+        none = np.zeros(0)  # the input of a state-term node
+        return [U[0]] + [u for k in range(1, len(U)) for u in (none, U[k])]
 
     def trajectory(self, xs, us):
         """ocpkit's (states (T+1, n), inputs (T, m)) of node lists."""
@@ -267,7 +278,9 @@ class CrocoddylMPC(Controller):
     """MPC by Crocoddyl's FDDP (BoxFDDP under input bounds) on :class:`ShootingOCP`, as an ocpkit Controller.
 
     A cold step starts FDDP from the states held at x and the input goal (clipped), as NonlinearMPC starts
-    IPOPT; later steps from the previous solution shifted one step. A step is a success when FDDP converges
+    IPOPT; later steps from the previous inputs shifted one step and their rollout from x, a feasible guess (the
+    shifted states, whose appended last state leaves a gap, took BoxFDDP 20–23 iterations a step on the Puma
+    560 instead of 3: tiny steps while its regularization climbed to 1e3). A step is a success when FDDP converges
     (expected decrease below ``th_stop``, Crocoddyl's default 1e-9) within ``max_iter`` iterations; otherwise
     the fallback, status "limited".
     """
@@ -286,39 +299,35 @@ class CrocoddylMPC(Controller):
 
     def reset(self) -> None:
         super().reset()
-        self._warm = None  # (states, inputs) of the last converged solve
+        self._warm = None  # the inputs (T, m) of the last converged solve
 
     def _discard(self) -> None:
         self._warm = None
 
     def prepare(self, x, goal):
-        """The problem at (x, goal) and the initial guess as node lists (cold, or the shifted previous solution)."""
+        """The problem at (x, goal) and the initial guess: node lists xs, us and whether xs is their rollout."""
         sh = self.shooting
         if sh.set(x, goal) or self.solver is None:
             croc = sh.croc
             self.solver = (croc.SolverBoxFDDP if sh.bounded else croc.SolverFDDP)(sh.problem)
             self.solver.th_stop = self.th_stop
-        T = self.ocp.horizon
         if self._warm is None or not self.warm_start:
-            states, inputs = np.tile(x, (T + 1, 1)), self.goal_knots(goal)
-        else:
-            X, U = self._warm
-            states, inputs = np.vstack([x, X[2:], X[-1:]]), np.vstack([U[1:], U[-1:]])
-        return sh.nodes(states, inputs)
+            return (*sh.nodes(np.tile(x, (self.ocp.horizon + 1, 1)), self.goal_knots(goal)), False)
+        return (*sh.rollout(np.vstack([self._warm[1:], self._warm[-1:]])), True)
 
     def one_iteration(self, x, goal) -> float:
         """Seconds of one FDDP iteration from the cold guess (Crocoddyl's benchmarks: ``solve`` with maxiter 1)."""
         self._warm = None
-        xs, us = self.prepare(x, goal)
+        xs, us, feasible = self.prepare(x, goal)
         start = time.perf_counter()
-        self.solver.solve(xs, us, 1, False)
+        self.solver.solve(xs, us, 1, feasible)
         return time.perf_counter() - start
 
     def _solve(self, x: np.ndarray, goal: np.ndarray) -> Solution:
         t0 = time.perf_counter()
-        xs, us = self.prepare(x, goal)
+        xs, us, feasible = self.prepare(x, goal)
         t1 = time.perf_counter()
-        converged = self.solver.solve(xs, us, self.max_iter, False)
+        converged = self.solver.solve(xs, us, self.max_iter, feasible)
         t2 = time.perf_counter()
         solver = self.solver
         iterations = solver.iter + 1 if converged else solver.iter
@@ -331,7 +340,7 @@ class CrocoddylMPC(Controller):
             self._warm = None
             return self.fallback(LIMITED, f"FDDP not converged in {iterations} iterations (expected decrease "
                                           f"{solver.stop:.3g}, th_stop {self.th_stop:g})", times, iterations)
-        self._warm = (X, U)
+        self._warm = U
         return Solution(u=U[0].copy(), knots=U, status=SUCCESS, iterations=iterations, x_pred=X, times=times,
                         raw_status=f"FDDP converged in {iterations} iterations (expected decrease {solver.stop:.3g})")
 
@@ -345,7 +354,8 @@ def compare(problems=PROBLEMS, horizon: int | None = 50, knots: int | None = 5, 
 
     For each problem and seeded start/goal every solver runs ``steps`` MPC steps on ocpkit's own discrete model
     (no plant mismatch: the warm starts are what a converged MPC sees): the first step is cold (states held at
-    x_0, inputs at the input goal), the others warm (the previous solution shifted). Rows, with the median and
+    x_0, inputs at the input goal), the others warm (the previous solution shifted; FDDP's states are the shifted
+    inputs' rollout, see :class:`CrocoddylMPC`). Rows, with the median and
     the worst over the ``seeds``: "fddp rk4" (the equal comparison), "fddp euler" (Crocoddyl's default
     semi-implicit Euler: another model, its plan's inputs scored on ocpkit's RK4), "ipopt" (NonlinearMPC's
     IPOPT on the p = T OCP, the reference optimum), "rti" (one Gauss–Newton step a control step) and ocpkit's
@@ -402,8 +412,9 @@ def compare(problems=PROBLEMS, horizon: int | None = 50, knots: int | None = 5, 
 def _run(ctrl, ocp: OCP, x0, goal, steps: int, repeats: int) -> dict:
     """``steps`` MPC steps of ``ctrl`` on ocpkit's discrete model from x0: cold/warm times, iterations, cost."""
     croc = isinstance(ctrl, CrocoddylMPC)
-    if croc:
-        ctrl.prepare(x0, goal)  # the problem built for this goal: once per goal, not a step's work
+    # One untimed solve first: a new controller's first step pays one-offs that are no solver's work (the thread
+    # limiter's scan of the loaded libraries, first calls; FDDP's problem built for this goal; RTI's QP set-up).
+    ctrl.solve(x0, goal)
     ctrl.reset()
     F, x, sols = ocp.discrete(), np.asarray(x0, dtype=float), []
     for _ in range(steps):
@@ -425,7 +436,7 @@ def _run(ctrl, ocp: OCP, x0, goal, steps: int, repeats: int) -> dict:
 
 def _calc_times(ctrl: CrocoddylMPC, x0, goal, repeats: int) -> tuple[float, float]:
     """Median ms of ``ShootingProblem.calc`` and ``calcDiff`` at the cold guess (node lists from Python)."""
-    xs, us = ctrl.prepare(x0, goal)
+    xs, us, _ = ctrl.prepare(x0, goal)
     problem, out = ctrl.shooting.problem, []
     for call in (problem.calc, problem.calcDiff):
         seen = []
