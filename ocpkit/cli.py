@@ -18,6 +18,7 @@ import numpy as np
 
 from ocpkit import __version__, problems, solvers, studies
 from ocpkit.controller import LINEARIZATIONS, TRAJECTORY, Controller
+from ocpkit.model import INTEGRATORS
 
 
 _SPEC_HELP = ("problem spec: a registered name (pendulum, pendulum:linear, nlink:N with N = 1…13, puma560, baxter, "
@@ -67,6 +68,10 @@ def _add_problem_args(p):
                    help="input between the knots: linear (default, the paper's piecewise-linear), zoh (move blocking) "
                         "or identity (traditional MPC, p = T; takes no --knots)")
     p.add_argument("--horizon", type=int, default=None, help="horizon T in steps (default: the problem's)")
+    p.add_argument("--integrator", default="rk4", choices=INTEGRATORS,
+                   help="how the controller predicts a step of a nonlinear model: rk4 (default) or euler "
+                        "(semi-implicit for x = [q, q̇]; one model and Jacobian evaluation instead of four; the plant "
+                        "stays RK4)")
 
 
 def _add_controller_args(p):
@@ -276,7 +281,7 @@ def _knots(problem, args) -> int | None:
 
 def _ocp(problem, args, **options):
     return problem.ocp(knots=_knots(problem, args), horizon=args.horizon, parameterization=args.parameterization,
-                       **options)
+                       integrator=args.integrator, **options)
 
 
 # --- task-space targets: --target, --obstacle, --frame, --task (ocpkit.task.reach) --------------------------------
@@ -418,7 +423,7 @@ def _reach_ocp(problem, args, task: _Reach, **options):
         except (TypeError, ValueError) as exc:
             raise ValueError(f"{task.source['frame']} {task.frame!r}: {exc}") from None
     return reach(problem, task.obstacles, frame=task.frame, knots=_knots(problem, args), horizon=args.horizon,
-                 parameterization=args.parameterization, **task.options, **options)
+                 parameterization=args.parameterization, integrator=args.integrator, **task.options, **options)
 
 
 def _reach_panels(problem, ocp, task: _Reach, xs) -> dict:

@@ -279,3 +279,12 @@ def test_version(capsys):
     with pytest.raises(SystemExit) as exit_:
         cli.main(["--version"])
     assert exit_.value.code == 0 and capsys.readouterr().out.strip() == f"ocpkit {__version__}"
+
+
+def test_integrator_option_reaches_the_controllers_ocp(tmp_path, capsys):
+    args = ["simulate", "nlink:2", "--solver", "ipopt", "--method", "rti", "--duration", "0.1", "--json",
+            "--out", str(tmp_path / "sim.png")]
+    assert main(args + ["--integrator", "euler"]) == 0
+    assert "integrator='euler'" in json.loads(capsys.readouterr().out)["controller"]
+    res = run("solve", "nlink:2", "--integrator", "rk2", cwd=tmp_path)
+    assert res.returncode == 2 and "invalid choice: 'rk2'" in res.stderr
