@@ -7,8 +7,9 @@ Crocoddyl is the reference DDP library for arms; the comparison is only fair on 
   with the armature, as :meth:`ocpkit.rigid_body.Chain.forward_dynamics`. Crocoddyl's free dynamics have no joint
   damping b q̇ or friction (its C++ actuation models map u alone to τ), so the comparison runs the problems
   without them (:func:`undamped`). Construction checks ẋ against ``ocp.model.f`` at seeded random states.
-* integrator: ``IntegratedActionModelRK`` (RK4, one step per dt) is ocpkit's prediction model (RK4, ``substeps``
-  1); semi-implicit Euler, Crocoddyl's default, is a different model, for reference.
+* integrator: the OCP's (``ocp.integrator``, one step a dt): ``IntegratedActionModelRK`` (RK4) for "rk4", ocpkit's
+  default; ``IntegratedActionModelEuler`` (semi-implicit, Crocoddyl's default) for "euler", ocpkit's semi-implicit
+  Euler for x = [q, q̇].
 * cost: ocpkit's Σ_{k=0}^{T-1} (x_k − x_g)ᵀQ(x_k − x_g) + (u_k − u_g)ᵀR(u_k − u_g) + (x_T − x_g)ᵀQ_T(x_T − x_g),
   the constant x_0 term left out, no factor ½, u_g = ``ocp.input_goal`` (gravity compensation on URDF robots).
   Crocoddyl's weighted quadratic activation is ½ Σ w_i r_i² and an integrated model's running cost is dt times
@@ -34,12 +35,11 @@ from functools import cache
 import numpy as np
 
 from ocpkit import problems as registry
-from ocpkit._checks import choice, integer, positive
+from ocpkit._checks import integer, positive
 from ocpkit.controller import LIMITED, NAN, SUCCESS, Controller, Solution
 from ocpkit.ocp import OCP
 
 INSTALL = 'pip install "ocpkit[peers]"'
-INTEGRATORS = ("rk4", "euler")
 # |ẋ_Crocoddyl − ẋ_ocpkit| allowed at the construction check, relative to max(1, |ẋ|): both are the ABA in
 # double precision (1e-13 measured on the Panda), so anything beyond is a different model.
 DYNAMICS_TOL = 1e-9
@@ -134,17 +134,18 @@ class ShootingOCP:
     """ocpkit's OCP as a Crocoddyl ``ShootingProblem`` for one start and goal (see the module docstring).
 
     ``problem`` supplies the pinocchio model (``pin_model``) of ``ocp.model``; ``ocp`` must be traditional MPC
-    (p = T), without a task or state bounds (FDDP has none), with diagonal Q, Q_T and R and, for "rk4", RK4 in
-    one step per dt. ``set(x0, goal)`` rebuilds the node models when the goal changes and moves x0 otherwise;
-    ``nodes`` and ``trajectory`` translate between ocpkit's (x_0 … x_T, u_0 … u_{T−1}) and the node lists,
-    ``rollout`` makes the node lists of inputs and their states by Crocoddyl's dynamics.
+    (p = T), without a task or state bounds (FDDP has none), with diagonal Q, Q_T and R and one integrator step
+    (RK4 or semi-implicit Euler, ``ocp.integrator``) a dt. ``set(x0, goal)`` rebuilds the node models when the
+    goal changes and moves x0 otherwise; ``nodes`` and ``trajectory`` translate between ocpkit's (x_0 … x_T,
+    u_0 … u_{T−1}) and the node lists, ``rollout`` makes the node lists of inputs and their states by Crocoddyl's
+    dynamics.
     """
 
-    def __init__(self, problem, ocp: OCP, integrator: str = "rk4"):
+    def __init__(self, problem, ocp: OCP):
         self.croc = require()
         if not isinstance(ocp, OCP):
             raise TypeError(f"ocp must be an ocpkit OCP, got {type(ocp).__name__}")
-        self.integrator = choice(integrator, INTEGRATORS, "integrator")
+        self.integrator = ocp.integrator
         if ocp.parameterization.kind != "identity":
             raise ValueError(f"ocp has {ocp.knots} knots over a horizon of {ocp.horizon}: Crocoddyl solves "
                              "traditional MPC only, build it with problem.ocp(knots=None)")
@@ -156,9 +157,10 @@ class ShootingOCP:
             W = getattr(ocp, name)
             if np.any(W != np.diag(np.diag(W))):
                 raise ValueError(f"ocp.{name} is not diagonal: Crocoddyl's weighted quadratic activation is")
-        if integrator == "rk4" and (ocp.model.linear or ocp.substeps != 1):
-            how = "the exact discretization of a linear model" if ocp.model.linear else f"{ocp.substeps} RK4 substeps"
-            raise ValueError(f"ocp predicts with {how}, Crocoddyl's RK4 node with one RK4 step a dt")
+        if ocp.model.linear or ocp.substeps != 1:
+            how = ("the exact discretization of a linear model" if ocp.model.linear
+                   else f"{ocp.substeps} {ocp.integrator} substeps")
+            raise ValueError(f"ocp predicts with {how}, a Crocoddyl node with one {ocp.integrator} step a dt")
         pin_model = getattr(problem, "pin_model", None)
         if pin_model is None:
             raise ValueError(f"problem {getattr(problem, 'name', problem)!r} has no pinocchio model (pin_model) "
@@ -285,9 +287,9 @@ class CrocoddylMPC(Controller):
     the fallback, status "limited".
     """
 
-    def __init__(self, problem, ocp: OCP, *, integrator: str = "rk4", max_iter: int = 100, th_stop: float = 1e-9,
-                 warm_start: bool = True, raise_on_fail: bool = False):
-        self.shooting = ShootingOCP(problem, ocp, integrator)
+    def __init__(self, problem, ocp: OCP, *, max_iter: int = 100, th_stop: float = 1e-9, warm_start: bool = True,
+                 raise_on_fail: bool = False):
+        self.shooting = ShootingOCP(problem, ocp)
         self.max_iter = integer(max_iter, "max_iter", 1)
         self.th_stop = positive(th_stop, "th_stop")
         self.warm_start = bool(warm_start)
@@ -355,10 +357,10 @@ def compare(problems=PROBLEMS, horizon: int | None = 50, knots: int | None = 5, 
     For each problem and seeded start/goal every solver runs ``steps`` MPC steps on ocpkit's own discrete model
     (no plant mismatch: the warm starts are what a converged MPC sees): the first step is cold (states held at
     x_0, inputs at the input goal), the others warm (the previous solution shifted; FDDP's states are the shifted
-    inputs' rollout, see :class:`CrocoddylMPC`). Rows, with the median and
-    the worst over the ``seeds``: "fddp rk4" (the equal comparison), "fddp euler" (Crocoddyl's default
-    semi-implicit Euler: another model, its plan's inputs scored on ocpkit's RK4), "ipopt" (NonlinearMPC's
-    IPOPT on the p = T OCP, the reference optimum), "rti" (one Gauss–Newton step a control step) and ocpkit's
+    inputs' rollout, see :class:`CrocoddylMPC`). Rows, with the median and the worst over the ``seeds``: "fddp
+    rk4" (the equal comparison), "fddp euler" (Crocoddyl's default, semi-implicit Euler, on the OCP with
+    ``integrator="euler"``: its plan's inputs scored on RK4), "ipopt" (NonlinearMPC's IPOPT on the p = T OCP, the
+    reference optimum), "rti" (one Gauss–Newton step a control step) and ocpkit's
     IPOPT and RTI on ``knots`` knots (none for ``knots`` None). Columns: the time of one iteration (FDDP: a
     solve with maxiter 1 from the cold guess, median of ``repeats``, as Crocoddyl's benchmarks time it; IPOPT:
     its cold solve over its iterations), cold and warm step time (``Solution.times["total"]``, ms) and
@@ -373,33 +375,34 @@ def compare(problems=PROBLEMS, horizon: int | None = 50, knots: int | None = 5, 
     if isinstance(problems, str):
         raise TypeError(f"problems must be a list of problem specs, got the string {problems!r}")
     # name -> (controller of (problem, its OCP), whether that OCP has the knots)
-    solvers = {"fddp rk4": (CrocoddylMPC, False),
-               "fddp euler": (lambda prob, ocp: CrocoddylMPC(prob, ocp, integrator="euler"), False),
-               "ipopt": (lambda prob, ocp: NonlinearMPC(ocp), False),
-               "rti": (lambda prob, ocp: NonlinearMPC(ocp, method="rti"), False)}
+    # name -> (controller of (problem, its OCP), its OCP: "T" (p = T, RK4), "euler" (p = T) or "knots")
+    solvers = {"fddp rk4": (CrocoddylMPC, "T"), "fddp euler": (CrocoddylMPC, "euler"),
+               "ipopt": (lambda prob, ocp: NonlinearMPC(ocp), "T"),
+               "rti": (lambda prob, ocp: NonlinearMPC(ocp, method="rti"), "T")}
     if knots is not None:
-        solvers[f"ipopt p={knots}"] = (lambda prob, ocp: NonlinearMPC(ocp), True)
-        solvers[f"rti p={knots}"] = (lambda prob, ocp: NonlinearMPC(ocp, method="rti"), True)
+        solvers[f"ipopt p={knots}"] = (lambda prob, ocp: NonlinearMPC(ocp), "knots")
+        solvers[f"rti p={knots}"] = (lambda prob, ocp: NonlinearMPC(ocp, method="rti"), "knots")
     rows = []
     for spec in problems:
         prob = undamped(spec)
-        ocps = {False: prob.ocp(knots=None, horizon=horizon)}
+        ocps = {"T": prob.ocp(knots=None, horizon=horizon),
+                "euler": prob.ocp(knots=None, horizon=horizon, integrator="euler")}
         if knots is not None:
-            ocps[True] = prob.ocp(knots=knots, horizon=horizon)
-        ocp = ocps[False]
+            ocps["knots"] = prob.ocp(knots=knots, horizon=horizon)
+        ocp = ocps["T"]
         runs = {name: [] for name in solvers}
         calc = []
         for seed in range(seeds):
             x0, goal = prob.sample(seed)
-            for name, (make, knotted) in solvers.items():
-                ctrl = make(prob, ocps[knotted])
+            for name, (make, which) in solvers.items():
+                ctrl = make(prob, ocps[which])
                 runs[name].append(_run(ctrl, ocp, x0, goal, steps, repeats))
                 if name == "fddp rk4":
                     calc.append(_calc_times(ctrl, x0, goal, repeats))
         reference = [run["cost"] for run in runs["ipopt"]]
         for name, seen in runs.items():
             ratio = [run["cost"] / ref for run, ref in zip(seen, reference)]
-            row = {"problem": spec, "solver": name, "knots": knots if solvers[name][1] else "T",
+            row = {"problem": spec, "solver": name, "knots": knots if solvers[name][1] == "knots" else "T",
                    "horizon": ocp.horizon, "seeds": seeds, "cost_ratio": ratio}
             for key in ("iteration_ms", "cold_ms", "cold_iterations", "warm_ms", "warm_iterations", "failures"):
                 row[key] = [run[key] for run in seen]

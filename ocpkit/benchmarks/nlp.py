@@ -71,7 +71,8 @@ def controller(kind: str, ocp, problem=None):
     from ocpkit.solvers.qp import LinearMPC
 
     if kind == "crocoddyl":
-        return crocoddyl_peer.CrocoddylMPC(problem, problem.ocp(knots=None, horizon=ocp.horizon))
+        return crocoddyl_peer.CrocoddylMPC(problem, problem.ocp(knots=None, horizon=ocp.horizon,
+                                                                integrator=ocp.integrator))
     if kind == "ipopt":
         return NonlinearMPC(ocp)
     if kind == "fatrop":
