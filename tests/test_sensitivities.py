@@ -99,3 +99,13 @@ def test_affine_model_is_the_jacobian_of_the_discrete_step(spec, integrator):
             _close(Ad, A_ref, f"{spec} {integrator} A_d")
             _close(Bd, B_ref, f"{spec} {integrator} B_d")
             _close(Ad @ x + Bd @ u + wd.ravel(), np.asarray(F(x, u), dtype=float).ravel(), f"{spec} w_d")
+
+
+def test_integrator_benchmark_closed_loops_agree(tmp_path, monkeypatch):
+    """The benchmark's closed loops: RTI predicting with Euler steers the plant (RK4) about as well as with RK4."""
+    from ocpkit.benchmarks.sensitivities import bench_integrators
+
+    monkeypatch.setenv("OCPKIT_CACHE_DIR", str(tmp_path))
+    (row,) = bench_integrators(["nlink:2"], seeds=(0,), steps=20, horizon=20, methods=("rti",), out=lambda *a: None)
+    assert row["steps"] == 20 and row["rti rk4 fallbacks"] == row["rti euler fallbacks"] == 0
+    assert 0.98 < row["rti e/r"] < 1.02
