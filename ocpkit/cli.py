@@ -201,6 +201,9 @@ def _parser() -> argparse.ArgumentParser:
     bench.add_argument("--precision", choices=("float64", "float32"), help="empc: float type (default float64)")
     bench.add_argument("--problem", action="append", metavar="SPEC",
                        help=f"{'/'.join(_PROBLEM_BENCHMARKS)}: benchmark this problem (repeatable). {_SPEC_HELP}")
+    bench.add_argument("--integrator", choices=INTEGRATORS,
+                       help="nlp: every controller's prediction (default rk4; euler: semi-implicit, the plant stays RK4)")
+    bench.add_argument("--seed", type=int, help="nlp: the first of the seeded starts and goals (default 0)")
     bench.add_argument("--busy", type=int, help="step: busy processes for the quiet-vs-loaded comparison (default 2; "
                                                 "0 skips it)")
     bench.add_argument("--controller", action="append", metavar="NAME",
@@ -699,10 +702,13 @@ def _bench(args):
         if args.busy < 0:
             raise ValueError(f"--busy must be >= 0, got {args.busy}")
         options["busy"] = args.busy
-    if args.controller:
-        if args.what != "nlp":
-            raise ValueError("--controller applies to `ocpkit bench nlp` only")
-        options["controllers"] = tuple(args.controller)
+    nlp = {"controller": ("controllers", tuple), "integrator": ("integrator", str), "seed": ("first_seed", int)}
+    for option, (keyword, kind) in nlp.items():
+        value = getattr(args, option)
+        if value:
+            if args.what != "nlp":
+                raise ValueError(f"--{option} applies to `ocpkit bench nlp` only")
+            options[keyword] = kind(value)
     kwargs = dict(quick) if args.quick else {}
     if args.problem:
         if args.what not in _PROBLEM_BENCHMARKS:

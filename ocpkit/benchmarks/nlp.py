@@ -1,7 +1,9 @@
 """Nonlinear MPC side by side: IPOPT, fatrop, real-time iteration (1 and 3 SQP steps) and LinearMPC (LTI, LTV).
 
 For each problem and seeded start/goal every controller runs its own closed loop on the plant (the same
-starts, goals and duration); the table gives each one's median step time (model + build + solve, ms), its
+starts, goals and duration); the table gives each one's time to its steady state (construction plus the
+background builds it waits for: C steps, compiled models), its median step time (model + build + solve, ms) and
+that median's split into the model's sensitivities, the QP's build (condensing) and the QP solve, its
 closed-loop actual cost (ocpkit.metrics.actual_cost) as a ratio to IPOPT's (converged to its default tol
 1e-8), its fallbacks and its final error max |x_T − x_goal|. All controllers use the same OCP (knots,
 horizon); IPOPT is the reference solution of the nonlinear problem, so a ratio below 1 is luck of the
@@ -19,6 +21,7 @@ closed-loop table it prints its per-solve comparison (:func:`ocpkit.benchmarks.c
 """
 from __future__ import annotations
 
+import os
 import re
 import time
 from pathlib import Path
@@ -82,14 +85,17 @@ def controller(kind: str, ocp, problem=None):
     return LinearMPC(ocp, linearization="goal" if kind == "lti" else "trajectory")
 
 
-def bench_nlp(problems=None, knots: int | None = 5, horizon: int | None = 50, samples: int = 2, steps: int = 50, *,
-              controllers=CONTROLLERS, compiled: bool = False, echo: bool = True) -> list[dict]:
+def bench_nlp(problems=None, knots: int | None = 5, horizon: int | None = 50, samples: int = 3, steps: int = 50, *,
+              controllers=CONTROLLERS, compiled: bool = False, integrator: str = "rk4", first_seed: int = 0,
+              echo: bool = True) -> list[dict]:
     """Median step time (ms), closed-loop actual-cost ratio to IPOPT, fallbacks and final error of every
     controller in CONTROLLERS, one row per problem × controller.
 
     ``knots`` None is traditional MPC (p = T); ``horizon`` None is the problem's own. The cart-pole swing-up
     keeps its own horizon (1 s, 100 steps: half of it cannot see the pole come up) with 10 knots, and runs
-    for the problem's duration plus one second. ``samples`` seeded start/goal pairs run ``steps`` control steps.
+    for the problem's duration plus one second. ``samples`` seeded start/goal pairs (seeds ``first_seed``, …) run
+    ``steps`` control steps. ``integrator`` is every controller's prediction (:data:`ocpkit.model.INTEGRATORS`);
+    the plant is RK4 whatever it is, so the costs of two runs compare across integrators.
 
     ``compiled`` evaluates the affine model as compiled C (RTI's and LTV's T per-stage models, LinearMPC's one):
     the one-off compile (cached) is done before any controller runs and printed, never counted in a step.
@@ -102,6 +108,7 @@ def bench_nlp(problems=None, knots: int | None = 5, horizon: int | None = 50, sa
         raise TypeError(f"problems must be a list of problem names, got the string {problems!r}")
     names = default_problems() if problems is None else list(problems)
     samples, steps = integer(samples, "samples", 1), integer(steps, "steps", 1)
+    first_seed = integer(first_seed, "first_seed", 0)
     controllers = tuple(controllers)
     unknown = [c for c in controllers if c not in CONTROLLERS + PEERS]
     if unknown or not controllers:
@@ -114,13 +121,14 @@ def bench_nlp(problems=None, knots: int | None = 5, horizon: int | None = 50, sa
                   "none); its rows are traditional MPC (knots T)", flush=True)
     rows, compared = [], []
     if echo:
-        print(f"{'problem':<22}{'knots':>6}{'T':>5} {'controller':<8}{'build s':>9}{'step ms':>9}{'p90 ms':>8}"
-              f"{'cost/ipopt':>11}{'fallbk':>7}{'final err':>10}", flush=True)
+        print(f"integrator {integrator}; {samples} seeds from {first_seed}; machine load {_load()}", flush=True)
+        print(f"{'problem':<22}{'knots':>6}{'T':>5} {'controller':<10}{'ready s':>8}{'step ms':>9}{'p90 ms':>8}"
+              f"{'model':>7}{'build':>7}{'QP':>7}{'cost/ipopt':>11}{'fallbk':>7}{'final err':>10}", flush=True)
     for name in names:
         prob = crocoddyl_peer.undamped(name) if peer else registry.make(name)
         swing = prob.name == "cartpole"
         p, T = (10, None) if swing else (knots, horizon)
-        ocp = prob.ocp(knots=p, horizon=T, compiled=compiled) if compiled else prob.ocp(knots=p, horizon=T)
+        ocp = prob.ocp(knots=p, horizon=T, integrator=integrator, **({"compiled": True} if compiled else {}))
         if compiled:
             t0 = time.perf_counter()
             ocp.affine()  # compiled (or loaded from the cache) once, outside every timed step
@@ -128,7 +136,7 @@ def bench_nlp(problems=None, knots: int | None = 5, horizon: int | None = 50, sa
                 print(f"{name}: compiled affine model ready in {time.perf_counter() - t0:.1f} s", flush=True)
         duration = (prob.duration + 1.0) if swing else steps * ocp.dt
         cases = []
-        for seed in range(samples):
+        for seed in range(first_seed, first_seed + samples):
             x0, goal = prob.sample(seed)
             if swing:
                 x0 = np.r_[x0[0], np.pi + x0[1], x0[2:]]
@@ -144,12 +152,16 @@ def bench_nlp(problems=None, knots: int | None = 5, horizon: int | None = 50, sa
                 if echo:
                     print(f"{name}: no {kind} row: {exc}", flush=True)
                 continue
+            if hasattr(ctrl, "wait_compiled"):  # the steady state: C step or compiled model loaded
+                ctrl.wait_compiled()
             build = time.perf_counter() - t0
-            times, cost, fallbacks, errors = [], 0.0, 0, []
+            times, cost, fallbacks, errors, split = [], 0.0, 0, [], {"model": [], "build": [], "solve": []}
             for x0, goal in cases:
                 ctrl.reset()
                 traj = simulate(prob.plant(), ctrl, x0, goal, duration)
                 times += list(traj.times())
+                for part in split:
+                    split[part] += list(traj.times(part))
                 cost += actual_cost(traj, ocp)
                 fallbacks += traj.fallbacks
                 errors.append(float(np.abs(traj.x[-1] - goal).max()))
@@ -158,7 +170,8 @@ def bench_nlp(problems=None, knots: int | None = 5, horizon: int | None = 50, sa
                              else own.knots, "horizon": own.horizon, "controller": kind, "build_s": build,
                              "step_ms": 1e3 * float(np.median(times)), "p90_ms": 1e3 * float(np.percentile(times, 90)),
                              "cost": cost, "fallbacks": fallbacks, "final_error": float(np.median(errors)),
-                             "swing_up": swing, "steps": len(times)}
+                             "swing_up": swing, "steps": len(times), "integrator": own.integrator,
+                             **{f"{part}_ms": 1e3 * float(np.median(v)) for part, v in split.items()}}
         if peer and "crocoddyl" in results:
             compared.append(name)
         for kind in results:
@@ -167,10 +180,18 @@ def bench_nlp(problems=None, knots: int | None = 5, horizon: int | None = 50, sa
             rows.append(row)
             if echo:
                 label = "cartpole swing-up" if swing else name
-                print(f"{label:<22}{row['knots']!s:>6}{row['horizon']:>5} {kind:<8}{row['build_s']:>9.2f}"
-                      f"{row['step_ms']:>9.2f}{row['p90_ms']:>8.2f}{row['cost_ratio']:>11.4f}{row['fallbacks']:>7d}"
+                print(f"{label:<22}{row['knots']!s:>6}{row['horizon']:>5} {kind:<10}{row['build_s']:>8.2f}"
+                      f"{row['step_ms']:>9.3f}{row['p90_ms']:>8.3f}{row['model_ms']:>7.3f}{row['build_ms']:>7.3f}"
+                      f"{row['solve_ms']:>7.3f}{row['cost_ratio']:>11.4f}{row['fallbacks']:>7d}"
                       f"{row['final_error']:>10.4f}", flush=True)
+    if echo:
+        print(f"machine load {_load()}", flush=True)
     if compared and echo:  # a printed table: without echo nobody would see it
         crocoddyl_peer.compare(compared, horizon=horizon, knots=knots, seeds=samples,
                                steps=max(2, min(steps, PER_SOLVE_STEPS)), echo=echo)
     return rows
+
+
+def _load() -> str:
+    """The 1-, 5- and 15-minute load averages, and the CPUs they compare to."""
+    return f"{' '.join(f'{v:.2f}' for v in os.getloadavg())} on {os.cpu_count()} CPUs"
