@@ -749,7 +749,7 @@ def _prebuild(args):
         print(f"C step: none (the default LinearMPC keeps its Python step here: {why})")
     if size >= BACKGROUND_MIN_INSTRUCTIONS:
         start = time.time()
-        library = compiled.prebuild(ocp.model.affine(ocp.dt, ocp.substeps))
+        library = compiled.prebuild(ocp.model.affine(ocp.dt, ocp.substeps, ocp.integrator))
         print(f"compiled affine model (the Python step's): {library} ({_how(library, start)})")
     else:
         print(f"compiled affine model: none (a model of {size} VM instructions, below {BACKGROUND_MIN_INSTRUCTIONS}, "

@@ -1173,6 +1173,14 @@ static void sensitivity_rate(const mem_t* m, const double* restrict S, double* r
 #endif
   sensitivity_rate_v2(m, S, D);
 }
+
+/* D = [J_x J_u] scattered: the rate at the step's start, where S = [I 0] (no products). */
+static void jacobian_rate(const mem_t* m, double* restrict D) {
+  int q;
+  for (q = 0; q < NX * (NX + NU); ++q) D[q] = 0;
+  for (q = 0; q < ${N}_NNZ_FX; ++q) D[FX_I[q] * (NX + NU) + FX_J[q]] = m->fx[q];
+  for (q = 0; q < ${N}_NNZ_FU; ++q) D[FU_I[q] * (NX + NU) + NX + FU_J[q]] += m->fu[q];
+}
 #endif
 
 /* L = [A_d B_d 0 w_d] (row-major, NX x NL) of the affine model about (x, ū): RK4 over SUBSTEPS with its
@@ -1192,7 +1200,8 @@ static int affine_model(mem_t* m, const double* x, const double* u, double* L) {
     m->arg[0] = m->xk; m->arg[1] = u;
     m->res[0] = m->kq; m->res[1] = m->fx; m->res[2] = m->fu;
     if (${name}_fjac(m->arg, m->res, (casadi_int*) m->iw, m->w, 0)) return 1;
-    sensitivity_rate(m, m->S, m->D);
+    if (sub) sensitivity_rate(m, m->S, m->D);
+    else jacobian_rate(m, m->D);
     for (i = EULER_NQ; i < NX; ++i) {
       m->xk[i] += RK_H * m->kq[i];
       for (j = 0; j < w; ++j) m->S[i * w + j] += RK_H * m->D[i * w + j];
@@ -1219,7 +1228,8 @@ static int affine_model(mem_t* m, const double* x, const double* u, double* L) {
       m->arg[0] = m->xs; m->arg[1] = u;
       m->res[0] = m->kq; m->res[1] = m->fx; m->res[2] = m->fu;
       if (${name}_fjac(m->arg, m->res, (casadi_int*) m->iw, m->w, 0)) return 1;
-      sensitivity_rate(m, m->Ss, m->D);
+      if (sub || q) sensitivity_rate(m, m->Ss, m->D);
+      else jacobian_rate(m, m->D);
       for (i = 0; i < NX; ++i) m->kacc[i] += wq * m->kq[i];
       for (i = 0; i < nS; ++i) m->Dacc[i] += wq * m->D[i];
     }

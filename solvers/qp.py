@@ -568,7 +568,7 @@ class LinearMPC(Controller):
                 if not build.done():
                     # Until the C step is ready the Python step stays on CasADi's VM: a second compile (the affine
                     # model's) beside the C step's would only compete with this loop and delay the C step.
-                    self._affine_model = BufferedFunction(ocp.model.affine(ocp.dt, ocp.substeps))
+                    self._affine_model = BufferedFunction(ocp.model.affine(ocp.dt, ocp.substeps, ocp.integrator))
                 me = weakref.ref(self)
                 build.add_done_callback(lambda done: (ctrl := me()) is not None and ctrl._load_native(done))
 
