@@ -48,6 +48,7 @@ _BENCHMARKS = {
     "faults": ("faults", "bench_faults", {}),
     "step": ("step", "bench_step", {"links": (1, 7, 13), "steps": 10}),
     "task": ("task", "bench_task", {"problems": ("panda",), "steps": 100, "seeds": 1}),
+    "sensitivities": ("sensitivities", "bench_sensitivities", {"problems": ("puma560", "nlink:7"), "repeats": 50}),
 }
 
 
