@@ -462,8 +462,9 @@ class NonlinearMPC(Controller):
         never evaluated (their seeds are structurally zero)."""
         self._stage_model = fn = ocp.affine()
         if differentiable and fn.class_name() == "External":
-            # the library OCP.affine compiled (same Function, default flags), found in the cache by its hash
-            fn = ca.external(fn.name(), str(prebuild(ocp.model.affine(ocp.dt, ocp.substeps))), {"enable_fd": True})
+            # The library OCP.affine compiled (the same Function, default flags), found in the cache by its hash.
+            source = ocp.model.affine(ocp.dt, ocp.substeps, ocp.integrator)
+            fn = ca.external(fn.name(), str(prebuild(source)), {"enable_fd": True})
         return fn
 
     def _solver_options(self, ocp: OCP) -> dict:

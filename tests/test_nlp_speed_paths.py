@@ -75,14 +75,15 @@ def test_a_task_with_an_active_obstacle_reaches_the_exact_optimum(method):
     _same_optimum(_solve(ocp, x0, goal, method), ref)
 
 
-@pytest.mark.parametrize("method", ["ipopt", "fatrop"])
-def test_compiled_affine_model_gives_the_virtual_machines_optimum(method):
-    """The derivatives from the compiled affine model (fatrop: with finite differences declared for CasADi's
-    derivative generation under stop_diff, never evaluated) equal those from the virtual machine's."""
+@pytest.mark.parametrize("method, integrator", [("ipopt", "rk4"), ("fatrop", "rk4"), ("fatrop", "euler")])
+def test_compiled_affine_model_gives_the_virtual_machines_optimum(method, integrator):
+    """The derivatives from the compiled affine model (fatrop: the library loaded again with finite differences
+    declared for CasADi's derivative generation under stop_diff, never evaluated) equal those from the virtual
+    machine's, for each of the OCP's integrators."""
     prob = problems.make("nlink:3")
     x0, goal = prob.sample(0)
-    vm = _solve(prob.ocp(knots=5, horizon=20, compiled=False), x0, goal, method)
-    compiled = _solve(prob.ocp(knots=5, horizon=20, compiled=True), x0, goal, method)
+    vm, compiled = (_solve(prob.ocp(knots=5, horizon=20, integrator=integrator, compiled=policy), x0, goal, method)
+                    for policy in (False, True))
     _same_optimum(compiled, vm, 1e-9)
 
 
