@@ -493,6 +493,13 @@ class NonlinearMPC(Controller):
         opts.update(self.options)
         return opts
 
+    def wait_compiled(self, timeout: float | None = None) -> bool:
+        """Block until the steady state is in place: RTI's C step (or its compiled model); for the others the compiled
+        affine model their derivatives come from (:meth:`Controller.wait_compiled`)."""
+        if self._rti is not None:
+            return self._rti.wait_compiled(timeout)
+        return super().wait_compiled(timeout)
+
     def reset(self) -> None:
         super().reset()
         self._warm = None  # (w, lam_x, lam_g) of the last successful solve

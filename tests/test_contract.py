@@ -171,8 +171,7 @@ def _reference(problem, config, optimum):
 
 
 @pytest.mark.parametrize("name, optimum", [(name, "convex") for name in ("pendulum", "nlink:3", "cartpole", "arm")]
-                         + [(name, "nlp") for name in ("pendulum", "nlink:3", "cartpole")]
-                         + [pytest.param("arm", "nlp", marks=pytest.mark.slow)])  # IPOPT on the arm: seconds a solve
+                         + [(name, "nlp") for name in ("pendulum", "nlink:3", "cartpole", "arm")])
 def test_contract_configurations_agree_on_their_optimum(name, optimum, problems):
     """From a cold start, every configuration that claims an optimum finds the same knots as the reference
     (the condensed knot QP solved by DAQP to 1e-12; IPOPT to 1e-10 on the NLP)."""

@@ -99,7 +99,7 @@ def bench_nlp(problems=None, knots: int | None = 5, horizon: int | None = 50, sa
 
     ``compiled`` evaluates the affine model as compiled C (RTI's and LTV's T per-stage models, LinearMPC's one):
     the one-off compile (cached) is done before any controller runs and printed, never counted in a step.
-    Without "ipopt" in ``controllers`` (a problem where IPOPT takes seconds a step) the cost ratio is NaN.
+    Without "ipopt" in ``controllers`` (to time the others alone) the cost ratio is NaN.
     "crocoddyl" (PEERS) adds Crocoddyl's FDDP, p = T, on the problems without damping and friction (see the module
     docstring), then its per-solve table over ``samples`` seeds and min(``steps``, PER_SOLVE_STEPS) MPC steps;
     the rows returned are the closed-loop table's.
