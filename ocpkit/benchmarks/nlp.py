@@ -123,7 +123,7 @@ def bench_nlp(problems=None, knots: int | None = 5, horizon: int | None = 50, sa
     if echo:
         print(f"integrator {integrator}; {samples} seeds from {first_seed}; machine load {_load()}", flush=True)
         print(f"{'problem':<22}{'knots':>6}{'T':>5} {'controller':<10}{'ready s':>8}{'step ms':>9}{'p90 ms':>8}"
-              f"{'model':>7}{'build':>7}{'QP':>7}{'cost/ipopt':>11}{'fallbk':>7}{'final err':>10}", flush=True)
+              f"{'model':>8}{'build':>8}{'QP':>9}{'cost/ipopt':>11}{'fallbk':>7}{'final err':>10}", flush=True)
     for name in names:
         prob = crocoddyl_peer.undamped(name) if peer else registry.make(name)
         swing = prob.name == "cartpole"
@@ -181,8 +181,8 @@ def bench_nlp(problems=None, knots: int | None = 5, horizon: int | None = 50, sa
             if echo:
                 label = "cartpole swing-up" if swing else name
                 print(f"{label:<22}{row['knots']!s:>6}{row['horizon']:>5} {kind:<10}{row['build_s']:>8.2f}"
-                      f"{row['step_ms']:>9.3f}{row['p90_ms']:>8.3f}{row['model_ms']:>7.3f}{row['build_ms']:>7.3f}"
-                      f"{row['solve_ms']:>7.3f}{row['cost_ratio']:>11.4f}{row['fallbacks']:>7d}"
+                      f"{row['step_ms']:>9.3f}{row['p90_ms']:>8.3f}{row['model_ms']:>8.3f}{row['build_ms']:>8.3f}"
+                      f"{row['solve_ms']:>9.3f}{row['cost_ratio']:>11.4f}{row['fallbacks']:>7d}"
                       f"{row['final_error']:>10.4f}", flush=True)
     if echo:
         print(f"machine load {_load()}", flush=True)
