@@ -243,7 +243,7 @@ class NonlinearMPC(Controller):
         X = ca.MX.sym("X", n, T)  # columns x_1 … x_T
         U = ca.MX.sym("U", m, p)  # columns U_0 … U_{p−1}: vec(U) is the knots (p, m) row by row
         x0, goal = ca.MX.sym("x0", n), ca.MX.sym("goal", ocp.ng)
-        xg, targets = (goal, None) if ocp.ng == n else (goal[:n], goal[n:])  # without targets the very same graph
+        xg, targets = (goal if ocp.ng == n else goal[:n]), goal[n:]  # without targets the very same graph
         params = [x0, goal]
         # u = φ U, column k is u_k; φ kept sparse so u_k depends structurally on its own knots only.
         inputs = ca.mtimes(U, ca.sparsify(ca.DM(ocp.parameterization.basis.T)))

@@ -117,3 +117,15 @@ def test_a_compile_finishing_mid_loop_is_taken_up(method, monkeypatch):
     switched = simulate(prob.plant(), ctrl, x0, goal, 4 * ocp.dt, callback=hand_over)
     assert switched.fallbacks == 0 and ctrl._stage_model.class_name() == "External"
     np.testing.assert_allclose(switched.u, simulate(prob.plant(), reference, x0, goal, 4 * ocp.dt).u, atol=1e-8)
+
+
+def test_a_task_without_targets_reaches_the_exact_optimum():
+    """A task whose terms take no targets (the goal vector is x_goal alone): the reach study's keep-out hinge."""
+    from ocpkit.studies.reach import squared_hinge_term
+    from ocpkit.task import Task
+
+    prob = problems.make("nlink:3")
+    x0, goal = prob.sample(0)
+    ocp = prob.ocp(knots=5, horizon=20, compiled=False, task=Task([squared_hinge_term((x0[:3] + goal[:3]) / 2)]))
+    assert ocp.ng == ocp.nx
+    _same_optimum(_solve(ocp, x0, goal), _solve(ocp, x0, goal, hessian="exact"))
