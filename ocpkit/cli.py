@@ -203,7 +203,7 @@ def _parser() -> argparse.ArgumentParser:
     bench.add_argument("--problem", action="append", metavar="SPEC",
                        help=f"{'/'.join(_PROBLEM_BENCHMARKS)}: benchmark this problem (repeatable). {_SPEC_HELP}")
     bench.add_argument("--integrator", choices=INTEGRATORS,
-                       help="nlp: every controller's prediction (default rk4; euler: semi-implicit, the plant stays RK4)")
+                       help="nlp: every controller's prediction (default rk4; euler: semi-implicit; the plant: RK4)")
     bench.add_argument("--seed", type=int, help="nlp: the first of the seeded starts and goals (default 0)")
     bench.add_argument("--busy", type=int, help="step: busy processes for the quiet-vs-loaded comparison (default 2; "
                                                 "0 skips it)")

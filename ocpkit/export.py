@@ -211,10 +211,11 @@ def export(ocp: OCP, out_dir, *, form: str = "condensed", qp: str = "daqp", name
     polishing; ``linearization`` "goal" linearizes about (x, u_g), "plan" about (x, ū) as LinearMPC's option
     of that name, "trajectory" stage by stage along the shifted plan: the real-time iteration of
     :class:`~ocpkit.solvers.nlp.RealTimeIteration`, ``iterations`` Gauss–Newton steps per control step, fewer
-    where one moves the plan (knots and predicted states, max norm) by at most ``tol``; ``x0``, ``goal`` (with a task the goal vector [x_goal; targets] of ``ocp.goal``) and ``steps``
-    set the closed loop the example runs against the generated discrete model (where given, the dynamics must be
-    finite there: else a DynamicsError names them, before any file is written). A task's cost terms are
-    exported; a task with obstacles is refused (ValueError)."""
+    where one moves the plan (knots and predicted states, max norm) by at most ``tol``; ``x0``, ``goal`` (with
+    a task the goal vector [x_goal; targets] of ``ocp.goal``) and ``steps`` set the closed loop the example runs
+    against the generated discrete model (where given, the dynamics must be finite there: else a DynamicsError
+    names them, before any file is written). A task's cost terms are exported; a task with obstacles is refused
+    (ValueError)."""
     if not isinstance(ocp, OCP):
         raise TypeError(f"ocp must be an ocpkit OCP, got {type(ocp).__name__}")
     choice(form, FORMS, "form")
@@ -341,8 +342,8 @@ def _model_functions(ocp: OCP, name: str):
     A linear model's discretization is a constant (matrix exponential): ``<name>_affine`` (x, ū) -> (A_d, B_d,
     w_d) is small. A nonlinear one is RK4 over ``substeps``: ``<name>_fjac`` (x, u) -> (f, ∂f/∂x, ∂f/∂u) is
     generated once (:attr:`Model.jacobian`), its Jacobians kept sparse, and the C step propagates the
-    sensitivities through the four stages (integrator "euler": its one step, also in C) (dk/dx = J_x(x_s, u) dx_s/dx, …) — the forward sensitivities
-    ``ocp.affine()`` propagates with dense products, here sparse-times-dense.
+    sensitivities through the four stages (dk/dx = J_x(x_s, u) dx_s/dx, …; integrator "euler": its one step) —
+    the forward sensitivities ``ocp.affine()`` propagates with dense products, here sparse-times-dense.
     """
     model = ocp.model
     if model.linear:
@@ -487,16 +488,18 @@ def _header(name: str, s: dict, ocp: OCP, form: str, qp: str, lin: str, cert_tol
                 f"G[{N}_NR1 * {N}_NZ];\n"
                 if task else "")
     rti = lin == "trajectory"
-    rti_mem = (f"  /* the real-time iteration: each stage's affine model Λ_k = [A_k B_k 0 w_k] (row-major) along x̄_k, ū_k\n"
-               f"     (the knots z̄ it linearizes about), the plan's predicted states x_0 … x_T and the last good\n"
-               f"     iterate's knots and states */\n"
-               f"  double LamK[{N}_HORIZON * {N}_NX * {N}_NL], xbar[{N}_HORIZON * {N}_NX], ubark[{N}_HORIZON * {N}_NU];\n"
+    rti_mem = (f"  /* the real-time iteration: each stage's affine model Λ_k = [A_k B_k 0 w_k] (row-major) along\n"
+               f"     x̄_k, ū_k (the knots z̄ it linearizes about), the plan's predicted states x_0 … x_T and the\n"
+               f"     last good iterate's knots and states */\n"
+               f"  double LamK[{N}_HORIZON * {N}_NX * {N}_NL], xbar[{N}_HORIZON * {N}_NX], "
+               f"ubark[{N}_HORIZON * {N}_NU];\n"
                f"  double zlin[{N}_NZ], xplan[({N}_HORIZON + 1) * {N}_NX], xgood[({N}_HORIZON + 1) * {N}_NX], "
                f"zgood[{N}_NZ];\n"
                f"  double has_xplan;                                          /* 0 or 1: xplan holds a plan */\n"
                if rti else "")
-    rti_api = (f"/* The predicted states x_0 … x_T of the current plan ((HORIZON + 1) x NX row-major); returns 0, or 1 where\n"
-               f"   there is none (a cold start or a failed step: then the next step linearizes along a rollout). */\n"
+    rti_api = (f"/* The predicted states x_0 … x_T of the current plan ((HORIZON + 1) x NX row-major); returns 0,\n"
+               f"   or 1 where there is none (a cold start or a failed step: the next step linearizes along a\n"
+               f"   rollout). */\n"
                f"int {name}_states(const {name}_memory* mem, double* x_pred);\n" if rti else "")
     nr1 = (f"#define {N}_NR1 ({N}_NRS > {N}_NRT ? {N}_NRS : {N}_NRT)  /* residual entries, stage or terminal */\n"
            if task else "")
