@@ -161,12 +161,14 @@ def test_inactive_terms_give_todays_results_bit_for_bit(nlink3):
         a, b = run(config, plain, goal), run(config, tasked, full)
         if all(same(s, t) for s, t in zip(a, b)):
             continue
-        # ProxQP iterates in chunks timed on the clock (solvers/qp.py): two plain controllers can differ at 1e-13.
-        # Where the plain run does not repeat itself bit for bit either, the task may differ by that much only.
+        # ProxQP iterates in chunks timed on the clock (solvers/qp.py): two plain controllers can differ at 1e-13,
+        # and a rerun to show it may by chance repeat itself (a fresh CI run saw 3.3e-13 with a bit-equal rerun).
+        # ProxQP, or a configuration whose plain run does not repeat itself, may differ by that much only.
         again = run(config, plain, goal)
         spread = max(float(np.abs(s.knots - t.knots).max()) for s, t in zip(a, again))
         off = max(float(np.abs(s.knots - t.knots).max()) for s, t in zip(a, b))
-        if spread == 0.0 or off > 1e-10:
+        clock_timed = config.options.get("qp") == "proxqp"
+        if (spread == 0.0 and not clock_timed) or off > 1e-10:
             bad.append((config.label, [s.status for s in b], off, spread))
     assert not bad, bad
 
