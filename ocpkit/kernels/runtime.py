@@ -60,19 +60,22 @@ def init(arch: str = "auto") -> str:
 
 
 def _offline_cache() -> dict:
-    """ti.init's offline-cache settings: Taichi's kernel cache (``$TI_OFFLINE_CACHE_FILE_PATH``,
-    ~/.cache/taichi/ticache) where it can be written. On a read-only one Taichi cannot take its lock, so it neither
+    """ti.init's offline-cache settings: Taichi's compiled kernels kept in ocpkit's cache (``taichi-kernels`` under
+    :func:`ocpkit.cache.cache_root`, so ``OCPKIT_CACHE_DIR`` and ``ocpkit build`` cover them with the rest), or in
+    ``$TI_OFFLINE_CACHE_FILE_PATH`` where that is set. On a read-only folder Taichi cannot take its lock, so it neither
     loads nor stores kernels, and warns three times a run to "run 'ti cache clean'" (even with the cache off): there,
     the cache is off and pointed at a folder of this process's own, removed at exit."""
     import atexit
     import shutil
     import tempfile
 
-    path = os.environ.get("TI_OFFLINE_CACHE_FILE_PATH") or impl.default_cfg().offline_cache_file_path
+    from ..cache import cache_dir
+
+    path = os.environ.get("TI_OFFLINE_CACHE_FILE_PATH") or str(cache_dir("taichi-kernels"))
     try:
         os.makedirs(path, exist_ok=True)
         with tempfile.TemporaryFile(dir=path):
-            return {"offline_cache": True}
+            return {"offline_cache": True, "offline_cache_file_path": path}
     except OSError:
         private = tempfile.mkdtemp(prefix="ocpkit-ticache-")
         atexit.register(shutil.rmtree, private, True)
