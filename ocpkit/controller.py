@@ -165,6 +165,7 @@ class Solution:
     times: dict = field(default_factory=lambda: {"model": 0.0, "build": 0.0, "solve": 0.0, "total": 0.0})
     fallback: bool = False
     certificate: Certificate | None = None  # the KKT certificate of a QP step's answer (None: no QP solved)
+    path: str = ""  # what answered (the controller's ``path`` at the step: "C step", "Python step", …; "fallback")
 
     @property
     def ok(self) -> bool:
@@ -174,7 +175,7 @@ class Solution:
         """JSON-ready summary (first input, knots, status, iterations, times)."""
         return {"u": self.u.tolist(), "knots": self.knots.tolist(), "status": self.status,
                 "raw_status": self.raw_status, "iterations": int(self.iterations), "fallback": self.fallback,
-                "times": {k: float(v) for k, v in self.times.items()}}
+                "path": self.path, "times": {k: float(v) for k, v in self.times.items()}}
 
 
 class Controller:
@@ -246,7 +247,9 @@ class Controller:
                 sol = self.fallback(NAN, f"state or goal magnitude {big:.3g} beyond state_limit "
                                          f"{self._state_limit:.3g}: no solver run")
             else:
+                path = self.path
                 sol = self._verified(self._solve(x, goal))
+                sol.path = sol.path or path
             sol.times["total"] = time.perf_counter() - start
             self._step_start = None
             if sol.ok:
@@ -278,6 +281,12 @@ class Controller:
         finally:
             if limit is not None:
                 self.time_limit = limit
+
+    @property
+    def path(self) -> str:
+        """What answers the next step, in a few words (in every Solution as ``path``, and in ``repr``): solvers
+        with a slower start-up path say which one runs until the fast one is ready."""
+        return type(self).__name__
 
     def wait_compiled(self, timeout: float | None = None) -> bool:
         """Block until the OCP's affine model has switched to compiled C after its background compile (tests,
@@ -384,4 +393,4 @@ class Controller:
         u = np.clip(ocp.parameterization.u_at(knots, 0), ocp.u_min, ocp.u_max)
         times = dict(times or {"model": 0.0, "build": 0.0, "solve": 0.0, "total": 0.0})
         return Solution(u=u, knots=knots, status=status, raw_status=raw_status, iterations=iterations,
-                        times=times, fallback=True)
+                        times=times, fallback=True, path="fallback")

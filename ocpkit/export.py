@@ -2031,6 +2031,8 @@ class ExportedMPC(Controller):
         self.step_seconds = float("nan")
         super().__init__(ocp, raise_on_fail=raise_on_fail)
 
+    path = "C step"
+
     def __repr__(self):
         return f"ExportedMPC({str(self.out_dir / ('lib' + self.name + '.so'))!r}, {self.ocp!r})"
 

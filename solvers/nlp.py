@@ -98,8 +98,7 @@ class RealTimeIteration(LinearMPC):
         return {"iterations": self.iterations, "tol": self.tol}
 
     def __repr__(self):
-        step = ", C step" if getattr(self, "_native", None) is not None else ""  # once built and loaded
-        return f"RealTimeIteration({self.iterations}, {self.form}, {self.qp_name}{step}, {self.ocp!r})"
+        return f"RealTimeIteration({self.iterations}, {self.form}, {self.qp_name}, {self.path}, {self.ocp!r})"
 
     def _solve(self, x: np.ndarray, goal: np.ndarray) -> Solution:
         step = self._native_step()
@@ -223,8 +222,14 @@ class NonlinearMPC(Controller):
             raise ValueError(f"time_limit is an IPOPT and RTI limit; method={self.method!r} only takes max_iter")
         return positive(value, "time_limit")
 
+    @property
+    def path(self) -> str:
+        """RTI's path (:attr:`LinearMPC.path`), or the NLP solver's name."""
+        return self._rti.path if self._rti is not None else self.method
+
     def __repr__(self):
-        return f"NonlinearMPC({self.method}, {self.dynamics}, {self.ocp!r})"
+        path = f", {self.path}" if self._rti is not None else ""
+        return f"NonlinearMPC({self.method}, {self.dynamics}{path}, {self.ocp!r})"
 
     def _build(self, ocp: OCP) -> None:
         """The NLP over w = [x_1 … x_T, U_0 … U_{p−1}] with parameters (x_0, x_goal[, A_d, B_d, w_d])."""

@@ -645,9 +645,18 @@ class LinearMPC(Controller):
         self._backend.max_iter = integer(value, "max_iter", 1)
         self._backend.reset()
 
+    @property
+    def path(self) -> str:
+        """"C step" (compiled C, loaded), "Python step, C step building" (until the background build lands) or
+        "Python step"."""
+        if getattr(self, "_native", None) is not None and self._native_iter == self.max_iter:
+            return "C step"
+        if getattr(self, "_native_build", None) is not None and not self._native_loaded.is_set():
+            return "Python step, C step building"
+        return "Python step"
+
     def __repr__(self):
-        step = ", C step" if getattr(self, "_native", None) is not None else ""  # once built and loaded
-        return f"LinearMPC({self.form}, {self.qp_name}{step}, {self.ocp!r})"
+        return f"LinearMPC({self.form}, {self.qp_name}, {self.path}, {self.ocp!r})"
 
     def reset(self) -> None:
         super().reset()

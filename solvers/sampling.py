@@ -173,6 +173,11 @@ class SamplingMPC(Controller):
             self._upload_preconditioner = upload
             self._upload_buffer = np.empty(d * d + SEEDS * d, dtype=self.engine.ntype)
 
+    @property
+    def path(self) -> str:
+        """The Taichi kernel and its arch."""
+        return f"Taichi kernel ({self.engine.arch})"
+
     def __repr__(self):
         return (f"{type(self).__name__}({self.variant}, population={self.population}, "
                 f"generations={self.generations}, {self.ocp!r})")

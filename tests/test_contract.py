@@ -62,6 +62,7 @@ def _check_step(controller, sol):
     ocp = controller.ocp
     assert sol.status in STATUSES, sol.status
     assert sol.fallback == (not sol.ok), (sol.status, sol.fallback)
+    assert (sol.path == "fallback") == sol.fallback and sol.path, sol.path  # what answered, named
     assert sol.u.shape == (ocp.nu,) and np.isfinite(sol.u).all(), sol.u
     assert np.all(sol.u >= ocp.u_min - 1e-9) and np.all(sol.u <= ocp.u_max + 1e-9), sol.u
     if sol.ok and isinstance(controller, LinearMPC):  # every QP step (RTI included): a proven success

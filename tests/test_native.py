@@ -31,7 +31,7 @@ def _same_closed_loop(ocp, seed, steps, **options):
     F = ocp.discrete()
     for _ in range(steps):
         a, b = c.solve(x, goal), py.solve(x, goal)
-        assert a.status == b.status == SUCCESS
+        assert a.status == b.status == SUCCESS and (a.path, b.path) == ("C step", "Python step")
         np.testing.assert_allclose(a.u, b.u, atol=1e-8)
         np.testing.assert_allclose(a.knots, b.knots, atol=1e-8)
         assert set(a.times) == {"model", "build", "solve", "total"} and a.times["total"] >= a.times["solve"] > 0
@@ -81,7 +81,7 @@ def test_budget_too_small_for_the_c_step_gives_the_fallback(ocp):
     first = c.warm_up(x, goal)
     c.time_limit = 1e-9
     sol = c.solve(x, goal)
-    assert sol.status == LIMITED and sol.fallback and "C step" in sol.raw_status
+    assert sol.status == LIMITED and sol.fallback and "C step" in sol.raw_status and sol.path == "fallback"
     np.testing.assert_allclose(sol.knots, np.clip(ocp.parameterization.shift(first.knots), ocp.u_min, ocp.u_max))
 
 
@@ -170,14 +170,14 @@ def test_background_build_fills_the_cache_even_after_the_process_exits(tmp_path)
     env = {**os.environ, "OCPKIT_CACHE_DIR": str(tmp_path)}
     script = ("from ocpkit import problems; from ocpkit.solvers.qp import LinearMPC; "
               "p = problems.make('nlink:2'); c = LinearMPC(p.ocp(knots=3, horizon=20, compiled=True)); "
-              "print(c.native)")
+              "print(c.native, c.path)")
     out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, check=True,
                          cwd=tmp_path)
-    assert out.stdout.strip() == "False"  # it exited before the build finished
+    assert out.stdout.strip() == "False Python step, C step building"  # it exited before the build finished
     deadline = time.monotonic() + 120
     while not list(tmp_path.glob(f"native/*/lib{native.NAME}.so.sha256")) and time.monotonic() < deadline:
         time.sleep(0.2)
-    script = script.replace("print(c.native)", "print(c.wait_compiled(60))")
+    script = script.replace("print(c.native, c.path)", "print(c.wait_compiled(60))")
     out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, check=True,
                          cwd=tmp_path)
     assert out.stdout.strip() == "True"
