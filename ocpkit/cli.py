@@ -36,7 +36,7 @@ VARIANTS = ("preconditioned", "paper")
 SAMPLING = ("empc", "cem", "mppi")
 # Studies that take --problem, and benchmarks that take --problem (their `problems` argument).
 _PROBLEM_STUDIES = ("knots", "horizon", "robustness")
-_PROBLEM_BENCHMARKS = ("qp", "export", "nlp", "task")
+_PROBLEM_BENCHMARKS = ("qp", "export", "nlp", "task", "startup")
 
 # `ocpkit bench NAME`: module in ocpkit.benchmarks, function, keyword arguments of --quick.
 _BENCHMARKS = {
@@ -49,6 +49,7 @@ _BENCHMARKS = {
     "step": ("step", "bench_step", {"links": (1, 7, 13), "steps": 10}),
     "task": ("task", "bench_task", {"problems": ("panda",), "steps": 100, "seeds": 1}),
     "sensitivities": ("sensitivities", "bench_sensitivities", {"problems": ("puma560", "nlink:7"), "repeats": 50}),
+    "startup": ("startup", "bench_startup", {"problems": ("nlink:13",), "controllers": ("linear", "rti", "empc")}),
 }
 
 
@@ -204,12 +205,15 @@ def _parser() -> argparse.ArgumentParser:
                        help=f"{'/'.join(_PROBLEM_BENCHMARKS)}: benchmark this problem (repeatable). {_SPEC_HELP}")
     bench.add_argument("--integrator", choices=INTEGRATORS,
                        help="nlp: every controller's prediction (default rk4; euler: semi-implicit; the plant: RK4)")
-    bench.add_argument("--seed", type=int, help="nlp: the first of the seeded starts and goals (default 0)")
+    bench.add_argument("--seed", type=int, help="nlp: the first of the seeded starts and goals; startup: the seeded start "
+                                                "and goal (default 0)")
     bench.add_argument("--busy", type=int, help="step: busy processes for the quiet-vs-loaded comparison (default 2; "
                                                 "0 skips it)")
     bench.add_argument("--controller", action="append", metavar="NAME",
                        help="nlp: a controller column (repeatable; default ipopt fatrop rti1 rti3 lti ltv); crocoddyl "
-                            "adds Crocoddyl's FDDP and its per-solve table (pip install \"ocpkit[peers]\")")
+                            "adds Crocoddyl's FDDP and its per-solve table (pip install \"ocpkit[peers]\"); startup: "
+                            "a controller row (repeatable; default linear linear-python rti ipopt fatrop empc cem mppi "
+                            "exported)")
     return parser
 
 
@@ -703,12 +707,16 @@ def _bench(args):
         if args.busy < 0:
             raise ValueError(f"--busy must be >= 0, got {args.busy}")
         options["busy"] = args.busy
-    nlp = {"controller": ("controllers", tuple), "integrator": ("integrator", str), "seed": ("first_seed", int)}
-    for option, (keyword, kind) in nlp.items():
+    # option: {benchmark: (its keyword, type)}
+    chosen = {"controller": {"nlp": ("controllers", tuple), "startup": ("controllers", tuple)},
+              "integrator": {"nlp": ("integrator", str)},
+              "seed": {"nlp": ("first_seed", int), "startup": ("seed", int)}}
+    for option, where in chosen.items():
         value = getattr(args, option)
-        if value:
-            if args.what != "nlp":
-                raise ValueError(f"--{option} applies to `ocpkit bench nlp` only")
+        if value is not None:
+            if args.what not in where:
+                raise ValueError(f"--{option} applies to `ocpkit bench {'|'.join(where)}` only")
+            keyword, kind = where[args.what]
             options[keyword] = kind(value)
     kwargs = dict(quick) if args.quick else {}
     if args.problem:
