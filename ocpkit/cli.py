@@ -192,10 +192,11 @@ def _parser() -> argparse.ArgumentParser:
     exp.add_argument("--seed", type=int, default=0, help="seed of the example closed loop's start and goal")
     exp.add_argument("--out", default="export", help="output folder (absent or empty unless --force)")
     exp.add_argument("--force", action="store_true", help="export into a non-empty --out, overwriting its files")
-    pre = sub.add_parser("build", help="fill the cache with a problem's default C step and compiled model ahead of "
-                                       "deployment (a read-only cache is then used as it is)")
-    _add_problem_args(pre)
-    pre.add_argument("--error", type=float, default=1.0, help="model error multiplier of the controller's model")
+    pre = sub.add_parser("build", help="fill the cache ahead of deployment with what a controller loads: the default "
+                                       "LinearMPC's C step and compiled model, or with --solver and its options "
+                                       "(as simulate takes them) that controller's C step or Taichi kernels (a "
+                                       "read-only cache is then used as it is)")
+    _add_controller_args(pre)
     bench = sub.add_parser("bench", help="benchmarks that print medians and ratios")
     bench.add_argument("what", choices=tuple(_BENCHMARKS))
     bench.add_argument("--quick", action="store_true", help="a smaller grid (minutes instead of tens)")
@@ -732,7 +733,8 @@ def _bench(args):
 
 def _prebuild(args):
     """`ocpkit build`: what the default LinearMPC of the problem's OCP loads from the cache — its C step and the
-    compiled affine model of its Python step — built into the cache unless there (and loading), paths printed."""
+    compiled affine model of its Python step — built into the cache unless there (and loading), paths printed; with
+    another solver or options, :func:`_prebuild_controller`."""
     import time
 
     from ocpkit import compiled, native
@@ -740,9 +742,11 @@ def _prebuild(args):
     from ocpkit.ocp import BACKGROUND_MIN_INSTRUCTIONS
     from ocpkit.solvers.qp import LinearMPC
 
-    problem = problems.make(args.problem)
-    ocp = _ocp(problem, args, error=args.error)
     print(f"cache: {cache_root()} (set OCPKIT_CACHE_DIR to fill another)")
+    if args.solver != "qp" or _solver_options(args):
+        return _prebuild_controller(args)
+    problem = problems.make(args.problem)
+    ocp = _ocp(problem, args, error=args.error, compiled=args.compiled)
     size = ocp.model.jacobian.n_instructions()
     start = time.time()
     if native.wanted(ocp):
@@ -763,6 +767,21 @@ def _prebuild(args):
     else:
         print(f"compiled affine model: none (a model of {size} VM instructions, below {BACKGROUND_MIN_INSTRUCTIONS}, "
               f"stays on CasADi's VM)")
+    return 0
+
+
+def _prebuild_controller(args):
+    """`ocpkit build --solver …`: the controller as `simulate` constructs it, one step from the seeded start (a
+    Taichi kernel compiles at its first launch, into the cache) and its background builds waited for."""
+    import time
+
+    start = time.perf_counter()
+    problem, ocp, ctrl = _controller(args)
+    x0, goal = problem.sample(args.seed)
+    sol = ctrl.solve(x0, goal)
+    ctrl.wait_compiled()
+    print(f"{ctrl!r}: first step {sol.status} by {sol.path}; ready in {time.perf_counter() - start:.1f} s, now "
+          f"answering by {ctrl.path}")
     return 0
 
 

@@ -288,3 +288,25 @@ def test_integrator_option_reaches_the_controllers_ocp(tmp_path, capsys):
     assert "integrator='euler'" in json.loads(capsys.readouterr().out)["controller"]
     res = run("solve", "nlink:2", "--integrator", "rk2", cwd=tmp_path)
     assert res.returncode == 2 and "invalid choice: 'rk2'" in res.stderr
+
+
+def test_build_fills_the_taichi_kernels_a_later_run_loads(tmp_path):
+    """`ocpkit build --solver empc` compiles the planner's kernels into the cache; the same controller in a later
+    process loads every one of them (no kernel compiled there), and its solve says which path answered."""
+    import os
+
+    env = {**{k: v for k, v in os.environ.items() if k != "TI_OFFLINE_CACHE_FILE_PATH"},
+           "OCPKIT_CACHE_DIR": str(tmp_path / "cache")}
+    args = ["pendulum", "--solver", "empc", "--population", "32", "--knots", "3"]
+    built = subprocess.run([sys.executable, "-m", "ocpkit.cli", "build", *args], capture_output=True, text=True,
+                           timeout=600, cwd=tmp_path, env=env)
+    assert built.returncode == 0, built.stderr
+    assert "answering by Taichi kernel (cpu)" in built.stdout
+    kernels = tmp_path / "cache" / "taichi-kernels"
+    before = sorted(p.name for p in kernels.glob("*.tic"))
+    assert before
+    solved = subprocess.run([sys.executable, "-m", "ocpkit.cli", "solve", *args, "--json"], capture_output=True,
+                            text=True, timeout=600, cwd=tmp_path, env=env)
+    assert solved.returncode == 0, solved.stderr
+    assert json.loads(solved.stdout)["path"] == "Taichi kernel (cpu)"
+    assert sorted(p.name for p in kernels.glob("*.tic")) == before
