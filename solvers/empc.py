@@ -24,6 +24,7 @@ import taichi as ti
 
 from ocpkit._checks import integer, positive
 from ocpkit.kernels.random import normal, uniform
+from ocpkit.kernels.rollout import SparseRows
 from ocpkit.solvers.sampling import SEEDS, SamplingMPC
 
 
@@ -84,18 +85,21 @@ class EvolutionaryMPC(SamplingMPC):
         """``parent(r, j, a, shift)``: knot j, input a of parent r; with ``shift``, of the parent
         advanced one control step (U⁺ = S U, clipped): the warm start from the previous step's parents."""
         eng = self.engine
-        F, p = eng.ftype, eng.num_knots
+        F = eng.ftype
         parents, lo, hi = eng.picked, self._u_min, self._u_max
-        S = self._shift.tolist()
+        # S's nonzeros by row, in float64 as the Python constants they were when the kernel unrolled S (each product
+        # rounded to the knots' type). A run-time loop over them: S is dense for the piecewise-linear basis (its
+        # pseudo-inverse), p nonzeros a row.
+        shift_rows = SparseRows(self._shift)
+        columns, weights, width = shift_rows.columns, shift_rows.weights, shift_rows.width
 
         @ti.func
-        def parent(r, j: ti.template(), a: ti.template(), shift):
+        def parent(r, j, a, shift):
             v = parents[r, j, a]
             if shift:
                 v = ti.cast(0.0, F)
-                for l in ti.static(range(p)):
-                    if ti.static(S[j][l] != 0.0):
-                        v += S[j][l] * parents[r, l, a]
+                for s in range(width):
+                    v += ti.cast(weights[j, s] * parents[r, columns[j, s], a], F)
                 v = ti.min(ti.max(v, lo[a]), hi[a])
             return v
 
@@ -117,19 +121,21 @@ class EvolutionaryMPC(SamplingMPC):
                        out: ti.types.ndarray()):
             for i in range(N):
                 if cold:
-                    for j, a in ti.static(ti.ndrange(p, m)):
-                        r = ti.cast(uniform(key, counter, i, CROSS + j * m + a), F)
-                        knots[i, j, a] = lo[a] + (hi[a] - lo[a]) * r
+                    for j in range(p):
+                        for a in range(m):
+                            r = ti.cast(uniform(key, counter, i, CROSS + j * m + a), F)
+                            knots[i, j, a] = lo[a] + (hi[a] - lo[a]) * r
                 elif i < k:
-                    for j, a in ti.static(ti.ndrange(p, m)):
-                        knots[i, j, a] = parent(i, j, a, shift)
+                    for j in range(p):
+                        for a in range(m):
+                            knots[i, j, a] = parent(i, j, a, shift)
                 else:
                     p1 = ti.min(ti.cast(uniform(key, counter, i, 0) * k, ti.i32), k - 1)
                     p2 = ti.min(ti.cast(uniform(key, counter, i, 1) * k, ti.i32), k - 1)
-                    for a in ti.static(range(m)):
+                    for a in range(m):
                         mutate = uniform(key, counter, i, MUTATE + a) < 0.5
                         noise = sigma[1, a] + (sigma[0, a] - sigma[1, a]) * scale
-                        for j in ti.static(range(p)):
+                        for j in range(p):
                             slot = j * m + a
                             v = parent(p1, j, a, shift)
                             if uniform(key, counter, i, CROSS + slot) < 0.5:
@@ -153,9 +159,10 @@ class EvolutionaryMPC(SamplingMPC):
         # Random slots per candidate: two parents, the mutation scale, a crossover coin per parameter;
         # the normal draws ε use their own stream.
         SCALE, CROSS = 2, 3
+        eps = ti.field(F, shape=(N, d))  # each child's ε, drawn once and read by every row of L⁻ᵀε
 
         @ti.func
-        def breeder(r, j: ti.template(), a: ti.template(), shift):
+        def breeder(r, j, a, shift):
             """Member r of the breeding pool: the parents, then the seeds."""
             v = ti.cast(0.0, F)
             if r < k:
@@ -168,26 +175,23 @@ class EvolutionaryMPC(SamplingMPC):
         def generation(key: ti.u32, counter: ti.u32, shift: ti.i32, out: ti.types.ndarray()):
             for i in range(N):
                 if i < pool:  # the elites and the seeds themselves
-                    for j, a in ti.static(ti.ndrange(p, m)):
-                        knots[i, j, a] = breeder(i, j, a, shift)
+                    for j in range(p):
+                        for a in range(m):
+                            knots[i, j, a] = breeder(i, j, a, shift)
                 else:
                     p1 = ti.min(ti.cast(uniform(key, counter, i, 0) * pool, ti.i32), pool - 1)
                     p2 = ti.min(ti.cast(uniform(key, counter, i, 1) * pool, ti.i32), pool - 1)
-                    v = ti.Vector.zero(F, d)
-                    for j, a in ti.static(ti.ndrange(p, m)):
-                        if uniform(key, counter, i, CROSS + j * m + a) < 0.5:
-                            v[j * m + a] = breeder(p1, j, a, shift)
-                        else:
-                            v[j * m + a] = breeder(p2, j, a, shift)
                     s = ti.cast(ti.exp(log_lo + log_span * uniform(key, counter, i, SCALE)), F)
-                    eps = ti.Vector([ti.cast(normal(key, counter, i, c), F) for c in ti.static(range(d))], dt=F)
-                    for r in ti.static(range(d)):
-                        acc = ti.cast(0.0, F)
-                        for c in range(r, d):  # L⁻ᵀ is upper triangular
-                            acc += whiten[r, c] * eps[c]
-                        v[r] += s * acc
-                    for j, a in ti.static(ti.ndrange(p, m)):
-                        knots[i, j, a] = ti.min(ti.max(v[j * m + a], lo[a]), hi[a])
+                    for c in range(d):
+                        eps[i, c] = ti.cast(normal(key, counter, i, c), F)
+                    for j in range(p):  # crossover, then the mutation s·L⁻ᵀε, then the clip, in place
+                        for a in range(m):
+                            r = j * m + a
+                            mate = p1 if uniform(key, counter, i, CROSS + r) < 0.5 else p2
+                            acc = ti.cast(0.0, F)
+                            for c in range(r, d):  # L⁻ᵀ is upper triangular
+                                acc += whiten[r, c] * eps[i, c]
+                            knots[i, j, a] = ti.min(ti.max(breeder(mate, j, a, shift) + s * acc, lo[a]), hi[a])
                 out[i] = rollout(i)
 
         return generation

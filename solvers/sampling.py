@@ -325,26 +325,30 @@ class GaussianSampling(SamplingMPC):
         knots, rollout, lo, hi = eng.knots, eng.rollout, self._u_min, self._u_max
         seeded = SEEDS if self.preconditioned else 0
         seeds = self._seeds if self.preconditioned else None
+        eps = ti.field(F, shape=(N, d))  # each candidate's ε, drawn once and read by every row of G ε
 
+        # Run-time loops over the knots and parameters: unrolled, the kernel's compile time grew with p·m.
         @ti.kernel
         def generation(key: ti.u32, counter: ti.u32, distribution: ti.types.ndarray(), out: ti.types.ndarray()):
             for i in range(N):
-                v = ti.Vector([ti.cast(distribution[0, r], F) for r in ti.static(range(d))], dt=F)
-                # Only a compile-time condition drops the seeds' code where there are none ("paper": seeds is
-                # None): `ti.static(seeded) and …` is a run-time `and`, whose body Taichi still compiles.
-                if ti.static(seeded > 0):
-                    if 1 <= i <= seeded:
-                        for j, a in ti.static(ti.ndrange(p, m)):
-                            v[j * m + a] = seeds[i - 1, j, a]
                 if i > seeded:
-                    eps = ti.Vector([ti.cast(normal(key, counter, i, c), F) for c in ti.static(range(d))], dt=F)
-                    for r in ti.static(range(d)):
-                        acc = ti.cast(0.0, F)
-                        for c in range(d):
-                            acc += ti.cast(distribution[1 + r, c], F) * eps[c]
-                        v[r] += acc
-                for j, a in ti.static(ti.ndrange(p, m)):
-                    knots[i, j, a] = ti.min(ti.max(v[j * m + a], lo[a]), hi[a])
+                    for c in range(d):
+                        eps[i, c] = ti.cast(normal(key, counter, i, c), F)
+                for j in range(p):
+                    for a in range(m):
+                        r = j * m + a
+                        v = ti.cast(distribution[0, r], F)
+                        # Only a compile-time condition drops the seeds' code where there are none ("paper": seeds
+                        # is None): `ti.static(seeded) and …` is a run-time `and`, whose body Taichi still compiles.
+                        if ti.static(seeded > 0):
+                            if 1 <= i <= seeded:
+                                v = seeds[i - 1, j, a]
+                        if i > seeded:
+                            acc = ti.cast(0.0, F)
+                            for c in range(d):
+                                acc += ti.cast(distribution[1 + r, c], F) * eps[i, c]
+                            v += acc
+                        knots[i, j, a] = ti.min(ti.max(v, lo[a]), hi[a])
                 out[i] = rollout(i)
 
         self._gaussian_kernel = generation
@@ -355,11 +359,12 @@ class GaussianSampling(SamplingMPC):
             @ti.kernel
             def evaluate_centers(mean: ti.types.ndarray(), out: ti.types.ndarray()):
                 for i in range(centers):  # the incumbent, then the seeds, as in the population
-                    for j, a in ti.static(ti.ndrange(p, m)):
-                        v = ti.cast(mean[j, a], F)
-                        if i >= 1:
-                            v = seeds[i - 1, j, a]
-                        knots[i, j, a] = ti.min(ti.max(v, lo[a]), hi[a])
+                    for j in range(p):
+                        for a in range(m):
+                            v = ti.cast(mean[j, a], F)
+                            if i >= 1:
+                                v = seeds[i - 1, j, a]
+                            knots[i, j, a] = ti.min(ti.max(v, lo[a]), hi[a])
                     out[i] = rollout(i)
 
             self._evaluate_centers = evaluate_centers

@@ -11,6 +11,10 @@ Dynamics are either the paper's affine model x⁺ = A_d x + B_d u + w_d, refresh
 caller each control step, or the full nonlinear discrete model F translated from CasADi
 (the paper's future work). Costs are translated CasADi Functions, so non-smooth ones
 (if/else, |·|, penalties) are evaluated exactly as written.
+
+Kernels loop over knots and knot parameters at run time instead of unrolling them, so their compile
+time does not grow with p (unrolled, EMPC on nlink:3 at p = T = 50 compiled for 46 minutes): the basis
+enters as its few nonzeros per row (:class:`SparseRows`), and the knots are read from their field.
 """
 
 # No "from __future__ import annotations": Taichi reads kernel annotations as types.
@@ -50,15 +54,46 @@ def fitness(ocp):
             ca.Function("fitness_T", [x, g], [terminal(x, g) + penalty]))
 
 
+class SparseRows:
+    """A matrix (r × c) as Taichi fields of its nonzeros by row: ``columns[k, s]`` and ``weights[k, s]``,
+    s < ``width`` (the most nonzeros of a row, at least 1), columns in increasing order, a shorter row padded
+    with weight 0 at column 0.
+
+    Row k times a vector v is then Σ_s weights[k, s]·v[columns[k, s]]: the dense sum Σ_j M_kj v_j in the same
+    order without its exact zeros, so the same value (up to the sign of a zero) for finite v. A
+    Parameterization's basis has at most a B-spline's degree + 1 nonzeros per row (piecewise-linear 2, zero-order
+    hold and identity 1); its shift matrix can be dense (the linear basis' pseudo-inverse).
+    ``precision`` is the weights' float type.
+    """
+
+    def __init__(self, matrix: np.ndarray, precision: str = "float64"):
+        matrix = np.asarray(matrix, dtype=np.float64)
+        if matrix.ndim != 2:
+            raise ValueError(f"matrix must be 2-D, got shape {matrix.shape}")
+        ftype, ntype = runtime.float_types(precision)
+        nonzero = matrix != 0
+        self.width = max(1, int(nonzero.sum(axis=1).max(initial=0)))
+        columns = np.zeros((matrix.shape[0], self.width), dtype=np.int32)
+        weights = np.zeros((matrix.shape[0], self.width))
+        for k, row in enumerate(nonzero):
+            cols = np.flatnonzero(row)
+            columns[k, :cols.size] = cols
+            weights[k, :cols.size] = matrix[k, cols]
+        self.columns = ti.field(ti.i32, shape=columns.shape)
+        self.weights = ti.field(ftype, shape=weights.shape)
+        self.columns.from_numpy(columns)
+        self.weights.from_numpy(weights.astype(ntype))
+
+
 class Rollout:
     """Rollout engine for ``num_sims`` candidates of ``ocp`` on the Taichi runtime.
 
     ``knots`` (num_sims, p, m) is a device field; ``rollout(i)`` is a ``@ti.func`` that
     simulates candidate i and returns its cost, for solver kernels that generate candidates
-    and roll them out in one launch; ``picked`` (num_picked, p, m) receives the candidates
-    chosen by :meth:`pick` (parents, elites). ``stage_cost`` (x, u, goal) -> scalar and
-    ``terminal_cost`` (x, goal) -> scalar default to :func:`fitness` (the OCP's cost; with a task, its terms and
-    its obstacles' penalty); goal has ``ocp.ng`` entries.
+    and roll them out in one launch (``input_at(i, k)``: the ``@ti.func`` of its input u_k);
+    ``picked`` (num_picked, p, m) receives the candidates chosen by :meth:`pick` (parents, elites).
+    ``stage_cost`` (x, u, goal) -> scalar and ``terminal_cost`` (x, goal) -> scalar default to :func:`fitness`
+    (the OCP's cost; with a task, its terms and its obstacles' penalty); goal has ``ocp.ng`` entries.
 
     Each Taichi call that moves an array costs tens of microseconds of launch overhead, more
     than a small population's rollouts, so a control step moves its data in as few calls as
@@ -96,8 +131,7 @@ class Rollout:
         F = self.ftype
         self.knots = ti.field(F, shape=(num_sims, p, m))
         self.picked = ti.field(F, shape=(num_picked, p, m))
-        self._basis = ti.field(F, shape=(T, p))
-        self._basis.from_numpy(basis.astype(self.ntype))
+        self.basis = SparseRows(basis, precision)
         self._x0 = ti.field(F, shape=n)
         self._goal = ti.field(F, shape=ng)
         if dynamics == "affine":
@@ -142,20 +176,26 @@ class Rollout:
             _check_signature("ocp.discrete()", discrete, [(n, 1), (m, 1)], [(n, 1)])
             step = translate(discrete, precision=precision).func
 
-        knots, basis_f, x0, goal = self.knots, self._basis, self._x0, self._goal
+        knots, x0, goal = self.knots, self._x0, self._goal
+        columns, weights, width = self.basis.columns, self.basis.weights, self.basis.width
+
+        @ti.func
+        def input_at(i, k):
+            """u_k = Σ_j φ_kj U_j of candidate i, over the nonzeros of the basis' row k."""
+            u = ti.Vector.zero(F, m)
+            for s in ti.static(range(width)):
+                j, phi = columns[k, s], weights[k, s]
+                for a in ti.static(range(m)):
+                    u[a] += phi * knots[i, j, a]
+            return u
 
         @ti.func
         def rollout(i):
             x = ti.Vector([x0[r] for r in ti.static(range(n))], dt=F)
             g = ti.Vector([goal[r] for r in ti.static(range(ng))], dt=F)
-            U = ti.Matrix([[knots[i, j, a] for a in ti.static(range(m))] for j in ti.static(range(p))], dt=F)
             J = ti.cast(0.0, F)
             for k in range(T):
-                u = ti.Vector.zero(F, m)
-                for j in ti.static(range(p)):
-                    phi = basis_f[k, j]
-                    for a in ti.static(range(m)):
-                        u[a] += phi * U[j, a]
+                u = input_at(i, k)
                 J += stage(x, u, g)[0]
                 x = step(x, u)
             J += terminal(x, g)[0]
@@ -201,7 +241,7 @@ class Rollout:
 
         self._upload = upload
         self._upload_buffer = np.empty(n + ng + model_size, dtype=self.ntype)
-        self.rollout = rollout
+        self.rollout, self.input_at = rollout, input_at
         self._evaluate_all = evaluate_all
         self._gather = gather
 
