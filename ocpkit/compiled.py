@@ -82,12 +82,26 @@ def _load(name: str, library: Path, rebuild) -> ca.Function:
     return ca.external(name, str(library))
 
 
+def _entry(fn: ca.Function, flags: str) -> Path:
+    """Where the library of ``fn`` compiled with ``flags`` is cached (keyed by the serialized Function)."""
+    key = hashlib.sha256((fn.serialize() + flags + _PLATFORM).encode()).hexdigest()[:20]
+    return cache_dir("compiled") / key / f"{fn.name()}.so"
+
+
+def _cached(fn: ca.Function, flags: str) -> ca.Function | None:
+    """The compiled twin of ``fn`` from a sound cache entry that loads, or None (absent, damaged, not loading: the
+    background compile sees to it)."""
+    library = _entry(fn, flags)
+    if not entry_ok(library) or load_problem(library, fn.name()) is not None:
+        return None
+    return ca.external(fn.name(), str(library))
+
+
 def _library(fn: ca.Function, flags: str) -> Path:
     """The cached library of ``fn`` compiled with ``flags``, built first (under the entry's lock) unless a sound one
     is there; :class:`CacheReadOnlyError` where it is not and the cache is read-only."""
-    key = hashlib.sha256((fn.serialize() + flags + _PLATFORM).encode()).hexdigest()[:20]
-    folder = cache_dir("compiled") / key
-    library = folder / f"{fn.name()}.so"
+    library = _entry(fn, flags)
+    folder = library.parent
     if entry_ok(library):
         return library
     try:
@@ -231,8 +245,8 @@ def compiler_available() -> bool:
 
 
 def compile_in_background(fn: ca.Function, flags: str = "-O1") -> Future | None:
-    """A Future of :func:`compile_function` (``fn``, ``flags``) computed in a daemon thread, one per Function object
-    (a second call returns the same Future); None, with one warning, where no C compiler is on PATH. A compile that
+    """A Future of :func:`compile_function` (``fn``, ``flags``) computed in a daemon thread (done at once where the
+    cache holds it), one per Function object (a second call returns the same Future); None, with one warning, where no C compiler is on PATH. A compile that
     fails resolves the Future with its :class:`CompileError` (or OSError); :class:`SwitchingFunction` then warns once
     and stays on the virtual machine."""
     if not isinstance(fn, ca.Function):
@@ -240,6 +254,14 @@ def compile_in_background(fn: ca.Function, flags: str = "-O1") -> Future | None:
     with _background_lock:
         future = _background.get(fn)
         if future is not None:
+            return future
+        # A sound cached library is loaded at once (tens of ms: the key hashes the serialized Function; no compiler
+        # needed), so that a controller built on a warm cache starts on compiled code instead of rebuilding itself
+        # when a background load lands.
+        cached = _cached(fn, flags)
+        if cached is not None:
+            _background[fn] = future = Future()
+            future.set_result(cached)
             return future
         if not compiler_available():
             warnings.warn(f"no C compiler (`{os.environ.get('CC', 'cc')}`) on PATH: {fn.name()} stays on CasADi's "

@@ -1,6 +1,7 @@
 """The default affine model: CasADi's VM until a background compile finishes, then the compiled C (ocpkit.compiled)."""
 import threading
 import warnings
+import weakref
 
 import numpy as np
 import pytest
@@ -160,3 +161,23 @@ def test_background_compile_error_is_one_line(background, monkeypatch):
     assert isinstance(fn, SwitchingFunction)
     with pytest.warns(RuntimeWarning, match="compiling affine with `false` failed"):
         assert fn.wait(300) is None
+
+
+def test_a_cached_library_is_taken_at_once(background, monkeypatch):
+    """With the compiled model in the cache, a new OCP's affine model is that library from its first call: no
+    background compile, no VM phase (a controller built on a warm cache does not rebuild itself later)."""
+    problem = make("nlink:2")
+    assert problem.ocp(horizon=20, knots=3).affine().wait(300) is not None  # fills the cache
+
+    def refuse(*args):
+        raise AssertionError("a background compile started for a cached library")
+
+    monkeypatch.setattr(compiled, "_compile_out_of_process", refuse)
+    monkeypatch.setattr(compiled, "_background", weakref.WeakKeyDictionary())  # as in a new process
+    ocp = problem.ocp(horizon=20, knots=3)
+    fn = ocp.affine()
+    assert fn.class_name() == "External" and not isinstance(fn, SwitchingFunction)
+    vm = problem.ocp(horizon=20, knots=3, compiled=False).affine()
+    x, u = problem.sample(0)[0], np.zeros(ocp.nu)
+    for va, ref in zip(fn(x, u), vm(x, u)):
+        _close(va, ref)
