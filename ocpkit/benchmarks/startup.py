@@ -67,7 +67,9 @@ def _run(problem: str, controller: str, cache: str, timeout: float, seed: int) -
     code = ("import time; t = time.perf_counter(); import ocpkit; from ocpkit.benchmarks.startup import _worker; "
             "import sys; _worker(t, *sys.argv[1:])")
     try:
-        proc = subprocess.run([sys.executable, "-c", code, problem, controller, str(seed)], env=env,
+        # cwd away from any checkout: `python -c` puts the cwd first on sys.path, and a checkout's ocpkit/ has no
+        # problems/ (that only exists as ocpkit.problems once installed).
+        proc = subprocess.run([sys.executable, "-c", code, problem, controller, str(seed)], env=env, cwd=cache,
                               capture_output=True, text=True, timeout=timeout)
     except subprocess.TimeoutExpired:
         return {"error": f"no first success within {timeout:g} s"}
