@@ -23,6 +23,7 @@ import numpy as np
 import taichi as ti
 
 from ocpkit._checks import integer, positive
+from ocpkit.kernels import runtime
 from ocpkit.kernels.random import normal, uniform
 from ocpkit.kernels.rollout import SparseRows
 from ocpkit.solvers.sampling import SEEDS, SamplingMPC
@@ -79,7 +80,7 @@ class EvolutionaryMPC(SamplingMPC):
             raise ValueError(f"sigma_min must be finite with 0 <= sigma_min <= sigma "
                              f"({self.sigma.tolist()}), got {self.sigma_min.tolist()}")
         self._sigma = ti.field(self.engine.ftype, shape=(2, ocp.nu))  # σ and σ_min
-        self._sigma.from_numpy(np.stack([self.sigma, self.sigma_min]).astype(self.engine.ntype))
+        runtime.stage(self._sigma, np.stack([self.sigma, self.sigma_min]))
 
     def _parent_func(self):
         """``parent(r, j, a, shift)``: knot j, input a of parent r; with ``shift``, of the parent

@@ -32,6 +32,7 @@ import taichi as ti
 from ocpkit._checks import array, choice, integer, positive
 from ocpkit.boxqp import solve_box_qp
 from ocpkit.controller import EXCEPTION, LIMITED, NAN, SUCCESS, Controller, Solution, check_linearization
+from ocpkit.kernels import runtime
 from ocpkit.kernels.random import normal, seed_key
 from ocpkit.kernels.rollout import Rollout
 from ocpkit.transcription import CondensedQP
@@ -148,8 +149,8 @@ class SamplingMPC(Controller):
         p, m = ocp.knots, ocp.nu
         self._u_min = ti.field(F, shape=m)
         self._u_max = ti.field(F, shape=m)
-        self._u_min.from_numpy(ocp.u_min.astype(self.engine.ntype))
-        self._u_max.from_numpy(ocp.u_max.astype(self.engine.ntype))
+        runtime.stage(self._u_min, ocp.u_min)
+        runtime.stage(self._u_max, ocp.u_max)
         self._affine = dynamics == "affine"
         self._cost = np.empty(self.population, dtype=self.engine.ntype)  # the last generation's costs
         # The warm start's time shift is linear in the knots: U⁺ = S U.
@@ -200,6 +201,7 @@ class SamplingMPC(Controller):
                 self._warm = False
                 return self.fallback(NAN, f"non-finite affine model at x = {x.tolist()}", times)
         start = time.perf_counter()
+        runtime.upload()  # the constants staged at construction (once)
         cold = not self._warm
         try:
             if self.preconditioned:

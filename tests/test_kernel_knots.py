@@ -8,6 +8,7 @@ from scipy.interpolate import BSpline
 
 from ocpkit import problems
 from ocpkit.controller import SUCCESS
+from ocpkit.kernels import runtime
 from ocpkit.kernels.rollout import Rollout, SparseRows
 from ocpkit.ocp import OCP
 from ocpkit.parameterization import Parameterization
@@ -22,6 +23,7 @@ def test_sparse_rows_hold_each_rows_nonzeros_in_column_order():
                   [0.0, 0.0, 0.0, 0.0],
                   [3.0, 4.0, 5.0, 1e-300]])
     rows = SparseRows(M)
+    runtime.upload()
     columns, weights = rows.columns.to_numpy(), rows.weights.to_numpy()
     assert rows.width == 4 and columns.shape == weights.shape == (3, 4)
     np.testing.assert_array_equal(columns[0, :2], [1, 3])
@@ -55,6 +57,7 @@ def test_kernel_inputs_equal_the_parameterization(kind):
         param = Parameterization.make(kind, T, p)
     ocp = OCP(problem.model(1.0), problem.dt, T, parameterization=param, **problem.defaults())
     engine = Rollout(ocp, N)
+    runtime.upload()  # the basis' fields, before a kernel of our own reads them (load() does it otherwise)
     U = np.random.default_rng(0).uniform(ocp.u_min, ocp.u_max, size=(N, ocp.knots, ocp.nu))
     engine.knots.from_numpy(U)
     input_at, m = engine.input_at, ocp.nu

@@ -63,14 +63,14 @@ class SparseRows:
     order without its exact zeros, so the same value (up to the sign of a zero) for finite v. A
     Parameterization's basis has at most a B-spline's degree + 1 nonzeros per row (piecewise-linear 2, zero-order
     hold and identity 1); its shift matrix can be dense (the linear basis' pseudo-inverse).
-    ``precision`` is the weights' float type.
+    ``precision`` is the weights' float type. The fields are filled at the next :func:`runtime.upload`.
     """
 
     def __init__(self, matrix: np.ndarray, precision: str = "float64"):
         matrix = np.asarray(matrix, dtype=np.float64)
         if matrix.ndim != 2:
             raise ValueError(f"matrix must be 2-D, got shape {matrix.shape}")
-        ftype, ntype = runtime.float_types(precision)
+        ftype, _ = runtime.float_types(precision)
         nonzero = matrix != 0
         self.width = max(1, int(nonzero.sum(axis=1).max(initial=0)))
         columns = np.zeros((matrix.shape[0], self.width), dtype=np.int32)
@@ -81,8 +81,8 @@ class SparseRows:
             weights[k, :cols.size] = matrix[k, cols]
         self.columns = ti.field(ti.i32, shape=columns.shape)
         self.weights = ti.field(ftype, shape=weights.shape)
-        self.columns.from_numpy(columns)
-        self.weights.from_numpy(weights.astype(ntype))
+        runtime.stage(self.columns, columns)
+        runtime.stage(self.weights, weights)
 
 
 class Rollout:
@@ -90,7 +90,8 @@ class Rollout:
 
     ``knots`` (num_sims, p, m) is a device field; ``rollout(i)`` is a ``@ti.func`` that
     simulates candidate i and returns its cost, for solver kernels that generate candidates
-    and roll them out in one launch (``input_at(i, k)``: the ``@ti.func`` of its input u_k);
+    and roll them out in one launch (``input_at(i, k)``: the ``@ti.func`` of its input u_k; :meth:`load` fills the
+    engine's constant fields first, :func:`runtime.upload` does where a kernel of yours runs without it);
     ``picked`` (num_picked, p, m) receives the candidates chosen by :meth:`pick` (parents, elites).
     ``stage_cost`` (x, u, goal) -> scalar and ``terminal_cost`` (x, goal) -> scalar default to :func:`fitness`
     (the OCP's cost; with a task, its terms and its obstacles' penalty); goal has ``ocp.ng`` entries.
@@ -259,6 +260,7 @@ class Rollout:
             parts += [_matrix("A_d", A_d, (n, n)).ravel(), _matrix("B_d", B_d, (n, m)).ravel(),
                       _vector("w_d", w_d, n)]
         np.concatenate(parts, out=self._upload_buffer, casting="same_kind")
+        runtime.upload()
         self._upload(self._upload_buffer)
 
     def evaluate(self, knots: np.ndarray) -> np.ndarray:
@@ -267,6 +269,7 @@ class Rollout:
         shape = (self.num_sims, self.num_knots, self.nu)
         if knots.shape != shape:
             raise ValueError(f"knots must have shape {shape}, got {knots.shape}")
+        runtime.upload()
         self.knots.from_numpy(knots.astype(self.ntype))
         cost = np.empty(self.num_sims, dtype=self.ntype)
         self._evaluate_all(cost)
@@ -281,6 +284,7 @@ class Rollout:
             raise ValueError(f"indices must be 1..{self.picked.shape[0]} candidate numbers in "
                              f"[0, {self.num_sims}), got {indices.tolist()}")
         out = np.empty((count, self.num_knots, self.nu), dtype=self.ntype)
+        runtime.upload()
         self._gather(indices, out)
         return out.astype(np.float64)
 

@@ -12,6 +12,7 @@ import contextlib
 import ctypes
 import os
 import sys
+import threading
 
 import numpy as np
 import taichi as ti
@@ -113,6 +114,46 @@ def float_types(precision: str):
     if precision == "float32":
         return ti.f32, np.float32
     raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
+
+
+_staged: list = []  # (field, numpy array) pairs waiting for upload()
+_staged_lock = threading.Lock()
+
+
+def stage(field, values) -> None:
+    """Queue ``values`` (the field's shape) for ``field``; :func:`upload` copies every queued array in one kernel
+    launch. Taichi's own ``from_numpy`` compiles a kernel per field at its first call, 80–110 ms each even from a
+    warm cache: most of a sampling planner's construction, where six fields of constants were filled that way."""
+    values = np.asarray(values, dtype=np.float64)
+    if values.shape != tuple(field.shape):
+        raise ValueError(f"values must have the field's shape {tuple(field.shape)}, got {values.shape}")
+    with _staged_lock:
+        _staged.append((field, values))
+
+
+def upload() -> None:
+    """Copy the arrays :func:`stage` queued into their fields, in one launch (nothing when none is queued): call it
+    before the first kernel that reads them."""
+    with _staged_lock:
+        pairs = list(_staged)
+        _staged.clear()
+    if not pairs:
+        return
+    fields = [field for field, _ in pairs]
+    shapes = [tuple(field.shape) for field in fields]
+    offsets = np.cumsum([0] + [values.size for _, values in pairs]).tolist()
+
+    def copy(flat):
+        for q in ti.static(range(len(fields))):
+            ti.loop_config(serialize=True)
+            for I in ti.grouped(fields[q]):
+                index = 0
+                for d in ti.static(range(len(shapes[q]))):
+                    index = index * shapes[q][d] + I[d]
+                fields[q][I] = ti.cast(flat[offsets[q] + index], fields[q].dtype)
+
+    copy.__annotations__ = {"flat": ti.types.ndarray()}  # this module's annotations are strings (__future__)
+    ti.kernel(copy)(np.concatenate([values.ravel() for _, values in pairs]))
 
 
 def sync() -> None:
