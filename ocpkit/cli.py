@@ -206,8 +206,8 @@ def _parser() -> argparse.ArgumentParser:
                        help=f"{'/'.join(_PROBLEM_BENCHMARKS)}: benchmark this problem (repeatable). {_SPEC_HELP}")
     bench.add_argument("--integrator", choices=INTEGRATORS,
                        help="nlp: every controller's prediction (default rk4; euler: semi-implicit; the plant: RK4)")
-    bench.add_argument("--seed", type=int, help="nlp: the first of the seeded starts and goals; startup: the seeded start "
-                                                "and goal (default 0)")
+    bench.add_argument("--seed", type=int, help="nlp: the first of the seeded starts and goals; startup: the seeded "
+                                                "start and goal (default 0)")
     bench.add_argument("--busy", type=int, help="step: busy processes for the quiet-vs-loaded comparison (default 2; "
                                                 "0 skips it)")
     bench.add_argument("--controller", action="append", metavar="NAME",

@@ -246,9 +246,9 @@ def compiler_available() -> bool:
 
 def compile_in_background(fn: ca.Function, flags: str = "-O1") -> Future | None:
     """A Future of :func:`compile_function` (``fn``, ``flags``) computed in a daemon thread (done at once where the
-    cache holds it), one per Function object (a second call returns the same Future); None, with one warning, where no C compiler is on PATH. A compile that
-    fails resolves the Future with its :class:`CompileError` (or OSError); :class:`SwitchingFunction` then warns once
-    and stays on the virtual machine."""
+    cache holds it), one per Function object (a second call returns the same Future); None, with one warning, where
+    no C compiler is on PATH. A compile that fails resolves the Future with its :class:`CompileError` (or OSError);
+    :class:`SwitchingFunction` then warns once and stays on the virtual machine."""
     if not isinstance(fn, ca.Function):
         raise TypeError(f"fn must be a casadi.Function, got {type(fn).__name__}")
     with _background_lock:
