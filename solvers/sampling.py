@@ -201,7 +201,6 @@ class SamplingMPC(Controller):
                 self._warm = False
                 return self.fallback(NAN, f"non-finite affine model at x = {x.tolist()}", times)
         start = time.perf_counter()
-        runtime.upload()  # the constants staged at construction (once)
         cold = not self._warm
         try:
             if self.preconditioned:

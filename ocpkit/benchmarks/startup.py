@@ -30,6 +30,7 @@ PROBLEMS = ("nlink:13", "puma560", "panda")  # panda: a 7-DoF arm read from its 
 CONTROLLERS = ("linear", "linear-python", "rti", "ipopt", "fatrop", "empc", "cem", "mppi", "exported")
 KNOTS = 5
 PARTS = ("import", "symbolic", "setup", "codegen", "translate", "taichi", "C build", "first step")
+INNER = ("codegen", "translate", "taichi", "C build")  # timed inside the constructor or the first steps
 MAX_STEPS = 200  # steps tried for a first success
 STEADY_STEPS = 20
 
@@ -128,9 +129,10 @@ def _timed(split: dict, part: str, owner, attribute: str, first_only: bool = Fal
 
     @functools.wraps(original)
     def wrapper(*args, **kwargs):
-        if first_only and id(args[0]) in seen:
-            return original(*args, **kwargs)
-        seen.add(id(args[0]) if args else None)
+        if first_only:
+            if id(args[0]) in seen:
+                return original(*args, **kwargs)
+            seen.add(id(args[0]))
         start = time.perf_counter()
         try:
             return original(*args, **kwargs)
@@ -163,20 +165,22 @@ def _worker(t_import: float, problem: str, controller: str, seed: str) -> None:
     split = dict.fromkeys(PARTS, 0.0)
     split["import"] = time.perf_counter() - t_import
     _instrument(split)
+
+    def inner() -> float:
+        return sum(split[k] for k in INNER)
+
     t0 = time.perf_counter()
     prob = problems.make(problem)
     ocp = prob.ocp(knots=KNOTS)
     F = ocp.discrete()
     split["symbolic"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    before = sum(split[k] for k in PARTS[3:])
+    t0, before = time.perf_counter(), inner()
     ctrl = _make(controller, ocp)
-    split["setup"] = time.perf_counter() - t0 - (sum(split[k] for k in PARTS[3:]) - before)
+    split["setup"] = time.perf_counter() - t0 - (inner() - before)
     x, goal = prob.sample(int(seed))
     first = success = step = None
     path = ""
-    loop_start = time.perf_counter()
-    before = sum(split[k] for k in PARTS[3:])
+    loop_start, before = time.perf_counter(), inner()
     for k in range(MAX_STEPS):
         sol = ctrl.solve(x, goal)
         now = time.perf_counter() - t0
@@ -185,8 +189,8 @@ def _worker(t_import: float, problem: str, controller: str, seed: str) -> None:
             success, step, path = now, k, sol.path
             break
         x = np.asarray(F(x, sol.u), dtype=float).ravel()
-    split["first step"] = time.perf_counter() - loop_start - (sum(split[k] for k in PARTS[3:]) - before)
-    ctrl.wait_compiled() if hasattr(ctrl, "wait_compiled") else None
+    split["first step"] = time.perf_counter() - loop_start - (inner() - before)
+    ctrl.wait_compiled()
     steady = time.perf_counter() - t0
     times = []
     for _ in range(STEADY_STEPS):

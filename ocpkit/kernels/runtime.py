@@ -134,6 +134,8 @@ def stage(field, values) -> None:
 def upload() -> None:
     """Copy the arrays :func:`stage` queued into their fields, in one launch (nothing when none is queued): call it
     before the first kernel that reads them."""
+    if not _staged:  # every step of a planner asks; only the first after a construction finds any
+        return
     with _staged_lock:
         pairs = list(_staged)
         _staged.clear()
