@@ -18,6 +18,20 @@ from ocpkit.solvers.empc import EvolutionaryMPC
 pytestmark = pytest.mark.usefixtures("taichi_arch")
 
 
+def test_staged_constants_upload_in_one_quiet_launch(capfd):
+    """runtime.stage/upload fill fields of any rank in one kernel, and Taichi prints nothing doing it (a struct-for
+    with serialize made it warn once per field in every planner's construction)."""
+    vector, matrix = ti.field(ti.f64, shape=3), ti.field(ti.i32, shape=(2, 3))
+    runtime.stage(vector, [1.0, 2.0, 3.0])
+    runtime.stage(matrix, np.arange(6).reshape(2, 3))
+    runtime.upload()
+    np.testing.assert_array_equal(vector.to_numpy(), [1.0, 2.0, 3.0])
+    np.testing.assert_array_equal(matrix.to_numpy(), np.arange(6).reshape(2, 3))
+    assert "[W " not in capfd.readouterr().err
+    with pytest.raises(ValueError, match="shape"):
+        runtime.stage(vector, [1.0, 2.0])
+
+
 def test_sparse_rows_hold_each_rows_nonzeros_in_column_order():
     M = np.array([[0.0, 2.0, 0.0, -1.0],
                   [0.0, 0.0, 0.0, 0.0],

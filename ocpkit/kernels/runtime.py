@@ -147,8 +147,8 @@ def upload() -> None:
 
     def copy(flat):
         for q in ti.static(range(len(fields))):
-            ti.loop_config(serialize=True)
-            for I in ti.grouped(fields[q]):
+            ti.loop_config(serialize=True)  # a range-for: Taichi ignores (and warns about) serialize on a struct-for
+            for I in ti.grouped(ti.ndrange(*shapes[q])):
                 index = 0
                 for d in ti.static(range(len(shapes[q]))):
                     index = index * shapes[q][d] + I[d]
