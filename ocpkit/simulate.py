@@ -30,6 +30,14 @@ class Trajectory:
         """How many steps applied a fallback input because the solver failed."""
         return sum(s.fallback for s in self.solutions)
 
+    def fallback_causes(self) -> str:
+        """The fallback steps by status, most frequent first ("limited 3, infeasible 1"; "" when none)."""
+        counts: dict = {}
+        for s in self.solutions:
+            if s.fallback:
+                counts[s.status] = counts.get(s.status, 0) + 1
+        return ", ".join(f"{status} {n}" for status, n in sorted(counts.items(), key=lambda kv: (-kv[1], kv[0])))
+
     def times(self, key: str = "total") -> np.ndarray:
         """Per-step solve times (s) of one kind: "model", "build", "solve" or "total"."""
         return np.array([s.times[key] for s in self.solutions])

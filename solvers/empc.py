@@ -49,6 +49,8 @@ class EvolutionaryMPC(SamplingMPC):
             raise ValueError(f"num_parents must be < population ({population}), got {num_parents}")
         super().__init__(ocp, population=population, generations=generations,
                          num_picked=self.num_parents, variant=variant, **options)
+        # Candidates below this index are carried over (the parents, then the seeds); the rest are bred.
+        self._first_child = self.num_parents + (SEEDS if self.preconditioned else 0)
         paper_only = {"sigma": sigma, "shrink_distance": shrink_distance, "sigma_min": sigma_min}
         given = [name for name, value in paper_only.items() if value is not None]
         if self.preconditioned:
@@ -200,6 +202,7 @@ class EvolutionaryMPC(SamplingMPC):
     def reset(self):
         super().reset()
         self._shift_parents = False
+        self.child_wins = self.generations_run = 0  # see child_win_rate
 
     def _start(self, x, goal, cold):
         parents = self.engine.picked
@@ -222,7 +225,16 @@ class EvolutionaryMPC(SamplingMPC):
         self._shift_parents = False
         idx, cost = self._ranked(self.num_parents)
         self._best = self._pick(idx)[0]
+        self.child_wins += int(idx[0] >= self._first_child)
+        self.generations_run += 1
         return float(cost[0])
+
+    @property
+    def child_win_rate(self) -> float:
+        """The share of generations since the last reset whose best candidate was a newly bred child, not a
+        carried-over parent or (preconditioned) a seed: how often Algorithm 1's search, rather than what it
+        started from, set the plan (NaN before the first generation)."""
+        return self.child_wins / self.generations_run if self.generations_run else float("nan")
 
     def _result(self):
         return self._best

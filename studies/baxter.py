@@ -14,8 +14,6 @@ command (21 values per controller and seed); Table III reports their mean and me
 """
 from __future__ import annotations
 
-import os
-
 import numpy as np
 import pandas as pd
 
@@ -27,6 +25,7 @@ from ocpkit.metrics import itae
 from ocpkit.problems.baxter import JOINTS
 from ocpkit.simulate import Trajectory, simulate
 from ocpkit.study import Study, grid
+from ocpkit.studies.closed_loop import run_record
 from ocpkit.studies.comparison import responses, row_arrays
 from ocpkit.plots import number
 from ocpkit.studies.report import Claim, markdown_table, section, timing_context, trials_line, verdict
@@ -83,9 +82,9 @@ def trial(command: int, controller: str, duration: float, population: int, arch:
     traj = simulate(pb.plant(), ctrl, start, goal, duration)
     solve, total = traj.times("solve"), traj.times("total")
     return {**{f"itae_{j}": itae(traj, [i]) for i, j in enumerate(SHORT)}, **quartiles("solve", solve),
-            **quartiles("total", total), "fallbacks": traj.fallbacks,
+            **quartiles("total", total), **run_record(traj, ctrl),
             "final_error": float(np.abs(traj.x[-1, :ocp.nu] - goal[:ocp.nu]).max()),
-            "device": current_arch() if controller in (EMPC, EMPC_PAPER) else "cpu", "load": os.getloadavg()[0],
+            "device": current_arch() if controller in (EMPC, EMPC_PAPER) else "cpu",
             "t": traj.t, "x": traj.x, "u": traj.u, "goal": goal, "solve_times": solve, "total_times": total}
 
 

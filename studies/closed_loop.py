@@ -5,6 +5,8 @@
 """
 from __future__ import annotations
 
+import os
+
 import numpy as np
 
 from ocpkit import problems, solvers
@@ -36,11 +38,19 @@ def trial(problem: str, seed: int, solver: str = "qp", knots: int | None = None,
         "overshoot": _mean(steps["overshoot"]),
         "rise_time": _mean(steps["rise_time"]),
         "final_error": float(np.abs(traj.x[-1] - goal).max()),
-        "fallbacks": traj.fallbacks,
+        **run_record(traj, ctrl),
         "solve_median": float(np.median(solve)),
         "total_median": float(np.median(total)),
         "total_p90": float(np.percentile(total, 90)),
     }
+
+
+def run_record(traj, ctrl) -> dict:
+    """What every closed-loop trial stores about how its steps were answered: the fallback steps and their causes
+    (statuses), EMPC's child win rate (NaN for other controllers: see ``EvolutionaryMPC.child_win_rate``) and the
+    1-min load average at the end of the run (timing verdicts are withheld when it exceeds the CPUs)."""
+    return {"fallbacks": traj.fallbacks, "fallback_causes": traj.fallback_causes(),
+            "child_win_rate": float(getattr(ctrl, "child_win_rate", float("nan"))), "load": os.getloadavg()[0]}
 
 
 def _mean(values) -> float:

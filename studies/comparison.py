@@ -3,15 +3,13 @@
 Each controller runs the robot from a seeded random start to a seeded random goal, both at rest, at
 100 Hz with a 100-step horizon: traditional MPC (large matrix; HPIPM, which reaches the same optimum as
 the paper's OSQP 5–10× faster here, so the 13-link robot fits the quick run), parameterized MPC with 3
-knot points (small matrix, OSQP), EMPC with 3 knot points and 1 or 3 generations per control step, both
-preconditioned (the default, :mod:`ocpkit.solvers.sampling`) and as the paper prints Algorithm 1, and
-the preconditioned CEM and MPPI on the same engine. Warm starts are on, as in the paper. Measured:
-actual cost, its ratio to traditional MPC on the same start and goal, the final error, the optimization
-solve time and the MPC solve time of every step.
+knot points (small matrix, on LinearMPC's default backend, DAQP; the paper used OSQP), EMPC with 3 knot
+points and 1 or 3 generations per control step, both preconditioned (the default,
+:mod:`ocpkit.solvers.sampling`) and as the paper prints Algorithm 1, and the preconditioned CEM and MPPI on
+the same engine. Warm starts are on, as in the paper. Measured: actual cost, its ratio to traditional MPC on
+the same start and goal, the final error, the optimization solve time and the MPC solve time of every step.
 """
 from __future__ import annotations
-
-import os
 
 import numpy as np
 
@@ -22,6 +20,7 @@ from ocpkit.metrics import actual_cost
 from ocpkit.simulate import Trajectory, simulate
 from ocpkit.store import Store
 from ocpkit.study import Study, grid
+from ocpkit.studies.closed_loop import run_record
 from ocpkit.plots import number
 from ocpkit.studies.report import Claim, markdown_table, section, timing_context, trials_line, verdict
 from ocpkit.studies.solve_times import quartiles
@@ -34,7 +33,7 @@ REFERENCE = "traditional"
 # label -> (solver, knot points (None: p = T), options)
 CONTROLLERS = {
     REFERENCE: ("qp", None, {"form": "sparse", "qp": "hpipm"}),
-    "knots 3 (QP)": ("qp", 3, {"form": "condensed", "qp": "osqp"}),
+    "knots 3 (QP)": ("qp", 3, {"form": "condensed"}),  # LinearMPC's default backend (DAQP), as users run it
     "EMPC 1 gen": ("empc", 3, {"generations": 1}),
     "EMPC 3 gen": ("empc", 3, {"generations": 3}),
     "EMPC 1 gen (paper)": ("empc", 3, {"generations": 1, "variant": "paper"}),
@@ -67,9 +66,9 @@ def trial(links: int, controller: str, duration: float, population: int, arch: s
     traj = simulate(pb.plant(), ctrl, x0, goal, duration)
     result = {"actual_cost": actual_cost(traj, ocp), "hessian_condition": hessian_condition(pb, ctrl, x0, goal), **quartiles("solve", traj.times("solve")),
               **quartiles("total", traj.times("total")), "model_median": float(np.median(traj.times("model"))),
-              "fallbacks": traj.fallbacks,
+              **run_record(traj, ctrl),
               "final_error": float(np.abs(traj.x[-1] - goal).max()),
-              "device": current_arch() if solver in SAMPLING else "cpu", "load": os.getloadavg()[0]}
+              "device": current_arch() if solver in SAMPLING else "cpu"}
     if record:
         result.update(t=traj.t, x=traj.x, u=traj.u, goal=goal)
     return result

@@ -11,8 +11,6 @@ the final error.
 """
 from __future__ import annotations
 
-import os
-
 import casadi as ca
 import numpy as np
 
@@ -22,6 +20,7 @@ from ocpkit.kernels.runtime import current_arch
 from ocpkit.metrics import actual_cost
 from ocpkit.simulate import simulate
 from ocpkit.study import Study, grid
+from ocpkit.studies.closed_loop import run_record
 from ocpkit.plots import number
 from ocpkit.studies.report import markdown_table, section, timing_context, trials_line
 
@@ -68,9 +67,9 @@ def trial(controller: str, duration: float, population: int, arch: str, seed: in
     return {"actual_cost": quadratic + float(penalties.sum()), "quadratic_cost": quadratic,
             "penalty": float(penalties.sum()),
             "steps_inside": int((np.linalg.norm(traj.x[:, :LINKS] - centre, axis=1) < RADIUS).sum()),
-            "final_error": float(np.abs(traj.x[-1] - goal).max()), "fallbacks": traj.fallbacks,
+            "final_error": float(np.abs(traj.x[-1] - goal).max()), **run_record(traj, ctrl),
             "solve_median": float(np.median(traj.times("solve"))),
-            "device": current_arch() if solver == "empc" else "cpu", "load": os.getloadavg()[0]}
+            "device": current_arch() if solver == "empc" else "cpu"}
 
 
 def study(size: str) -> Study:

@@ -25,8 +25,6 @@ recorded state.
 """
 from __future__ import annotations
 
-import os
-
 import casadi as ca
 import numpy as np
 import pandas as pd
@@ -39,6 +37,7 @@ from ocpkit.metrics import actual_cost
 from ocpkit.plots import number
 from ocpkit.simulate import simulate
 from ocpkit.studies import keepout
+from ocpkit.studies.closed_loop import run_record
 from ocpkit.studies.report import Claim, markdown_table, section, timing_context, trials_line, verdict
 from ocpkit.study import Study, grid
 from ocpkit.task import REACH_OBSTACLE_WEIGHT, Sphere, Task, UserTerm, reach
@@ -121,11 +120,10 @@ def _controller(solver, options, ocp, population, arch, seed, **extra):
     return solvers.make(solver, ocp, **options, **extra)
 
 
-def _times(traj) -> dict:
+def _times(traj, ctrl) -> dict:
     total = traj.times("total")
     return {"step_median": float(np.median(total)), "step_max": float(total.max()),
-            "solve_median": float(np.median(traj.times("solve"))), "fallbacks": traj.fallbacks,
-            "load": os.getloadavg()[0]}
+            "solve_median": float(np.median(traj.times("solve"))), **run_record(traj, ctrl)}
 
 
 def reach_trial(robot: str, controller: str, horizon: int, duration: float, population: int, arch: str,
@@ -147,7 +145,7 @@ def reach_trial(robot: str, controller: str, horizon: int, duration: float, popu
     return {"success": bool(distance <= TOLERANCE and collisions == 0), "reached": bool(distance <= TOLERANCE),
             "collision_steps": collisions, "min_clearance": float(d.min()), "final_distance": float(distance),
             "start_distance": float(np.linalg.norm(ee[0] - s["target"])), "actual_cost": actual_cost(traj, ocp),
-            **_times(traj), "rejected": s["rejected"], "knots": KNOTS[robot],
+            **_times(traj, ctrl), "rejected": s["rejected"], "knots": KNOTS[robot],
             "device": current_arch() if solver in ("empc", "cem", "mppi") else "cpu",
             "ee": ee, "target": s["target"], "obstacles": np.array([[*o.center, o.radius] for o in s["obstacles"]])}
 
@@ -185,7 +183,7 @@ def keepout_trial(controller: str, horizon: int, duration: float, population: in
     return {"actual_cost": quadratic + float(penalties.sum()), "quadratic_cost": quadratic,
             "penalty": float(penalties.sum()),
             "steps_inside": int((np.linalg.norm(traj.x[:, :keepout.LINKS] - centre, axis=1) < keepout.RADIUS).sum()),
-            "final_error": float(np.abs(traj.x[-1] - goal).max()), **_times(traj),
+            "final_error": float(np.abs(traj.x[-1] - goal).max()), **_times(traj, ctrl),
             "device": current_arch() if "EMPC" in controller else "cpu"}
 
 

@@ -31,6 +31,13 @@ def test_linear_pendulum_reaches_goal(variant):
     # The paper's variant assembles nothing; the preconditioned one builds the knot QP.
     assert (sol.times["build"] > 0) == (variant == "preconditioned")
     assert sol.knots.shape == (3, 1) and np.all(np.abs(sol.knots) <= ocp.u_max)
+    # On a linear model with a quadratic cost the Newton seed is the rollout cost's minimizer, so a bred child
+    # cannot beat it: the preconditioned variant's plan is the seed's (child win rate ~0); the paper's variant
+    # has no seed and its children win (its cold start is all children).
+    assert ctrl.generations_run == len(traj.solutions)
+    assert ctrl.child_win_rate < 0.05 if variant == "preconditioned" else ctrl.child_win_rate > 0.3
+    ctrl.reset()
+    assert ctrl.generations_run == 0 and np.isnan(ctrl.child_win_rate)
 
 
 @pytest.mark.parametrize("cls", [EvolutionaryMPC, CrossEntropyMPC, MPPI])
@@ -169,6 +176,8 @@ def test_nan_cost_falls_back():
     ctrl = EvolutionaryMPC(ocp, population=16, num_parents=4, stage_cost=broken)
     sol = ctrl.solve(np.zeros(2), np.ones(2))
     assert sol.status == NAN and sol.fallback and np.isfinite(sol.u).all()
+    traj = simulate(problems.make("pendulum:linear").plant(), ctrl, np.zeros(2), np.ones(2), 0.03)
+    assert traj.fallbacks == 3 and traj.fallback_causes() == "nan 3"
 
 
 def test_solvers_are_registered():
