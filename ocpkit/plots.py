@@ -95,7 +95,7 @@ def set_title(target, text: str, *, fontsize: float = 10) -> None:
     """A title wrapped to its axes' (or figure's) width, so it never runs off the image."""
     fig = target if isinstance(target, plt.Figure) else target.figure
     width = fig.get_figwidth() * (1 if target is fig else target.get_position().width)
-    wrapped = textwrap.fill(text, max(30, int(width * 140 / fontsize)))  # about 0.5 em per character
+    wrapped = textwrap.fill(text, max(30, int(width * 120 / fontsize)))  # about 0.6 em per character: never wider than the axes
     (target.suptitle if target is fig else target.set_title)(wrapped, fontsize=fontsize)
 
 
