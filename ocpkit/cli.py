@@ -551,8 +551,23 @@ def _run_closed_loop(problem, ctrl: Controller, seed: int, duration: float | Non
 
 
 def _labels(problem) -> dict:
+    """The plant's state and input names for the figure's axes, with units where the joints say them: a revolute
+    joint's angle [rad], rate [rad/s] and torque (an input named tau…) [N·m], a prismatic one's [m], [m/s], [N];
+    a set-point input has its joint's position unit. Joints from the problem's kinematics (the pendulum's one
+    joint is revolute); other problems' names are shown as their model gives them."""
     plant = problem.plant()
-    return {"state_names": plant.state_names, "input_names": plant.input_names}
+    if hasattr(type(problem), "kinematics"):
+        revolute = list(problem.kinematics.chain.revolute)
+    else:
+        revolute = [True] if problem.name.startswith("pendulum") else []
+    n = len(revolute)
+    if not n or plant.nx != 2 * n or plant.nu != n:
+        return {"state_names": plant.state_names, "input_names": plant.input_names}
+    position, rate = (["rad" if r else "m" for r in revolute], ["rad/s" if r else "m/s" for r in revolute])
+    effort = [("N·m" if r else "N") if name.startswith("tau") else p
+              for r, name, p in zip(revolute, plant.input_names, position)]
+    return {"state_names": [f"{s} [{u}]" for s, u in zip(plant.state_names, position + rate)],
+            "input_names": [f"{s} [{u}]" for s, u in zip(plant.input_names, effort)]}
 
 
 def _time_summary(traj) -> dict:

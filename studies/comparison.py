@@ -11,6 +11,8 @@ the same start and goal, the final error, the optimization solve time and the MP
 """
 from __future__ import annotations
 
+import json
+
 import numpy as np
 
 from ocpkit import plots, problems, solvers
@@ -22,7 +24,8 @@ from ocpkit.store import Store
 from ocpkit.study import Study, grid
 from ocpkit.studies.closed_loop import run_record
 from ocpkit.plots import number
-from ocpkit.studies.report import Claim, markdown_table, section, timing_context, trials_line, verdict
+from ocpkit.studies.evidence import NOT_TESTED, combine, median_claim, on_gpu, paired, timing
+from ocpkit.studies.report import ANSWERED, Claim, answered, markdown_table, section, timing_context, trials_line
 from ocpkit.studies.solve_times import quartiles
 from ocpkit.transcription import CondensedQP
 
@@ -30,6 +33,9 @@ NAME = "comparison"
 TITLE = "EMPC vs parameterized and traditional MPC on N-link robots (Figs. 11–13)"
 HORIZON = 100
 REFERENCE = "traditional"
+QP = "knots 3 (QP)"
+SLIGHTLY = 1.2  # "costs < 20 % more", "slightly worse": a cost ratio below this
+PAPER_GPU = "faster from 10 links on, on either GPU (GTX 750 Ti, GTX Titan X; Fig. 12)"
 # label -> (solver, knot points (None: p = T), options)
 CONTROLLERS = {
     REFERENCE: ("qp", None, {"form": "sparse", "qp": "hpipm"}),
@@ -95,18 +101,30 @@ def study(size: str) -> Study:
 def row_arrays(df, row, out_dir) -> dict:
     """The arrays stored with the trial in row ``row`` of a study table ``df`` from ``out_dir``.
 
-    The parameters are read back from the row, so every trial of the study must have the same
-    parameter names (a missing one would turn a column's integers into floats).
+    The row is matched to its stored trial by value, since a table column mixes what the trials' parameters
+    kept apart: a None among numbers reads back as NaN, an int among floats as a float.
     """
-    params = {name: df.at[row, name] for name in df.attrs["params"]}
+    wanted = {name: df.at[row, name] for name in df.attrs["params"]}
+
+    def same(stored, value) -> bool:
+        if stored is None or value is None:
+            return stored is None and (value is None or value != value)
+        return stored == value
+
+    study = df.at[row, "study"]
     with Store(out_dir) as store:
-        return store.arrays(df.at[row, "study"], params)
+        for key in store.provenance(study):
+            params = json.loads(key)
+            if all(same(params.get(name), value) for name, value in wanted.items()):
+                return store.arrays(study, params)
+    raise KeyError(f"no stored trial of study {study!r} with params {wanted}")
 
 
 def responses(trajectories: dict, path, *, title: str, joint_names=None):
     """Joint angles against time, one panel per labelled trajectory, goals dotted (the paper's sample responses)."""
     n = len(trajectories)
-    fig, axes = plots.plt.subplots(n, 1, figsize=(8, 2.4 * n), sharex=True, sharey=True, squeeze=False)
+    # each panel its own y-range: one robot, but controllers that hardly move would be flat on a shared one
+    fig, axes = plots.figure(n, 1, figsize=(8, 2.4 * n), sharex=True, squeeze=False)
     for ax, (label, traj) in zip(axes[:, 0], trajectories.items()):
         n_q = traj.x.shape[1] // 2
         for i in range(n_q):
@@ -116,9 +134,9 @@ def responses(trajectories: dict, path, *, title: str, joint_names=None):
         ax.set_ylabel("angle [rad]")
         ax.set_title(label, fontsize=9)
         ax.grid(alpha=0.3)
-    axes[0, 0].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # outside: it hides no trace
+    plots.legend_outside(axes[0, 0])  # outside: it hides no trace
     axes[-1, 0].set_xlabel("time [s]")
-    fig.suptitle(title, fontsize=10)
+    plots.set_title(fig, title)  # constrained layout puts it above the panel titles
     return plots.save(fig, path)
 
 
@@ -141,10 +159,20 @@ def report(df, out_dir) -> str:
         return ok.pivot_table(index="links", columns="controller", values=values, aggfunc=how)[order]
 
     ratio, worst = per_robot("ratio", "median"), per_robot("ratio", "max")
-    figs.append(plots.lines(ratio.index, {c: ratio[c].values for c in order if c != REFERENCE},
-                            out_dir / "comparison_cost_ratio", xlabel="number of links",
-                            ylabel="actual cost / traditional MPC (median)", log=True,
-                            title=f"Actual cost relative to traditional MPC ({seeds} start/goal pairs per robot)"))
+    def per_seed(values, controllers):
+        return {c: [ok.loc[(ok["links"] == links) & (ok["controller"] == c), values].values for links in ratio.index]
+                for c in controllers}
+
+    # Ratios near 1 and ratios in the hundreds in separate panels, each on its own scale, so none hides another.
+    shown = [c for c in order if c != REFERENCE]
+    near = [c for c in shown if ratio[c].max() <= 2]
+    figs.append(plots.lines(ratio.index, per_seed("ratio", shown), out_dir / "comparison_cost_ratio",
+                            xlabel="number of links", ylabel="actual cost / traditional MPC's (ratio)", log=True,
+                            panels=[g for g in (near, [c for c in shown if c not in near]) if g], counts=True,
+                            dodge=True, references=[(1.0, "1: traditional MPC")],
+                            spread_label=f"shaded: quartiles over {seeds} start/goal pairs",
+                            title=f"Actual cost relative to traditional MPC ({seeds} start/goal pairs per robot; "
+                                  "line: median)"))
     tables[f"Median actual cost ratio to traditional MPC over {seeds} start/goal pairs"] = markdown_table(ratio)
     tables["Worst (largest) actual cost ratio to traditional MPC over the start/goal pairs"] = markdown_table(worst)
     final = per_robot("final_error", "median")
@@ -153,9 +181,11 @@ def report(df, out_dir) -> str:
     tables["Worst final error above traditional MPC's on the same start/goal [rad, rad/s]"] = markdown_table(extra)
     for metric, what in (("solve_median", "optimization solve time"), ("total_median", "MPC solve time")):
         med = per_robot(metric, "median") * 1e3
-        figs.append(plots.lines(med.index, {c: med[c].values for c in order}, out_dir / f"comparison_{metric}",
-                                xlabel="number of links", ylabel=f"median {what} [ms]", log=True,
-                                title=f"Median {what} per control step"))
+        figs.append(plots.lines(med.index, {c: [1e3 * v for v in s] for c, s in per_seed(metric, order).items()},
+                                out_dir / f"comparison_{metric}", xlabel="number of links",
+                                ylabel=f"per-step median {what} [ms]", log=True, counts=True, dodge=True,
+                                spread_label=f"shaded: quartiles over {seeds} start/goal pairs",
+                                title=f"Median {what} per control step (line: median over the runs)"))
         tables[f"Median over trials of the per-step median {what} [ms]"] = markdown_table(med)
     sample = ok[ok["record"].astype(bool)]
     if len(sample):
@@ -166,8 +196,9 @@ def report(df, out_dir) -> str:
         trajs = {c: trajs[c] for c in order if c in trajs}
         figs.insert(0, responses(trajs, out_dir / "comparison_sample_response",
                                  title=f"{SAMPLE_LINKS}-link robot, start/goal seed 0: joint angles (dotted: goals)"))
+    tables[ANSWERED] = answered(ok)
     return section(TITLE, figs, tables, trials=trials + " " + timing_context(ok),
-                   notes=_notes(ok, ratio, worst, final, extra, order), claims=claims(ok, ratio, order))
+                   notes=_notes(ok, ratio, worst, final, extra, order), claims=claims(ok))
 
 
 def _notes(ok, ratio, worst, final, extra, order) -> list:
@@ -177,7 +208,8 @@ def _notes(ok, ratio, worst, final, extra, order) -> list:
     notes = [f"Runs: {number(ok['duration'].iloc[0])} s at 100 Hz, horizon {HORIZON}; traditional MPC on HPIPM; "
              f"sampling planners' population {ok['population'].iloc[0]} on "
              + ", ".join(sorted(set(ok.loc[sampling, 'device']))) + ".",
-             f"Fallback steps (solver failures): {int(ok['fallbacks'].sum())} in {len(ok)} runs.",
+             f"Fallback steps (solver failures): {int(ok['fallbacks'].sum())} in {len(ok)} runs (by controller and "
+             "cause in the last table).",
              "The MPC solve time includes the linearization, which the paper leaves out (median "
              + ", ".join(f"{links} links: {number(1e3 * v, 2)} ms" for links, v in model.items())
              + "); the sampling planners' optimization time includes their preconditioner (factor, Newton "
@@ -198,37 +230,59 @@ def _notes(ok, ratio, worst, final, extra, order) -> list:
     return notes
 
 
-def claims(ok, ratio, order) -> list:
-    """The paper's Section VI-B claims against this run's medians."""
+def claims(ok) -> list:
+    """The paper's Section VI-B claims, each decided on per-seed cost ratios (the same start and goal)."""
     out = []
-    qp = ratio["knots 3 (QP)"].dropna() if "knots 3 (QP)" in ratio else None
-    if qp is not None and len(qp):
-        beyond = qp[qp.index > 1]
-        out.append(Claim("Parameterized QP MPC costs < 20 % more than traditional beyond one link",
-                         f"median ratio {_per_robot(qp)}",
-                         verdict(bool((beyond < 1.2).all()) if len(beyond) else None)))
+
+    def ratios(a, b, links=None):
+        """Per (links, seed): cost of a / cost of b."""
+        def cost(c):
+            g = ok[ok["controller"] == c]
+            g = g if links is None else g[g["links"] == links]
+            return g.set_index(["links", "seed"])["actual_cost"]
+        return paired(cost(a), cost(b))
+
+    robots = sorted(ok["links"].unique())
+    present = set(ok["controller"])
+    if {QP, REFERENCE} <= present:
+        parts = {links: median_claim(ratios(QP, REFERENCE, links), SLIGHTLY, "<") for links in robots if links > 1}
+        out.append(Claim(f"Parameterized QP MPC costs < {number(100 * (SLIGHTLY - 1))} % more than traditional "
+                         "beyond one link", "per seed, cost ratio to traditional MPC, per robot",
+                         combine(v for v, _ in parts.values()), _by_robot(parts),
+                         paper="< 20 % more; below 1 for the most links (Fig. 11)"))
     for c in ("EMPC 1 gen", "EMPC 1 gen (paper)"):
-        if c in ratio and qp is not None and len(qp):
-            empc = ratio[c].dropna()
-            slightly = bool(((empc / qp.reindex(empc.index)) <= 1.2).all())
+        if {c, QP} <= present:
+            parts = {links: median_claim(ratios(c, QP, links), (1.0, SLIGHTLY), "==") for links in robots}
             out.append(Claim(f"EMPC is slightly worse than the parameterized QP ({c})",
-                             f"median ratio {_per_robot(empc)}", verdict(slightly)))
+                             f"per seed, cost ratio to the 3-knot QP within 1–{number(SLIGHTLY)}, per robot",
+                             combine(v for v, _ in parts.values()), _by_robot(parts)))
     for one, three in (("EMPC 1 gen", "EMPC 3 gen"), ("EMPC 1 gen (paper)", "EMPC 3 gen (paper)")):
-        if {one, three} <= set(ratio.columns):
-            both = ratio[[one, three]].dropna()
-            better = int((both[three] <= both[one] * 1.001).sum())
+        if {one, three} <= present:
+            r = ratios(three, one)
+            v, e = median_claim(r, 1.0, "<")
             out.append(Claim(f"More generations bring EMPC's cost down ({three} vs {one})",
-                             f"no higher (within 0.1 %) on {better} of {len(both)} robots",
-                             verdict(better == len(both))))
-    solve = ok.pivot_table(index="links", columns="controller", values="solve_median", aggfunc="median")
-    if {"EMPC 1 gen", REFERENCE} <= set(solve.columns):
-        big = solve[solve.index >= 10]
-        faster = [int(l) for l in solve.index[solve["EMPC 1 gen"] < solve[REFERENCE]]]
-        out.append(Claim("One-generation EMPC solves faster than traditional MPC from 10 links on (GPU)",
-                         f"faster at {', '.join(map(str, faster)) or 'no robot'} links "
-                         f"({', '.join(sorted(set(ok['device'])))})",
-                         verdict(bool((big["EMPC 1 gen"] < big[REFERENCE]).all()) if len(big) else None)))
+                             f"per robot and seed, cost with 3 / with 1 generation < 1: lower in {int((r < 1).sum())}, "
+                             f"equal in {int((r == 1).sum())}, higher in {int((r > 1).sum())} of {len(r)}", v, e))
+    if {"EMPC 1 gen", REFERENCE} <= present:
+        claim = "One-generation EMPC solves faster than traditional MPC from 10 links on (GPU)"
+        empc = ok[ok["controller"] == "EMPC 1 gen"]
+        if not on_gpu(empc["device"]):
+            out.append(Claim(claim, f"EMPC ran on {', '.join(sorted(set(empc['device'])))} only", NOT_TESTED,
+                             "needs a GPU", paper=PAPER_GPU))
+        else:
+            def solve(c, links):
+                g = ok[(ok["controller"] == c) & (ok["links"] == links)]
+                return g.set_index("seed")["solve_median"]
+            parts = {links: median_claim(paired(solve("EMPC 1 gen", links), solve(REFERENCE, links)), 1.0, "<")
+                     for links in robots if links >= 10}
+            out.append(Claim(claim, "per seed, median solve time ratio EMPC / traditional < 1, per robot",
+                             timing(combine(v for v, _ in parts.values()), ok["load"]), _by_robot(parts),
+                             paper=PAPER_GPU))
     return out
+
+
+def _by_robot(parts) -> str:
+    return "; ".join(f"{links} links {e}" for links, (_, e) in parts.items())
 
 
 def _per_robot(series) -> str:

@@ -22,7 +22,7 @@ from ocpkit.simulate import simulate
 from ocpkit.study import Study, grid
 from ocpkit.studies.closed_loop import run_record
 from ocpkit.plots import number
-from ocpkit.studies.report import markdown_table, section, timing_context, trials_line
+from ocpkit.studies.report import ANSWERED, answered, markdown_table, section, timing_context, trials_line
 
 NAME = "keepout"
 TITLE = "Where the rollout matters: a joint-space keep-out zone (EMPC's fitness vs the QP)"
@@ -87,7 +87,8 @@ def report(df, out_dir) -> str:
     order = [c for c in CONTROLLERS if c in set(ok["controller"])]
     table = ok.pivot_table(index="seed", columns="controller", values="actual_cost")[order]
     figs = [plots.boxes(order, [table[c].dropna().values for c in order], out_dir / "keepout_cost",
-                        xlabel="controller", ylabel="actual penalized cost", reference=None,
+                        xlabel="controller", ylabel="actual penalized cost (dimensionless)",
+                        colours=[plots.style(c)["color"] for c in order],
                         title=f"{LINKS}-link robot, keep-out ball r = {number(RADIUS)} rad, w = {number(WEIGHT)}, "
                               f"{ok['seed'].nunique()} seeds")]
     summary = ok.groupby("controller")[["actual_cost", "penalty", "steps_inside", "final_error", "solve_median"]]
@@ -95,7 +96,7 @@ def report(df, out_dir) -> str:
     summary["solve_median"] *= 1e3
     tables = {"Actual penalized cost per start/goal seed": markdown_table(table),
               "Medians over the seeds (penalty part of the cost, steps inside the zone, final error max |x − x_goal|,"
-              " per-step optimization time in ms)": markdown_table(summary)}
+              " per-step optimization time in ms)": markdown_table(summary), ANSWERED: answered(ok)}
     notes = [f"Runs: {number(ok['duration'].iloc[0])} s at 100 Hz, horizon {HORIZON}, {KNOTS} knots; EMPC "
              f"population {ok['population'].iloc[0]} on " + ", ".join(sorted(set(ok.loc[ok['controller'] != QP,
                                                                                            'device'])))

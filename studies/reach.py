@@ -38,7 +38,8 @@ from ocpkit.plots import number
 from ocpkit.simulate import simulate
 from ocpkit.studies import keepout
 from ocpkit.studies.closed_loop import run_record
-from ocpkit.studies.report import Claim, markdown_table, section, timing_context, trials_line, verdict
+from ocpkit.studies.evidence import NOT_TESTED, Interval, combine, decide, median_claim, proportion
+from ocpkit.studies.report import ANSWERED, Claim, answered, markdown_table, section, timing_context, trials_line
 from ocpkit.study import Study, grid
 from ocpkit.task import REACH_OBSTACLE_WEIGHT, Sphere, Task, UserTerm, reach
 from ocpkit.task import clearances as task_clearances
@@ -239,6 +240,7 @@ def report(df, out_dir) -> str:
         _reach_section(reach_df, out_dir, figs, tables, notes, claims)
     if not keep_df.empty:
         _keepout_section(keep_df, out_dir, figs, tables, notes, claims)
+    tables[ANSWERED] = answered(ok)
     return section(TITLE, figs, tables, trials=trials + " " + timing_context(ok), notes=notes, claims=claims)
 
 
@@ -275,7 +277,7 @@ def _reach_section(r, out_dir, figs, tables, notes, claims):
               if not r[(r["scenario"] == b) & (r["controller"] == c)].empty]
     rate = [r[(r["scenario"] == b) & (r["controller"] == c)]["success"].mean() for b in robots for c in order
             if not r[(r["scenario"] == b) & (r["controller"] == c)].empty]
-    figs.append(_bars(labels, rate, out_dir / "reach_success", ylabel="success rate",
+    figs.append(_bars(labels, rate, out_dir / "reach_success", ylabel="success rate (fraction of seeds)",
                       title="Reach past a sphere: success (within 1 cm, no collision)"))
     if not rat.empty:
         ratio_labels = [(b, c) for b in robots for c in order
@@ -283,12 +285,15 @@ def _reach_section(r, out_dir, figs, tables, notes, claims):
         figs.append(plots.boxes([f"{b}\n{c}" for b, c in ratio_labels],
                                 [rat[(rat["scenario"] == b) & (rat["controller"] == c)]["ratio"].values
                                  for b, c in ratio_labels], out_dir / "reach_cost_ratio", xlabel="robot, controller",
-                                ylabel="actual cost / IPOPT's", title="Cost ratio to IPOPT where IPOPT succeeds"))
+                                ylabel="actual cost / IPOPT's (ratio)", reference=(1.0, "1: IPOPT"),
+                                colours=[plots.style(c)["color"] for _, c in ratio_labels],
+                                title="Cost ratio to IPOPT where IPOPT succeeds"))
     figs.append(plots.boxes(labels, [1e3 * r[(r["scenario"] == b) & (r["controller"] == c)]["step_median"].values
                                      for b in robots for c in order
                                      if not r[(r["scenario"] == b) & (r["controller"] == c)].empty],
                             out_dir / "reach_step_time", xlabel="robot, controller",
-                            ylabel="median MPC step time [ms]", reference=None,
+                            ylabel="median MPC step time [ms]",
+                            colours=[plots.style(label.split("\n")[1])["color"] for label in labels],
                             title="Per-trial median step time (wall, whole MPC step)"))
     if "nlink:3" in robots:
         figs.append(_paths(r, out_dir))
@@ -358,37 +363,38 @@ def _how(r, controller, index) -> str:
 
 
 def _claim_ipopt_rti(r) -> Claim:
-    parts, holds = [], []
+    parts, verdicts = [], []
     for c in (IPOPT, RTI):
         g = r[r["controller"] == c]
         if len(g):
-            rate = g["success"].mean()
-            parts.append(f"{c} {int(g['success'].sum())}/{len(g)} ({number(100 * rate, 3)} %)")
-            holds.append(rate >= 0.9)
-    return Claim("IPOPT and RTI reach ≥ 90 % of reachable targets without collision",
-                 "; ".join(parts) or "not run", verdict(all(holds) if len(holds) == 2 else None))
+            rate, low, high = proportion(int(g["success"].sum()), len(g))
+            parts.append(f"{c} {int(g['success'].sum())}/{len(g)} = {number(100 * rate, 3)} % "
+                         f"[{number(100 * low, 3)}, {number(100 * high, 3)}] (95 % exact, n = {len(g)})")
+            verdicts.append(decide(Interval(rate, low, high, len(g), 0.95), 0.9, ">="))
+    return Claim("IPOPT and RTI reach ≥ 90 % of reachable targets without collision", "success rate per solver",
+                 combine(verdicts) if len(verdicts) == 2 else NOT_TESTED, "; ".join(parts) or "not run")
 
 
 def _claim_empc_cost(rat) -> Claim:
+    claim = "Preconditioned EMPC's median cost within 1.2× of IPOPT's where IPOPT succeeds"
     q = rat[rat["controller"] == EMPC]["ratio"]
     if not len(q):
-        return Claim("Preconditioned EMPC's median cost within 1.2× of IPOPT's where IPOPT succeeds",
-                     "no seed where both ran and IPOPT succeeded", verdict(None))
-    med = float(np.median(q))
-    return Claim("Preconditioned EMPC's median cost within 1.2× of IPOPT's where IPOPT succeeds",
-                 f"median ratio {number(med, 3)} (worst {number(q.max(), 3)}) over {len(q)} seeds; EMPC succeeded "
-                 f"on {int(rat[rat['controller'] == EMPC]['success'].sum())} of them", verdict(med <= 1.2))
+        return Claim(claim, "no seed where both ran and IPOPT succeeded", NOT_TESTED)
+    v, e = median_claim(q, 1.2, "<=")
+    return Claim(claim, f"per seed, cost ratio EMPC / IPOPT (worst {number(q.max(), 3)}); EMPC succeeded on "
+                 f"{int(rat[rat['controller'] == EMPC]['success'].sum())} of them", v, e)
 
 
 def _bars(labels, values, path, *, ylabel, title):
-    fig, ax = plots.plt.subplots(figsize=(max(6, 0.5 * len(labels)), 3.8))
-    ax.bar(range(len(labels)), values, color="C0")
+    fig, ax = plots.figure(figsize=(max(6, 0.5 * len(labels)), 3.8))
+    ax.bar(range(len(labels)), values, color=[plots.style(label.split("\n")[1])["color"] for label in labels])
     ax.set_xticks(range(len(labels)), labels, fontsize=7, rotation=60, ha="right")
     ax.set_ylim(0, 1.05)
     ax.set_ylabel(ylabel)
-    ax.axhline(0.9, color="k", lw=0.6, ls=":")
+    plots.reference(ax, 0.9, "0.9: the claim's success rate")
     ax.grid(axis="y", alpha=0.3)
-    ax.set_title(title, fontsize=10)
+    plots.legend_outside(ax)
+    plots.set_title(ax, title)
     return plots.save(fig, path)
 
 
@@ -399,12 +405,14 @@ def _paths(r, out_dir):
     first = r[r["scenario"] == "nlink:3"]
     seed = first["seed"].min()
     first = first[first["seed"] == seed]
-    fig, ax = plots.plt.subplots(figsize=(5.5, 5.0))
+    fig, ax = plots.figure(figsize=(7, 5.0))
     arrays = None
     for row in first.index:
         arrays = row_arrays(r, row, out_dir)
         ee = arrays["ee"]
-        ax.plot(ee[:, 0], ee[:, 1], lw=1, label=f"{r.at[row, 'controller']} ({r.at[row, 'outcome']})")
+        look = plots.style(r.at[row, "controller"])
+        ax.plot(ee[:, 0], ee[:, 1], lw=1, color=look["color"], ls=look["linestyle"], marker=look["marker"], ms=3,
+                markevery=(len(ax.lines) * 3 % 20, 20), label=f"{r.at[row, 'controller']} ({r.at[row, 'outcome']})")
     if arrays is not None:
         for cx, cy, _, rad in arrays["obstacles"]:
             ax.add_patch(plots.plt.Circle((cx, cy), rad, color="0.6", alpha=0.5))
@@ -413,7 +421,7 @@ def _paths(r, out_dir):
     ax.set_aspect("equal")
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
-    ax.legend(fontsize=7, loc="best")
+    plots.legend_outside(ax)  # outside: "best" inside still covered paths
     ax.set_title(f"3-link arm, seed {seed}: end-effector paths", fontsize=10)
     return plots.save(fig, out_dir / "reach_paths_nlink3")
 
@@ -422,7 +430,8 @@ def _keepout_section(k, out_dir, figs, tables, notes, claims):
     order = [c for c in KEEPOUT_CONTROLLERS if c in set(k["controller"])]
     table = k.pivot_table(index="seed", columns="controller", values="actual_cost")[order]
     figs.append(plots.boxes(order, [table[c].dropna().values for c in order], out_dir / "reach_keepout_cost",
-                            xlabel="controller", ylabel="actual penalized cost", reference=None,
+                            xlabel="controller", ylabel="actual penalized cost (dimensionless)",
+                            colours=[plots.style(c)["color"] for c in order],
                             title=f"Keep-out ball r = {number(keepout.RADIUS)} rad: same cost for all, "
                                   f"{k['seed'].nunique()} seeds"))
     summary = k.groupby("controller")[["actual_cost", "penalty", "steps_inside", "final_error", "step_median",
@@ -458,8 +467,8 @@ def _keepout_section(k, out_dir, figs, tables, notes, claims):
         notes.append("Keep-out verdict, as measured: " + "; ".join(lines) + ". Median step times: "
                      + ", ".join(f"{c} {number(med[c], 3)} ms" for c in order) + ".")
         both = table[[K_IPOPT, K_EMPC_HINGE]].dropna()
+        v, e = median_claim(both[K_EMPC_HINGE] / both[K_IPOPT], 1.0, "<")
         claims.append(Claim("EMPC's penalized fitness costs less than IPOPT given the same penalty in C¹ form "
                             "(keep-out ball; not a paper claim: the keep-out study's open question)",
-                            f"on {int((both[K_EMPC_HINGE] < both[K_IPOPT]).sum())} of {len(both)} seeds; median "
-                            f"ratio EMPC/IPOPT {number(np.median(both[K_EMPC_HINGE] / both[K_IPOPT]), 3)}",
-                            verdict(bool(np.median(both[K_EMPC_HINGE] / both[K_IPOPT]) < 1) if len(both) else None)))
+                            f"per seed, cost ratio EMPC / IPOPT < 1: lower on "
+                            f"{int((both[K_EMPC_HINGE] < both[K_IPOPT]).sum())} of {len(both)} seeds", v, e))

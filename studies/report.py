@@ -22,21 +22,42 @@ def markdown_table(df) -> str:
     return "\n".join(lines)
 
 
-HELD, NOT_HELD, NOT_TESTED = "held", "not held", "not tested at this size"
-
-
 @dataclass(frozen=True)
 class Claim:
-    """One of the paper's claims, what our data show, and the verdict computed from them."""
+    """One of the paper's claims, the paper's own figure where it states one, what our data show, the evidence the
+    verdict rests on (a median, its interval and n: :mod:`ocpkit.studies.evidence`) and the verdict."""
 
     claim: str
     ours: str
     verdict: str
+    evidence: str = ""
+    paper: str = ""
 
 
-def verdict(holds) -> str:
-    """HELD, NOT_HELD, or NOT_TESTED where ``holds`` is None (the data to decide are not in this run)."""
-    return NOT_TESTED if holds is None else HELD if holds else NOT_HELD
+ANSWERED = "How the steps were answered (fallback steps by cause; EMPC's child win rate, median and range over runs)"
+
+
+def answered(ok, by: str = "controller") -> str:
+    """How each controller's steps were answered, as a Markdown table: runs, fallback steps and their causes (the
+    failed step's status, summed over the runs), and EMPC's child win rate (the share of generations whose best
+    candidate was a bred child rather than a carried-over parent or seed: 0 % means the plan was the seed's)."""
+    import pandas as pd
+
+    rows = {}
+    for name, g in ok.groupby(by, sort=False):
+        causes: dict = {}
+        for text in g.get("fallback_causes", pd.Series(dtype=object)).dropna():
+            for part in filter(None, str(text).split(", ")):
+                status, n = part.rsplit(" ", 1)
+                causes[status] = causes.get(status, 0) + int(n)
+        wins = g["child_win_rate"].dropna() if "child_win_rate" in g else pd.Series(dtype=float)
+        rows[name] = {"runs": len(g), "fallback steps": int(g["fallbacks"].sum()),
+                      "causes": ", ".join(f"{k} {v}" for k, v in sorted(causes.items(), key=lambda kv: -kv[1])) or "–",
+                      "child win rate [%]": (f"{number(100 * wins.median(), 3)} ({number(100 * wins.min(), 3)}–"
+                                             f"{number(100 * wins.max(), 3)})") if len(wins) else "–"}
+    table = pd.DataFrame.from_dict(rows, orient="index")
+    table.index.name = by
+    return markdown_table(table)
 
 
 def trials_line(df, axes: dict) -> str:
@@ -65,6 +86,8 @@ def section(title: str, figures, tables: dict, *, trials: str, claims: list, not
         parts += ["", f"{caption}:", "", table]
     if notes:
         parts += [""] + [f"- {n}" for n in notes]
-    parts += ["", "Claim checks:", "", "| paper's claim | here | verdict |", "|---|---|---|"]
-    parts += [f"| {c.claim} | {c.ours} | {c.verdict} |" for c in claims] or ["| – | no claim of the paper applies | – |"]
+    parts += ["", "Claim checks:", "",
+              "| paper's claim | paper | here | evidence | verdict |", "|---|---|---|---|---|"]
+    parts += [f"| {c.claim} | {c.paper or '–'} | {c.ours} | {c.evidence or '–'} | {c.verdict} |" for c in claims] \
+        or ["| – | – | no claim of the paper applies | – | – |"]
     return "\n".join(parts) + "\n"

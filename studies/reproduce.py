@@ -11,19 +11,68 @@ from pathlib import Path
 from ocpkit import study as study_runner
 from ocpkit.store import Store
 from ocpkit.studies import NAMES, get
+from ocpkit.studies.report import markdown_table
 
 PACKAGES = ("ocpkit", "casadi", "numpy", "proxsuite", "osqp", "pin", "taichi", "control", "matplotlib")
+
+
+# Compute seconds per trial of each study's quick grid with one worker, measured on the 2-core development machine
+# (`reproduce --quick --workers 1`, 2026-12-03, shared machine: 3,315 s in all): what the start-up estimate scales.
+SECONDS_PER_TRIAL = {"knots": 1.3, "horizon": 1.0, "robustness": 0.65, "solve_times": 14.2, "comparison": 12.3,
+                     "keepout": 1.8, "baxter": 2.2, "reach": 14.0}
+# Studies whose claims are about time: run one trial at a time (locally), so two trials never share the 2 cores.
+TIMING_STUDIES = ("solve_times",)
+VERDICTS = ("How verdicts are decided: each claim is tested on per-seed data (paired by start and goal where it "
+            "compares two controllers). The evidence column gives the median, its distribution-free interval "
+            "(order statistics; with few seeds the whole range, with its coverage: 75 % at n = 3) and n. Held: the "
+            "whole interval is on the claimed side of the threshold; not held: it is on the other side; inconclusive: "
+            "it straddles it; not tested: this run lacks the data or the hardware (GPU claims on a CPU run). Timing "
+            "verdicts are marked unreliable where the median load exceeded the CPUs.")
 
 
 def run_study(name: str, size: str, out_dir, *, workers=None, scheduler=None, progress=True, **options) -> str:
     """Run one study (resuming from its store in ``out_dir``), write its table as ``name``.csv and return its
     report section. ``options`` go to :func:`ocpkit.study.run` (trial_timeout, retry_failed, stale, lease)."""
+    return _run_study(name, size, out_dir, workers=workers, scheduler=scheduler, progress=progress, **options)[0]
+
+
+def _run_study(name, size, out_dir, **options):
+    """(report section, the study's table)."""
     module = get(name)
     out_dir = Path(out_dir)
-    df = study_runner.run(module.study(size), out_dir, workers=workers, scheduler=scheduler, progress=progress,
-                          **options)
+    df = study_runner.run(module.study(size), out_dir, **options)
     df.to_csv(out_dir / f"{name}.csv", index=False)
-    return module.report(df, out_dir) + study_runner.failure_summary(df)
+    return module.report(df, out_dir) + study_runner.failure_summary(df), df
+
+
+def estimate(names, size: str, out_dir, workers=None) -> float:
+    """Seconds the trials of ``names`` not yet stored in ``out_dir`` should take on ``workers`` local processes, from
+    :data:`SECONDS_PER_TRIAL` (an idle 2-core machine; a busy one takes longer)."""
+    stored = {}
+    if (Path(out_dir) / "results.sqlite").exists():
+        with Store(out_dir) as store:
+            stored = {name: len(store.provenance(name)) for name in names}
+    total = 0.0
+    for name in names:
+        todo = max(0, len(get(name).study(size).trials) - stored.get(name, 0))
+        total += todo * SECONDS_PER_TRIAL.get(name, 5.0)
+    return total / max(1, min(workers or os.cpu_count() or 1, os.cpu_count() or 1))
+
+
+def per_seed(name: str, df) -> str:
+    """The study's per-seed values as a Markdown table (rows: configurations, columns: seeds), of the metric its
+    module names in ``PER_SEED`` (default the actual cost)."""
+    metric = getattr(get(name), "PER_SEED", "actual_cost")
+    ok = df[df["status"] == "ok"]
+    if metric not in ok or "seed" not in ok or ok.empty:
+        return ""
+    axes = [p for p in df.attrs.get("params", []) if p != "seed" and ok[p].nunique(dropna=False) > 1]
+    table = ok.pivot_table(index=axes or None, columns="seed", values=metric, aggfunc="first", dropna=False) \
+        if axes else ok.set_index("seed")[[metric]].T
+    table.index = [" / ".join(map(str, i)) if isinstance(i, tuple) else str(i) for i in table.index]
+    table.index.name = " / ".join(axes) or "metric"
+    table.columns = [f"seed {c}" for c in table.columns]
+    return f"### {name}: {metric} per seed\n\n" + markdown_table(table) + "\n"
 
 
 def reproduce(size: str = "quick", out_dir="results/reproduce", *, names=NAMES, workers=None, scheduler=None,
@@ -36,12 +85,18 @@ def reproduce(size: str = "quick", out_dir="results/reproduce", *, names=NAMES, 
         raise ValueError(f"size must be 'quick' or 'full', got {size!r}")
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    start = time.perf_counter()
-    sections, timings = [], {}
+    if progress and scheduler is None:
+        print(f"reproduce --{size}: about {estimate(names, size, out_dir, workers) / 60:.0f} min of trials to run on "
+              f"{workers or os.cpu_count()} worker(s) (idle 2-core estimate; longer on a busy machine)", flush=True)
+    start, load_start = time.perf_counter(), os.getloadavg()[0]
+    sections, appendix, timings = [], [], {}
     for name in names:
         t0 = time.perf_counter()
-        sections.append(run_study(name, size, out_dir, workers=workers, scheduler=scheduler, progress=progress,
-                                  **options))
+        serial = name in TIMING_STUDIES and scheduler is None  # timed trials must not compete for the cores
+        section, df = _run_study(name, size, out_dir, workers=1 if serial else workers, scheduler=scheduler,
+                                 progress=progress, **options)
+        sections.append(section)
+        appendix.append(per_seed(name, df))
         timings[name] = time.perf_counter() - t0
     wall = time.perf_counter() - start
     with Store(out_dir) as store:
@@ -49,11 +104,13 @@ def reproduce(size: str = "quick", out_dir="results/reproduce", *, names=NAMES, 
     runs = runs[runs["study"].isin(list(names))]
     compute = {name: float(runs.loc[runs["study"] == name, "wall"].sum()) for name in names}
     report = out_dir / "report.md"
-    report.write_text(_header(size, scheduler, workers, timings, wall, compute, len(runs)) + "\n" + "\n".join(sections))
+    loads = (load_start, os.getloadavg()[0])
+    report.write_text(_header(size, scheduler, workers, timings, wall, compute, len(runs), loads) + "\n" + VERDICTS + "\n\n"
+                      + "\n".join(sections) + "\n## Appendix: per-seed values\n\n" + "\n".join(filter(None, appendix)))
     return report
 
 
-def _header(size, scheduler, workers, timings, wall, compute, n_runs) -> str:
+def _header(size, scheduler, workers, timings, wall, compute, n_runs, loads) -> str:
     versions = ", ".join(f"{p} {_version(p)}" for p in PACKAGES)
     lines = [
         "# ocpkit: reproduction of Hyatt, Williams, Killpack — Parameterized and GPU-Parallelized Real-Time MPC",
@@ -61,13 +118,15 @@ def _header(size, scheduler, workers, timings, wall, compute, n_runs) -> str:
         f"- command: `ocpkit reproduce --{size}`" + (f" --scheduler {scheduler}" if scheduler else ""),
         f"- machine: {platform.node()}, {platform.machine()}, {os.cpu_count()} CPUs, Python {sys.version.split()[0]}"
         f", {platform.platform()}",
-        f"- workers: {workers or ('dask ' + scheduler if scheduler else os.cpu_count())}",
+        f"- workers: {workers or ('dask ' + scheduler if scheduler else os.cpu_count())}"
+        + ("" if scheduler else f" ({', '.join(TIMING_STUDIES)}: one, so that timed trials never share the cores)"),
         f"- packages: {versions}",
         "- seeds: trial seeds 0 … n−1 per configuration (see each study's size); every start/goal is drawn from"
         " its seed",
         f"- compute time: {sum(compute.values()):.1f} s summed over the {n_runs} study runs that stored trials here ("
         + ", ".join(f"{k} {v:.1f} s" for k, v in compute.items()) + ")",
-        f"- wall time of this run: {wall:.1f} s (" + ", ".join(f"{k} {v:.1f} s" for k, v in timings.items()) + ")",
+        f"- wall time of this run: {wall:.1f} s (" + ", ".join(f"{k} {v:.1f} s" for k, v in timings.items()) + ")"
+        f"; 1-min load average {loads[0]:.1f} at its start, {loads[1]:.1f} at its end on {os.cpu_count()} CPUs",
         "- results are resumable: each finished trial is in results.sqlite; rerunning skips them",
     ]
     return "\n".join(lines) + "\n"

@@ -17,13 +17,16 @@ from ocpkit import plots, problems, solvers
 from ocpkit._checks import choice, integer
 from ocpkit.study import Study, grid
 from ocpkit.plots import number
-from ocpkit.studies.report import Claim, markdown_table, section, timing_context, trials_line, verdict
+from ocpkit.studies.evidence import HELD, INCONCLUSIVE, NOT_HELD, combine, decide, median_interval, timing
+from ocpkit.studies.report import Claim, markdown_table, section, timing_context, trials_line
 
 NAME = "solve_times"
 TITLE = "Solve times of the convex formulations vs number of links (Figs. 7–10)"
 HORIZONS = (50, 100)
 KNOTS = 5
 FORMS = ("sparse", "condensed")
+NOT_REDUCED = 0.1  # "does not reduce": faster by less than this fraction
+HARDLY = 1.5  # "hardly depends on the horizon": twice the horizon, at most this factor in time
 # "max_dense_vars": the traditional small matrix QP has links × T dense variables and its OSQP solve grows
 # steeply (measured on 2 cores: 0.3–0.5 s at 7 links, T = 50; 2.5–4 s at 7 links, T = 100; 18–36 s at
 # 13 links, T = 100); quick skips it above this size. None: no skip.
@@ -94,13 +97,18 @@ def report(df, out_dir) -> str:
         for metric, what, fig in (("solve_median", "optimization solve time", "solve"),
                                   ("total_median", "MPC solve time", "total")):
             med = g.pivot_table(index="links", columns="formulation", values=metric, aggfunc="median") * 1e3
+            q1, q3 = (g.pivot_table(index="links", columns="formulation", values=metric.replace("median", q),
+                                    aggfunc="median").reindex(index=med.index, columns=med.columns) * 1e3
+                      for q in ("q1", "q3"))
             figs.append(plots.lines(med.index, {c: med[c].values for c in med.columns},
                                     out_dir / f"solve_times_{fig}_T{horizon}", xlabel="number of links",
-                                    ylabel=f"median {what} [ms]", log=True,
+                                    ylabel=f"median {what} [ms]", log=True, counts=True,
+                                    spread={c: (q1[c].values, q3[c].values) for c in med.columns},
+                                    spread_label=f"shaded: quartiles over the {states} states",
                                     title=f"Median {what}, horizon {horizon} ({states} cold solves each)"))
             tables[f"Median {what} over {states} cold solves [ms], horizon {horizon}"] = markdown_table(med)
     return section(TITLE, figs, tables, trials=trials + " " + timing_context(ok), notes=_notes(ok, df),
-                   claims=claims(ok))
+                   claims=claims(ok, df, out_dir))
 
 
 def _notes(ok, df) -> list:
@@ -119,50 +127,84 @@ def _notes(ok, df) -> list:
     return notes
 
 
-def claims(ok) -> list:
-    """The paper's Section IV-G claims against the medians of this run."""
-    opt = ok.pivot_table(index=["links", "horizon"], columns="formulation", values="solve_median")
-    tot = ok.pivot_table(index=["links", "horizon"], columns="formulation", values="total_median")
+def claims(ok, df, out_dir) -> list:
+    """The paper's Section IV-G claims, each decided per (links, T) case on the per-state time ratios (every
+    formulation solved the same states), and marked unreliable where the machine was overloaded."""
+    times = _per_state(ok, df, out_dir)
     small, large = label("condensed", KNOTS), label("sparse", KNOTS)
+    loads = ok["load"]
     out = []
-    fastest = opt.idxmin(axis=1) == small
+
+    def compare(a, b, metric, threshold=1.0, claimed="<"):
+        """{(links, T): (verdict, interval)} of the per-state ratio a / b."""
+        result = {}
+        for case, by_form in times[metric].items():
+            if a in by_form and b in by_form:
+                interval = median_interval(by_form[a] / by_form[b])
+                result[case] = (decide(interval, threshold, claimed), interval)
+        return result
+
+    def text(result) -> str:
+        return "; ".join(f"{links}/{T}: {i.text(3)}" for (links, T), (_, i) in sorted(result.items())) or "not run"
+
+    others = sorted({f for by_form in times["solve"].values() for f in by_form} - {small})
+    lowest = {}
+    for other in others:
+        for case, (v, _) in compare(small, other, "solve").items():
+            lowest.setdefault(case, []).append(v)
     out.append(Claim("The parameterized small matrix formulation has the lowest optimization solve time",
-                     f"lowest in {int(fastest.sum())} of {len(fastest)} (links, T) cases",
-                     verdict(bool(fastest.all()))))
-    wins, cases = _where(opt, label("condensed", None), label("sparse", None))
-    # Held when it wins somewhere, and not on the largest robot compared.
-    small_only = None if not cases else bool(wins and max(l for l, _ in wins) < max(l for l, _ in cases))
+                     f"per state, its time / each other formulation's < 1, in every (links, T) case "
+                     f"({len(lowest)} cases)", timing(combine(combine(v) for v in lowest.values()), loads),
+                     "per case: " + ", ".join(f"{l}/{T} {combine(v)}" for (l, T), v in sorted(lowest.items()))))
+    result = compare(label("condensed", None), label("sparse", None), "solve")
     out.append(Claim("The traditional small matrix formulation beats the large one on small problems only",
-                     f"faster at {_cases(wins, cases)}", verdict(small_only)))
-    wins, cases = _where(opt, large, label("sparse", None))
+                     "per state, small / large matrix time (traditional) < 1 at the fewest links and not at the most",
+                     timing(_small_only(result), loads), text(result)))
+    result = compare(large, label("sparse", None), "solve", threshold=1 - NOT_REDUCED, claimed=">=")
     out.append(Claim("Parameterizing the large matrix formulation does not reduce its optimization solve time",
-                     f"reduces it at {_cases(wins, cases)}", verdict(None if not cases else not wins)))
+                     f"per state, parameterized / traditional time ≥ {number(1 - NOT_REDUCED)} (less than "
+                     f"{number(100 * NOT_REDUCED)} % faster)", timing(combine(v for v, _ in result.values()), loads),
+                     text(result)))
     for form in FORMS:
-        wins, cases = _where(tot, label(form, KNOTS), label(form, None))
+        result = compare(label(form, KNOTS), label(form, None), "total")
         out.append(Claim(f"Parameterization reduces the MPC solve time of the {form} formulation",
-                         f"reduces it at {_cases(wins, cases)}",
-                         verdict(None if not cases else len(wins) == len(cases))))
-    if small in opt:
-        by_t = opt[small].unstack("horizon")
-        if set(HORIZONS) <= set(by_t.columns):
-            ratio = (by_t[HORIZONS[1]] / by_t[HORIZONS[0]]).dropna()
-            out.append(Claim("The parameterized small matrix optimization time hardly depends on the horizon",
-                             f"T = {HORIZONS[1]} / T = {HORIZONS[0]}: {number(ratio.min(), 3)}–"
-                             f"{number(ratio.max(), 3)} over {len(ratio)} robots",
-                             verdict(bool((ratio <= 1.5).all()))))
+                         "per state, parameterized / traditional MPC solve time < 1",
+                         timing(combine(v for v, _ in result.values()), loads), text(result)))
+    by_links = {}
+    for (links, T), by_form in times["solve"].items():
+        if small in by_form:
+            by_links.setdefault(links, {})[T] = by_form[small]
+    result = {links: median_interval(t[HORIZONS[1]] / t[HORIZONS[0]]) for links, t in sorted(by_links.items())
+              if set(HORIZONS) <= set(t)}
+    if result:
+        out.append(Claim("The parameterized small matrix optimization time hardly depends on the horizon",
+                         f"per state, time at T = {HORIZONS[1]} / at T = {HORIZONS[0]} ≤ {number(HARDLY)}",
+                         timing(combine(decide(i, HARDLY, "<=") for i in result.values()), loads),
+                         "; ".join(f"{links} links: {i.text(3)}" for links, i in result.items())))
     return out
 
 
-def _where(table, a: str, b: str):
-    """The (links, T) cases where formulation ``a`` has the smaller median than ``b``, and all compared cases."""
-    if a not in table or b not in table:
-        return [], []
-    both = table[[a, b]].dropna()
-    return [case for case, faster in (both[a] < both[b]).items() if faster], list(both.index)
+def _per_state(ok, df, out_dir) -> dict:
+    """{"solve"/"total": {(links, T): {formulation: per-state times}}} from the stored arrays."""
+    from ocpkit.studies.comparison import row_arrays
+
+    times = {"solve": {}, "total": {}}
+    for row in ok.index:
+        arrays = row_arrays(df, row, out_dir)
+        case = (int(ok.at[row, "links"]), int(ok.at[row, "horizon"]))
+        for metric in times:
+            times[metric].setdefault(case, {})[ok.at[row, "formulation"]] = np.asarray(arrays[f"{metric}_times"])
+    return times
 
 
-def _cases(wins, cases) -> str:
-    if not cases:
-        return "no case (not run)"
-    return (f"{len(wins)} of {len(cases)} (links/T: "
-            + (", ".join(f"{l}/{h}" for l, h in wins) or "none") + ")")
+def _small_only(result) -> str:
+    """Held when the first formulation is faster at the fewest links and not at the most (per horizon)."""
+    verdicts = []
+    for T in sorted({T for _, T in result}):
+        cases = sorted(c for c in result if c[1] == T)
+        if len(cases) < 2:
+            continue
+        first, last = result[cases[0]][0], result[cases[-1]][0]
+        verdicts.append(HELD if first == HELD and last == NOT_HELD else
+                        NOT_HELD if first == NOT_HELD or last == HELD else INCONCLUSIVE)
+    return combine(verdicts)
