@@ -140,13 +140,30 @@ def log_axis(ax, axis: str = "y") -> None:
     """A log axis with readable ticks in one notation; within one decade, evenly spaced values (a log locator
     would label only 10⁰ on a ratio axis spanning 0.98–1.4), else 1, 2, 5 per decade."""
     which = ax.yaxis if axis == "y" else ax.xaxis
-    lo, hi = ax.get_ylim() if axis == "y" else ax.get_xlim()
-    if lo > 0 and hi / lo < 10:
-        which.set_major_locator(ticker.MaxNLocator(nbins=6))
-    else:
-        which.set_major_locator(ticker.LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
+    which.set_major_locator(_LogTicks())
     which.set_major_formatter(_Ticks())
     which.set_minor_formatter(ticker.NullFormatter())
+
+
+class _LogTicks(ticker.Locator):
+    """:func:`log_axis`'s tick positions, chosen when the axis is drawn: from the final limits, which series and
+    bands drawn after the call may still widen (a range chosen too early left a 0.9–12 axis without its 1)."""
+
+    def __init__(self):
+        self._linear = ticker.MaxNLocator(nbins=6)
+        self._log = ticker.LogLocator(base=10, subs=(1.0, 2.0, 5.0))
+
+    def set_axis(self, axis):
+        super().set_axis(axis)
+        self._linear.set_axis(axis)
+        self._log.set_axis(axis)
+
+    def __call__(self):
+        return self.tick_values(*self.axis.get_view_interval())
+
+    def tick_values(self, vmin, vmax):
+        lo, hi = sorted((vmin, vmax))
+        return (self._linear if lo > 0 and hi / lo < 10 else self._log).tick_values(lo, hi)
 
 
 def closed_loop(trajectories: dict, path, *, title: str = "", state_names=None, input_names=None,
