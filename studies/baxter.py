@@ -181,7 +181,8 @@ def claims(ok, values) -> list:
     if {QP, EMPC} <= set(ok["controller"]):
         empc = ok[ok["controller"] == EMPC]
         med = ok.groupby("controller")["total_median"].median()
-        ours = (f"median MPC solve time {number(1e3 * med[EMPC], 3)} ms for EMPC ({', '.join(sorted(set(empc['device'])))}) "
+        devices = ", ".join(sorted(set(empc["device"])))
+        ours = (f"median MPC solve time {number(1e3 * med[EMPC], 3)} ms for EMPC ({devices}) "
                 f"vs {number(1e3 * med[QP], 3)} ms for the QP")
         if not on_gpu(empc["device"]):
             out.append(Claim("EMPC solves faster than the QP (GPU)", ours, NOT_TESTED, "needs a GPU"))

@@ -145,7 +145,7 @@ def timing(verdict: str, loads, cores: int | None = None) -> str:
     if verdict == NOT_TESTED or load.size == 0:
         return verdict
     median = float(np.median(load))
-    return f"unreliable (load {number(median, 2)} on {cores} cores; {verdict} as measured)" if median > cores \
+    return f"unreliable (load {number(median, 3)} on {cores} cores; {verdict} as measured)" if median > cores \
         else verdict
 
 

@@ -52,7 +52,8 @@ def answered(ok, by: str = "controller") -> str:
                 causes[status] = causes.get(status, 0) + int(n)
         wins = g["child_win_rate"].dropna() if "child_win_rate" in g else pd.Series(dtype=float)
         rows[name] = {"runs": len(g), "fallback steps": int(g["fallbacks"].sum()),
-                      "causes": ", ".join(f"{k} {v}" for k, v in sorted(causes.items(), key=lambda kv: -kv[1])) or "–",
+                      "causes": ", ".join(f"{k} {v}" for k, v in sorted(causes.items(), key=lambda kv: -kv[1]))
+                      or "–",
                       "child win rate [%]": (f"{number(100 * wins.median(), 3)} ({number(100 * wins.min(), 3)}–"
                                              f"{number(100 * wins.max(), 3)})") if len(wins) else "–"}
     table = pd.DataFrame.from_dict(rows, orient="index")

@@ -105,8 +105,9 @@ def reproduce(size: str = "quick", out_dir="results/reproduce", *, names=NAMES, 
     compute = {name: float(runs.loc[runs["study"] == name, "wall"].sum()) for name in names}
     report = out_dir / "report.md"
     loads = (load_start, os.getloadavg()[0])
-    report.write_text(_header(size, scheduler, workers, timings, wall, compute, len(runs), loads) + "\n" + VERDICTS + "\n\n"
-                      + "\n".join(sections) + "\n## Appendix: per-seed values\n\n" + "\n".join(filter(None, appendix)))
+    report.write_text(_header(size, scheduler, workers, timings, wall, compute, len(runs), loads) + "\n" + VERDICTS
+                      + "\n\n" + "\n".join(sections) + "\n## Appendix: per-seed values\n\n"
+                      + "\n".join(filter(None, appendix)))
     return report
 
 

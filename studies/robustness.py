@@ -119,7 +119,8 @@ def claims(problem, g) -> list:
                 for error in errors:
                     if error == 1.0:
                         continue
-                    interval = median_interval(paired(at(c, error, "normalized"), at("traditional", error, "normalized")))
+                    ratio = paired(at(c, error, "normalized"), at("traditional", error, "normalized"))
+                    interval = median_interval(ratio)
                     verdicts.append(decide(interval, (1 / SIMILAR, SIMILAR), "=="))
                     far = max(abs(np.log(interval.low)), abs(np.log(interval.high)))
                     if far > abs(np.log(worst[1])):

@@ -67,6 +67,7 @@ def test_combine_timing_and_proportion():
     assert combine([HELD, NOT_HELD, INCONCLUSIVE]) == NOT_HELD and combine([NOT_TESTED]) == NOT_TESTED
     assert timing(HELD, [1.0, 1.5], cores=2) == HELD
     assert timing(HELD, [7.0, 11.0], cores=2).startswith("unreliable (load 9 on 2 cores")
+    assert timing(HELD, [2.04, 2.04], cores=2).startswith("unreliable (load 2.04 on")
     rate, low, high = proportion(4, 5)
     assert rate == 0.8 and low == pytest.approx(0.2836, abs=1e-4) and high == pytest.approx(0.9949, abs=1e-4)
     assert proportion(5, 5)[2] == 1.0 and proportion(0, 5)[1] == 0.0
