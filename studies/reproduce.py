@@ -16,10 +16,10 @@ from ocpkit.studies.report import markdown_table
 PACKAGES = ("ocpkit", "casadi", "numpy", "proxsuite", "osqp", "pin", "taichi", "control", "matplotlib")
 
 
-# Compute seconds per trial of each study's quick grid with one worker, measured on the 2-core development machine
-# (`reproduce --quick --workers 1`, 2026-12-03, shared machine: 3,315 s in all): what the start-up estimate scales.
-SECONDS_PER_TRIAL = {"knots": 1.3, "horizon": 1.0, "robustness": 0.65, "solve_times": 14.2, "comparison": 12.3,
-                     "keepout": 1.8, "baxter": 2.2, "reach": 14.0}
+# Seconds per trial and worker of each study's quick grid, measured on the idle 2-core development machine
+# (`reproduce --quick`, 2 workers, 2026-12-03: 1,427 s in all): what the start-up estimate scales.
+SECONDS_PER_TRIAL = {"knots": 0.5, "horizon": 0.61, "robustness": 0.52, "solve_times": 6.0, "comparison": 10.3,
+                     "keepout": 1.8, "baxter": 2.4, "reach": 16.7}
 # Studies whose claims are about time: run one trial at a time (locally), so two trials never share the 2 cores.
 TIMING_STUDIES = ("solve_times",)
 VERDICTS = ("How verdicts are decided: each claim is tested on per-seed data (paired by start and goal where it "
@@ -52,11 +52,12 @@ def estimate(names, size: str, out_dir, workers=None) -> float:
     if (Path(out_dir) / "results.sqlite").exists():
         with Store(out_dir) as store:
             stored = {name: len(store.provenance(name)) for name in names}
+    parallel = max(1, min(workers or os.cpu_count() or 1, os.cpu_count() or 1))
     total = 0.0
     for name in names:
         todo = max(0, len(get(name).study(size).trials) - stored.get(name, 0))
-        total += todo * SECONDS_PER_TRIAL.get(name, 5.0)
-    return total / max(1, min(workers or os.cpu_count() or 1, os.cpu_count() or 1))
+        total += todo * SECONDS_PER_TRIAL.get(name, 5.0) / (1 if name in TIMING_STUDIES else parallel)
+    return total
 
 
 def per_seed(name: str, df) -> str:
@@ -87,7 +88,8 @@ def reproduce(size: str = "quick", out_dir="results/reproduce", *, names=NAMES, 
     out_dir.mkdir(parents=True, exist_ok=True)
     if progress and scheduler is None:
         print(f"reproduce --{size}: about {estimate(names, size, out_dir, workers) / 60:.0f} min of trials to run on "
-              f"{workers or os.cpu_count()} worker(s) (idle 2-core estimate; longer on a busy machine)", flush=True)
+              f"{workers or os.cpu_count()} worker(s) (the quick size's per-trial times on an idle 2-core machine; "
+              "a busy machine, or the full size's longer trials, take longer)", flush=True)
     start, load_start = time.perf_counter(), os.getloadavg()[0]
     sections, appendix, timings = [], [], {}
     for name in names:

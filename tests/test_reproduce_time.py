@@ -3,7 +3,7 @@ import re
 
 from ocpkit.store import Store
 from ocpkit.studies import get
-from ocpkit.studies.reproduce import reproduce
+from ocpkit.studies.reproduce import SECONDS_PER_TRIAL, estimate, reproduce
 
 
 def compute_seconds(report) -> float:
@@ -12,7 +12,10 @@ def compute_seconds(report) -> float:
 
 def test_compute_time_sums_runs_and_a_resume_keeps_it(monkeypatch, tmp_path):
     monkeypatch.setitem(get("knots").SIZES, "quick", {"knots": [2, 50], "seeds": 1, "problems": ["pendulum:linear"]})
+    trials = len(get("knots").study("quick").trials)
+    assert estimate(("knots",), "quick", tmp_path, workers=1) == trials * SECONDS_PER_TRIAL["knots"]
     report = reproduce("quick", tmp_path, names=("knots",), workers=1, progress=False)
+    assert estimate(("knots",), "quick", tmp_path, workers=1) == 0  # everything stored: nothing left to run
     first = compute_seconds(report)
     with Store(tmp_path) as store:
         runs, n = store.runs("knots"), len(store.load("knots"))
