@@ -1121,7 +1121,7 @@ static void condense(mem_t* m, const double* x, const double* xg) {
 static void finish_qp(mem_t* m, double* prev, const double* xg) {
   double* Pq = m->Pq;
   int i, j, k, col;
-  (void) col;
+  (void) col; (void) prev; (void) xg;  /* used only with a terminal weight other than Q (HAS_DQT) */
   /* terminal weight: (Q_T − Q) on [v − x_goal, S] at x_T */
 #if HAS_DQT
   for (i = 0; i < NX; ++i) prev[i * NZ1] -= xg[i];
