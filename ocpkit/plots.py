@@ -95,7 +95,8 @@ def set_title(target, text: str, *, fontsize: float = 10) -> None:
     """A title wrapped to its axes' (or figure's) width, so it never runs off the image."""
     fig = target if isinstance(target, plt.Figure) else target.figure
     width = fig.get_figwidth() * (1 if target is fig else target.get_position().width)
-    wrapped = textwrap.fill(text, max(30, int(width * 120 / fontsize)))  # about 0.6 em per character: never wider than the axes
+    # about 0.6 em per character: never wider than the axes
+    wrapped = textwrap.fill(text, max(30, int(width * 120 / fontsize)))
     (target.suptitle if target is fig else target.set_title)(wrapped, fontsize=fontsize)
 
 
@@ -265,11 +266,12 @@ def save(fig, path) -> Path:
 
 
 def boxes(labels, data, path, *, xlabel: str, ylabel: str, title: str = "", log: bool = True,
-          reference: tuple | None = None, colours=None, unit: str = "seed") -> Path:
+          references=(), colours=None, unit: str = "seed") -> Path:
     """One group of values per label: every value as a dot and the median as a bar when each group has fewer
     than :data:`STRIP_BELOW` (a box of 5 points hides which they are), else box plots in the paper's convention
-    (quartile box, median marker, 1.5 IQR whiskers, outliers as dots). ``reference``: (y, legend label) of a
-    dotted line; ``colours``: one per group (default: all C0); ``unit``: what one value is ("seed")."""
+    (quartile box, median marker, 1.5 IQR whiskers, outliers as dots). ``references``: (y, legend label) of
+    dotted lines, as :func:`lines` takes them; ``colours``: one per group (default: all C0); ``unit``: what one
+    value is ("seed")."""
     if len(labels) != len(data):
         raise ValueError(f"labels and data must have the same length, got {len(labels)} and {len(data)}")
     data = [np.asarray(d, dtype=float) for d in data]
@@ -298,8 +300,8 @@ def boxes(labels, data, path, *, xlabel: str, ylabel: str, title: str = "", log:
                   fontsize=8, rotation=0 if max(len(str(l)) for l in labels) <= 12 else 30,
                   ha="center" if max(len(str(l)) for l in labels) <= 12 else "right")
     ax.set_ylabel(ylabel)
-    if reference is not None:
-        globals()["reference"](ax, *reference)
+    for y, text in references:
+        reference(ax, y, text)
     if log:
         ax.set_yscale("log")
         log_axis(ax)

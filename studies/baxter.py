@@ -28,7 +28,7 @@ from ocpkit.study import Study, grid
 from ocpkit.studies.closed_loop import run_record
 from ocpkit.studies.comparison import responses, row_arrays
 from ocpkit.plots import number
-from ocpkit.studies.evidence import NOT_TESTED, median_claim, on_gpu, paired, timing
+from ocpkit.studies.evidence import NOT_TESTED, median_claim, on_gpu, paired, series, timing
 from ocpkit.studies.report import ANSWERED, Claim, answered, markdown_table, section, timing_context, trials_line
 from ocpkit.studies.solve_times import quartiles
 
@@ -187,8 +187,7 @@ def claims(ok, values) -> list:
         if not on_gpu(empc["device"]):
             out.append(Claim("EMPC solves faster than the QP (GPU)", ours, NOT_TESTED, "needs a GPU"))
         else:
-            per_run = ok.set_index(["command", "seed"])
-            runs = [per_run[per_run["controller"] == c]["total_median"] for c in (EMPC, QP)]
+            runs = [series(ok, "total_median", ["command", "seed"], controller=c) for c in (EMPC, QP)]
             v, e = median_claim(paired(*runs), 1.0, "<")
             out.append(Claim("EMPC solves faster than the QP (GPU)", ours, timing(v, ok["load"]), e))
     return out

@@ -24,7 +24,7 @@ from ocpkit.store import Store
 from ocpkit.study import Study, grid
 from ocpkit.studies.closed_loop import run_record
 from ocpkit.plots import number
-from ocpkit.studies.evidence import NOT_TESTED, combine, median_claim, on_gpu, paired, timing
+from ocpkit.studies.evidence import NOT_TESTED, combine, median_claim, on_gpu, paired, series, timing
 from ocpkit.studies.report import ANSWERED, Claim, answered, markdown_table, section, timing_context, trials_line
 from ocpkit.studies.solve_times import quartiles
 from ocpkit.transcription import CondensedQP
@@ -234,25 +234,22 @@ def claims(ok) -> list:
     """The paper's Section VI-B claims, each decided on per-seed cost ratios (the same start and goal)."""
     out = []
 
-    def ratios(a, b, links=None):
-        """Per (links, seed): cost of a / cost of b."""
-        def cost(c):
-            g = ok[ok["controller"] == c]
-            g = g if links is None else g[g["links"] == links]
-            return g.set_index(["links", "seed"])["actual_cost"]
-        return paired(cost(a), cost(b))
+    def ratios(a, b, **links):
+        """Per (links, seed): cost of a / cost of b (``links=`` one robot)."""
+        return paired(*(series(ok, "actual_cost", ["links", "seed"], controller=c, **links) for c in (a, b)))
 
     robots = sorted(ok["links"].unique())
     present = set(ok["controller"])
     if {QP, REFERENCE} <= present:
-        parts = {links: median_claim(ratios(QP, REFERENCE, links), SLIGHTLY, "<") for links in robots if links > 1}
+        parts = {links: median_claim(ratios(QP, REFERENCE, links=links), SLIGHTLY, "<")
+                 for links in robots if links > 1}
         out.append(Claim(f"Parameterized QP MPC costs < {number(100 * (SLIGHTLY - 1))} % more than traditional "
                          "beyond one link", "per seed, cost ratio to traditional MPC, per robot",
                          combine(v for v, _ in parts.values()), _by_robot(parts),
                          paper="< 20 % more; below 1 for the most links (Fig. 11)"))
     for c in ("EMPC 1 gen", "EMPC 1 gen (paper)"):
         if {c, QP} <= present:
-            parts = {links: median_claim(ratios(c, QP, links), SLIGHTLY, "<=") for links in robots}
+            parts = {links: median_claim(ratios(c, QP, links=links), SLIGHTLY, "<=") for links in robots}
             wins = ok.loc[ok["controller"] == c, "child_win_rate"].median()
             out.append(Claim(f"EMPC is slightly worse than the parameterized QP ({c})",
                              f"per seed, cost ratio to the 3-knot QP ≤ {number(SLIGHTLY)} (at most slightly worse), "
@@ -274,10 +271,8 @@ def claims(ok) -> list:
             out.append(Claim(claim, f"EMPC ran on {', '.join(sorted(set(empc['device'])))} only", NOT_TESTED,
                              "needs a GPU", paper=PAPER_GPU))
         else:
-            def solve(c, links):
-                g = ok[(ok["controller"] == c) & (ok["links"] == links)]
-                return g.set_index("seed")["solve_median"]
-            parts = {links: median_claim(paired(solve("EMPC 1 gen", links), solve(REFERENCE, links)), 1.0, "<")
+            parts = {links: median_claim(paired(*(series(ok, "solve_median", controller=c, links=links)
+                                                  for c in ("EMPC 1 gen", REFERENCE))), 1.0, "<")
                      for links in robots if links >= 10}
             out.append(Claim(claim, "per seed, median solve time ratio EMPC / traditional < 1, per robot",
                              timing(combine(v for v, _ in parts.values()), ok["load"]), _by_robot(parts),

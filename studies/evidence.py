@@ -38,7 +38,7 @@ class Interval:
     coverage: float
 
     def text(self, digits: int = 4) -> str:
-        """"1.02 [0.98, 1.1] (95 %, n = 8)"; "–" for no data."""
+        """The interval as the report prints it, e.g. 1.02 [0.98, 1.1] (95 %, n = 8); "– (n = 0)" for no data."""
         if self.n == 0:
             return "– (n = 0)"
         return (f"{number(self.value, digits)} [{number(self.low, digits)}, {number(self.high, digits)}] "
@@ -63,6 +63,15 @@ def _coverage(n: int, k: int) -> float:
     """P(x_(k) ≤ median ≤ x_(n+1−k)) = 1 − 2·P(Binomial(n, ½) ≤ k − 1)."""
     tail = sum(math.comb(n, i) for i in range(k)) / 2 ** n
     return max(0.0, 1.0 - 2.0 * tail)
+
+
+def series(rows, metric: str, index="seed", **match):
+    """``rows[metric]`` of the rows whose columns equal ``match`` (e.g. ``controller="CEM", links=3``), indexed by
+    ``index`` (a column or a list of columns): one side of a :func:`paired` comparison."""
+    selected = np.ones(len(rows), dtype=bool)
+    for column, value in match.items():
+        selected &= (rows[column] == value).to_numpy()
+    return rows[selected].set_index(index)[metric]
 
 
 def paired(a, b, how: str = "ratio") -> np.ndarray:

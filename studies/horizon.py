@@ -12,7 +12,7 @@ from ocpkit.study import Study, grid
 from ocpkit.studies.closed_loop import grid_size, trial
 from ocpkit.studies.knots import PROBLEMS, REFERENCE_HORIZON
 from ocpkit.store import Store
-from ocpkit.studies.evidence import NOT_TESTED, combine, median_claim, paired
+from ocpkit.studies.evidence import NOT_TESTED, combine, median_claim, paired, series
 from ocpkit.studies.report import Claim, markdown_table, section, timing_context, trials_line
 
 NAME = "horizon"
@@ -39,7 +39,7 @@ def report(df, out_dir) -> str:
         figs.append(plots.boxes(labels, [g.loc[g["horizon"] == h, "ratio"].values for h in labels],
                                 out_dir / f"horizon_{filename(problem)}", xlabel="horizon T [steps]",
                                 ylabel="actual cost / reference's (ratio)",
-                                reference=(1.0, f"1: T = {REFERENCE_HORIZON}"),
+                                references=[(1.0, f"1: T = {REFERENCE_HORIZON}")],
                                 title=f"{problem}: traditional MPC vs horizon ({g['seed'].nunique()} seeds; "
                                       f"reference: T = {REFERENCE_HORIZON})"))
     table = ok.pivot_table(index="horizon", columns="problem", values="ratio", aggfunc="median")
@@ -69,11 +69,7 @@ def claims(ok, knots_rows) -> list:
     shortest = ok["horizon"].min()
     problems = list(dict.fromkeys(ok["problem"]))
 
-    def at(rows, problem, column, value):
-        g = rows[(rows["problem"] == problem) & (rows[column] == value)]
-        return g.set_index("seed")["ratio"]
-
-    parts = {p: median_claim(at(ok, p, "horizon", shortest), 1.0, ">") for p in problems}
+    parts = {p: median_claim(series(ok, "ratio", problem=p, horizon=shortest), 1.0, ">") for p in problems}
     out = [Claim("A shorter horizon costs more", f"per-seed ratio at T = {shortest} to T = {REFERENCE_HORIZON} > 1",
                  combine(v for v, _ in parts.values()), "; ".join(f"{p} {e}" for p, (_, e) in parts.items()))]
     claim = "Shortening the horizon costs far more than cutting knots"
@@ -82,7 +78,8 @@ def claims(ok, knots_rows) -> list:
         out.append(Claim(claim, "the knots study is not in this results folder", NOT_TESTED))
     else:
         fewest = knots_rows["knots"].min()
-        parts = {p: median_claim(paired(at(ok, p, "horizon", shortest), at(knots_rows, p, "knots", fewest)), 1.0, ">")
+        parts = {p: median_claim(paired(series(ok, "ratio", problem=p, horizon=shortest),
+                                        series(knots_rows, "ratio", problem=p, knots=fewest)), 1.0, ">")
                  for p in common}
         out.append(Claim(claim, f"per seed: ratio at T = {shortest} / ratio at {int(fewest)} knot(s) > 1",
                          combine(v for v, _ in parts.values()), "; ".join(f"{p} {e}" for p, (_, e) in parts.items())))

@@ -11,7 +11,8 @@ from ocpkit import plots
 from ocpkit.problems import filename
 from ocpkit.study import Study, grid
 from ocpkit.studies.closed_loop import grid_size, trial
-from ocpkit.studies.evidence import NOT_TESTED, combine, decide, every, median_claim, median_interval, paired
+from ocpkit.studies.evidence import (NOT_TESTED, combine, decide, every, median_claim, median_interval, paired,
+                                     series)
 from ocpkit.studies.report import Claim, markdown_table, section, timing_context, trials_line
 from ocpkit.plots import number
 
@@ -52,7 +53,7 @@ def report(df, out_dir) -> str:
         figs.append(plots.boxes([int(k) for k in labels], data, out_dir / f"knots_{filename(problem)}",
                                 xlabel=f"number of knot points p (horizon {HORIZON})",
                                 ylabel="actual cost / reference's (ratio)",
-                                reference=(1.0, f"1: traditional MPC, T = {REFERENCE_HORIZON}"),
+                                references=[(1.0, f"1: traditional MPC, T = {REFERENCE_HORIZON}")],
                                 title=f"{problem}: cost vs knots ({g['seed'].nunique()} seeds; reference: "
                                       f"traditional MPC, T = {REFERENCE_HORIZON})"))
     table = rows.pivot_table(index="knots", columns="problem", values="ratio", aggfunc="median")
@@ -71,8 +72,7 @@ def claims(rows, table) -> list:
     out = []
 
     def ratio(problem, knots):
-        g = rows[(rows["problem"] == problem) & (rows["knots"] == knots)]
-        return g.set_index("seed")["ratio"]
+        return series(rows, "ratio", problem=problem, knots=knots)
 
     problems = list(table.columns)
     claim = "The cost hardly changes down to 3–4 knots"

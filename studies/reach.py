@@ -285,7 +285,7 @@ def _reach_section(r, out_dir, figs, tables, notes, claims):
         figs.append(plots.boxes([f"{b}\n{c}" for b, c in ratio_labels],
                                 [rat[(rat["scenario"] == b) & (rat["controller"] == c)]["ratio"].values
                                  for b, c in ratio_labels], out_dir / "reach_cost_ratio", xlabel="robot, controller",
-                                ylabel="actual cost / IPOPT's (ratio)", reference=(1.0, "1: IPOPT"),
+                                ylabel="actual cost / IPOPT's (ratio)", references=[(1.0, "1: IPOPT")],
                                 colours=[plots.style(c)["color"] for _, c in ratio_labels],
                                 title="Cost ratio to IPOPT where IPOPT succeeds"))
     figs.append(plots.boxes(labels, [1e3 * r[(r["scenario"] == b) & (r["controller"] == c)]["step_median"].values

@@ -15,7 +15,7 @@ from ocpkit.problems import filename
 from ocpkit.study import Study, grid
 from ocpkit.studies.closed_loop import grid_size, trial
 from ocpkit.plots import number
-from ocpkit.studies.evidence import combine, decide, median_claim, median_interval, paired
+from ocpkit.studies.evidence import combine, decide, median_claim, median_interval, paired, series
 from ocpkit.studies.report import Claim, markdown_table, section, timing_context, trials_line
 
 NAME = "robustness"
@@ -101,8 +101,7 @@ def claims(problem, g) -> list:
     out = []
 
     def at(controller, error, metric):
-        rows = g[(g["controller"] == controller) & (g["error_multiplier"] == error)]
-        return rows.set_index("seed")[metric]
+        return series(g, metric, controller=controller, error_multiplier=error)
 
     errors = sorted(g["error_multiplier"].unique())
     lo, hi = errors[0], errors[-1]

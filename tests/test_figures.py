@@ -204,7 +204,7 @@ def test_closed_loop_with_sixteen_controllers(saved, tmp_path):
 def test_small_groups_show_every_seed(saved, tmp_path):
     values = [np.array([900.0, 1200, 1500, 8000, 15000]), np.array([700.0, 800, 1000, 1100, 1300])]
     plots.boxes(["knots 3 (QP)", "EMPC, penalized fitness"], values, tmp_path / "k", xlabel="controller",
-                ylabel="actual penalized cost", title="keep-out", reference=None)
+                ylabel="actual penalized cost", title="keep-out")
     _assert_clean(saved)
     ax = next(iter(saved.values())).axes[0]
     points = np.vstack([l.get_xydata() for l in ax.get_lines() if l.get_marker() not in ("None", "", None)]
