@@ -593,14 +593,16 @@ def _simulate(args):
     panels = None if task is None else _reach_panels(problem, ocp, task, traj.x)
     fig = plots.closed_loop({repr(ctrl): shown}, args.out, title=title, task=panels, **_labels(problem))
     summary = {"problem": args.problem, "solver": args.solver, "controller": repr(ctrl), "actual_cost": cost,
-               "fallbacks": traj.fallbacks, "steps": len(traj.solutions), "total_time": _time_summary(traj),
+               "fallbacks": traj.fallbacks, "fallback_causes": traj.fallback_causes(), "steps": len(traj.solutions),
+               "total_time": _time_summary(traj),
                "figure": str(fig)}
     if task is not None:
         summary["reach"] = _reach_report(problem, ocp, task, traj.x, dt=float(traj.t[1] - traj.t[0]))
     if args.json:
         print(json.dumps(summary))
     else:
-        print(f"{ctrl!r}: actual cost {cost:.4f}, {traj.fallbacks} fallbacks in {len(traj.solutions)} steps, "
+        causes = f" ({summary['fallback_causes']})" if traj.fallbacks else ""
+        print(f"{ctrl!r}: actual cost {cost:.4f}, {traj.fallbacks} fallbacks{causes} in {len(traj.solutions)} steps, "
               f"total solve time median {summary['total_time']['median_ms']:.3f} ms "
               f"(p90 {summary['total_time']['p90_ms']:.3f}, max {summary['total_time']['max_ms']:.3f})\n"
               f"figure: {fig}")

@@ -44,6 +44,7 @@ def test_simulate_writes_figure(tmp_path, capsys):
     assert main(["simulate", "pendulum:linear", "--knots", "3", "--duration", "0.2", "--out", str(fig), "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert fig.stat().st_size > 1000 and out["steps"] == 20 and out["actual_cost"] > 0
+    assert out["fallbacks"] == 0 and out["fallback_causes"] == ""  # by status when there are any
 
 
 def _no_cuda_driver() -> bool:
