@@ -23,7 +23,8 @@ from ocpkit._checks import choice, integer, positive
 from ocpkit.certificate import certify
 from ocpkit.controller import (EXCEPTION, INFEASIBLE, LIMITED, NAN, SUCCESS, Controller, OperationCosts,
                                Solution, check_linearization)
-from ocpkit.export import DAQP_EXIT, ExportedMPC, daqp_exit_name
+from ocpkit.export import ExportedMPC
+from ocpkit.qp_backends import DAQP_EXIT, daqp_exit_name
 from ocpkit.numeric import BufferedFunction
 from ocpkit.ocp import OCP
 from ocpkit.transcription import QP, TRANSCRIPTIONS

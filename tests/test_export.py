@@ -407,19 +407,19 @@ def test_vector_code_paths_match_linear_mpc(simd, tmp_path):
 
 def test_gram_schedule_reaches_every_piece_length():
     """The C step's Γ_L schedule (doublings and single stages) ends at each length in turn, and stays short."""
-    from ocpkit.export import _DOUBLE, _INC, _RESET, _SAVE, _gram_schedule
+    from ocpkit.export.constants import DOUBLE, INC, RESET, SAVE, gram_schedule
 
     for lengths in ([1], [2], [3], [7, 8], [24, 25], [25], [1, 100], [5, 50, 51]):
-        ops, s, reached = _gram_schedule(lengths), 1, []
+        ops, s, reached = gram_schedule(lengths), 1, []
         for op in ops:
-            if op == _DOUBLE:
+            if op == DOUBLE:
                 s *= 2
-            elif op == _INC:
+            elif op == INC:
                 s += 1
-            elif op == _RESET:
+            elif op == RESET:
                 s = 1
             else:
-                assert op == _SAVE + len(reached)
+                assert op == SAVE + len(reached)
                 reached.append(s)
         assert reached == lengths, (lengths, ops)
         assert len(ops) <= len(lengths) + sum(2 * L.bit_length() for L in lengths), ops

@@ -1,0 +1,196 @@
+"""The built library loaded back into Python: the exported C step as a :class:`~ocpkit.controller.Controller`."""
+from __future__ import annotations
+
+import ctypes
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ocpkit._checks import array
+from ocpkit.certificate import TESTS, Certificate
+from ocpkit.certificate import TOL as CERT_TOL
+from ocpkit.controller import STATUSES, SUCCESS, Controller, Solution
+from ocpkit.export.constants import CERT_CODE, ILL_CONDITIONED
+from ocpkit.ocp import OCP
+from ocpkit.qp_backends import DAQP_EXIT, daqp_exit_name
+from ocpkit.transcription import ROUNDING_MARGIN
+
+
+class ExportedMPC(Controller):
+    """The compiled exported step (``lib<name>.so`` in ``out_dir``) as a Controller, through ctypes.
+
+    Statuses map one to one onto ocpkit's; on failure the library already returns the fallback input and
+    plan, which equal :meth:`Controller.fallback`. ``times`` splits the C step as the DESIGN does, measured in C:
+    ``model`` (RK4 and its sensitivities), ``build`` (the condensing), ``solve`` (the QP solver);
+    :attr:`step_seconds` is the last whole C step seen from Python (ctypes call included). Each instance owns
+    its C memory (several may step in one process, up to the library's ``MAX_INSTANCES``); :meth:`close`, or
+    leaving a ``with`` block, gives its QP-solver slot back.
+    """
+
+    def __init__(self, ocp: OCP, out_dir, *, name: str = "mpc", raise_on_fail: bool = False):
+        if not isinstance(ocp, OCP):
+            raise TypeError(f"ocp must be an ocpkit OCP, got {type(ocp).__name__}")
+        lib_path = Path(out_dir) / f"lib{name}.so"
+        if not lib_path.is_file():
+            raise ValueError(f"out_dir {str(out_dir)!r} has no lib{name}.so; run export() and build() first")
+        lib = ctypes.CDLL(str(lib_path.resolve()))
+        dims = [ctypes.c_int() for _ in range(4)]
+        getattr(lib, f"{name}_dims")(*map(ctypes.byref, dims))
+        dims = tuple(d.value for d in dims)
+        if dims != (ocp.nx, ocp.nu, ocp.knots, ocp.horizon):
+            raise ValueError(f"library {lib_path} was exported for (nx, nu, knots, horizon) = {dims}, "
+                             f"ocp has {(ocp.nx, ocp.nu, ocp.knots, ocp.horizon)}")
+        dbl = np.ctypeslib.ndpointer(dtype=np.float64, flags="C_CONTIGUOUS")
+        size = getattr(lib, f"{name}_memory_size")
+        size.restype = ctypes.c_size_t
+        self._mem = ctypes.create_string_buffer(size())
+        self._step = getattr(lib, f"{name}_step_timed")
+        self._step.argtypes = [ctypes.c_void_p] * 6
+        self._step.restype = ctypes.c_int
+        self._knots = getattr(lib, f"{name}_knots")
+        self._knots.argtypes = [ctypes.c_void_p, dbl]
+        self._model = getattr(lib, f"{name}_model_step")
+        self._model.argtypes = [ctypes.c_void_p, dbl, dbl, dbl]
+        self._rc = getattr(lib, f"{name}_solver_return")
+        self._certificate = getattr(lib, f"{name}_certificate")
+        self._certificate.argtypes = [ctypes.c_void_p, dbl]
+        solver_name = getattr(lib, f"{name}_qp_solver")
+        solver_name.restype = ctypes.c_char_p
+        self.qp = solver_name().decode()
+        self._solve_qp = getattr(lib, f"{name}_solve_qp")
+        self._solve_qp.argtypes = [ctypes.c_void_p] + [dbl] * 8 + [ctypes.c_void_p]
+        self._lib, self.name, self.out_dir = lib, name, Path(out_dir)
+        self._free = getattr(lib, f"{name}_free")
+        try:  # a "trajectory" step's predicted states
+            self._states = getattr(lib, f"{name}_states")
+            self._states.argtypes = [ctypes.c_void_p, dbl]
+        except AttributeError:
+            self._states = None
+        self._open = False
+        if getattr(lib, f"{name}_init")(self._mem):
+            raise RuntimeError(f"{name}_init failed: all QP solver memory slots of {lib_path} are in use "
+                               f"(close() other instances, or rebuild with make MAX_INSTANCES=N)")
+        self._open = True
+        self._status = ctypes.c_int()
+        self._status_ptr = ctypes.addressof(self._status)
+        self._split = np.zeros(3)
+        self.step_seconds = float("nan")
+        super().__init__(ocp, raise_on_fail=raise_on_fail)
+
+    path = "C step"
+
+    def __repr__(self):
+        return f"ExportedMPC({str(self.out_dir / ('lib' + self.name + '.so'))!r}, {self.ocp!r})"
+
+    def close(self) -> None:
+        """Give the instance's C memory back (its QP-solver slot); further steps raise. Safe to call twice."""
+        if getattr(self, "_open", False):
+            self._free(self._mem)
+            self._open = False
+
+    @property
+    def closed(self) -> bool:
+        return not self._open
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def __del__(self):
+        try:
+            self.close()
+        except Exception:  # interpreter shutdown: the library may already be gone
+            pass
+
+    def _check_open(self):
+        if not self._open:
+            raise RuntimeError(f"{self!r} is closed")
+
+    def reset(self) -> None:
+        super().reset()
+        if getattr(self, "_open", False):
+            getattr(self._lib, f"{self.name}_reset")(self._mem)
+
+    def model_step(self, x, u) -> np.ndarray:
+        """x⁺ from the library's generated discrete model (the model the controller predicts with)."""
+        x = self.ocp.check_state(x, "x")
+        u = array(u, "u", (self.ocp.nu,))
+        self._check_open()
+        out = np.empty(self.ocp.nx)
+        if self._model(self._mem, x, u, out):
+            raise RuntimeError("generated discrete model failed")
+        return out
+
+    def certificate(self) -> Certificate:
+        """The KKT certificate the C code computed for its last QP solve (:mod:`ocpkit.certificate`)."""
+        self._check_open()
+        out = np.zeros(4)
+        self._certificate(self._mem, out)
+        return Certificate(*out)
+
+    def solve_qp(self, qp) -> tuple[str, np.ndarray]:
+        """(status, z) of the C step's QP solve and certificate on ``qp``, a condensed knot QP of this library's size
+        (an :class:`ocpkit.transcription.QP` with the knot bounds as its box and state-bound rows after them) — to
+        test the solver and the certificate in C on QPs of one's own. The next step starts cold."""
+        self._check_open()
+        nz = self.ocp.knots * self.ocp.nu
+        k = 0 if qp.box is None else len(qp.box)
+        if qp.n != nz or qp.b.size:
+            raise ValueError(f"qp must have {nz} variables and no equality rows, got {qp.n} and {qp.b.size}")
+        lbx, ubx = np.full(nz, -np.inf), np.full(nz, np.inf)
+        lbx[qp.box], ubx[qp.box] = qp.l[:k], qp.u[:k]
+        C = np.asarray(qp.C.toarray() if hasattr(qp.C, "toarray") else qp.C, dtype=float)[k:]
+        col = (lambda v: np.ascontiguousarray(v, dtype=float))
+        z, status = np.empty(nz), ctypes.c_int()
+        self._solve_qp(self._mem, col(np.asarray(qp.P, dtype=float).T), col(qp.q), col(C.T), col(qp.l[k:]),
+                       col(qp.u[k:]), col(lbx), col(ubx), z, ctypes.addressof(status))
+        return STATUSES[status.value], z
+
+    def _solve(self, x: np.ndarray, goal: np.ndarray) -> Solution:
+        """The C step from ``x``; ``goal``: x_goal, or the whole goal vector [x_goal; targets]. With a task the
+        step takes the whole vector: ``goal`` where it is one; from :meth:`solve` (x_goal, its own slice) the
+        :attr:`task_goal` it was given. Another caller with a task (LinearMPC) passes the whole vector."""
+        self._check_open()
+        if self.ocp.task_functions is not None and np.size(goal) != self.ocp.ng:
+            if goal is not self._goal:
+                raise ValueError(f"this C step has a task: it needs the whole goal vector of {self.ocp.ng} entries "
+                                 f"[x_goal; targets] (ocp.goal(...)), got {np.size(goal)}")
+            goal = self.task_goal
+        u = np.empty(self.ocp.nu)
+        knots = np.empty(self.ocp.knots * self.ocp.nu)
+        x, goal = np.ascontiguousarray(x), np.ascontiguousarray(goal)
+        args = (self._mem, x.ctypes.data, goal.ctypes.data, u.ctypes.data, self._status_ptr, self._split.ctypes.data)
+        t0 = time.perf_counter()
+        self._step(*args)
+        self.step_seconds = time.perf_counter() - t0
+        self._knots(self._mem, knots)
+        status = STATUSES[self._status.value]
+        rc = self._rc(self._mem)
+        certificate = self.certificate() if status == SUCCESS or rc >= CERT_CODE else None  # a QP solved
+        raw = _explain_rc(self.name, self.qp, rc, certificate.residuals if certificate else ())
+        model, build_s, solve = (float(t) for t in self._split)
+        x_pred = None
+        if self._states is not None and status == SUCCESS:
+            x_pred = np.empty((self.ocp.horizon + 1, self.ocp.nx))
+            if self._states(self._mem, x_pred):
+                x_pred = None
+        return Solution(u=u, knots=knots.reshape(self.ocp.knots, self.ocp.nu), status=status, raw_status=raw,
+                        times={"model": model, "build": build_s, "solve": solve}, fallback=status != SUCCESS,
+                        certificate=certificate, x_pred=x_pred)
+
+
+def _explain_rc(name: str, qp: str, rc: int, residuals) -> str:
+    """The raw status of a C step whose solver (``qp``) returned ``rc`` (``residuals``: its certificate)."""
+    if CERT_CODE <= rc < CERT_CODE + len(TESTS):
+        test = TESTS[rc - CERT_CODE]
+        return (f"{name}_qp_solve returned 0 but certificate failed: {test} residual "
+                f"{residuals[rc - CERT_CODE]:.3g} > {CERT_TOL:.0e}")
+    if rc == ILL_CONDITIONED:
+        return (f"{name}: Hessian ill-conditioned (rounding beyond {ROUNDING_MARGIN:g} x the input weight's "
+                f"curvature): the prediction model diverges over the horizon")
+    if qp == "daqp" and rc in DAQP_EXIT:
+        return f"{name}_qp_solve returned {rc}: {daqp_exit_name(rc)}"
+    return f"{name}_qp_solve returned {rc}"

@@ -1,0 +1,91 @@
+"""The exported folder's text files, rendered from the C, header, Makefile and README templates under
+``templates/`` (Jinja2: ``{{ value }}``, ``{% if %}`` blocks on their own lines; files named ``*.in.c`` and
+``*.in.h`` so editors treat them as C)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import casadi as ca
+import jinja2
+
+from ocpkit.certificate import TOL as CERT_TOL
+from ocpkit.controller import INFEASIBLE, LIMITED, SUCCESS
+from ocpkit.export.constants import CERT_CODE, ILL_CONDITIONED, c_array, step_constants
+from ocpkit.qp_backends import DAQP_EXIT
+from ocpkit.ocp import OCP
+from ocpkit.transcription import CondensedQP
+
+MAX_INSTANCES = 16  # QP-solver memory slots per loaded library (CASADI_MAX_NUM_THREADS); a Makefile variable
+OPT_FLAGS = "-O2"  # the Makefile's OPT default (generated model and QP solver)
+OPT_STEP = "-O3"  # the Makefile's OPT_STEP default (the condensing loops: -O3 vectorizes them)
+_SOLVER_NOTE = {
+    "qrqp": "qrqp is warm-started from the previous solution; `step` never allocates.",
+    "daqp": "CasADi's DAQP code starts DAQP cold and runs its setup, which allocates, inside every step.",
+    "osqp": "OSQP is set up (allocating) once in `init` and warm-started; `step` does not allocate.",
+}
+_UBAR = {"goal": "the input goal u_g = u_goal + K goal (+ the problem's goal input h(goal))",
+         "trajectory": "per stage k, the previous plan shifted one step (its inputs and predicted states; a "
+                       "rollout of the model at a cold start): real-time iteration",
+         "plan": "the input the previous plan expects now (the input goal at a cold start)"}
+_CASADI_DIR = Path(ca.__file__).resolve().parent
+_LIBS = {"qrqp": "", "daqp": "$(CASADI_DIR)/libdaqpstat.a", "osqp": "$(CASADI_DIR)/libosqpstatic.a"}
+
+_TEMPLATES = jinja2.Environment(loader=jinja2.PackageLoader("ocpkit.export", "templates"),
+                                undefined=jinja2.StrictUndefined, keep_trailing_newline=True,
+                                trim_blocks=True, lstrip_blocks=True, autoescape=False)
+
+
+def _render(template: str, **values) -> str:
+    return _TEMPLATES.get_template(template).render(**values)
+
+
+def _task_values(ocp: OCP, code: bool) -> dict:
+    """The task's terms and targets in words (``code``: target names as Markdown code)."""
+    targets = ", ".join(f"`{k}`: {v}" if code else f"{k}: {v}" for k, v in ocp.task.targets.items())
+    return {"terms": ", ".join(ocp.terms[2:]), "targets": targets or "none"}
+
+
+def header(name: str, sizes: dict, ocp: OCP, form: str, qp: str, linearization: str) -> str:
+    """``<name>.h``: the API, the sizes (``sizes``: macro name → value) and the memory struct."""
+    task = ocp.task_functions is not None
+    return _render("header.in.h", name=name, N=name.upper(), sizes=sizes, ocp=repr(ocp), form=form, qp=qp,
+                   ubar=_UBAR[linearization], task=task, rti=linearization == "trajectory",
+                   cert_tol=repr(CERT_TOL), cert_code=CERT_CODE, ill_conditioned=ILL_CONDITIONED,
+                   **(_task_values(ocp, code=False) if task else {}))
+
+
+def step(name: str, qp: str, linearization: str, tr: CondensedQP, jac, tf=None, iterations: int = 1,
+         tol: float = 0.0) -> str:
+    """``<name>.c``: the step around the generated model and QP solver, with its constants."""
+    N = name.upper()
+    # a nonzero return: qrqp's 4 is "no search direction" (an infeasible or degenerate QP); DAQP's failed exit
+    # flags as DAQP_EXIT says (its successes return 0)
+    failures = {"qrqp": {4: INFEASIBLE},
+                "daqp": {flag: status for flag, (_, status) in DAQP_EXIT.items() if status != SUCCESS}}.get(qp, {})
+    status_of_rc = "".join(f"rc == {rc} ? {N}_{status.upper()} : " for rc, status in failures.items()
+                           if status != LIMITED) + f"{N}_LIMITED"
+    return _render("step.in.c", name=name, N=N, qp=qp, status_of_rc=status_of_rc, task=tf is not None,
+                   constants=step_constants(tr, linearization, jac, tf, iterations, tol))
+
+
+def example(name: str, x0, goal, steps: int, dt: float, task: bool = False) -> str:
+    """``main.c``: a closed loop of ``steps`` steps from ``x0`` towards ``goal`` against the generated model."""
+    return _render("main.in.c", name=name, N=name.upper(), x0=c_array(x0), goal=c_array(goal), steps=steps,
+                   dt=repr(dt), task=task)
+
+
+def makefile(name: str, qp: str) -> str:
+    """``Makefile``: the library and the example, the QP solver's static library from CasADi's package."""
+    return _render("Makefile.in", name=name, opt=OPT_FLAGS, opt_step=OPT_STEP, max_instances=MAX_INSTANCES,
+                   library=_LIBS[qp], casadi_dir=_CASADI_DIR)
+
+
+def readme(info, ocp: OCP, eps: float, max_iter: int) -> str:
+    """``README.md``: what the folder holds (``info``: the :class:`~ocpkit.export.Export`), how to build it."""
+    task = ocp.task_functions is not None
+    return _render("README.in.md", name=info.name, N=info.name.upper(), ocp=repr(ocp), form=info.form,
+                   knots=info.knots, nu=info.nu, n_constraints=info.n_constraints, horizon=info.horizon,
+                   dt=ocp.dt, qp=info.qp, eps=f"{eps:g}", max_iter=max_iter, ubar=_UBAR[info.linearization],
+                   cert_tol=f"{CERT_TOL:g}", solver_note=_SOLVER_NOTE[info.qp], task=task,
+                   ng=ocp.ng if task else None, opt=OPT_FLAGS, opt_step=OPT_STEP, max_instances=MAX_INSTANCES,
+                   folder=info.out_dir.name, **(_task_values(ocp, code=True) if task else {}))

@@ -1,0 +1,932 @@
+/* mpc.c — one MPC step: the affine model (generated, mpc_casadi.c), the condensed QP built by the
+ * loops below (ocpkit.transcription.CondensedQP.build in C), the QP solve (generated) and the first input. */
+#if !defined(_WIN32) && !defined(_POSIX_C_SOURCE)
+#define _POSIX_C_SOURCE 199309L /* clock_gettime for mpc_step_timed */
+#endif
+#include <float.h>
+#include <math.h>
+#include <string.h>
+#include <time.h>
+#include "mpc.h"
+#include "mpc_casadi.h"
+
+#define NX MPC_NX
+#define NU MPC_NU
+#define NP MPC_KNOTS
+#define NZ MPC_NZ
+#define NZ1 MPC_NZ1
+#define NA MPC_NA
+#define NL MPC_NL
+#define LMAX MPC_LMAX
+#define NLEN MPC_NLEN
+typedef mpc_memory mem_t;
+
+#define DIAG_Q 1
+#define HAS_DQT 1
+#define MODEL_RK4 1
+#define EULER 0
+#define EULER_NQ 6
+#define SUBSTEPS 1
+#define RK_H 0.01
+#define NGRAM_OPS 8
+static const int GRAM_OPS[8] = {3, 2, 2, 1, 1, 10, 2, 11};
+#define HAS_K 0
+#define HAS_GOAL_INPUT 0
+#define LIN_PLAN 0
+#define NPIECE 4
+#define NB 0
+static const double U_GOAL[6] = {0.0, 0.0, 0.0, 0.0, 0.0, 0.0};
+static const double R_IN[36] = {0.001, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.001, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.001, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.001, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.001, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.001};
+static const double R_KNOTS[900] = {0.004596834652228238, 0.0, 0.0, 0.0, 0.0, 0.0, 0.002035818408996252, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.004596834652228238, 0.0, 0.0, 0.0, 0.0, 0.0, 0.002035818408996252, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.004596834652228238, 0.0, 0.0, 0.0, 0.0, 0.0, 0.002035818408996252, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.004596834652228238, 0.0, 0.0, 0.0, 0.0, 0.0, 0.002035818408996252, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.004596834652228238, 0.0, 0.0, 0.0, 0.0, 0.0, 0.002035818408996252, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.004596834652228238, 0.0, 0.0, 0.0, 0.0, 0.0, 0.002035818408996252, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.002035818408996252, 0.0, 0.0, 0.0, 0.0, 0.0, 0.008163265306122448, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0020458142440649726, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.002035818408996252, 0.0, 0.0, 0.0, 0.0, 0.0, 0.008163265306122448, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0020458142440649726, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.002035818408996252, 0.0, 0.0, 0.0, 0.0, 0.0, 0.008163265306122448, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0020458142440649726, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.002035818408996252, 0.0, 0.0, 0.0, 0.0, 0.0, 0.008163265306122448, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0020458142440649726, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.002035818408996252, 0.0, 0.0, 0.0, 0.0, 0.0, 0.008163265306122448, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0020458142440649726, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.002035818408996252, 0.0, 0.0, 0.0, 0.0, 0.0, 0.008163265306122448, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0020458142440649726, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0020458142440649726, 0.0, 0.0, 0.0, 0.0, 0.0, 0.00815326947105373, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0020458142440649735, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0020458142440649726, 0.0, 0.0, 0.0, 0.0, 0.0, 0.00815326947105373, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0020458142440649735, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0020458142440649726, 0.0, 0.0, 0.0, 0.0, 0.0, 0.00815326947105373, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0020458142440649735, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0020458142440649726, 0.0, 0.0, 0.0, 0.0, 0.0, 0.00815326947105373, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0020458142440649735, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0020458142440649726, 0.0, 0.0, 0.0, 0.0, 0.0, 0.00815326947105373, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0020458142440649735, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0020458142440649726, 0.0, 0.0, 0.0, 0.0, 0.0, 0.00815326947105373, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0020458142440649735, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0020458142440649735, 0.0, 0.0, 0.0, 0.0, 0.0, 0.00816326530612245, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0020358184089962514, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0020458142440649735, 0.0, 0.0, 0.0, 0.0, 0.0, 0.00816326530612245, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0020358184089962514, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0020458142440649735, 0.0, 0.0, 0.0, 0.0, 0.0, 0.00816326530612245, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0020358184089962514, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0020458142440649735, 0.0, 0.0, 0.0, 0.0, 0.0, 0.00816326530612245, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0020358184089962514, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0020458142440649735, 0.0, 0.0, 0.0, 0.0, 0.0, 0.00816326530612245, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0020358184089962514, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0020458142440649735, 0.0, 0.0, 0.0, 0.0, 0.0, 0.00816326530612245, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0020358184089962514, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0020358184089962514, 0.0, 0.0, 0.0, 0.0, 0.0, 0.004596834652228238, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0020358184089962514, 0.0, 0.0, 0.0, 0.0, 0.0, 0.004596834652228238, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0020358184089962514, 0.0, 0.0, 0.0, 0.0, 0.0, 0.004596834652228238, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0020358184089962514, 0.0, 0.0, 0.0, 0.0, 0.0, 0.004596834652228238, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0020358184089962514, 0.0, 0.0, 0.0, 0.0, 0.0, 0.004596834652228238, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0020358184089962514, 0.0, 0.0, 0.0, 0.0, 0.0, 0.004596834652228238};
+#define CURVATURE 0.0032848573159443895  /* P's curvature in exact arithmetic (QP.not_definite) */
+#define ROUNDING_MARGIN 0.01
+static const double PHI_SUM[5] = {6.63265306122449, 12.244897959183673, 12.244897959183675, 12.244897959183673, 6.63265306122449};
+static const double PHI0[5] = {1.0, 0.0, 0.0, 0.0, 0.0};
+static const double SHIFT[25] = {0.8970459507501495, 0.12995591009576982, -0.03416216569179023, 0.008821677304049168, -0.001661372458177727, -0.03287564615986036, 0.9712922709232802, 0.07775119123164595, -0.019919159657280812, 0.003751343662215108, 0.00887664036370804, -0.0530441772484553, 0.9859652519872173, 0.07151774646183108, -0.013315461564300277, -0.0025008016740055753, 0.01494405110761662, -0.05948078669210121, 0.9971114632532093, 0.04992607400528129, 0.0011075399639883115, -0.006618331232583784, 0.02634249210392201, -0.09874792356452708, 1.077916222729201};
+static const double LBX[30] = {-97.6, -186.4, -89.4, -24.2, -20.1, -21.3, -97.6, -186.4, -89.4, -24.2, -20.1, -21.3, -97.6, -186.4, -89.4, -24.2, -20.1, -21.3, -97.6, -186.4, -89.4, -24.2, -20.1, -21.3, -97.6, -186.4, -89.4, -24.2, -20.1, -21.3};
+static const double UBX[30] = {97.6, 186.4, 89.4, 24.2, 20.1, 21.3, 97.6, 186.4, 89.4, 24.2, 20.1, 21.3, 97.6, 186.4, 89.4, 24.2, 20.1, 21.3, 97.6, 186.4, 89.4, 24.2, 20.1, 21.3, 97.6, 186.4, 89.4, 24.2, 20.1, 21.3};
+static const double QH[12] = {10.0, 10.0, 10.0, 10.0, 10.0, 10.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0};
+static const int PIECE_A[4] = {0, 13, 25, 37};
+static const int PIECE_L[4] = {13, 12, 12, 13};
+static const int PIECE_C[4] = {12, 18, 24, 30};
+static const int PIECE_CP[4] = {0, 12, 18, 24};
+static const int PIECE_LEN[4] = {1, 0, 0, 1};
+static const double PIECE_PHI[20] = {1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.9387755102040817, 0.061224489795918366, 0.0, 0.0, 0.0, 0.0, 0.9591836734693877, 0.04081632653061224, 0.0, 0.0, 0.0, 0.0, 0.9795918367346939, 0.02040816326530612};
+static const double PIECE_DELTA[20] = {-0.08163265306122447, 0.08163265306122448, 0.0, 0.0, 0.0, 0.0, -0.08163265306122447, 0.08163265306122448, 0.0, 0.0, 0.0, 0.0, -0.08163265306122447, 0.0816326530612245, 0.0, 0.0, 0.0, 0.0, -0.08163265306122447, 0.0816326530612245};
+#define LIN_TRAJ 0
+static const double DQT[12] = {900.0, 900.0, 900.0, 900.0, 900.0, 900.0, 9.0, 9.0, 9.0, 9.0, 9.0, 9.0};
+static const int FX_I[72] = {6, 7, 8, 9, 10, 11, 6, 7, 8, 9, 10, 11, 6, 7, 8, 9, 10, 11, 6, 7, 8, 9, 10, 11, 6, 7, 8, 9, 10, 11, 0, 6, 7, 8, 9, 10, 11, 1, 6, 7, 8, 9, 10, 11, 2, 6, 7, 8, 9, 10, 11, 3, 6, 7, 8, 9, 10, 11, 4, 6, 7, 8, 9, 10, 11, 5, 6, 7, 8, 9, 10, 11};
+static const int FX_J[72] = {1, 1, 1, 1, 1, 1, 2, 2, 2, 2, 2, 2, 3, 3, 3, 3, 3, 3, 4, 4, 4, 4, 4, 4, 5, 5, 5, 5, 5, 5, 6, 6, 6, 6, 6, 6, 6, 7, 7, 7, 7, 7, 7, 7, 8, 8, 8, 8, 8, 8, 8, 9, 9, 9, 9, 9, 9, 9, 10, 10, 10, 10, 10, 10, 10, 11, 11, 11, 11, 11, 11, 11};
+static const int FU_I[36] = {6, 7, 8, 9, 10, 11, 6, 7, 8, 9, 10, 11, 6, 7, 8, 9, 10, 11, 6, 7, 8, 9, 10, 11, 6, 7, 8, 9, 10, 11, 6, 7, 8, 9, 10, 11};
+static const int FU_J[36] = {0, 0, 0, 0, 0, 0, 1, 1, 1, 1, 1, 1, 2, 2, 2, 2, 2, 2, 3, 3, 3, 3, 3, 3, 4, 4, 4, 4, 4, 4, 5, 5, 5, 5, 5, 5};
+
+int mpc_init(mem_t* m) {
+  m->solver_mem = mpc_qp_solve_checkout();
+  if (m->solver_mem < 0) return 1;
+  mpc_reset(m);
+  return 0;
+}
+
+void mpc_reset(mem_t* m) {
+  int i;
+  for (i = 0; i < NZ; ++i) m->plan[i] = m->z[i] = m->lam_x[i] = 0;
+  for (i = 0; i < MPC_NA1; ++i) m->lam_a[i] = 0;
+  m->has_plan = m->warm = 0;
+#if LIN_TRAJ
+  m->has_xplan = 0;
+#endif
+  m->solver_rc = 0;
+}
+
+/* CasADi's decref frees every slot (even ones still on its free list) once the count reaches zero, so the
+   slots stay allocated for the library's lifetime and are reused by later inits. */
+void mpc_free(mem_t* m) {
+  if (m->solver_mem >= 0) mpc_qp_solve_release(m->solver_mem);
+  m->solver_mem = -1;
+}
+
+static int all_finite(const double* v, int n) {
+  int i;
+  for (i = 0; i < n; ++i) if (!isfinite(v[i])) return 0;
+  return 1;
+}
+
+static int any_nan(const double* v, int n) {
+  int i;
+  for (i = 0; i < n; ++i) if (isnan(v[i])) return 1;
+  return 0;
+}
+
+static int any_above(const double* lo, const double* hi, int n) {
+  int i;
+  for (i = 0; i < n; ++i) if (lo[i] > hi[i]) return 1;
+  return 0;
+}
+
+static double clip(double v, double lo, double hi) { return v < lo ? lo : (v > hi ? hi : v); }
+
+/* u_g = u_goal + K goal (+ h(goal), the problem's goal input: gravity compensation): the input the cost pulls
+   towards. Returns nonzero if h failed. */
+static int input_goal(mem_t* m, const double* goal, double* ug) {
+  int i;
+  for (i = 0; i < NU; ++i) {
+    double s = U_GOAL[i];
+#if HAS_K
+    int j;
+    for (j = 0; j < NX; ++j) s += K_GOAL[i * NX + j] * goal[j];
+#endif
+    ug[i] = s;
+  }
+#if HAS_GOAL_INPUT
+  {
+    double h[NU];
+    m->arg[0] = goal; m->res[0] = h;
+    if (mpc_goal_input(m->arg, m->res, (casadi_int*) m->iw, m->w, 0)) return 1;
+    for (i = 0; i < NU; ++i) ug[i] += h[i];
+  }
+#else
+  (void) m; (void) goal;
+#endif
+  return 0;
+}
+
+/* Controller.fallback: previous plan shifted (input goal at a cold start), clipped; the next step starts cold. */
+static int fallback(mem_t* m, double* u_out, int status) {
+  int j, l, i;
+  for (j = 0; j < NP; ++j)
+    for (i = 0; i < NU; ++i) {
+      double s = 0;
+      if (m->has_plan) for (l = 0; l < NP; ++l) s += SHIFT[j * NP + l] * m->plan[l * NU + i];
+      else s = m->ug[i];
+      m->z_new[j * NU + i] = clip(s, LBX[j * NU + i], UBX[j * NU + i]);
+    }
+  for (i = 0; i < NU; ++i) {
+    double s = 0;
+    for (j = 0; j < NP; ++j) s += PHI0[j] * m->z_new[j * NU + i];
+    u_out[i] = clip(s, LBX[i], UBX[i]);
+  }
+  for (i = 0; i < NZ; ++i) m->plan[i] = m->z_new[i];
+  m->has_plan = 1;
+  m->warm = 0;
+#if LIN_TRAJ
+  m->has_xplan = 0;  /* the next step linearizes along a rollout of the fallback plan */
+#endif
+  return status;
+}
+
+/* C += A B for an M x NX matrix A with A(i, k) = A[i * ars + k * aks] (row-major: ars = lda, aks = 1; its
+   transpose: ars = 1, aks = lda) and row-major B, C. With upper set, tiles wholly below C's diagonal are
+   skipped (the lower triangle is then left partial, and is never read). The inner product runs over NX, a
+   constant. Tiles of MR rows x 8 (or 4) columns of C stay in vector registers while B's rows, contiguous,
+   stream through: GCC/Clang vector extensions, 2 doubles wide (SSE2, any x86-64) and, on x86 CPUs that have
+   them, 4 wide with AVX2 and FMA (chosen once at run time; no build flag, the library stays portable). */
+#ifndef OCPKIT_SIMD
+#define OCPKIT_SIMD 2 /* the Makefile's SIMD: 2 auto (AVX2 where the CPU has it), 1 no AVX2 path, 0 plain C */
+#endif
+#if (defined(__GNUC__) || defined(__clang__)) && OCPKIT_SIMD >= 1
+#define VECTOR_EXT 1
+typedef double vec2 __attribute__((vector_size(16), aligned(8), may_alias));
+#if (defined(__x86_64__) || defined(__i386__)) && OCPKIT_SIMD >= 2
+#define HAVE_AVX2_PATH 1
+typedef double vec4 __attribute__((vector_size(32), aligned(8), may_alias));
+#endif
+#endif
+
+/* One sweep over NX of B's rows through the register block (rows: MR, a constant the compiler unrolls,
+   or mr). */
+#define TILE_SWEEP(rows, VT, W, NC)                                                                           \
+  for (k = 0; k < NX; ++k) {                                                                                  \
+    VT b[NC / W];                                                                                             \
+    for (v = 0; v < NC / W; ++v) b[v] = *(const VT*) (B + k * ldb + v * W);                                   \
+    for (r = 0; r < (rows); ++r) {                                                                            \
+      const double a = A[r * ars + k * aks];                                                                  \
+      for (v = 0; v < NC / W; ++v) c[r][v] += a * b[v];                                                       \
+    }                                                                                                         \
+  }
+
+/* A tile: C[0:mr, 0:NC] += A[0:mr, :] B[:, 0:NC], its MR x NC block of C in registers (vectors VT of W). */
+#define TILE(name, attr, VT, W, MR, NC)                                                                       \
+  attr static void name(int mr, const double* restrict A, int ars, int aks, const double* restrict B, int ldb,\
+                        double* restrict C, int ldc) {                                                        \
+    VT c[MR][NC / W];                                                                                         \
+    int r, v, k;                                                                                              \
+    for (r = 0; r < MR; ++r) for (v = 0; v < NC / W; ++v) c[r][v] = (VT){0};                                  \
+    if (mr == MR) {                                                                                           \
+      TILE_SWEEP(MR, VT, W, NC)                                                                               \
+    } else {                                                                                                  \
+      TILE_SWEEP(mr, VT, W, NC)                                                                               \
+    }                                                                                                         \
+    for (r = 0; r < mr; ++r) for (v = 0; v < NC / W; ++v) *(VT*) (C + r * ldc + v * W) += c[r][v];            \
+  }
+
+/* gemm_<sfx>: tiles of 8 columns, one of 4, and the last N mod 4 columns through a zero-padded copy of B's
+   columns (so that they too run in registers, not as latency-bound dot products). */
+#define TILES(sfx, attr, VT, W, MR)                                                                           \
+  TILE(tile8_##sfx, attr, VT, W, MR, 8)                                                                       \
+  TILE(tile4_##sfx, attr, VT, W, MR, 4)                                                                       \
+  attr static void gemm_##sfx(int M, int N, const double* restrict A, int ars, int aks,                       \
+                              const double* restrict B, int ldb, double* restrict C, int ldc, int upper) {    \
+    const int n8 = N - N % 8, n4 = N - N % 4, nrem = N - n4;                                                  \
+    double Bp[NX * 4], Cp[MR * 4];                                                                            \
+    int i, j, k, r;                                                                                           \
+    for (k = 0; nrem && k < NX; ++k)                                                                          \
+      for (j = 0; j < 4; ++j) Bp[k * 4 + j] = j < nrem ? B[k * ldb + n4 + j] : 0.0;                          \
+    for (i = 0; i < M; i += MR) {                                                                             \
+      const int mr = M - i < MR ? M - i : MR;                                                                 \
+      for (j = upper ? (i / 8) * 8 : 0; j < n8; j += 8)                                                       \
+        tile8_##sfx(mr, A + i * ars, ars, aks, B + j, ldb, C + i * ldc + j, ldc);                             \
+      if (n4 > n8) tile4_##sfx(mr, A + i * ars, ars, aks, B + n8, ldb, C + i * ldc + n8, ldc);                \
+      if (nrem) {                                                                                             \
+        for (j = 0; j < MR * 4; ++j) Cp[j] = 0;                                                               \
+        tile4_##sfx(mr, A + i * ars, ars, aks, Bp, 4, Cp, 4);                                                 \
+        for (r = 0; r < mr; ++r)                                                                              \
+          for (j = 0; j < nrem; ++j) C[(i + r) * ldc + n4 + j] += Cp[r * 4 + j];                              \
+      }                                                                                                       \
+    }                                                                                                         \
+  }
+
+#if VECTOR_EXT
+TILES(v2, , vec2, 2, 2)
+#if HAVE_AVX2_PATH
+TILES(v4, __attribute__((target("avx2,fma"))), vec4, 4, 4)
+#endif
+#else
+typedef double vec1;
+TILES(v1, , vec1, 1, 2)
+#endif
+
+#if HAVE_AVX2_PATH
+static int use_avx2(void) {
+  static int avx2 = -1;  /* an idempotent race at worst: every thread writes the same value */
+  if (avx2 < 0) avx2 = __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma");
+  return avx2;
+}
+#endif
+
+static void gemm(int M, int N, const double* restrict A, int ars, int aks, const double* restrict B, int ldb,
+                 double* restrict C, int ldc, int upper) {
+#if HAVE_AVX2_PATH
+  if (use_avx2()) { gemm_v4(M, N, A, ars, aks, B, ldb, C, ldc, upper); return; }
+#endif
+#if VECTOR_EXT
+  gemm_v2(M, N, A, ars, aks, B, ldb, C, ldc, upper);
+#else
+  gemm_v1(M, N, A, ars, aks, B, ldb, C, ldc, upper);
+#endif
+}
+
+/* The upper triangle of a row-major n x n matrix copied into its lower one. */
+static void symmetrize(double* X, int n) {
+  int i, j;
+  for (i = 0; i < n; ++i)
+    for (j = 0; j < i; ++j) X[i * n + j] = X[j * n + i];
+}
+
+/* The augmented state ζ = [x; v; d; 1] of a piece (input v_t = v + t d, d constant) moves by
+   ζ_{s+1} = Â ζ_s, and Λ_s = [A^s E_s F_s e_s] = C Â^s (C picks x). out = X Â^b for X (rows x NL, row stride
+   ldx) from Λ_b, the x rows of Â^b, whose other rows are [0 I bI 0; 0 0 I 0; 0 0 0 1]. */
+static void times_ahat(const double* X, int rows, int ldx, const double* Lb, int b, double* out) {
+  int r, u;
+  for (r = 0; r < rows; ++r) {
+    const double* xr = X + r * ldx;
+    double* o = out + r * NL;
+    for (u = 0; u < NX; ++u) o[u] = 0;
+    for (u = 0; u < NU; ++u) {
+      o[NX + u] = xr[NX + u];
+      o[NX + NU + u] = b * xr[NX + u] + xr[NX + NU + u];
+    }
+    o[NL - 1] = xr[NL - 1];
+  }
+  gemm(rows, NL, X, ldx, 1, Lb, NL, out, NL, 0);
+}
+
+/* G += Wᵀ W (upper triangle; row stride ldg) with W = Q^½ (X − x_goal e_oneᵀ) over the first cols columns of X
+   (row stride ldx; column one multiplies 1): the stage cost (x_s − x_goal)ᵀ Q (x_s − x_goal) as a form in the
+   coordinates of X — ζ for Λ_s, [1; z] for the rows [v S] of the real-time iteration. */
+static void add_stage(mem_t* m, const double* X, int cols, int ldx, int one, const double* xg, double* G, int ldg) {
+  double* W = m->W;
+  int i, j, k;
+#if DIAG_Q
+  for (i = 0; i < NX; ++i) {
+    for (j = 0; j < cols; ++j) W[i * cols + j] = QH[i] * X[i * ldx + j];
+    W[i * cols + one] -= QH[i] * xg[i];
+  }
+  (void) k;
+#else
+  for (i = 0; i < NX * cols; ++i) W[i] = 0;
+  gemm(NX, cols, QH, NX, 1, X, ldx, W, cols, 0);
+  for (i = 0; i < NX; ++i) {
+    double gx = 0;
+    for (k = 0; k < NX; ++k) gx += QH[i * NX + k] * xg[k];
+    W[i * cols + one] -= gx;
+  }
+  (void) j;
+#endif
+  gemm(cols, cols, W, 1, cols, W, cols, G, ldg, 1);
+}
+
+/* Γ += the stage cost of Λ (add_stage), both triangles: the doublings read Γ whole. */
+static void add_stage_gram(mem_t* m, const double* Lam, const double* xg, double* Gam) {
+  add_stage(m, Lam, NL, NL, NL - 1, xg, Gam, NL);
+  symmetrize(Gam, NL);
+}
+
+/* Γ_L = Σ_{s≤L} Λ_sᵀ Q Λ_s (goal folded in) and Λ_L for each piece length, by the schedule GRAM_OPS: doublings
+   Γ_2s = Γ_s + (Â^s)ᵀ Γ_s Â^s, Λ_2s = Λ_s Â^s and single stages, O(log L) products instead of L. */
+static void grams(mem_t* m, const double* xg) {
+  double *Lam = m->LamS, *tmp = m->LamT, *Gam = m->GamS, *sw;
+  int op, i, s = 1;
+  for (i = 0; i < NL * NL; ++i) m->Gam1[i] = 0;
+  add_stage_gram(m, m->Lam1, xg, m->Gam1);
+  memcpy(Lam, m->Lam1, sizeof m->Lam1);
+  memcpy(Gam, m->Gam1, sizeof m->Gam1);
+  for (op = 0; op < NGRAM_OPS; ++op) {
+    const int code = GRAM_OPS[op];
+    if (code == 1) {  /* double */
+      times_ahat(Gam, NL, NL, Lam, s, m->Y);
+      for (i = 0; i < NU; ++i) {
+        double* gv = Gam + (NX + i) * NL;
+        double* gd = Gam + (NX + NU + i) * NL;
+        const double* yv = m->Y + (NX + i) * NL;
+        const double* yd = m->Y + (NX + NU + i) * NL;
+        int j;
+        for (j = 0; j < NL; ++j) { gv[j] += yv[j]; gd[j] += s * yv[j] + yd[j]; }
+      }
+      for (i = 0; i < NL; ++i) Gam[(NL - 1) * NL + i] += m->Y[(NL - 1) * NL + i];
+      gemm(NL, NL, Lam, 1, NL, m->Y, NL, Gam, NL, 1);
+      symmetrize(Gam, NL);
+      times_ahat(Lam, NX, NL, Lam, s, tmp);
+      s *= 2;
+    } else if (code == 2) {  /* one more stage */
+      times_ahat(Lam, NX, NL, m->Lam1, 1, tmp);
+      add_stage_gram(m, tmp, xg, Gam);
+      s += 1;
+    } else if (code == 3) {  /* restart from s = 1 */
+      memcpy(Lam, m->Lam1, sizeof m->Lam1);
+      memcpy(Gam, m->Gam1, sizeof m->Gam1);
+      s = 1;
+      continue;
+    } else {  /* save as length code - 10 */
+      memcpy(m->GamL + (code - 10) * NL * NL, Gam, sizeof m->GamS);
+      memcpy(m->LamL + (code - 10) * NX * NL, Lam, sizeof m->LamS);
+      continue;
+    }
+    sw = Lam; Lam = tmp; tmp = sw;
+  }
+}
+
+/* out (rows x (c+1), row stride ldo) = X R for X (rows x NL, stride ldx) and the piece's
+   R = [prev; φ_a ⊗ I; Δ ⊗ I; (1, 0 … 0)]; prev's columns past cp are zero (knots not yet active). */
+static void times_r(const double* X, int rows, int ldx, const double* prev, int cp, const double* phi,
+                    const double* del, int c, double* out, int ldo) {
+  int r, j, u, col;
+  for (r = 0; r < rows; ++r) {
+    const double* xr = X + r * ldx;
+    double* o = out + r * ldo;
+    o[0] = xr[NL - 1];
+    for (j = 0, col = 1; col <= c; ++j)
+      for (u = 0; u < NU; ++u, ++col) o[col] = phi[j] * xr[NX + u] + del[j] * xr[NX + NU + u];
+  }
+  gemm(rows, cp + 1, X, ldx, 1, prev, NZ1, out, ldo, 0);
+}
+
+static void finish_qp(mem_t* m, double* prev, const double* xg);
+
+/* The condensed QP about the affine model Λ_1 (CondensedQP.build): h, g, state-bound rows a, lba, uba. */
+static void condense(mem_t* m, const double* x, const double* xg) {
+  double *prev = m->prev, *next = m->next, *Pq = m->Pq, *Y = m->Y, *sw;
+  int pc, i, r, col, s, b;
+  grams(m, xg);
+#if NB > 0
+  /* the bounded rows of Λ_1 … Λ_LMAX (row b of Λ_s at LamB[(s-1) NB + b]) */
+  for (b = 0; b < NB; ++b) memcpy(m->LamB + b * NL, m->Lam1 + XB_COMP[b] * NL, NL * sizeof(double));
+  for (s = 1; s < LMAX; ++s) times_ahat(m->LamB + (s - 1) * NB * NL, NB, NL, m->Lam1, 1, m->LamB + s * NB * NL);
+#endif
+  for (i = 0; i < NX * NZ1; ++i) prev[i] = 0;
+  for (i = 0; i < NX; ++i) prev[i * NZ1] = x[i];
+  for (i = 0; i < NZ1 * NZ1; ++i) Pq[i] = 0;
+  for (pc = 0; pc < NPIECE; ++pc) {
+    const int a = PIECE_A[pc], Lp = PIECE_L[pc], c = PIECE_C[pc], cp = PIECE_CP[pc];
+    const double *phi = PIECE_PHI + pc * NP, *del = PIECE_DELTA + pc * NP;
+    /* Pq[:c+1, :c+1] += Rᵀ (Γ R) (upper half) */
+    times_r(m->GamL + PIECE_LEN[pc] * NL * NL, NL, NL, prev, cp, phi, del, c, Y, NZ1);
+    for (r = 0; r <= c; ++r) {
+      double* pr = Pq + r * NZ1;
+      if (r == 0) {
+        for (col = 0; col <= c; ++col) pr[col] += Y[(NL - 1) * NZ1 + col];
+      } else {
+        const int jr = (r - 1) / NU, ur = r - 1 - jr * NU;
+        const double f = phi[jr], d = del[jr];
+        const double *y1 = Y + (NX + ur) * NZ1, *y2 = Y + (NX + NU + ur) * NZ1;
+        if (f != 0 || d != 0) for (col = r; col <= c; ++col) pr[col] += f * y1[col] + d * y2[col];
+      }
+    }
+    gemm(cp + 1, c + 1, prev, 1, NZ1, Y, NZ1, Pq, NZ1, 1);
+#if NB > 0
+    /* state-bound rows of [v S] at x_{a+1} … x_{a+Lp}: row (k, b) at k*NB + b */
+    times_r(m->LamB, Lp * NB, NL, prev, cp, phi, del, c, m->RB, NZ1);
+    for (s = 0; s < Lp; ++s)
+      for (b = 0; b < NB; ++b) {
+        const int ri = (a + s) * NB + b;
+        const double* row = m->RB + (s * NB + b) * NZ1;
+        for (col = 0; col < NZ; ++col) m->a[ri + NA * col] = col < c ? row[col + 1] : 0.0;
+        m->lba[ri] = XB_LO[b] - row[0];
+        m->uba[ri] = XB_HI[b] - row[0];
+      }
+#else
+    (void) a; (void) Lp; (void) s; (void) b;
+#endif
+    /* [v S] at the piece's end: Λ_Lp R */
+    times_r(m->LamL + PIECE_LEN[pc] * NX * NL, NX, NL, prev, cp, phi, del, c, next, NZ1);
+    for (i = 0; i < NX; ++i)
+      for (col = c + 1; col < NZ1; ++col) next[i * NZ1 + col] = 0;
+    sw = prev; prev = next; next = sw;
+  }
+  finish_qp(m, prev, xg);
+}
+
+/* The QP from Pq (the upper triangle of Σ_s [1; z]ᵀ[v_s − x_goal, S_s]ᵀ Q [v_s − x_goal, S_s]) and the last
+   state's rows prev = [v_T S_T]: the terminal weight's extra (Q_T − Q), then P = S'QS + φᵀφ ⊗ R, q = S'Q(v − x_goal)
+   − φᵀ1 ⊗ R u_g and the knot bounds. */
+static void finish_qp(mem_t* m, double* prev, const double* xg) {
+  double* Pq = m->Pq;
+  int i, j, k, col;
+  (void) col; (void) prev; (void) xg;  /* used only with a terminal weight other than Q (HAS_DQT) */
+  /* terminal weight: (Q_T − Q) on [v − x_goal, S] at x_T */
+#if HAS_DQT
+  for (i = 0; i < NX; ++i) prev[i * NZ1] -= xg[i];
+#if DIAG_Q
+  for (i = 0; i < NX; ++i)
+    for (col = 0; col < NZ1; ++col) m->E2[i * NZ1 + col] = DQT[i] * prev[i * NZ1 + col];
+#else
+  for (i = 0; i < NX * NZ1; ++i) m->E2[i] = 0;
+  gemm(NX, NZ1, DQT, NX, 1, prev, NZ1, m->E2, NZ1, 0);
+#endif
+  gemm(NZ1, NZ1, prev, 1, NZ1, m->E2, NZ1, Pq, NZ1, 1);
+#endif
+  /* P = S'QS + φᵀφ ⊗ R (symmetric by construction), q = S'Q(v − x_goal) − φᵀ1 ⊗ R u_g */
+  for (i = 0; i < NZ; ++i)
+    for (j = i; j < NZ; ++j) {
+      double v = Pq[(1 + i) * NZ1 + 1 + j] + R_KNOTS[i * NZ + j];
+      m->h[i + NZ * j] = m->h[j + NZ * i] = v;
+    }
+  for (i = 0; i < NZ; ++i) {
+    const int jk = i / NU, u = i % NU;
+    double ru = 0;
+    for (k = 0; k < NU; ++k) ru += R_IN[u * NU + k] * m->ug[k];
+    m->g[i] = Pq[1 + i] - PHI_SUM[jk] * ru;
+    m->lbx[i] = LBX[i];
+    m->ubx[i] = UBX[i];
+  }
+}
+
+#if MODEL_RK4
+/* D = J_x S + [0 J_u] with the Jacobians' nonzeros (fx, fu) at (FX_I, FX_J), (FU_I, FU_J); S, D row-major
+   NX x (NX + NU): a row of S, contiguous, per nonzero (compiled twice like gemm: SSE2 and AVX2). */
+#define SENSITIVITY_RATE(sfx, attr)                                                                           \
+  attr static void sensitivity_rate_##sfx(const mem_t* m, const double* restrict S, double* restrict D) {    \
+    int q, j;                                                                                                 \
+    for (q = 0; q < NX * (NX + NU); ++q) D[q] = 0;                                                            \
+    for (q = 0; q < MPC_NNZ_FX; ++q) {                                                                       \
+      const double v = m->fx[q];                                                                              \
+      const double* restrict sk = S + FX_J[q] * (NX + NU);                                                    \
+      double* restrict di = D + FX_I[q] * (NX + NU);                                                          \
+      for (j = 0; j < NX + NU; ++j) di[j] += v * sk[j];                                                       \
+    }                                                                                                         \
+    for (q = 0; q < MPC_NNZ_FU; ++q) D[FU_I[q] * (NX + NU) + NX + FU_J[q]] += m->fu[q];                      \
+  }
+SENSITIVITY_RATE(v2, )
+#if HAVE_AVX2_PATH
+SENSITIVITY_RATE(v4, __attribute__((target("avx2,fma"))))
+#endif
+
+static void sensitivity_rate(const mem_t* m, const double* restrict S, double* restrict D) {
+#if HAVE_AVX2_PATH
+  if (use_avx2()) { sensitivity_rate_v4(m, S, D); return; }
+#endif
+  sensitivity_rate_v2(m, S, D);
+}
+
+/* D = [J_x J_u] scattered: the rate at the step's start, where S = [I 0] (no products). */
+static void jacobian_rate(const mem_t* m, double* restrict D) {
+  int q;
+  for (q = 0; q < NX * (NX + NU); ++q) D[q] = 0;
+  for (q = 0; q < MPC_NNZ_FX; ++q) D[FX_I[q] * (NX + NU) + FX_J[q]] = m->fx[q];
+  for (q = 0; q < MPC_NNZ_FU; ++q) D[FU_I[q] * (NX + NU) + NX + FU_J[q]] += m->fu[q];
+}
+#endif
+
+/* L = [A_d B_d 0 w_d] (row-major, NX x NL) of the affine model about (x, ū): RK4 over SUBSTEPS with its
+   sensitivities (the generated f, ∂f/∂x, ∂f/∂u at each stage), or the generated constant model of a linear one. */
+static int affine_model(mem_t* m, const double* x, const double* u, double* L) {
+  int i, j;
+#if MODEL_RK4 && EULER
+  /* Euler over SUBSTEPS (integrator "euler"), its sensitivities S = ∂x/∂(x_0, u) alongside: semi-implicit for
+     x = [q, q̇] (EULER_NQ = nq entries of q), q̇⁺ = q̇ + h q̈(x, u), q⁺ = q + h q̇⁺; explicit (EULER_NQ = 0),
+     x⁺ = x + h f(x, u). One f, ∂f/∂x, ∂f/∂u a substep instead of RK4's four. */
+  const int nS = NX * (NX + NU), w = NX + NU;
+  int sub;
+  for (i = 0; i < NX; ++i) m->xk[i] = x[i];
+  for (i = 0; i < nS; ++i) m->S[i] = 0;
+  for (i = 0; i < NX; ++i) m->S[i * w + i] = 1;
+  for (sub = 0; sub < SUBSTEPS; ++sub) {
+    m->arg[0] = m->xk; m->arg[1] = u;
+    m->res[0] = m->kq; m->res[1] = m->fx; m->res[2] = m->fu;
+    if (mpc_fjac(m->arg, m->res, (casadi_int*) m->iw, m->w, 0)) return 1;
+    if (sub) sensitivity_rate(m, m->S, m->D);
+    else jacobian_rate(m, m->D);
+    for (i = EULER_NQ; i < NX; ++i) {
+      m->xk[i] += RK_H * m->kq[i];
+      for (j = 0; j < w; ++j) m->S[i * w + j] += RK_H * m->D[i * w + j];
+    }
+    for (i = 0; i < EULER_NQ; ++i) {  /* with the new q̇ */
+      m->xk[i] += RK_H * m->xk[EULER_NQ + i];
+      for (j = 0; j < w; ++j) m->S[i * w + j] += RK_H * m->S[(EULER_NQ + i) * w + j];
+    }
+  }
+#elif MODEL_RK4
+  static const double C_STAGE[4] = {0.0, 0.5 * RK_H, 0.5 * RK_H, RK_H}, W_STAGE[4] = {1.0, 2.0, 2.0, 1.0};
+  const int nS = NX * (NX + NU);
+  int sub, q;
+  for (i = 0; i < NX; ++i) m->xk[i] = x[i];
+  for (i = 0; i < nS; ++i) m->S[i] = 0;
+  for (i = 0; i < NX; ++i) m->S[i * (NX + NU) + i] = 1;
+  for (sub = 0; sub < SUBSTEPS; ++sub) {
+    for (i = 0; i < NX; ++i) m->kacc[i] = 0;
+    for (i = 0; i < nS; ++i) m->Dacc[i] = 0;
+    for (q = 0; q < 4; ++q) {
+      const double cq = C_STAGE[q], wq = W_STAGE[q];
+      for (i = 0; i < NX; ++i) m->xs[i] = q ? m->xk[i] + cq * m->kq[i] : m->xk[i];
+      for (i = 0; i < nS; ++i) m->Ss[i] = q ? m->S[i] + cq * m->D[i] : m->S[i];
+      m->arg[0] = m->xs; m->arg[1] = u;
+      m->res[0] = m->kq; m->res[1] = m->fx; m->res[2] = m->fu;
+      if (mpc_fjac(m->arg, m->res, (casadi_int*) m->iw, m->w, 0)) return 1;
+      if (sub || q) sensitivity_rate(m, m->Ss, m->D);
+      else jacobian_rate(m, m->D);
+      for (i = 0; i < NX; ++i) m->kacc[i] += wq * m->kq[i];
+      for (i = 0; i < nS; ++i) m->Dacc[i] += wq * m->D[i];
+    }
+    for (i = 0; i < NX; ++i) m->xk[i] += RK_H / 6 * m->kacc[i];
+    for (i = 0; i < nS; ++i) m->S[i] += RK_H / 6 * m->Dacc[i];
+  }
+#endif
+#if MODEL_RK4
+  for (i = 0; i < NX; ++i) {
+    const double* si = m->S + i * (NX + NU);
+    double* Li = L + i * NL;
+    double wi = m->xk[i];
+    for (j = 0; j < NX + NU; ++j) { Li[j] = si[j]; wi -= si[j] * (j < NX ? x[j] : u[j - NX]); }
+    for (j = 0; j < NU; ++j) Li[NX + NU + j] = 0;
+    Li[NL - 1] = wi;
+  }
+#else
+  m->arg[0] = x; m->arg[1] = u;
+  m->res[0] = m->Ad; m->res[1] = m->Bd; m->res[2] = m->wd;
+  if (mpc_affine(m->arg, m->res, (casadi_int*) m->iw, m->w, 0)) return 1;
+  for (i = 0; i < NX; ++i) {  /* Ad, Bd come column-major from CasADi */
+    double* Li = L + i * NL;
+    for (j = 0; j < NX; ++j) Li[j] = m->Ad[i + NX * j];
+    for (j = 0; j < NU; ++j) { Li[NX + j] = m->Bd[i + NX * j]; Li[NX + NU + j] = 0; }
+    Li[NL - 1] = m->wd[i];
+  }
+#endif
+  return 0;
+}
+
+static double amax(double a, double b) { return a > b ? a : b; }
+
+/* One bound row l <= v <= u with multiplier lam (> 0 at an active upper bound): its primal scale, violation,
+   complementarity gap and wrong-sign multiplier folded into s[0..3]. */
+static void bound_row(double v, double l, double u, double lam, double* s) {
+  if (isfinite(l) || isfinite(u)) s[0] = amax(s[0], fabs(v));
+  if (isfinite(l)) { s[0] = amax(s[0], fabs(l)); s[1] = amax(s[1], l - v); }
+  if (isfinite(u)) { s[0] = amax(s[0], fabs(u)); s[1] = amax(s[1], v - u); }
+  if (lam > 0) { if (isfinite(u)) s[2] = amax(s[2], lam * fabs(u - v)); else s[3] = amax(s[3], lam); }
+  if (lam < 0) { if (isfinite(l)) s[2] = amax(s[2], -lam * fabs(v - l)); else s[3] = amax(s[3], -lam); }
+}
+
+/* The KKT certificate of the QP's answer (z_new, lam_x_new, lam_a_new), as ocpkit.certificate computes it, in
+   CasADi's multiplier convention h z + g + aᵀ lam_a + lam_x = 0: m->cert = the relative residuals of
+   stationarity, primal feasibility, complementarity and dual sign; returns the code of the first one above
+   CERT_TOL (or NaN), 0 when all hold. A stale or zero answer fails stationarity. */
+static int certify(mem_t* m) {
+  const double *z = m->z_new, *lx = m->lam_x_new, *la = m->lam_a_new;
+  double s[4] = {0, 0, 0, 0}, norms[4] = {0, 0, 0, 0}, stat = 0, s_d, s_p;
+  int i, j, r;
+  for (i = 0; i < NZ; ++i) {
+    double hz = 0, al = 0;
+    for (j = 0; j < NZ; ++j) hz += m->h[i + NZ * j] * z[j];
+    for (r = 0; r < NA; ++r) al += m->a[r + NA * i] * la[r];
+    norms[0] = amax(norms[0], fabs(hz)); norms[1] = amax(norms[1], fabs(m->g[i]));
+    norms[2] = amax(norms[2], fabs(al)); norms[3] = amax(norms[3], fabs(lx[i]));
+    stat = amax(stat, fabs(hz + m->g[i] + al + lx[i]));
+    bound_row(z[i], m->lbx[i], m->ubx[i], lx[i], s);
+  }
+  for (r = 0; r < NA; ++r) {
+    double az = 0;
+    for (j = 0; j < NZ; ++j) az += m->a[r + NA * j] * z[j];
+    bound_row(az, m->lba[r], m->uba[r], la[r], s);
+  }
+  s_d = 1 + amax(amax(norms[0], norms[1]), amax(norms[2], norms[3]));
+  s_p = 1 + s[0];
+  m->cert[0] = stat / s_d;
+  m->cert[1] = s[1] / s_p;
+  m->cert[2] = s[2] / (s_d * s_p);
+  m->cert[3] = s[3] / s_d;
+  for (i = 0; i < 4; ++i) if (!(m->cert[i] <= MPC_CERT_TOL)) return MPC_CERT_STATIONARITY + i;
+  return 0;
+}
+
+/* Rounding in h (NZ ε max h_ii) beyond ROUNDING_MARGIN of the curvature h has in exact arithmetic (φᵀφ⊗R): the
+   prediction model diverges over the horizon and no solver's answer means anything (QP.not_definite). */
+static int ill_conditioned(const mem_t* m) {
+  double big = 0;
+  int i;
+  for (i = 0; i < NZ; ++i) big = amax(big, fabs(m->h[i * (NZ + 1)]));
+  return !(NZ * DBL_EPSILON * big <= ROUNDING_MARGIN * CURVATURE);
+}
+
+/* The QP in m (h, g, a, lba, uba, lbx, ubx) checked, solved (warm-started from the last solution where m->warm)
+   and certified: its status. On a success z_new and the multipliers hold the answer; otherwise
+   m->solver_rc says why (the solver's return, or a certificate code). */
+static int solve_qp(mem_t* m) {
+  int rc;
+  m->solver_rc = 0;
+  if (!all_finite(m->h, NZ * NZ) || !all_finite(m->g, NZ) || !all_finite(m->a, NA * NZ)
+      || any_nan(m->lba, NA) || any_nan(m->uba, NA) || any_nan(m->lbx, NZ) || any_nan(m->ubx, NZ))
+    return MPC_NAN;
+  if (any_above(m->lba, m->uba, NA) || any_above(m->lbx, m->ubx, NZ)) return MPC_INFEASIBLE;
+  if (ill_conditioned(m)) {
+    m->solver_rc = MPC_ILL_CONDITIONED;
+    return MPC_EXCEPTION;
+  }
+  m->arg[0] = m->h; m->arg[1] = m->g; m->arg[2] = m->a; m->arg[3] = m->lba; m->arg[4] = m->uba;
+  m->arg[5] = m->lbx; m->arg[6] = m->ubx;
+  m->arg[7] = m->warm ? m->z : 0; m->arg[8] = m->warm ? m->lam_x : 0; m->arg[9] = m->warm ? m->lam_a : 0;
+  m->arg[10] = 0; m->arg[11] = 0;
+  m->res[0] = m->z_new; m->res[1] = 0; m->res[2] = m->lam_a_new; m->res[3] = m->lam_x_new;
+  rc = mpc_qp_solve(m->arg, m->res, (casadi_int*) m->iw, m->w, m->solver_mem);
+  m->solver_rc = rc;
+  if (rc) return rc == -1 ? MPC_INFEASIBLE : rc == -3 ? MPC_INFEASIBLE : rc == -5 ? MPC_EXCEPTION : rc == -6 ? MPC_EXCEPTION : MPC_LIMITED;
+  if (!all_finite(m->z_new, NZ)) return MPC_NAN;
+  rc = certify(m);
+  if (rc) {
+    m->solver_rc = rc;
+    return MPC_LIMITED;
+  }
+  return MPC_SUCCESS;
+}
+
+int mpc_solve_qp(mem_t* m, const double* h, const double* g, const double* a, const double* lba,
+                     const double* uba, const double* lbx, const double* ubx, double* z, int* status) {
+  memcpy(m->h, h, sizeof m->h);
+  memcpy(m->g, g, sizeof m->g);
+  if (NA) {
+    memcpy(m->a, a, NA * NZ * sizeof(double));
+    memcpy(m->lba, lba, NA * sizeof(double));
+    memcpy(m->uba, uba, NA * sizeof(double));
+  }
+  memcpy(m->lbx, lbx, sizeof m->lbx);
+  memcpy(m->ubx, ubx, sizeof m->ubx);
+  m->warm = 0;
+  *status = solve_qp(m);
+  memcpy(z, m->z_new, sizeof m->z_new);
+  return *status;
+}
+
+void mpc_certificate(const mem_t* m, double* residuals) {
+  int i;
+  for (i = 0; i < 4; ++i) residuals[i] = m->cert[i];
+}
+
+/* Seconds on a monotonic clock (0 where there is none: the split then reads 0). */
+static double seconds(void) {
+#if defined(CLOCK_MONOTONIC)
+  struct timespec t;
+  clock_gettime(CLOCK_MONOTONIC, &t);
+  return t.tv_sec + 1e-9 * t.tv_nsec;
+#else
+  return 0.0;
+#endif
+}
+
+#if LIN_TRAJ
+/* The real-time iteration (ocpkit.solvers.nlp.RealTimeIteration, LinearMPC's "trajectory" linearization): the
+   model linearized stage by stage along the shifted plan, the condensed QP of these time-varying models, and
+   ITERATIONS Gauss–Newton steps, each linearizing along the last one's solution. */
+
+/* ū_k = Σ_j φ_kj z_j for the stages k = 0 … HORIZON−1 (HORIZON x NU, row-major). */
+static void stage_inputs(const double* z, double* u) {
+  int k, j, i;
+  for (k = 0; k < MPC_HORIZON; ++k)
+    for (i = 0; i < NU; ++i) {
+      double s = 0;
+      for (j = 0; j < NP; ++j) s += PHI_ALL[k * NP + j] * z[j * NU + i];
+      u[k * NU + i] = s;
+    }
+}
+
+/* The trajectory of the first iteration (LinearMPC.shifted_plan): knots z̄ = the plan shifted a step (the input goal
+   at a cold start), ū_k = Φ_k z̄, x̄_0 = x and x̄_k the plan's predicted x_{k+1} (a rollout where there is none). */
+static void shifted_plan(mem_t* m, const double* x) {
+  int j, l, i, k;
+  for (j = 0; j < NP; ++j)
+    for (i = 0; i < NU; ++i) {
+      double s = 0;
+      if (m->has_plan) for (l = 0; l < NP; ++l) s += SHIFT[j * NP + l] * m->plan[l * NU + i];
+      else s = m->ug[i];
+      m->zlin[j * NU + i] = s;
+    }
+  stage_inputs(m->zlin, m->ubark);
+  memcpy(m->xbar, x, NX * sizeof(double));
+  if (m->has_xplan)
+    for (k = 1; k < MPC_HORIZON; ++k) memcpy(m->xbar + k * NX, m->xplan + (k + 1) * NX, NX * sizeof(double));
+}
+
+/* out = L [x; u; 0; 1] = A x + B u + w: the affine model's step. */
+static void affine_step(const double* L, const double* x, const double* u, double* out) {
+  int i, j;
+  for (i = 0; i < NX; ++i) {
+    const double* Li = L + i * NL;
+    double s = Li[NL - 1];
+    for (j = 0; j < NX; ++j) s += Li[j] * x[j];
+    for (j = 0; j < NU; ++j) s += Li[NX + j] * u[j];
+    out[i] = s;
+  }
+}
+
+/* Λ_k of every stage about (x̄_k, ū_k); with rollout, x̄_{k+1} = F(x̄_k, ū_k) as it goes. Returns a status. */
+static int stage_models(mem_t* m, int rollout) {
+  int k;
+  for (k = 0; k < MPC_HORIZON; ++k) {
+    double* L = m->LamK + k * NX * NL;
+    if (!all_finite(m->xbar + k * NX, NX) || !all_finite(m->ubark + k * NU, NU)) return MPC_NAN;
+    if (affine_model(m, m->xbar + k * NX, m->ubark + k * NU, L)) return MPC_EXCEPTION;
+    if (!all_finite(L, NX * NL)) return MPC_NAN;
+    if (rollout && k + 1 < MPC_HORIZON) affine_step(L, m->xbar + k * NX, m->ubark + k * NU, m->xbar + (k + 1) * NX);
+  }
+  return MPC_SUCCESS;
+}
+
+/* The condensed QP of the stage models (CondensedQP.build with one model per stage): the rows [v_k S_k] of
+   x_k = S_k z + v_k (prev, NX x NZ1: column 0 is v_k) advance by x_{k+1} = A_k x_k + B_k Φ_k z + w_k, only over the
+   columns of the knots active so far (ACTIVE), and each adds its stage cost to Pq. */
+static void condense_ltv(mem_t* m, const double* x, const double* xg) {
+  double *prev = m->prev, *next = m->next, *sw;
+  int i, j, k, u, b, cols = 0;
+  for (i = 0; i < NX * NZ1; ++i) prev[i] = next[i] = 0;
+  for (i = 0; i < NX; ++i) prev[i * NZ1] = x[i];
+  for (i = 0; i < NZ1 * NZ1; ++i) m->Pq[i] = 0;
+  for (k = 0; k < MPC_HORIZON; ++k) {
+    const double* L = m->LamK + k * NX * NL;
+    const int c = ACTIVE[k];
+    for (i = 0; i < NX; ++i) {
+      double* nr = next + i * NZ1;
+      for (j = 0; j <= c; ++j) nr[j] = 0;
+      nr[0] = L[i * NL + NL - 1];
+      for (j = 0; j < NP; ++j) {
+        const double f = PHI_ALL[k * NP + j];
+        if (f != 0) for (u = 0; u < NU; ++u) nr[1 + j * NU + u] += f * L[i * NL + NX + u];
+      }
+    }
+    gemm(NX, cols + 1, L, NL, 1, prev, NZ1, next, NZ1, 0);
+    add_stage(m, next, c + 1, NZ1, 0, xg, m->Pq, NZ1);
+#if NB > 0
+    for (b = 0; b < NB; ++b) {  /* state-bound rows of x_{k+1}: row (k, b) at k*NB + b */
+      const int ri = k * NB + b;
+      const double* row = next + XB_COMP[b] * NZ1;
+      for (j = 0; j < NZ; ++j) m->a[ri + NA * j] = row[j + 1];
+      m->lba[ri] = XB_LO[b] - row[0];
+      m->uba[ri] = XB_HI[b] - row[0];
+    }
+#else
+    (void) b;
+#endif
+    cols = c;
+    sw = prev; prev = next; next = sw;
+  }
+  finish_qp(m, prev, xg);
+}
+
+static double max_change(const double* a, const double* b, int n) {
+  double d = 0;
+  int i;
+  for (i = 0; i < n; ++i) d = amax(d, fabs(a[i] - b[i]));
+  return d;
+}
+
+/* The iterations of one step: their summed split in t (where given). Returns the status; on success the plan,
+   its predicted states and the warm start hold the last good iterate. */
+static int rti(mem_t* m, const double* x, const double* goal, double* u_out, double* t) {
+  const int nxs = (MPC_HORIZON + 1) * NX;
+  int it, k, i, rc, done = 0;
+  double t0 = 0, t1 = 0, moved = INFINITY;
+  shifted_plan(m, x);
+  for (it = 0; it < ITERATIONS; ++it) {
+    if (t) t0 = seconds();
+    rc = stage_models(m, it == 0 && !m->has_xplan);
+    if (t) { t1 = seconds(); t[0] += t1 - t0; }
+    if (rc == MPC_SUCCESS) {
+      condense_ltv(m, x, goal);
+      if (t) { t0 = seconds(); t[1] += t0 - t1; }
+      rc = solve_qp(m);
+      if (t) t[2] += seconds() - t0;
+    }
+    if (rc != MPC_SUCCESS) {
+      if (!done) return fallback(m, u_out, rc);
+      /* the last good iterate stays the plan; the next step starts the QP cold, as after any failure */
+      memcpy(m->plan, m->zgood, sizeof m->zgood);
+      memcpy(m->xplan, m->xgood, sizeof m->xgood);
+      m->warm = 0;
+      break;
+    }
+    for (i = 0; i < NZ; ++i) { m->plan[i] = m->z[i] = m->z_new[i]; m->lam_x[i] = m->lam_x_new[i]; }
+    for (i = 0; i < NA; ++i) m->lam_a[i] = m->lam_a_new[i];
+    m->has_plan = m->warm = 1;
+    /* the predicted states x_0 … x_T through the stage models */
+    memcpy(m->xplan, x, NX * sizeof(double));
+    stage_inputs(m->plan, m->ubark);
+    for (k = 0; k < MPC_HORIZON; ++k)
+      affine_step(m->LamK + k * NX * NL, m->xplan + k * NX, m->ubark + k * NU, m->xplan + (k + 1) * NX);
+    m->has_xplan = 1;
+    if (done) moved = amax(max_change(m->plan, m->zgood, NZ), max_change(m->xplan, m->xgood, nxs));
+    memcpy(m->zgood, m->plan, sizeof m->zgood);
+    memcpy(m->xgood, m->xplan, sizeof m->xgood);
+    done = it + 1;
+    if (moved <= RTI_TOL) break;
+    /* the next iteration linearizes along this one: x̄ = [x; x_1 … x_{T−1}], ū = Φ z (ubark, set above) */
+    memcpy(m->xbar + NX, m->xplan + NX, (MPC_HORIZON - 1) * NX * sizeof(double));
+  }
+  for (i = 0; i < NU; ++i) {
+    double s = 0;
+    for (k = 0; k < NP; ++k) s += PHI0[k] * m->plan[k * NU + i];
+    u_out[i] = s;
+  }
+  return MPC_SUCCESS;
+}
+
+int mpc_states(const mem_t* m, double* x_pred) {
+  if (!m->has_xplan) return 1;
+  memcpy(x_pred, m->xplan, sizeof m->xplan);
+  return 0;
+}
+#endif
+
+int mpc_step(mem_t* m, const double* x, const double* goal, double* u_out, int* status) {
+  return mpc_step_timed(m, x, goal, u_out, status, 0);
+}
+
+int mpc_step_timed(mem_t* m, const double* x, const double* goal, double* u_out, int* status, double* t) {
+  int i, j, rc;
+  double t0 = 0, t1 = 0, t2 = 0;
+  if (t) { t[0] = t[1] = t[2] = 0; t0 = seconds(); }
+  if (input_goal(m, goal, m->ug) || !all_finite(m->ug, NU)) {
+    for (i = 0; i < NU; ++i) if (!isfinite(m->ug[i])) m->ug[i] = 0;  /* the cold fallback's input, as in Python */
+    *status = fallback(m, u_out, MPC_NAN);
+    return *status;
+  }
+#if LIN_TRAJ
+  (void) j; (void) rc; (void) t0; (void) t1; (void) t2;
+  m->solver_rc = 0;
+  *status = rti(m, x, goal, u_out, t);
+  return *status;
+#else
+  /* affine model about (x, u_bar) */
+  for (i = 0; i < NU; ++i) {
+    double s = m->ug[i];
+#if LIN_PLAN
+    if (m->has_plan) { s = 0; for (j = 0; j < NP; ++j) s += W0[j] * m->plan[j * NU + i]; }
+#endif
+    m->ubar[i] = s;
+  }
+  m->solver_rc = 0;
+  if (affine_model(m, x, m->ubar, m->Lam1)) {
+    *status = fallback(m, u_out, MPC_EXCEPTION);
+    return *status;
+  }
+  if (!all_finite(m->Lam1, NX * NL)) {
+    *status = fallback(m, u_out, MPC_NAN);
+    return *status;
+  }
+  if (t) { t1 = seconds(); t[0] = t1 - t0; }
+  condense(m, x, goal);
+  if (t) { t2 = seconds(); t[1] = t2 - t1; }
+  rc = solve_qp(m);
+  if (t) t[2] = seconds() - t2;
+  if (rc != MPC_SUCCESS) {
+    *status = fallback(m, u_out, rc);
+    return *status;
+  }
+  for (i = 0; i < NZ; ++i) { m->plan[i] = m->z[i] = m->z_new[i]; m->lam_x[i] = m->lam_x_new[i]; }
+  for (i = 0; i < NA; ++i) m->lam_a[i] = m->lam_a_new[i];
+  m->has_plan = m->warm = 1;
+  /* first input */
+  for (i = 0; i < NU; ++i) {
+    double s = 0;
+    for (j = 0; j < NP; ++j) s += PHI0[j] * m->plan[j * NU + i];
+    u_out[i] = s;
+  }
+  *status = MPC_SUCCESS;
+  return *status;
+#endif
+}
+
+void mpc_knots(const mem_t* m, double* knots) {
+  int i;
+  for (i = 0; i < NZ; ++i) knots[i] = m->plan[i];
+}
+
+int mpc_solver_return(const mem_t* m) { return m->solver_rc; }
+
+const char* mpc_qp_solver(void) { return "daqp"; }
+
+int mpc_model_step(mem_t* m, const double* x, const double* u, double* x_next) {
+  m->arg[0] = x; m->arg[1] = u; m->res[0] = x_next;
+  return mpc_model(m->arg, m->res, (casadi_int*) m->iw, m->w, 0);
+}
+
+size_t mpc_memory_size(void) { return sizeof(mem_t); }
+
+void mpc_dims(int* nx, int* nu, int* knots, int* horizon) {
+  *nx = NX; *nu = NU; *knots = NP; *horizon = MPC_HORIZON;
+}
