@@ -160,6 +160,13 @@ def _parser() -> argparse.ArgumentParser:
     _add_controller_args(sim)
     sim.add_argument("--duration", type=float, default=None, help="seconds (default: the problem's)")
     sim.add_argument("--out", default="results/simulate.png", help="figure path")
+    sim.add_argument("--plant", default="ocpkit", choices=("ocpkit", "mujoco"),
+                     help="the simulated robot: ocpkit's model integrated by RK4 (default), or MuJoCo's (pip install "
+                          "\"ocpkit[mujoco]\"; RK4 at the same sub-step) from the problem's robot or --mjcf")
+    sim.add_argument("--mjcf", metavar="FILE", help="--plant mujoco: simulate this MJCF instead of the problem's robot")
+    sim.add_argument("--joint-map", metavar="J1,J2,…|NAME=J,…",
+                     help="--mjcf: the file's joints for the problem's, in q's order or as problem=mjcf name pairs "
+                          "(default: the problem's joint names)")
     _add_task_args(sim)
     sim.add_argument("--json", action="store_true", help="print one JSON object")
     demo = sub.add_parser("demo", help="closed-loop pendulum with every available controller")
@@ -531,10 +538,10 @@ def _solve(args):
     return 0 if sol.ok else 1
 
 
-def _run_closed_loop(problem, ctrl: Controller, seed: int, duration: float | None = None, start=None):
-    """The closed loop from the seeded start (or ``start``, (x0, goal)), after one untimed solve that compiles what
-    the controller needs (Taichi kernels take seconds): said on stderr when it takes over a second, never counted
-    in the step times."""
+def _run_closed_loop(problem, ctrl: Controller, seed: int, duration: float | None = None, start=None, plant=None):
+    """The closed loop from the seeded start (or ``start``, (x0, goal)) against ``plant`` (default the problem's),
+    after one untimed solve that compiles what the controller needs (Taichi kernels take seconds): said on stderr
+    when it takes over a second, never counted in the step times."""
     import time
 
     from ocpkit.metrics import actual_cost
@@ -546,7 +553,7 @@ def _run_closed_loop(problem, ctrl: Controller, seed: int, duration: float | Non
     first = time.perf_counter() - start
     if first > 1.0:
         print(f"  ({ctrl!r}: first solve, compiling, took {first:.1f} s; not in the step times)", file=sys.stderr)
-    traj = simulate(problem.plant(), ctrl, x0, goal, duration or problem.duration)
+    traj = simulate(plant or problem.plant(), ctrl, x0, goal, duration or problem.duration)
     return traj, actual_cost(traj, ctrl.ocp)
 
 
@@ -576,14 +583,36 @@ def _time_summary(traj) -> dict:
             "max_ms": 1e3 * float(t.max())}
 
 
+def _plant(problem, args):
+    """The plant of --plant: None for the problem's own, else a MuJoCoPlant of its robot or of --mjcf."""
+    if args.plant == "ocpkit":
+        return None
+    from ocpkit.mujoco_plant import MuJoCoPlant
+
+    joint_map = None
+    if args.joint_map:
+        items = [item.strip() for item in args.joint_map.split(",")]
+        pairs = [item.partition("=") for item in items]
+        if any(sep for _, sep, _ in pairs) and not all(sep and a and b for a, sep, b in pairs):
+            raise ValueError(f"--joint-map must be MJCF joint names J1,J2,… or pairs NAME=J,…, got {args.joint_map!r}")
+        joint_map = {a: b for a, _, b in pairs} if pairs[0][1] else items
+    return MuJoCoPlant(problem, mjcf=args.mjcf, joint_map=joint_map)
+
+
 def _simulate(args):
     from ocpkit import plots
 
     _check_output_file(args.out, "--out")
     task = _reach_task(args)
+    if args.plant != "mujoco" and (args.mjcf or args.joint_map):
+        raise ValueError(f"{'--mjcf' if args.mjcf else '--joint-map'} applies to --plant mujoco only")
+    if args.joint_map and not args.mjcf:
+        raise ValueError("--joint-map names the joints of an MJCF file: give --mjcf too")
     problem, ocp, ctrl = _controller(args, task)
-    traj, cost = _run_closed_loop(problem, ctrl, args.seed, args.duration, start=_start(problem, ocp, args.seed, task))
-    shown, title = traj, f"{args.problem}, seed {args.seed}"
+    plant = _plant(problem, args)
+    traj, cost = _run_closed_loop(problem, ctrl, args.seed, args.duration, start=_start(problem, ocp, args.seed, task),
+                                  plant=plant)
+    shown, title = traj, f"{args.problem}, seed {args.seed}" + (", MuJoCo plant" if args.plant == "mujoco" else "")
     if task is not None:
         # the joint angles have no goal in a reach task (x_goal's angles are the start's, weighted zero): none drawn
         goal = traj.goal.copy()
@@ -595,7 +624,7 @@ def _simulate(args):
     summary = {"problem": args.problem, "solver": args.solver, "controller": repr(ctrl), "actual_cost": cost,
                "fallbacks": traj.fallbacks, "fallback_causes": traj.fallback_causes(), "steps": len(traj.solutions),
                "total_time": _time_summary(traj),
-               "figure": str(fig)}
+               "figure": str(fig), "plant": "ocpkit" if plant is None else repr(plant)}
     if task is not None:
         summary["reach"] = _reach_report(problem, ocp, task, traj.x, dt=float(traj.t[1] - traj.t[0]))
     if args.json:
@@ -605,7 +634,7 @@ def _simulate(args):
         print(f"{ctrl!r}: actual cost {cost:.4f}, {traj.fallbacks} fallbacks{causes} in {len(traj.solutions)} steps, "
               f"total solve time median {summary['total_time']['median_ms']:.3f} ms "
               f"(p90 {summary['total_time']['p90_ms']:.3f}, max {summary['total_time']['max_ms']:.3f})\n"
-              f"figure: {fig}")
+              f"figure: {fig}" + ("" if plant is None else f"\nplant: {plant!r}"))
         if task is not None:
             print(_reach_line(summary["reach"], f"after {traj.t[-1]:g} s"))
     return 0

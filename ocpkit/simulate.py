@@ -43,15 +43,19 @@ class Trajectory:
         return np.array([s.times[key] for s in self.solutions])
 
 
-def simulate(plant: Model, controller: Controller, x0, goal, duration: float, *, dt: float | None = None,
+def simulate(plant, controller: Controller, x0, goal, duration: float, *, dt: float | None = None,
              plant_substeps: int = 10, callback=None) -> Trajectory:
     """Run ``controller`` for ``duration`` seconds at its control period ``dt`` (default: its OCP's dt).
 
-    The plant is integrated with RK4 over ``plant_substeps`` sub-steps per control period, input held
-    (zero-order hold). ``callback(k, x, solution)``, if given, is called after every step.
+    The plant, an ocpkit Model, is integrated with RK4 over ``plant_substeps`` sub-steps per control period, input
+    held (zero-order hold). Any other plant has ``nx``, ``nu`` and ``stepper(dt, substeps)`` returning its step
+    F(x, u) -> x⁺ over one period in ``plant_substeps`` sub-steps (:class:`ocpkit.mujoco_plant.MuJoCoPlant`).
+    ``callback(k, x, solution)``, if given, is called after every step.
     """
-    if not isinstance(plant, Model):
-        raise TypeError(f"plant must be an ocpkit Model, got {type(plant).__name__}")
+    model = isinstance(plant, Model)
+    if not model and not callable(getattr(plant, "stepper", None)):
+        raise TypeError(f"plant must be an ocpkit Model or a plant with stepper(dt, substeps) (a MuJoCoPlant), got "
+                        f"{type(plant).__name__}")
     if not isinstance(controller, Controller):
         raise TypeError(f"controller must be an ocpkit Controller, got {type(controller).__name__}")
     ocp = controller.ocp
@@ -60,7 +64,8 @@ def simulate(plant: Model, controller: Controller, x0, goal, duration: float, *,
     dt = ocp.dt if dt is None else positive(dt, "dt")
     duration = positive(duration, "duration")
     steps = int(round(duration / dt))
-    step = plant.rk4(dt, integer(plant_substeps, "plant_substeps", 1))
+    substeps = integer(plant_substeps, "plant_substeps", 1)
+    step = plant.rk4(dt, substeps) if model else plant.stepper(dt, substeps)
     x0 = ocp.check_state(x0, "x0")
     goal = ocp.check_goal(goal)
     xs = np.empty((steps + 1, ocp.nx))
@@ -74,6 +79,10 @@ def simulate(plant: Model, controller: Controller, x0, goal, duration: float, *,
         us[k] = sol.u
         xs[k + 1] = np.asarray(step(xs[k], sol.u), dtype=float).ravel()
         if not np.isfinite(xs[k + 1]).all():
+            if not model:
+                raise FloatingPointError(f"plant state became non-finite at step {k + 1} from x = {xs[k].tolist()}, "
+                                         f"u = {sol.u.tolist()}: {plant!r} diverged; more plant_substeps or a "
+                                         "smaller dt may help")
             # the plant's own dynamics returning NaN are named as such (a DynamicsError, also a FloatingPointError)
             check_dynamics(plant, xs[k], sol.u, dt=dt, substeps=plant_substeps,
                            context=f"the plant, closed-loop step {k + 1} from t = {k * dt:.6g} s")

@@ -1,0 +1,391 @@
+"""MuJoCo as the plant: a controller tested in the simulator robotics people use (issue 34).
+
+A :class:`MuJoCoPlant` stands wherever :func:`ocpkit.simulate.simulate` takes a plant. Each control period dt it
+sets MuJoCo's q, q̇ of the controlled joints from x = [q, q̇], holds the input u as joint torques (one motor per
+joint, gear 1: forces on prismatic joints) and takes ``substeps`` MuJoCo steps of dt / substeps with the
+``integrator`` chosen — "rk4" by default, the same method and sub-step as ocpkit's own plant, so the two agree to
+round-off on the same robot; "implicit" or "implicitfast" (damping, and with them constraint forces, implicit in
+q̇: stable at larger steps, first order) or "euler" (semi-implicit) —, then reads q, q̇ back.
+
+Where the robot comes from:
+
+* a problem described by a :class:`ocpkit.rigid_body.Chain` (``nlink:N``, ``puma560``, a user's Chain-based problem):
+  an MJCF written from the Chain — one body per joint at its placement, its joint axis, mass, centre of mass and
+  inertia, the rotor inertia as ``armature``, the problem's viscous damping b as joint ``damping`` (the ODE
+  M q̈ + h + b q̇ = τ of :meth:`Chain.forward_dynamics`), gravity as the Chain's, the joint limits as ranges;
+* a URDF problem (``urdf:…``, ``panda``): MuJoCo's own URDF import of the same file, the joints the problem
+  locked removed (held at 0, load_urdf's default) and the problem's damping set on the others;
+* a user's MJCF (``mjcf=``): ``joint_map`` says which of its joints are the problem's, in q's order; the file's
+  actuators are replaced by torque motors on those joints. Its joints outside the map evolve on their own.
+
+A plant generated from a problem is checked against that problem's dynamics at construction (q̈ at seeded states,
+before the options below): a problem whose ``dynamics`` is not its Chain's ODE is refused rather than simulated
+as something else. The effects ocpkit's model leaves out are options, all off by default: ``frictionloss`` (dry
+joint friction, N·m, a MuJoCo constraint) and ``armature`` (rotor inertia, kg·m²), both added to the source's own;
+``ctrlrange`` (actuator limits: MuJoCo clamps u); ``floor`` (a plane at that height that the links, capsules of
+the problem's ``link_radius`` between the joints, touch); ``limits`` (the joint ranges as constraints).
+"""
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+
+import numpy as np
+
+from ocpkit._checks import choice, integer, positive
+
+INTEGRATORS = ("rk4", "implicit", "implicitfast", "euler")
+_MJ_INTEGRATORS = {"rk4": "mjINT_RK4", "implicit": "mjINT_IMPLICIT", "implicitfast": "mjINT_IMPLICITFAST",
+                   "euler": "mjINT_EULER"}
+# MuJoCo resets its data (to qpos0) when q, q̇ or q̈ turn non-finite or huge, and counts a warning: a simulate()
+# must fail there instead of continuing from the reset state.
+_DIVERGED = ("mjWARN_BADQPOS", "mjWARN_BADQVEL", "mjWARN_BADQACC")
+# The construction check: q̈ of MuJoCo and of the problem's plant at seeded states agree to this (relative to the
+# largest |q̈|); round-off gives ~1e-12, a different robot or ODE gives O(1).
+CHECK_TOLERANCE = 1e-6
+
+
+def _mujoco():
+    try:
+        import mujoco
+    except ImportError:
+        raise ImportError('MuJoCoPlant needs MuJoCo: pip install "ocpkit[mujoco]"') from None
+    return mujoco
+
+
+class MuJoCoPlant:
+    """A plant simulated by MuJoCo for the problem ``problem`` (a Problem or a spec such as "nlink:3").
+
+    ``mjcf``: a user's MJCF file instead of the robot generated from the problem; ``joint_map`` then names its
+    joints: a sequence of MJCF joint names in q's order, or a dict {problem joint name: MJCF joint name} (default:
+    the problem's own joint names). ``integrator``: one of :data:`INTEGRATORS`. ``frictionloss``, ``armature``:
+    scalars or one value per joint (>= 0) added to the source's own. ``ctrlrange``: (low, high), scalars or one
+    value per input. ``floor``: the height (m) of a plane under the robot, or None. ``limits``: the joint ranges as
+    MuJoCo constraints (None: off for a generated or URDF robot, as ocpkit's model has none; the file's own for
+    an MJCF). See the module docstring for the sources and conventions.
+    """
+
+    def __init__(self, problem, *, mjcf=None, joint_map=None, integrator: str = "rk4", frictionloss=0.0,
+                 armature=0.0, ctrlrange=None, floor: float | None = None, limits: bool | None = None):
+        mujoco = _mujoco()
+        from ocpkit import problems
+        from ocpkit.model import Model
+        from ocpkit.problem import Problem
+
+        problem = problems.make(problem)
+        if not isinstance(problem, Problem):  # pragma: no cover - problems.make returns Problems only
+            raise TypeError(f"problem must be an ocpkit Problem or spec, got {type(problem).__name__}")
+        plant = problem.plant()
+        nq = plant.second_order
+        if nq is None or plant.nu != nq:
+            raise ValueError(f"MuJoCoPlant needs a state x = [q, q̇] and one torque per joint; problem "
+                             f"{problem.name!r} has nx = {plant.nx}, nu = {plant.nu}")
+        if type(plant).rk4 is not Model.rk4:
+            raise ValueError(f"problem {problem.name!r} has a plant of its own ({type(plant).__name__}: its inputs "
+                             "are not joint torques), which MuJoCoPlant does not reproduce")
+        self.problem, self.nx, self.nu = problem, plant.nx, plant.nu
+        self.state_names, self.input_names = plant.state_names, plant.input_names
+        self.integrator = choice(integrator, INTEGRATORS, "integrator")
+        chain = getattr(problem, "chain", None)
+        self.joint_names = list(chain.names) if chain is not None else plant.state_names[:nq]
+        if mjcf is None and joint_map is not None:
+            raise ValueError("joint_map names the joints of an MJCF file: give mjcf= too")
+        if limits is not None and not isinstance(limits, bool):
+            raise TypeError(f"limits must be True, False or None, got {limits!r}")
+        self.options = {"frictionloss": _per_joint(frictionloss, nq, "frictionloss"),
+                        "armature": _per_joint(armature, nq, "armature"),
+                        "ctrlrange": _ctrlrange(ctrlrange, nq), "floor": _floor(floor), "limits": limits}
+        if mjcf is not None:
+            spec, self.source = _mjcf_spec(mujoco, mjcf), f"mjcf:{mjcf}"
+            self.mj_joints = _map_joints(spec, joint_map, self.joint_names)
+            for actuator in list(spec.actuators):  # someone else's controller: u drives the joints here
+                spec.delete(actuator)
+        elif getattr(problem, "urdf", None) is not None and chain is not None:
+            spec, self.source = _urdf_spec(mujoco, problem), f"urdf:{problem.urdf}"
+            self.mj_joints = list(self.joint_names)
+        elif chain is not None:
+            spec, self.source = _chain_spec(mujoco, problem), "chain"
+            self.mj_joints = list(self.joint_names)
+        else:
+            raise ValueError(f"problem {problem.name!r} has no rigid-body description (a Chain) to write an MJCF "
+                             "from; MuJoCoPlant supports nlink:N, puma560, panda, urdf:… and Chain-based problems "
+                             "of your own, or any problem with an MJCF of yours (mjcf=…, joint_map=…)")
+        if mjcf is None:
+            _set_problem_dynamics(mujoco, spec, problem, self.mj_joints)
+        for name in self.mj_joints:
+            spec.add_actuator(name=f"u_{name}", target=name, trntype=mujoco.mjtTrn.mjTRN_JOINT).set_to_motor()
+        spec.option.integrator = getattr(mujoco.mjtIntegrator, _MJ_INTEGRATORS[self.integrator])
+        if mjcf is None and not np.any(getattr(problem, "friction", 0.0)):
+            self._check(mujoco, self._compile(mujoco, spec), plant)
+        _apply_options(mujoco, spec, self.mj_joints, self.options)
+        self.spec = spec
+        self.model = self._compile(mujoco, spec)
+        self._qpos, self._qvel = _addresses(self.model, self.mj_joints)
+
+    def __repr__(self):
+        active = [k for k, v in self.options.items() if v is not None and (not isinstance(v, np.ndarray) or v.any())]
+        return (f"MuJoCoPlant({self.problem.name!r}, source={self.source!r}, integrator={self.integrator!r}"
+                + "".join(f", {k}" for k in active) + ")")
+
+    def xml(self) -> str:
+        """The MJCF of the simulated robot (options applied), as MuJoCo writes it."""
+        return self.spec.to_xml()
+
+    def stepper(self, dt: float, substeps: int = 1):
+        """F(x, u) -> x⁺ over one control period ``dt``: ``substeps`` MuJoCo steps of dt / substeps with u held.
+
+        Each call makes fresh MuJoCo data, so a run starts from the model's rest state in every joint x does not
+        hold (an MJCF's extra joints) and with no contact history.
+        """
+        mujoco = _mujoco()
+        dt, substeps = positive(dt, "dt"), integer(substeps, "substeps", 1)
+        model = copy.copy(self.model)  # the time step is this stepper's own
+        model.opt.timestep = dt / substeps
+        data = mujoco.MjData(model)
+        n = self.nx // 2
+        diverged = [int(getattr(mujoco.mjtWarning, w)) for w in _DIVERGED]
+
+        def step(x, u):
+            x, u = np.asarray(x, dtype=float).ravel(), np.asarray(u, dtype=float).ravel()
+            data.qpos[self._qpos], data.qvel[self._qvel], data.ctrl[:] = x[:n], x[n:], u
+            before = [data.warning[w].number for w in diverged]
+            mujoco.mj_step(model, data, substeps)
+            if any(data.warning[w].number > b for w, b in zip(diverged, before)):
+                return np.full(self.nx, np.nan)  # simulate() names the step; MuJoCo has reset its data
+            return np.concatenate([data.qpos[self._qpos], data.qvel[self._qvel]])
+
+        return step
+
+    def _compile(self, mujoco, spec):
+        try:
+            model = spec.compile()
+        except ValueError as exc:
+            raise ValueError(f"MuJoCo cannot compile the robot from {self.source}: {exc}") from None
+        if self.source == "chain":
+            _exact_inertias(mujoco, model, self.problem.chain)
+            mujoco.mj_setConst(model, mujoco.MjData(model))  # constants derived from the inertias (constraint scales)
+        return model
+
+    def _check(self, mujoco, model, plant, samples: int = 3):
+        """Refuse a generated robot whose q̈ differs from the problem's plant's at seeded states and inputs."""
+        data = mujoco.MjData(model)
+        n = self.nx // 2
+        qpos, qvel = _addresses(model, self.mj_joints)
+        rng = np.random.default_rng(0)
+        worst, scale = 0.0, 1.0
+        for seed in range(samples):
+            x = self.problem.sample(seed)[0] + np.r_[np.zeros(n), rng.uniform(-1, 1, n)]
+            u = rng.uniform(-1, 1, n)
+            data.qpos[qpos], data.qvel[qvel], data.ctrl[:] = x[:n], x[n:], u
+            mujoco.mj_forward(model, data)
+            expected = np.asarray(plant.f(x, u), dtype=float).ravel()[n:]
+            worst, scale = max(worst, float(np.abs(data.qacc[qvel] - expected).max())), max(scale, float(np.abs(expected).max()))
+        if not worst <= CHECK_TOLERANCE * scale:
+            raise ValueError(f"MuJoCo's model of {self.problem.name!r} ({self.source}) gives q̈ up to {worst:.3g} away "
+                             f"from the problem's dynamics (|q̈| up to {scale:.3g}): the generated robot follows "
+                             "M(q) q̈ + h(q, q̇) + b q̇ = τ of its Chain; write an MJCF (mjcf=, joint_map=) for other "
+                             "dynamics")
+
+
+def _addresses(model, joints):
+    """The qpos and qvel indices of ``joints`` (names) in a compiled model."""
+    ids = [model.joint(name).id for name in joints]
+    return np.array([model.jnt_qposadr[i] for i in ids]), np.array([model.jnt_dofadr[i] for i in ids])
+
+
+def _per_joint(value, n: int, name: str) -> np.ndarray:
+    try:
+        arr = np.broadcast_to(np.asarray(value, dtype=float), (n,)).copy()
+    except (TypeError, ValueError):
+        arr = None
+    if arr is None or not np.all(np.isfinite(arr)) or np.any(arr < 0):
+        raise ValueError(f"{name} must be a finite scalar or {n} values >= 0, got {value!r}")
+    return arr
+
+
+def _ctrlrange(value, n: int):
+    if value is None:
+        return None
+    try:
+        low, high = (np.broadcast_to(np.asarray(v, dtype=float), (n,)).copy() for v in value)
+    except (TypeError, ValueError):
+        raise ValueError(f"ctrlrange must be (low, high), scalars or {n} values each, got {value!r}") from None
+    if np.isnan(low).any() or np.isnan(high).any() or not np.all(low < high):
+        raise ValueError(f"ctrlrange must have low < high for every input, got {value!r}")
+    return np.stack([low, high])
+
+
+def _floor(value):
+    if value is None:
+        return None
+    try:
+        z = float(value)
+    except (TypeError, ValueError):
+        raise TypeError(f"floor must be a height in m or None, got {value!r}") from None
+    if not np.isfinite(z):
+        raise ValueError(f"floor must be a finite height in m, got {value!r}")
+    return z
+
+
+def _mjcf_spec(mujoco, path):
+    file = Path(path)
+    if not file.is_file():
+        raise ValueError(f"mjcf: no such file {str(file)!r}")
+    try:
+        return mujoco.MjSpec.from_file(str(file))
+    except ValueError as exc:
+        raise ValueError(f"mjcf: {str(file)!r} is not an MJCF MuJoCo can read: {exc}") from None
+
+
+def _map_joints(spec, joint_map, names: list) -> list:
+    """The MJCF joint of each of the problem's joints, in q's order (a ValueError naming the first bad entry)."""
+    if joint_map is None:
+        mapped = list(names)
+    elif isinstance(joint_map, dict):
+        stray = [k for k in joint_map if k not in names]
+        if stray:
+            raise ValueError(f"joint_map names {stray[0]!r}, not a joint of the problem; its joints: {', '.join(names)}")
+        missing = [k for k in names if k not in joint_map]
+        if missing:
+            raise ValueError(f"joint_map has no MJCF joint for the problem's joint {missing[0]!r}")
+        mapped = [joint_map[k] for k in names]
+    elif isinstance(joint_map, str) or len(joint_map) != len(names):
+        raise ValueError(f"joint_map must be {len(names)} MJCF joint names (q's order) or a dict, got {joint_map!r}")
+    else:
+        mapped = list(joint_map)
+    joints = {j.name: j for j in spec.joints}
+    for name in mapped:
+        if name not in joints:
+            raise ValueError(f"joint_map: the MJCF has no joint {name!r}; its joints: {', '.join(joints) or 'none'}")
+    if len(set(mapped)) != len(mapped):
+        raise ValueError(f"joint_map names an MJCF joint twice: {mapped}")
+    for name in mapped:
+        if joints[name].type not in (_mujoco().mjtJoint.mjJNT_HINGE, _mujoco().mjtJoint.mjJNT_SLIDE):
+            raise ValueError(f"joint_map: MJCF joint {name!r} is not a hinge or slide joint (one q each)")
+    return mapped
+
+
+def _chain_spec(mujoco, problem):
+    """The MJCF of a Chain: body i is joint i's frame at q = 0, its joint at the body's origin."""
+    chain = problem.chain
+    spec = mujoco.MjSpec()
+    spec.modelname = problem.name.replace(":", "_")
+    spec.compiler.inertiafromgeom = mujoco.mjtInertiaFromGeom.mjINERTIAFROMGEOM_FALSE
+    # stand-ins for the inertias MuJoCo's compiler refuses; _exact_inertias puts the Chain's back
+    spec.compiler.balanceinertia, spec.compiler.boundmass, spec.compiler.boundinertia = True, 1e-6, 1e-9
+    bodies = []
+    for i in range(chain.n):
+        parent = spec.worldbody if chain.parents[i] < 0 else bodies[chain.parents[i]]
+        quat = np.zeros(4)
+        mujoco.mju_mat2Quat(quat, np.asarray(chain.rotations[i], dtype=float).ravel())
+        body = parent.add_body(name=chain.names[i], pos=chain.translations[i], quat=quat)
+        inertia = chain.inertias[i]
+        body.explicitinertial, body.mass, body.ipos = True, chain.masses[i], chain.coms[i]
+        body.fullinertia = [inertia[0, 0], inertia[1, 1], inertia[2, 2], inertia[0, 1], inertia[0, 2], inertia[1, 2]]
+        kind = mujoco.mjtJoint.mjJNT_HINGE if chain.revolute[i] else mujoco.mjtJoint.mjJNT_SLIDE
+        body.add_joint(name=chain.names[i], type=kind, axis=chain.axes[i])
+        bodies.append(body)
+    lo, hi = (np.asarray(getattr(problem.pin_model, k), dtype=float) for k in ("lowerPositionLimit", "upperPositionLimit"))
+    for i, joint in enumerate(spec.joints):
+        if max(abs(lo[i]), abs(hi[i])) < 1e10 and lo[i] < hi[i]:  # pinocchio's 'no limit' is ±1.8e308
+            joint.range = [lo[i], hi[i]]
+        joint.limited = mujoco.mjtLimited.mjLIMITED_FALSE  # ocpkit's model has no limits: the option sets them
+    return spec
+
+
+def _exact_inertias(mujoco, model, chain) -> None:
+    """Set each link's mass, centre of mass and inertia to the Chain's exactly, after compiling.
+
+    MuJoCo's compiler requires positive principal moments with A + B >= C, and mass > 0. The N-link robots' thin
+    rods have no moment about their own axis, the Puma 560's first link a mass of 0 and its third link moments
+    (0.066, 0.086, 0.0125 kg·m²) that break A + B >= C: the published parameters are a model, not a body. The spec
+    holds compile-able stand-ins (``balanceinertia``, ``boundmass``, ``boundinertia``); the simulated model holds
+    the Chain's values, which MuJoCo's dynamics take as they are (its runtime checks none of this)."""
+    for i, name in enumerate(chain.names):
+        body = model.body(name).id
+        moments, frame = np.linalg.eigh(np.asarray(chain.inertias[i], dtype=float))
+        if np.linalg.det(frame) < 0:
+            frame[:, 0] = -frame[:, 0]
+        quat = np.zeros(4)
+        mujoco.mju_mat2Quat(quat, frame.ravel())
+        model.body_mass[body], model.body_ipos[body] = chain.masses[i], chain.coms[i]
+        model.body_inertia[body], model.body_iquat[body] = np.maximum(moments, 0.0), quat
+        model.body_sameframe[body] = 0  # the compiler's "inertia frame = body frame" shortcut no longer holds
+    model.body_subtreemass[:] = model.body_mass
+    for body in range(model.nbody - 1, 0, -1):
+        model.body_subtreemass[model.body_parentid[body]] += model.body_subtreemass[body]
+
+
+def _urdf_spec(mujoco, problem):
+    """MuJoCo's import of the problem's URDF with the joints the problem locked removed (held at 0)."""
+    from ocpkit.rigid_body import load_urdf
+
+    try:
+        spec = mujoco.MjSpec.from_file(problem.urdf)
+    except ValueError as exc:
+        raise ValueError(f"MuJoCo cannot read the URDF {problem.urdf!r}: {exc}") from None
+    keep = set(problem.chain.names)
+    locked = [j.name for j in spec.joints if j.name not in keep]
+    # The problem's Chain must be load_urdf's default locking (0 clipped into the limits), and that 0:
+    # removing a joint in MuJoCo freezes its child where q = 0 puts it.
+    default = load_urdf(problem.urdf, locked_joints=locked)
+    same = len(default.inertias) == len(problem.pin_model.inertias) and all(
+        np.allclose(a.toDynamicParameters(), b.toDynamicParameters(), rtol=0, atol=1e-12)
+        for a, b in zip(default.inertias, problem.pin_model.inertias))
+    for name in locked:
+        joint = spec.joint(name)
+        low, high = joint.range
+        if not same or (joint.limited != mujoco.mjtLimited.mjLIMITED_FALSE and low < high and not low <= 0 <= high):
+            raise ValueError(f"{problem.name}: joint {name!r} is locked away from 0, which the URDF import cannot "
+                             "hold; use an MJCF of yours (mjcf=, joint_map=)")
+    for eq in list(spec.equalities):  # mimic joints (the Panda's fingers) tie locked joints together
+        if {eq.name1, eq.name2} & set(locked):
+            spec.delete(eq)
+    for name in locked:
+        spec.delete(spec.joint(name))
+    spec.compiler.inertiafromgeom = mujoco.mjtInertiaFromGeom.mjINERTIAFROMGEOM_FALSE
+    for joint in spec.joints:
+        joint.limited = mujoco.mjtLimited.mjLIMITED_FALSE
+    return spec
+
+
+def _set_problem_dynamics(mujoco, spec, problem, joints):
+    """Gravity, damping, Coulomb friction and rotor inertia of a robot generated from ``problem``; capsules along
+    its links (for contacts with a floor and for pictures)."""
+    chain = problem.chain
+    gravity = getattr(problem, "gravity", True)  # URDFRobot(gravity=False) simulates none
+    spec.option.gravity = chain.gravity_vector if gravity is not False else np.zeros(3)
+    damping = chain.coefficients(getattr(problem, "damping", 0.0), "damping")
+    friction = chain.coefficients(getattr(problem, "friction", 0.0), "friction")
+    for i, name in enumerate(joints):
+        joint = spec.joint(name)
+        joint.damping = [damping[i], 0.0, 0.0] if np.ndim(joint.damping) else damping[i]  # MuJoCo 4: 3 terms
+        # ocpkit smooths Coulomb friction as f tanh(q̇ / 0.01); MuJoCo's dry friction is its unsmoothed limit
+        joint.frictionloss, joint.armature = friction[i], chain.armature[i]
+    kin = problem.kinematics
+    radius = float(getattr(problem, "link_radius", 0.05))
+    zero = np.zeros(chain.n)
+    for a, b in kin.segments():
+        R, p = (np.asarray(v, dtype=float) for v in kin.placement(zero, a))
+        end = R.T @ (np.asarray(kin.position(zero, b), dtype=float).ravel() - p.ravel())
+        if np.linalg.norm(end) > 1e-9:
+            body = spec.joint(a).parent
+            body.add_geom(type=mujoco.mjtGeom.mjGEOM_CAPSULE, fromto=np.r_[np.zeros(3), end], size=[radius, 0, 0],
+                          contype=0, conaffinity=1, rgba=[0.4, 0.5, 0.7, 1.0])
+
+
+def _apply_options(mujoco, spec, joints, options):
+    for i, name in enumerate(joints):
+        joint = spec.joint(name)
+        joint.frictionloss += options["frictionloss"][i]
+        joint.armature += options["armature"][i]
+        if options["limits"] is not None:
+            bounded = options["limits"] and joint.range[0] < joint.range[1]
+            joint.limited = mujoco.mjtLimited.mjLIMITED_TRUE if bounded else mujoco.mjtLimited.mjLIMITED_FALSE
+    if options["ctrlrange"] is not None:
+        for i, actuator in enumerate(spec.actuators):
+            actuator.ctrllimited = mujoco.mjtLimited.mjLIMITED_TRUE
+            actuator.ctrlrange = options["ctrlrange"][:, i]
+    if options["floor"] is not None:
+        spec.worldbody.add_geom(name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, pos=[0, 0, options["floor"]],
+                                size=[0, 0, 1], contype=1, conaffinity=1)

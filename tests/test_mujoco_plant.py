@@ -1,0 +1,204 @@
+"""MuJoCo as the plant: the same closed loops as ocpkit's own plant, MuJoCo's extra effects, clear errors."""
+import json
+import sys
+
+import numpy as np
+import pytest
+
+pytest.importorskip("mujoco")
+
+from ocpkit.cli import main  # noqa: E402
+from ocpkit.mujoco_plant import MuJoCoPlant, _mujoco  # noqa: E402
+from ocpkit.problems import make  # noqa: E402
+from ocpkit.problems.nlink import NLink  # noqa: E402
+from ocpkit.simulate import simulate  # noqa: E402
+from ocpkit.solvers.qp import LinearMPC  # noqa: E402
+
+# The paper's 2-link robot written by hand from its description (1 kg, 0.25 m uniform rods, b = 0.01 N·m·s, joints
+# about z), not from ocpkit's Chain: its own joint names and a position servo that MuJoCoPlant replaces by torques.
+# A thin rod has no moment about its own axis, which MuJoCo refuses; 1e-12 there is never excited (every joint
+# turns about z).
+ROD = 'mass="1" pos="0.125 0 0" diaginertia="1e-12 0.00520833333333333333 0.00520833333333333333"'
+NLINK2 = f"""<mujoco model="two links">
+  <worldbody>
+    <body name="upper">
+      <joint name="shoulder" type="hinge" axis="0 0 1" damping="0.01"/>
+      <inertial {ROD}/>
+      <geom type="capsule" fromto="0 0 0 0.25 0 0" size="0.02"/>
+      <body name="fore" pos="0.25 0 0">
+        <joint name="elbow" type="hinge" axis="0 0 1" damping="0.01"/>
+        <inertial {ROD}/>
+        <geom type="capsule" fromto="0 0 0 0.25 0 0" size="0.02"/>
+      </body>
+    </body>
+  </worldbody>
+  <actuator><position joint="shoulder" kp="50"/><position joint="elbow" kp="50"/></actuator>
+</mujoco>
+"""
+
+
+def closed_loops(problem, plant, seed=0, duration=1.0):
+    """ocpkit's plant and ``plant`` under the same LinearMPC from the same seeded start and goal."""
+    x0, goal = problem.sample(seed)
+    ctrl = LinearMPC(problem.ocp())
+    return simulate(problem.plant(), ctrl, x0, goal, duration), simulate(plant, ctrl, x0, goal, duration)
+
+
+@pytest.mark.parametrize("spec", ["nlink:3", "puma560", "panda"])
+def test_closed_loop_matches_ocpkit_plant(spec):
+    """1 s of LinearMPC: MuJoCo's RK4 at ocpkit's sub-step tracks ocpkit's plant to 1e-8 (no friction, no contacts):
+    an MJCF generated from the Chain (nlink:3, the Puma 560) and MuJoCo's own import of the Panda's URDF."""
+    problem = make(spec)
+    ours, theirs = closed_loops(problem, MuJoCoPlant(problem))
+    assert np.abs(ours.x - theirs.x).max() < 1e-8
+    assert np.abs(ours.u - theirs.u).max() < 1e-6  # the inputs the controller chose from those states
+    assert np.abs(ours.x[-1] - ours.goal).max() < np.abs(ours.x[0] - ours.goal).max()  # it moved towards the goal
+
+
+@pytest.mark.parametrize("spec", ["nlink:3", "puma560", "panda", "nlink:13"])
+def test_one_step_matches_ocpkit_plant(spec):
+    """One control period from seeded states and inputs: RK4 agrees to round-off; MuJoCo's implicit integrator
+    (first order) to within its O(h) error."""
+    problem = make(spec)
+    plant, dt, n = problem.plant(), problem.dt, problem.plant().nu
+    rk4 = MuJoCoPlant(problem).stepper(dt, 10)
+    implicit = MuJoCoPlant(problem, integrator="implicitfast").stepper(dt, 10)
+    rng = np.random.default_rng(0)
+    for seed in range(3):
+        x = problem.sample(seed)[0] + np.r_[np.zeros(n), rng.uniform(-1, 1, n)]
+        u = rng.uniform(-1, 1, n)
+        exact = np.asarray(plant.rk4(dt, 10)(x, u)).ravel()
+        scale = np.abs(exact - x).max()
+        assert np.abs(rk4(x, u) - exact).max() < 1e-11 * max(1.0, scale)
+        assert np.abs(implicit(x, u) - exact).max() < 0.05 * scale
+
+
+def test_users_mjcf_with_joint_map(tmp_path):
+    """A hand-written MJCF of the 2-link robot, its joints mapped by name: the same closed loop as ocpkit's plant."""
+    path = tmp_path / "two_links.xml"
+    path.write_text(NLINK2)
+    problem = make("nlink:2")
+    plant = MuJoCoPlant(problem, mjcf=path, joint_map={"joint1": "shoulder", "joint2": "elbow"})
+    assert plant.model.nu == 2 and plant.source == f"mjcf:{path}"  # the file's servos replaced by two motors
+    ours, theirs = closed_loops(problem, plant)
+    assert np.abs(ours.x - theirs.x).max() < 1e-8
+    in_order = MuJoCoPlant(problem, mjcf=path, joint_map=["shoulder", "elbow"])
+    x, u = np.array([0.3, -0.2, 0.1, 0.5]), np.array([0.4, -0.1])
+    np.testing.assert_array_equal(in_order.stepper(0.01, 10)(x, u), plant.stepper(0.01, 10)(x, u))
+
+
+def test_effects_ocpkit_leaves_out():
+    """Friction and armature slow the arm, ctrlrange clamps the torque, a floor stops a falling arm."""
+    problem = make("puma560")
+    dt, x0 = problem.dt, np.zeros(12)
+    u = np.array([0.0, 40.0, 20.0, 0.0, 0.0, 0.0])
+
+    def after(plant, steps=20, torque=u):
+        step, x = plant.stepper(dt, 10), x0
+        for _ in range(steps):
+            x = step(x, torque)
+        return x
+
+    free = after(MuJoCoPlant(problem))
+    for option in ({"frictionloss": 5.0}, {"armature": 2.0}):
+        slowed = after(MuJoCoPlant(problem, **option))
+        assert np.abs(slowed[7:9]).max() < 0.9 * np.abs(free[7:9]).max(), option
+    clamped = MuJoCoPlant(problem, ctrlrange=(-10.0, 10.0))
+    np.testing.assert_allclose(after(clamped), after(MuJoCoPlant(problem), torque=np.clip(u, -10, 10)), atol=1e-12)
+    # No torque: the arm falls under gravity; a floor 0.3 m below the shoulder holds its links above it.
+    lowest = {}
+    for floor in (None, -0.3):
+        plant = MuJoCoPlant(problem, floor=floor)
+        x = after(plant, steps=100, torque=np.zeros(6))
+        import mujoco
+
+        data = mujoco.MjData(plant.model)
+        data.qpos[:] = x[:6]
+        mujoco.mj_kinematics(plant.model, data)
+        capsules = plant.model.geom_type == mujoco.mjtGeom.mjGEOM_CAPSULE
+        lowest[floor] = float((data.geom_xpos[capsules, 2] - plant.model.geom_size[capsules, 1]).min())
+    assert lowest[None] < -0.5 and lowest[-0.3] > -0.3 - 2 * problem.link_radius
+
+
+def test_generated_robot_must_match_the_problems_dynamics():
+    class Heavier(NLink):  # its dynamics are not its Chain's: the MJCF written from the Chain would be wrong
+        def dynamics(self, error):
+            return super().dynamics(1.5 * error)
+
+    with pytest.raises(ValueError, match="gives q̈ up to .* away from the problem's dynamics"):
+        MuJoCoPlant(Heavier(2))
+
+
+@pytest.mark.parametrize("kwargs,error,message", [
+    ({"integrator": "verlet"}, ValueError, "integrator must be one of"),
+    ({"frictionloss": -1.0}, ValueError, "frictionloss must be a finite scalar or 2 values >= 0"),
+    ({"armature": [1.0, 2.0, 3.0]}, ValueError, "armature must be a finite scalar or 2 values >= 0"),
+    ({"ctrlrange": (1.0, -1.0)}, ValueError, "ctrlrange must have low < high"),
+    ({"ctrlrange": 2.0}, ValueError, "ctrlrange must be \\(low, high\\)"),
+    ({"floor": "low"}, TypeError, "floor must be a height in m"),
+    ({"limits": "yes"}, TypeError, "limits must be True, False or None"),
+    ({"joint_map": ["a", "b"]}, ValueError, "joint_map names the joints of an MJCF file: give mjcf= too"),
+    ({"mjcf": "no_such.xml"}, ValueError, "mjcf: no such file 'no_such.xml'"),
+])
+def test_bad_options(kwargs, error, message):
+    with pytest.raises(error, match=message):
+        MuJoCoPlant("nlink:2", **kwargs)
+
+
+def test_bad_joint_maps(tmp_path):
+    path = tmp_path / "two_links.xml"
+    path.write_text(NLINK2)
+    for joint_map, message in ((None, "the MJCF has no joint 'joint1'; its joints: shoulder, elbow"),
+                               (["shoulder"], "joint_map must be 2 MJCF joint names"),
+                               ({"joint1": "shoulder", "wrist": "elbow"}, "joint_map names 'wrist'"),
+                               ({"joint1": "shoulder"}, "no MJCF joint for the problem's joint 'joint2'"),
+                               (["shoulder", "shoulder"], "names an MJCF joint twice")):
+        with pytest.raises(ValueError, match=message):
+            MuJoCoPlant("nlink:2", mjcf=path, joint_map=joint_map)
+    path.write_text("<mujoco><worldbody><body></mujoco>")
+    with pytest.raises(ValueError, match="is not an MJCF MuJoCo can read"):
+        MuJoCoPlant("nlink:2", mjcf=path)
+
+
+def test_unsupported_problems_and_plants():
+    with pytest.raises(ValueError, match="'pendulum' has no rigid-body description .*mjcf="):
+        MuJoCoPlant("pendulum")
+    with pytest.raises(ValueError, match="'baxter' has a plant of its own"):
+        MuJoCoPlant("baxter")
+    problem = make("nlink:2")
+    with pytest.raises(TypeError, match="plant must be an ocpkit Model or a plant with stepper"):
+        simulate(object(), LinearMPC(problem.ocp()), *problem.sample(0), 0.1)
+
+
+def test_missing_mujoco_is_one_clear_line(monkeypatch):
+    monkeypatch.setitem(sys.modules, "mujoco", None)
+    with pytest.raises(ImportError, match=r'^MuJoCoPlant needs MuJoCo: pip install "ocpkit\[mujoco\]"$'):
+        _mujoco()
+
+
+def test_cli_simulate_on_mujoco(tmp_path, capsys):
+    args = ["simulate", "nlink:2", "--duration", "0.2", "--out", str(tmp_path / "f.png"), "--json"]
+    assert main(args) == 0
+    ours = json.loads(capsys.readouterr().out)
+    assert main(args + ["--plant", "mujoco"]) == 0
+    theirs = json.loads(capsys.readouterr().out)
+    assert ours["plant"] == "ocpkit" and theirs["plant"].startswith("MuJoCoPlant('nlink:2', source='chain'")
+    assert abs(ours["actual_cost"] - theirs["actual_cost"]) < 1e-8 * ours["actual_cost"]
+    path = tmp_path / "two_links.xml"
+    path.write_text(NLINK2)
+    assert main(args + ["--plant", "mujoco", "--mjcf", str(path), "--joint-map", "joint1=shoulder,joint2=elbow"]) == 0
+    mapped = json.loads(capsys.readouterr().out)
+    assert abs(mapped["actual_cost"] - ours["actual_cost"]) < 1e-8 * ours["actual_cost"]
+
+
+@pytest.mark.parametrize("extra,message", [
+    (["--mjcf", "x.xml"], "--mjcf applies to --plant mujoco only"),
+    (["--plant", "mujoco", "--joint-map", "a,b"], "--joint-map names the joints of an MJCF file: give --mjcf too"),
+    (["--plant", "mujoco", "--mjcf", "x.xml", "--joint-map", "joint1=a,b"], "--joint-map must be MJCF joint names"),
+    (["--plant", "mujoco"], "'pendulum' has no rigid-body description"),
+])
+def test_cli_plant_errors_are_one_line(extra, message, tmp_path, capsys):
+    problem = "pendulum" if extra == ["--plant", "mujoco"] else "nlink:2"
+    assert main(["simulate", problem, "--duration", "0.1", "--out", str(tmp_path / "f.png"), *extra]) == 2
+    err = capsys.readouterr().err
+    assert message in err and len(err.strip().splitlines()) == 1
