@@ -19,13 +19,10 @@ from __future__ import annotations
 
 import atexit
 import contextlib
-import hashlib
 import os
-import platform
 import shutil
 import signal
 import subprocess
-import sys
 import tempfile
 import threading
 import warnings
@@ -35,8 +32,9 @@ from pathlib import Path
 
 import casadi as ca
 
-from ocpkit.cache import (CacheReadOnlyError, cache_dir, entry_lock, entry_ok, evict, install, load_problem,
-                          read_only_error, warn_read_only)
+from ocpkit.builder import build_entry, child_failure, entry_key, loadable, signal_name, spawn
+from ocpkit.cache import (CacheReadOnlyError, cache_dir, entry_ok, install, load_problem, read_only_error,
+                          warn_read_only)
 
 
 class CompileError(RuntimeError):
@@ -62,30 +60,14 @@ def prebuild(fn: ca.Function, flags: str = "-O1") -> Path:
 
 
 def _load(name: str, library: Path, rebuild) -> ca.Function:
-    """``ca.external`` of the cached ``library``; where it does not load (its hash matched: a library built for
-    another machine, say) the entry is removed, ``rebuild()`` compiles it once more and that one is loaded."""
-    seen = library.stat()
-    problem = load_problem(library, name)
-    if problem is None:
-        return ca.external(name, str(library))
-    try:
-        evict(library, seen)
-    except CacheReadOnlyError as exc:
-        raise read_only_error(f"the compiled function {name!r} ({library}) does not load ({problem})",
-                              library.parent.parent) from exc
-    warnings.warn(f"compiled cache entry {library} does not load ({problem}): removed, compiling it again",
-                  RuntimeWarning, stacklevel=3)
-    library = rebuild()
-    problem = load_problem(library, name)
-    if problem is not None:
-        raise CompileError(f"{name}, compiled again into {library}, does not load: {problem}")
-    return ca.external(name, str(library))
+    """``ca.external`` of the cached ``library`` once it proves loadable (:func:`ocpkit.builder.loadable`: one that
+    does not load is removed and ``rebuild()`` compiles it once more)."""
+    return ca.external(name, str(loadable(library, name, rebuild, f"the compiled function {name!r}", CompileError)))
 
 
 def _entry(fn: ca.Function, flags: str) -> Path:
     """Where the library of ``fn`` compiled with ``flags`` is cached (keyed by the serialized Function)."""
-    key = hashlib.sha256((fn.serialize() + flags + _PLATFORM).encode()).hexdigest()[:20]
-    return cache_dir("compiled") / key / f"{fn.name()}.so"
+    return cache_dir("compiled") / entry_key(fn.serialize().encode(), flags.encode()) / f"{fn.name()}.so"
 
 
 def _cached(fn: ca.Function, flags: str) -> ca.Function | None:
@@ -98,31 +80,19 @@ def _cached(fn: ca.Function, flags: str) -> ca.Function | None:
 
 
 def _library(fn: ca.Function, flags: str) -> Path:
-    """The cached library of ``fn`` compiled with ``flags``, built first (under the entry's lock) unless a sound one
-    is there; :class:`CacheReadOnlyError` where it is not and the cache is read-only."""
+    """The cached library of ``fn`` compiled with ``flags``, built first (:func:`ocpkit.builder.build_entry`) unless a
+    sound one is there; :class:`CacheReadOnlyError` where it is not and the cache is read-only."""
     library = _entry(fn, flags)
-    folder = library.parent
-    if entry_ok(library):
-        return library
     try:
-        with entry_lock(folder):
-            if not entry_ok(library):  # else compiled by another process while this one waited
-                recorded = library.with_name(library.name + ".sha256")
-                if library.exists() and (recorded.exists() or library.stat().st_size == 0):  # not from before hashes
-                    warnings.warn(f"damaged compiled cache entry {library} (its content does not match the hash "
-                                  f"recorded beside it): rebuilding it", RuntimeWarning, stacklevel=2)
-                _build(fn, flags, folder, library)
+        build_entry(library, lambda: _build(fn, flags, library.parent, library), "a compiled function")
     except CacheReadOnlyError:
         state = "is damaged" if library.exists() else "is not in the cache"
-        raise read_only_error(f"the compiled function {fn.name()!r} ({library}) {state}", folder.parent) from None
+        raise read_only_error(f"the compiled function {fn.name()!r} ({library}) {state}",
+                              library.parent.parent) from None
     return library
 
 
-_PLATFORM = f"|{sys.platform}|{platform.machine()}"  # one library per architecture in a cache that machines share
-
-
 def _build(fn: ca.Function, flags: str, folder: Path, library: Path) -> None:
-    folder.mkdir(mode=0o700, parents=True, exist_ok=True)
     # Generate and build in a private scratch folder, then rename: a concurrent process never compiles a
     # half-written source nor loads a half-written library, and a failed build leaves nothing behind.
     scratch = Path(tempfile.mkdtemp(dir=folder, prefix=f".build-{os.getpid()}-"))
@@ -142,7 +112,7 @@ def _build(fn: ca.Function, flags: str, folder: Path, library: Path) -> None:
         except subprocess.CalledProcessError as exc:
             if exc.returncode < 0:
                 raise CompileError(f"compiling {fn.name()} with `{compiler}` failed: the compiler was killed by "
-                                   f"{_signal_name(-exc.returncode)}") from None
+                                   f"{signal_name(-exc.returncode)}") from None
             message = " ".join(exc.stderr.split())[:300]
             raise CompileError(f"compiling {fn.name()} with `{compiler}` failed: {message}") from None
         install(partial, library)
@@ -158,20 +128,20 @@ _compiling: dict = {}  # running compiler processes -> their scratch folders (en
 def _run_compiler(command: list[str], scratch: Path) -> None:
     """subprocess.run(command, check=True) that a background compile cut short by the interpreter's exit does not
     outlive: the compiler is stopped and its scratch folder removed (see :func:`_stop_compilers`)."""
-    code, out, err = _tracked(command, scratch)
+    with subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) as proc:
+        code, out, err = _tracked(proc, scratch)
     if code:
         raise subprocess.CalledProcessError(code, command, out, err)
 
 
-def _tracked(command: list[str], scratch: Path | None, **popen) -> tuple[int, str, str]:
-    """(exit status, stdout, stderr) of ``command``, listed in ``_compiling`` while it runs (``scratch`` its folder,
-    or None for a background compile's child process) so that the interpreter's exit ends it."""
-    with subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **popen) as proc:
-        _compiling[proc] = scratch
-        try:
-            out, err = proc.communicate()
-        finally:
-            _compiling.pop(proc, None)
+def _tracked(proc: subprocess.Popen, scratch: Path | None) -> tuple[int, str, str]:
+    """(exit status, stdout, stderr) of ``proc``, listed in ``_compiling`` while it runs (``scratch`` its folder, or
+    None for a background compile's child process) so that the interpreter's exit ends it."""
+    _compiling[proc] = scratch
+    try:
+        out, err = proc.communicate()
+    finally:
+        _compiling.pop(proc, None)
     return proc.returncode, out, err
 
 
@@ -192,13 +162,6 @@ def _stop_compilers() -> None:
         shutil.rmtree(scratch, ignore_errors=True)
 
 
-def _signal_name(number: int) -> str:
-    try:
-        return signal.Signals(number).name
-    except ValueError:
-        return f"signal {number}"
-
-
 def _compile_out_of_process(fn: ca.Function, flags: str = "-O1") -> ca.Function:
     """:func:`compile_function` (``fn``, ``flags``) with the hashing, code generation and compiler in a child process
     (its own process group, ``nice`` +10); the Function reaches it through ``Function.save``."""
@@ -210,22 +173,12 @@ def _library_out_of_process(fn: ca.Function, flags: str) -> Path:
     with tempfile.TemporaryDirectory(prefix="ocpkit-compile-") as tmp:
         saved = Path(tmp) / f"{fn.name()}.casadi"
         fn.save(str(saved))
-        path = [str(Path(__file__).resolve().parents[1]), os.environ.get("PYTHONPATH", "")]
-        env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in path if p)}
-        command = [sys.executable, "-c", "import sys; from ocpkit.compiled import _child; _child(*sys.argv[1:])",
-                   str(saved), flags]
-        code, out, err = _tracked(command, None, env=env, cwd=tmp, start_new_session=True)
-    if code < 0:
-        raise CompileError(f"the background compile of {fn.name()} failed: its process was killed by "
-                           f"{_signal_name(-code)}")
+        with spawn("ocpkit.compiled", str(saved), flags, cwd=Path(tmp), stdout=subprocess.PIPE,
+                   stderr=subprocess.PIPE, text=True) as proc:
+            code, out, err = _tracked(proc, None)
     if code:
-        lines = [line for line in err.strip().splitlines() if line.strip()]
-        last = lines[-1] if lines else f"exit status {code}"
-        for kind in (CompileError, CacheReadOnlyError):
-            prefix = f"{kind.__module__}.{kind.__name__}: "
-            if last.startswith(prefix):
-                raise kind(last.removeprefix(prefix))
-        raise CompileError(f"the background compile of {fn.name()} failed: {last[:300]}")
+        raise child_failure(code, proc.pid, err, f"the background compile of {fn.name()} failed", CompileError,
+                            (CompileError, CacheReadOnlyError))
     return Path(out.strip().splitlines()[-1])
 
 

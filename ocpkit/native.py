@@ -15,13 +15,9 @@ cache ahead of deployment.
 """
 from __future__ import annotations
 
-import hashlib
 import os
-import platform
 import shutil
-import signal
 import subprocess
-import sys
 import tempfile
 import threading
 import warnings
@@ -29,8 +25,9 @@ import weakref
 from concurrent.futures import Future
 from pathlib import Path
 
-from ocpkit.cache import (CacheReadOnlyError, cache_dir, entry_lock, entry_ok, evict, install, load_problem,
-                          read_only_error, scratch_dir, warn_read_only)
+from ocpkit.builder import build_entry, child_failure, entry_key, loadable, signal_name, spawn, warn_damaged
+from ocpkit.cache import (CacheReadOnlyError, cache_dir, entry_ok, install, load_problem, read_only_error,
+                          scratch_dir, warn_read_only)
 from ocpkit.compiled import compiler_available
 from ocpkit.export import BuildError, check_tools, export
 from ocpkit.ocp import BACKGROUND_MIN_INSTRUCTIONS, OCP
@@ -166,12 +163,9 @@ def _start(ocp: OCP, settings: tuple, wait: bool) -> Future | None:
 
 
 def _key(source: Path) -> str:
-    """The hash of the generated files, of the build's settings and of the platform (a cache shared by machines
-    of two architectures keeps one library for each)."""
-    h = hashlib.sha256(" ".join((*MAKE_VARS, sys.platform, platform.machine())).encode())
-    for path in sorted(source.iterdir()):
-        h.update(path.name.encode() + b"\0" + path.read_bytes())
-    return h.hexdigest()[:20]
+    """The cache key of the generated files and the build's settings (:func:`ocpkit.builder.entry_key`)."""
+    files = (path.name.encode() + b"\0" + path.read_bytes() for path in sorted(source.iterdir()))
+    return entry_key(" ".join(MAKE_VARS).encode(), *files)
 
 
 def _check_read_only_entry(folder: Path, root: Path) -> None:
@@ -204,19 +198,14 @@ def _build(scratch: Path, folder: Path, future: Future, background: bool = True,
     try:
         if child is not None:
             _make(scratch, folder, background, child)
-        elif entry_ok(library):
-            seen, problem = library.stat(), _load_problem(library)
-            if problem is None:
-                shutil.rmtree(scratch, ignore_errors=True)
-                future.set_result(folder)
-                return
-            warnings.warn(f"cache entry {library} does not load ({problem}): removed, building it again",
-                          RuntimeWarning, stacklevel=2)
-            evict(library, seen)
-        elif library.exists():
-            warnings.warn(f"damaged cache entry {library} (its content does not match the hash recorded beside "
-                          f"it): rebuilding it", RuntimeWarning, stacklevel=2)
-        if child is None:
+        elif entry_ok(library):  # cached: loaded as it is, or removed and built once more
+            def rebuild() -> Path:
+                _make(scratch, folder, background)
+                return library
+
+            loadable(library, f"{NAME}_step_timed", rebuild, "LinearMPC's C step", BuildError)
+        else:
+            warn_damaged(library, "LinearMPC's C step")
             _make(scratch, folder, background)
         problem = _load_problem(library) if entry_ok(library) else "no sound library after the build"
         if problem is not None:
@@ -231,12 +220,8 @@ def _build(scratch: Path, folder: Path, future: Future, background: bool = True,
 
 def _spawn(scratch: Path, folder: Path) -> subprocess.Popen:
     """The background build's child process (:func:`_child`), in a session of its own so that it outlives us."""
-    path = [str(Path(__file__).resolve().parents[1]), os.environ.get("PYTHONPATH", "")]
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in path if p)}
-    command = [sys.executable, "-c", "import sys; from ocpkit.native import _child; _child(*sys.argv[1:])",
-               str(scratch), str(folder)]
-    return subprocess.Popen(command, env=env, cwd=scratch, start_new_session=True, stdin=subprocess.DEVNULL,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    return spawn("ocpkit.native", str(scratch), str(folder), cwd=scratch, stdout=subprocess.DEVNULL,
+                 stderr=subprocess.DEVNULL)
 
 
 def _make(scratch: Path, folder: Path, background: bool, child: subprocess.Popen | None = None) -> None:
@@ -252,21 +237,10 @@ def _make(scratch: Path, folder: Path, background: bool, child: subprocess.Popen
         return
     child = child or _spawn(scratch, folder)
     code = child.wait()
-    if code < 0:
-        raise BuildError(f"building LinearMPC's C step failed: its build process (pid {child.pid}) was killed by "
-                         f"{_signal_name(-code)}")
     if code:
         error, log = scratch / "error", scratch / "build.log"
-        lines = (error.read_text() if error.exists() else log.read_text() if log.exists() else "").strip()
-        lines = lines.splitlines()
-        raise BuildError(f"building LinearMPC's C step failed: {lines[-1] if lines else f'exit status {code}'}")
-
-
-def _signal_name(number: int) -> str:
-    try:
-        return signal.Signals(number).name
-    except ValueError:
-        return f"signal {number}"
+        output = error.read_text() if error.exists() else log.read_text() if log.exists() else ""
+        raise child_failure(code, child.pid, output, "building LinearMPC's C step failed", BuildError)
 
 
 def _child(scratch: str, folder: str) -> None:
@@ -286,18 +260,19 @@ def _install(scratch: str | Path, folder: str | Path, nice: bool = False) -> Non
     and raises BuildError with its last line, or naming the signal that killed make."""
     scratch, folder = Path(scratch), Path(folder)
     library = folder / f"lib{NAME}.so"
-    with entry_lock(folder):
-        if not entry_ok(library):
-            if nice:
-                os.nice(10)
-            with open(scratch / "build.log", "w") as log:
-                code = subprocess.run(["make", "-s", "-C", str(scratch / "src"), "-j1", "lib", *MAKE_VARS],
-                                      stdout=log, stderr=subprocess.STDOUT).returncode
-            if code < 0:
-                raise BuildError(f"make was killed by {_signal_name(-code)}")
-            if code:
-                lines = (scratch / "build.log").read_text().strip().splitlines()
-                raise BuildError(lines[-1] if lines else f"make exit status {code}")
-            folder.mkdir(mode=0o700, exist_ok=True)
-            install(scratch / "src" / f"lib{NAME}.so", library)
+
+    def make():
+        if nice:
+            os.nice(10)
+        with open(scratch / "build.log", "w") as log:
+            code = subprocess.run(["make", "-s", "-C", str(scratch / "src"), "-j1", "lib", *MAKE_VARS],
+                                  stdout=log, stderr=subprocess.STDOUT).returncode
+        if code < 0:
+            raise BuildError(f"make was killed by {signal_name(-code)}")
+        if code:
+            lines = (scratch / "build.log").read_text().strip().splitlines()
+            raise BuildError(lines[-1] if lines else f"make exit status {code}")
+        install(scratch / "src" / f"lib{NAME}.so", library)
+
+    build_entry(library, make)
     shutil.rmtree(scratch, ignore_errors=True)

@@ -5,7 +5,7 @@ variants (the real-time iteration; the Panda with reach's task terms). Text comp
 Makefile names is the installed one. CasADi's own ``mpc_casadi.c`` depends on its version and is not compared.
 
 After an intended change, ``OCPKIT_UPDATE_GOLDEN=1 pytest tests/test_export_golden.py`` rewrites the stored files;
-review their diff before committing it."""
+review their diff before committing it. The stored files are named ``<file>.golden`` (data, not sources)."""
 import os
 import re
 from pathlib import Path
@@ -46,9 +46,9 @@ def test_rendered_files_equal_the_stored_ones(case, tmp_path):
     if os.environ.get("OCPKIT_UPDATE_GOLDEN"):
         stored.mkdir(parents=True, exist_ok=True)
         for file in RENDERED:
-            (stored / file).write_text(CASADI_DIR.sub("CASADI_DIR ?= <casadi>", (out / file).read_text()))
+            (stored / f"{file}.golden").write_text(CASADI_DIR.sub("CASADI_DIR ?= <casadi>", (out / file).read_text()))
     for file in RENDERED:
         text, numbers = _split((out / file).read_text())
-        want_text, want_numbers = _split((stored / file).read_text())
+        want_text, want_numbers = _split((stored / f"{file}.golden").read_text())
         assert text.splitlines() == want_text.splitlines(), f"{case}/{file} differs from tests/golden/export"
         np.testing.assert_allclose(numbers, want_numbers, rtol=1e-12, atol=0, err_msg=f"{case}/{file}")
