@@ -167,6 +167,8 @@ def _parser() -> argparse.ArgumentParser:
     sim.add_argument("--joint-map", metavar="J1,J2,…|NAME=J,…",
                      help="--mjcf: the file's joints for the problem's, in q's order or as problem=mjcf name pairs "
                           "(default: the problem's joint names)")
+    sim.add_argument("--animate", metavar="FILE.gif", help="also write the robot's motion as an animated GIF (stick "
+                                                           "figure; goal pose, or target and obstacles)")
     _add_task_args(sim)
     sim.add_argument("--json", action="store_true", help="print one JSON object")
     demo = sub.add_parser("demo", help="closed-loop pendulum with every available controller")
@@ -603,6 +605,10 @@ def _simulate(args):
     from ocpkit import plots
 
     _check_output_file(args.out, "--out")
+    if args.animate is not None:
+        from ocpkit import animation
+
+        _check_output_file(animation.check_path(args.animate, "--animate"), "--animate")
     task = _reach_task(args)
     if args.plant != "mujoco" and (args.mjcf or args.joint_map):
         raise ValueError(f"{'--mjcf' if args.mjcf else '--joint-map'} applies to --plant mujoco only")
@@ -610,6 +616,8 @@ def _simulate(args):
         raise ValueError("--joint-map names the joints of an MJCF file: give --mjcf too")
     problem, ocp, ctrl = _controller(args, task)
     plant = _plant(problem, args)
+    if args.animate is not None:
+        animation.Skeleton(problem, None if task is None else task.frame)  # a robot it cannot draw fails before the run
     traj, cost = _run_closed_loop(problem, ctrl, args.seed, args.duration, start=_start(problem, ocp, args.seed, task),
                                   plant=plant)
     shown, title = traj, f"{args.problem}, seed {args.seed}" + (", MuJoCo plant" if args.plant == "mujoco" else "")
@@ -627,6 +635,9 @@ def _simulate(args):
                "figure": str(fig), "plant": "ocpkit" if plant is None else repr(plant)}
     if task is not None:
         summary["reach"] = _reach_report(problem, ocp, task, traj.x, dt=float(traj.t[1] - traj.t[0]))
+    if args.animate is not None:  # a reach task's target and obstacles drawn, else the joint goal's pose
+        scene = {} if task is None else {"target": task.target, "obstacles": task.obstacles, "frame": task.frame}
+        summary["animation"] = str(animation.animate(traj, args.animate, problem, title=title, **scene))
     if args.json:
         print(json.dumps(summary))
     else:
@@ -637,6 +648,8 @@ def _simulate(args):
               f"figure: {fig}" + ("" if plant is None else f"\nplant: {plant!r}"))
         if task is not None:
             print(_reach_line(summary["reach"], f"after {traj.t[-1]:g} s"))
+        if args.animate is not None:
+            print(f"animation: {summary['animation']}")
     return 0
 
 

@@ -42,6 +42,11 @@ class Trajectory:
         """Per-step solve times (s) of one kind: "model", "build", "solve" or "total"."""
         return np.array([s.times[key] for s in self.solutions])
 
+    def animate(self, path, problem, **options):
+        """The run as an animated GIF of ``problem``'s robot at ``path`` (:func:`ocpkit.animation.animate`)."""
+        from ocpkit.animation import animate  # matplotlib loads only when a picture is asked for
+        return animate(self, path, problem, **options)
+
 
 def simulate(plant, controller: Controller, x0, goal, duration: float, *, dt: float | None = None,
              plant_substeps: int = 10, callback=None) -> Trajectory:

@@ -10,7 +10,7 @@ from pathlib import Path
 
 from ocpkit import study as study_runner
 from ocpkit.store import Store
-from ocpkit.studies import NAMES, get
+from ocpkit.studies import NAMES, get, motion
 from ocpkit.studies.report import markdown_table
 
 PACKAGES = ("ocpkit", "casadi", "numpy", "proxsuite", "osqp", "pin", "taichi", "control", "matplotlib")
@@ -77,11 +77,12 @@ def per_seed(name: str, df) -> str:
 
 
 def reproduce(size: str = "quick", out_dir="results/reproduce", *, names=NAMES, workers=None, scheduler=None,
-              progress=True, **options) -> Path:
+              progress=True, pictures=True, **options) -> Path:
     """Run the studies ``names`` at ``size`` ("quick" or "full") and write ``out_dir``/report.md.
 
     The report gives this run's wall time and the compute time summed over every run that stored trials in
-    ``out_dir`` (a resumed study counts the runs before it)."""
+    ``out_dir`` (a resumed study counts the runs before it). ``pictures``: also animate a short closed loop per robot
+    family into ``out_dir``/motion (:mod:`ocpkit.studies.motion`, about 5 s), shown before the studies."""
     if size not in ("quick", "full"):
         raise ValueError(f"size must be 'quick' or 'full', got {size!r}")
     out_dir = Path(out_dir)
@@ -100,6 +101,10 @@ def reproduce(size: str = "quick", out_dir="results/reproduce", *, names=NAMES, 
         sections.append(section)
         appendix.append(per_seed(name, df))
         timings[name] = time.perf_counter() - t0
+    if pictures:  # not a study: nothing stored, drawn again on every run
+        t0 = time.perf_counter()
+        sections.insert(0, motion.section(out_dir))
+        timings["pictures of motion"] = time.perf_counter() - t0
     wall = time.perf_counter() - start
     with Store(out_dir) as store:
         runs = store.runs()
