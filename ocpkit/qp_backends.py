@@ -16,7 +16,8 @@ import numpy as np
 import scipy.sparse as sp
 
 from ocpkit.controller import EXCEPTION, INFEASIBLE, LIMITED, NAN, SUCCESS, OperationCosts
-from ocpkit.transcription import QP, SparseQP
+from ocpkit.quadratic_program import QP
+from ocpkit.transcription import SparseQP
 
 QP_SOLVERS = ("proxqp", "osqp", "hpipm", "daqp")
 # DAQP's exit flags (daqp/include/constants.h): their names and ocpkit statuses, for the Python step and the C

@@ -26,99 +26,13 @@ pure L1 slacks left sparse OSQP at its iteration limit and ProxQP reporting a fe
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 import scipy.sparse as sp
 
 from ocpkit._checks import positive
-from ocpkit.compiled import SwitchingFunction
 from ocpkit.ocp import OCP
-
-
-# A QP whose rounding in P (n·ε·max P_ii) exceeds this fraction of its exact-arithmetic curvature is refused.
-ROUNDING_MARGIN = 0.01
-
-
-@dataclass
-class QP:
-    """min ½ zᵀPz + qᵀz  s.t.  A z = b,  l ≤ C z ≤ u  (P, A, C dense arrays or scipy CSC matrices)."""
-
-    P: object
-    q: np.ndarray
-    A: object
-    b: np.ndarray
-    C: object
-    l: np.ndarray
-    u: np.ndarray
-    box: np.ndarray | None = None  # z indices of C's first rows when those are unit rows (simple bounds on z)
-    # P positive semidefinite by construction (the sparse form's: Q, Q_T ⪰ 0 and R ≻ 0 checked by the OCP);
-    # otherwise P depends on the model's numbers and :meth:`not_definite` tells whether it is numerically so.
-    convex: bool = False
-    # The curvature P has in exact arithmetic at least (the condensed P ⪰ φᵀφ⊗R): 0 where not known.
-    curvature: float = 0.0
-
-    @property
-    def n(self) -> int:
-        return self.q.shape[0]
-
-    def stacked(self):
-        """The paper's single-constraint form (P, q, [A; C], lb, ub) with lb = ub on equality rows."""
-        stack = sp.vstack if sp.issparse(self.A) else np.vstack
-        return self.P, self.q, stack([self.A, self.C]), np.r_[self.b, self.l], np.r_[self.b, self.u]
-
-    def check(self) -> str | None:
-        """Why this QP must not reach a backend (non-finite data, l > u, asymmetric P), or None."""
-        dense = [_values(M) for M in (self.P, self.A, self.C)] + [self.q, self.b]
-        # A finite sum of sums has no inf or NaN entry below it (one would make it inf or NaN): the per-array test
-        # only runs when it is not (or overflowed).
-        with np.errstate(over="ignore", invalid="ignore"):
-            finite = np.isfinite(sum(float(values.sum()) for values in dense))
-        if not finite:
-            for name, values in zip(("P", "A", "C", "q", "b"), dense):
-                if not np.all(np.isfinite(values)):
-                    return f"non-finite entries in {name}"
-        if np.isnan(self.l).any() or np.isnan(self.u).any():
-            return "NaN in the bounds l, u"
-        if (self.l > self.u).any():
-            return f"lower bound above upper bound in {int((self.l > self.u).sum())} constraint rows"
-        P = self.P
-        if not sp.issparse(P) and np.array_equal(P, P.T):
-            return None
-        asym = abs(P - P.T).max() if sp.issparse(P) else np.abs(P - P.T).max(initial=0.0)
-        if asym > 1e-9 * max(1.0, abs(P).max() if sp.issparse(P) else np.abs(P).max(initial=0.0)):
-            return "P is not symmetric"
-        return None
-
-    def not_definite(self, factorize: bool = True) -> str | None:
-        """Why P is not numerically positive definite, or None: rounding in P beyond ROUNDING_MARGIN × the
-        curvature it has in exact arithmetic (``curvature``), or (``factorize``) a failed Cholesky factorization.
-
-        The condensed P = SᵀQ̄S + φᵀφ⊗R is positive definite in exact arithmetic (R ≻ 0). Where the prediction model
-        is so unstable that P's entries reach 1e18 and more (a 7-DoF arm whose model's RK4 step diverges: |eig A_d|
-        = 4.9 a step), rounding — n·ε·max P_ii — exceeds the curvature R gives: P is indefinite or its small
-        eigenvalues are noise, and the "optimum" is arbitrary (DAQP in C and in Python both reported optimal, with
-        knots 1e4 apart, both KKT points to 1e-15). ProxQP reported indefinite ones "solved" at a saddle point."""
-        P = self.P.toarray() if sp.issparse(self.P) else self.P
-        if self.curvature > 0:
-            rounding = self.n * np.finfo(float).eps * float(np.abs(np.diag(P)).max(initial=0.0))
-            if not rounding <= ROUNDING_MARGIN * self.curvature:
-                return (f"Hessian ill-conditioned: its rounding {rounding:.3g} (n·ε·max P_ii) exceeds "
-                        f"{ROUNDING_MARGIN:g} x the curvature {self.curvature:.3g} the input weight gives: the "
-                        f"prediction model diverges over the horizon")
-        if not factorize:
-            return None
-        try:
-            np.linalg.cholesky(P)
-        except np.linalg.LinAlgError:
-            scale = float(np.abs(np.diag(P)).max(initial=0.0))
-            return f"Hessian not positive definite (Cholesky failed; largest diagonal entry {scale:.3g})"
-        return None
-
-
-def _values(M):
-    return M.data if sp.issparse(M) else M
-
+from ocpkit.quadratic_program import QP
+from ocpkit.task_rows import TaskRows
 
 
 class _Transcription:
@@ -298,7 +212,7 @@ class CondensedQP(_Transcription):
         n, m, p = self.n, self.m, self.p
         # task=False: the joint-space QP alone (the C step generates the task's terms itself); obstacles=False: the
         # task's terms without its obstacle rows (the sampling planners' preconditioner)
-        self.task = None if ocp.task_functions is None or not task else _TaskRows(ocp, obstacles, soft=bool(soft))
+        self.task = None if ocp.task_functions is None or not task else TaskRows(ocp, obstacles, soft=bool(soft))
         self.nz = m * p  # the knots; the slacks (if any) follow them in z
         self.A = np.zeros((0, self.nz + self.ns))
         self.b = np.zeros(0)
@@ -457,7 +371,8 @@ class CondensedQP(_Transcription):
         (A_d, B_d, w_d) is one affine model for all stages (the piece-wise build of the class docstring) or one
         per stage, (T, n, n), (T, n, m), (T, n) (LTV: [v S] stage by stage, then one Gram product).
         With a task (``ocp.task``) its terms and obstacles are linearized about the plan ``knots`` (p, m) and
-        its predicted states, towards ``targets`` (the goal's entries after x_goal): see :class:`_TaskRows`."""
+        its predicted states, towards ``targets`` (the goal's entries after x_goal): see
+        :class:`~ocpkit.task_rows.TaskRows`."""
         Ad, Bd, wd, ltv = _model(Ad, Bd, wd, self.n, self.m, self.T)
         x_goal = np.asarray(x_goal, dtype=float)
         if ltv:
@@ -578,96 +493,6 @@ class CondensedQP(_Transcription):
             X[1:] /= self._qh
         X[1:] += self._g
         return X
-
-
-class _TaskRows:
-    """A task's terms and obstacles in the condensed QP, Gauss–Newton about a plan (ocpkit.task).
-
-    With the plan's knots z̄, states x̄_k = S_k z̄ + v_k (the QP's own prediction, x̄_0 = x_0) and inputs ū_k = Φ_k z̄
-    (Φ_k = φ_k ⊗ I), each residual is replaced by its linearization r_k + G_k (z − z̄), G_k = ∂r/∂x S_k + ∂r/∂u Φ_k,
-    whose weighted squares add G_kᵀWG_k to P and G_kᵀW(r_k − G_k z̄) to q (P and q are those of the cost J itself;
-    the QP's objective is ½J). An obstacle clearance d_k − margin ≥ 0 at x_k becomes the row
-    d_k + D_k S_k (z − z̄) ≥ 0 for every pair within ``ACTIVATION`` of its margin at the plan: a hard row, or with
-    ``soft`` the row d_k + D_k S_k (z − z̄) + s_k ≥ 0 with one slack s_k ≥ 0 per such stage costing
-    obstacle_weight·(s_k + ½s_k²) in J (an exact penalty, like the sampling planners' fitness). The functions are
-    the OCP's :meth:`~ocpkit.ocp.OCP.task_maps`."""
-
-    def __init__(self, ocp: OCP, obstacles: bool, soft: bool = True):
-        from ocpkit.task import ACTIVATION
-
-        tf = ocp.task_functions
-        self.T, self.n, self.m, self.p = ocp.horizon, ocp.nx, ocp.nu, ocp.knots
-        self.phi = ocp.parameterization.basis
-        self._maps = ocp.task_maps()
-        self.stage, self.terminal = self._maps["stage"], self._maps["terminal"]
-        self.ws, self.wt = tf.stage_weight, tf.terminal_weight
-        self.clearance = self._maps["clearance"] if obstacles else None
-        self.pairs, self.weight, self.activation, self.soft = tf.pairs, ocp.task.obstacle_weight, ACTIVATION, soft
-
-    def wait(self, timeout: float | None = None) -> None:
-        """Block until the background compiles of the task's functions have finished (tests, benchmarks)."""
-        for fn in self._maps.values():
-            if fn is not None and isinstance(fn.fn, SwitchingFunction):
-                fn.fn.wait(timeout)
-
-    def add(self, P, q, SV, x0, targets, knots):
-        """Add the terms' Gauss–Newton model to P and q (in place); the obstacle rows (C, lower bound, stage)."""
-        T, n, m, p = self.T, self.n, self.m, self.p
-        zbar = knots.ravel()
-        S = SV[:, :, 1:]
-        X = np.vstack([x0, SV @ np.r_[1.0, zbar]])  # x̄_0 … x̄_T
-        U = self.phi @ knots
-        if self.stage is not None:
-            r, rx, ru = (np.asarray(a) for a in self.stage(X[:-1].T, U.T, np.repeat(targets[:, None], T, axis=1)))
-            nr = r.shape[0]
-            Jx, Ju = rx.reshape(nr, T, n).transpose(1, 0, 2), ru.reshape(nr, T, m).transpose(1, 0, 2)
-            G = np.einsum("kj,kra->krja", self.phi, Ju).reshape(T, nr, p * m)
-            G[1:] += Jx[1:] @ S[:-1]
-            self._accumulate(P, q, G.reshape(T * nr, -1), r.T.ravel(), np.tile(self.ws, T), zbar)
-        if self.terminal is not None:
-            r, rx = (np.asarray(a) for a in self.terminal(X[-1], targets))
-            self._accumulate(P, q, rx @ S[-1], r.ravel(), self.wt, zbar)
-        if self.clearance is None:
-            return None
-        d, dx = (np.asarray(a) for a in self.clearance(X[1:].T))
-        D = dx.reshape(self.pairs, T, n).transpose(1, 0, 2)  # (T, pairs, n)
-        near = d.T < self.activation  # (T, pairs)
-        if not near.any():
-            return None
-        k, i = np.nonzero(near)
-        C = np.einsum("ra,raj->rj", D[k, i], S[k])
-        return C, C @ zbar - d.T[k, i], k
-
-    @staticmethod
-    def _accumulate(P, q, G, r, w, zbar):
-        WG = w[:, None] * G
-        P += G.T @ WG
-        q += WG.T @ (r - G @ zbar)
-
-    def constrain(self, qp: QP, rows) -> QP:
-        """``qp`` with the obstacle rows, hard or (``soft``) with their stages' slacks appended after every other
-        variable."""
-        if rows is None:
-            return qp
-        C_rows, lo, stage = rows
-        if not self.soft:
-            C = np.vstack([qp.C, np.hstack([C_rows, np.zeros((C_rows.shape[0], qp.n - C_rows.shape[1]))])])
-            return QP(qp.P, qp.q, qp.A, qp.b, C, np.r_[qp.l, lo], np.r_[qp.u, np.full(lo.size, np.inf)], box=qp.box,
-                      curvature=qp.curvature)
-        stages, slack_of = np.unique(stage, return_inverse=True)
-        ne, n0 = stages.size, qp.n
-        w = 0.5 * self.weight  # J's weight·(s + ½s²) in the QP's ½J
-        P = np.pad(qp.P, ((0, ne), (0, ne)))
-        P[n0:, n0:] += w * np.eye(ne)
-        q = np.r_[qp.q, np.full(ne, w)]
-        E = np.zeros((C_rows.shape[0], ne))
-        E[np.arange(C_rows.shape[0]), slack_of] = 1.0
-        rows = np.hstack([C_rows, np.zeros((C_rows.shape[0], n0 - C_rows.shape[1])), E])
-        C = np.vstack([np.pad(qp.C, ((0, 0), (0, ne))), rows, np.hstack([np.zeros((ne, n0)), np.eye(ne)])])
-        l = np.r_[qp.l, lo, np.zeros(ne)]
-        u = np.r_[qp.u, np.full(lo.size + ne, np.inf)]
-        A = np.pad(qp.A, ((0, 0), (0, ne)))
-        return QP(P, q, A, qp.b, C, l, u, box=qp.box, curvature=min(qp.curvature, w))
 
 
 def _model(Ad, Bd, wd, n: int, m: int, T: int):

@@ -74,8 +74,8 @@ class LinearMPC(Controller):
     shifted by one step (LTV: x̄_0 = x, x̄_k the plan's predicted x_{k+1}, ū_k its inputs; after a cold start
     or a fallback the states are a rollout of the model from x under the shifted inputs), one mapped call of
     the affine model for all stages. Only "trajectory" follows a plan that leaves the neighbourhood of x
-    (a cart-pole swing-up); its step costs T model evaluations instead of one. For robots the two differ: about a nonzero torque the
-    linearized N-link dynamics are exponentially unstable (|eig A_d| ≈ 1.12 per 10 ms step at nlink:13),
+    (a cart-pole swing-up); its step costs T model evaluations instead of one. For robots the two differ: about a
+    nonzero torque the linearized N-link dynamics are exponentially unstable (|eig A_d| ≈ 1.12 per 10 ms step at nlink:13),
     which over a 1 s horizon makes the condensed P ill-conditioned (eigenvalues 0.06…6e10) and both ProxQP
     and OSQP hit their iteration limits; about u_goal = 0 the same robot gives eigenvalues 0.06…6e4, and
     in closed loop on nlink:7 "goal" was never worse (3 seeded trials, 0 vs 118 fallbacks).

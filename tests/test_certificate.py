@@ -19,7 +19,7 @@ from ocpkit.controller import SUCCESS
 from ocpkit.export import ExportedMPC, build, export
 from ocpkit.problems import make
 from ocpkit.solvers.qp import LinearMPC
-from ocpkit.transcription import QP
+from ocpkit.quadratic_program import QP
 from ocpkit.problems.panda import urdf_path as panda_urdf
 
 BACKENDS = [("condensed", "daqp"), ("condensed", "proxqp"), ("condensed", "osqp"), ("sparse", "proxqp"),

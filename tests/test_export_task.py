@@ -1,5 +1,5 @@
 """The exported C step with a task's cost terms (issue 29): the frame-position term of ocpkit.task.reach in C, equal
-to LinearMPC's Python step (Gauss–Newton about the plan, ocpkit.transcription._TaskRows) along closed loops; a task
+to LinearMPC's Python step (Gauss–Newton about the plan, ocpkit.task_rows.TaskRows) along closed loops; a task
 with obstacles is still refused."""
 from __future__ import annotations
 

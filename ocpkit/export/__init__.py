@@ -24,7 +24,7 @@ dimension only through the model):
 * With a task (:mod:`ocpkit.task`: cost terms such as a frame's position, no obstacles) its stage and terminal
   residuals and their dense Jacobians are generated per stage (``<name>_task_stage``, ``<name>_task_terminal``),
   and the step adds their Gauss–Newton model about the plan to the condensed QP as
-  :class:`ocpkit.transcription._TaskRows` does (``task_terms`` in ``<name>.c``: the plan's states and ∂r/∂x S
+  :class:`ocpkit.task_rows.TaskRows` does (``task_terms`` in ``<name>.c``: the plan's states and ∂r/∂x S
   piece by piece, ∂r/∂x S as (∂r/∂x Λ_s) R). The step's goal is then the whole goal vector [x_goal; targets]
   (``ocp.goal(...)``, ``NG`` entries). A task with obstacles is refused (its linearized obstacle rows are not in
   the C step).
@@ -37,17 +37,18 @@ QP solvers (CasADi conic plugins with code generation in CasADi 3.8):
 * ``qrqp`` — CasADi's own active-set solver, generated as plain C: the folder needs nothing else. It can
   report success at a point outside the bounds (seen on nlink:3, T = 50).
 * ``daqp`` (default) — links CasADi's shipped ``libdaqpstat.a`` (headers under ``casadi/include``); DAQP's setup
-  runs inside each step and allocates there. CasADi 3.8's generated call ignores a failed set-up (DAQP's
-  factorization refusing a Hessian that is not positive definite) and then reads an uninitialized success flag:
-  in some processes the step reported success with the previous, zero answer. :func:`ocpkit.export.qp.fix_daqp_setup` makes the
-  generated function return the set-up's flag.
-
-Whatever the solver says, a "solved" answer is accepted only if its KKT certificate holds (:mod:`ocpkit.certificate`,
-computed in C: stationarity, primal feasibility, complementarity and dual sign of the answer and its multipliers).
+  runs inside each step and allocates there (16 blocks a step, about 1.5 µs: ``tests/test_export_c.py``). CasADi
+  3.8's generated call ignores a failed set-up (DAQP's factorization refusing a Hessian that is not positive
+  definite) and then reads an uninitialized success flag: in some processes the step reported success with the
+  previous, zero answer. :func:`ocpkit.export.qp.fix_daqp_setup` makes the generated function return the set-up's
+  flag.
 * ``osqp`` — links CasADi's shipped ``libosqpstatic.a``; set up once at init, updated each step; quiet
   (verbose and polishing off unless ``polish=True``).
 * ``hpipm`` — refused: CasADi's HPIPM interface needs a stage-wise OCP structure, which the condensed
   QP over knots does not have.
+
+Whatever the solver says, a "solved" answer is accepted only if its KKT certificate holds (:mod:`ocpkit.certificate`,
+computed in C: stationarity, primal feasibility, complementarity and dual sign of the answer and its multipliers).
 
 The package: :mod:`~ocpkit.export.generate` writes a folder (:func:`export`), :mod:`~ocpkit.export.render` renders
 the C, header, Makefile and README from ``templates/``, :mod:`~ocpkit.export.constants` computes the step's

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ocpkit.transcription import ROUNDING_MARGIN, CondensedQP
+from ocpkit.quadratic_program import ROUNDING_MARGIN
+from ocpkit.transcription import CondensedQP
 
 # The C step's solver return for a "solved" answer whose certificate failed: CERT_CODE + the test's index in
 # ocpkit.certificate.TESTS.

@@ -14,7 +14,7 @@ from ocpkit.controller import STATUSES, SUCCESS, Controller, Solution
 from ocpkit.export.constants import CERT_CODE, ILL_CONDITIONED
 from ocpkit.ocp import OCP
 from ocpkit.qp_backends import DAQP_EXIT, daqp_exit_name
-from ocpkit.transcription import ROUNDING_MARGIN
+from ocpkit.quadratic_program import ROUNDING_MARGIN
 
 
 class ExportedMPC(Controller):
