@@ -180,6 +180,9 @@ def _parser() -> argparse.ArgumentParser:
     st.add_argument("--problem", action="append", metavar="SPEC",
                     help=f"{', '.join(_PROBLEM_STUDIES)}: run on this problem instead of the paper's (repeatable; "
                          f"quick size: a test-sized grid). {_SPEC_HELP}")
+    st.add_argument("--plant", default="ocpkit", choices=("ocpkit", "mujoco"),
+                    help="robustness: mujoco runs LinearMPC, RTI and EMPC against MuJoCo with unmodelled joint "
+                         "friction and armature (pip install \"ocpkit[mujoco]\"), as study robustness_mujoco")
     _add_study_args(st)
     rep = sub.add_parser("reproduce", help=f"run every study ({', '.join(studies.NAMES)}) and write report.md")
     size = rep.add_mutually_exclusive_group()
@@ -714,12 +717,14 @@ def _study(args):
     from ocpkit.studies.reproduce import run_study
 
     options = _study_options(args)
+    if args.plant != "ocpkit" and args.name != "robustness":
+        raise ValueError(f"--plant applies to the robustness study only, not {args.name!r}")
     if args.problem:
         section = _study_problems(args, options)
     else:
         section = run_study(args.name, args.size, args.out, workers=args.workers, scheduler=args.scheduler,
-                            **options)
-    path = Path(args.out) / f"{args.name}.md"
+                            plant=args.plant, **options)
+    path = Path(args.out) / f"{args.name}{'' if args.plant == 'ocpkit' else '_' + args.plant}.md"
     path.write_text(section)
     print(section + f"\nreport: {path}")
     _export_store(args)
@@ -735,9 +740,9 @@ def _study_problems(args, options) -> str:
         raise ValueError(f"--problem applies to the studies {', '.join(_PROBLEM_STUDIES)}, not {args.name!r}")
     module = get(args.name)
     out = Path(args.out)
-    df = study_runner.run(module.study(args.size, problems=args.problem), out, workers=args.workers,
-                          scheduler=args.scheduler, **options)
-    df.to_csv(out / f"{args.name}.csv", index=False)
+    study = module.study(args.size, problems=args.problem, **({} if args.plant == "ocpkit" else {"plant": args.plant}))
+    df = study_runner.run(study, out, workers=args.workers, scheduler=args.scheduler, **options)
+    df.to_csv(out / f"{study.name}.csv", index=False)
     failed = df[df["status"] == "failed"]
     if len(failed) == len(df):
         raise ValueError(f"every trial of {args.name} failed; first error: {failed['error'].iloc[0].splitlines()[0]}")

@@ -179,7 +179,8 @@ class MuJoCoPlant:
             data.qpos[qpos], data.qvel[qvel], data.ctrl[:] = x[:n], x[n:], u
             mujoco.mj_forward(model, data)
             expected = np.asarray(plant.f(x, u), dtype=float).ravel()[n:]
-            worst, scale = max(worst, float(np.abs(data.qacc[qvel] - expected).max())), max(scale, float(np.abs(expected).max()))
+            worst = max(worst, float(np.abs(data.qacc[qvel] - expected).max()))
+            scale = max(scale, float(np.abs(expected).max()))
         if not worst <= CHECK_TOLERANCE * scale:
             raise ValueError(f"MuJoCo's model of {self.problem.name!r} ({self.source}) gives q̈ up to {worst:.3g} away "
                              f"from the problem's dynamics (|q̈| up to {scale:.3g}): the generated robot follows "
@@ -244,7 +245,8 @@ def _map_joints(spec, joint_map, names: list) -> list:
     elif isinstance(joint_map, dict):
         stray = [k for k in joint_map if k not in names]
         if stray:
-            raise ValueError(f"joint_map names {stray[0]!r}, not a joint of the problem; its joints: {', '.join(names)}")
+            raise ValueError(f"joint_map names {stray[0]!r}, not a joint of the problem; its joints: "
+                             f"{', '.join(names)}")
         missing = [k for k in names if k not in joint_map]
         if missing:
             raise ValueError(f"joint_map has no MJCF joint for the problem's joint {missing[0]!r}")
@@ -285,7 +287,8 @@ def _chain_spec(mujoco, problem):
         kind = mujoco.mjtJoint.mjJNT_HINGE if chain.revolute[i] else mujoco.mjtJoint.mjJNT_SLIDE
         body.add_joint(name=chain.names[i], type=kind, axis=chain.axes[i])
         bodies.append(body)
-    lo, hi = (np.asarray(getattr(problem.pin_model, k), dtype=float) for k in ("lowerPositionLimit", "upperPositionLimit"))
+    lo, hi = (np.asarray(getattr(problem.pin_model, k), dtype=float)
+              for k in ("lowerPositionLimit", "upperPositionLimit"))
     for i, joint in enumerate(spec.joints):
         if max(abs(lo[i]), abs(hi[i])) < 1e10 and lo[i] < hi[i]:  # pinocchio's 'no limit' is ±1.8e308
             joint.range = [lo[i], hi[i]]

@@ -1,6 +1,7 @@
 """`ocpkit reproduce`: run every study and write one Markdown report with figures, tables and provenance."""
 from __future__ import annotations
 
+import importlib.util
 import os
 import platform
 import sys
@@ -18,8 +19,9 @@ PACKAGES = ("ocpkit", "casadi", "numpy", "proxsuite", "osqp", "pin", "taichi", "
 
 # Seconds per trial and worker of each study's quick grid, measured on the idle 2-core development machine
 # (`reproduce --quick`, 2 workers, 2026-12-03: 1,427 s in all): what the start-up estimate scales.
+# robustness_mujoco: 36 trials in 30.5 s on 2 workers (2026-12-03, load 1.6–2.3 from others' work).
 SECONDS_PER_TRIAL = {"knots": 0.5, "horizon": 0.61, "robustness": 0.52, "solve_times": 6.0, "comparison": 10.3,
-                     "keepout": 1.8, "baxter": 2.4, "reach": 16.7}
+                     "keepout": 1.8, "baxter": 2.4, "reach": 16.7, "robustness_mujoco": 1.7}
 # Studies whose claims are about time: run one trial at a time (locally), so two trials never share the 2 cores.
 TIMING_STUDIES = ("solve_times",)
 VERDICTS = ("How verdicts are decided: each claim is tested on per-seed data (paired by start and goal where it "
@@ -30,39 +32,62 @@ VERDICTS = ("How verdicts are decided: each claim is tested on per-seed data (pa
             "verdicts are marked unreliable where the median load exceeded the CPUs.")
 
 
-def run_study(name: str, size: str, out_dir, *, workers=None, scheduler=None, progress=True, **options) -> str:
-    """Run one study (resuming from its store in ``out_dir``), write its table as ``name``.csv and return its
-    report section. ``options`` go to :func:`ocpkit.study.run` (trial_timeout, retry_failed, stale, lease)."""
-    return _run_study(name, size, out_dir, workers=workers, scheduler=scheduler, progress=progress, **options)[0]
+def run_study(name: str, size: str, out_dir, *, workers=None, scheduler=None, progress=True, plant: str = "ocpkit",
+              **options) -> str:
+    """Run one study (resuming from its store in ``out_dir``), write its table as <the study's name>.csv and return
+    its report section. ``plant="mujoco"``: the robustness study's MuJoCo variant. ``options`` go to
+    :func:`ocpkit.study.run` (trial_timeout, retry_failed, stale, lease)."""
+    if plant != "ocpkit" and name != "robustness":
+        raise ValueError(f"plant {plant!r} applies to the robustness study only, not {name!r}")
+    study_options = {} if plant == "ocpkit" else {"plant": plant}
+    return _run_study(name, size, out_dir, study_options, workers=workers, scheduler=scheduler, progress=progress,
+                      **options)[0]
 
 
-def _run_study(name, size, out_dir, **options):
-    """(report section, the study's table)."""
+def _run_study(name, size, out_dir, study_options=None, **options):
+    """(report section, the study's table); ``study_options`` go to the module's ``study(size, …)``."""
     module = get(name)
     out_dir = Path(out_dir)
-    df = study_runner.run(module.study(size), out_dir, **options)
-    df.to_csv(out_dir / f"{name}.csv", index=False)
+    study = module.study(size, **(study_options or {}))
+    df = study_runner.run(study, out_dir, **options)
+    df.to_csv(out_dir / f"{study.name}.csv", index=False)
     return module.report(df, out_dir) + study_runner.failure_summary(df), df
 
 
 def estimate(names, size: str, out_dir, workers=None) -> float:
     """Seconds the trials of ``names`` not yet stored in ``out_dir`` should take on ``workers`` local processes, from
     :data:`SECONDS_PER_TRIAL` (an idle 2-core machine; a busy one takes longer)."""
+    parts = [(label, module, options) for label, module, options in _parts(names) if module]
     stored = {}
     if (Path(out_dir) / "results.sqlite").exists():
         with Store(out_dir) as store:
-            stored = {name: len(store.provenance(name)) for name in names}
+            stored = {label: len(store.provenance(label)) for label, _, _ in parts}
     parallel = max(1, min(workers or os.cpu_count() or 1, os.cpu_count() or 1))
     total = 0.0
-    for name in names:
-        todo = max(0, len(get(name).study(size).trials) - stored.get(name, 0))
+    for name, module, options in parts:
+        todo = max(0, len(get(module).study(size, **options).trials) - stored.get(name, 0))
         total += todo * SECONDS_PER_TRIAL.get(name, 5.0) / (1 if name in TIMING_STUDIES else parallel)
     return total
 
 
+def _parts(names) -> list:
+    """The report's parts in order, as (name, study module or None, its study() options): each study of ``names``
+    and, after robustness, its MuJoCo variant (issue 34) — None where MuJoCo is not installed: the report says so."""
+    out = []
+    for name in names:
+        out.append((name, name, {}))
+        if name == "robustness":
+            from ocpkit.studies.robustness import MUJOCO_NAME
+
+            found = importlib.util.find_spec("mujoco") is not None
+            out.append((MUJOCO_NAME, "robustness" if found else None, {"plant": "mujoco"}))
+    return out
+
+
 def per_seed(name: str, df) -> str:
     """The study's per-seed values as a Markdown table (rows: configurations, columns: seeds), of the metric its
-    module names in ``PER_SEED`` (default the actual cost)."""
+    module names in ``PER_SEED`` (default the actual cost); ``name`` is the study module's (its table's study
+    names the heading)."""
     metric = getattr(get(name), "PER_SEED", "actual_cost")
     ok = df[df["status"] == "ok"]
     if metric not in ok or "seed" not in ok or ok.empty:
@@ -73,7 +98,8 @@ def per_seed(name: str, df) -> str:
     table.index = [" / ".join(map(str, i)) if isinstance(i, tuple) else str(i) for i in table.index]
     table.index.name = " / ".join(axes) or "metric"
     table.columns = [f"seed {c}" for c in table.columns]
-    return f"### {name}: {metric} per seed\n\n" + markdown_table(table) + "\n"
+    heading = df["study"].iloc[0] if "study" in df and len(df) else name
+    return f"### {heading}: {metric} per seed\n\n" + markdown_table(table) + "\n"
 
 
 def reproduce(size: str = "quick", out_dir="results/reproduce", *, names=NAMES, workers=None, scheduler=None,
@@ -93,13 +119,17 @@ def reproduce(size: str = "quick", out_dir="results/reproduce", *, names=NAMES, 
               "a busy machine, or the full size's longer trials, take longer)", flush=True)
     start, load_start = time.perf_counter(), os.getloadavg()[0]
     sections, appendix, timings = [], [], {}
-    for name in names:
+    parts = _parts(names)
+    for name, module, study_options in parts:
+        if module is None:
+            sections.append(f"## {name}\n\nNot run: MuJoCo is not installed (pip install \"ocpkit[mujoco]\").\n")
+            continue
         t0 = time.perf_counter()
         serial = name in TIMING_STUDIES and scheduler is None  # timed trials must not compete for the cores
-        section, df = _run_study(name, size, out_dir, workers=1 if serial else workers, scheduler=scheduler,
-                                 progress=progress, **options)
+        section, df = _run_study(module, size, out_dir, study_options, workers=1 if serial else workers,
+                                 scheduler=scheduler, progress=progress, **options)
         sections.append(section)
-        appendix.append(per_seed(name, df))
+        appendix.append(per_seed(module, df))
         timings[name] = time.perf_counter() - t0
     if pictures:  # not a study: nothing stored, drawn again on every run
         t0 = time.perf_counter()
@@ -108,8 +138,9 @@ def reproduce(size: str = "quick", out_dir="results/reproduce", *, names=NAMES, 
     wall = time.perf_counter() - start
     with Store(out_dir) as store:
         runs = store.runs()
-    runs = runs[runs["study"].isin(list(names))]
-    compute = {name: float(runs.loc[runs["study"] == name, "wall"].sum()) for name in names}
+    ran = [name for name, module, _ in parts if module]
+    runs = runs[runs["study"].isin(ran)]
+    compute = {name: float(runs.loc[runs["study"] == name, "wall"].sum()) for name in ran}
     report = out_dir / "report.md"
     loads = (load_start, os.getloadavg()[0])
     report.write_text(_header(size, scheduler, workers, timings, wall, compute, len(runs), loads) + "\n" + VERDICTS

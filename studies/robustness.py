@@ -5,18 +5,29 @@ Puma 560: the whole inertia matrix); the plant is exact. Normalized cost = actua
 cost of the same controller and start/goal without error. Overshoot and rise time show how conservative
 each controller is. ``problems`` (specs) replace the paper's problems (``ocpkit study robustness --problem
 ./cartpole.py:CartPole``); the error multiplier then scales whatever that problem's ``dynamics(error)`` scales.
+
+``study(size, plant="mujoco")`` (``ocpkit study robustness --plant mujoco``) asks the same question of mismatch the
+controller's model cannot express: MuJoCo as the plant (:class:`ocpkit.mujoco_plant.MuJoCoPlant`) with dry joint
+friction or added rotor inertia (armature), LinearMPC, RTI and EMPC side by side. Normalized cost there = actual cost
+on the mismatched plant / actual cost of the same controller, start and goal on ocpkit's plant.
 """
 from __future__ import annotations
 
+import casadi as ca
 import numpy as np
 
-from ocpkit import plots
-from ocpkit.problems import filename
+from ocpkit import plots, problems, solvers
+from ocpkit._checks import choice
+from ocpkit.metrics import actual_cost
+from ocpkit.problems import filename, make as make_problem
+from ocpkit.simulate import simulate
 from ocpkit.study import Study, grid
-from ocpkit.studies.closed_loop import grid_size, trial
+from ocpkit.studies.closed_loop import grid_size, run_record, trial
 from ocpkit.plots import number
-from ocpkit.studies.evidence import combine, decide, median_claim, median_interval, paired, series
-from ocpkit.studies.report import Claim, markdown_table, section, timing_context, trials_line
+from ocpkit.studies.evidence import (HELD, NOT_HELD, combine, decide, every, median_claim, median_interval,
+                                     paired, series)
+from ocpkit.studies.report import (ANSWERED, Claim, answered, markdown_table, section, timing_context,
+                                   trials_line)
 
 NAME = "robustness"
 TITLE = "Robustness to model error (Figs. 5–6, Tables I–II)"
@@ -41,8 +52,14 @@ PAPER_PROBLEM = "pendulum"
 SIMILAR = 1.25  # "like traditional MPC's": per-seed normalized costs within this factor of each other
 
 
-def study(size: str, problems=None) -> Study:
-    """The study at ``size``; ``problems`` (specs) replace the paper's problems (quick: :data:`USER_QUICK`)."""
+PLANTS = ("ocpkit", "mujoco")
+
+
+def study(size: str, problems=None, plant: str = "ocpkit") -> Study:
+    """The study at ``size``; ``problems`` (specs) replace the paper's problems (quick: :data:`USER_QUICK`).
+    ``plant="mujoco"``: the MuJoCo friction/armature study instead (:func:`mujoco_study`)."""
+    if choice(plant, PLANTS, "plant") == "mujoco":
+        return mujoco_study(size, problems)
     s = grid_size(SIZES, size, problems, USER_QUICK)
     return Study(NAME, trial, grid(problem=s["problems"], knots=CONTROLLERS, error_multiplier=s["errors"], seeds=s["seeds"]))
 
@@ -52,6 +69,8 @@ def _label(knots) -> str:
 
 
 def report(df, out_dir) -> str:
+    if "mismatch" in df:
+        return mujoco_report(df, out_dir)
     ok = df[df["status"] == "ok"].copy()
     ok["controller"] = [_label(k) for k in ok["knots"]]
     base = ok[ok["error_multiplier"] == 1.0].set_index(["problem", "controller", "seed"])["actual_cost"]
@@ -143,4 +162,150 @@ def claims(problem, g) -> list:
         out.append(Claim(f"{problem}: overestimated inertia reduces overshoot",
                          f"traditional, per seed: overshoot at error {number(hi)} − at 1 [% points]", v, e,
                          paper="traditional: 4.17 % at 1, 0 % from 1.3" if problem == PAPER_PROBLEM else ""))
+    return out
+
+
+# --- mismatch the model cannot express: MuJoCo with joint friction or armature -----------------------------------
+
+MUJOCO_NAME = "robustness_mujoco"
+MUJOCO_TITLE = "Robustness to unmodelled friction and rotor inertia, MuJoCo as the plant"
+KNOTS = 5  # every controller plans with the command line's default knots: the comparison is of the optimizers
+# label -> (solver, options); EMPC's seed and Taichi arch are added per trial
+MUJOCO_CONTROLLERS = {"LinearMPC": ("qp", {}), "RTI": ("ipopt", {"method": "rti"}), "EMPC": ("empc", {})}
+# Mismatch levels: friction, MuJoCo's dry joint friction as a share of each joint's torque limit; armature, rotor
+# inertia added to each joint as a share of its diagonal entry of M(q = 0). "none" on both plants: the baseline
+# (ocpkit) and MuJoCo's copy of it (the two agree to round-off: any difference there is the simulator's).
+MISMATCHES = ("friction", "armature")
+MUJOCO_SIZES = {"quick": {"problems": ["nlink:3"], "friction": [0.1], "armature": [0.5], "seeds": 3, "duration": 3.0,
+                          "arch": "cpu"},
+                "full": {"problems": ["nlink:3", "puma560"], "friction": [0.05, 0.1, 0.2], "armature": [0.25, 0.5, 1.0],
+                         "seeds": 10, "duration": 3.0, "arch": "auto"}}
+MUJOCO_USER_QUICK = {"seeds": 2}
+SAME_PLANT = 1e-6  # MuJoCo without mismatch: per-run cost within this relative difference of ocpkit's plant's
+TIE = 0.001  # two controllers whose per-seed normalized costs differ by less than this share lead together
+
+
+def mujoco_study(size: str, problems=None) -> Study:
+    """LinearMPC, RTI and EMPC on ocpkit's plant and on MuJoCo without and with friction or armature mismatch."""
+    s = grid_size(MUJOCO_SIZES, size, problems, MUJOCO_USER_QUICK)
+    if problems is not None:  # a problem MuJoCoPlant cannot simulate fails now, naming it, not in every trial
+        for spec in s["problems"]:
+            mujoco_plant(make_problem(spec), "none", 0.0)
+    conditions = [("ocpkit", "none", 0.0), ("mujoco", "none", 0.0)]
+    conditions += [("mujoco", mismatch, level) for mismatch in MISMATCHES for level in s[mismatch]]
+    trials = [{"problem": problem, "controller": controller, "plant": plant, "mismatch": mismatch, "level": level,
+               "duration": s["duration"], "arch": s["arch"], "seed": seed}
+              for problem in s["problems"] for controller in MUJOCO_CONTROLLERS
+              for plant, mismatch, level in conditions for seed in range(s["seeds"])]
+    return Study(MUJOCO_NAME, mujoco_trial, trials)
+
+
+def mujoco_plant(problem, mismatch: str, level: float):
+    """The MuJoCo plant of ``problem`` with ``mismatch`` ("none", "friction" or "armature") at ``level``."""
+    from ocpkit.mujoco_plant import MuJoCoPlant
+
+    choice(mismatch, ("none",) + MISMATCHES, "mismatch")
+    if mismatch == "friction":
+        limit = np.asarray(problem.defaults().get("u_max", np.inf), dtype=float)
+        if not np.all(np.isfinite(limit)):
+            raise ValueError(f"mismatch 'friction' is a share of the torque limits; {problem.name} has none")
+        return MuJoCoPlant(problem, frictionloss=level * limit)
+    if mismatch == "armature":
+        inertia = np.diag(np.array(ca.evalf(problem.chain.crba(np.zeros(problem.chain.n)))))
+        return MuJoCoPlant(problem, armature=level * inertia)
+    return MuJoCoPlant(problem)
+
+
+def mujoco_trial(problem: str, controller: str, plant: str, mismatch: str, level: float, duration: float, arch: str,
+                 seed: int) -> dict:
+    """One closed loop of ``controller`` from the seeded start to goal on ``plant`` ("ocpkit": the problem's own,
+    "mujoco": :func:`mujoco_plant`); the result names the plant simulated (``plant_model``)."""
+    solver, options = MUJOCO_CONTROLLERS[choice(controller, tuple(MUJOCO_CONTROLLERS), "controller")]
+    if choice(plant, PLANTS, "plant") == "ocpkit" and mismatch != "none":
+        raise ValueError(f"mismatch {mismatch!r} needs plant 'mujoco' (ocpkit's plant is the controller's model)")
+    pb = problems.make(problem)
+    ocp = pb.ocp(knots=KNOTS)
+    if solver == "empc":
+        options = {**options, "arch": arch, "seed": seed}
+    ctrl = solvers.make(solver, ocp, **options)
+    x0, goal = pb.sample(seed)
+    ctrl.solve(x0, goal)  # compiles kernels and functions outside the run; simulate() resets ctrl
+    simulated = pb.plant() if plant == "ocpkit" else mujoco_plant(pb, mismatch, level)
+    traj = simulate(simulated, ctrl, x0, goal, duration)
+    return {"actual_cost": actual_cost(traj, ocp), "final_error": float(np.abs(traj.x[-1] - goal).max()),
+            "plant_model": repr(simulated), **run_record(traj, ctrl)}
+
+
+def _condition(row) -> str:
+    if row["mismatch"] == "none":
+        return "ocpkit plant" if row["plant"] == "ocpkit" else "MuJoCo, no mismatch"
+    return f"MuJoCo, {row['mismatch']} {number(row['level'])}"
+
+
+def mujoco_report(df, out_dir) -> str:
+    ok = df[df["status"] == "ok"].copy()
+    ok["condition"] = [_condition(r) for _, r in ok.iterrows()]
+    base = ok[ok["plant"] == "ocpkit"].set_index(["problem", "controller", "seed"])["actual_cost"]
+    keys = list(zip(ok["problem"], ok["controller"], ok["seed"]))
+    ok["normalized"] = ok["actual_cost"].to_numpy() / base.reindex(keys).to_numpy()
+    seeds = ok["seed"].nunique()
+    figs, tables, out = [], {}, []
+    controllers = [c for c in MUJOCO_CONTROLLERS if c in set(ok["controller"])]
+    colours = {c: plots.styles(controllers)[c]["color"] for c in controllers}
+    for problem, g in ok.groupby("problem", sort=False):
+        mismatched = g[g["mismatch"] != "none"]
+        conditions = list(dict.fromkeys(mismatched["condition"]))
+        groups = [(c, k) for k in conditions for c in controllers]
+        if groups:
+            figs.append(plots.boxes([f"{c}\n{k.removeprefix('MuJoCo, ')}" for c, k in groups],
+                                    [mismatched.loc[(mismatched["controller"] == c) & (mismatched["condition"] == k),
+                                                    "normalized"] for c, k in groups],
+                                    out_dir / f"robustness_mujoco_{filename(problem)}",
+                                    xlabel="controller and MuJoCo mismatch", log=True,
+                                    ylabel="normalized cost (mismatched / ocpkit's plant)",
+                                    references=[(1.0, "1: no degradation")], colours=[colours[c] for c, _ in groups],
+                                    title=f"{problem}: cost under unmodelled friction and armature ({seeds} seeds)"))
+        for metric, caption in (("normalized", "median normalized cost"), ("final_error", "median final error")):
+            t = g.pivot_table(index="condition", columns="controller", values=metric, aggfunc="median")
+            tables[f"{problem}: {caption} over {seeds} seeds"] = markdown_table(t[[c for c in controllers if c in t]])
+        out += mujoco_claims(problem, g, controllers)
+    tables[ANSWERED] = answered(ok)
+    notes = ["Mismatch: friction, MuJoCo's dry joint friction (frictionloss) as a share of each joint's torque limit; "
+             "armature, rotor inertia added to each joint as a share of its diagonal entry of M(q = 0). Every "
+             f"controller plans with {KNOTS} knots on the problem's own model, which has neither; MuJoCo integrates "
+             "with RK4 at ocpkit's sub-step (1 ms)."]
+    trials = trials_line(df, {"problems": ok["problem"].nunique(), "controllers": len(controllers),
+                              "plant conditions": ok["condition"].nunique(), "seeds": seeds})
+    return section(MUJOCO_TITLE, figs, tables, trials=trials + " " + timing_context(ok), claims=out, notes=notes)
+
+
+def mujoco_claims(problem, g, controllers) -> list:
+    """Whether MuJoCo without mismatch reproduces ocpkit's plant, and, per mismatch, which controller's normalized
+    cost degrades least: the lowest median, held where its per-seed ratio to each rival's is below 1. Rivals whose
+    per-seed ratios all lie within :data:`TIE` of 1 share the lead (EMPC's plan is often its Newton seed's, the
+    same as LinearMPC's)."""
+    same = g[(g["plant"] == "mujoco") & (g["mismatch"] == "none")]["normalized"]
+    verdict, evidence = every(np.abs(same - 1.0), lambda d: d < SAME_PLANT, f"differ by {number(SAME_PLANT)} or more")
+    out = [Claim(f"{problem}: MuJoCo without mismatch reproduces ocpkit's plant (issue 34)",
+                 f"per run: cost on MuJoCo / cost on ocpkit's plant within 1 ± {number(SAME_PLANT)}", verdict,
+                 evidence)]
+    for condition, h in g[g["mismatch"] != "none"].groupby("condition", sort=False):
+        medians = {c: float(h.loc[h["controller"] == c, "normalized"].median()) for c in controllers}
+        medians = {c: m for c, m in medians.items() if m == m}
+        if len(medians) < 2:
+            continue
+        best = min(medians, key=medians.get)
+        ratios = {c: median_interval(paired(series(h, "normalized", controller=best),
+                                            series(h, "normalized", controller=c)))
+                  for c in medians if c != best}
+        tied = [c for c, i in ratios.items() if decide(i, (1 / (1 + TIE), 1 + TIE), "==") == HELD]
+        rivals = [c for c in ratios if c not in tied]
+        leaders = " and ".join(c for c in medians if c == best or c in tied)
+        verdict = combine([decide(ratios[c], 1.0, "<") for c in rivals]) if rivals else NOT_HELD
+        parts = [f"{best} / {c}: {ratios[c].text()}" + (" (tied)" if c in tied else "") for c in ratios]
+        degraded = ", ".join(f"{c} {number(m, 3)}" for c, m in sorted(medians.items(), key=lambda kv: kv[1]))
+        out.append(Claim(f"{problem}, {condition}: {leaders} degrade{'s' if not tied else ''} least of "
+                         f"{', '.join(medians)} (issue 34)",
+                         f"median normalized cost {degraded}; per seed, the leader's / each other's < 1 (within "
+                         f"{number(100 * TIE)} %: tied)", verdict, "; ".join(parts)))
     return out

@@ -202,3 +202,92 @@ def test_cli_plant_errors_are_one_line(extra, message, tmp_path, capsys):
     assert main(["simulate", problem, "--duration", "0.1", "--out", str(tmp_path / "f.png"), *extra]) == 2
     err = capsys.readouterr().err
     assert message in err and len(err.strip().splitlines()) == 1
+
+
+# --- the robustness study's MuJoCo variant (studies/robustness.py) and its place in reproduce ---------------------
+
+def test_mujoco_trial_records_its_plant():
+    from ocpkit.studies.robustness import mujoco_trial
+
+    common = {"problem": "nlink:2", "controller": "LinearMPC", "duration": 0.5, "arch": "cpu", "seed": 0}
+    base = mujoco_trial(plant="ocpkit", mismatch="none", level=0.0, **common)
+    same = mujoco_trial(plant="mujoco", mismatch="none", level=0.0, **common)
+    rubbing = mujoco_trial(plant="mujoco", mismatch="friction", level=0.2, **common)
+    assert base["plant_model"].startswith("Model('nlink:2'")
+    assert same["plant_model"] == "MuJoCoPlant('nlink:2', source='chain', integrator='rk4')"
+    assert rubbing["plant_model"].endswith(", frictionloss)")
+    assert abs(same["actual_cost"] / base["actual_cost"] - 1) < 1e-8  # MuJoCo's copy of ocpkit's plant
+    assert abs(rubbing["actual_cost"] / base["actual_cost"] - 1) > 1e-3  # friction the model does not know
+    with pytest.raises(ValueError, match="mismatch 'friction' needs plant 'mujoco'"):
+        mujoco_trial(plant="ocpkit", mismatch="friction", level=0.2, **common)
+    with pytest.raises(ValueError, match="mismatch must be one of"):
+        mujoco_trial(plant="mujoco", mismatch="backlash", level=0.2, **common)
+
+
+def test_mujoco_study_grid_and_a_problem_it_cannot_simulate():
+    from ocpkit.studies import robustness
+
+    study = robustness.study("quick", plant="mujoco")
+    assert study.name == "robustness_mujoco"
+    conditions = {(t["plant"], t["mismatch"]) for t in study.trials}
+    assert conditions == {("ocpkit", "none"), ("mujoco", "none"), ("mujoco", "friction"), ("mujoco", "armature")}
+    assert {t["controller"] for t in study.trials} == {"LinearMPC", "RTI", "EMPC"}
+    with pytest.raises(ValueError, match="'pendulum' has no rigid-body description"):
+        robustness.study("quick", problems=["pendulum"], plant="mujoco")
+    with pytest.raises(ValueError, match="plant must be one of"):
+        robustness.study("quick", plant="gazebo")
+
+
+def _mujoco_table(costs):
+    """A robustness_mujoco table: ``costs[controller][condition]`` per-seed actual costs, the baseline 10 + seed."""
+    import pandas as pd
+
+    rows = []
+    for controller, by_condition in costs.items():
+        for (plant, mismatch, level), values in by_condition.items():
+            rows += [{"status": "ok", "problem": "nlink:2", "controller": controller, "plant": plant,
+                      "mismatch": mismatch, "level": level, "seed": s, "actual_cost": v, "final_error": 0.1,
+                      "fallbacks": 0, "fallback_causes": "", "child_win_rate": float("nan"), "load": 1.0}
+                     for s, v in enumerate(values)]
+    return pd.DataFrame(rows)
+
+
+def test_mujoco_report_names_the_controller_that_degrades_least(tmp_path):
+    from ocpkit.studies.robustness import mujoco_report
+
+    base = [10.0, 11.0, 12.0]
+    costs = {c: {("ocpkit", "none", 0.0): base, ("mujoco", "none", 0.0): base,
+                 ("mujoco", "friction", 0.1): [b * f for b in base]}
+             for c, f in (("LinearMPC", 1.5), ("RTI", 1.2), ("EMPC", 1.5))}
+    costs["EMPC"][("mujoco", "armature", 0.5)] = [b * 1.3 for b in base]
+    costs["LinearMPC"][("mujoco", "armature", 0.5)] = [b * 1.3 * (1 + 1e-12) for b in base]  # a tie: round-off
+    costs["RTI"][("mujoco", "armature", 0.5)] = [b * 1.4 for b in base]
+    text = mujoco_report(_mujoco_table(costs), tmp_path)
+    rows = {row.split(" | ")[0].lstrip("| "): row.rsplit("|", 2)[-2].strip()
+            for row in text.split("Claim checks:")[1].splitlines() if row.startswith("| nlink")}
+    assert rows == {"nlink:2: MuJoCo without mismatch reproduces ocpkit's plant (issue 34)": "held",
+                    "nlink:2, MuJoCo, friction 0.1: RTI degrades least of LinearMPC, RTI, EMPC (issue 34)": "held",
+                    "nlink:2, MuJoCo, armature 0.5: LinearMPC and EMPC degrade least of LinearMPC, RTI, EMPC "
+                    "(issue 34)": "held"}
+    assert (tmp_path / "robustness_mujoco_nlink_2.png").stat().st_size > 5000
+
+
+def test_reproduce_adds_the_mujoco_section_after_robustness(monkeypatch):
+    import importlib.util
+
+    from ocpkit.studies import reproduce
+
+    assert reproduce._parts(("knots", "robustness")) == [
+        ("knots", "knots", {}), ("robustness", "robustness", {}),
+        ("robustness_mujoco", "robustness", {"plant": "mujoco"})]
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "mujoco" else real(name, *a))
+    assert reproduce._parts(("robustness",))[-1] == ("robustness_mujoco", None, {"plant": "mujoco"})
+    with pytest.raises(ValueError, match="plant 'mujoco' applies to the robustness study only, not 'knots'"):
+        reproduce.run_study("knots", "quick", "unused", plant="mujoco")
+
+
+def test_cli_study_plant_applies_to_robustness_only(tmp_path, capsys):
+    assert main(["study", "knots", "--plant", "mujoco", "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "--plant applies to the robustness study only, not 'knots'" in err and len(err.strip().splitlines()) == 1

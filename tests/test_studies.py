@@ -20,6 +20,9 @@ def tiny(monkeypatch):
     monkeypatch.setattr(get("horizon"), "PROBLEMS", ("pendulum:linear",))
     monkeypatch.setitem(get("robustness").SIZES, "quick", {"errors": [0.8, 1.0], "seeds": 1,
                                                            "problems": ["pendulum"]})
+    monkeypatch.setitem(get("robustness").MUJOCO_SIZES, "quick", {"problems": ["nlink:2"], "friction": [0.1],
+                                                                  "armature": [0.5], "seeds": 1, "duration": 0.2,
+                                                                  "arch": "cpu"})
     monkeypatch.setitem(get("solve_times").SIZES, "quick", {"links": [1], "states": 2, "qp": "osqp",
                                                             "max_dense_vars": None})
     monkeypatch.setitem(get("comparison").SIZES, "quick", {"links": [1], "seeds": 1, "duration": 0.2,
@@ -37,12 +40,12 @@ def test_reproduce_quick_on_tiny_grids(tiny, tmp_path):
     report = reproduce("quick", tmp_path, workers=1, progress=False)
     text = report.read_text()
     for title in ("Fig. 3", "Fig. 4", "Tables I–II", "Figs. 7–10", "Figs. 11–13", "keep-out zone", "Table III",
-                  "Reaching past spherical obstacles"):
+                  "Reaching past spherical obstacles", "MuJoCo as the plant"):
         assert title in text
     assert "wall time" in text and "casadi" in text and "failed" not in text
     # Every study section says how many trials stand behind it and ends with its claim checks.
     sections = text.split("\n## ")[1:]
-    assert len(sections) == 9  # the studies, then the appendix of per-seed values
+    assert len(sections) == 10  # the studies, robustness's MuJoCo variant, then the appendix of per-seed values
     for part in sections:
         title = part.splitlines()[0]
         if title.startswith("Appendix"):
