@@ -291,3 +291,14 @@ def test_cli_study_plant_applies_to_robustness_only(tmp_path, capsys):
     assert main(["study", "knots", "--plant", "mujoco", "--out", str(tmp_path)]) == 2
     err = capsys.readouterr().err
     assert "--plant applies to the robustness study only, not 'knots'" in err and len(err.strip().splitlines()) == 1
+
+
+def test_bench_model_prints_mujoco_beside_ocpkits_plant():
+    from ocpkit.benchmarks.model import bench_model
+
+    lines = []
+    rows = bench_model(links=(2,), states=1, repeats=1, out=lines.append)
+    assert [r["robot"] for r in rows] == ["nlink:2", "puma560", "baxter"]
+    assert all(r["plant_s"] > 0 for r in rows) and rows[0]["mujoco_s"] > 0 and rows[1]["mujoco_s"] > 0
+    assert np.isnan(rows[2]["mujoco_s"])  # the Baxter arm's plant is a sampled servo: no MuJoCo column
+    assert "MuJoCo: 1 s simulated [ms]" in lines[-4] and lines[-1].split()[-2:] == ["–", "–"]
