@@ -37,9 +37,9 @@ from ocpkit._checks import choice, integer, positive
 INTEGRATORS = ("rk4", "implicit", "implicitfast", "euler")
 _MJ_INTEGRATORS = {"rk4": "mjINT_RK4", "implicit": "mjINT_IMPLICIT", "implicitfast": "mjINT_IMPLICITFAST",
                    "euler": "mjINT_EULER"}
-# MuJoCo resets its data (to qpos0) when q, q̇ or q̈ turn non-finite or huge, and counts a warning: a simulate()
-# must fail there instead of continuing from the reset state.
-_DIVERGED = ("mjWARN_BADQPOS", "mjWARN_BADQVEL", "mjWARN_BADQACC")
+# MuJoCo resets its data (to qpos0) when q, q̇ or q̈ turn non-finite or huge, and zeros every input when one is, and
+# counts a warning: a run must fail there instead of continuing from the reset state or without its inputs.
+_DIVERGED = {"mjWARN_BADQPOS": "q", "mjWARN_BADQVEL": "q̇", "mjWARN_BADQACC": "q̈", "mjWARN_BADCTRL": "u"}
 # The construction check: q̈ of MuJoCo and of the problem's plant at seeded states agree to this (relative to the
 # largest |q̈|); round-off gives ~1e-12, a different robot or ODE gives O(1).
 CHECK_TOLERANCE = 1e-6
@@ -58,7 +58,8 @@ class MuJoCoPlant:
 
     ``mjcf``: a user's MJCF file instead of the robot generated from the problem; ``joint_map`` then names its
     joints: a sequence of MJCF joint names in q's order, or a dict {problem joint name: MJCF joint name} (default:
-    the problem's own joint names). ``integrator``: one of :data:`INTEGRATORS`. ``frictionloss``, ``armature``:
+    the problem's own joint names). ``integrator``: one of :data:`INTEGRATORS` (it and the time step replace an
+    MJCF's own). ``frictionloss``, ``armature``:
     scalars or one value per joint (>= 0) added to the source's own. ``ctrlrange``: (low, high), scalars or one
     value per input. ``floor``: the height (m) of a plane under the robot, or None. ``limits``: the joint ranges as
     MuJoCo constraints (None: off for a generated or URDF robot, as ocpkit's model has none; the file's own for
@@ -97,7 +98,7 @@ class MuJoCoPlant:
                         "ctrlrange": _ctrlrange(ctrlrange, nq), "floor": _floor(floor), "limits": limits}
         if mjcf is not None:
             spec, self.source = _mjcf_spec(mujoco, mjcf), f"mjcf:{mjcf}"
-            self.mj_joints = _map_joints(spec, joint_map, self.joint_names)
+            self.mj_joints = _map_joints(mujoco, spec, joint_map, self.joint_names)
             for actuator in list(spec.actuators):  # someone else's controller: u drives the joints here
                 spec.delete(actuator)
         elif getattr(problem, "urdf", None) is not None and chain is not None:
@@ -128,7 +129,8 @@ class MuJoCoPlant:
                 + "".join(f", {k}" for k in active) + ")")
 
     def xml(self) -> str:
-        """The MJCF of the simulated robot (options applied), as MuJoCo writes it."""
+        """The MJCF of the simulated robot (options applied), as MuJoCo writes it; a generated robot's inertias that
+        MuJoCo's compiler refuses appear there as its stand-ins (see :func:`_exact_inertias`)."""
         return self.spec.to_xml()
 
     def stepper(self, dt: float, substeps: int = 1):
@@ -143,15 +145,18 @@ class MuJoCoPlant:
         model.opt.timestep = dt / substeps
         data = mujoco.MjData(model)
         n = self.nx // 2
-        diverged = [int(getattr(mujoco.mjtWarning, w)) for w in _DIVERGED]
+        diverged = {int(getattr(mujoco.mjtWarning, w)): what for w, what in _DIVERGED.items()}
 
         def step(x, u):
             x, u = np.asarray(x, dtype=float).ravel(), np.asarray(u, dtype=float).ravel()
             data.qpos[self._qpos], data.qvel[self._qvel], data.ctrl[:] = x[:n], x[n:], u
-            before = [data.warning[w].number for w in diverged]
+            before = {w: data.warning[w].number for w in diverged}
             mujoco.mj_step(model, data, substeps)
-            if any(data.warning[w].number > b for w, b in zip(diverged, before)):
-                return np.full(self.nx, np.nan)  # simulate() names the step; MuJoCo has reset its data
+            bad = [what for w, what in diverged.items() if data.warning[w].number > before[w]]
+            if bad:
+                raise FloatingPointError(f"MuJoCo found a NaN, inf or huge value in {', '.join(bad)} stepping from "
+                                         f"x = {x.tolist()}, u = {u.tolist()} and reset its data: the simulation "
+                                         "diverged (more plant_substeps or a smaller dt may help)")
             return np.concatenate([data.qpos[self._qpos], data.qvel[self._qvel]])
 
         return step
@@ -238,7 +243,7 @@ def _mjcf_spec(mujoco, path):
         raise ValueError(f"mjcf: {str(file)!r} is not an MJCF MuJoCo can read: {exc}") from None
 
 
-def _map_joints(spec, joint_map, names: list) -> list:
+def _map_joints(mujoco, spec, joint_map, names: list) -> list:
     """The MJCF joint of each of the problem's joints, in q's order (a ValueError naming the first bad entry)."""
     if joint_map is None:
         mapped = list(names)
@@ -262,7 +267,7 @@ def _map_joints(spec, joint_map, names: list) -> list:
     if len(set(mapped)) != len(mapped):
         raise ValueError(f"joint_map names an MJCF joint twice: {mapped}")
     for name in mapped:
-        if joints[name].type not in (_mujoco().mjtJoint.mjJNT_HINGE, _mujoco().mjtJoint.mjJNT_SLIDE):
+        if joints[name].type not in (mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_SLIDE):
             raise ValueError(f"joint_map: MJCF joint {name!r} is not a hinge or slide joint (one q each)")
     return mapped
 
@@ -273,6 +278,7 @@ def _chain_spec(mujoco, problem):
     spec = mujoco.MjSpec()
     spec.modelname = problem.name.replace(":", "_")
     spec.compiler.inertiafromgeom = mujoco.mjtInertiaFromGeom.mjINERTIAFROMGEOM_FALSE
+    spec.compiler.degree = False  # joint ranges in rad, as the Chain's (an MJCF's default is degrees)
     # stand-ins for the inertias MuJoCo's compiler refuses; _exact_inertias puts the Chain's back
     spec.compiler.balanceinertia, spec.compiler.boundmass, spec.compiler.boundinertia = True, 1e-6, 1e-9
     bodies = []

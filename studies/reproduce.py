@@ -19,9 +19,9 @@ PACKAGES = ("ocpkit", "casadi", "numpy", "proxsuite", "osqp", "pin", "taichi", "
 
 # Seconds per trial and worker of each study's quick grid, measured on the idle 2-core development machine
 # (`reproduce --quick`, 2 workers, 2026-12-03: 1,427 s in all): what the start-up estimate scales.
-# robustness_mujoco: 36 trials in 30.5 s on 2 workers (2026-12-03, load 1.6–2.3 from others' work).
+# robustness_mujoco: 36 trials in 17 s on 2 workers (`ocpkit study robustness --plant mujoco`, load 0.5–1.0).
 SECONDS_PER_TRIAL = {"knots": 0.5, "horizon": 0.61, "robustness": 0.52, "solve_times": 6.0, "comparison": 10.3,
-                     "keepout": 1.8, "baxter": 2.4, "reach": 16.7, "robustness_mujoco": 1.7}
+                     "keepout": 1.8, "baxter": 2.4, "reach": 16.7, "robustness_mujoco": 0.94}
 # Studies whose claims are about time: run one trial at a time (locally), so two trials never share the 2 cores.
 TIMING_STUDIES = ("solve_times",)
 VERDICTS = ("How verdicts are decided: each claim is tested on per-seed data (paired by start and goal where it "

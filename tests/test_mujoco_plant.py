@@ -302,3 +302,21 @@ def test_bench_model_prints_mujoco_beside_ocpkits_plant():
     assert all(r["plant_s"] > 0 for r in rows) and rows[0]["mujoco_s"] > 0 and rows[1]["mujoco_s"] > 0
     assert np.isnan(rows[2]["mujoco_s"])  # the Baxter arm's plant is a sampled servo: no MuJoCo column
     assert "MuJoCo: 1 s simulated [ms]" in lines[-4] and lines[-1].split()[-2:] == ["–", "–"]
+
+
+def test_joint_limits_and_divergence(tmp_path, monkeypatch):
+    """limits=True holds a joint driven into its range's end (ranges in rad, as the Chain's); a diverging step
+    raises instead of continuing from the state MuJoCo resets to."""
+    monkeypatch.chdir(tmp_path)  # MuJoCo logs its warnings to MUJOCO_LOG.TXT in the working directory
+    problem = make("puma560")
+    high = problem.pin_model.upperPositionLimit[3]
+    u = np.array([0.0, 0.0, 0.0, 20.0, 0.0, 0.0])
+    for limits in (True, False):
+        plant = MuJoCoPlant(problem, limits=limits)
+        np.testing.assert_allclose(plant.model.jnt_range[3], [problem.pin_model.lowerPositionLimit[3], high])
+        step, x = plant.stepper(problem.dt, 10), np.zeros(12)
+        for _ in range(100):
+            x = step(x, u)
+        assert (x[3] < high + 0.05) if limits else (x[3] > high + 1.0)
+    with pytest.raises(FloatingPointError, match=r"MuJoCo found a NaN, inf or huge value in u stepping from x = "):
+        MuJoCoPlant("nlink:3").stepper(0.01, 10)(np.zeros(6), np.full(3, 1e20))
