@@ -95,6 +95,21 @@ def test_users_mjcf_with_joint_map(tmp_path):
     np.testing.assert_array_equal(in_order.stepper(0.01, 10)(x, u), plant.stepper(0.01, 10)(x, u))
 
 
+def test_pendulum_with_an_mjcf(tmp_path):
+    """The pendulum is an ODE, not a Chain: with an MJCF of it (a point mass 0.5 m below a hinge about y, so that
+    gravity pulls it towards q = 0, as m g l sin q does) MuJoCo follows its plant under a varying input."""
+    path = tmp_path / "pendulum.xml"
+    path.write_text('<mujoco><worldbody><body><joint name="swing" type="hinge" axis="0 1 0" damping="0.1"/>'
+                    '<inertial pos="0 0 -0.5" mass="1" diaginertia="1e-12 1e-12 1e-12"/></body></worldbody></mujoco>')
+    problem = make("pendulum")
+    ours, theirs = problem.plant().rk4(0.01, 10), MuJoCoPlant(problem, mjcf=path, joint_map=["swing"]).stepper(0.01, 10)
+    x = y = np.array([1.0, 0.0])
+    for k in range(100):
+        u = np.array([np.sin(k / 10)])
+        x, y = np.asarray(ours(x, u)).ravel(), theirs(y, u)
+    assert np.abs(x - y).max() < 1e-9 and np.abs(x).max() > 0.5
+
+
 def test_effects_ocpkit_leaves_out():
     """Friction and armature slow the arm, ctrlrange clamps the torque, a floor stops a falling arm."""
     problem = make("puma560")
