@@ -193,3 +193,24 @@ def test_contract_configurations_agree_on_their_optimum(name, optimum, problems)
             bad.append((config.label, sol.status, sol.raw_status[:80],
                         float(np.abs(sol.knots - refs[key]).max()) if sol.ok else None))
     assert not bad, bad
+
+
+@pytest.mark.parametrize("config", [pytest.param(c, id=c.label) for c in CONFIGS])
+def test_contract_against_mujoco(config, problems):
+    """Every configuration steps nlink:3 against MuJoCo (:class:`ocpkit.mujoco_plant.MuJoCoPlant`) within the
+    contract, and as it does against ocpkit's plant: the two plants agree to about 1e-12 for the same inputs, so
+    the states agree to 1e-6 and the inputs to the solvers' tolerances (1e-4 of the torque limit)."""
+    pytest.importorskip("mujoco")
+    from ocpkit.mujoco_plant import MuJoCoPlant
+
+    problem = problems("nlink:3")
+    ocp = _ocp(problem, config)
+    controller = config.make(ocp)
+    controller.wait_compiled()
+    x, goal = problem.sample(0)
+    ours, theirs = (simulate(plant, controller, x, goal, duration=3 * ocp.dt)
+                    for plant in (problem.plant(), MuJoCoPlant(problem)))
+    for sol in theirs.solutions:
+        _check_step(controller, sol)
+    np.testing.assert_allclose(theirs.x, ours.x, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(theirs.u, ours.u, rtol=0, atol=1e-4 * np.abs(ocp.u_max).max())
