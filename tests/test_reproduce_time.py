@@ -14,7 +14,7 @@ def test_compute_time_sums_runs_and_a_resume_keeps_it(monkeypatch, tmp_path):
     monkeypatch.setitem(get("knots").SIZES, "quick", {"knots": [2, 50], "seeds": 1, "problems": ["pendulum:linear"]})
     trials = len(get("knots").study("quick").trials)
     assert estimate(("knots",), "quick", tmp_path, workers=1) == trials * SECONDS_PER_TRIAL["knots"]
-    report = reproduce("quick", tmp_path, names=("knots",), workers=1, progress=False)
+    report = reproduce("quick", tmp_path, names=("knots",), workers=1, progress=False, pictures=False)
     assert estimate(("knots",), "quick", tmp_path, workers=1) == 0  # everything stored: nothing left to run
     first = compute_seconds(report)
     with Store(tmp_path) as store:
@@ -23,12 +23,12 @@ def test_compute_time_sums_runs_and_a_resume_keeps_it(monkeypatch, tmp_path):
     assert "wall time of this run" in report.read_text()
     # Widen the grid: the second run computes only the new trials, and the report adds their time to the first's.
     monkeypatch.setitem(get("knots").SIZES, "quick", {"knots": [2, 50], "seeds": 2, "problems": ["pendulum:linear"]})
-    report = reproduce("quick", tmp_path, names=("knots",), workers=1, progress=False)
+    report = reproduce("quick", tmp_path, names=("knots",), workers=1, progress=False, pictures=False)
     with Store(tmp_path) as store:
         runs = store.runs("knots")
     assert runs.trials.tolist() == [n, n]
     assert compute_seconds(report) >= first and "over the 2 study runs" in report.read_text()
     # A resume with nothing left to run records no run and leaves the sum as it was.
     before = compute_seconds(report)
-    report = reproduce("quick", tmp_path, names=("knots",), workers=1, progress=False)
+    report = reproduce("quick", tmp_path, names=("knots",), workers=1, progress=False, pictures=False)
     assert compute_seconds(report) == before

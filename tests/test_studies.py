@@ -72,7 +72,7 @@ def test_reproduce_quick_on_tiny_grids(tiny, tmp_path):
     assert (ratios.loc[ratios["knots"] == 2, "ratio"] > 1).all()
     # Resume: a second run finds every trial stored and redoes none.
     before = Store(tmp_path).load("knots")["finished"].tolist()
-    reproduce("quick", tmp_path, workers=1, progress=False)
+    reproduce("quick", tmp_path, workers=1, progress=False, pictures=False)
     assert Store(tmp_path).load("knots")["finished"].tolist() == before
 
 
