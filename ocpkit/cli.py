@@ -746,7 +746,7 @@ def _study_problems(args, options) -> str:
     failed = df[df["status"] == "failed"]
     if len(failed) == len(df):
         raise ValueError(f"every trial of {args.name} failed; first error: {failed['error'].iloc[0].splitlines()[0]}")
-    return module.report(df, out) + study_runner.failure_summary(df)
+    return module.report(df, out) + study_runner.failure_summary(df) + study_runner.cluster_summary(df)
 
 
 def _reproduce(args):

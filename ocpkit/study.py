@@ -22,9 +22,9 @@ import sys
 import threading
 import time
 import traceback
-from collections import deque
+from collections import Counter, deque
 from collections.abc import Callable, Iterable, Mapping
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures import FIRST_COMPLETED, CancelledError, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 
@@ -48,6 +48,24 @@ class StaleTrialsError(ValueError):
 
 class TrialTimeout(Exception):
     """Raised inside a trial that ran longer than its timeout."""
+
+
+class WorkerMismatchError(ValueError):
+    """A Dask worker lacks ocpkit or runs another version of it, other study code or other numerical libraries."""
+
+
+class SchedulerLostError(ConnectionError):
+    """The connection to the Dask scheduler was lost while a study ran on it."""
+
+
+@dataclass(frozen=True)
+class _Provenance:
+    """What this process computes trials with: its ocpkit version, each trial's code hash (by canonical key) and
+    each code hash's manifest."""
+
+    version: str
+    codes: dict
+    manifests: dict
 
 
 def package_version() -> str:
@@ -180,12 +198,14 @@ def run(study: Study, out_dir, *, workers: int | None = None, scheduler: str | N
             store.record_code({codes[k]: manifests[codes[k]] for k in todo})
         source = _Claims(store, study.name, todo, keys, owner, lease, done)
         executed, t0 = 0, time.perf_counter()
+        placement = Counter()  # Dask worker address -> trials of this run it ran
         if not todo:
             finished = iter(())
         elif scheduler is None:
             finished = _run_local(study.fn, source, max(1, min(workers, len(todo))), trial_timeout)
         else:
-            finished = _run_dask(study.fn, source, scheduler, trial_timeout)
+            finished = _run_dask(study.fn, source, scheduler, trial_timeout, _Provenance(version, codes, manifests),
+                                 placement)
         failed = 0
         with tqdm(total=len(study.trials), initial=len(study.trials) - len(todo), desc=study.name,
                   unit="trial", disable=not progress, dynamic_ncols=True) as bar:
@@ -210,7 +230,11 @@ def run(study: Study, out_dir, *, workers: int | None = None, scheduler: str | N
                         if executed:
                             store.record_run(study.name, owner, run_start, time.perf_counter() - t0, executed)
                         store.checkpoint()
-        return store.load(study.name, trials=study.trials)
+        wall = time.perf_counter() - t0
+        df = store.load(study.name, trials=study.trials)
+    if scheduler is not None:
+        df.attrs["cluster"] = {"scheduler": scheduler, "workers": dict(placement), "wall": wall}
+    return df
 
 
 def failure_summary(df: pd.DataFrame, top: int = 5) -> str:
@@ -221,6 +245,20 @@ def failure_summary(df: pd.DataFrame, top: int = 5) -> str:
     errors = failed["error"].fillna("(no message)").value_counts().head(top)
     return f"\n{len(failed)} of {len(df)} trials failed; most common errors:\n\n" + "\n".join(
         f"- {count}× `{(err.splitlines() or [''])[0][:200]}`" for err, count in errors.items()) + "\n"
+
+
+def cluster_summary(df: pd.DataFrame) -> str:
+    """A report paragraph saying where the trials of the run that returned ``df`` ran when it used a Dask scheduler
+    ("" otherwise): each worker's address and how many trials it ran, the wall time and the throughput."""
+    cluster = df.attrs.get("cluster")
+    if not cluster:
+        return ""
+    n, wall = sum(cluster["workers"].values()), cluster["wall"]
+    if not n:
+        return f"\nRun on the Dask cluster at {cluster['scheduler']}: no trial was left to run.\n"
+    each = ", ".join(f"{address} {count}" for address, count in sorted(cluster["workers"].items()))
+    return (f"\nRun on the Dask cluster at {cluster['scheduler']}: {n} trials on {len(cluster['workers'])} workers in "
+            f"{wall:.1f} s ({n / wall:.2f} trials/s); trials per worker: {each}.\n")
 
 
 def _stale_message(name, path, old, n_stored, version, codes, manifests, recorded) -> str:
@@ -308,15 +346,16 @@ def _check_importable(fn) -> None:
 def _execute(fn, params: dict, timeout: float | None = None) -> dict:
     """Run one trial (in a worker); its outcome as keyword arguments of :meth:`Store.write`.
 
-    With a ``timeout`` on a worker's main thread, SIGALRM raises :class:`TrialTimeout` inside the trial;
-    a trial stuck where Python cannot interrupt it (inside C code) ends its worker process shortly after."""
+    With a ``timeout``, :class:`TrialTimeout` is raised inside the trial when it expires (see :func:`_deadline`)."""
     started, t0 = now(), time.perf_counter()
-    with _deadline(timeout):
-        try:
+    try:
+        with _deadline(timeout):
             metrics, arrays = split_result(params, fn(**params))
-            outcome = {"result": {**metrics, **arrays}, "status": "ok"}
-        except Exception as exc:
-            outcome = {"status": "failed", "error": f"{type(exc).__name__}: {exc}", "traceback": traceback.format_exc()}
+        outcome = {"result": {**metrics, **arrays}, "status": "ok"}
+    except TrialTimeout:  # raised without its message on a worker thread (an asynchronous exception)
+        outcome = {"status": "failed", "error": _timeout_message(timeout), "traceback": traceback.format_exc()}
+    except Exception as exc:
+        outcome = {"status": "failed", "error": f"{type(exc).__name__}: {exc}", "traceback": traceback.format_exc()}
     return {**outcome, "wall_time": time.perf_counter() - t0, "started": started, "finished": now()}
 
 
@@ -326,15 +365,26 @@ def _timeout_message(timeout: float) -> str:
 
 @contextlib.contextmanager
 def _deadline(timeout: float | None):
-    if timeout is None or threading.current_thread() is not threading.main_thread():
-        yield  # Dask runs trials on worker threads: the parent abandons them instead
-        return
+    """Raise :class:`TrialTimeout` in the trial after ``timeout`` seconds: by SIGALRM on a worker process's main
+    thread, where a trial stuck in C code also takes its worker down shortly after (the pool reports it as dead);
+    on another thread (a Dask worker's) as an asynchronous exception, which Python raises between two bytecodes,
+    so a trial stuck in C code runs on and the client abandons it (:func:`_dask_outcomes`)."""
+    if timeout is None:
+        yield
+    elif threading.current_thread() is threading.main_thread():
+        with _alarm(timeout):
+            yield
+    else:
+        with _thread_alarm(timeout):
+            yield
 
+
+@contextlib.contextmanager
+def _alarm(timeout: float):
     def expire(signum, frame):
         raise TrialTimeout(_timeout_message(timeout).partition(": ")[2])
     previous = signal.signal(signal.SIGALRM, expire)
-    # A trial that cannot be interrupted (stuck in C) takes its worker down: the pool reports it as dead.
-    killer = threading.Timer(timeout + max(2.0, 0.5 * timeout), os._exit, args=(_TIMEOUT_EXIT,))
+    killer = threading.Timer(timeout + _grace(timeout), os._exit, args=(_TIMEOUT_EXIT,))
     killer.daemon = True
     killer.start()
     signal.setitimer(signal.ITIMER_REAL, timeout)
@@ -344,6 +394,34 @@ def _deadline(timeout: float | None):
         signal.setitimer(signal.ITIMER_REAL, 0)
         killer.cancel()
         signal.signal(signal.SIGALRM, previous)
+
+
+@contextlib.contextmanager
+def _thread_alarm(timeout: float):
+    import ctypes
+
+    thread, lock, state = ctypes.c_ulong(threading.get_ident()), threading.Lock(), {"running": True, "fired": False}
+
+    def expire():
+        with lock:
+            if state["running"]:
+                state["fired"] = ctypes.pythonapi.PyThreadState_SetAsyncExc(thread, ctypes.py_object(TrialTimeout)) == 1
+    timer = threading.Timer(timeout, expire)
+    timer.daemon = True
+    timer.start()
+    try:
+        yield
+    finally:
+        timer.cancel()
+        with lock:
+            state["running"] = False
+            if state["fired"]:  # not raised yet (the trial returned first): withdraw it, or it lands in Dask's code
+                ctypes.pythonapi.PyThreadState_SetAsyncExc(thread, None)
+
+
+def _grace(timeout: float) -> float:
+    """How long past its timeout a trial that does not return to Python is waited for."""
+    return max(2.0, 0.5 * timeout)
 
 
 def _failure(message: str) -> dict:
@@ -454,15 +532,16 @@ def _run_pool(fn, source: _Claims, workers: int, timeout: float | None = None):
                 pool.shutdown(wait=True, cancel_futures=True)
 
 
-def _run_dask(fn, source: _Claims, scheduler: str, timeout: float | None = None):
-    """(params, outcome) pairs as trials finish on the Dask cluster at ``scheduler``: a generator,
-    but whether distributed is installed and the scheduler answers are checked now."""
+def _run_dask(fn, source: _Claims, scheduler: str, timeout: float | None, mine: _Provenance, placement: Counter):
+    """(params, outcome) pairs as trials finish on the Dask cluster at ``scheduler``, counting in ``placement``
+    the trials each worker ran: a generator, but whether distributed is installed and the scheduler answers
+    are checked now."""
     try:
-        from distributed import Client, wait as dask_wait
+        from distributed import Client
     except ImportError:
         raise ImportError('running a study on a Dask cluster needs distributed: pip install "ocpkit[dask]"') from None
     check_scheduler(scheduler)
-    return _dask_outcomes(Client, dask_wait, fn, source, scheduler, timeout)
+    return _dask_outcomes(Client, fn, source, scheduler, timeout, mine, placement)
 
 
 def check_scheduler(scheduler: str, timeout: float = 5.0) -> None:
@@ -488,45 +567,153 @@ def check_scheduler(scheduler: str, timeout: float = 5.0) -> None:
                               f"(`dask scheduler`) or check the address") from None
 
 
-def _dask_outcomes(Client, dask_wait, fn, source: _Claims, scheduler: str, timeout: float | None):
-    with Client(scheduler, timeout="10s") as client:
-        # As many trials in flight as the cluster has threads, so a trial's submission is about its start.
-        slots = max(1, sum(client.nthreads().values()))
+def _dask_outcomes(Client, fn, source: _Claims, scheduler: str, timeout: float | None, mine: _Provenance,
+                   placement: Counter):
+    with _quiet_once_lost() as lost, Client(scheduler, timeout="10s") as client:
         running = {}  # future -> (params, when submitted)
-        while True:
-            while len(running) < slots:
-                params = source.take()
-                if params is None:
-                    break
-                running[client.submit(_execute, fn, params, pure=False)] = (params, time.monotonic())
-            if not running:
-                if not source.others:
-                    return
-                source.pause()
-                continue
-            wait_s = None
-            if timeout is not None:
-                wait_s = max(0.05, min(t for _, t in running.values()) + timeout - time.monotonic())
-            done = dask_wait(list(running), timeout=wait_s, return_when="FIRST_COMPLETED").done \
-                if wait_s is None else _dask_wait_or_none(dask_wait, list(running), wait_s)
-            for future in done:
-                params, _ = running.pop(future)
-                try:
-                    outcome = future.result()
-                except Exception as exc:  # e.g. KilledWorker: the trial took down its workers repeatedly
-                    outcome = _failure(f"{type(exc).__name__}: {exc}")
-                future.release()
-                yield params, outcome
-            if timeout is not None:
-                clock = time.monotonic()
-                for future in [f for f, (_, t) in running.items() if clock - t >= timeout]:
+        _check_versions(client, [], mine.version, scheduler)
+        checked, slots, looked = set(), 1, -np.inf
+        try:
+            while True:
+                if time.monotonic() - looked > 1.0:  # workers join and leave (an adaptive cluster, a dead worker)
+                    threads = client.nthreads()
+                    _check_versions(client, [w for w in threads if w not in checked], mine.version)
+                    checked.update(threads)
+                    # As many trials in flight as the cluster has threads, so a trial's submission is about its start.
+                    slots, looked = max(1, sum(threads.values())), time.monotonic()
+                while len(running) < slots:
+                    params = source.take()
+                    if params is None:
+                        break
+                    code = mine.codes[canonical_key(params)]
+                    running[client.submit(_execute_remote, fn, params, timeout, mine.version, code, pure=False)] = \
+                        (params, time.monotonic())
+                if not running:
+                    if not source.others:
+                        return
+                    source.pause()
+                    continue
+                wait_s = 1.0
+                if timeout is not None:
+                    first = min(t for _, t in running.values()) + timeout + _grace(timeout)
+                    wait_s = min(wait_s, max(0.05, first - time.monotonic()))
+                for future in _dask_wait_or_none(list(running), wait_s):
                     params, _ = running.pop(future)
-                    future.cancel()  # its worker thread may run on; the study does not wait for it
-                    yield params, _failure(_timeout_message(timeout) + " (abandoned on the Dask cluster)")
+                    try:
+                        address, outcome = future.result()
+                    except ImportError as exc:  # unpickling the trial failed there (its own import errors are outcomes)
+                        raise WorkerMismatchError(f"a Dask worker cannot load the trial ({type(exc).__name__}: {exc}); "
+                                                  f"{_SAME}") from None
+                    except CancelledError:
+                        raise
+                    except Exception as exc:  # e.g. KilledWorker: the trial took down its workers repeatedly
+                        if "deserialization of the task graph" in str(exc):  # Dask's words for it, on the scheduler
+                            raise WorkerMismatchError(f"the Dask scheduler at {scheduler} cannot load the trial "
+                                                      f"({str(exc).splitlines()[0]}): {_SAME}") from None
+                        address, outcome = None, _failure(f"{type(exc).__name__}: {exc}")
+                    future.release()
+                    if "mismatch" in outcome:
+                        theirs, manifest = outcome["mismatch"]
+                        raise WorkerMismatchError(_mismatch_message(f"worker {address}", theirs, mine.version, manifest,
+                                                                    mine.manifests[mine.codes[canonical_key(params)]]))
+                    if address is not None:
+                        placement[address] += 1
+                    yield params, outcome
+                if timeout is not None:
+                    # A trial that did not return to Python at its timeout (stuck in C code): its worker thread may
+                    # run on, the study does not wait for it.
+                    clock = time.monotonic()
+                    for future in [f for f, (_, t) in running.items() if clock - t >= timeout + _grace(timeout)]:
+                        params, _ = running.pop(future)
+                        future.cancel()
+                        yield params, _failure(_timeout_message(timeout) + " (abandoned on the Dask cluster)")
+        except (CancelledError, OSError) as exc:
+            if client.status == "running" and "scheduler-connection-lost" not in str(exc):
+                raise
+            lost.set()
+            raise SchedulerLostError(
+                f"lost the connection to the Dask scheduler at {scheduler} mid-study ({len(running)} running trials "
+                f"not stored; the {sum(placement.values())} finished in this run are): start a scheduler and rerun "
+                "the same command to resume") from None
 
 
-def _dask_wait_or_none(dask_wait, futures, timeout: float):
+def _check_versions(client, workers: list, version: str, scheduler: str | None = None) -> None:
+    """Refuse the Dask ``workers``, and the scheduler at ``scheduler`` if given (it unpickles every trial too), that
+    cannot import ocpkit or run another version of it, before they get a trial (it could not be unpickled there, or
+    would run other code). Asked of ocpkit itself: the installed package's metadata, which Dask's get_versions
+    reads, says nothing of what imports and lags an editable install."""
+    found = {}
+    if scheduler is not None:
+        try:
+            found[f"scheduler {scheduler}"] = client.run_on_scheduler(package_version)
+        except Exception as exc:  # raised where it could not be unpickled
+            found[f"scheduler {scheduler}"] = exc
+    if workers:
+        found.update((f"worker {address}", theirs) for address, theirs in
+                     client.run(package_version, workers=workers, on_error="return").items())
+    for where, theirs in found.items():
+        if isinstance(theirs, BaseException):
+            raise WorkerMismatchError(f"the Dask {where} cannot import ocpkit ({theirs}), this process runs ocpkit "
+                                      f"{version}: {_SAME}")
+        if theirs != version:
+            raise WorkerMismatchError(_mismatch_message(where, theirs, version))
+
+
+_VERIFIED: set = set()  # (version, code hash) pairs a Dask worker process found its own code to match
+
+
+def _execute_remote(fn, params: dict, timeout: float | None, version: str, code: str):
+    """:func:`_execute` on a Dask worker: (the worker's address, the outcome). A worker first checks, once per code
+    hash, that it runs the client's ocpkit version and code: if not, the outcome is ``{"mismatch": (its version,
+    its manifest)}`` and the trial is not run."""
+    from distributed import get_worker
+
+    address = get_worker().address
+    if (version, code) not in _VERIFIED:
+        theirs = provenance.manifest(fn, params)
+        if package_version() != version or provenance.manifest_hash(theirs) != code:
+            return address, {"mismatch": (package_version(), theirs)}
+        _VERIFIED.add((version, code))
+    return address, _execute(fn, params, timeout)
+
+
+_SAME = ("install the same ocpkit, study code and numerical libraries on the scheduler and every worker (or stop "
+         "that worker) and rerun")
+
+
+def _mismatch_message(where: str, their_version, version: str, their_manifest=None, manifest=None) -> str:
+    """Why the Dask ``where`` ("worker tcp://…") is refused: its ocpkit version, or what differs between the
+    manifest of the trial's code there and here (:mod:`ocpkit.provenance`)."""
+    if their_version != version:
+        return f"the Dask {where} runs ocpkit {their_version}, this process ocpkit {version}: {_SAME}"
+    differences = provenance.changes(manifest, their_manifest)
+    text = "; ".join(differences[:6]) + (f"; and {len(differences) - 6} more" if len(differences) > 6 else "")
+    return f"the Dask {where} runs other code than this process (here → there: {text or 'unknown'}): {_SAME}"
+
+
+@contextlib.contextmanager
+def _quiet_once_lost():
+    """An Event to set when the study has lost its scheduler: from then on, the Dask client's own log records (its
+    failed reconnection, the traceback of the attempt cancelled as it closes) stay off the terminal, since the study
+    reports the loss itself in one line (:class:`SchedulerLostError`)."""
+    import logging
+
+    lost = threading.Event()
+
+    def keep(record) -> bool:
+        return not lost.is_set()
+    logger = logging.getLogger("distributed.client")
+    logger.addFilter(keep)
     try:
-        return dask_wait(futures, timeout=timeout, return_when="FIRST_COMPLETED").done
+        yield lost
+    finally:
+        logger.removeFilter(keep)
+
+
+def _dask_wait_or_none(futures, timeout: float):
+    from distributed import wait
+
+    try:
+        return wait(futures, timeout=timeout, return_when="FIRST_COMPLETED").done
     except TimeoutError:
         return set()

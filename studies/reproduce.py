@@ -51,7 +51,7 @@ def _run_study(name, size, out_dir, study_options=None, **options):
     study = module.study(size, **(study_options or {}))
     df = study_runner.run(study, out_dir, **options)
     df.to_csv(out_dir / f"{study.name}.csv", index=False)
-    return module.report(df, out_dir) + study_runner.failure_summary(df), df
+    return module.report(df, out_dir) + study_runner.failure_summary(df) + study_runner.cluster_summary(df), df
 
 
 def estimate(names, size: str, out_dir, workers=None) -> float:
