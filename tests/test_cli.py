@@ -263,14 +263,15 @@ def test_an_unknown_study_is_one_line_naming_the_studies(tmp_path):
 
 def test_sparse_proxqp_with_knots_on_a_long_horizon_is_announced_before_work(capsys):
     from ocpkit import cli
+    from ocpkit.cli import checks
     from ocpkit.problems import make
 
     args = cli._parser().parse_args(["solve", "pendulum", "--horizon", "1000000", "--form", "sparse"])
-    cli._check_size(make("pendulum"), args)
+    checks.check_size(make("pendulum"), args)
     err = capsys.readouterr().err
     assert "sparse ProxQP with knots" in err and "default budget" in err and "--qp osqp" in err, err
     args = cli._parser().parse_args(["solve", "pendulum", "--horizon", "1000000", "--form", "sparse", "--qp", "osqp"])
-    cli._check_size(make("pendulum"), args)
+    checks.check_size(make("pendulum"), args)
     assert "ProxQP" not in capsys.readouterr().err
 
 

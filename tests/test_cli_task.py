@@ -8,6 +8,7 @@ import pytest
 from conftest import README, readme_block
 from ocpkit import cli
 from ocpkit.cli import main
+from ocpkit.cli.task import read_task_file
 
 # nlink:3 (planar, z = 0): the tip from seed 0's start, (0.43, -0.21), round a ball to (0.3, 0.5); without the ball
 # the tip's path passes through it.
@@ -129,7 +130,7 @@ def test_readme_reach_example(tmp_path, monkeypatch, capsys):
     assert f"It prints `{printed}`" in section
     toml = re.search(r"```toml\n(.*?)```", section, re.S).group(1)
     (tmp_path / "reach.toml").write_text(toml)
-    task = cli._read_task_file(tmp_path / "reach.toml")
+    task = read_task_file(tmp_path / "reach.toml")
     assert task["target"].tolist() == [0.4, 0.0, 0.3] and [(o.center, o.radius) for o in task["obstacles"]] == \
         [((0.4, -0.25, 0.35), 0.08)]
     assert main(["simulate", "panda", "--task", "reach.toml", "--duration", "2", "--out", "arm.png",

@@ -27,7 +27,7 @@ def test_imports_flow_one_way(layer):
 
     root = Path(ocpkit.__file__).parent if layer == "core" else Path(ocpkit.solvers.__path__[0])
     # installed (not editable), ocpkit/ also holds solvers/, studies/ and problems/: the core is the rest
-    upper = {"solvers", "studies", "problems", "benchmarks", "cli.py"}
+    upper = {"solvers", "studies", "problems", "benchmarks", "cli"}
     files = [f for f in root.rglob("*.py") if layer != "core" or not upper & set(f.parts[len(root.parts):])]
     wrong = [f"{f.relative_to(root)}:{line} imports {module}" for f in files for line, module in _imports(f)
              if module.startswith(ABOVE[layer])]

@@ -1,0 +1,254 @@
+"""The `ocpkit` command line: solve, simulate, demo, study, reproduce, export, build and bench.
+
+Wherever a problem is named, a problem spec is accepted: a registered name (``pendulum``, ``nlink:7``, …),
+``package.module:Name`` or ``path/to/file.py:Name`` (see :mod:`ocpkit.problems`).
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+
+from ocpkit import __version__, solvers, studies
+from ocpkit.cli.commands import BENCHMARKS, COMMANDS, PROBLEM_BENCHMARKS, PROBLEM_STUDIES
+from ocpkit.cli.options import DEFAULT_KNOTS, DYNAMICS, NLP_METHODS, QP_BACKENDS, SAMPLING, SPEC_HELP, VARIANTS
+from ocpkit.cli.task import NUMBERS
+from ocpkit.controller import LINEARIZATIONS, TRAJECTORY
+from ocpkit.model import INTEGRATORS
+
+__all__ = ["main", "DEFAULT_KNOTS", "DYNAMICS", "NLP_METHODS", "QP_BACKENDS", "SAMPLING", "VARIANTS"]
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with our one-line errors (exit code 2)."""
+
+    def error(self, message):
+        self.exit(2, f"ocpkit: error: {message}\n")
+
+
+def _add_problem_args(p):
+    """The problem and its OCP, the same in solve, simulate and export."""
+    p.add_argument("problem", help=SPEC_HELP)
+    p.add_argument("--knots", type=int, default=None,
+                   help=f"knot points p (default {DEFAULT_KNOTS}, or T when the horizon is shorter); traditional MPC "
+                        f"(one knot per step, p = T) is --parameterization identity")
+    p.add_argument("--parameterization", default="linear", choices=("linear", "zoh", "identity"),
+                   help="input between the knots: linear (default, the paper's piecewise-linear), zoh (move blocking) "
+                        "or identity (traditional MPC, p = T; takes no --knots)")
+    p.add_argument("--horizon", type=int, default=None, help="horizon T in steps (default: the problem's)")
+    p.add_argument("--integrator", default="rk4", choices=INTEGRATORS,
+                   help="how the controller predicts a step of a nonlinear model: rk4 (default) or euler "
+                        "(semi-implicit for x = [q, q̇]; one model and Jacobian evaluation instead of four; the plant "
+                        "stays RK4)")
+
+
+def _add_controller_args(p):
+    _add_problem_args(p)
+    p.add_argument("--solver", default="qp", help=f"solver: {', '.join(solvers.names())} (default qp)")
+    p.add_argument("--form", choices=("sparse", "condensed"),
+                   help="qp, ipopt --method rti: QP transcription (default condensed)")
+    p.add_argument("--qp", choices=QP_BACKENDS,
+                   help="qp, ipopt --method rti: QP backend (default daqp for condensed, proxqp for sparse; hpipm: "
+                        "sparse traditional)")
+    p.add_argument("--method", choices=NLP_METHODS,
+                   help="ipopt: how the NLP is solved: ipopt (interior point, default), sqp (CasADi's SQP), fatrop "
+                        "(interior point with a Riccati recursion over the stages) or rti (real-time iteration: "
+                        "--iterations Gauss-Newton SQP steps per control step on the knot QP)")
+    p.add_argument("--iterations", type=int,
+                   help="ipopt --method rti: SQP iterations per control step (default 1, the real-time iteration)")
+    p.add_argument("--dynamics", choices=DYNAMICS,
+                   help="ipopt --method ipopt|sqp: the prediction model (default nonlinear); empc/cem/mppi: the "
+                        "rollout model (default affine, re-linearized every step)")
+    p.add_argument("--linearization", choices=LINEARIZATIONS + (TRAJECTORY,),
+                   help="the affine model's expansion point: goal (default: about the goal's input), plan (the "
+                        "input the previous plan expects now) or, qp only, trajectory (stage by stage along the "
+                        "shifted plan); qp, ipopt --dynamics affine, empc/cem/mppi")
+    p.add_argument("--population", type=int, help="empc/cem/mppi: rollouts per generation")
+    p.add_argument("--generations", type=int, help="empc/cem/mppi: generations per control step")
+    p.add_argument("--arch", choices=("auto", "cpu", "cuda"), help="empc/cem/mppi: Taichi arch (default auto)")
+    p.add_argument("--variant", choices=VARIANTS,
+                   help="empc/cem/mppi: preconditioned by the knot QP (default) or the paper's plain algorithm")
+    p.add_argument("--error", type=float, default=1.0, help="model error multiplier of the controller's model")
+    p.add_argument("--compiled", action="store_true", default=None,
+                   help="compile the affine model to C before the first step (default: large models start on "
+                        "CasADi's VM and switch once a background compile, cached, has finished)")
+    p.add_argument("--no-compiled", dest="compiled", action="store_false",
+                   help="stay on CasADi's VM (no C compile)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the random start and goal")
+
+
+def _add_task_args(p):
+    """A task-space target (ocpkit.task.reach) instead of the seeded joint-space goal: solve and simulate."""
+    p.add_argument("--target", metavar="X,Y,Z",
+                   help="bring the end effector (or --frame) to this point (m, world frame) from the seeded start "
+                        "instead of the seeded joint goal (ocpkit.task.reach; a robot problem with kinematics)")
+    p.add_argument("--obstacle", action="append", metavar="X,Y,Z,R",
+                   help="with a target: a sphere (centre and radius, m, world frame) the robot keeps clear of "
+                        "(repeatable)")
+    p.add_argument("--frame", metavar="NAME", help="with a target: the frame brought to it (default: the "
+                                                    "problem's end effector)")
+    p.add_argument("--task", metavar="FILE",
+                   help="a TOML reach task: target = [x, y, z], optional frame, margin, position_weight, "
+                        "terminal_weight, link_radius, obstacle_weight and [[obstacle]] tables (center = [x, y, z], "
+                        "radius = r); --target and --frame override its values, --obstacle adds to its obstacles")
+
+
+def _add_study_args(p, size=True):
+    if size:
+        p.add_argument("--size", default="quick", choices=("quick", "full"))
+    p.add_argument("--out", default="results/reproduce", help="results folder (store, figures, report)")
+    p.add_argument("--workers", type=int, default=None, help="local worker processes (default: CPU count)")
+    p.add_argument("--scheduler", default=None, help="Dask scheduler address tcp://HOST:PORT")
+    p.add_argument("--trial-timeout", type=float, default=None, metavar="SECONDS",
+                   help="stop a trial that runs longer and store it as failed (default: no limit)")
+    p.add_argument("--retry-failed", action="store_true", help="run the stored failed trials again")
+    stale = p.add_mutually_exclusive_group()
+    stale.add_argument("--reuse-stale", dest="stale", action="store_const", const="reuse",
+                       help="keep stored trials computed by another ocpkit version or other study code")
+    stale.add_argument("--rerun-stale", dest="stale", action="store_const", const="rerun",
+                       help="compute such trials again (default: refuse to resume over them)")
+    p.set_defaults(stale="refuse")
+    p.add_argument("--export", default=None, metavar="FILE",
+                   help="also write the results database as one self-contained SQLite file")
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog="ocpkit", description="Parameterized and GPU-parallelized real-time MPC.")
+    parser.add_argument("--debug", action="store_true",
+                        help="on an error, print its full traceback (anywhere on the command line)")
+    parser.add_argument("--version", action="version", version=f"ocpkit {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+    solve = sub.add_parser("solve", help="one MPC solve from a seeded random state and goal")
+    _add_controller_args(solve)
+    _add_task_args(solve)
+    solve.add_argument("--json", action="store_true", help="print one JSON object")
+    sim = sub.add_parser("simulate", help="closed loop: actual cost, solve times, a figure")
+    _add_controller_args(sim)
+    sim.add_argument("--duration", type=float, default=None, help="seconds (default: the problem's)")
+    sim.add_argument("--out", default="results/simulate.png", help="figure path")
+    sim.add_argument("--plant", default="ocpkit", choices=("ocpkit", "mujoco"),
+                     help="the simulated robot: ocpkit's model integrated by RK4 (default), or MuJoCo's (pip install "
+                          "\"ocpkit[mujoco]\"; RK4 at the same sub-step) from the problem's robot or --mjcf")
+    sim.add_argument("--mjcf", metavar="FILE", help="--plant mujoco: simulate this MJCF instead of the problem's robot")
+    sim.add_argument("--joint-map", metavar="J1,J2,…|NAME=J,…",
+                     help="--mjcf: the file's joints for the problem's, in q's order or as problem=mjcf name pairs "
+                          "(default: the problem's joint names)")
+    sim.add_argument("--animate", metavar="FILE.gif", help="also write the robot's motion as an animated GIF (stick "
+                                                           "figure; goal pose, or target and obstacles)")
+    _add_task_args(sim)
+    sim.add_argument("--json", action="store_true", help="print one JSON object")
+    demo = sub.add_parser("demo", help="closed-loop pendulum with every available controller")
+    demo.add_argument("--problem", default="pendulum")
+    demo.add_argument("--seed", type=int, default=0)
+    demo.add_argument("--out", default="results/demo", help="folder for the figure")
+    st = sub.add_parser("study", help="run one of the paper's studies (resumable) and write its report")
+    st.add_argument("name", choices=studies.NAMES, metavar="NAME", help=f"the study: {', '.join(studies.NAMES)}")
+    st.add_argument("--problem", action="append", metavar="SPEC",
+                    help=f"{', '.join(PROBLEM_STUDIES)}: run on this problem instead of the paper's (repeatable; "
+                         f"quick size: a test-sized grid). {SPEC_HELP}")
+    st.add_argument("--plant", default="ocpkit", choices=("ocpkit", "mujoco"),
+                    help="robustness: mujoco runs LinearMPC, RTI and EMPC against MuJoCo with unmodelled joint "
+                         "friction and armature (pip install \"ocpkit[mujoco]\"), as study robustness_mujoco")
+    _add_study_args(st)
+    rep = sub.add_parser("reproduce", help=f"run every study ({', '.join(studies.NAMES)}) and write report.md")
+    size = rep.add_mutually_exclusive_group()
+    size.add_argument("--quick", dest="size", action="store_const", const="quick", help="minutes (default)")
+    size.add_argument("--full", dest="size", action="store_const", const="full", help="paper scale")
+    rep.set_defaults(size="quick")
+    _add_study_args(rep, size=False)
+    exp = sub.add_parser("export", help="generate, build and check a C MPC step")
+    _add_problem_args(exp)
+    exp.add_argument("--form", default="condensed", choices=("sparse", "condensed"),
+                     help="QP transcription (default condensed, the one exported)")
+    exp.add_argument("--qp", default="daqp", choices=("daqp", "qrqp", "osqp", "hpipm"),
+                     help="QP backend (default daqp)")
+    exp.add_argument("--linearization", default="goal", choices=LINEARIZATIONS + (TRAJECTORY,),
+                     help="the affine model's expansion point, as solve's: goal (default), plan, or trajectory (the "
+                          "real-time iteration: per stage along the shifted plan)")
+    exp.add_argument("--iterations", type=int, default=1,
+                     help="--linearization trajectory: Gauss-Newton iterations per control step (default 1)")
+    exp.add_argument("--seed", type=int, default=0, help="seed of the example closed loop's start and goal")
+    exp.add_argument("--out", default="export", help="output folder (absent or empty unless --force)")
+    exp.add_argument("--force", action="store_true", help="export into a non-empty --out, overwriting its files")
+    pre = sub.add_parser("build", help="fill the cache ahead of deployment with what a controller loads: the default "
+                                       "LinearMPC's C step and compiled model, or with --solver and its options "
+                                       "(as simulate takes them) that controller's C step or Taichi kernels (a "
+                                       "read-only cache is then used as it is)")
+    _add_controller_args(pre)
+    bench = sub.add_parser("bench", help="benchmarks that print medians and ratios")
+    bench.add_argument("what", choices=tuple(BENCHMARKS))
+    bench.add_argument("--quick", action="store_true", help="a smaller grid (minutes instead of tens)")
+    bench.add_argument("--arch", choices=("auto", "cpu", "cuda"), help="empc: Taichi arch (default auto)")
+    bench.add_argument("--precision", choices=("float64", "float32"), help="empc: float type (default float64)")
+    bench.add_argument("--problem", action="append", metavar="SPEC",
+                       help=f"{'/'.join(PROBLEM_BENCHMARKS)}: benchmark this problem (repeatable). {SPEC_HELP}")
+    bench.add_argument("--integrator", choices=INTEGRATORS,
+                       help="nlp: every controller's prediction (default rk4; euler: semi-implicit; the plant: RK4)")
+    bench.add_argument("--seed", type=int, help="nlp: the first of the seeded starts and goals; startup: the seeded "
+                                                "start and goal (default 0)")
+    bench.add_argument("--busy", type=int, help="step: busy processes for the quiet-vs-loaded comparison (default 2; "
+                                                "0 skips it)")
+    bench.add_argument("--controller", action="append", metavar="NAME",
+                       help="nlp: a controller column (repeatable; default ipopt fatrop rti1 rti3 lti ltv); crocoddyl "
+                            "adds Crocoddyl's FDDP and its per-solve table (pip install \"ocpkit[peers]\"); startup: "
+                            "a controller row (repeatable; default linear linear-python rti ipopt fatrop empc cem mppi "
+                            "exported)")
+    return parser
+
+
+def _one_line_error(exc: BaseException) -> bool:
+    """Errors of the user's input or environment, shown as one line (anything else keeps its traceback)."""
+    # ImportError: an optional package missing, said with the pip command that installs it
+    if isinstance(exc, (ValueError, TypeError, OSError, ImportError)):
+        return True
+    kinds = [getattr(sys.modules.get(module), name, None) for module, name in (
+        ("ocpkit.store", "StoreError"), ("ocpkit.kernels.runtime", "ArchUnavailable"),
+        ("ocpkit.compiled", "CompileError"))]
+    return any(kind is not None and isinstance(exc, kind) for kind in kinds)
+
+
+def _debug_first(argv) -> list[str]:
+    """The arguments with ``--debug`` moved to the front, where the top-level parser takes it, so that it may be
+    written anywhere (``ocpkit solve X --debug``); arguments after ``--`` are left alone."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    end = argv.index("--") if "--" in argv else len(argv)
+    if "--debug" in argv[:end]:
+        argv = ["--debug", *(a for a in argv[:end] if a != "--debug"), *argv[end:]]
+    return argv
+
+
+def _error_line(exc: BaseException, debug: bool) -> str:
+    """The one line an error is shown as; a failure inside the user's own code points at --debug."""
+    from ocpkit.problem import ProblemError
+
+    hint = isinstance(exc, ProblemError) and exc.__cause__ is not None and not debug
+    return f"ocpkit: error: {exc}" + (" (--debug prints its traceback)" if hint else "")
+
+
+def _attach_values(argv) -> list[str]:
+    """``--target -0.3,0.5,0`` as ``--target=-0.3,0.5,0`` (and so --obstacle): argparse takes a value that starts
+    with '-' and is not one plain number for an option ("expected one argument")."""
+    out = []
+    for k, a in enumerate(argv):
+        if a == "--":
+            return out + list(argv[k:])
+        if out and out[-1] in ("--target", "--obstacle") and NUMBERS.match(a):
+            out[-1] = f"{out[-1]}={a}"
+        else:
+            out.append(a)
+    return out
+
+
+def main(argv=None) -> int:
+    args = _parser().parse_args(_attach_values(_debug_first(argv)))
+    try:
+        return COMMANDS[args.command](args)
+    except Exception as exc:
+        if not _one_line_error(exc):
+            raise
+        if args.debug:
+            import traceback
+
+            traceback.print_exception(exc, file=sys.stderr)
+        print(_error_line(exc, args.debug), file=sys.stderr)
+        return 2
+

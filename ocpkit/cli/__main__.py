@@ -1,0 +1,6 @@
+"""``python -m ocpkit.cli``: the `ocpkit` command."""
+import sys
+
+from ocpkit.cli import main
+
+sys.exit(main())

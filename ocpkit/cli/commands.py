@@ -1,0 +1,438 @@
+"""The commands of the command line: solve, simulate, demo, study, reproduce, export, build and bench."""
+from __future__ import annotations
+
+import dataclasses
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from ocpkit import problems, solvers
+from ocpkit.cli.checks import check_output_file, check_output_folder, check_size
+from ocpkit.cli.options import make_ocp, solver_options
+from ocpkit.cli.task import Reach, point_text, reach_line, reach_ocp, reach_panels, reach_report, reach_task
+from ocpkit.controller import Controller
+
+# Studies that take --problem, and benchmarks that take --problem (their `problems` argument).
+PROBLEM_STUDIES = ("knots", "horizon", "robustness")
+PROBLEM_BENCHMARKS = ("qp", "export", "nlp", "task", "startup")
+
+# `ocpkit bench NAME`: module in ocpkit.benchmarks, function, keyword arguments of --quick.
+BENCHMARKS = {
+    "qp": ("qp", "bench_qp", {"problems": ("pendulum:linear", "pendulum", "nlink:3"), "samples": 10}),
+    "empc": ("empc", "bench_empc", {"links": (1, 7, 13), "populations": (256, 1024), "horizons": (100,)}),
+    "export": ("export", "bench_export", {"problems": ["pendulum", "nlink:2", "nlink:3"]}),
+    "model": ("model", "bench_model", {"links": (1, 7, 13), "states": 5}),
+    "nlp": ("nlp", "bench_nlp", {"problems": ["pendulum", "nlink:2", "nlink:3"], "samples": 1, "steps": 5}),
+    "faults": ("faults", "bench_faults", {}),
+    "step": ("step", "bench_step", {"links": (1, 7, 13), "steps": 10}),
+    "task": ("task", "bench_task", {"problems": ("panda",), "steps": 100, "seeds": 1}),
+    "sensitivities": ("sensitivities", "bench_sensitivities", {"problems": ("puma560", "nlink:7"), "repeats": 50}),
+    "startup": ("startup", "bench_startup", {"problems": ("nlink:13",), "controllers": ("linear", "rti", "empc")}),
+}
+
+
+def _controller(args, task: Reach | None = None) -> tuple:
+    options = solver_options(args)
+    problem = problems.make(args.problem)
+    check_size(problem, args)
+    if task is None:
+        ocp = make_ocp(problem, args, error=args.error, compiled=args.compiled)
+    else:
+        ocp = reach_ocp(problem, args, task, error=args.error, compiled=args.compiled)
+    return problem, ocp, solvers.make(args.solver, ocp, **options)
+
+
+def _start(problem, ocp, seed: int, task: Reach | None) -> tuple:
+    """The seeded start and goal; with a reach task the goal is the target, at rest (joint velocities zero)."""
+    x0, goal = problem.sample(seed)
+    return (x0, goal) if task is None else (x0, ocp.goal(x0, position=task.target))
+
+
+def _solve(args):
+    task = reach_task(args)
+    problem, ocp, ctrl = _controller(args, task)
+    x0, goal = _start(problem, ocp, args.seed, task)
+    sol = ctrl.solve(x0, goal)
+    extra = {}
+    if task is not None:  # the plan: the OCP's model from x0 under the solved knots, x_0 … x_T
+        extra["reach"] = reach_report(problem, ocp, task, ctrl.rollout(x0, ocp.parameterization.inputs(sol.knots)))
+    if args.json:
+        print(json.dumps({"problem": args.problem, "solver": args.solver, "controller": repr(ctrl),
+                          "x0": x0.tolist(), "goal": goal.tolist(), **sol.to_dict(), **extra}))
+    else:
+        print(f"{ctrl!r}\nx0 = {x0}, goal = {goal}\nu = {sol.u}  status = {sol.status} ({sol.raw_status}), "
+              f"{sol.iterations} iterations, total {1e3 * sol.times['total']:.3f} ms")
+        if task is not None:
+            print(reach_line(extra["reach"], f"at the plan's end (x_T, T = {ocp.horizon}, the OCP's model)"))
+    return 0 if sol.ok else 1
+
+
+def _run_closed_loop(problem, ctrl: Controller, seed: int, duration: float | None = None, start=None, plant=None):
+    """The closed loop from the seeded start (or ``start``, (x0, goal)) against ``plant`` (default the problem's),
+    after one untimed solve that compiles what the controller needs (Taichi kernels take seconds): said on stderr
+    when it takes over a second, never counted in the step times."""
+    import time
+
+    from ocpkit.metrics import actual_cost
+    from ocpkit.simulate import simulate
+
+    x0, goal = problem.sample(seed) if start is None else start
+    start = time.perf_counter()
+    ctrl.solve(x0, goal)  # simulate() resets the controller: this solve only compiles and warms up
+    first = time.perf_counter() - start
+    if first > 1.0:
+        print(f"  ({ctrl!r}: first solve, compiling, took {first:.1f} s; not in the step times)", file=sys.stderr)
+    traj = simulate(plant or problem.plant(), ctrl, x0, goal, duration or problem.duration)
+    return traj, actual_cost(traj, ctrl.ocp)
+
+
+def _labels(problem) -> dict:
+    """The plant's state and input names for the figure's axes, with units where the joints say them: a revolute
+    joint's angle [rad], rate [rad/s] and torque (an input named tau…) [N·m], a prismatic one's [m], [m/s], [N];
+    a set-point input has its joint's position unit. Joints from the problem's kinematics (the pendulum's one
+    joint is revolute); other problems' names are shown as their model gives them."""
+    plant = problem.plant()
+    if hasattr(type(problem), "kinematics"):
+        revolute = list(problem.kinematics.chain.revolute)
+    else:
+        revolute = [True] if problem.name.startswith("pendulum") else []
+    n = len(revolute)
+    if not n or plant.nx != 2 * n or plant.nu != n:
+        return {"state_names": plant.state_names, "input_names": plant.input_names}
+    position, rate = (["rad" if r else "m" for r in revolute], ["rad/s" if r else "m/s" for r in revolute])
+    effort = [("N·m" if r else "N") if name.startswith("tau") else p
+              for r, name, p in zip(revolute, plant.input_names, position)]
+    return {"state_names": [f"{s} [{u}]" for s, u in zip(plant.state_names, position + rate)],
+            "input_names": [f"{s} [{u}]" for s, u in zip(plant.input_names, effort)]}
+
+
+def _time_summary(traj) -> dict:
+    t = traj.times("total")
+    return {"median_ms": 1e3 * float(np.median(t)), "p90_ms": 1e3 * float(np.percentile(t, 90)),
+            "max_ms": 1e3 * float(t.max())}
+
+
+def _plant(problem, args):
+    """The plant of --plant: None for the problem's own, else a MuJoCoPlant of its robot or of --mjcf."""
+    if args.plant == "ocpkit":
+        return None
+    from ocpkit.mujoco_plant import MuJoCoPlant
+
+    joint_map = None
+    if args.joint_map:
+        items = [item.strip() for item in args.joint_map.split(",")]
+        pairs = [item.partition("=") for item in items]
+        if any(sep for _, sep, _ in pairs) and not all(sep and a and b for a, sep, b in pairs):
+            raise ValueError(f"--joint-map must be MJCF joint names J1,J2,… or pairs NAME=J,…, got {args.joint_map!r}")
+        joint_map = {a: b for a, _, b in pairs} if pairs[0][1] else items
+    return MuJoCoPlant(problem, mjcf=args.mjcf, joint_map=joint_map)
+
+
+def _simulate(args):
+    from ocpkit import plots
+
+    check_output_file(args.out, "--out")
+    if args.animate is not None:
+        from ocpkit import animation
+
+        check_output_file(animation.check_path(args.animate, "--animate"), "--animate")
+    task = reach_task(args)
+    if args.plant != "mujoco" and (args.mjcf or args.joint_map):
+        raise ValueError(f"{'--mjcf' if args.mjcf else '--joint-map'} applies to --plant mujoco only")
+    if args.joint_map and not args.mjcf:
+        raise ValueError("--joint-map names the joints of an MJCF file: give --mjcf too")
+    problem, ocp, ctrl = _controller(args, task)
+    plant = _plant(problem, args)
+    if args.animate is not None:
+        animation.Skeleton(problem, None if task is None else task.frame)  # a robot it cannot draw fails before the run
+    traj, cost = _run_closed_loop(problem, ctrl, args.seed, args.duration, start=_start(problem, ocp, args.seed, task),
+                                  plant=plant)
+    shown, title = traj, f"{args.problem}, seed {args.seed}" + (", MuJoCo plant" if args.plant == "mujoco" else "")
+    if task is not None:
+        # the joint angles have no goal in a reach task (x_goal's angles are the start's, weighted zero): none drawn
+        goal = traj.goal.copy()
+        goal[:problem.kinematics.n] = np.nan
+        shown = dataclasses.replace(traj, goal=goal)
+        title += f", {task.frame} to {point_text(task.target)}"
+    panels = None if task is None else reach_panels(problem, ocp, task, traj.x)
+    fig = plots.closed_loop({repr(ctrl): shown}, args.out, title=title, task=panels, **_labels(problem))
+    summary = {"problem": args.problem, "solver": args.solver, "controller": repr(ctrl), "actual_cost": cost,
+               "fallbacks": traj.fallbacks, "fallback_causes": traj.fallback_causes(), "steps": len(traj.solutions),
+               "total_time": _time_summary(traj),
+               "figure": str(fig), "plant": "ocpkit" if plant is None else repr(plant)}
+    if task is not None:
+        summary["reach"] = reach_report(problem, ocp, task, traj.x, dt=float(traj.t[1] - traj.t[0]))
+    if args.animate is not None:  # a reach task's target and obstacles drawn, else the joint goal's pose
+        scene = {} if task is None else {"target": task.target, "obstacles": task.obstacles, "frame": task.frame}
+        summary["animation"] = str(animation.animate(traj, args.animate, problem, title=title, **scene))
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        causes = f" ({summary['fallback_causes']})" if traj.fallbacks else ""
+        print(f"{ctrl!r}: actual cost {cost:.4f}, {traj.fallbacks} fallbacks{causes} in {len(traj.solutions)} steps, "
+              f"total solve time median {summary['total_time']['median_ms']:.3f} ms "
+              f"(p90 {summary['total_time']['p90_ms']:.3f}, max {summary['total_time']['max_ms']:.3f})\n"
+              f"figure: {fig}" + ("" if plant is None else f"\nplant: {plant!r}"))
+        if task is not None:
+            print(reach_line(summary["reach"], f"after {traj.t[-1]:g} s"))
+        if args.animate is not None:
+            print(f"animation: {summary['animation']}")
+    return 0
+
+
+def _demo(args):
+    """Every registered controller configuration on one seeded pendulum swing, side by side."""
+    from ocpkit import plots
+    from ocpkit.solvers.qp import LinearMPC
+
+    check_output_folder(args.out, "--out")
+    problem = problems.make(args.problem)
+    x0, goal = problem.sample(args.seed)
+    configs = {}
+    for knots in (None, 5):
+        label = "traditional" if knots is None else f"knots={knots}"
+        ocp = problem.ocp(knots=knots)
+        for form in ("sparse", "condensed"):
+            for qp in ("proxqp", "osqp"):
+                configs[f"qp {form} {qp} {label}"] = LinearMPC(ocp, form=form, qp=qp)
+        for name in solvers.names():
+            if name != "qp":
+                configs[f"{name} {label}"] = solvers.make(name, ocp)
+    print(f"{args.problem}: x0 = {np.round(x0, 3)}, goal = {np.round(goal, 3)}, {problem.duration} s at "
+          f"{1 / problem.dt:.0f} Hz, horizon {problem.horizon}")
+    print(f"{'controller':36} {'actual cost':>12} {'ratio':>8} {'median ms':>10} {'p90 ms':>8} {'fallbacks':>9}")
+    trajs, base = {}, None
+    for label, ctrl in configs.items():
+        traj, cost = _run_closed_loop(problem, ctrl, args.seed)
+        base = cost if base is None else base
+        t = _time_summary(traj)
+        print(f"{label:36} {cost:12.4f} {cost / base:8.4f} {t['median_ms']:10.3f} {t['p90_ms']:8.3f} "
+              f"{traj.fallbacks:9d}")
+        trajs[label] = traj
+    fig = plots.closed_loop(trajs, Path(args.out) / f"{args.problem}.png",
+                            title=f"{args.problem}: closed loop, seed {args.seed}", **_labels(problem))
+    print(f"ratio = actual cost / first row's; figure: {fig}")
+    return 0
+
+
+def _study_options(args) -> dict:
+    """The study runner's options from the command line, with the output paths and the scheduler checked first."""
+    from ocpkit.study import check_scheduler
+
+    check_output_folder(args.out, "--out")
+    if args.export is not None:
+        check_output_file(args.export, "--export")
+    if args.trial_timeout is not None and not args.trial_timeout > 0:
+        raise ValueError(f"--trial-timeout must be a positive number of seconds, got {args.trial_timeout}")
+    if args.scheduler is not None:
+        check_scheduler(args.scheduler)
+    return {"trial_timeout": args.trial_timeout, "retry_failed": args.retry_failed, "stale": args.stale}
+
+
+def _export_store(args) -> None:
+    if args.export is not None:
+        from ocpkit.store import Store
+
+        with Store(args.out) as store:
+            print(f"results database: {store.export(args.export)}")
+
+
+def _study(args):
+    from ocpkit.studies.reproduce import run_study
+
+    options = _study_options(args)
+    if args.plant != "ocpkit" and args.name != "robustness":
+        raise ValueError(f"--plant applies to the robustness study only, not {args.name!r}")
+    if args.problem:
+        section = _study_problems(args, options)
+    else:
+        section = run_study(args.name, args.size, args.out, workers=args.workers, scheduler=args.scheduler,
+                            plant=args.plant, **options)
+    path = Path(args.out) / f"{args.name}{'' if args.plant == 'ocpkit' else '_' + args.plant}.md"
+    path.write_text(section)
+    print(section + f"\nreport: {path}")
+    _export_store(args)
+    return 0
+
+
+def _study_problems(args, options) -> str:
+    """A closed-loop study on the problems of --problem: its table (CSV), figures and report section."""
+    from ocpkit import study as study_runner
+    from ocpkit.studies import get
+
+    if args.name not in PROBLEM_STUDIES:
+        raise ValueError(f"--problem applies to the studies {', '.join(PROBLEM_STUDIES)}, not {args.name!r}")
+    module = get(args.name)
+    out = Path(args.out)
+    study = module.study(args.size, problems=args.problem, **({} if args.plant == "ocpkit" else {"plant": args.plant}))
+    df = study_runner.run(study, out, workers=args.workers, scheduler=args.scheduler, **options)
+    df.to_csv(out / f"{study.name}.csv", index=False)
+    failed = df[df["status"] == "failed"]
+    if len(failed) == len(df):
+        raise ValueError(f"every trial of {args.name} failed; first error: {failed['error'].iloc[0].splitlines()[0]}")
+    return module.report(df, out) + study_runner.failure_summary(df) + study_runner.cluster_summary(df)
+
+
+def _reproduce(args):
+    from ocpkit.studies.reproduce import reproduce
+
+    options = _study_options(args)
+    report = reproduce(args.size, args.out, workers=args.workers, scheduler=args.scheduler, **options)
+    print(f"report: {report}")
+    _export_store(args)
+    return 0
+
+
+def _bench(args):
+    import importlib
+
+    module, function, quick = BENCHMARKS[args.what]
+    options = {k: getattr(args, k) for k in ("arch", "precision") if getattr(args, k) is not None}
+    if options and args.what != "empc":
+        raise ValueError(f"--{next(iter(options))} applies to `ocpkit bench empc` only")
+    if args.busy is not None:
+        if args.what != "step":
+            raise ValueError("--busy applies to `ocpkit bench step` only")
+        if args.busy < 0:
+            raise ValueError(f"--busy must be >= 0, got {args.busy}")
+        options["busy"] = args.busy
+    # option: {benchmark: (its keyword, type)}
+    chosen = {"controller": {"nlp": ("controllers", tuple), "startup": ("controllers", tuple)},
+              "integrator": {"nlp": ("integrator", str)},
+              "seed": {"nlp": ("first_seed", int), "startup": ("seed", int)}}
+    for option, where in chosen.items():
+        value = getattr(args, option)
+        if value is not None:
+            if args.what not in where:
+                raise ValueError(f"--{option} applies to `ocpkit bench {'|'.join(where)}` only")
+            keyword, kind = where[args.what]
+            options[keyword] = kind(value)
+    kwargs = dict(quick) if args.quick else {}
+    if args.problem:
+        if args.what not in PROBLEM_BENCHMARKS:
+            raise ValueError(f"--problem applies to `ocpkit bench {'|'.join(PROBLEM_BENCHMARKS)}` only")
+        for spec in args.problem:
+            problems.make(spec)  # a bad spec fails before any benchmark starts
+        kwargs["problems"] = list(args.problem)
+    bench = getattr(importlib.import_module(f"ocpkit.benchmarks.{module}"), function)
+    bench(**kwargs, **options)
+    return 0
+
+
+def _prebuild(args):
+    """`ocpkit build`: what the default LinearMPC of the problem's OCP loads from the cache — its C step and the
+    compiled affine model of its Python step — built into the cache unless there (and loading), paths printed; with
+    another solver or options, :func:`_prebuild_controller`."""
+    import time
+
+    from ocpkit import compiled, native
+    from ocpkit.cache import cache_root
+    from ocpkit.ocp import BACKGROUND_MIN_INSTRUCTIONS
+    from ocpkit.solvers.qp import LinearMPC
+
+    print(f"cache: {cache_root()} (set OCPKIT_CACHE_DIR to fill another)")
+    if args.solver != "qp" or solver_options(args):
+        return _prebuild_controller(args)
+    problem = problems.make(args.problem)
+    ocp = make_ocp(problem, args, error=args.error, compiled=args.compiled)
+    size = ocp.model.jacobian.n_instructions()
+    start = time.time()
+    if native.wanted(ocp):
+        LinearMPC(ocp, native=True)  # builds the C step here and now (or finds it), and loads it
+        for folder in native.built(ocp):
+            library = folder / f"lib{native.NAME}.so"
+            print(f"C step (LinearMPC: condensed, daqp, linearization goal): {library} ({_how(library, start)})")
+    else:
+        why = ("a linear model" if ocp.model.linear else
+               f"a model of {size} VM instructions, below {BACKGROUND_MIN_INSTRUCTIONS}"
+               if size < BACKGROUND_MIN_INSTRUCTIONS else
+               f"a knot QP of {ocp.knots * ocp.nu} variables, over ocpkit.native.MAX_VARIABLES = "
+               f"{native.MAX_VARIABLES}")
+        print(f"C step: none (the default LinearMPC keeps its Python step here: {why})")
+    if size >= BACKGROUND_MIN_INSTRUCTIONS:
+        start = time.time()
+        library = compiled.prebuild(ocp.model.affine(ocp.dt, ocp.substeps, ocp.integrator))
+        print(f"compiled affine model (the Python step's): {library} ({_how(library, start)})")
+    else:
+        print(f"compiled affine model: none (a model of {size} VM instructions, below {BACKGROUND_MIN_INSTRUCTIONS}, "
+              f"stays on CasADi's VM)")
+    return 0
+
+
+def _prebuild_controller(args):
+    """`ocpkit build --solver …`: the controller as `simulate` constructs it, one step from the seeded start (a
+    Taichi kernel compiles at its first launch, into the cache) and its background builds waited for."""
+    import time
+
+    start = time.perf_counter()
+    problem, ocp, ctrl = _controller(args)
+    x0, goal = problem.sample(args.seed)
+    sol = ctrl.solve(x0, goal)
+    ctrl.wait_compiled()
+    print(f"{ctrl!r}: first step {sol.status} by {sol.path}; ready in {time.perf_counter() - start:.1f} s, now "
+          f"answering by {ctrl.path}")
+    return 0
+
+
+def _how(library: Path, start: float) -> str:
+    return "built now" if library.stat().st_mtime >= start - 0.05 else "already in the cache"
+
+
+def _export(args):
+    from ocpkit.export import BuildError, build, check_tools, export
+
+    try:
+        check_tools()  # before any work: a missing cc or make is one line
+        problem = problems.make(args.problem)
+        ocp = make_ocp(problem, args)
+        x0, goal = problem.sample(args.seed)
+        exported = export(ocp, args.out, form=args.form, qp=args.qp, linearization=args.linearization, x0=x0,
+                          goal=goal, force=args.force, iterations=args.iterations)
+        build(args.out)
+    except BuildError as exc:
+        print(f"ocpkit: error: {exc}", file=sys.stderr)
+        return 2
+    du, steps, failures = _round_trip(problem, ocp, args, exported)
+    ok = failures == 0 and du <= 1e-6
+    print(f"exported and built {args.problem} ({args.form}, {ocp.parameterization.kind} with {ocp.knots} knots over "
+          f"T = {ocp.horizon}, {args.qp}, linearization {args.linearization}) in {exported.out_dir}; "
+          f"see {Path(args.out) / 'README.md'}\nround trip: the compiled step vs the same step in Python over {steps} "
+          f"closed-loop steps from seed {args.seed}: max |du| = {du:.2e}, {failures} non-successes — "
+          f"{'agree' if ok else 'DISAGREE'}")
+    return 0 if ok else 1
+
+
+def _round_trip(problem, ocp, args, exported, steps: int = 20):
+    """The compiled step (through ctypes) and LinearMPC in Python on the same closed loop (the discrete model,
+    driven by LinearMPC's input): their largest first-input difference and the steps where either failed."""
+    from ocpkit.export import ExportedMPC
+    from ocpkit.problem import check_dynamics
+    from ocpkit.solvers.nlp import RealTimeIteration
+    from ocpkit.solvers.qp import LinearMPC
+
+    c = ExportedMPC(ocp, exported.out_dir, name=exported.name)
+    if exported.linearization == "trajectory":
+        py = RealTimeIteration(ocp, iterations=args.iterations, eps=1e-10, native=False)
+    else:
+        py = LinearMPC(ocp, form="condensed", eps=1e-10, linearization=exported.linearization, native=False)
+    F = ocp.discrete()
+    x, goal = problem.sample(args.seed)
+    du, failures = 0.0, 0
+    for k in range(steps):
+        a, b = py.solve(x, goal), c.solve(x, goal)
+        failures += (not a.ok) + (not b.ok)
+        du = max(du, float(np.abs(a.u - b.u).max()))
+        x_next = np.asarray(F(x, a.u)).ravel()
+        if not np.isfinite(x_next).all():  # NaN dynamics are named as such (DynamicsError), else the step diverged
+            check_dynamics(ocp.model, x, a.u, dt=ocp.dt, substeps=ocp.substeps,
+                           context=f"the round trip's closed loop, step {k + 1}")
+            raise ValueError(f"the round trip's closed loop diverged at step {k + 1}: the discrete model "
+                             f"from x = {x.tolist()}, u = {a.u.tolist()} is not finite")
+        x = x_next
+    return du, steps, failures
+
+
+COMMANDS = {"solve": _solve, "simulate": _simulate, "demo": _demo, "study": _study, "reproduce": _reproduce,
+            "export": _export, "bench": _bench, "build": _prebuild}

@@ -1,0 +1,95 @@
+"""The solver and OCP that the command line's options ask for: each option checked against the solver it applies to,
+the knot count and the OCP."""
+from __future__ import annotations
+
+from ocpkit import solvers
+from ocpkit.controller import LINEARIZATIONS, TRAJECTORY
+
+SPEC_HELP = ("problem spec: a registered name (pendulum, pendulum:linear, nlink:N with N = 1…13, puma560, baxter, "
+             "panda, urdf:FILE), package.module:Name or path/to/file.py:Name (a Problem subclass, instance or factory; "
+             "':arg' passes through)")
+# Knot points p of solve, simulate and export unless --knots or --parameterization identity says otherwise: the
+# README's examples and the C step's size (traditional MPC, p = T, makes EMPC compile for minutes).
+DEFAULT_KNOTS = 5
+# The solvers' own choices, written out so that `ocpkit --help` does not import every solver (half a second);
+# tests/test_cli.py checks them against solvers.nlp.METHODS/DYNAMICS, solvers.qp.QP_SOLVERS, solvers.sampling.VARIANTS.
+NLP_METHODS = ("ipopt", "sqp", "fatrop", "rti")
+DYNAMICS = ("nonlinear", "affine")
+QP_BACKENDS = ("proxqp", "osqp", "daqp", "hpipm")
+VARIANTS = ("preconditioned", "paper")
+SAMPLING = ("empc", "cem", "mppi")
+
+
+# Solver-specific options: where each applies, as (test of the configuration, where it applies in words). A given
+# option that does not apply is an error naming it and the solver, never silently dropped.
+_SOLVER_OPTIONS = {
+    "form": (lambda c: c.solver == "qp" or c.method == "rti", "solver qp, and solver ipopt with --method rti"),
+    "qp": (lambda c: c.solver == "qp" or c.method == "rti", "solver qp, and solver ipopt with --method rti"),
+    "method": (lambda c: c.solver == "ipopt", "solver ipopt"),
+    "iterations": (lambda c: c.method == "rti", "solver ipopt with --method rti"),
+    "dynamics": (lambda c: c.method in ("ipopt", "sqp") or c.solver in SAMPLING,
+                 f"solver ipopt with --method ipopt or sqp, and solvers {', '.join(SAMPLING)}"),
+    "linearization": (lambda c: c.solver == "qp" or c.dynamics == "affine" or c.variant == "preconditioned",
+                      f"solver qp, solver ipopt with --method ipopt or sqp and --dynamics affine, and solvers "
+                      f"{', '.join(SAMPLING)} unless --dynamics nonlinear --variant paper (they linearize nothing)"),
+    **{name: (lambda c: c.solver in SAMPLING, f"solvers {', '.join(SAMPLING)}")
+       for name in ("population", "generations", "arch", "variant")},
+}
+
+
+class _Config:
+    """The solver configuration the command line asks for, with the solvers' defaults filled in (None: not
+    this solver's setting)."""
+
+    def __init__(self, args):
+        self.solver = args.solver
+        self.method = (args.method or "ipopt") if args.solver == "ipopt" else None
+        self.dynamics = self.variant = None
+        if self.method in ("ipopt", "sqp"):
+            self.dynamics = args.dynamics or "nonlinear"
+        elif args.solver in SAMPLING:
+            self.dynamics, self.variant = args.dynamics or "affine", args.variant or "preconditioned"
+
+    def describe(self, option: str) -> str:
+        """The configuration in the words of the command line, with what decides whether ``option`` applies."""
+        settings = [f"--method {self.method}"] if self.method else []
+        if option == "linearization":
+            settings += [f"--{k} {v}" for k, v in (("dynamics", self.dynamics), ("variant", self.variant)) if v]
+        return f"solver {self.solver!r}" + (f" with {' '.join(settings)}" if settings else "")
+
+
+def solver_options(args) -> dict:
+    """The solver's keyword arguments from the command line; an option that does not apply to the chosen solver
+    (and method, dynamics, variant) is a ValueError naming both."""
+    if args.solver not in solvers.names():
+        raise ValueError(f"unknown solver {args.solver!r}; known: {', '.join(solvers.names())}")
+    config = _Config(args)
+    given = {k: getattr(args, k) for k in _SOLVER_OPTIONS if getattr(args, k) is not None}
+    for option in given:
+        applies, where = _SOLVER_OPTIONS[option]
+        if not applies(config):
+            why = " (--method rti always linearizes along its iterate)" if option == "linearization" and \
+                config.method == "rti" else ""
+            raise ValueError(f"--{option} does not apply to {config.describe(option)}{why}: it applies to {where}")
+    if given.get("linearization") == TRAJECTORY and args.solver != "qp":
+        raise ValueError(f"--linearization trajectory applies to solver qp only; {config.describe('')} takes "
+                         f"{' or '.join(LINEARIZATIONS)}")
+    return given
+
+
+def knot_count(problem, args) -> int | None:
+    """The knot count p of the OCP (None: traditional MPC, p = T): --knots, or DEFAULT_KNOTS capped at the horizon."""
+    if args.parameterization == "identity":
+        if args.knots is not None:
+            raise ValueError(f"--knots {args.knots} does not apply to --parameterization identity (traditional MPC "
+                             f"has one knot per step, p = T); give one of them")
+        return None
+    if args.knots is not None:
+        return args.knots
+    T = problem.horizon if args.horizon is None else args.horizon
+    return min(DEFAULT_KNOTS, T) if T >= 1 else DEFAULT_KNOTS  # a bad horizon: the OCP's own check names it
+
+
+def make_ocp(problem, args, **options):
+    return problem.ocp(knots=knot_count(problem, args), horizon=args.horizon, parameterization=args.parameterization,
+                       integrator=args.integrator, **options)
