@@ -1,8 +1,9 @@
 """Studies: a trial function run over a grid of parameter sets, resumably and in parallel.
 
-Trials run in local worker processes (spawn-started) or on a Dask distributed cluster; the
-parent process writes each finished trial to the :mod:`ocpkit.store` as it completes, so an
-interrupted study resumes where it stopped and a trial that raises is stored as failed.
+Trials run in local worker processes (spawn-started) or on a Dask distributed cluster (whose scheduler and
+workers must run this process's ocpkit version and code); the parent process writes each finished trial to the
+:mod:`ocpkit.store` as it completes (workers never write it), so an interrupted study resumes where it stopped and a
+trial that raises is stored as failed.
 Before a trial starts, the parent **claims** it in the store (a lease renewed by a heartbeat),
 so several processes on one folder share the grid and run each trial once, and the trials of
 a claimant that died are taken over. Each trial records the package version and a hash of the
@@ -50,8 +51,9 @@ class TrialTimeout(Exception):
     """Raised inside a trial that ran longer than its timeout."""
 
 
-class WorkerMismatchError(ValueError):
-    """A Dask worker lacks ocpkit or runs another version of it, other study code or other numerical libraries."""
+class ClusterMismatchError(ValueError):
+    """A Dask scheduler or worker cannot import ocpkit or the trial, or runs another ocpkit version, other study code
+    or other numerical libraries than the process running the study."""
 
 
 class SchedulerLostError(ConnectionError):
@@ -143,9 +145,10 @@ def run(study: Study, out_dir, *, workers: int | None = None, scheduler: str | N
     """Run the study's trials not yet stored in ``out_dir`` and return all its trials as a table.
 
     Trials run on ``workers`` local processes (default: one per CPU), or on the Dask cluster
-    at ``scheduler`` ("tcp://host:port"). Each trial is claimed in the store before it starts, so
-    other processes running the same study on the same folder take other trials; a claim lives
-    ``lease`` seconds unless renewed (a heartbeat renews it while this process runs), and the
+    at ``scheduler`` ("tcp://host:port"; :class:`ClusterMismatchError` if its scheduler or a worker runs another
+    ocpkit version or other code, :class:`SchedulerLostError` if the scheduler goes away). Each trial is claimed in
+    the store before it starts, so other processes running the same study on the same folder take other trials; a
+    claim lives ``lease`` seconds unless renewed (a heartbeat renews it while this process runs), and the
     claims of a process that died on this host are taken over at once. Each finished trial is
     committed as it arrives; a trial that raises (or kills its worker, or runs longer than
     ``trial_timeout`` seconds) is stored as failed and the rest go on. Stored failures are
@@ -569,6 +572,9 @@ def check_scheduler(scheduler: str, timeout: float = 5.0) -> None:
 
 def _dask_outcomes(Client, fn, source: _Claims, scheduler: str, timeout: float | None, mine: _Provenance,
                    placement: Counter):
+    """The generator behind :func:`_run_dask`. The scheduler, then each worker as it joins, is refused unless it
+    runs this process's ocpkit version (:func:`_check_versions`); each worker checks its code on its first trial
+    (:func:`_execute_remote`). Dask reruns the trials of a worker that died on the others."""
     with _quiet_once_lost() as lost, Client(scheduler, timeout="10s") as client:
         running = {}  # future -> (params, when submitted)
         _check_versions(client, [], mine.version, scheduler)
@@ -599,23 +605,7 @@ def _dask_outcomes(Client, fn, source: _Claims, scheduler: str, timeout: float |
                     wait_s = min(wait_s, max(0.05, first - time.monotonic()))
                 for future in _dask_wait_or_none(list(running), wait_s):
                     params, _ = running.pop(future)
-                    try:
-                        address, outcome = future.result()
-                    except ImportError as exc:  # unpickling the trial failed there (its own import errors are outcomes)
-                        raise WorkerMismatchError(f"a Dask worker cannot load the trial ({type(exc).__name__}: {exc}); "
-                                                  f"{_SAME}") from None
-                    except CancelledError:
-                        raise
-                    except Exception as exc:  # e.g. KilledWorker: the trial took down its workers repeatedly
-                        if "deserialization of the task graph" in str(exc):  # Dask's words for it, on the scheduler
-                            raise WorkerMismatchError(f"the Dask scheduler at {scheduler} cannot load the trial "
-                                                      f"({str(exc).splitlines()[0]}): {_SAME}") from None
-                        address, outcome = None, _failure(f"{type(exc).__name__}: {exc}")
-                    future.release()
-                    if "mismatch" in outcome:
-                        theirs, manifest = outcome["mismatch"]
-                        raise WorkerMismatchError(_mismatch_message(f"worker {address}", theirs, mine.version, manifest,
-                                                                    mine.manifests[mine.codes[canonical_key(params)]]))
+                    address, outcome = _received(future, params, scheduler, mine)
                     if address is not None:
                         placement[address] += 1
                     yield params, outcome
@@ -637,6 +627,31 @@ def _dask_outcomes(Client, fn, source: _Claims, scheduler: str, timeout: float |
                 "the same command to resume") from None
 
 
+def _received(future, params: dict, scheduler: str, mine: _Provenance) -> tuple[str | None, dict]:
+    """A finished Dask future's (worker address, outcome), releasing it; raises :class:`ClusterMismatchError` when
+    the scheduler or the worker could not load the trial or the worker runs other code, CancelledError when the
+    future was cancelled (the scheduler went away)."""
+    try:
+        address, outcome = future.result()
+    except ImportError as exc:  # unpickling the trial failed on the worker (the trial's import errors are outcomes)
+        raise ClusterMismatchError(f"a Dask worker cannot load the trial ({type(exc).__name__}: {exc}); {_SAME}") \
+            from None
+    except CancelledError:
+        raise
+    except Exception as exc:  # e.g. KilledWorker: the trial took down its workers repeatedly
+        if "deserialization of the task graph" in str(exc):  # Dask's words for it failing on the scheduler
+            raise ClusterMismatchError(f"the Dask scheduler at {scheduler} cannot load the trial "
+                                       f"({str(exc).splitlines()[0]}): {_SAME}") from None
+        return None, _failure(f"{type(exc).__name__}: {exc}")
+    finally:
+        future.release()
+    if "mismatch" in outcome:
+        theirs, manifest = outcome["mismatch"]
+        raise ClusterMismatchError(_mismatch_message(f"worker {address}", theirs, mine.version, manifest,
+                                                     mine.manifests[mine.codes[canonical_key(params)]]))
+    return address, outcome
+
+
 def _check_versions(client, workers: list, version: str, scheduler: str | None = None) -> None:
     """Refuse the Dask ``workers``, and the scheduler at ``scheduler`` if given (it unpickles every trial too), that
     cannot import ocpkit or run another version of it, before they get a trial (it could not be unpickled there, or
@@ -653,10 +668,10 @@ def _check_versions(client, workers: list, version: str, scheduler: str | None =
                      client.run(package_version, workers=workers, on_error="return").items())
     for where, theirs in found.items():
         if isinstance(theirs, BaseException):
-            raise WorkerMismatchError(f"the Dask {where} cannot import ocpkit ({theirs}), this process runs ocpkit "
-                                      f"{version}: {_SAME}")
+            raise ClusterMismatchError(f"the Dask {where} cannot import ocpkit ({theirs}), this process runs ocpkit "
+                                       f"{version}: {_SAME}")
         if theirs != version:
-            raise WorkerMismatchError(_mismatch_message(where, theirs, version))
+            raise ClusterMismatchError(_mismatch_message(where, theirs, version))
 
 
 _VERIFIED: set = set()  # (version, code hash) pairs a Dask worker process found its own code to match

@@ -50,7 +50,7 @@ class Cluster:
     (a worker's nanny and worker process die together), all killed by :meth:`close`."""
 
     def __init__(self, folder: Path):
-        self.folder, self.processes, self.address = folder, [], None
+        self.folder, self.processes, self.address, self.scheduler_process = folder, [], None, None
         folder.mkdir(parents=True, exist_ok=True)
 
     def _start(self, command: str, name: str, *args):
@@ -68,7 +68,7 @@ class Cluster:
         file = self.folder / f"{name}.json"
         process = self._start("scheduler", name, "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
                               "--scheduler-file", file, "--idle-timeout", "600")
-        self.address = json.loads(_wait_for(lambda: file.exists() and file.read_text(), process, "scheduler"))["address"]
+        self.address = _wait_for(lambda: _read_json(file).get("address"), process, "scheduler")
         self.scheduler_process = process
         return self.address
 
@@ -94,7 +94,7 @@ class Cluster:
         except ProcessLookupError:
             pass
         process.wait()
-        if hasattr(process, "name") and self.scheduler_process.poll() is None:
+        if hasattr(process, "name") and self.scheduler_process.poll() is None:  # a worker, its scheduler alive
             self._until(lambda names: process.name not in names, self.scheduler_process, "scheduler")
 
     def _until(self, condition, process, what: str) -> None:
@@ -108,6 +108,14 @@ class Cluster:
     def close(self) -> None:
         for process in self.processes:
             self.kill(process)
+
+
+def _read_json(path: Path) -> dict:
+    """The JSON object in ``path``; {} while it is missing or half written."""
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
 
 
 def _wait_for(ready, process, what: str, timeout: float = 120):
@@ -269,8 +277,8 @@ def test_a_worker_without_ocpkit_or_with_another_version_or_other_code_is_refuse
 def test_the_trial_timeout_holds_on_remote_workers(cluster, tmp_path):
     address = cluster.scheduler()
     cluster.workers(2)
-    # x = 0 runs long in Python: its worker raises the timeout inside it and goes on with the next trial;
-    # x = 1 runs long in C: the client abandons it after a grace period. The rest are quick.
+    # x = 10 runs long in Python: its worker raises the timeout inside it and goes on with the next trial;
+    # x = 11 runs long in C: the client abandons it after a grace period. The rest are quick.
     study = Study("spin", spin, grid(x=range(6), seeds=1, seconds=0.0) + [
         {"x": 10, "seed": 0, "seconds": 60.0}, {"x": 11, "seed": 0, "seconds": 60.0, "in_c": True}])
     df = run(study, tmp_path / "dask", scheduler=address, trial_timeout=1.0, progress=False).set_index("x")

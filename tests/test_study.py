@@ -15,7 +15,7 @@ import pandas as pd
 import pytest
 
 from ocpkit.store import FILENAME, Store, canonical_key
-from ocpkit.study import Study, grid, run
+from ocpkit.study import Study, cluster_summary, grid, run
 
 LOG = "OCPKIT_TEST_TRIAL_LOG"  # folder where trials leave one file per execution
 TIMING = ["wall_time", "started", "finished"]
@@ -285,7 +285,14 @@ def test_dask_local_cluster_matches_local_processes(tmp_path):
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
                                   dashboard_address=None) as cluster:
         remote = run(study, tmp_path / "dask", scheduler=cluster.scheduler_address, progress=False)
+        workers = set(cluster.scheduler_info["workers"])
     columns = TIMING + ["traceback"]  # tracebacks name the worker's frames
     pd.testing.assert_frame_equal(local.drop(columns=columns), remote.drop(columns=columns))
     with Store(tmp_path / "dask") as store:
         np.testing.assert_array_equal(store.arrays("sq", study.trials[5])["traj"], [0.0, 2.0, 4.0])
+    # Where they ran: each of the cluster's workers, their counts summing to the grid; said in the report.
+    where = remote.attrs["cluster"]["workers"]
+    assert set(where) <= workers and sum(where.values()) == len(study.trials)
+    assert f"on the Dask cluster at {cluster.scheduler_address}: {len(study.trials)} trials on " in \
+        cluster_summary(remote)
+    assert cluster_summary(local) == ""
