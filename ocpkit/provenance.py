@@ -34,10 +34,17 @@ import sysconfig
 from collections.abc import Mapping
 from importlib import metadata
 
+from ocpkit import __version__
+
 # The numerical libraries whose version is part of every manifest (distribution names, as pip knows them).
 DEPENDENCIES = ("casadi", "numpy", "scipy", "proxsuite", "osqp", "daqp", "pin", "taichi", "control")
 
 _FILES: dict[str, tuple] = {}   # path -> (stat signature, digest, import references)
+
+
+def package_version() -> str:
+    """The ocpkit version running (``ocpkit.__version__``, which the package metadata is built from)."""
+    return __version__
 
 
 @functools.cache

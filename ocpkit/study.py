@@ -22,10 +22,9 @@ import signal
 import sys
 import threading
 import time
-import traceback
 from collections import Counter, deque
 from collections.abc import Callable, Iterable, Mapping
-from concurrent.futures import FIRST_COMPLETED, CancelledError, ProcessPoolExecutor, wait
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 
@@ -33,31 +32,20 @@ import numpy as np
 import pandas as pd
 from tqdm.auto import tqdm
 
-from . import __version__, provenance
+from . import provenance
 from ._checks import choice, integer
 from .kernels import CPU_THREADS
-from .store import RESERVED, Store, StoreError, canonical_key, now, owner_id, split_result
+from .cluster import run_dask
+from .provenance import package_version
+from .store import RESERVED, Store, StoreError, canonical_key, now, owner_id
+from .trial import execute, failure, timeout_message
 
 STALE = ("refuse", "reuse", "rerun")
-_TIMEOUT_EXIT = 124  # exit status of a worker whose trial ignored its timeout
 LEASE = 60.0  # seconds a claim lives without a heartbeat
 
 
 class StaleTrialsError(ValueError):
     """Stored trials were computed by another package version, other code or other dependency versions."""
-
-
-class TrialTimeout(Exception):
-    """Raised inside a trial that ran longer than its timeout."""
-
-
-class ClusterMismatchError(ValueError):
-    """A Dask scheduler or worker cannot import ocpkit or the trial, or runs another ocpkit version, other study code
-    or other numerical libraries than the process running the study."""
-
-
-class SchedulerLostError(ConnectionError):
-    """The connection to the Dask scheduler was lost while a study ran on it."""
 
 
 @dataclass(frozen=True)
@@ -68,11 +56,6 @@ class _Provenance:
     version: str
     codes: dict
     manifests: dict
-
-
-def package_version() -> str:
-    """The ocpkit version running (``ocpkit.__version__``, which the package metadata is built from)."""
-    return __version__
 
 
 def code_hash(fn, params: Mapping | None = None) -> str:
@@ -144,12 +127,12 @@ def run(study: Study, out_dir, *, workers: int | None = None, scheduler: str | N
         stale: str = "refuse", lease: float = LEASE) -> pd.DataFrame:
     """Run the study's trials not yet stored in ``out_dir`` and return all its trials as a table.
 
-    Trials run on ``workers`` local processes (default: one per CPU), or on the Dask cluster
-    at ``scheduler`` ("tcp://host:port"; :class:`ClusterMismatchError` if its scheduler or a worker runs another
-    ocpkit version or other code, :class:`SchedulerLostError` if the scheduler goes away). Each trial is claimed in
-    the store before it starts, so other processes running the same study on the same folder take other trials; a
-    claim lives ``lease`` seconds unless renewed (a heartbeat renews it while this process runs), and the
-    claims of a process that died on this host are taken over at once. Each finished trial is
+    Trials run on ``workers`` local processes (default: one per CPU), or on the Dask cluster at ``scheduler``
+    ("tcp://host:port"; :mod:`ocpkit.cluster`: :class:`~ocpkit.cluster.ClusterMismatchError` if its scheduler or a
+    worker runs another ocpkit version or other code, :class:`~ocpkit.cluster.SchedulerLostError` if the scheduler
+    goes away). Each trial is claimed in the store before it starts, so other processes running the same study on
+    the same folder take other trials; a claim lives ``lease`` seconds unless renewed (a heartbeat renews it while
+    this process runs), and the claims of a process that died on this host are taken over at once. Each finished trial is
     committed as it arrives; a trial that raises (or kills its worker, or runs longer than
     ``trial_timeout`` seconds) is stored as failed and the rest go on. Stored failures are
     skipped like successes unless ``retry_failed``. Stored trials computed by another package
@@ -207,7 +190,7 @@ def run(study: Study, out_dir, *, workers: int | None = None, scheduler: str | N
         elif scheduler is None:
             finished = _run_local(study.fn, source, max(1, min(workers, len(todo))), trial_timeout)
         else:
-            finished = _run_dask(study.fn, source, scheduler, trial_timeout, _Provenance(version, codes, manifests),
+            finished = run_dask(study.fn, source, scheduler, trial_timeout, _Provenance(version, codes, manifests),
                                  placement)
         failed = 0
         with tqdm(total=len(study.trials), initial=len(study.trials) - len(todo), desc=study.name,
@@ -346,92 +329,6 @@ def _check_importable(fn) -> None:
         raise TypeError(f"fn must be picklable by reference (a module-level function), got {fn!r}: {exc}") from None
 
 
-def _execute(fn, params: dict, timeout: float | None = None) -> dict:
-    """Run one trial (in a worker); its outcome as keyword arguments of :meth:`Store.write`.
-
-    With a ``timeout``, :class:`TrialTimeout` is raised inside the trial when it expires (see :func:`_deadline`)."""
-    started, t0 = now(), time.perf_counter()
-    try:
-        with _deadline(timeout):
-            metrics, arrays = split_result(params, fn(**params))
-        outcome = {"result": {**metrics, **arrays}, "status": "ok"}
-    except TrialTimeout:  # raised without its message on a worker thread (an asynchronous exception)
-        outcome = {"status": "failed", "error": _timeout_message(timeout), "traceback": traceback.format_exc()}
-    except Exception as exc:
-        outcome = {"status": "failed", "error": f"{type(exc).__name__}: {exc}", "traceback": traceback.format_exc()}
-    return {**outcome, "wall_time": time.perf_counter() - t0, "started": started, "finished": now()}
-
-
-def _timeout_message(timeout: float) -> str:
-    return f"TrialTimeout: the trial ran longer than the trial timeout of {timeout:g} s and was stopped"
-
-
-@contextlib.contextmanager
-def _deadline(timeout: float | None):
-    """Raise :class:`TrialTimeout` in the trial after ``timeout`` seconds: by SIGALRM on a worker process's main
-    thread, where a trial stuck in C code also takes its worker down shortly after (the pool reports it as dead);
-    on another thread (a Dask worker's) as an asynchronous exception, which Python raises between two bytecodes,
-    so a trial stuck in C code runs on and the client abandons it (:func:`_dask_outcomes`)."""
-    if timeout is None:
-        yield
-    elif threading.current_thread() is threading.main_thread():
-        with _alarm(timeout):
-            yield
-    else:
-        with _thread_alarm(timeout):
-            yield
-
-
-@contextlib.contextmanager
-def _alarm(timeout: float):
-    def expire(signum, frame):
-        raise TrialTimeout(_timeout_message(timeout).partition(": ")[2])
-    previous = signal.signal(signal.SIGALRM, expire)
-    killer = threading.Timer(timeout + _grace(timeout), os._exit, args=(_TIMEOUT_EXIT,))
-    killer.daemon = True
-    killer.start()
-    signal.setitimer(signal.ITIMER_REAL, timeout)
-    try:
-        yield
-    finally:
-        signal.setitimer(signal.ITIMER_REAL, 0)
-        killer.cancel()
-        signal.signal(signal.SIGALRM, previous)
-
-
-@contextlib.contextmanager
-def _thread_alarm(timeout: float):
-    import ctypes
-
-    thread, lock, state = ctypes.c_ulong(threading.get_ident()), threading.Lock(), {"running": True, "fired": False}
-
-    def expire():
-        with lock:
-            if state["running"]:
-                state["fired"] = ctypes.pythonapi.PyThreadState_SetAsyncExc(thread, ctypes.py_object(TrialTimeout)) == 1
-    timer = threading.Timer(timeout, expire)
-    timer.daemon = True
-    timer.start()
-    try:
-        yield
-    finally:
-        timer.cancel()
-        with lock:
-            state["running"] = False
-            if state["fired"]:  # not raised yet (the trial returned first): withdraw it, or it lands in Dask's code
-                ctypes.pythonapi.PyThreadState_SetAsyncExc(thread, None)
-
-
-def _grace(timeout: float) -> float:
-    """How long past its timeout a trial that does not return to Python is waited for."""
-    return max(2.0, 0.5 * timeout)
-
-
-def _failure(message: str) -> dict:
-    """The outcome of a trial that ended outside the trial function (its worker died, say)."""
-    return {"status": "failed", "error": message, "started": now(), "finished": now()}
-
-
 def _worker_init(parent: int) -> None:
     # The parent handles Ctrl-C and stops the workers; a worker orphaned by a killed parent exits.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -494,7 +391,7 @@ def _run_pool(fn, source: _Claims, workers: int, timeout: float | None = None):
                     pool = ProcessPoolExecutor(workers, mp_context=context, initializer=_worker_init,
                                                initargs=(os.getpid(),))
                 for params in submit:
-                    running[pool.submit(_execute, fn, params, timeout)] = (params, time.monotonic())
+                    running[pool.submit(execute, fn, params, timeout)] = (params, time.monotonic())
                 if not running:
                     if suspects:
                         continue
@@ -513,14 +410,14 @@ def _run_pool(fn, source: _Claims, workers: int, timeout: float | None = None):
                     elif isinstance(exc, BrokenProcessPool):
                         crashed.append((params, submitted))
                     else:  # the trial or its outcome could not be pickled, say
-                        yield params, _failure(f"{type(exc).__name__}: {exc}")
+                        yield params, failure(f"{type(exc).__name__}: {exc}")
                 if len(crashed) == 1:
                     params, submitted = crashed[0]
                     if timeout is not None and time.monotonic() - submitted >= timeout:
-                        yield params, _failure(_timeout_message(timeout) + " (it did not return to Python, so its "
+                        yield params, failure(timeout_message(timeout) + " (it did not return to Python, so its "
                                                                           "worker process was ended)")
                     else:
-                        yield params, _failure("the worker process died while running this trial "
+                        yield params, failure("the worker process died while running this trial "
                                                "(killed by a signal, os._exit, a segfault or out of memory)")
                 else:
                     suspects.extend(params for params, _ in crashed)
@@ -533,202 +430,3 @@ def _run_pool(fn, source: _Claims, workers: int, timeout: float | None = None):
         finally:
             if pool is not None:
                 pool.shutdown(wait=True, cancel_futures=True)
-
-
-def _run_dask(fn, source: _Claims, scheduler: str, timeout: float | None, mine: _Provenance, placement: Counter):
-    """(params, outcome) pairs as trials finish on the Dask cluster at ``scheduler``, counting in ``placement``
-    the trials each worker ran: a generator, but whether distributed is installed and the scheduler answers
-    are checked now."""
-    try:
-        from distributed import Client
-    except ImportError:
-        raise ImportError('running a study on a Dask cluster needs distributed: pip install "ocpkit[dask]"') from None
-    check_scheduler(scheduler)
-    return _dask_outcomes(Client, fn, source, scheduler, timeout, mine, placement)
-
-
-def check_scheduler(scheduler: str, timeout: float = 5.0) -> None:
-    """Raise ConnectionError (one line) unless a TCP connection to the Dask scheduler opens within ``timeout`` s."""
-    import socket
-    from urllib.parse import urlsplit
-
-    if not isinstance(scheduler, str):
-        raise TypeError(f"scheduler must be an address like 'tcp://host:8786', got {scheduler!r}")
-    address = scheduler if "://" in scheduler else f"tcp://{scheduler}"
-    parts = urlsplit(address)
-    try:
-        host, port = parts.hostname, parts.port
-    except ValueError:
-        host = port = None
-    if parts.scheme not in ("tcp", "tls") or not host or not port:
-        raise ValueError(f"scheduler must be an address like 'tcp://host:8786', got {scheduler!r}")
-    try:
-        socket.create_connection((host, port), timeout=timeout).close()
-    except OSError as exc:
-        reason = exc.strerror or str(exc) or type(exc).__name__
-        raise ConnectionError(f"cannot reach the Dask scheduler at {scheduler} ({reason}); start one "
-                              f"(`dask scheduler`) or check the address") from None
-
-
-def _dask_outcomes(Client, fn, source: _Claims, scheduler: str, timeout: float | None, mine: _Provenance,
-                   placement: Counter):
-    """The generator behind :func:`_run_dask`. The scheduler, then each worker as it joins, is refused unless it
-    runs this process's ocpkit version (:func:`_check_versions`); each worker checks its code on its first trial
-    (:func:`_execute_remote`). Dask reruns the trials of a worker that died on the others."""
-    with _quiet_once_lost() as lost, Client(scheduler, timeout="10s") as client:
-        running = {}  # future -> (params, when submitted)
-        _check_versions(client, [], mine.version, scheduler)
-        checked, slots, looked = set(), 1, -np.inf
-        try:
-            while True:
-                if time.monotonic() - looked > 1.0:  # workers join and leave (an adaptive cluster, a dead worker)
-                    threads = client.nthreads()
-                    _check_versions(client, [w for w in threads if w not in checked], mine.version)
-                    checked.update(threads)
-                    # As many trials in flight as the cluster has threads, so a trial's submission is about its start.
-                    slots, looked = max(1, sum(threads.values())), time.monotonic()
-                while len(running) < slots:
-                    params = source.take()
-                    if params is None:
-                        break
-                    code = mine.codes[canonical_key(params)]
-                    running[client.submit(_execute_remote, fn, params, timeout, mine.version, code, pure=False)] = \
-                        (params, time.monotonic())
-                if not running:
-                    if not source.others:
-                        return
-                    source.pause()
-                    continue
-                wait_s = 1.0
-                if timeout is not None:
-                    first = min(t for _, t in running.values()) + timeout + _grace(timeout)
-                    wait_s = min(wait_s, max(0.05, first - time.monotonic()))
-                for future in _dask_wait_or_none(list(running), wait_s):
-                    params, _ = running.pop(future)
-                    address, outcome = _received(future, params, scheduler, mine)
-                    if address is not None:
-                        placement[address] += 1
-                    yield params, outcome
-                if timeout is not None:
-                    # A trial that did not return to Python at its timeout (stuck in C code): its worker thread may
-                    # run on, the study does not wait for it.
-                    clock = time.monotonic()
-                    for future in [f for f, (_, t) in running.items() if clock - t >= timeout + _grace(timeout)]:
-                        params, _ = running.pop(future)
-                        future.cancel()
-                        yield params, _failure(_timeout_message(timeout) + " (abandoned on the Dask cluster)")
-        except (CancelledError, OSError) as exc:
-            if client.status == "running" and "scheduler-connection-lost" not in str(exc):
-                raise
-            lost.set()
-            raise SchedulerLostError(
-                f"lost the connection to the Dask scheduler at {scheduler} mid-study ({len(running)} running trials "
-                f"not stored; the {sum(placement.values())} finished in this run are): start a scheduler and rerun "
-                "the same command to resume") from None
-
-
-def _received(future, params: dict, scheduler: str, mine: _Provenance) -> tuple[str | None, dict]:
-    """A finished Dask future's (worker address, outcome), releasing it; raises :class:`ClusterMismatchError` when
-    the scheduler or the worker could not load the trial or the worker runs other code, CancelledError when the
-    future was cancelled (the scheduler went away)."""
-    try:
-        address, outcome = future.result()
-    except ImportError as exc:  # unpickling the trial failed on the worker (the trial's import errors are outcomes)
-        raise ClusterMismatchError(f"a Dask worker cannot load the trial ({type(exc).__name__}: {exc}); {_SAME}") \
-            from None
-    except CancelledError:
-        raise
-    except Exception as exc:  # e.g. KilledWorker: the trial took down its workers repeatedly
-        if "deserialization of the task graph" in str(exc):  # Dask's words for it failing on the scheduler
-            raise ClusterMismatchError(f"the Dask scheduler at {scheduler} cannot load the trial "
-                                       f"({str(exc).splitlines()[0]}): {_SAME}") from None
-        return None, _failure(f"{type(exc).__name__}: {exc}")
-    finally:
-        future.release()
-    if "mismatch" in outcome:
-        theirs, manifest = outcome["mismatch"]
-        raise ClusterMismatchError(_mismatch_message(f"worker {address}", theirs, mine.version, manifest,
-                                                     mine.manifests[mine.codes[canonical_key(params)]]))
-    return address, outcome
-
-
-def _check_versions(client, workers: list, version: str, scheduler: str | None = None) -> None:
-    """Refuse the Dask ``workers``, and the scheduler at ``scheduler`` if given (it unpickles every trial too), that
-    cannot import ocpkit or run another version of it, before they get a trial (it could not be unpickled there, or
-    would run other code). Asked of ocpkit itself: the installed package's metadata, which Dask's get_versions
-    reads, says nothing of what imports and lags an editable install."""
-    found = {}
-    if scheduler is not None:
-        try:
-            found[f"scheduler {scheduler}"] = client.run_on_scheduler(package_version)
-        except Exception as exc:  # raised where it could not be unpickled
-            found[f"scheduler {scheduler}"] = exc
-    if workers:
-        found.update((f"worker {address}", theirs) for address, theirs in
-                     client.run(package_version, workers=workers, on_error="return").items())
-    for where, theirs in found.items():
-        if isinstance(theirs, BaseException):
-            raise ClusterMismatchError(f"the Dask {where} cannot import ocpkit ({theirs}), this process runs ocpkit "
-                                       f"{version}: {_SAME}")
-        if theirs != version:
-            raise ClusterMismatchError(_mismatch_message(where, theirs, version))
-
-
-_VERIFIED: set = set()  # (version, code hash) pairs a Dask worker process found its own code to match
-
-
-def _execute_remote(fn, params: dict, timeout: float | None, version: str, code: str):
-    """:func:`_execute` on a Dask worker: (the worker's address, the outcome). A worker first checks, once per code
-    hash, that it runs the client's ocpkit version and code: if not, the outcome is ``{"mismatch": (its version,
-    its manifest)}`` and the trial is not run."""
-    from distributed import get_worker
-
-    address = get_worker().address
-    if (version, code) not in _VERIFIED:
-        theirs = provenance.manifest(fn, params)
-        if package_version() != version or provenance.manifest_hash(theirs) != code:
-            return address, {"mismatch": (package_version(), theirs)}
-        _VERIFIED.add((version, code))
-    return address, _execute(fn, params, timeout)
-
-
-_SAME = ("install the same ocpkit, study code and numerical libraries on the scheduler and every worker (or stop "
-         "that worker) and rerun")
-
-
-def _mismatch_message(where: str, their_version, version: str, their_manifest=None, manifest=None) -> str:
-    """Why the Dask ``where`` ("worker tcp://…") is refused: its ocpkit version, or what differs between the
-    manifest of the trial's code there and here (:mod:`ocpkit.provenance`)."""
-    if their_version != version:
-        return f"the Dask {where} runs ocpkit {their_version}, this process ocpkit {version}: {_SAME}"
-    differences = provenance.changes(manifest, their_manifest)
-    text = "; ".join(differences[:6]) + (f"; and {len(differences) - 6} more" if len(differences) > 6 else "")
-    return f"the Dask {where} runs other code than this process (here → there: {text or 'unknown'}): {_SAME}"
-
-
-@contextlib.contextmanager
-def _quiet_once_lost():
-    """An Event to set when the study has lost its scheduler: from then on, the Dask client's own log records (its
-    failed reconnection, the traceback of the attempt cancelled as it closes) stay off the terminal, since the study
-    reports the loss itself in one line (:class:`SchedulerLostError`)."""
-    import logging
-
-    lost = threading.Event()
-
-    def keep(record) -> bool:
-        return not lost.is_set()
-    logger = logging.getLogger("distributed.client")
-    logger.addFilter(keep)
-    try:
-        yield lost
-    finally:
-        logger.removeFilter(keep)
-
-
-def _dask_wait_or_none(futures, timeout: float):
-    from distributed import wait
-
-    try:
-        return wait(futures, timeout=timeout, return_when="FIRST_COMPLETED").done
-    except TimeoutError:
-        return set()

@@ -219,7 +219,7 @@ def _demo(args):
 
 def _study_options(args) -> dict:
     """The study runner's options from the command line, with the output paths and the scheduler checked first."""
-    from ocpkit.study import check_scheduler
+    from ocpkit.cluster import check_scheduler
 
     check_output_folder(args.out, "--out")
     if args.export is not None:
