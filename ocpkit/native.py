@@ -196,20 +196,19 @@ def _build(scratch: Path, folder: Path, future: Future, background: bool = True,
     ``child``: that child, already started (:func:`_spawn`)."""
     library = folder / f"lib{NAME}.so"
     try:
-        if child is not None:
-            _make(scratch, folder, background, child)
-        elif entry_ok(library):  # cached: loaded as it is, or removed and built once more
+        if child is None and entry_ok(library):  # cached: loaded as it is, or removed and built once more
             def rebuild() -> Path:
                 _make(scratch, folder, background)
                 return library
 
             loadable(library, f"{NAME}_step_timed", rebuild, "LinearMPC's C step", BuildError)
         else:
-            warn_damaged(library, "LinearMPC's C step")
-            _make(scratch, folder, background)
-        problem = _load_problem(library) if entry_ok(library) else "no sound library after the build"
-        if problem is not None:
-            raise BuildError(f"LinearMPC's C step {library}, built again, does not load: {problem}")
+            if child is None:
+                warn_damaged(library, "LinearMPC's C step")
+            _make(scratch, folder, background, child)
+            problem = _load_problem(library) if entry_ok(library) else "no sound library after the build"
+            if problem is not None:
+                raise BuildError(f"LinearMPC's C step {library}, built again, does not load: {problem}")
     except BaseException as exc:  # noqa: BLE001 - handed to the Future; LinearMPC warns and keeps its Python step
         shutil.rmtree(scratch, ignore_errors=True)
         future.set_exception(exc)

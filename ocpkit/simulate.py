@@ -84,16 +84,12 @@ def simulate(plant, controller: Controller, x0, goal, duration: float, *, dt: fl
         us[k] = sol.u
         xs[k + 1] = np.asarray(step(xs[k], sol.u), dtype=float).ravel()
         if not np.isfinite(xs[k + 1]).all():
-            if not model:
-                raise FloatingPointError(f"plant state became non-finite at step {k + 1} from x = {xs[k].tolist()}, "
-                                         f"u = {sol.u.tolist()}: {plant!r} diverged; more plant_substeps or a "
-                                         "smaller dt may help")
-            # the plant's own dynamics returning NaN are named as such (a DynamicsError, also a FloatingPointError)
-            check_dynamics(plant, xs[k], sol.u, dt=dt, substeps=plant_substeps,
-                           context=f"the plant, closed-loop step {k + 1} from t = {k * dt:.6g} s")
+            if model:  # the plant's own dynamics returning NaN are named as such (a DynamicsError)
+                check_dynamics(plant, xs[k], sol.u, dt=dt, substeps=plant_substeps,
+                               context=f"the plant, closed-loop step {k + 1} from t = {k * dt:.6g} s")
+            what = "the plant's RK4 step diverged (its dynamics stayed finite)" if model else f"{plant!r} diverged"
             raise FloatingPointError(f"plant state became non-finite at step {k + 1} from x = {xs[k].tolist()}, "
-                                     f"u = {sol.u.tolist()}: the plant's RK4 step diverged (its dynamics stayed "
-                                     f"finite); more plant_substeps or a smaller dt may help")
+                                     f"u = {sol.u.tolist()}: {what}; more plant_substeps or a smaller dt may help")
         if callback is not None:
             callback(k, xs[k + 1], sol)
     return Trajectory(t=np.arange(steps + 1) * dt, x=xs, u=us, goal=goal, solutions=solutions)
