@@ -216,6 +216,9 @@ def test_cli_simulate_on_mujoco(tmp_path, capsys):
 
 @pytest.mark.parametrize("extra,message", [
     (["--mjcf", "x.xml"], "--mjcf applies to --plant mujoco only"),
+    (["--frictionloss", "0.5"], "--frictionloss applies to --plant mujoco only"),
+    (["--mujoco-integrator", "implicit"], "--mujoco-integrator applies to --plant mujoco only"),
+    (["--plant", "mujoco", "--armature", "-1"], "armature must be a finite scalar"),
     (["--plant", "mujoco", "--joint-map", "a,b"], "--joint-map names the joints of an MJCF file: give --mjcf too"),
     (["--plant", "mujoco", "--mjcf", "x.xml", "--joint-map", "joint1=a,b"], "--joint-map must be MJCF joint names"),
     (["--plant", "mujoco"], "'pendulum' has no rigid-body description"),
@@ -225,6 +228,30 @@ def test_cli_plant_errors_are_one_line(extra, message, tmp_path, capsys):
     assert main(["simulate", problem, "--duration", "0.1", "--out", str(tmp_path / "f.png"), *extra]) == 2
     err = capsys.readouterr().err
     assert message in err and len(err.strip().splitlines()) == 1
+
+
+def test_cli_mujoco_options_reach_the_plant(tmp_path, capsys):
+    """simulate's MuJoCo options are MuJoCoPlant's, with its defaults: the same run as the Python API gives."""
+    from ocpkit import cli
+    from ocpkit.mujoco_plant import INTEGRATORS, MuJoCoPlant
+    from ocpkit.problems import make
+    from ocpkit.simulate import simulate
+    from ocpkit.solvers.qp import LinearMPC
+    from ocpkit.metrics import actual_cost
+
+    assert cli.MUJOCO_INTEGRATORS == INTEGRATORS
+    options = {"frictionloss": 0.5, "armature": 0.01, "floor": -1.0, "integrator": "implicit"}
+    assert main(["simulate", "nlink:2", "--duration", "0.2", "--out", str(tmp_path / "f.png"), "--json", "--plant",
+                 "mujoco", "--frictionloss", "0.5", "--armature", "0.01", "--floor", "-1", "--mujoco-integrator",
+                 "implicit"]) == 0
+    run = json.loads(capsys.readouterr().out)
+    problem = make("nlink:2")
+    plant = MuJoCoPlant(problem, **options)
+    assert run["plant"] == repr(plant)
+    ctrl = LinearMPC(problem.ocp(knots=5))
+    x0, goal = problem.sample(0)
+    traj = simulate(plant, ctrl, x0, goal, 0.2)
+    assert abs(run["actual_cost"] / actual_cost(traj, ctrl.ocp) - 1) < 1e-8
 
 
 # --- the robustness study's MuJoCo variant (studies/robustness.py) and its place in reproduce ---------------------

@@ -15,6 +15,8 @@ from ocpkit.cli.task import NUMBERS
 from ocpkit.controller import LINEARIZATIONS, TRAJECTORY
 from ocpkit.model import INTEGRATORS
 
+MUJOCO_INTEGRATORS = ("rk4", "implicit", "implicitfast", "euler")  # ocpkit.mujoco_plant.INTEGRATORS
+
 __all__ = ["main", "DEFAULT_KNOTS", "DYNAMICS", "NLP_METHODS", "QP_BACKENDS", "SAMPLING", "VARIANTS"]
 
 
@@ -132,6 +134,18 @@ def _parser() -> argparse.ArgumentParser:
     sim.add_argument("--joint-map", metavar="J1,J2,…|NAME=J,…",
                      help="--mjcf: the file's joints for the problem's, in q's order or as problem=mjcf name pairs "
                           "(default: the problem's joint names)")
+    # MuJoCoPlant's options for what ocpkit's model leaves out, with its defaults (ocpkit.mujoco_plant)
+    sim.add_argument("--frictionloss", type=float, default=0.0, metavar="N·m",
+                     help="--plant mujoco: dry joint friction added at every joint (default 0)")
+    sim.add_argument("--armature", type=float, default=0.0, metavar="KG·M²",
+                     help="--plant mujoco: rotor inertia added at every joint (default 0)")
+    sim.add_argument("--floor", type=float, default=None, metavar="Z",
+                     help="--plant mujoco: a floor plane at height Z (m) that the links touch (default none)")
+    sim.add_argument("--limits", action="store_true", default=None,
+                     help="--plant mujoco: the joint ranges as constraints (default: off for a generated or URDF "
+                          "robot, an MJCF's own)")
+    sim.add_argument("--mujoco-integrator", default="rk4", choices=MUJOCO_INTEGRATORS,
+                     help="--plant mujoco: MuJoCo's integrator at the plant's 1 ms sub-step (default rk4)")
     sim.add_argument("--animate", metavar="FILE.gif", help="also write the robot's motion as an animated GIF (stick "
                                                            "figure; goal pose, or target and obstacles)")
     _add_task_args(sim)

@@ -114,6 +114,14 @@ def _time_summary(traj) -> dict:
             "max_ms": 1e3 * float(t.max())}
 
 
+def _mujoco_options(args) -> list:
+    """(option, given value, default) of simulate's options that only a MuJoCo plant takes."""
+    return [("--mjcf", args.mjcf, None), ("--joint-map", args.joint_map, None),
+            ("--frictionloss", args.frictionloss, 0.0), ("--armature", args.armature, 0.0),
+            ("--floor", args.floor, None), ("--limits", args.limits, None),
+            ("--mujoco-integrator", args.mujoco_integrator, "rk4")]
+
+
 def _plant(problem, args):
     """The plant of --plant: None for the problem's own, else a MuJoCoPlant of its robot or of --mjcf."""
     if args.plant == "ocpkit":
@@ -127,7 +135,8 @@ def _plant(problem, args):
         if any(sep for _, sep, _ in pairs) and not all(sep and a and b for a, sep, b in pairs):
             raise ValueError(f"--joint-map must be MJCF joint names J1,J2,… or pairs NAME=J,…, got {args.joint_map!r}")
         joint_map = {a: b for a, _, b in pairs} if pairs[0][1] else items
-    return MuJoCoPlant(problem, mjcf=args.mjcf, joint_map=joint_map)
+    return MuJoCoPlant(problem, mjcf=args.mjcf, joint_map=joint_map, integrator=args.mujoco_integrator,
+                       frictionloss=args.frictionloss, armature=args.armature, floor=args.floor, limits=args.limits)
 
 
 def _simulate(args):
@@ -139,8 +148,10 @@ def _simulate(args):
 
         check_output_file(animation.check_path(args.animate, "--animate"), "--animate")
     task = reach_task(args)
-    if args.plant != "mujoco" and (args.mjcf or args.joint_map):
-        raise ValueError(f"{'--mjcf' if args.mjcf else '--joint-map'} applies to --plant mujoco only")
+    if args.plant != "mujoco":
+        given = [option for option, value, default in _mujoco_options(args) if value != default]
+        if given:
+            raise ValueError(f"{given[0]} applies to --plant mujoco only")
     if args.joint_map and not args.mjcf:
         raise ValueError("--joint-map names the joints of an MJCF file: give --mjcf too")
     problem, ocp, ctrl = _controller(args, task)
