@@ -2,7 +2,10 @@
 
 A Controller is anything with ``reset()`` and ``solve(x, goal) -> Solution``. A solver that fails at run
 time does not raise inside a control loop: its Solution carries a non-success status and a safe fallback
-input (the previous plan advanced one step, clipped to the input bounds).
+input — the previous plan advanced one step while its prediction stays finite, within the state bounds and clear
+of obstacles (for at most ``stale_steps`` refused steps in a row), else a brake to rest within the input bounds
+(:mod:`ocpkit.safety`). A success certifies the task as well as the optimizer: its plan, rolled out on the
+controller's nonlinear model, keeps every obstacle clearance and state bound, or the step is "soft".
 """
 from __future__ import annotations
 
@@ -10,6 +13,7 @@ import statistics
 import sys
 import threading
 import time
+import warnings
 from collections import deque
 from dataclasses import dataclass, field
 
@@ -20,9 +24,15 @@ from ocpkit.certificate import Certificate
 from ocpkit.compiled import SwitchingFunction
 from ocpkit.numeric import BufferedFunction
 from ocpkit.ocp import OCP
+from ocpkit.safety import Brake, PlanCheck
 
 SUCCESS, LIMITED, INFEASIBLE, NAN, EXCEPTION = "success", "limited", "infeasible", "nan", "exception"
-STATUSES = (SUCCESS, LIMITED, INFEASIBLE, NAN, EXCEPTION)
+# A step the solver answered whose plan, rolled out on the controller's nonlinear model, breaks an obstacle clearance
+# or a hard state bound (a softened constraint, a linearization that mispredicted): its input is applied (it is the
+# solver's best answer, often the way out of a collision), but it is not a success. Last in STATUSES: the exported
+# C step numbers the others 0-4.
+SOFT = "soft"
+STATUSES = (SUCCESS, LIMITED, INFEASIBLE, NAN, EXCEPTION, SOFT)
 
 
 LINEARIZATIONS = ("goal", "plan")
@@ -163,13 +173,20 @@ class Solution:
     iterations: int = 0
     x_pred: np.ndarray | None = None
     times: dict = field(default_factory=lambda: {"model": 0.0, "build": 0.0, "solve": 0.0, "total": 0.0})
-    fallback: bool = False
+    fallback: bool = False  # the input is the fallback's (a refused step), not the solver's
     certificate: Certificate | None = None  # the KKT certificate of a QP step's answer (None: no QP solved)
-    path: str = ""  # what answered (the controller's ``path`` at the step: "C step", "Python step", …; "fallback")
+    path: str = ""  # what answered: the controller's ``path`` ("C step", "Python step", …) or "fallback (plan)",
+    # "fallback (brake)", "fallback (hold)"
 
     @property
     def ok(self) -> bool:
+        """A success: the optimizer's answer certified, and its plan keeps the task's clearances and state bounds."""
         return self.status == SUCCESS
+
+    @property
+    def applied(self) -> bool:
+        """Whether ``u`` is the solver's own answer (a success or "soft"), not a fallback."""
+        return not self.fallback
 
     def to_dict(self) -> dict:
         """JSON-ready summary (first input, knots, status, iterations, times)."""
@@ -188,10 +205,22 @@ class Controller:
     * BLAS/OpenMP threads limited to ``threads`` (1 by default; None leaves them alone) through threadpoolctl;
     * states or goals beyond ``state_limit`` (STATE_SCALE × the problem's scale) answered "nan" at once;
     * verification before "success": finite u and knots, input bounds violated by at most ``BOUND_TOL``
-      (then clipped), otherwise the fallback with status "limited".
+      (then clipped), otherwise the fallback with status "limited";
+    * the task certificate of a success (:class:`ocpkit.safety.PlanCheck`, where the OCP has obstacles or state
+      bounds): the plan rolled out on the nonlinear model keeps every clearance and state bound, else the step is
+      "soft" (its input applied, the violation in ``raw_status``), or refused where the prediction is not finite;
+    * a safe fallback on a refused step (:meth:`fallback`); ``stale_steps`` bounds how many refused steps in a row
+      may replay the previous plan before the controller brakes;
+    * at the first step after :meth:`reset`, a RuntimeWarning where the discrete model diverges numerically at the
+      start (|eig A_d| beyond what the continuous dynamics explain: the integrator's step is too long).
+
+    A "soft" step does not raise with ``raise_on_fail``: its input is the solver's answer.
     """
 
-    def __init__(self, ocp: OCP, *, raise_on_fail: bool = False, threads: int | None = 1):
+    STALE_STEPS = 5  # the default of ``stale_steps``: 50 ms of replayed plan at 100 Hz
+
+    def __init__(self, ocp: OCP, *, raise_on_fail: bool = False, threads: int | None = 1,
+                 stale_steps: int | None = None):
         if not isinstance(ocp, OCP):
             raise TypeError(f"ocp must be an ocpkit OCP, got {type(ocp).__name__}")
         self.ocp = ocp
@@ -204,6 +233,9 @@ class Controller:
         self._affine_model = None  # the OCP's affine model, bound to numpy buffers at its first use
         self._affine_map = None  # (threads, the same mapped over the horizon): per-stage models; and the rollout
         self._rollout = None
+        self.stale_steps = self.STALE_STEPS if stale_steps is None else integer(stale_steps, "stale_steps", 0)
+        self._plan_check = PlanCheck(ocp)
+        self._brake = Brake(ocp)
         self.reset()
 
     @property
@@ -228,7 +260,10 @@ class Controller:
         """Forget the previous plan (cold start)."""
         self.plan: np.ndarray | None = None  # knots (p, m) of the last successful solve
         self._goal = np.zeros(self.ocp.nx)
+        self._x = np.zeros(self.ocp.nx)  # the state of the step in flight (the fallback brakes from it)
         self.task_goal = np.zeros(self.ocp.ng)
+        self._refused = 0  # refused steps in a row
+        self._first_step = True  # the divergence warning is due
 
     def solve(self, x, goal) -> Solution:
         """Solve the MPC problem from state x towards ``goal``; return the first input and more.
@@ -241,23 +276,25 @@ class Controller:
         with self._lock, _ThreadLimit(self._threads):
             start = self._step_start = time.perf_counter()
             self._goal = goal  # for the fallback's cold-start input
+            self._x = x
             self.task_goal = full
             big = max(np.abs(x).max(initial=0.0), np.abs(full).max(initial=0.0))
             if big > self._state_limit:
                 sol = self.fallback(NAN, f"state or goal magnitude {big:.3g} beyond state_limit "
                                          f"{self._state_limit:.3g}: no solver run")
             else:
+                if self._first_step:
+                    self._warn_divergence(x, goal)
                 path = self.path
-                sol = self._verified(self._solve(x, goal))
+                sol = self._certified(x, self._verified(self._solve(x, goal)))
                 sol.path = sol.path or path
             sol.times["total"] = time.perf_counter() - start
             self._step_start = None
-            if sol.ok:
-                self.plan = sol.knots
-            elif self.raise_on_fail:
+            self._first_step = False
+            if sol.fallback and self.raise_on_fail:
                 raise SolverError(f"{type(self).__name__} failed: {sol.status} ({sol.raw_status})")
-            else:
-                self.plan = sol.knots  # the fallback plan, so repeated failures keep advancing it
+            self._refused = self._refused + 1 if sol.fallback else 0
+            self.plan = sol.knots  # a fallback's too, so repeated failures keep advancing it
             return sol
 
     def warm_up(self, x, goal, steps: int = 2) -> Solution:
@@ -312,6 +349,39 @@ class Controller:
         sol.u = np.clip(u, ocp.u_min, ocp.u_max)
         sol.knots = np.clip(knots, ocp.u_min, ocp.u_max)
         return sol
+
+    def _certified(self, x: np.ndarray, sol: Solution) -> Solution:
+        """``sol`` if it is no success or its plan passes the task certificate (:class:`ocpkit.safety.PlanCheck`);
+        "soft" where the plan breaks a clearance or a state bound; refused ("nan") where its prediction diverges."""
+        if not (sol.ok and self._plan_check.needed):
+            return sol
+        xs = self.rollout(x, self.ocp.parameterization.inputs(sol.knots))
+        violation = self._plan_check.violation(xs)
+        if violation is None:
+            return sol
+        if violation.kind == "non-finite":
+            return self._rejected(NAN, f"{sol.raw_status} but its {violation}", sol)
+        sol.status, sol.raw_status = SOFT, f"{sol.raw_status}; soft: {violation}"
+        return sol
+
+    def _warn_divergence(self, x: np.ndarray, goal: np.ndarray) -> None:
+        """Warn where the discrete model about (x, u_g) grows faster than the continuous dynamics do: |eig A_d|
+        above max(1, exp(dt · max Re eig A_c)) by more than 5 % (an integrator step too long for the stiffest
+        joint, as for a light wrist at 10 ms)."""
+        ocp = self.ocp
+        u = np.clip(ocp.input_goal(goal), ocp.u_min, ocp.u_max)
+        Ad = np.asarray(ocp.affine()(x, u)[0], dtype=float)
+        Ac = np.asarray(ocp.model.jacobian(x, u)[1], dtype=float)
+        if not (np.isfinite(Ad).all() and np.isfinite(Ac).all()):
+            return
+        rho = float(np.abs(np.linalg.eigvals(Ad)).max())
+        expected = max(1.0, float(np.exp(ocp.dt * np.linalg.eigvals(Ac).real.max())))
+        if rho > 1.05 * expected:
+            warnings.warn(f"{type(self).__name__}: the controller's discrete model diverges at the start: |eig A_d| = "
+                          f"{rho:.3g} a step where the continuous dynamics grow by {expected:.3g}; its "
+                          f"{ocp.integrator} step of {ocp.dt / ocp.substeps:g} s is too long for the model: more "
+                          f"substeps, e.g. problem.ocp(..., substeps={2 * ocp.substeps}), should help",
+                          RuntimeWarning, stacklevel=3)
 
     def _rejected(self, status: str, raw: str, sol: Solution) -> Solution:
         """A "success" that failed verification: the solver's workspace is stale, so reset it (``_discard``)."""
@@ -383,14 +453,24 @@ class Controller:
         return np.clip(np.tile(ocp.input_goal(goal), (ocp.knots, 1)), ocp.u_min, ocp.u_max)
 
     def fallback(self, status: str, raw_status: str, times: dict | None = None, iterations: int = 0) -> Solution:
-        """A failed step: the previous plan advanced one step and clipped to the input bounds."""
-        ocp = self.ocp
-        if self.plan is None:
-            knots = self.goal_knots(self._goal)
-        else:
-            knots = ocp.parameterization.shift(self.plan)
-        knots = np.clip(np.nan_to_num(knots), ocp.u_min, ocp.u_max)
-        u = np.clip(ocp.parameterization.u_at(knots, 0), ocp.u_min, ocp.u_max)
+        """A refused step's safe input, said in ``path``: "fallback (plan)", the previous plan advanced one step, for
+        at most ``stale_steps`` refused steps in a row and only while its prediction from x is finite and keeps the
+        task (:class:`ocpkit.safety.PlanCheck`); otherwise "fallback (brake)", the input that brings the joint
+        velocities closest to rest within the input bounds (:class:`ocpkit.safety.Brake`), or "fallback (hold)", the
+        input goal, for a model that is not x = [q, q̇]. Replaying a stale plan had spun the Panda to 1,400 rad/s."""
+        ocp, par = self.ocp, self.ocp.parameterization
+        knots, kind = None, "plan"
+        if self._refused < self.stale_steps:
+            knots = self.goal_knots(self._goal) if self.plan is None else par.shift(self.plan)
+            knots = np.clip(np.nan_to_num(knots), ocp.u_min, ocp.u_max)
+            if self._plan_check.needed and self._plan_check.violation(self.rollout(self._x, par.inputs(knots))):
+                knots = None
+        if knots is None:
+            u_hold = np.clip(ocp.input_goal(self._goal), ocp.u_min, ocp.u_max)
+            u = self._brake(self._x, u_hold)
+            kind = "hold" if u is None else "brake"
+            knots = np.tile(u_hold if u is None else u, (ocp.knots, 1))
+        u = np.clip(par.u_at(knots, 0), ocp.u_min, ocp.u_max)
         times = dict(times or {"model": 0.0, "build": 0.0, "solve": 0.0, "total": 0.0})
         return Solution(u=u, knots=knots, status=status, raw_status=raw_status, iterations=iterations,
-                        times=times, fallback=True, path="fallback")
+                        times=times, fallback=True, path=f"fallback ({kind})")

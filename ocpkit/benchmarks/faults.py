@@ -14,7 +14,7 @@ import numpy as np
 
 from ocpkit import problems, solvers
 from ocpkit.benchmarks.step import load_medians
-from ocpkit.controller import SUCCESS
+from ocpkit.controller import SOFT, SUCCESS
 from ocpkit.problems.pendulum import Pendulum
 
 BUDGET = 0.05  # s: the time budget of the budget case, and the slack allowed on top of it
@@ -327,7 +327,8 @@ def beyond_bounds_rows(labels=("qp condensed daqp", "qp condensed proxqp", "qp c
                        duration=1.0) -> list[RealTimeRow]:
     """Pendulum with |q| ≤ 1 and goal q = 1.5 (soft state bounds, the default): from rest the angle must end at
     the bound (within 0.02) and no success may predict a state beyond it. The exact and interior-point backends must
-    succeed on every step; OSQP, first-order, is accepted with its success rate reported (at eps 1e-9 its ADMM needs
+    answer every step (a success, or "soft" where the plan on the nonlinear model passes the bound: the QP's model
+    about the goal beyond it mispredicts gravity there); OSQP, first-order, is accepted with its success rate reported (at eps 1e-9 its ADMM needs
     10⁴–6.5·10⁴ iterations on this QP: README, "for state bounds that may be active, use DAQP or ProxQP") as long
     as each step stays within the default budget."""
     from ocpkit.simulate import simulate
@@ -339,17 +340,17 @@ def beyond_bounds_rows(labels=("qp condensed daqp", "qp condensed proxqp", "qp c
         t0 = time.perf_counter()
         traj = simulate(PENDULUM.plant(), ctrl, [0.0, 0.0], [1.5, 0.0], duration)
         wall = time.perf_counter() - t0
-        q_end, n_ok = float(traj.x[-1, 0]), traj.statuses.count(SUCCESS)
+        q_end, n_ok, n_soft = float(traj.x[-1, 0]), traj.statuses.count(SUCCESS), traj.statuses.count(SOFT)
         beyond = max((float(np.abs(s.x_pred[:, 0]).max()) for s in traj.solutions
                       if s.ok and s.x_pred is not None), default=0.0)
         first_order = "osqp" in label
         slowest = float(traj.times().max())
         ok = (abs(q_end - 1.0) <= 0.02 and beyond <= 1.0 + BEYOND_TOL
-              and (slowest <= ctrl.ceiling if first_order else n_ok == len(traj.statuses)))
+              and (slowest <= ctrl.ceiling if first_order else n_ok + n_soft == len(traj.statuses)))
         rule = ("success rate reported, each step within the default budget" if first_order
-                else "all steps succeed")
+                else "every step answered (success or soft)")
         rows.append(RealTimeRow("goal beyond bounds", label, f"q_end {q_end:.4f}, {n_ok}/{len(traj.statuses)} "
-                                f"success, max |q| {np.abs(traj.x[:, 0]).max():.4f}, successes' predictions "
+                                f"success, {n_soft} soft, max |q| {np.abs(traj.x[:, 0]).max():.4f}, successes' predictions "
                                 f"|q| ≤ {beyond:.4f}", wall, _counts(traj.statuses),
                                 ok, f"|q_end − 1| ≤ 0.02, no success predicts |q| > 1 + {BEYOND_TOL:g}, {rule}"))
     return rows
