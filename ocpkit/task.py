@@ -15,8 +15,9 @@ Obstacles are spheres in the world; the robot is approximated by spheres fixed i
 at or above ``margin`` at x_1 … x_T. Each controller takes this in the way that suits it:
 
 * NonlinearMPC (IPOPT, SQP): nonlinear inequality constraints d ≥ margin at every predicted state.
-* LinearMPC and real-time iteration: the constraints linearized about the plan, as rows of the QP for every pair
-  within ``ACTIVATION`` of its margin, treated as the state bounds are: DAQP solves them hard and, only where the
+* LinearMPC and real-time iteration: the constraints linearized about the plan, as rows of the QP for the pairs
+  within ``ACTIVATION`` of their margin (each robot sphere's ``ROWS_PER_SPHERE`` closest obstacles, at most
+  ``ROWS_PER_STAGE`` a stage), treated as the state bounds are: DAQP solves them hard and, only where the
   hard QP is infeasible (a start already inside the margin), softened; ProxQP and OSQP solve the soft QP, an exact
   penalty: one slack s_k ≥ 0 per stage with such rows, cost ``obstacle_weight``·(s_k + ½s_k²).
 * EMPC, CEM, MPPI: the same penalty in the rollout fitness, with h_k = max(0, margin − min d at x_k) in place of
@@ -37,6 +38,9 @@ from ocpkit._checks import positive
 # A stage's linearized obstacle rows enter the QP only where some pair's clearance at the plan is within this
 # many metres of the margin (a plan this far from every obstacle will not reach one within a step).
 ACTIVATION = 0.1
+# The QPs' obstacle rows are bounded (ocpkit.task_rows.TaskRows.select): each robot sphere's closest obstacles, at
+# most this many, and at most this many rows a stage (the closest pairs first; the Panda has 23 spheres).
+ROWS_PER_SPHERE, ROWS_PER_STAGE = 2, 24
 # reach()'s obstacle penalty weight (per metre of violation, and its square): far above the multipliers of a clearance
 # constraint under its default position weight, so the exact penalty keeps the constraint wherever it can be met.
 REACH_OBSTACLE_WEIGHT = 1e5
@@ -236,8 +240,19 @@ class CompiledTask:
     * ``stage_cost`` (x, u, g) -> Σ_i r_iᵀW_ir_i and ``terminal_cost`` (x, g) -> the terminal terms' sum;
     * ``stage_residual`` (x, u, g) -> (r, ∂r/∂x, ∂r/∂u) and ``terminal_residual`` (x, g) -> (r, ∂r/∂x) with the
       weights ``stage_weight``, ``terminal_weight`` (Gauss–Newton, the QPs);
-    * ``clearance`` (x) -> (d − margin per pair, its Jacobian) and ``penalty`` (x) -> the sampling planners' exact
-      penalty of one state (zero without obstacles).
+    * ``clearance`` (x) -> (d − margin per pair, its Jacobian, pairs × nx; robot spheres outer: pair i·N + j is
+      robot sphere i and obstacle j of N) and ``penalty`` (x) -> the sampling planners' exact penalty of one state
+      (zero without obstacles);
+    * with obstacles, ``spheres`` (x) -> (C, C_x): the robot spheres' centres (3 × k) and their Jacobians side by
+      side (3 × k·nx), and ``clearance_at`` (x, O) -> ``clearance`` for any table O (4 × N: centre, radius) of N
+      obstacles — moving obstacles need no new Function; :meth:`pair_clearances` gives every pair's d − margin
+      from the centres in numpy (where all pairs' values but few Jacobians are needed: the QP's rows, a
+      certificate).
+
+    The clearances are one pair's Function mapped (``Function.map``) over the obstacles and then over the robot
+    spheres, on the spheres' kinematics computed once: their expression and generated C grow with the robot's
+    spheres, not with the pairs (written out pair by pair, 1,000 obstacles made a 19 MB C file that compiled for
+    41 minutes).
     """
 
     def __init__(self, task: Task, nx: int, nu: int):
@@ -270,28 +285,58 @@ class CompiledTask:
         self.terminal_cost = ca.Function("task_terminal_cost", [x, g], [ca.dot(rt, ca.DM(self.terminal_weight) * rt)],
                                          ["x", "g"], ["l_T"])
         self.pairs = task.pairs
-        d = self._clearances(x) if self.pairs else ca.SX(0, 1)
-        self.clearance = ca.Function("clearance", [x], [d, ca.jacobian(d, x)], ["x"], ["d", "d_x"])
-        if self.pairs:
-            h = ca.fmax(0, -ca.mmin(d))
-            pen = task.obstacle_weight * (h + 0.5 * h * h)
-        else:
-            pen = ca.SX(0)
-        self.penalty = ca.Function("obstacle_penalty", [x], [pen], ["x"], ["penalty"])
+        # The obstacles (4 × N: centre, radius) and each robot sphere's radius plus the margin kept from them (k)
+        self.table = np.array([[*o.center, o.radius] for o in task.obstacles], dtype=float).reshape(-1, 4).T
+        self.radii = np.array([s.radius for s in task.robot], dtype=float) + task.margin
+        if not self.pairs:
+            self.clearance = ca.Function("clearance", [x], [ca.SX(0, 1), ca.SX(0, nx)], ["x"], ["d", "d_x"])
+            self.penalty = ca.Function("obstacle_penalty", [x], [ca.SX(0)], ["x"], ["penalty"])
+            return
+        self.spheres = self._spheres(x)
+        self.clearance_at, values = self._mapped()
+        xm = ca.MX.sym("x", nx)
+        d, d_x = self.clearance_at(xm, ca.DM(self.table))
+        self.clearance = ca.Function("clearance", [xm], [d, d_x], ["x"], ["d", "d_x"])
+        h = ca.fmax(0, -ca.mmin(values(xm, ca.DM(self.table))))
+        self.penalty = ca.Function("obstacle_penalty", [xm], [task.obstacle_weight * (h + 0.5 * h * h)], ["x"],
+                                   ["penalty"])
 
-    def _clearances(self, x):
-        """d − margin for every (robot sphere, obstacle) pair, robot spheres outer."""
+    def pair_clearances(self, C: np.ndarray) -> np.ndarray:
+        """d − margin of every pair, (M, k, N), from the robot spheres' centres C (3, M, k) at M states."""
+        d = np.sqrt(sum((C[a][:, :, None] - self.table[a]) ** 2 for a in range(3)))
+        d -= self.radii[:, None] + self.table[3]
+        return d
+
+    def _spheres(self, x) -> ca.Function:
+        """(x) -> (C, C_x): the robot spheres' centres (3 × k) and ∂c_i/∂x side by side (3 × k·nx, dense)."""
         from ocpkit.kinematics import sphere_centers
 
-        task = self.task
-        kin = task.kinematics
-        centers = sphere_centers(kin, task.robot)(x[:kin.n])  # 3 × k
-        out = []
-        for i, s in enumerate(task.robot):
-            for o in task.obstacles:
-                diff = centers[:, i] - ca.DM(o.center)
-                out.append(ca.sqrt(ca.dot(diff, diff)) - (s.radius + o.radius + task.margin))
-        return ca.vertcat(*out)
+        kin, k = self.task.kinematics, len(self.task.robot)
+        C = sphere_centers(kin, self.task.robot)(x[:kin.n])
+        J = ca.densify(ca.jacobian(ca.vec(C), x))  # row 3i + a: ∂C[a, i]/∂x
+        return ca.Function("robot_spheres", [x], [C, ca.horzcat(*(J[3 * i:3 * i + 3, :] for i in range(k)))],
+                           ["x"], ["C", "C_x"])
+
+    def _mapped(self) -> tuple[ca.Function, ca.Function]:
+        """``clearance_at`` (x, O) -> (d, d_x), and the same without the Jacobian (x, O) -> d: one pair's clearance
+        mapped over the N obstacles (the sphere's centre, Jacobian and radius shared), then over the k spheres."""
+        nx, k, N = self.nx, len(self.task.robot), self.table.shape[1]
+        c, c_x, r, o = ca.SX.sym("c", 3), ca.SX.sym("c_x", 3, nx), ca.SX.sym("r"), ca.SX.sym("o", 4)
+        e = c - o[:3]
+        dist = ca.norm_2(e)
+        d = dist - r - o[3]
+        both = ca.Function("pair_clearance", [c, c_x, r, o], [d, ca.mtimes((e / dist).T, c_x)])
+        alone = ca.Function("pair_distance", [c, r, o], [d])
+        # reduce_in: the inputs every call shares (the sphere's, over obstacles; the table, over spheres)
+        both = both.map("obstacles", "serial", N, [0, 1, 2], []).map("spheres", "serial", k, [3], [])
+        alone = alone.map("obstacles", "serial", N, [0, 1], []).map("spheres", "serial", k, [2], [])
+        x, O = ca.MX.sym("x", nx), ca.MX.sym("O", 4, N)
+        C, C_x = self.spheres(x)
+        radii = ca.DM(self.radii).T
+        d, d_x = both(C, C_x, radii, O)  # 1 × pairs and 1 × pairs·nx, pair i·N + j in block i·N + j
+        at = ca.Function("clearance_at", [x, O], [d.T, ca.reshape(d_x, nx, self.pairs).T], ["x", "O"],
+                         ["d", "d_x"])
+        return at, ca.Function("clearance_values", [x, O], [alone(C, radii, O).T], ["x", "O"], ["d"])
 
 
 def clearances(kinematics, robot, obstacles, q_rows) -> np.ndarray:

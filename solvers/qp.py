@@ -134,7 +134,7 @@ class LinearMPC(Controller):
         # backends (ProxQP, OSQP) only stop at their limits on an infeasible QP: they solve the soft QP alone.
         # A task's obstacle rows likewise: hard first, soft where the hard rows cannot be met (a start in the margin).
         task = getattr(self.transcription, "task", None)
-        obstacles = task is not None and task.clearance is not None
+        obstacles = task is not None and task.obstacles
         self._transcriptions = ((TRANSCRIPTIONS[form](ocp), self.transcription)
                                 if qp == "daqp" and (self.transcription.soft or obstacles)
                                 else (self.transcription,))
