@@ -72,3 +72,38 @@ def test_daqp_closed_loop_matches_proxqp():
 def test_daqp_needs_the_condensed_form():
     with pytest.raises(ValueError, match="daqp.*condensed"):
         LinearMPC(make("pendulum").ocp(knots=3), form="sparse", qp="daqp")
+
+
+def _many_active_rows(n=40, rows=400, seed=0):
+    """A dense QP whose solution has many active rows: DAQP needs dozens of iterations from a cold start."""
+    from ocpkit.quadratic_program import QP
+    rng = np.random.default_rng(seed)
+    M = rng.normal(size=(n, n))
+    C = rng.normal(size=(rows, n))
+    return QP(M @ M.T + n * np.eye(n), 100 * rng.normal(size=n), np.zeros((0, n)), np.zeros(0), C,
+              -np.ones(rows), np.ones(rows))
+
+
+def test_daqp_deadline_becomes_an_iteration_limit():
+    """With a deadline the backend gives DAQP the iterations that fit: the time left after its measured set-up over
+    its measured time per iteration (here set to 1 ms: 10.5 ms left allow 10), and refuses a solve where none fits."""
+    import time
+
+    from ocpkit.controller import OperationCosts
+    from ocpkit.qp_backends import DAQP
+
+    qp = _many_active_rows()
+    backend = DAQP(max_iter=10_000, eps=1e-9)
+    full = backend.solve(qp, None, None)
+    assert full.status == SUCCESS and full.iterations > 20
+    backend.costs = OperationCosts()
+    backend.costs.add(f"set-up n={qp.n}", 0.0)
+    backend.costs.add(f"iteration n={qp.n}", 1e-3)
+    capped = backend.solve(qp, None, time.perf_counter() + 10.5e-3)
+    assert capped.status == LIMITED and 1 <= capped.iterations <= 10, (capped.iterations, capped.raw_status)
+    assert "time budget" in capped.raw_status
+    backend.costs.add(f"iteration n={qp.n}", 1e-3)  # the median again 1 ms a step, whatever the solve measured
+    backend.costs.add(f"iteration n={qp.n}", 1e-3)
+    none = backend.solve(qp, None, time.perf_counter() + 0.5e-3)
+    assert none.status == LIMITED and none.iterations == 0 and "time budget" in none.raw_status
+    assert backend.solve(qp, capped.duals, None).status == SUCCESS  # the limited iterate warm-starts the next solve
