@@ -1,4 +1,13 @@
-"""Closed-loop simulation: a controller at its control rate against a plant integrated more finely."""
+"""Closed-loop simulation: a controller at its control rate against a plant integrated more finely.
+
+What counts as success. A step counts as a success only with status "success": the solver's answer certified and its
+plan keeping the task's clearances and hard state bounds (:class:`ocpkit.controller.Controller`). A "soft" step applied
+the solver's input but is not a success (its plan broke a clearance or a state bound, named in its raw status); a
+fallback step applied the controller's safe input instead of the solver's. Steps say nothing about the task as a
+whole: a loop whose every step succeeds can stop short of its target. :meth:`Trajectory.progress` gives that
+loop-level verdict — "reached", "stalled" or "moving" — and :meth:`Trajectory.success_while_colliding` counts the
+steps whose success the plant's next state contradicts.
+"""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -6,9 +15,75 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ocpkit._checks import integer, positive
-from ocpkit.controller import Controller, Solution
+from ocpkit.controller import SOFT, SUCCESS, Controller, Solution
 from ocpkit.model import Model
 from ocpkit.problem import check_dynamics
+
+# The loop-level verdict (Trajectory.progress) on the task error e(t): the frame's distance to its target point (m),
+# or for a joint goal the state error max_i |x_i − x_goal,i| (the state's units, rad and rad/s for an arm).
+REACHED, STALLED, MOVING = "reached", "stalled", "moving"
+VERDICTS = (REACHED, STALLED, MOVING)
+TOLERANCE = 0.01  # e at the last state within this: reached (1 cm, as the reach study's success)
+WINDOW = 0.5      # s: the last stretch of the run over which a loop short of its target must still change e
+STILL = 1e-3      # e's range (max − min) over that window at or below this: stalled (1 mm in 0.5 s: > 25 s per 5 cm)
+
+
+@dataclass(frozen=True)
+class Progress:
+    """A closed loop's verdict on its task (module docstring): ``verdict`` "reached" (``final``, the error at the last
+    state, within ``tolerance``), else "stalled" (the error's range over the last ``window`` seconds, ``change``, at
+    most ``still``: no progress) or "moving" (it still changed, or the run is shorter than the window and ``change``
+    is NaN). ``error`` is the task error at every state; ``what`` says which error it is, in ``unit``."""
+
+    verdict: str
+    error: np.ndarray
+    final: float
+    change: float
+    what: str
+    unit: str
+    tolerance: float
+    window: float
+    still: float
+
+    def to_dict(self) -> dict:
+        """JSON-ready: the verdict, which error, its final value and change over the window, and the thresholds."""
+        return {"verdict": self.verdict, "error": self.what, "unit": self.unit, "final": self.final,
+                "change": None if np.isnan(self.change) else self.change, "tolerance": self.tolerance,
+                "window": self.window, "still": self.still}
+
+    def text(self) -> str:
+        """One line: the verdict and the numbers it rests on."""
+        u = f" {self.unit}" if self.unit else ""
+        line = (f"verdict: {self.verdict.upper() if self.verdict == STALLED else self.verdict} — {self.what} "
+                f"{self.final:.4f}{u} at the end ({'within' if self.verdict == REACHED else 'not within'} "
+                f"{self.tolerance:g}{u})")
+        if self.verdict == REACHED:
+            return line
+        if np.isnan(self.change):
+            return line + f"; the run is shorter than the {self.window:g} s window"
+        return line + (f", changed {self.change:.4f}{u} over the last {self.window:g} s "
+                       + (f"(at most {self.still:g}{u}: no progress)" if self.verdict == STALLED else
+                          f"(more than {self.still:g}{u}: still moving)"))
+
+
+def _tally(labels) -> str:
+    """Labels counted, most frequent first ("limited 3, infeasible 1"; "" when none)."""
+    counts: dict = {}
+    for label in labels:
+        counts[label] = counts.get(label, 0) + 1
+    return ", ".join(f"{label} {n}" for label, n in sorted(counts.items(), key=lambda kv: (-kv[1], kv[0])))
+
+
+def soft_cause(raw_status: str) -> str:
+    """The kind of constraint a "soft" step's plan broke, from its raw status: the leading words after "soft: "
+    ("…; soft: clearance (robot sphere 2, obstacle 0) violated by …" -> "clearance", "state bound x[9] violated …"
+    -> "state bound"; "soft" when it names none)."""
+    kind = []
+    for word in raw_status.rpartition("soft: ")[2].partition(" violated")[0].split():
+        if not word.isalpha():
+            break
+        kind.append(word)
+    return " ".join(kind) or SOFT
 
 
 @dataclass
@@ -26,17 +101,72 @@ class Trajectory:
         return [s.status for s in self.solutions]
 
     @property
+    def successes(self) -> int:
+        """How many steps are successes: status "success" only (a "soft" step is not one)."""
+        return sum(s.status == SUCCESS for s in self.solutions)
+
+    @property
     def fallbacks(self) -> int:
         """How many steps applied a fallback input because the solver failed."""
         return sum(s.fallback for s in self.solutions)
 
     def fallback_causes(self) -> str:
         """The fallback steps by status, most frequent first ("limited 3, infeasible 1"; "" when none)."""
-        counts: dict = {}
-        for s in self.solutions:
-            if s.fallback:
-                counts[s.status] = counts.get(s.status, 0) + 1
-        return ", ".join(f"{status} {n}" for status, n in sorted(counts.items(), key=lambda kv: (-kv[1], kv[0])))
+        return _tally(s.status for s in self.solutions if s.fallback)
+
+    @property
+    def soft_steps(self) -> int:
+        """How many steps were "soft": the solver's input applied, its plan breaking a clearance or state bound."""
+        return sum(s.status == SOFT for s in self.solutions)
+
+    def soft_causes(self) -> str:
+        """The soft steps by the kind of constraint broken, most frequent first ("clearance 4, state bound 1")."""
+        return _tally(soft_cause(s.raw_status) for s in self.solutions if s.status == SOFT)
+
+    def clearances(self, ocp) -> np.ndarray:
+        """The true clearance (m, no margin) of ``ocp``'s task at every state: the smallest distance between the
+        surfaces of a robot sphere and an obstacle (negative: a collision; +inf without obstacles)."""
+        from ocpkit.task import clearances
+
+        task = getattr(ocp, "task", None)
+        if task is None or not task.obstacles:
+            return np.full(len(self.x), np.inf)
+        return clearances(task.kinematics, task.robot, task.obstacles, self.x[:, :task.kinematics.n])
+
+    def success_while_colliding(self, ocp) -> int:
+        """How many steps reported "success" while the plant's next state collides with an obstacle of ``ocp``'s
+        task (true clearance < 0): a success the plant contradicts."""
+        colliding = self.clearances(ocp)[1:] < 0
+        return int(sum(s.status == SUCCESS and hit for s, hit in zip(self.solutions, colliding)))
+
+    def progress(self, kinematics=None, frame: str | None = None, target=None, *, tolerance: float = TOLERANCE,
+                 window: float = WINDOW, still: float = STILL) -> Progress:
+        """The loop-level verdict on the task (:class:`Progress`): with ``kinematics`` (an
+        :class:`ocpkit.kinematics.Kinematics`, ``problem.kinematics``), ``frame`` and ``target`` (x, y, z), the
+        frame's distance (m) to the target point; without them the joint goal's state error max_i |x_i − x_goal,i|.
+        Defaults: reached within 1 cm (TOLERANCE), stalled when the error stays within 1 mm (STILL) over the last
+        0.5 s (WINDOW)."""
+        tolerance, still = positive(tolerance, "tolerance"), positive(still, "still")
+        window = positive(window, "window")
+        given = [name for name, v in (("kinematics", kinematics), ("frame", frame), ("target", target)) if v is None]
+        if given and len(given) < 3:
+            raise ValueError(f"progress towards a frame's target needs kinematics, frame and target; {given[0]} is "
+                             f"missing (none of them: the joint goal's state error)")
+        if given:
+            error = np.abs(self.x - self.goal[:self.x.shape[1]]).max(axis=1)
+            what, unit = "max |x − x_goal|", ""
+        else:
+            target = np.asarray(target, dtype=float).ravel()
+            if target.shape != (3,) or not np.isfinite(target).all():
+                raise ValueError(f"target must be a point x, y, z (m), got {np.asarray(target).tolist()}")
+            error = np.linalg.norm(kinematics.positions(frame, self.x[:, :kinematics.n]) - target, axis=1)
+            what, unit = f"{frame}'s distance to the target", "m"
+        span = int(round(window / (self.t[1] - self.t[0]))) if len(self.t) > 1 else len(self.t)
+        tail = error[-(span + 1):]
+        change = float(tail.max() - tail.min()) if len(error) > span else float("nan")
+        final = float(error[-1])
+        verdict = REACHED if final <= tolerance else STALLED if change <= still else MOVING
+        return Progress(verdict, error, final, change, what, unit, tolerance, window, still)
 
     def times(self, key: str = "total") -> np.ndarray:
         """Per-step solve times (s) of one kind: "model", "build", "solve" or "total"."""

@@ -2,7 +2,8 @@
 :mod:`ocpkit.studies.keepout` with a fair nonlinear baseline (not a paper experiment; issue 29 item 4).
 
 **Reach.** An end-effector target behind a sphere, on the planar 3-link arm (``nlink:3``: targets in its plane
-z = 0, spheres centred in the plane) and on Baxter's 7-DoF right arm (the shipped URDF, position servo). A
+z = 0, spheres centred in the plane), on Baxter's 7-DoF right arm (the shipped URDF, position servo) and on the
+torque-controlled Panda (``panda``, the full size only: its sampling kernels compile for minutes). A
 scenario is drawn from its seed, and the seeds were not tuned on: the start is ``problem.sample(s)``'s start, the
 target the forward kinematics of its goal configuration (so the target is reachable), at least
 :data:`MIN_DISTANCE` from the start's end effector; one sphere of radius :data:`OBSTACLE_RADIUS` sits on the
@@ -14,6 +15,14 @@ target configuration is within the margin of the obstacle are rejected and redra
 the links of the problem's ``link_radius``), the goal ``ocp.goal(x_start, position=target)`` (no joint target:
 the posture is free). A trial succeeds when the final end effector is within 1 cm of the target and the true
 clearance (without margin) is ≥ 0 at every recorded plant state.
+
+What a trial records about its steps and its loop (:mod:`ocpkit.simulate`): a step counts as a success only with
+status "success"; "soft" steps (the solver's input applied, its plan breaking a clearance or state bound) and
+fallbacks are counted apart, with their causes; "success while colliding" counts the steps reported "success" whose
+actual next state collides (true clearance < 0: a success the plant contradicts); ``collision_steps`` the colliding
+states. The loop-level verdict (:meth:`ocpkit.simulate.Trajectory.progress`) is "reached" (within 1 cm at the
+end), "stalled" (not reached, and the distance changed by at most 1 mm over the last 0.5 s: every step may have
+succeeded, the loop did not) or "moving" (not reached, still changing when the run ended).
 
 **Keep-out, fair baseline.** The joint-space ball of :mod:`ocpkit.studies.keepout` (3-link arm, radius
 r = 0.3 rad half-way between start and goal, hinge penalty w·max(0, r − ‖q − c‖), w = 100): EMPC with that
@@ -35,10 +44,10 @@ from ocpkit.kernels.runtime import current_arch
 from ocpkit.kinematics import spheres_along_links
 from ocpkit.metrics import actual_cost
 from ocpkit.plots import number
-from ocpkit.simulate import simulate
+from ocpkit.simulate import MOVING, REACHED, STALLED, simulate
 from ocpkit.studies import keepout
 from ocpkit.studies.closed_loop import run_record
-from ocpkit.studies.evidence import NOT_TESTED, Interval, combine, decide, median_claim, proportion
+from ocpkit.studies.evidence import NOT_TESTED, Interval, combine, decide, every, median_claim, proportion
 from ocpkit.studies.report import ANSWERED, Claim, answered, markdown_table, section, timing_context, trials_line
 from ocpkit.study import Study, grid
 from ocpkit.task import REACH_OBSTACLE_WEIGHT, Sphere, Task, UserTerm, reach
@@ -46,12 +55,12 @@ from ocpkit.task import clearances as task_clearances
 
 NAME = "reach"
 TITLE = "Reaching past spherical obstacles (every controller, one task OCP) and the keep-out ball with a fair baseline"
-ROBOTS = ("nlink:3", "baxter")
+ROBOTS = ("nlink:3", "baxter", "panda")
 KEEPOUT = "keepout"
 MARGIN, TOLERANCE = 0.01, 0.01            # obstacle margin [m] in the OCP; success: final distance [m]
-OBSTACLE_RADIUS = {"nlink:3": 0.06, "baxter": 0.08}
+OBSTACLE_RADIUS = {"nlink:3": 0.06, "baxter": 0.08, "panda": 0.08}
 MIN_DISTANCE = 0.25                       # start-to-target end-effector distance [m] at least
-KNOTS = {"nlink:3": 5, "baxter": 3}
+KNOTS = {"nlink:3": 5, "baxter": 3, "panda": 5}
 ATTEMPTS = 200
 HINGE_WEIGHT = 1e3                        # the squared hinge's weight in the keep-out UserTerm
 IPOPT, RTI, QP, QP_TRAJ, EMPC, CEM, MPPI = ("IPOPT", "RTI", "LinearMPC", "LinearMPC (trajectory)", "EMPC", "CEM",
@@ -65,12 +74,14 @@ K_IPOPT, K_RTI, K_EMPC_HINGE, K_EMPC_SQUARED = ("IPOPT, squared hinge term", "RT
                                                 "EMPC, hinge fitness", "EMPC, squared hinge term")
 KEEPOUT_CONTROLLERS = (K_IPOPT, K_RTI, K_EMPC_HINGE, K_EMPC_SQUARED)
 # quick: shortened for a few minutes on 2 cores (IPOPT with the obstacle constraints: ~0.1 s a step on Baxter)
-SIZES = {"quick": {"seeds": {"nlink:3": 4, "baxter": 1, KEEPOUT: 2}, "duration": {"nlink:3": 2.5, "baxter": 1.0,
-                                                                                  KEEPOUT: 5.0},
+# A robot a size leaves out has 0 seeds (or no entry).
+SIZES = {"quick": {"seeds": {"nlink:3": 4, "baxter": 1, "panda": 0, KEEPOUT: 2},
+                   "duration": {"nlink:3": 2.5, "baxter": 1.0, KEEPOUT: 5.0},
                    "horizon": {"nlink:3": 50, "baxter": 20, KEEPOUT: 100}, "population": 256, "arch": "cpu"},
-         "full": {"seeds": {"nlink:3": 20, "baxter": 10, KEEPOUT: 10}, "duration": {"nlink:3": 3.0, "baxter": 3.0,
-                                                                                    KEEPOUT: 5.0},
-                  "horizon": {"nlink:3": 50, "baxter": 50, KEEPOUT: 100}, "population": 1024, "arch": "auto"}}
+         "full": {"seeds": {"nlink:3": 20, "baxter": 10, "panda": 10, KEEPOUT: 10},
+                  "duration": {"nlink:3": 3.0, "baxter": 3.0, "panda": 2.0, KEEPOUT: 5.0},
+                  "horizon": {"nlink:3": 50, "baxter": 50, "panda": 50, KEEPOUT: 100}, "population": 1024,
+                  "arch": "auto"}}
 
 
 # --- scenarios ------------------------------------------------------------------------------------------------
@@ -139,13 +150,16 @@ def reach_trial(robot: str, controller: str, horizon: int, duration: float, popu
     ctrl = _controller(solver, options, ocp, population, arch, seed)
     ctrl.solve(s["x0"], goal)  # compiles kernels and functions outside the timed run; simulate() resets ctrl
     traj = simulate(pb.plant(), ctrl, s["x0"], goal, duration)
-    d = clearances(pb, s["obstacles"], traj.x[:, :n])
+    d = traj.clearances(ocp)
     ee = pb.kinematics.positions(pb.end_effector, traj.x[:, :n])
-    distance = float(np.linalg.norm(ee[-1] - s["target"]))
+    progress = traj.progress(pb.kinematics, pb.end_effector, s["target"], tolerance=TOLERANCE)
     collisions = int((d < 0).sum())
-    return {"success": bool(distance <= TOLERANCE and collisions == 0), "reached": bool(distance <= TOLERANCE),
-            "collision_steps": collisions, "min_clearance": float(d.min()), "final_distance": float(distance),
-            "start_distance": float(np.linalg.norm(ee[0] - s["target"])), "actual_cost": actual_cost(traj, ocp),
+    return {"success": bool(progress.verdict == REACHED and collisions == 0), "reached": progress.verdict == REACHED,
+            "verdict": progress.verdict, "final_change": progress.change, "collision_steps": collisions,
+            "success_while_colliding": traj.success_while_colliding(ocp), "successes": traj.successes,
+            "soft_steps": traj.soft_steps, "soft_causes": traj.soft_causes(), "steps": len(traj.solutions),
+            "min_clearance": float(d.min()), "final_distance": progress.final,
+            "start_distance": float(progress.error[0]), "actual_cost": actual_cost(traj, ocp),
             **_times(traj, ctrl), "rejected": s["rejected"], "knots": KNOTS[robot],
             "device": current_arch() if solver in ("empc", "cem", "mppi") else "cpu",
             "ee": ee, "target": s["target"], "obstacles": np.array([[*o.center, o.radius] for o in s["obstacles"]])}
@@ -194,8 +208,8 @@ def study(size: str) -> Study:
     common = {"population": s["population"], "arch": s["arch"]}
     trials = []
     for robot in ROBOTS:
-        if not s["seeds"][robot]:
-            continue  # a size may leave a robot out (0 seeds)
+        if not s["seeds"].get(robot):
+            continue  # a size may leave a robot out (0 seeds, or none given)
         trials += grid(scenario=robot, controller=list(CONTROLLERS), horizon=s["horizon"][robot],
                        duration=s["duration"][robot], **common, seeds=s["seeds"][robot])
     if s["seeds"][KEEPOUT]:
@@ -219,11 +233,22 @@ def ratios(ok: pd.DataFrame) -> pd.DataFrame:
 
 
 def _outcome(row) -> str:
+    """success, collision, or (no collision, not reached) the loop's verdict: stalled or moving."""
     if row["success"]:
         return "success"
     if row["collision_steps"] > 0:
         return "collision"
-    return "stuck"
+    return row["verdict"]
+
+
+def _causes(texts) -> str:
+    """Cause counts ("clearance 3, state bound 1") summed over runs, most frequent first ("–" when none)."""
+    total: dict = {}
+    for text in texts:
+        for part in filter(None, str(text).split(", ")):
+            cause, n = part.rsplit(" ", 1)
+            total[cause] = total.get(cause, 0) + int(n)
+    return ", ".join(f"{k} {v}" for k, v in sorted(total.items(), key=lambda kv: (-kv[1], kv[0]))) or "–"
 
 
 def report(df, out_dir) -> str:
@@ -260,18 +285,26 @@ def _reach_section(r, out_dir, figs, tables, notes, claims):
             summary.append({"robot · controller": f"{robot} · {c}", "seeds": len(g),
                             "success": f"{int(g['success'].sum())}/{len(g)}",
                             "collided": int((g["collision_steps"] > 0).sum()),
-                            "stuck (no collision, > 1 cm)": int((g["outcome"] == "stuck").sum()),
+                            "stalled (no collision)": int((g["outcome"] == STALLED).sum()),
+                            "moving (no collision)": int((g["outcome"] == MOVING).sum()),
+                            "colliding states": int(g["collision_steps"].sum()),
+                            "success while colliding": int(g["success_while_colliding"].sum()),
+                            "success steps [%]": 100 * g["successes"].sum() / g["steps"].sum(),
+                            "soft steps": int(g["soft_steps"].sum()), "soft causes": _causes(g["soft_causes"]),
+                            "fallbacks": int(g["fallbacks"].sum()),
                             "cost / IPOPT median": q.median() if len(q) else np.nan,
                             "cost / IPOPT worst": q.max() if len(q) else np.nan,
                             "step median [ms]": 1e3 * g["step_median"].median(),
                             "step max [ms]": 1e3 * g["step_max"].max(),
                             "min clearance [m]": g["min_clearance"].min(),
-                            "final distance median [m]": g["final_distance"].median(),
-                            "fallbacks": int(g["fallbacks"].sum())})
+                            "final distance median [m]": g["final_distance"].median()})
     table = pd.DataFrame(summary).set_index("robot · controller")
     tables["Reach: per robot and controller (success: final end effector within 1 cm and true clearance ≥ 0 at "
-           "every state; cost ratio to IPOPT on the seeds where IPOPT succeeds; step = the whole MPC step, wall "
-           "time)"] = markdown_table(table)
+           "every state; stalled: not reached and the distance unchanged within 1 mm over the last 0.5 s, moving: "
+           "still changing at the end; colliding states: true clearance < 0; success while colliding: steps "
+           "reported success whose next state collides; success steps: status 'success' only, soft steps and "
+           "fallbacks apart; cost ratio to IPOPT on the seeds where IPOPT succeeds; step = the whole MPC step, "
+           "wall time)"] = markdown_table(table)
     # Success rates, cost ratios and step times side by side.
     labels = [f"{b}\n{c}" for b in robots for c in order
               if not r[(r["scenario"] == b) & (r["controller"] == c)].empty]
@@ -308,9 +341,10 @@ def _reach_section(r, out_dir, figs, tables, notes, claims):
             rows.append({"gradient method": g, "seeds": len(both), "EMPC succeeds, it misses": len(e_only),
                          "how it misses there": _how(r, g, e_only), "it succeeds, EMPC misses": len(g_only),
                          "how EMPC misses there": _how(r, EMPC, g_only)})
-        tables["EMPC vs the gradient methods, seed by seed (stuck: no collision but > 1 cm from the target at the "
-               "end, with the median final distance; collision: some state with true clearance < 0, with the "
-               "deepest penetration)"] = markdown_table(pd.DataFrame(rows).set_index("gradient method"))
+        tables["EMPC vs the gradient methods, seed by seed (stalled or moving: no collision but > 1 cm from the "
+               "target at the end, the loop's verdict, with the median final distance; collision: some state with "
+               "true clearance < 0, with the deepest penetration)"] = markdown_table(
+                   pd.DataFrame(rows).set_index("gradient method"))
     sample = ", ".join(sorted(set(r.loc[r["controller"].isin([EMPC, CEM, MPPI]), "device"])))
     notes.append("Reach setup: " + "; ".join(
         f"{b}: {r[r['scenario'] == b]['seed'].nunique()} seeds, {number(r[r['scenario'] == b]['duration'].iloc[0])} s "
@@ -328,22 +362,25 @@ def _reach_section(r, out_dir, figs, tables, notes, claims):
                  "fittest when the target pulls hard enough. Cost ratios compare the task cost (position term, "
                  "velocities, inputs) and say nothing about collisions: read them with the success column.")
     missed = r[~r["success"].astype(bool)]
-    near = missed[(missed["collision_steps"] == 0) & (missed["final_distance"] < 2 * TOLERANCE)]
-    pressed = missed[(missed["collision_steps"] == 0) & (missed["final_distance"] >= 2 * TOLERANCE)
-                     & (missed["min_clearance"] < 1.5 * MARGIN)]
+    stalled = missed[missed["outcome"] == STALLED]
+    pressed = stalled[stalled["min_clearance"] < 1.5 * MARGIN]
+    moving = missed[missed["outcome"] == MOVING]
     collided = int((missed["collision_steps"] > 0).sum())
-    near_runs = ", ".join(f"{a} {b} seed {c}" for a, b, c in near[["scenario", "controller", "seed"]].values)
-    notes.append(f"Misses, from the data: {len(missed)} of {len(r)} runs missed; {collided} collided; {len(near)} "
-                 f"ended within 2 cm (slow, not blocked: {near_runs or '–'}); {len(pressed)} ended ≥ 2 cm short "
-                 "after touching the margin (min clearance < 1.5× the "
-                 "margin): held in front of the sphere, a local minimum of the position cost under the obstacle "
-                 "constraint, not an unsuccessful solve (fallback steps: "
-                 f"{int(missed['fallbacks'].sum())}). LinearMPC's default linearization takes one model for the "
+    moving_runs = ", ".join(f"{a} {b} seed {c}" for a, b, c in moving[["scenario", "controller", "seed"]].values)
+    notes.append(f"Misses, from the data: {len(missed)} of {len(r)} runs missed; {collided} collided; "
+                 f"{len(stalled)} stalled short of the target without collision (the distance unchanged within 1 mm "
+                 f"over the last 0.5 s; {int(stalled['successes'].sum())} of their {int(stalled['steps'].sum())} "
+                 f"steps reported success), {len(pressed)} of them after touching the margin (min clearance < 1.5× "
+                 "the margin): held in front of the sphere, a local minimum of the position cost under the obstacle "
+                 f"constraint, not an unsuccessful solve; {len(moving)} were still moving at the end "
+                 f"({moving_runs or '–'}). Fallback steps in the misses: {int(missed['fallbacks'].sum())}, soft "
+                 f"steps {int(missed['soft_steps'].sum())}. LinearMPC's default linearization takes one model for the "
                  "horizon, expanded about the current state and the input goal u_g(x_ref) — with the reach goal's "
                  "x_ref the start at rest: zero torque on nlink:3, the start's set points on Baxter —; "
                  "'trajectory' re-linearizes stage by stage along the plan.")
     claims.append(_claim_ipopt_rti(r))
     claims.append(_claim_empc_cost(rat))
+    claims.append(_claim_no_success_colliding(r, order))
 
 
 def _how(r, controller, index) -> str:
@@ -352,11 +389,10 @@ def _how(r, controller, index) -> str:
     rows = r.set_index(["scenario", "seed"])
     rows = rows[rows["controller"] == controller].loc[list(index)]
     parts = []
-    stuck = rows[(rows["collision_steps"] == 0)]
     hit = rows[rows["collision_steps"] > 0]
-    if len(stuck):
-        parts.append(f"{len(stuck)} stuck (median {number(100 * stuck['final_distance'].median(), 3)} cm short, "
-                     f"min clearance {number(100 * stuck['min_clearance'].min(), 3)} cm)")
+    for verdict, short in rows[rows["collision_steps"] == 0].groupby("verdict"):
+        parts.append(f"{len(short)} {verdict} (median {number(100 * short['final_distance'].median(), 3)} cm short, "
+                     f"min clearance {number(100 * short['min_clearance'].min(), 3)} cm)")
     if len(hit):
         parts.append(f"{len(hit)} collision (down to {number(100 * hit['min_clearance'].min(), 3)} cm)")
     return ", ".join(parts)
@@ -373,6 +409,15 @@ def _claim_ipopt_rti(r) -> Claim:
             verdicts.append(decide(Interval(rate, low, high, len(g), 0.95), 0.9, ">="))
     return Claim("IPOPT and RTI reach ≥ 90 % of reachable targets without collision", "success rate per solver",
                  combine(verdicts) if len(verdicts) == 2 else NOT_TESTED, "; ".join(parts) or "not run")
+
+
+def _claim_no_success_colliding(r, order) -> Claim:
+    per = r.groupby("controller")["success_while_colliding"].sum()
+    verdict, evidence = every(r["success_while_colliding"], lambda n: n == 0,
+                              "reported success on a step whose next state collides")
+    return Claim("No controller reports success on a step whose actual next state collides (issue 43)",
+                 "steps reported success while the next state collides, per controller: "
+                 + ", ".join(f"{c} {int(per[c])}" for c in order), verdict, evidence)
 
 
 def _claim_empc_cost(rat) -> Claim:

@@ -29,16 +29,58 @@ def _simulate(args, tmp_path, capsys) -> dict:
 
 
 def test_target_and_obstacle_flags(tmp_path, capsys):
-    reach = _simulate(SCENE, tmp_path, capsys)["reach"]
+    out = _simulate(SCENE, tmp_path, capsys)
+    reach = out["reach"]
     assert reach["frame"] == "tip" and reach["target"] == [0.3, 0.5, 0.0] and reach["states"] == 151
     assert reach["obstacles"] == [[0.55, 0.2, 0.0, 0.08]] and reach["margin"] == 0.01
     assert reach["final_distance"] < 0.01, reach
     assert 0 < reach["min_clearance"] < 0.02 and reach["collisions"] == 0, reach  # the ball was in the way
-    # the text summary says the same in one line
+    assert reach["success_while_colliding"] == 0 and out["successes"] + out["soft"] + out["fallbacks"] == 150
+    assert out["progress"]["verdict"] == "reached" and out["progress"]["final"] == reach["final_distance"]
+    # the text summary says the same: the reach line, then the loop's verdict
     assert main(["simulate", *SCENE, "--duration", "1.5", "--out", str(tmp_path / "sim.png")]) == 0
-    line = capsys.readouterr().out.strip().splitlines()[-1]
+    lines = capsys.readouterr().out.strip().splitlines()
     assert re.fullmatch(r"reach: tip 0\.00\d\d m from the target \(0\.3, 0\.5, 0\) after 1\.5 s; min clearance "
-                        r"0\.0\d{3} m to 1 obstacle \(margin 0\.01 m\); no collision in 151 states", line), line
+                        r"0\.0\d{3} m to 1 obstacle \(margin 0\.01 m\); no collision in 151 states", lines[-2]), lines
+    assert re.fullmatch(r"verdict: reached — tip's distance to the target 0\.00\d\d m at the end \(within 0\.01 m\)",
+                        lines[-1]), lines
+    assert re.search(r": actual cost \d+\.\d{4}; 150 steps: \d+ success, \d+ soft( \(.*\))?, \d+ fallbacks", lines[0])
+
+
+def test_stalled_reach_is_said_while_every_step_succeeds(tmp_path, capsys):
+    """The issue's case: 5 cm short of a target beyond the arm's reach (0.80 m, links 3 × 0.25 m), every step a
+    success; the loop is stalled."""
+    args = ["nlink:3", "--target", "0.48,0.64,0", "--linearization", "trajectory", "--duration", "3"]
+    assert main(["simulate", *args, "--out", str(tmp_path / "sim.png"), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["successes"] == out["steps"] == 300 and out["soft"] == out["fallbacks"] == 0
+    progress = out["progress"]
+    assert progress["verdict"] == "stalled" and abs(progress["final"] - 0.05) < 2e-3 and progress["change"] <= 1e-3
+    assert progress["error"] == "tip's distance to the target" and progress["unit"] == "m"
+    assert (progress["tolerance"], progress["window"], progress["still"]) == (0.01, 0.5, 0.001)
+    assert main(["simulate", *args, "--out", str(tmp_path / "sim.png")]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert "300 steps: 300 success, 0 soft, 0 fallbacks" in lines[0]
+    assert re.fullmatch(r"verdict: STALLED — tip's distance to the target 0\.0[45]\d\d m at the end \(not within "
+                        r"0\.01 m\), changed 0\.000\d m over the last 0\.5 s \(at most 0\.001 m: no progress\)",
+                        lines[-1]), lines
+
+
+def test_soft_steps_and_their_causes(tmp_path, capsys):
+    """An obstacle over the start (the tip's sphere inside it): the plans that break its clearance while the arm
+    gets out are soft steps, printed with their cause beside the fallbacks, never successes."""
+    args = ["nlink:3", "--target", "0.3,0.5,0", "--obstacle", "0.43,-0.21,0,0.05", "--linearization", "trajectory",
+            "--duration", "1"]
+    assert main(["simulate", *args, "--out", str(tmp_path / "sim.png"), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["soft"] > 0 and out["soft_causes"].startswith("clearance"), out
+    assert out["successes"] + out["soft"] + out["fallbacks"] == out["steps"] == 100
+    assert out["reach"]["collisions"] > 0 and out["reach"]["success_while_colliding"] == 0
+    assert main(["simulate", *args, "--out", str(tmp_path / "sim.png")]) == 0
+    text = capsys.readouterr().out
+    assert f"{out['successes']} success, {out['soft']} soft ({out['soft_causes']}), {out['fallbacks']} fallbacks" \
+        in text
+    assert "steps reported success while colliding" in text
 
 
 def test_task_file_is_the_flags(tmp_path, capsys):

@@ -5,7 +5,7 @@ import pytest
 from ocpkit.controller import INFEASIBLE, LIMITED, SolverError
 from ocpkit.metrics import actual_cost, itae, step_metrics
 from ocpkit.problems import make
-from ocpkit.simulate import simulate
+from ocpkit.simulate import REACHED, simulate
 from ocpkit.solvers.qp import LinearMPC
 
 
@@ -35,7 +35,8 @@ def test_reaches_goal_within_bounds():
     traj = simulate(problem.plant(), LinearMPC(ocp), x0, goal, 3.0)
     assert np.abs(traj.x[-1] - goal).max() < 1e-2
     assert (traj.u <= ocp.u_max + 1e-9).all() and (traj.u >= ocp.u_min - 1e-9).all()
-    assert traj.fallbacks == 0 and set(traj.statuses) == {"success"}
+    assert traj.fallbacks == 0 and set(traj.statuses) == {"success"} and traj.successes == 300
+    assert traj.progress().verdict == REACHED and traj.soft_steps == 0
     assert np.isfinite(itae(traj)) and step_metrics(traj)["overshoot"].shape == (1,)
 
 

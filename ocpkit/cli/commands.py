@@ -169,25 +169,32 @@ def _simulate(args):
         title += f", {task.frame} to {point_text(task.target)}"
     panels = None if task is None else reach_panels(problem, ocp, task, traj.x)
     fig = plots.closed_loop({repr(ctrl): shown}, args.out, title=title, task=panels, **_labels(problem))
+    # success: status "success" only; a soft step applied the solver's input but broke a clearance or state bound
+    progress = traj.progress() if task is None else traj.progress(problem.kinematics, task.frame, task.target)
     summary = {"problem": args.problem, "solver": args.solver, "controller": repr(ctrl), "actual_cost": cost,
+               "successes": traj.successes, "soft": traj.soft_steps, "soft_causes": traj.soft_causes(),
                "fallbacks": traj.fallbacks, "fallback_causes": traj.fallback_causes(), "steps": len(traj.solutions),
-               "total_time": _time_summary(traj),
+               "progress": progress.to_dict(), "total_time": _time_summary(traj),
                "figure": str(fig), "plant": "ocpkit" if plant is None else repr(plant)}
     if task is not None:
-        summary["reach"] = reach_report(problem, ocp, task, traj.x, dt=float(traj.t[1] - traj.t[0]))
+        summary["reach"] = reach_report(problem, ocp, task, traj.x, dt=float(traj.t[1] - traj.t[0]),
+                                        success_while_colliding=traj.success_while_colliding(ocp))
     if args.animate is not None:  # a reach task's target and obstacles drawn, else the joint goal's pose
         scene = {} if task is None else {"target": task.target, "obstacles": task.obstacles, "frame": task.frame}
         summary["animation"] = str(animation.animate(traj, args.animate, problem, title=title, **scene))
     if args.json:
         print(json.dumps(summary))
     else:
+        soft = f" ({summary['soft_causes']})" if traj.soft_steps else ""
         causes = f" ({summary['fallback_causes']})" if traj.fallbacks else ""
-        print(f"{ctrl!r}: actual cost {cost:.4f}, {traj.fallbacks} fallbacks{causes} in {len(traj.solutions)} steps, "
+        print(f"{ctrl!r}: actual cost {cost:.4f}; {len(traj.solutions)} steps: {traj.successes} success, "
+              f"{traj.soft_steps} soft{soft}, {traj.fallbacks} fallbacks{causes}; "
               f"total solve time median {summary['total_time']['median_ms']:.3f} ms "
               f"(p90 {summary['total_time']['p90_ms']:.3f}, max {summary['total_time']['max_ms']:.3f})\n"
               f"figure: {fig}" + ("" if plant is None else f"\nplant: {plant!r}"))
         if task is not None:
             print(reach_line(summary["reach"], f"after {traj.t[-1]:g} s"))
+        print(progress.text())
         if args.animate is not None:
             print(f"animation: {summary['animation']}")
     return 0

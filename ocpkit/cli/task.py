@@ -174,10 +174,12 @@ def _reach_series(problem, ocp, task: Reach, xs):
     return positions, clearances(ocp.task.kinematics, ocp.task.robot, ocp.task.obstacles, xs[:, :kin.n])
 
 
-def reach_report(problem, ocp, task: Reach, xs, dt: float | None = None) -> dict:
+def reach_report(problem, ocp, task: Reach, xs, dt: float | None = None,
+                 success_while_colliding: int | None = None) -> dict:
     """How the states ``xs`` (N, nx) did on the task: the frame's distance to the target at the last state, and the
     smallest clearance — distance from a robot sphere's surface to an obstacle's — over all states (negative: they
-    overlap, a collision)."""
+    overlap, a collision); for a closed loop, ``success_while_colliding``: the steps reported "success" whose next
+    state collides."""
     positions, closest = _reach_series(problem, ocp, task, xs)
     report = {"frame": task.frame, "target": task.target.tolist(), "final_position": positions[-1].tolist(),
               "final_distance": float(np.linalg.norm(positions[-1] - task.target)),
@@ -188,6 +190,8 @@ def reach_report(problem, ocp, task: Reach, xs, dt: float | None = None) -> dict
         hit = np.flatnonzero(closest < 0)
         report.update(min_clearance=float(closest.min()), collisions=int(hit.size),
                       first_collision=None if not hit.size else int(hit[0]) if dt is None else float(hit[0] * dt))
+    if success_while_colliding is not None:
+        report["success_while_colliding"] = int(success_while_colliding)
     return report
 
 
@@ -203,6 +207,8 @@ def reach_line(report: dict, what: str) -> str:
         f", first at step {first}"
     collided = (f"COLLIDED in {report['collisions']} of {report['states']} states{when}" if report["collisions"]
                 else f"no collision in {report['states']} states")
+    if report["collisions"] and "success_while_colliding" in report:
+        collided += f", {report['success_while_colliding']} steps reported success while colliding"
     return (line + f"; min clearance {report['min_clearance']:.4f} m to {n} obstacle{'s' * (n > 1)} "
                    f"(margin {report['margin']:g} m); {collided}")
 
