@@ -166,8 +166,10 @@ def test_readme_reach_example(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
     exec(compile(readme_block("Reach a point around a sphere"), "README.md", "exec"), {})
     printed = capsys.readouterr().out.strip()
-    distance, clearance = map(float, re.fullmatch(r"final distance (\S+) m, min clearance (\S+) m", printed).groups())
-    assert distance < 0.01 and 0 < clearance < 0.02
+    verdict, distance, clearance = re.fullmatch(r"(\w+): final distance (\S+) m, min clearance (\S+) m",
+                                                printed).groups()
+    distance, clearance = float(distance), float(clearance)
+    assert verdict == "reached" and distance < 0.01 and 0 < clearance < 0.02
     section = README.read_text().split("## Reach a point around a sphere")[1]
     assert f"It prints `{printed}`" in section
     toml = re.search(r"```toml\n(.*?)```", section, re.S).group(1)
