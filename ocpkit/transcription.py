@@ -207,12 +207,15 @@ class CondensedQP(_Transcription):
     form = "condensed"
 
     def __init__(self, ocp: OCP, *, soft: bool = False, slack_weight: float = 1e3, obstacles: bool = True,
-                 task: bool = True):
+                 task: bool = True, soft_obstacles: bool | None = None):
         super().__init__(ocp, soft=soft, slack_weight=slack_weight)
         n, m, p = self.n, self.m, self.p
         # task=False: the joint-space QP alone (the C step generates the task's terms itself); obstacles=False: the
-        # task's terms without its obstacle rows (the sampling planners' preconditioner)
-        self.task = None if ocp.task_functions is None or not task else TaskRows(ocp, obstacles, soft=bool(soft))
+        # task's terms without its obstacle rows (the sampling planners' preconditioner); soft_obstacles: the
+        # obstacle rows with their slacks (default: as the state bounds, ``soft``)
+        soft_obstacles = soft if soft_obstacles is None else soft_obstacles
+        self.task = (None if ocp.task_functions is None or not task
+                     else TaskRows(ocp, obstacles, soft=bool(soft_obstacles)))
         self.nz = m * p  # the knots; the slacks (if any) follow them in z
         self.A = np.zeros((0, self.nz + self.ns))
         self.b = np.zeros(0)

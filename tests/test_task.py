@@ -184,3 +184,27 @@ def test_user_term_as_a_function_and_metrics(nlink3):
     plain = nlink3.ocp(knots=KNOTS, horizon=HORIZON)
     extra = sum(2.0 * float(np.sum((traj.u[i] * traj.x[i, 3:]) ** 2)) for i in range(traj.u.shape[0]))
     assert actual_cost(traj, ocp) == pytest.approx(actual_cost(traj, plain) + extra, rel=1e-12)
+
+
+def test_daqp_softens_the_obstacle_rows_before_the_state_bounds(nlink3, monkeypatch):
+    """A start inside the margin makes the hard QP infeasible: DAQP then solves the QP with only the obstacle rows
+    softened (one slack per stage with rows), not the soft QP with two slacks per bounded state and stage, and
+    gives the soft QP's answer (ProxQP's)."""
+    from ocpkit.qp_backends import DAQP
+
+    x0, target, _ = _blocked(nlink3)
+    tip = _tip(nlink3, x0[:3])
+    limits = np.r_[np.full(3, np.inf), np.full(3, 5.0)]  # joint velocities within 5 rad/s
+    ocp = reach(nlink3, [Sphere(tuple(tip + [0.0, 0.0, 0.065]), 0.01)], knots=KNOTS, horizon=HORIZON,
+                compiled=False, x_min=-limits, x_max=limits)  # 5 mm into the margin of the tip's sphere
+    assert ocp.has_state_bounds and np.asarray(ocp.task_functions.clearance(x0)[0]).min() < 0
+    sizes = []
+    solve = DAQP.solve
+    monkeypatch.setattr(DAQP, "solve", lambda self, qp, *a: sizes.append(qp.n) or solve(self, qp, *a))
+    goal = ocp.goal(x0, position=target)
+    daqp = solvers.make("qp", ocp, qp="daqp")
+    sol = daqp.solve(x0, goal)
+    nz, soft = ocp.nu * ocp.knots, daqp.transcription
+    assert len(sizes) == 2 and sizes[0] == nz and nz < sizes[1] <= nz + HORIZON < nz + soft.ns, sizes
+    ref = solvers.make("qp", ocp, qp="proxqp", eps=1e-10).solve(x0, goal)
+    assert sol.status == ref.status and np.abs(sol.knots - ref.knots).max() < 1e-5, (sol.raw_status, ref.raw_status)
