@@ -1,13 +1,15 @@
 """CrossEntropyMPC: the cross-entropy method over the knots, on EMPC's rollout engine.
 
 Each generation draws the population from a Gaussian over the knots, keeps the ``num_elites``
-cheapest candidates and refits the Gaussian to them (Rubinstein's CEM, as in MuJoCo MPC's
+best candidates — by constraint domination (:func:`ocpkit.solvers.sampling.best_first`) in both variants: the
+feasible by cost, then the least violating — and refits the Gaussian to them (Rubinstein's CEM, as in MuJoCo MPC's
 cross-entropy planner). The preconditioned variant (default) draws and refits in the coordinates
 whitened by the knot QP's Hessian and evaluates the seeds in every population
 (:mod:`ocpkit.solvers.sampling`); "paper" uses per-parameter stds in input coordinates. The mean
 carries over to the next control step shifted one step in time; preconditioned, the step starts from
 whichever of it and the seeds rolls out cheapest (the refit alone moves the mean only about σ per
-generation). The std restarts at σ each step. u is the mean's input at t = 0.
+generation). The std restarts at σ each step. u is the mean's input at t = 0, unless with obstacles or state
+bounds the best elite dominates the mean (:meth:`GaussianSampling._final`).
 """
 from __future__ import annotations
 
@@ -44,7 +46,8 @@ class CrossEntropyMPC(GaussianSampling):
 
     def _generation(self, cold):
         self._sample(self.mean)
-        idx, cost = self._ranked(self.num_elites)
+        idx = self._ranked(self.num_elites)
+        self._best_index = int(idx[0])
         elites = self._pick(idx)
         elite_mean = elites.mean(axis=0)
         spread = (self.preconditioner.whitened(elites, elite_mean) if self.preconditioned
@@ -53,10 +56,11 @@ class CrossEntropyMPC(GaussianSampling):
         a = self.smoothing
         self.mean = a * self.mean + (1 - a) * elite_mean
         self.std = np.maximum(a * self.std + (1 - a) * spread, floor)
-        return float(cost[0])
+        return self._outcome(idx[0])
 
-    def _result(self):
-        return self.mean
+    def _result(self, best):
+        self.mean, best = self._final(self.mean, best, self._best_index)
+        return self.mean, best
 
 
 SOLVERS = {"cem": CrossEntropyMPC}

@@ -4,7 +4,9 @@ Per generation, in one kernel launch, every candidate is bred and rolled out. Th
 best knot sets survive unchanged (elitism) and carry over to the next control step shifted one step
 in time; the rest of the population are children of two parents drawn uniformly, each parameter
 inherited from either parent with probability ½, then mutated and clipped to the bounds. u is the
-best candidate's input at t = 0.
+best candidate's input at t = 0. "Best", for the parents and the pick, is by constraint domination in both
+variants (:func:`ocpkit.solvers.sampling.best_first`): a candidate clear of the obstacles and within the
+state bounds beats every one that is not, whatever their costs.
 
 ``variant="paper"`` is Algorithm 1 as printed: a cold start draws each knot uniformly within the input
 bounds; each input of a child is mutated with probability ½ by adding N(0, σ) to its knots; σ may
@@ -112,7 +114,7 @@ class EvolutionaryMPC(SamplingMPC):
         eng = self.engine
         F = eng.ftype
         N, p, m, k = eng.num_sims, eng.num_knots, eng.nu, self.num_parents
-        knots, rollout = eng.knots, eng.rollout
+        knots, record = eng.knots, eng.record
         lo, hi, sigma = self._u_min, self._u_max, self._sigma
         parent = self._parent_func()
         # Random slots per candidate: parents, then a mutation flag per input, then a
@@ -146,7 +148,7 @@ class EvolutionaryMPC(SamplingMPC):
                             if mutate:
                                 v += noise * ti.cast(normal(key, counter, i, NOISE + slot), F)
                             knots[i, j, a] = ti.min(ti.max(v, lo[a]), hi[a])
-                out[i] = rollout(i)
+                record(i, out)
 
         return generation
 
@@ -155,7 +157,7 @@ class EvolutionaryMPC(SamplingMPC):
         F = eng.ftype
         N, p, m, k = eng.num_sims, eng.num_knots, eng.nu, self.num_parents
         d, pool = p * m, self.num_parents + SEEDS
-        knots, rollout = eng.knots, eng.rollout
+        knots, record = eng.knots, eng.record
         lo, hi, whiten, seeds = self._u_min, self._u_max, self._whiten, self._seeds
         parent = self._parent_func()
         log_lo, log_span = math.log(self.scales[0]), math.log(self.scales[1] / self.scales[0])
@@ -195,7 +197,7 @@ class EvolutionaryMPC(SamplingMPC):
                             for c in range(r, d):  # L⁻ᵀ is upper triangular
                                 acc += whiten[r, c] * eps[i, c]
                             knots[i, j, a] = ti.min(ti.max(breeder(mate, j, a, shift) + s * acc, lo[a]), hi[a])
-                out[i] = rollout(i)
+                record(i, out)
 
         return generation
 
@@ -219,15 +221,15 @@ class EvolutionaryMPC(SamplingMPC):
     def _generation(self, cold):
         key, counter, shift = self.key, self.counter & 0xFFFFFFFF, int(self._shift_parents)
         if self.preconditioned:
-            self._launch(self._generation_kernel, key, counter, shift, self._cost)
+            self._launch(self._generation_kernel, key, counter, shift, self._results)
         else:
-            self._launch(self._generation_kernel, key, counter, int(cold), shift, self._scale, self._cost)
+            self._launch(self._generation_kernel, key, counter, int(cold), shift, self._scale, self._results)
         self._shift_parents = False
-        idx, cost = self._ranked(self.num_parents)
+        idx = self._ranked(self.num_parents)
         self._best = self._pick(idx)[0]
         self.child_wins += int(idx[0] >= self._first_child)
         self.generations_run += 1
-        return float(cost[0])
+        return self._outcome(idx[0])
 
     @property
     def child_win_rate(self) -> float:
@@ -236,8 +238,8 @@ class EvolutionaryMPC(SamplingMPC):
         started from, set the plan (NaN before the first generation)."""
         return self.child_wins / self.generations_run if self.generations_run else float("nan")
 
-    def _result(self):
-        return self._best
+    def _result(self, best):
+        return self._best, best
 
 
 def _scales(scales) -> tuple[float, float]:

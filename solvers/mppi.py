@@ -2,7 +2,10 @@
 
 Each generation perturbs the nominal knots with Gaussian noise (clipped to the input bounds), rolls
 the population out and moves the nominal to the exponentially weighted average Σ_i w_i U_i with
-w_i ∝ exp(−(J_i − min J)/λ). The preconditioned variant (default) draws the noise with covariance
+w_i ∝ exp(−(J_i − min J)/λ). Constraint domination, in both variants: where some candidates are feasible (clear of
+the obstacles, within the state bounds; :func:`ocpkit.solvers.sampling.excess`), only they are weighted (min J over
+them); otherwise all are, by their penalized cost, and the plan returned is the nominal unless the best candidate
+(:func:`ocpkit.solvers.sampling.best_first`) dominates it (:meth:`GaussianSampling._final`). The preconditioned variant (default) draws the noise with covariance
 σ²P⁻¹ from the knot QP's Hessian and evaluates the seeds in every population
 (:mod:`ocpkit.solvers.sampling`); "paper" uses N(0, σ²) per parameter. The nominal carries over to the
 next control step shifted one step in time (preconditioned: unless a seed rolls out cheaper, which then
@@ -13,7 +16,7 @@ import numpy as np
 import taichi as ti
 
 from ocpkit._checks import positive
-from ocpkit.solvers.sampling import GaussianSampling
+from ocpkit.solvers.sampling import GaussianSampling, excess
 
 
 class MPPI(GaussianSampling):
@@ -45,17 +48,21 @@ class MPPI(GaussianSampling):
 
     def _generation(self, cold):
         self._sample(self.nominal)
-        cost = np.nan_to_num(self._cost.astype(np.float64), nan=np.inf)
-        best = cost.min()
-        if not np.isfinite(best):
-            return best
-        w = np.exp(-(cost - best) / self.temperature)
-        self.nominal = np.empty((self.ocp.knots, self.ocp.nu))
-        self._launch(self._weighted_average, w / w.sum(), self.nominal)
-        return float(best)
+        cost = np.nan_to_num(self._results[:, 0].astype(np.float64), nan=np.inf)
+        feasible = excess(self._results) == 0
+        if feasible.any():
+            cost = np.where(feasible, cost, np.inf)
+        self._best_index = int(self._ranked(1)[0])
+        low = cost.min()
+        if np.isfinite(low):
+            w = np.exp(-(cost - low) / self.temperature)
+            self.nominal = np.empty((self.ocp.knots, self.ocp.nu))
+            self._launch(self._weighted_average, w / w.sum(), self.nominal)
+        return self._outcome(self._best_index)
 
-    def _result(self):
-        return self.nominal
+    def _result(self, best):
+        self.nominal, best = self._final(self.nominal, best, self._best_index)
+        return self.nominal, best
 
 
 SOLVERS = {"mppi": MPPI}

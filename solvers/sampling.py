@@ -17,6 +17,17 @@ seeds (:class:`GaussianSampling`). The fitness stays the rollout, so ``dynamics=
 CasADi stage cost keep working; the QP only shapes the search. ``variant="paper"`` is the plain
 algorithm: isotropic sampling in input coordinates, no seeds.
 
+Both variants select by constraint domination ("feasibility first", Deb's rule) wherever they compare candidates
+— EMPC's parents and its pick, CEM's elites, MPPI's weights, the incumbent against the seeds and the plan returned:
+each rollout brings its cost J (with the exact penalties of :func:`ocpkit.kernels.rollout.fitness`) and its
+violation V of the obstacle clearances and hard state bounds (:func:`ocpkit.kernels.rollout.violation`, judged on
+the rollout's ``dynamics``); a candidate with V ≤ FEASIBILITY_TOLERANCE beats every other, among the others the
+smaller V wins, among the feasible the smaller J (:func:`best_first`). By the penalty alone the weight decides: at
+``obstacle_weight`` 10 all three planners drove nlink:3 through a ball on its path (down to −0.09 m); by domination
+none did, at any weight. The rollouts stay affine by default even around obstacles, the violation then judged on
+the affine prediction (the controller's certificate checks the plan on the nonlinear model): nonlinear rollouts of
+the Panda's reach took 194 s to compile and 213 ms a step, and their population diverged (final distance 1.03 m).
+
 Timings: ``model`` is the linearization; ``build`` the preconditioner's QP; ``solve`` the rest
 (``factor``, ``seed`` — the Newton and holding candidates —, ``copies`` between host and device and
 ``generations``, each also reported on its own), as the paper counts EMPC's solve time.
@@ -34,12 +45,42 @@ from ocpkit.boxqp import solve_box_qp
 from ocpkit.controller import EXCEPTION, LIMITED, NAN, SUCCESS, Controller, Solution, check_linearization
 from ocpkit.kernels import runtime
 from ocpkit.kernels.random import normal, seed_key
-from ocpkit.kernels.rollout import Rollout
+from ocpkit.kernels.rollout import FEASIBILITY_TOLERANCE, Rollout, constrained
+from ocpkit.qp_backends import DAQP
 from ocpkit.transcription import CondensedQP
 
 VARIANTS = ("preconditioned", "paper")
 SEEDS = 2  # Newton candidate, holding input
 PARTS = ("model", "build", "factor", "seed", "copies", "generations", "solve", "total")
+
+
+def excess(results: np.ndarray) -> np.ndarray:
+    """Each candidate's violation beyond FEASIBILITY_TOLERANCE (0: feasible) from rollout ``results`` (N, 2) of
+    (cost, violation); a candidate whose cost or violation is not finite counts as infinitely violating (a NaN
+    state can make every clearance test pass)."""
+    results = results.astype(np.float64)
+    cost, violation = results[:, 0], results[:, 1]
+    out = np.where(violation <= FEASIBILITY_TOLERANCE, 0.0, violation)
+    out[~(np.isfinite(cost) & np.isfinite(violation))] = np.inf
+    return out
+
+
+def best_first(results: np.ndarray, count: int) -> np.ndarray:
+    """Indices of the ``count`` best candidates by constraint domination, best first, from rollout ``results``
+    (N, 2) of (cost, violation): by :func:`excess`, then cost (NaN counting as +inf), then candidate number (the
+    selection is deterministic)."""
+    keys = (excess(results), np.nan_to_num(results[:, 0].astype(np.float64), nan=np.inf))
+    idx = np.arange(len(results))
+    for key in keys:  # narrow by partitions while the rows kept tie on every key so far: no full sort of N rows
+        if idx.size <= count:
+            break
+        k = key[idx]
+        kth = np.partition(k, count - 1)[count - 1]
+        idx = idx[k <= kth]
+        if (k[k <= kth] != kth).any():
+            break
+    order = np.lexsort((idx,) + tuple(key[idx] for key in reversed(keys)))
+    return idx[order[:count]]
 
 
 class Preconditioner:
@@ -49,13 +90,23 @@ class Preconditioner:
     build LinearMPC uses), factors P and computes ``newton`` (the QP's optimum within the input
     bounds, warm-started from the previous plan) and ``hold`` (:meth:`holding_input` at every knot).
     ``whiten`` = L⁻ᵀ maps N(0, I) draws to N(0, P⁻¹).
+
+    With obstacles or state bounds the QP also holds them as LinearMPC does, hard rows: the state bounds on the
+    affine prediction and each obstacle clearance linearized about the warm start's prediction (ocpkit.task_rows).
+    ``newton`` is then that QP's optimum by DAQP, a candidate that keeps the constraints to first order, and the
+    box-constrained optimum only where the rows cannot all be met (a start inside a margin), DAQP fails or runs out
+    of the step's time; ``seed_status`` says which. P, and so the preconditioning, is the same either way: hard rows
+    add no cost. On the README's Panda case this seed is what keeps the hand out of the sphere: with the
+    box-constrained one alone no candidate was feasible for long stretches and the hand ended 7–13 cm inside.
     """
 
     def __init__(self, ocp):
         self.ocp = ocp
-        # A task's terms enter by Gauss-Newton about the warm start; its obstacles stay in the rollouts' penalty
-        # (the box-constrained Newton candidate has no other rows).
-        self.transcription = CondensedQP(ocp, obstacles=False)
+        # A task's terms enter by Gauss-Newton about the warm start.
+        self.transcription = CondensedQP(ocp)
+        self.rows = constrained(ocp)
+        self._daqp = DAQP(max_iter=1000, eps=1e-9) if self.rows else None
+        self.seed_status = "box QP"
         self.lo, self.hi = np.tile(ocp.u_min, ocp.knots), np.tile(ocp.u_max, ocp.knots)
         x, u = ocp.model.x, ocp.model.u
         f = ocp.model.xdot
@@ -75,10 +126,12 @@ class Preconditioner:
             self._hold_goal = goal.copy()
         return self._hold
 
-    def update(self, model, x, goal, warm: np.ndarray | None, times: dict, targets=None) -> None:
+    def update(self, model, x, goal, warm: np.ndarray | None, times: dict, targets=None,
+               deadline: float | None = None) -> None:
         """Build, factor and seed for the affine ``model`` = (A_d, B_d, w_d) at state x; ``warm`` (p, m)
-        starts the Newton candidate (the holding input if None) and, with a task, is where its terms are
-        linearized towards ``targets``. Adds its parts to ``times``."""
+        starts the Newton candidate (the holding input if None) and, with a task, is where its terms and obstacles
+        are linearized towards ``targets``. DAQP stops at ``deadline`` (a perf_counter value; None: none). Adds its
+        parts to ``times``."""
         p, m = self.ocp.knots, self.ocp.nu
         t0 = time.perf_counter()
         task = {}
@@ -96,10 +149,24 @@ class Preconditioner:
         t2 = time.perf_counter()
         self.hold = np.tile(self.holding_input(goal), (p, 1))
         start = self.hold if warm is None else warm
-        self.newton = solve_box_qp(self.P, self.q, self.lo, self.hi, start.ravel()).z.reshape(p, m)
+        self.newton = self._constrained_seed(qp, deadline)
+        if self.newton is None:
+            self.newton = solve_box_qp(self.P, self.q, self.lo, self.hi, start.ravel()).z.reshape(p, m)
         times["build"] += t1 - t0
         times["factor"] += t2 - t1
         times["seed"] += time.perf_counter() - t2
+
+    def _constrained_seed(self, qp, deadline) -> np.ndarray | None:
+        """The knots (p, m) of ``qp``'s optimum with its constraint rows, by DAQP (cold: the rows change with the
+        linearization) within ``deadline``, or None where it has no rows beyond the knots' box or DAQP finds none."""
+        if not self.rows or qp.C.shape[0] == len(qp.box):
+            self.seed_status = "box QP"
+            return None
+        result = self._daqp.solve(qp, None, deadline)
+        self.seed_status = f"DAQP {result.raw_status}"
+        if result.status != SUCCESS or not np.isfinite(result.z).all():
+            return None
+        return np.clip(result.z, self.lo, self.hi).reshape(self.ocp.knots, self.ocp.nu)
 
     def whitened(self, knots: np.ndarray, center: np.ndarray) -> np.ndarray:
         """Lᵀ(U − center) for knots (…, p, m): deviations in the coordinates where P is the identity."""
@@ -152,7 +219,7 @@ class SamplingMPC(Controller):
         runtime.stage(self._u_min, ocp.u_min)
         runtime.stage(self._u_max, ocp.u_max)
         self._affine = dynamics == "affine"
-        self._cost = np.empty(self.population, dtype=self.engine.ntype)  # the last generation's costs
+        self._results = self.engine.results()  # the last generation's (cost, violation) per candidate
         # The warm start's time shift is linear in the knots: U⁺ = S U.
         self._shift = ocp.parameterization.shift(np.eye(p))
         if self.preconditioned:
@@ -206,7 +273,7 @@ class SamplingMPC(Controller):
             if self.preconditioned:
                 pre = self.preconditioner
                 pre.update(model, x, goal, None if self.plan is None else self._shifted(self.plan), times,
-                           self.task_goal[ocp.nx:])
+                           self.task_goal[ocp.nx:], None if self.time_limit is None else start + self.time_limit)
             t = time.perf_counter()
             self.engine.load(x, self.task_goal, model if self._affine else None)
             if self.preconditioned:
@@ -215,12 +282,15 @@ class SamplingMPC(Controller):
                 self._upload_preconditioner(self._upload_buffer)
             times["copies"] += time.perf_counter() - t
             self._start(x, goal, cold)
-            best, done = np.inf, 0
+            best, done = (np.inf, np.inf), 0
             while done < self.generations and not self._out_of_time(start):
                 best = self._generation(cold and done == 0)
                 self.counter += 1
                 done += 1
-            knots = self._result() if done else None
+            if done:
+                knots, best = self._result(best)
+            else:
+                knots = None
         except ti.TaichiCompilationError:
             # A kernel that does not compile is a bug, the same at every step: raised, never a fallback at every
             # step (variant="paper" of CEM and MPPI ran whole closed loops on the fallback input that way).
@@ -233,17 +303,19 @@ class SamplingMPC(Controller):
         self._close_times(start)
         if knots is None:
             return self.fallback(LIMITED, f"time limit {self.time_limit:g} s reached before a generation", times)
-        if not np.isfinite(best) or not np.isfinite(knots).all():
+        cost, violation = best
+        if not np.isfinite(cost) or not np.isfinite(knots).all():
             self._warm = False
-            return self.fallback(NAN, f"best rollout cost {best}", times, self.generations)
+            return self.fallback(NAN, f"best rollout cost {cost}", times, self.generations)
         self._warm = True
         knots = np.clip(knots, ocp.u_min, ocp.u_max)
         u = np.clip(ocp.parameterization.u_at(knots, 0), ocp.u_min, ocp.u_max)
+        found = f"cost {cost:.6g}" + (f", predicted violation {violation:.3g}" if self.engine.constrained else "")
         if done < self.generations:
             return Solution(u=u, knots=knots, status=LIMITED, iterations=done, times=times,
                             raw_status=f"time limit {self.time_limit:g} s reached after {done} of "
-                                       f"{self.generations} generations (best cost {best:.6g})")
-        return Solution(u=u, knots=knots, status=SUCCESS, raw_status=f"best cost {best:.6g}",
+                                       f"{self.generations} generations (best {found})")
+        return Solution(u=u, knots=knots, status=SUCCESS, raw_status=f"best {found}",
                         iterations=self.generations, times=times)
 
     def _close_times(self, start: float) -> None:
@@ -270,25 +342,26 @@ class SamplingMPC(Controller):
         """Knots (…, p, m) advanced one control step and clipped to the input bounds."""
         return np.clip(np.einsum("jl,...la->...ja", self._shift, knots), self.ocp.u_min, self.ocp.u_max)
 
-    def _ranked(self, count: int) -> tuple[np.ndarray, np.ndarray]:
-        """Indices and costs of the ``count`` cheapest candidates of the last generation, best
-        first (NaN counts as +inf). Ties keep candidate order, so the selection is deterministic.
-        """
-        cost = np.nan_to_num(self._cost.astype(np.float64), nan=np.inf)
-        idx = np.argpartition(cost, count - 1)[:count] if count < cost.size else np.arange(cost.size)
-        idx = idx[np.lexsort((idx, cost[idx]))]
-        return idx, cost[idx]
+    def _ranked(self, count: int) -> np.ndarray:
+        """Indices of the ``count`` best candidates of the last generation by constraint domination, best first
+        (:func:`best_first`)."""
+        return best_first(self._results, count)
+
+    def _outcome(self, i: int) -> tuple[float, float]:
+        """(cost, violation) of candidate i of the last generation."""
+        return float(self._results[i, 0]), float(self._results[i, 1])
 
     def _start(self, x: np.ndarray, goal: np.ndarray, cold: bool) -> None:
         """Prepare this control step's search (warm start from the previous step unless cold)."""
         raise NotImplementedError
 
-    def _generation(self, cold: bool) -> float:
-        """One population: sample, roll out, update; returns the best cost seen."""
+    def _generation(self, cold: bool) -> tuple[float, float]:
+        """One population: sample, roll out, update; returns the (cost, violation) of its best candidate."""
         raise NotImplementedError
 
-    def _result(self) -> np.ndarray:
-        """The knots (p, m) to apply, on the host."""
+    def _result(self, best: tuple[float, float]) -> tuple[np.ndarray, tuple[float, float]]:
+        """The knots (p, m) to apply, on the host, and their (cost, violation); ``best``: the last generation's
+        best candidate's."""
         raise NotImplementedError
 
 
@@ -298,8 +371,8 @@ class GaussianSampling(SamplingMPC):
     variant candidates 1 and 2 are the seeds. G is diag(std) in input coordinates ("paper") or
     L⁻ᵀ diag(std) with std in whitened units ("preconditioned"): see :meth:`_sample`.
 
-    Preconditioned, each control step's μ starts at the cheapest by rollout of the incumbent (the shifted
-    mean, or the holding input at a cold start) and the seeds (:meth:`_start_distribution`). A Gaussian of
+    Preconditioned, each control step's μ starts at the best by rollout (constraint domination) of the incumbent
+    (the shifted mean, or the holding input at a cold start) and the seeds (:meth:`_start_distribution`). A Gaussian of
     σ whitened units moves its mean by about σ per generation, and a seed among the elites weighs only
     1/num_elites in CEM's refit: from an incumbent far from the knot QP's optimum (the cart-pole's holding
     input: ~600 whitened units, 10³× the Newton candidate's cost) CEM never arrived while the plant fell.
@@ -307,6 +380,9 @@ class GaussianSampling(SamplingMPC):
     ``sigma``: with "paper", the initial std in input units (scalar or per input; default 10 % of each
     input's range); with "preconditioned", in whitened units (a scalar; default 1: a draw then adds
     about ‖ε‖² ≈ p·m to the rollout cost of the QP's quadratic model).
+
+    The plan returned is the final μ unless, with obstacles or state bounds, the last generation's best candidate
+    dominates it (:meth:`_final`): an average of collision-free plans can collide (two ways around a ball).
     """
 
     def __init__(self, ocp, *, sigma=None, **options):
@@ -323,7 +399,7 @@ class GaussianSampling(SamplingMPC):
                                                                  span.shape)
             if (self.sigma < 0).any():
                 raise ValueError(f"sigma must be >= 0, got {self.sigma.tolist()}")
-        knots, rollout, lo, hi = eng.knots, eng.rollout, self._u_min, self._u_max
+        knots, record, lo, hi = eng.knots, eng.record, self._u_min, self._u_max
         seeded = SEEDS if self.preconditioned else 0
         seeds = self._seeds if self.preconditioned else None
         eps = ti.field(F, shape=(N, d))  # each candidate's ε, drawn once and read by every row of G ε
@@ -350,32 +426,47 @@ class GaussianSampling(SamplingMPC):
                                 acc += ti.cast(distribution[1 + r, c], F) * eps[i, c]
                             v += acc
                         knots[i, j, a] = ti.min(ti.max(v, lo[a]), hi[a])
-                out[i] = rollout(i)
+                record(i, out)
+
+        @ti.kernel
+        def evaluate(candidates: ti.types.ndarray(), out: ti.types.ndarray()):
+            for i in range(candidates.shape[0]):  # into the population's first places, clipped as there
+                for j in range(p):
+                    for a in range(m):
+                        knots[i, j, a] = ti.min(ti.max(ti.cast(candidates[i, j, a], F), lo[a]), hi[a])
+                record(i, out)
 
         self._gaussian_kernel = generation
+        self._evaluate_kernel = evaluate
         self._distribution = np.empty((1 + d, d), dtype=eng.ntype)
-        if self.preconditioned:
-            centers = min(N, 1 + SEEDS)  # as in the population: a smaller one holds fewer seeds
+        # As in the population, a smaller one holds fewer seeds.
+        self._centers = min(N, 1 + SEEDS) if self.preconditioned else 1
 
-            @ti.kernel
-            def evaluate_centers(mean: ti.types.ndarray(), out: ti.types.ndarray()):
-                for i in range(centers):  # the incumbent, then the seeds, as in the population
-                    for j in range(p):
-                        for a in range(m):
-                            v = ti.cast(mean[j, a], F)
-                            if i >= 1:
-                                v = seeds[i - 1, j, a]
-                            knots[i, j, a] = ti.min(ti.max(v, lo[a]), hi[a])
-                    out[i] = rollout(i)
+    def _evaluate(self, candidates) -> np.ndarray:
+        """Roll out a few candidates (each (p, m)) in one small launch, counted as ``generations``; their (cost,
+        violation) rows. They overwrite the population's first places."""
+        results = self.engine.results(len(candidates))
+        self._launch(self._evaluate_kernel, np.ascontiguousarray(candidates, dtype=self.engine.ntype), results)
+        return results
 
-            self._evaluate_centers = evaluate_centers
-            self._center_cost = np.empty(centers, dtype=eng.ntype)
+    def _final(self, mean: np.ndarray, best: tuple[float, float], index: int) -> tuple[np.ndarray, tuple]:
+        """The plan to return (and carry to the next step) and its (cost, violation): ``mean``, unless with
+        constraints the last generation's best candidate (number ``index``, of (cost, violation) ``best``)
+        dominates it by feasibility: the mean violates, the candidate less. Without constraints the mean is not
+        rolled out and ``best`` is returned."""
+        if not self.engine.constrained:
+            return mean, best
+        candidate = self._pick([index])[0]  # before the mean's rollout takes the population's first place
+        outcome = self._evaluate(mean[None])
+        if excess(np.asarray([best]))[0] < excess(outcome)[0]:
+            return candidate, best
+        return mean, (float(outcome[0, 0]), float(outcome[0, 1]))
 
     def _start_distribution(self, mean: np.ndarray, cold: bool) -> np.ndarray:
         """This step's starting mean; the std restarts at σ. The incumbent is the shifted mean, or at a cold
         start the holding input (preconditioned) or the input goal (paper). Preconditioned, the incumbent and
-        the seeds are rolled out first (one small launch, counted as ``generations``) and the cheapest starts
-        the search; a tie keeps the incumbent."""
+        the seeds are rolled out first (one small launch) and the best by constraint domination starts the
+        search; a tie keeps the incumbent."""
         ocp = self.ocp
         if not cold:
             start = self._shifted(mean)
@@ -386,17 +477,15 @@ class GaussianSampling(SamplingMPC):
         d = ocp.knots * ocp.nu
         self.std = np.full(d, self.sigma) if self.preconditioned else np.tile(self.sigma, ocp.knots)
         if self.preconditioned:
-            cost = self._center_cost
-            self._launch(self._evaluate_centers, np.ascontiguousarray(start, dtype=self.engine.ntype), cost)
-            best = int(np.argmin(np.nan_to_num(cost.astype(np.float64), nan=np.inf)))  # first of equals
             pre = self.preconditioner
-            start = (start, pre.newton, pre.hold)[best]
+            centers = (start, pre.newton, pre.hold)[:self._centers]
+            start = centers[int(best_first(self._evaluate(centers), 1)[0])]
         return start
 
     def _sample(self, mean: np.ndarray) -> None:
         """Roll out one population drawn around ``mean`` (p, m) with the current ``self.std`` (one call:
-        the distribution goes in, the costs come back in ``self._cost``)."""
+        the distribution goes in, the costs and violations come back in ``self._results``)."""
         dist = self._distribution
         dist[0] = mean.ravel()
         dist[1:] = self.preconditioner.whiten * self.std if self.preconditioned else np.diag(self.std)
-        self._launch(self._gaussian_kernel, self.key, self.counter & 0xFFFFFFFF, dist, self._cost)
+        self._launch(self._gaussian_kernel, self.key, self.counter & 0xFFFFFFFF, dist, self._results)

@@ -1,4 +1,4 @@
-"""Population rollouts: N candidate knot sets simulated over the horizon, one cost each.
+"""Population rollouts: N candidate knot sets simulated over the horizon, a cost and a violation each.
 
 This is the inner loop of Algorithm 1 (lines 11-17 of the paper's EMPC): each candidate's
 knots U (p × m) become inputs through the Parameterization basis (``get_u_from_U``), the
@@ -6,7 +6,10 @@ model is stepped T times and the stage and terminal costs are summed:
 
     J = Σ_{k=0}^{T-1} l(x_k, u_k, x_goal) + l_T(x_T, x_goal).
 
-(The x_0 term is the same for every candidate, so rankings equal the OCP's objective.)
+(The x_0 term is the same for every candidate, so rankings equal the OCP's objective.) In the same pass the
+constraints the QPs hold — a task's obstacle clearances and the hard state bounds — give each candidate its
+violation V = Σ_{k=1}^{T} v(x_k) (:func:`violation`), so that planners can select by constraint domination
+(feasible first) rather than by the penalized cost alone.
 Dynamics are either the paper's affine model x⁺ = A_d x + B_d u + w_d, refreshed by the
 caller each control step, or the full nonlinear discrete model F translated from CasADi
 (the paper's future work). Costs are translated CasADi Functions, so non-smooth ones
@@ -34,6 +37,19 @@ DYNAMICS = ("affine", "nonlinear")
 STATE_BOUND_WEIGHT = 2e3
 
 
+# A candidate whose violation V is at most this counts as feasible (rounding, in the kernel's float type, of a
+# trajectory that touches a constraint; V sums metres of clearance and state units beyond the bounds).
+FEASIBILITY_TOLERANCE = 1e-6
+
+
+def _bound_violations(ocp, x):
+    """h_i = the violation of component i's state bound at x, for the components with a finite bound."""
+    rows = np.flatnonzero(np.isfinite(ocp.x_min) | np.isfinite(ocp.x_max)).tolist()
+    lo, hi = (np.where(np.isfinite(b[rows]), b[rows], 0.0) for b in (ocp.x_min, ocp.x_max))
+    return (ca.fmax(0, ca.DM(lo) - x[rows]) * ca.DM(np.isfinite(ocp.x_min[rows]).astype(float))
+            + ca.fmax(0, x[rows] - ca.DM(hi)) * ca.DM(np.isfinite(ocp.x_max[rows]).astype(float)))
+
+
 def fitness(ocp):
     """(stage (x, u, goal), terminal (x, goal)): the OCP's cost over its whole goal vector, plus at every state
     x_0 … x_T the exact penalties of what the QPs hold as constraints: a task's obstacles (ocpkit.task) and the
@@ -43,15 +59,34 @@ def fitness(ocp):
     x, u, g = ca.SX.sym("x", ocp.nx), ca.SX.sym("u", ocp.nu), ca.SX.sym("goal", ocp.ng)
     penalty = tf.penalty(x) if tf is not None and tf.pairs else 0
     if ocp.has_state_bounds:
-        rows = np.flatnonzero(np.isfinite(ocp.x_min) | np.isfinite(ocp.x_max)).tolist()
-        lo, hi = (np.where(np.isfinite(b[rows]), b[rows], 0.0) for b in (ocp.x_min, ocp.x_max))
-        h = (ca.fmax(0, ca.DM(lo) - x[rows]) * ca.DM(np.isfinite(ocp.x_min[rows]).astype(float))
-             + ca.fmax(0, x[rows] - ca.DM(hi)) * ca.DM(np.isfinite(ocp.x_max[rows]).astype(float)))
+        h = _bound_violations(ocp, x)
         penalty = penalty + STATE_BOUND_WEIGHT * ca.sum1(h + 0.5 * h * h)
     if isinstance(penalty, int):
         return stage, terminal
     return (ca.Function("fitness", [x, u, g], [stage(x, u, g) + penalty]),
             ca.Function("fitness_T", [x, g], [terminal(x, g) + penalty]))
+
+
+def constrained(ocp) -> bool:
+    """Whether ``ocp`` holds constraints on its states: a task's obstacles or finite state bounds (without them
+    every :func:`violation` is 0)."""
+    tf = ocp.task_functions
+    return bool(ocp.has_state_bounds or (tf is not None and tf.pairs))
+
+
+def violation(ocp):
+    """v (x) -> how far one state breaks the constraints the QPs hold: max(0, −min_pairs(d − margin)) over a task's
+    obstacle clearances d (ocpkit.task) plus Σ_i h_i over the state bounds; 0 exactly where x satisfies them. A
+    candidate's violation sums it over x_1 … x_T (x_0 is the same for every candidate): a plan that grazes a
+    constraint at many stages counts against one that breaks it as much once."""
+    tf = ocp.task_functions
+    x = ca.SX.sym("x", ocp.nx)
+    v = ca.SX(0)
+    if tf is not None and tf.pairs:
+        v += ca.fmax(0, -ca.mmin(tf.clearance(x)[0]))
+    if ocp.has_state_bounds:
+        v += ca.sum1(_bound_violations(ocp, x))
+    return ca.Function("violation", [x], [v], ["x"], ["v"])
 
 
 class SparseRows:
@@ -88,18 +123,21 @@ class SparseRows:
 class Rollout:
     """Rollout engine for ``num_sims`` candidates of ``ocp`` on the Taichi runtime.
 
-    ``knots`` (num_sims, p, m) is a device field; ``rollout(i)`` is a ``@ti.func`` that
-    simulates candidate i and returns its cost, for solver kernels that generate candidates
-    and roll them out in one launch (``input_at(i, k)``: the ``@ti.func`` of its input u_k; :meth:`load` fills the
+    ``knots`` (num_sims, p, m) is a device field; ``rollout(i)`` is a ``@ti.func`` that simulates candidate i and
+    returns its cost J and violation V (:func:`violation` summed over x_1 … x_T, on the rollout's ``dynamics``), and
+    ``record(i, out)`` one that writes them to row i of ``out``, for solver kernels that generate candidates and roll
+    them out in one launch (``input_at(i, k)``: the ``@ti.func`` of its input u_k; :meth:`load` fills the
     engine's constant fields first, :func:`runtime.upload` does where a kernel of yours runs without it);
     ``picked`` (num_picked, p, m) receives the candidates chosen by :meth:`pick` (parents, elites).
     ``stage_cost`` (x, u, goal) -> scalar and ``terminal_cost`` (x, goal) -> scalar default to :func:`fitness`
-    (the OCP's cost; with a task, its terms and its obstacles' penalty); goal has ``ocp.ng`` entries.
+    (the OCP's cost; with a task, its terms and its obstacles' penalty); goal has ``ocp.ng`` entries. The
+    violation is the OCP's whatever the costs; ``constrained`` says whether it can be nonzero.
 
     Each Taichi call that moves an array costs tens of microseconds of launch overhead, more
     than a small population's rollouts, so a control step moves its data in as few calls as
     possible: :meth:`load` sends x_0, the goal and the affine model in one, solver kernels
-    return the costs through an output array, :meth:`pick` returns what it gathered.
+    return the costs and violations through one output array (:meth:`record`), :meth:`pick` returns what it
+    gathered.
     """
 
     def __init__(self, ocp, num_sims: int, *, num_picked: int = 1, dynamics: str = "affine",
@@ -119,6 +157,7 @@ class Rollout:
         T, p = basis.shape
         self.num_sims, self.nx, self.nu, self.horizon, self.num_knots = int(num_sims), n, m, T, p
         self.dynamics, self.precision = dynamics, precision
+        self.constrained = constrained(ocp)
         ng = self.ng = ocp.ng
         if stage_cost is None or terminal_cost is None:
             stage_default, terminal_default = fitness(ocp)
@@ -126,8 +165,12 @@ class Rollout:
             terminal_cost = terminal_default if terminal_cost is None else terminal_cost
         _check_signature("stage_cost", stage_cost, [(n, 1), (m, 1), (ng, 1)], [(1, 1)])
         _check_signature("terminal_cost", terminal_cost, [(n, 1), (ng, 1)], [(1, 1)])
-        stage = translate(stage_cost, precision=precision).func
-        terminal = translate(terminal_cost, precision=precision).func
+        # Each translated function returns (cost, violation) at its state: one expression graph, so the kinematics
+        # that the obstacle penalty and the clearance violation share are computed once.
+        v = violation(ocp)
+        x, u, g = ca.SX.sym("x", n), ca.SX.sym("u", m), ca.SX.sym("goal", ng)
+        stage = translate(_with_violation("stage_terms", stage_cost, v, [x, u, g]), precision=precision).func
+        terminal = translate(_with_violation("terminal_terms", terminal_cost, v, [x, g]), precision=precision).func
 
         F = self.ftype
         self.knots = ti.field(F, shape=(num_sims, p, m))
@@ -195,17 +238,28 @@ class Rollout:
             x = ti.Vector([x0[r] for r in ti.static(range(n))], dt=F)
             g = ti.Vector([goal[r] for r in ti.static(range(ng))], dt=F)
             J = ti.cast(0.0, F)
+            V = ti.cast(0.0, F)
             for k in range(T):
                 u = input_at(i, k)
-                J += stage(x, u, g)[0]
+                terms = stage(x, u, g)
+                J += terms[0]
+                if k > 0:
+                    V += terms[1]
                 x = step(x, u)
-            J += terminal(x, g)[0]
-            return J
+            terms = terminal(x, g)
+            return J + terms[0], V + terms[1]
+
+        @ti.func
+        def record(i, out: ti.template()):
+            """Roll out candidate i into row i of ``out`` (num, 2): its cost, its violation."""
+            J, V = rollout(i)
+            out[i, 0] = J
+            out[i, 1] = V
 
         @ti.kernel
         def evaluate_all(out: ti.types.ndarray()):
             for i in range(knots.shape[0]):
-                out[i] = rollout(i)
+                record(i, out)
 
         picked = self.picked
         # The transfer kernels move a few hundred numbers: on the CPU one thread does that in microseconds, while
@@ -242,7 +296,7 @@ class Rollout:
 
         self._upload = upload
         self._upload_buffer = np.empty(n + ng + model_size, dtype=self.ntype)
-        self.rollout, self.input_at = rollout, input_at
+        self.rollout, self.record, self.input_at = rollout, record, input_at
         self._evaluate_all = evaluate_all
         self._gather = gather
 
@@ -263,17 +317,21 @@ class Rollout:
         runtime.upload()
         self._upload(self._upload_buffer)
 
-    def evaluate(self, knots: np.ndarray) -> np.ndarray:
-        """Roll out the candidates ``knots`` (num_sims, p, m); returns their costs."""
+    def results(self, count: int | None = None) -> np.ndarray:
+        """A host array for :meth:`record`'s output: (count, 2), count defaulting to ``num_sims``."""
+        return np.empty((self.num_sims if count is None else count, 2), dtype=self.ntype)
+
+    def evaluate(self, knots: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Roll out the candidates ``knots`` (num_sims, p, m); returns their costs and violations."""
         knots = np.asarray(knots, dtype=np.float64)
         shape = (self.num_sims, self.num_knots, self.nu)
         if knots.shape != shape:
             raise ValueError(f"knots must have shape {shape}, got {knots.shape}")
         runtime.upload()
         self.knots.from_numpy(knots.astype(self.ntype))
-        cost = np.empty(self.num_sims, dtype=self.ntype)
-        self._evaluate_all(cost)
-        return cost.astype(np.float64)
+        out = self.results()
+        self._evaluate_all(out)
+        return out[:, 0].astype(np.float64), out[:, 1].astype(np.float64)
 
     def pick(self, indices: np.ndarray) -> np.ndarray:
         """Copy candidates ``indices`` (best first) into ``picked[0:len(indices)]`` on the device;
@@ -287,6 +345,16 @@ class Rollout:
         runtime.upload()
         self._gather(indices, out)
         return out.astype(np.float64)
+
+
+def _with_violation(name, cost, v, args) -> ca.Function:
+    """(args) -> [cost(args); v(x)], x = args[0], as one SX Function with common subexpressions merged."""
+    try:
+        terms = ca.vertcat(cost(*args), v(args[0]))
+    except RuntimeError as exc:
+        raise TypeError(f"{cost.name()!r} cannot be evaluated on SX symbols (the kernels translate SX): "
+                        f"{exc}") from exc
+    return ca.Function(name, args, [ca.cse(terms)])
 
 
 def _check_signature(name, function, inputs, outputs) -> None:
