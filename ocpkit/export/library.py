@@ -20,8 +20,9 @@ from ocpkit.quadratic_program import ROUNDING_MARGIN
 class ExportedMPC(Controller):
     """The compiled exported step (``lib<name>.so`` in ``out_dir``) as a Controller, through ctypes.
 
-    Statuses map one to one onto ocpkit's; on failure the library already returns the fallback input and
-    plan, which equal :meth:`Controller.fallback`. ``times`` splits the C step as the DESIGN does, measured in C:
+    Statuses map one to one onto ocpkit's; on failure the library returns its own fallback (the previous plan
+    shifted, which a C caller gets), and this class answers with :meth:`Controller.fallback` instead: the shifted
+    plan only while its prediction is safe, else the brake (the library keeps its own plan for its next warm start). ``times`` splits the C step as the DESIGN does, measured in C:
     ``model`` (RK4 and its sensitivities), ``build`` (the condensing), ``solve`` (the QP solver);
     :attr:`step_seconds` is the last whole C step seen from Python (ctypes call included). Each instance owns
     its C memory (several may step in one process, up to the library's ``MAX_INSTANCES``); :meth:`close`, or
@@ -177,9 +178,11 @@ class ExportedMPC(Controller):
             x_pred = np.empty((self.ocp.horizon + 1, self.ocp.nx))
             if self._states(self._mem, x_pred):
                 x_pred = None
+        times = {"model": model, "build": build_s, "solve": solve}
+        if status != SUCCESS:
+            return self.fallback(status, raw, times)
         return Solution(u=u, knots=knots.reshape(self.ocp.knots, self.ocp.nu), status=status, raw_status=raw,
-                        times={"model": model, "build": build_s, "solve": solve}, fallback=status != SUCCESS,
-                        certificate=certificate, x_pred=x_pred)
+                        times=times, certificate=certificate, x_pred=x_pred)
 
 
 def _explain_rc(name: str, qp: str, rc: int, residuals) -> str:
