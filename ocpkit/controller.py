@@ -211,6 +211,8 @@ class Controller:
       "soft" (its input applied, the violation in ``raw_status``), or refused where the prediction is not finite;
     * a safe fallback on a refused step (:meth:`fallback`); ``stale_steps`` bounds how many refused steps in a row
       may replay the previous plan before the controller brakes;
+    * a state outside the model's trust region — a bounded joint velocity beyond ``TRUST_REGION`` times its bound —
+      answered "infeasible" with the brake, before any solver runs;
     * at the first step after :meth:`reset`, a RuntimeWarning where the discrete model diverges numerically at the
       start (|eig A_d| beyond what the continuous dynamics explain: the integrator's step is too long).
 
@@ -218,6 +220,9 @@ class Controller:
     """
 
     STALE_STEPS = 5  # the default of ``stale_steps``: 50 ms of replayed plan at 100 Hz
+    # A joint velocity beyond this many times its bound leaves the model's trust region: no solve, the brake. The
+    # Panda's RTI, re-solving from 6-15 rad/s (limits 2.2-2.6), planned torques at their limits that spun it further.
+    TRUST_REGION = 1.5
 
     def __init__(self, ocp: OCP, *, raise_on_fail: bool = False, threads: int | None = 1,
                  stale_steps: int | None = None):
@@ -236,6 +241,10 @@ class Controller:
         self.stale_steps = self.STALE_STEPS if stale_steps is None else integer(stale_steps, "stale_steps", 0)
         self._plan_check = PlanCheck(ocp)
         self._brake = Brake(ocp)
+        nq = ocp.model.second_order
+        velocities = np.arange(nq or 0, ocp.nx if nq else 0)
+        bound = np.maximum(np.abs(ocp.x_min[velocities]), np.abs(ocp.x_max[velocities]))
+        self._trusted = velocities[np.isfinite(bound)], self.TRUST_REGION * bound[np.isfinite(bound)]
         self.reset()
 
     @property
@@ -282,6 +291,8 @@ class Controller:
             if big > self._state_limit:
                 sol = self.fallback(NAN, f"state or goal magnitude {big:.3g} beyond state_limit "
                                          f"{self._state_limit:.3g}: no solver run")
+            elif (outside := self._outside_trust_region(x)):
+                sol = self.fallback(INFEASIBLE, outside, replay=False)
             else:
                 if self._first_step:
                     self._warn_divergence(x, goal)
@@ -363,6 +374,16 @@ class Controller:
             return self._rejected(NAN, f"{sol.raw_status} but its {violation}", sol)
         sol.status, sol.raw_status = SOFT, f"{sol.raw_status}; soft: {violation}"
         return sol
+
+    def _outside_trust_region(self, x: np.ndarray) -> str:
+        """Why x is outside the model's trust region (a joint velocity beyond TRUST_REGION times its bound), or ""."""
+        index, limit = self._trusted
+        excess = np.abs(x[index]) - limit
+        if not index.size or excess.max() <= 0.0:
+            return ""
+        i = int(np.argmax(excess))
+        return (f"x[{int(index[i])}] = {x[index[i]]:.3g} beyond {self.TRUST_REGION:g} x its bound "
+                f"{limit[i] / self.TRUST_REGION:.3g}: outside the model's trust region, no solver run")
 
     def _warn_divergence(self, x: np.ndarray, goal: np.ndarray) -> None:
         """Warn where the discrete model about (x, u_g) grows faster than the continuous dynamics do: |eig A_d|
@@ -452,15 +473,16 @@ class Controller:
         ocp = self.ocp
         return np.clip(np.tile(ocp.input_goal(goal), (ocp.knots, 1)), ocp.u_min, ocp.u_max)
 
-    def fallback(self, status: str, raw_status: str, times: dict | None = None, iterations: int = 0) -> Solution:
-        """A refused step's safe input, said in ``path``: "fallback (plan)", the previous plan advanced one step, for
-        at most ``stale_steps`` refused steps in a row and only while its prediction from x is finite and keeps the
-        task (:class:`ocpkit.safety.PlanCheck`); otherwise "fallback (brake)", the input that brings the joint
+    def fallback(self, status: str, raw_status: str, times: dict | None = None, iterations: int = 0, *,
+                 replay: bool = True) -> Solution:
+        """A refused step's safe input, said in ``path``: "fallback (plan)", the previous plan advanced one step, with
+        ``replay``, for at most ``stale_steps`` refused steps in a row and only while its prediction from x is finite
+        and keeps the task (:class:`ocpkit.safety.PlanCheck`); otherwise "fallback (brake)", the input that brings the joint
         velocities closest to rest within the input bounds (:class:`ocpkit.safety.Brake`), or "fallback (hold)", the
         input goal, for a model that is not x = [q, q̇]. Replaying a stale plan had spun the Panda to 1,400 rad/s."""
         ocp, par = self.ocp, self.ocp.parameterization
         knots, kind = None, "plan"
-        if self._refused < self.stale_steps:
+        if replay and self._refused < self.stale_steps:
             knots = self.goal_knots(self._goal) if self.plan is None else par.shift(self.plan)
             knots = np.clip(np.nan_to_num(knots), ocp.u_min, ocp.u_max)
             if self._plan_check.needed and self._plan_check.violation(self.rollout(self._x, par.inputs(knots))):

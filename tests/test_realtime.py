@@ -145,13 +145,24 @@ def test_soft_bounds_equal_hard_ones_when_feasible(form):
 
 def test_soft_bounds_recover_a_start_outside_them():
     ocp = PENDULUM.ocp(knots=3, x_min=[-np.inf, -1.0], x_max=[np.inf, 1.0])
-    sol = LinearMPC(ocp).solve([0.0, 3.0], GOAL)
+    sol = LinearMPC(ocp).solve([0.0, 1.4], GOAL)
     # it brakes as hard as it can; its plan starts beyond the bound, so it is "soft", not a success
     assert sol.status == SOFT and "state bound x[1]" in sol.raw_status and sol.u[0] == -PENDULUM.tau_max
-    assert LinearMPC(ocp, state_bounds="hard").solve([0.0, 3.0], GOAL).status != SUCCESS
+    assert LinearMPC(ocp, state_bounds="hard").solve([0.0, 1.4], GOAL).status != SUCCESS
 
 
-@pytest.mark.parametrize("x0", [[0.5, 0.0], [0.0, 3.0]], ids=["hard QP feasible", "hard QP infeasible"])
+def test_a_state_outside_the_trust_region_brakes_without_a_solve():
+    """q̇ = 3 with |q̇| ≤ 1: beyond Controller.TRUST_REGION (1.5) times the bound no solver runs; the brake answers."""
+    ocp = PENDULUM.ocp(knots=3, x_min=[-np.inf, -1.0], x_max=[np.inf, 1.0])
+    ctrl = LinearMPC(ocp)
+    ctrl.solve([0.0, 0.5], GOAL)
+    sol = ctrl.solve([0.0, 3.0], GOAL)
+    assert sol.status == "infeasible" and "trust region" in sol.raw_status and sol.path == "fallback (brake)"
+    assert sol.u[0] == -PENDULUM.tau_max and sol.iterations == 0
+    assert ctrl.solve([0.0, 0.5], GOAL).applied  # the solver answers again
+
+
+@pytest.mark.parametrize("x0", [[0.5, 0.0], [0.0, 1.4]], ids=["hard QP feasible", "hard QP infeasible"])
 def test_daqp_hard_first_equals_the_soft_qp(x0):
     """DAQP solves the hard QP and the soft one only where that is infeasible: ProxQP's soft QP, the same answer."""
     ocp = PENDULUM.ocp(knots=3, x_min=[-np.inf, -1.0], x_max=[np.inf, 1.0])
