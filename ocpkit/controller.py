@@ -209,8 +209,8 @@ class Controller:
     * the task certificate of a success (:class:`ocpkit.safety.PlanCheck`, where the OCP has obstacles or state
       bounds): the plan rolled out on the nonlinear model keeps every clearance and state bound, else the step is
       "soft" (its input applied, the violation in ``raw_status``), or refused where the prediction is not finite;
-    * a safe fallback on a refused step (:meth:`fallback`); ``stale_steps`` bounds how many refused steps in a row
-      may replay the previous plan before the controller brakes;
+    * a safe fallback on a refused step (:meth:`fallback`); ``stale_steps`` (settable, default STALE_STEPS) bounds
+      how many refused steps in a row may replay the previous plan before the controller brakes;
     * a state outside the model's trust region — a bounded joint velocity beyond ``TRUST_REGION`` times its bound —
       answered "infeasible" with the brake, before any solver runs;
     * at the first step after :meth:`reset`, a RuntimeWarning where the discrete model diverges numerically at the
@@ -224,8 +224,7 @@ class Controller:
     # Panda's RTI, re-solving from 6-15 rad/s (limits 2.2-2.6), planned torques at their limits that spun it further.
     TRUST_REGION = 1.5
 
-    def __init__(self, ocp: OCP, *, raise_on_fail: bool = False, threads: int | None = 1,
-                 stale_steps: int | None = None):
+    def __init__(self, ocp: OCP, *, raise_on_fail: bool = False, threads: int | None = 1):
         if not isinstance(ocp, OCP):
             raise TypeError(f"ocp must be an ocpkit OCP, got {type(ocp).__name__}")
         self.ocp = ocp
@@ -238,7 +237,7 @@ class Controller:
         self._affine_model = None  # the OCP's affine model, bound to numpy buffers at its first use
         self._affine_map = None  # (threads, the same mapped over the horizon): per-stage models; and the rollout
         self._rollout = None
-        self.stale_steps = self.STALE_STEPS if stale_steps is None else integer(stale_steps, "stale_steps", 0)
+        self.stale_steps = self.STALE_STEPS
         self._plan_check = PlanCheck(ocp)
         self._brake = Brake(ocp)
         nq = ocp.model.second_order
@@ -255,6 +254,15 @@ class Controller:
     @threads.setter
     def threads(self, value: int | None) -> None:
         self._threads = None if value is None else integer(value, "threads", 1)
+
+    @property
+    def stale_steps(self) -> int:
+        """Refused steps in a row that may replay the previous plan (while it is safe) before the brake."""
+        return self._stale_steps
+
+    @stale_steps.setter
+    def stale_steps(self, value: int) -> None:
+        self._stale_steps = integer(value, "stale_steps", 0)
 
     @property
     def state_limit(self) -> float:
