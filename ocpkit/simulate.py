@@ -22,7 +22,6 @@ from ocpkit.problem import check_dynamics
 # The loop-level verdict (Trajectory.progress) on the task error e(t): the frame's distance to its target point (m),
 # or for a joint goal the state error max_i |x_i − x_goal,i| (the state's units, rad and rad/s for an arm).
 REACHED, STALLED, MOVING = "reached", "stalled", "moving"
-VERDICTS = (REACHED, STALLED, MOVING)
 TOLERANCE = 0.01  # e at the last state within this: reached (1 cm, as the reach study's success)
 WINDOW = 0.5      # s: the last stretch of the run over which a loop short of its target must still change e
 STILL = 1e-3      # e's range (max − min) over that window at or below this: stalled (1 mm in 0.5 s: > 25 s per 5 cm)
