@@ -2,14 +2,17 @@
 
 Each generation perturbs the nominal knots with Gaussian noise (clipped to the input bounds), rolls
 the population out and moves the nominal to the exponentially weighted average Σ_i w_i U_i with
-w_i ∝ exp(−(J_i − min J)/λ). Constraint domination, in both variants: where some candidates are feasible (clear of
-the obstacles, within the state bounds; :func:`ocpkit.solvers.sampling.excess`), only they are weighted (min J over
-them); otherwise all are, by their penalized cost, and the plan returned is the nominal unless the best candidate
-(:func:`ocpkit.solvers.sampling.best_first`) dominates it (:meth:`GaussianSampling._final`). The preconditioned variant (default) draws the noise with covariance
+w_i ∝ exp(−(J_i − min J)/λ). The preconditioned variant (default) draws the noise with covariance
 σ²P⁻¹ from the knot QP's Hessian and evaluates the seeds in every population
 (:mod:`ocpkit.solvers.sampling`); "paper" uses N(0, σ²) per parameter. The nominal carries over to the
-next control step shifted one step in time (preconditioned: unless a seed rolls out cheaper, which then
+next control step shifted one step in time (preconditioned: unless a seed rolls out better, which then
 starts the step); u is its input at t = 0.
+
+Constraint domination, in both variants: where some candidates are feasible (clear of the obstacles, within the
+state bounds; :func:`ocpkit.solvers.sampling.excess`), only they are weighted, min J taken over them; otherwise all
+are, by their penalized cost. The plan returned is the nominal unless the best candidate
+(:func:`ocpkit.solvers.sampling.best_first`) dominates it (:meth:`GaussianSampling._final`): an average of plans
+that pass a ball on either side can hit it.
 """
 # No "from __future__ import annotations": Taichi reads kernel annotations as types.
 import numpy as np

@@ -9,10 +9,11 @@ robots (DESIGN, "Sampling planners: what we learnt"): the knot QP's Hessian is s
 (condition 1e5–1e7 from 3 links) that isotropic mutations land far uphill. Each step the
 :class:`Preconditioner` builds the condensed knot QP ½zᵀPz + qᵀz at this step's linearization (the
 rollout cost of affine dynamics is exactly twice it plus a constant), factors P = LLᵀ, and supplies
-*seeds* evaluated in every population: the box-constrained optimum of that QP (a Newton candidate,
-:func:`ocpkit.boxqp.solve_box_qp`) and the input that holds the goal (u_g corrected for gravity and
+*seeds* evaluated in every population: the optimum of that QP within the input bounds (a Newton candidate,
+:func:`ocpkit.boxqp.solve_box_qp`; with obstacles or state bounds, within their linearized rows too, by DAQP) and
+the input that holds the goal (u_g corrected for gravity and
 other static loads). Perturbations are drawn as L⁻ᵀε (covariance ∝ P⁻¹), so every direction costs
-alike. CEM and MPPI start each step's Gaussian at the cheapest by rollout of their incumbent and the
+alike. CEM and MPPI start each step's Gaussian at the best by rollout of their incumbent and the
 seeds (:class:`GaussianSampling`). The fitness stays the rollout, so ``dynamics="nonlinear"`` and any
 CasADi stage cost keep working; the QP only shapes the search. ``variant="paper"`` is the plain
 algorithm: isotropic sampling in input coordinates, no seeds.
@@ -25,11 +26,14 @@ the rollout's ``dynamics``); a candidate with V ≤ FEASIBILITY_TOLERANCE beats 
 smaller V wins, among the feasible the smaller J (:func:`best_first`). By the penalty alone the weight decides: at
 ``obstacle_weight`` 10 all three planners drove nlink:3 through a ball on its path (down to −0.09 m); by domination
 none did, at any weight. The rollouts stay affine by default even around obstacles, the violation then judged on
-the affine prediction (the controller's certificate checks the plan on the nonlinear model): nonlinear rollouts of
-the Panda's reach took 194 s to compile and 213 ms a step, and their population diverged (final distance 1.03 m).
+the affine prediction while the controller's certificate rolls the plan out on the nonlinear model: on nlink:3 past
+a ball, affine rollouts kept the arm clear but 8–49 % of their steps were "soft" (the prediction's drift over the
+horizon), where ``dynamics="nonlinear"`` made every step a certified success; on the README's Panda reach the
+nonlinear rollouts took 194 s to compile and 213 ms a step, and their population diverged (final distance 1.03 m
+instead of 1 mm). Choose "nonlinear" where the robot's discrete model is cheap and stable over the horizon.
 
 Timings: ``model`` is the linearization; ``build`` the preconditioner's QP; ``solve`` the rest
-(``factor``, ``seed`` — the Newton and holding candidates —, ``copies`` between host and device and
+(``factor``, ``seed`` — the Newton (or DAQP) and holding candidates —, ``copies`` between host and device and
 ``generations``, each also reported on its own), as the paper counts EMPC's solve time.
 """
 # No "from __future__ import annotations": Taichi reads kernel annotations as types.
@@ -179,14 +183,15 @@ class SamplingMPC(Controller):
 
     ``population`` candidates per generation, ``generations`` per control step; ``variant``
     "preconditioned" (default) or "paper" (module docstring); ``dynamics`` "affine" (re-linearized
-    each step) or "nonlinear" (the discrete model F in the kernel); ``stage_cost``/``terminal_cost``
-    replace the OCP's cost in the fitness (any CasADi Function of (x, u, goal) / (x, goal), goal of ``ocp.ng``
-    entries, non-smooth allowed; default: :func:`ocpkit.kernels.rollout.fitness`, the OCP's terms and the exact
-    penalties of its state bounds and a task's obstacles); ``seed`` makes runs repeatable. ``linearization`` picks the
-    affine model's expansion input as in LinearMPC. ``time_limit`` (s) stops the generations once
-    exceeded (a launched generation always completes): the step then returns the best candidate so
-    far with status "limited". ``threads`` limits BLAS/OpenMP threads inside a step (see Controller);
-    Taichi's own CPU threads are set at its start (``OCPKIT_CPU_THREADS``).
+    each step) or "nonlinear" (the discrete model F in the kernel), which also judges each candidate's violation of
+    the obstacles and state bounds (module docstring: which to choose around obstacles);
+    ``stage_cost``/``terminal_cost`` replace the OCP's cost in the fitness (any CasADi Function of (x, u, goal) /
+    (x, goal), goal of ``ocp.ng`` entries, non-smooth allowed; default: :func:`ocpkit.kernels.rollout.fitness`, the
+    OCP's terms and the exact penalties of its state bounds and a task's obstacles); ``seed`` makes runs repeatable.
+    ``linearization`` picks the affine model's expansion input as in LinearMPC. ``time_limit`` (s) stops the
+    generations once exceeded (a launched generation always completes; the DAQP seed stops at it too): the step then
+    returns the best candidate so far with status "limited". ``threads`` limits BLAS/OpenMP threads inside a step
+    (see Controller); Taichi's own CPU threads are set at its start (``OCPKIT_CPU_THREADS``).
     """
 
     def __init__(self, ocp, *, population: int = 1024, generations: int = 1, num_picked: int = 1,
