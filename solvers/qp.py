@@ -84,8 +84,8 @@ class LinearMPC(Controller):
     terms' Gauss–Newton model about the plan (the last plan shifted a step; RTI: each iterate) and the obstacles'
     clearances linearized there as rows (:class:`ocpkit.task_rows.TaskRows`, a bounded number a stage) — hard for
     DAQP, soft where those cannot be met (first the obstacle rows alone, then the state bounds too) or for the other
-    backends (:class:`ocpkit.transcription.CondensedQP`). The C step takes a task's terms, not its obstacles; the sparse form
-    takes no task (a ValueError).
+    backends (:class:`ocpkit.transcription.CondensedQP`). The C step takes a task's terms and its obstacles' hard rows
+    (the softened QPs in Python); the sparse form takes no task (a ValueError).
 
     Every "success" is proven: the backend's answer and multipliers must pass the KKT certificate of
     :mod:`ocpkit.certificate` (stationarity, primal feasibility, complementarity, dual sign, each within
@@ -192,9 +192,7 @@ class LinearMPC(Controller):
 
     def _no_native_step(self) -> str | None:
         """Why this configuration has no exported C step (None: it has one)."""
-        for bad, why in ((self.ocp.task_functions is not None and self.ocp.task_functions.pairs > 0,
-                          "a task with obstacles (its linearized obstacle rows are built in Python)"),
-                         (self.form != "condensed", f"form {self.form!r} (the C step is the condensed QP)"),
+        for bad, why in ((self.form != "condensed", f"form {self.form!r} (the C step is the condensed QP)"),
                          (self.qp_name != "daqp", f"qp {self.qp_name!r} (the C step solves with DAQP)"),
                          (self.linearization == "trajectory" and self.ocp.task_functions is not None,
                           "a task with the trajectory linearization (the C step's task terms are linearized about "

@@ -1,6 +1,6 @@
 """The exported C step with a task's cost terms (issue 29): the frame-position term of ocpkit.task.reach in C, equal
-to LinearMPC's Python step (Gauss–Newton about the plan, ocpkit.task_rows.TaskRows) along closed loops; a task
-with obstacles is still refused."""
+to LinearMPC's Python step (Gauss–Newton about the plan, ocpkit.task_rows.TaskRows) along closed loops; with
+obstacles, their linearized clearance rows built in C as the Python step builds them (issue 43)."""
 from __future__ import annotations
 
 import shutil
@@ -9,7 +9,7 @@ import subprocess
 import numpy as np
 import pytest
 
-from ocpkit.controller import SUCCESS
+from ocpkit.controller import INFEASIBLE, SOFT, SUCCESS
 from ocpkit.export import ExportedMPC, build, export
 from ocpkit.problem import Problem
 from ocpkit.problems import make
@@ -90,12 +90,121 @@ def test_a_direct_call_needs_the_whole_goal(nlink3):
         np.testing.assert_allclose(c.solve(x0, goal).u, direct.u, atol=1e-12)
 
 
-def test_a_task_with_obstacles_is_refused(tmp_path):
+# A ball beside the reach of tests/test_native.py's closed loop: the arm starts 1.2 cm from it (the margin is 1 cm).
+BALL = "0.58,-0.02,0,0.06"
+
+
+@pytest.fixture(scope="module")
+def nlink3_ball(tmp_path_factory):
     problem = make("nlink:3")
-    ocp = reach(problem, ["0.3,0.2,0,0.05"], knots=5, compiled=False)
-    with pytest.raises(ValueError, match="obstacles.*cannot be exported.*obstacle rows"):
-        export(ocp, tmp_path / "out")
-    assert not (tmp_path / "out").exists()
+    ocp = reach(problem, [BALL], knots=5, compiled=False)
+    x0, _ = problem.sample(0)
+    goal = ocp.goal(x0, position=_target(problem, 1))
+    out = export(ocp, tmp_path_factory.mktemp("reach_ball"), x0=x0, goal=goal, steps=100)
+    build(out.out_dir, target="all")
+    return problem, ocp, out
+
+
+def test_obstacles_are_exported_as_rows_and_said(nlink3_ball):
+    """The QP has room for the bounded rows at every stage (16 robot spheres, one ball: 16 a stage over 50); the
+    header and README say what the rows are and what an infeasible QP gives; the example's loop runs in C."""
+    problem, ocp, out = nlink3_ball
+    assert out.obstacle_rows == ocp.horizon * 16 and out.n_constraints == 0
+    header = (out.out_dir / "mpc.h").read_text()
+    assert "#define MPC_NA 800" in header and "#define MPC_NOS 16" in header and "mpc_set_plan" in header
+    assert "Its obstacles (1 spheres, kept 0.01 m from 16 spheres" in header and "MPC_INFEASIBLE" in header
+    assert "up to 800 obstacle rows" in (out.out_dir / "README.md").read_text()
+    run = subprocess.run(["./example"], cwd=out.out_dir, capture_output=True, text=True, timeout=60)
+    assert run.returncode == 0 and "failures 0" in run.stdout, run.stdout + run.stderr
+
+
+def _recorded(ctrl) -> list:
+    """The list the hard QPs that the Python step ``ctrl`` builds are appended to, step by step."""
+    tr, built = ctrl._transcriptions[0], []
+    build_qp = tr.build
+
+    def build_and_keep(*args, **kwargs):
+        built.append(build_qp(*args, **kwargs))
+        return built[-1]
+
+    tr.build = build_and_keep
+    return built
+
+
+def test_c_steps_obstacle_rows_are_the_python_steps(nlink3_ball):
+    """Past the ball the C step builds the Python step's QP, obstacle rows included (the C solver on the Python QP
+    gives the C step's answer), and both answer alike: the same statuses ("soft" where the plan's nonlinear rollout
+    breaks a clearance), knots to 1e-8."""
+    problem, ocp, out = nlink3_ball
+    x, _ = problem.sample(0)
+    goal = ocp.goal(x, position=_target(problem, 1))
+    py = LinearMPC(ocp, native=False)
+    built = _recorded(py)
+    F, rows, statuses = ocp.discrete(), 0, set()
+    with ExportedMPC(ocp, out.out_dir) as c:
+        for _ in range(60):
+            a, b = c.solve(x, goal), py.solve(x, goal)
+            assert a.status == b.status, (a.raw_status, b.raw_status)
+            np.testing.assert_allclose(a.knots, b.knots, atol=1e-8, rtol=0)
+            qp = built[-1]
+            if qp.C.shape[0] > len(qp.box):  # obstacle rows: the C solver on the Python QP answers as the C step
+                rows += 1
+                status, z = c.solve_qp(qp)
+                assert status == SUCCESS
+                np.testing.assert_allclose(z, a.knots.ravel(), atol=1e-8, rtol=0)
+            statuses.add(a.status)
+            x = np.asarray(F(x, a.u)).ravel()
+    assert rows >= 30 and statuses == {SUCCESS, SOFT}, (rows, statuses)
+
+
+def test_inside_the_margin_the_pure_export_says_infeasible(nlink3_ball):
+    """A start under 5 mm from the ball (inside the 1 cm margin): no plan keeps the hard rows, the C step says
+    "infeasible" and answers with the controller's fallback; LinearMPC's Python step answers with the QP whose
+    obstacle rows are softened."""
+    problem, ocp, out = nlink3_ball
+    x = _inside_the_margin(problem, ocp)
+    goal = ocp.goal(x, position=_target(problem, 1))
+    with ExportedMPC(ocp, out.out_dir) as c:
+        sol = c.solve(x, goal)
+        assert sol.status == INFEASIBLE and sol.fallback and "DAQP infeasible" in sol.raw_status, sol.raw_status
+    b = LinearMPC(ocp, native=False).solve(x, goal)
+    assert not b.fallback and b.status == SOFT
+
+
+def _inside_the_margin(problem, ocp):
+    """A state whose arm is under 5 mm from the ball (inside the margin): sample(0) turned about the first joint."""
+    from ocpkit.task import clearances
+
+    x, _ = problem.sample(0)
+    for q0 in np.linspace(x[0], x[0] - 0.3, 301):
+        x[0] = q0
+        gap = clearances(problem.kinematics, ocp.task.robot, ocp.task.obstacles, x[None, :3])[0]
+        if gap < 0.005:
+            return x
+    raise AssertionError("no start inside the margin")
+
+
+def test_set_plan_makes_the_c_step_linearize_about_it(nlink3_ball):
+    """After a step answered elsewhere (LinearMPC's softened QP, a brake) the library follows the plan it is given:
+    the C step then equals the Python step linearized about the same plan."""
+    problem, ocp, out = nlink3_ball
+    x, _ = problem.sample(0)
+    goal = ocp.goal(x, position=_target(problem, 1))
+    plan = np.clip(np.random.default_rng(3).normal(0.0, 2.0, (ocp.knots, ocp.nu)), ocp.u_min, ocp.u_max)
+    py = LinearMPC(ocp, native=False)
+    with ExportedMPC(ocp, out.out_dir) as c:
+        assert c.sets_plan
+        c.solve(x, goal)
+        c.set_plan(plan)
+        py.plan = plan
+        a, b = c.solve(x, goal), py.solve(x, goal)
+        assert a.status == b.status
+        np.testing.assert_allclose(a.knots, b.knots, atol=1e-8, rtol=0)
+        c.set_plan(None)  # no plan: the cold start's
+        py.reset()
+        np.testing.assert_allclose(c.solve(x, goal).knots, py.solve(x, goal).knots, atol=1e-8, rtol=0)
+        with pytest.raises(ValueError, match="knots must have shape"):
+            c.set_plan(plan[:2])
 
 
 @pytest.mark.slow  # 10-30 s: the 7-DoF build; nlink:3 covers the same path in the default run

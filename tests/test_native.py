@@ -275,3 +275,69 @@ def test_a_killed_build_says_it_was_killed(tmp_path, monkeypatch):
     future = native.start(PROBLEM.ocp(knots=3, horizon=32), eps=1e-9, max_iter=1000)
     with pytest.raises(BuildError, match=r"its build process \(pid \d+\) was killed by SIGKILL"):
         future.result(120)
+
+
+# --- Obstacles (issue 43): the C step appends the linearized clearance rows as the Python step does.
+
+def _same_steps_with_obstacles(problem, ocp, x, goal, steps, tol, **options):
+    """LinearMPC's C step and its Python step from the same states: the same statuses, knots to ``tol``; the
+    closed loop's clearances (true, no margin)."""
+    from ocpkit.task import clearances
+
+    c, py = LinearMPC(ocp, native=True, **options), LinearMPC(ocp, native=False, **options)
+    assert c.native and c.path == "C step"
+    F, xs = ocp.discrete(), []
+    for _ in range(steps):
+        a, b = c.solve(x, goal), py.solve(x, goal)
+        assert a.status == b.status, (a.raw_status, b.raw_status)
+        np.testing.assert_allclose(a.knots, b.knots, atol=tol, rtol=0)
+        x = np.asarray(F(x, a.u)).ravel()
+        xs.append(x[:problem.kinematics.n])
+    return clearances(problem.kinematics, ocp.task.robot, ocp.task.obstacles, np.array(xs))
+
+
+def _ee_target(problem, seed):
+    fk = problem.kinematics.function(problem.end_effector)
+    return np.asarray(fk(problem.sample(seed)[1][:problem.kinematics.n])[0]).ravel()
+
+
+def test_c_step_with_obstacles_equals_python_step_past_a_ball():
+    """nlink:3 reaching past a ball it starts 1.2 cm from (margin 1 cm): 150 steps, the obstacle rows in the QP
+    while the arm passes the ball; every step answered by the C step's hard QP."""
+    from ocpkit.task import ACTIVATION, reach
+
+    problem = problems.make("nlink:3")
+    ocp = reach(problem, ["0.58,-0.02,0,0.06"], knots=5, compiled=False)
+    x, _ = problem.sample(0)
+    gaps = _same_steps_with_obstacles(problem, ocp, x, ocp.goal(x, position=_ee_target(problem, 1)), 150, 1e-8)
+    assert gaps.min() > 0 and (gaps < ACTIVATION).sum() >= 20 and gaps[-1] > ACTIVATION, gaps
+
+
+def test_c_step_with_obstacles_inside_the_margin_goes_on_to_the_softened_qp():
+    """A start under 5 mm from the ball: the C step's hard QP is infeasible, and the QP with the obstacle rows
+    softened answers in Python — the Python step's answer."""
+    from ocpkit.task import clearances, reach
+
+    problem = problems.make("nlink:3")
+    ocp = reach(problem, ["0.58,-0.02,0,0.06"], knots=5, compiled=False)
+    x, _ = problem.sample(0)
+    x[0] -= 0.1
+    assert clearances(problem.kinematics, ocp.task.robot, ocp.task.obstacles, x[None, :3])[0] < 0.005
+    goal = ocp.goal(x, position=_ee_target(problem, 1))
+    c, py = LinearMPC(ocp, native=True), LinearMPC(ocp, native=False)
+    a, b = c.solve(x, goal), py.solve(x, goal)
+    assert a.status == b.status == SOFT and not a.fallback and "DAQP optimal" in a.raw_status, a.raw_status
+    np.testing.assert_allclose(a.knots, b.knots, atol=1e-8, rtol=0)
+
+
+@pytest.mark.slow  # 30-60 s: the Panda's C step builds
+def test_c_step_with_obstacles_equals_python_step_on_the_readme_panda_case():
+    """The README's Panda reach past a sphere: 10 steps of the C step equal the Python step's. The arm's reach QP is
+    ill-conditioned (tests/test_export_task.py): knots to 5e-8."""
+    from ocpkit.task import Sphere, reach
+
+    problem = problems.make("panda")
+    ocp = reach(problem, [Sphere((0.4, -0.25, 0.35), 0.08)], knots=5, compiled=False)
+    x, _ = problem.sample(seed=0)
+    gaps = _same_steps_with_obstacles(problem, ocp, x, ocp.goal(x, position=(0.4, 0.0, 0.3)), 10, 5e-8)
+    assert gaps.min() < 0.1  # the obstacle rows are in the QPs

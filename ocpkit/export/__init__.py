@@ -21,13 +21,21 @@ dimension only through the model):
   and every product is one small GEMM kernel whose tiles of C stay in vector registers (GCC/Clang vector
   extensions: SSE2, plus AVX2+FMA chosen at run time on CPUs that have them; ``make SIMD=sse2|none``).
   Constants (Q^½, R, the basis' pieces, bounds, the Γ schedule) are static arrays.
-* With a task (:mod:`ocpkit.task`: cost terms such as a frame's position, no obstacles) its stage and terminal
-  residuals and their dense Jacobians are generated per stage (``<name>_task_stage``, ``<name>_task_terminal``),
-  and the step adds their Gauss–Newton model about the plan to the condensed QP as
-  :class:`ocpkit.task_rows.TaskRows` does (``task_terms`` in ``<name>.c``: the plan's states and ∂r/∂x S
-  piece by piece, ∂r/∂x S as (∂r/∂x Λ_s) R). The step's goal is then the whole goal vector [x_goal; targets]
-  (``ocp.goal(...)``, ``NG`` entries). A task with obstacles is refused (its linearized obstacle rows are not in
-  the C step).
+* With a task (:mod:`ocpkit.task`: cost terms such as a frame's position) its stage and terminal residuals and
+  their dense Jacobians are generated per stage (``<name>_task_stage``, ``<name>_task_terminal``), and the step
+  adds their Gauss–Newton model about the plan to the condensed QP as :class:`ocpkit.task_rows.TaskRows` does
+  (``task_terms`` in ``<name>.c``: the plan's states and ∂r/∂x S piece by piece, ∂r/∂x S as (∂r/∂x Λ_s) R). The
+  step's goal is then the whole goal vector [x_goal; targets] (``ocp.goal(...)``, ``NG`` entries).
+* With obstacles the robot spheres' centres and Jacobians are generated too (``<name>_spheres``, the obstacles a
+  table of constants), and at each of the plan's states the step computes the clearances, keeps the pairs
+  :meth:`~ocpkit.task_rows.TaskRows.select` keeps (within ``ACTIVATION`` of the margin, each sphere's closest, a
+  bounded number a stage) and appends their rows d + ∂d/∂x S_k (z − z̄) ≥ 0 after the state-bound rows, in the
+  Python step's order (``obstacles.in.c``). The QP has room for the bound at every stage (``NO`` rows, the Panda's:
+  24 × 50); the rows a step leaves unused are zero and unbounded, and DAQP leaves zero rows out. The rows are hard:
+  where they make the QP infeasible (a start inside the margin) the step returns "infeasible" and its fallback
+  — :class:`~ocpkit.solvers.qp.LinearMPC` then solves the QP with the obstacle rows softened in Python, as it does
+  the soft state bounds — and ``<name>_set_plan`` lets the next step linearize about the plan that answered
+  (:meth:`ExportedMPC.set_plan`).
 
 All memory of one controller lives in a caller-owned struct (``<name>_memory``): several instances run in one
 process, each with its own QP-solver memory slot (``MAX_INSTANCES`` in the Makefile, 16 by default).

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from ocpkit.quadratic_program import ROUNDING_MARGIN
+from ocpkit.task import ACTIVATION, ROWS_PER_SPHERE
 from ocpkit.transcription import CondensedQP
 
 # The C step's solver return for a "solved" answer whose certificate failed: CERT_CODE + the test's index in
@@ -64,10 +65,12 @@ def _c_const(kind: str, name: str, values) -> str:
     return f"static const {kind} {name}[{values.size}] = {body};"
 
 
-def step_constants(tr: CondensedQP, linearization: str, jac, tf=None, iterations: int = 1, tol: float = 0.0) -> str:
+def step_constants(tr: CondensedQP, linearization: str, jac, tf=None, iterations: int = 1, tol: float = 0.0,
+                   obstacle_rows: int = 0) -> str:
     """The step's constants: input goal, shift, bounds, weights, the basis' pieces, the Gram schedule, for
-    a nonlinear model RK4's step and the Jacobians' sparsity, with a task (``tf``) its weights and the basis, and
-    for the real-time iteration ("trajectory") the basis, each stage's active knot columns and the iterations."""
+    a nonlinear model RK4's step and the Jacobians' sparsity, with a task (``tf``) its weights and the basis, with
+    obstacles (``obstacle_rows`` a stage at most) their table and the rows' bound, and for the real-time iteration
+    ("trajectory") the basis, each stage's active knot columns and the iterations."""
     ocp = tr.ocp
     n, m, p = tr.n, tr.m, tr.p
     phi = tr.phi
@@ -149,4 +152,8 @@ def step_constants(tr: CondensedQP, linearization: str, jac, tf=None, iterations
             lines += [_c_const("double", "TASK_PHI", phi), _c_const("double", "TASK_WS", tf.stage_weight)]
         if terminal:
             lines.append(_c_const("double", "TASK_WT", tf.terminal_weight))
+    if obstacle_rows:  # TaskRows.select's bound, the obstacles (centre, radius) and each robot sphere's reach
+        lines += [f"#define ACTIVATION {_c_num(ACTIVATION)}", f"#define ROWS_PER_SPHERE {ROWS_PER_SPHERE}",
+                  _c_const("double", "OBSTACLES", tf.table.T),
+                  _c_const("double", "SPHERE_REACH", tf.radii)]  # radius + margin
     return "\n".join(lines)

@@ -16,6 +16,7 @@ from ocpkit.export.folder import check_out_dir, place, write
 from ocpkit.export.qp import conic, fix_daqp_setup
 from ocpkit.ocp import OCP
 from ocpkit.problem import check_dynamics
+from ocpkit.task import ROWS_PER_SPHERE, ROWS_PER_STAGE
 from ocpkit.transcription import CondensedQP
 
 FORMS = ("condensed", "sparse")
@@ -44,7 +45,8 @@ class Export:
     nu: int
     knots: int
     horizon: int
-    n_constraints: int
+    n_constraints: int  # state-bound rows
+    obstacle_rows: int = 0  # the most linearized clearance rows a step appends after them (a task with obstacles)
 
     @property
     def library(self) -> Path:
@@ -72,8 +74,8 @@ def export(ocp: OCP, out_dir, *, form: str = "condensed", qp: str = "daqp", name
     where one moves the plan (knots and predicted states, max norm) by at most ``tol``; ``x0``, ``goal`` (with
     a task the goal vector [x_goal; targets] of ``ocp.goal``) and ``steps`` set the closed loop the example runs
     against the generated discrete model (where given, the dynamics must be finite there: else a DynamicsError
-    names them, before any file is written). A task's cost terms are exported; a task with obstacles is refused
-    (ValueError)."""
+    names them, before any file is written). A task's cost terms and obstacles are exported (linearization "goal" or
+    "plan"), its obstacles as hard clearance rows (see the package docstring)."""
     if not isinstance(ocp, OCP):
         raise TypeError(f"ocp must be an ocpkit OCP, got {type(ocp).__name__}")
     choice(form, FORMS, "form")
@@ -93,10 +95,6 @@ def export(ocp: OCP, out_dir, *, form: str = "condensed", qp: str = "daqp", name
         raise ValueError(f"an OCP with a task (terms {ocp.terms[2:]}) cannot be exported with linearization "
                          "'trajectory': the C step's task terms are linearized about the goal's model; use "
                          "linearization 'goal' or 'plan', or the Python step")
-    if tf is not None and tf.pairs:
-        raise ValueError(f"an OCP with obstacles (task terms {ocp.terms[2:]}, {tf.pairs} robot-sphere/obstacle "
-                         "pairs) cannot be exported: the C step has the task's cost terms but not its linearized "
-                         "obstacle rows; use LinearMPC's Python step, or a task without obstacles")
     if not (isinstance(name, str) and name.isidentifier() and name.isascii()):
         raise ValueError(f"name must be a C identifier, got {name!r}")
     eps = positive(eps, "eps")
@@ -120,8 +118,10 @@ def export(ocp: OCP, out_dir, *, form: str = "condensed", qp: str = "daqp", name
     # The joint-space condensing's data; the task's terms are generated below (its Python rows not needed).
     tr = CondensedQP(ocp, task=False)
     na = tr.x_rows.size
+    nos = rows_a_stage(tf) if tf is not None and tf.pairs else 0  # clearance rows a stage at most
+    no = ocp.horizon * nos  # the QP's rows after the state bounds'
     lin, model, jac = _model_functions(ocp, name)
-    solver = conic(qp, name, tr.nz, na, eps, max_iter, polish)
+    solver = conic(qp, name, tr.nz, na + no, eps, max_iter, polish)
     cg = ca.CodeGenerator(f"{name}_casadi.c", {"with_header": True, "casadi_int": "long long int"})
     all_f = [solver, lin, model]
     if getattr(ocp, "goal_input", None) is not None:  # h(x_goal) of u_g = u_goal + K x_goal + h(x_goal)
@@ -145,7 +145,7 @@ def export(ocp: OCP, out_dir, *, form: str = "condensed", qp: str = "daqp", name
         shutil.rmtree(scratch, ignore_errors=True)
 
     sizes = {
-        "NX": ocp.nx, "NU": ocp.nu, "KNOTS": ocp.knots, "HORIZON": ocp.horizon, "NZ": tr.nz, "NA": na,
+        "NX": ocp.nx, "NU": ocp.nu, "KNOTS": ocp.knots, "HORIZON": ocp.horizon, "NZ": tr.nz, "NA": na + no,
         "NL": ocp.nx + 2 * ocp.nu + 1, "LMAX": max(tr._lengths), "NLEN": len(tr._lengths),
         "NB": int(np.count_nonzero(np.isfinite(ocp.x_min) | np.isfinite(ocp.x_max))),
         "NNZ_FX": len(jac[0][0]) if jac else 0, "NNZ_FU": len(jac[1][0]) if jac else 0,
@@ -154,9 +154,12 @@ def export(ocp: OCP, out_dir, *, form: str = "condensed", qp: str = "daqp", name
     }
     if task is not None:
         sizes.update(NG=ng, NRS=tf.stage_weight.size, NRT=tf.terminal_weight.size)
-    info = Export(out, name, form, qp, linearization, ocp.nx, ocp.nu, ocp.knots, ocp.horizon, na)
+    if no:
+        spheres, obstacles = tf.radii.size, tf.table.shape[1]
+        sizes.update(NO=no, NOS=nos, NK=spheres, NOB=obstacles, NOC=spheres * min(ROWS_PER_SPHERE, obstacles))
+    info = Export(out, name, form, qp, linearization, ocp.nx, ocp.nu, ocp.knots, ocp.horizon, na, no)
     write(out / f"{name}.h", render.header(name, sizes, ocp, form, qp, linearization))
-    write(out / f"{name}.c", render.step(name, qp, linearization, tr, jac, tf, iterations, float(tol)))
+    write(out / f"{name}.c", render.step(name, qp, linearization, tr, jac, tf, iterations, float(tol), nos))
     write(out / "main.c", render.example(name, x0, goal, steps, ocp.dt, task=tf is not None))
     write(out / "Makefile", render.makefile(name, qp))
     write(out / "README.md", render.readme(info, ocp, eps, max_iter))
@@ -200,10 +203,25 @@ def _model_functions(ocp: OCP, name: str):
     return fj, step, (jac.sparsity_out(1).get_triplet(), jac.sparsity_out(2).get_triplet())
 
 
+def general_rows(ocp: OCP) -> int:
+    """The exported QP's general rows: the state-bound rows, then room for the obstacles' rows at every stage."""
+    tf = ocp.task_functions
+    bounded = np.count_nonzero(np.isfinite(ocp.x_min) | np.isfinite(ocp.x_max))
+    return ocp.horizon * (int(bounded) + (rows_a_stage(tf) if tf is not None and tf.pairs else 0))
+
+
+def rows_a_stage(tf) -> int:
+    """The most clearance rows one stage can have under :meth:`ocpkit.task_rows.TaskRows.select`'s bound (``tf``:
+    :class:`ocpkit.task.CompiledTask` with obstacles): the QP has room for them at every stage."""
+    return min(ROWS_PER_STAGE, tf.radii.size * min(ROWS_PER_SPHERE, tf.table.shape[1]))
+
+
 def _task_functions(tf, name: str) -> list:
-    """The task's residuals for the C step (``tf``: :class:`ocpkit.task.CompiledTask`, no obstacles), generated
-    per stage: ``<name>_task_stage`` (x, u, targets) -> (r, ∂r/∂x, ∂r/∂u) and ``<name>_task_terminal``
-    (x, targets) -> (r, ∂r/∂x), the Jacobians dense (column-major); a part without terms is left out."""
+    """The task's functions for the C step (``tf``: :class:`ocpkit.task.CompiledTask`), generated per stage:
+    ``<name>_task_stage`` (x, u, targets) -> (r, ∂r/∂x, ∂r/∂u) and ``<name>_task_terminal`` (x, targets) -> (r,
+    ∂r/∂x), the Jacobians dense (column-major); a part without terms is left out. With obstacles ``<name>_spheres``
+    (x) -> (C, C_x): the robot spheres' centres and their Jacobians as ``tf.spheres`` gives them, from which the step
+    computes the clearances and their gradients as TaskRows does in numpy."""
     x, u, g = ca.SX.sym("x", tf.nx), ca.SX.sym("u", tf.nu), ca.SX.sym("g", tf.size)
     out = []
     if tf.stage_weight.size:
@@ -213,6 +231,8 @@ def _task_functions(tf, name: str) -> list:
     if tf.terminal_weight.size:
         r, rx = tf.terminal_residual(x, g)
         out.append(ca.Function(f"{name}_task_terminal", [x, g], [r, ca.densify(rx)], ["x", "g"], ["r", "r_x"]))
+    if tf.pairs:
+        out.append(ca.Function(f"{name}_spheres", [x], list(tf.spheres(x)), ["x"], ["C", "C_x"]))
     return out
 
 

@@ -12,6 +12,7 @@ from ocpkit.certificate import TESTS, Certificate
 from ocpkit.certificate import TOL as CERT_TOL
 from ocpkit.controller import STATUSES, SUCCESS, Controller, Solution
 from ocpkit.export.constants import CERT_CODE, ILL_CONDITIONED
+from ocpkit.export.generate import general_rows
 from ocpkit.ocp import OCP
 from ocpkit.qp_backends import DAQP_EXIT, daqp_exit_name
 from ocpkit.quadratic_program import ROUNDING_MARGIN
@@ -68,6 +69,11 @@ class ExportedMPC(Controller):
             self._states.argtypes = [ctypes.c_void_p, dbl]
         except AttributeError:
             self._states = None
+        try:  # a step with obstacles: the plan it linearizes about can be set
+            self._set_plan = getattr(lib, f"{name}_set_plan")
+            self._set_plan.argtypes = [ctypes.c_void_p, ctypes.c_void_p]
+        except AttributeError:
+            self._set_plan = None
         self._open = False
         if getattr(lib, f"{name}_init")(self._mem):
             raise RuntimeError(f"{name}_init failed: all QP solver memory slots of {lib_path} are in use "
@@ -125,6 +131,33 @@ class ExportedMPC(Controller):
             raise RuntimeError("generated discrete model failed")
         return out
 
+    @property
+    def sets_plan(self) -> bool:
+        """Whether :meth:`set_plan` can set the plan the library linearizes about (an export with obstacles)."""
+        return self._set_plan is not None
+
+    def set_plan(self, knots) -> None:
+        """Make ``knots`` (p, m) the plan the library's next step linearizes about, shifted a step (None: none, the
+        input goal as at a cold start): after a step answered elsewhere — with obstacles the hard QP can be
+        infeasible, and LinearMPC answers with its softened QP in Python; a refused step's brake."""
+        self._check_open()
+        if self._set_plan is None:
+            raise RuntimeError(f"{self!r} keeps its own plan: its library has no {self.name}_set_plan (an export "
+                               "with obstacles has)")
+        if knots is None:
+            self._set_plan(self._mem, None)
+            return
+        knots = np.ascontiguousarray(array(knots, "knots", (self.ocp.knots, self.ocp.nu)))
+        self._set_plan(self._mem, knots.ctypes.data)
+
+    def solve(self, x, goal) -> Solution:
+        """:meth:`Controller.solve`; where the step was refused and the library can take it, the library follows
+        the plan this controller answered with (the shifted plan or the brake, :meth:`Controller.fallback`)."""
+        sol = super().solve(x, goal)
+        if sol.fallback and self._set_plan is not None:
+            self.set_plan(sol.knots)
+        return sol
+
     def certificate(self) -> Certificate:
         """The KKT certificate the C code computed for its last QP solve (:mod:`ocpkit.certificate`)."""
         self._check_open()
@@ -134,7 +167,8 @@ class ExportedMPC(Controller):
 
     def solve_qp(self, qp) -> tuple[str, np.ndarray]:
         """(status, z) of the C step's QP solve and certificate on ``qp``, a condensed knot QP of this library's size
-        (an :class:`ocpkit.transcription.QP` with the knot bounds as its box and state-bound rows after them) — to
+        (an :class:`ocpkit.transcription.QP` with the knot bounds as its box and state-bound rows after them, then
+        with obstacles up to the library's room for obstacle rows; the rest is filled with zero rows, unbounded) — to
         test the solver and the certificate in C on QPs of one's own. The next step starts cold."""
         self._check_open()
         nz = self.ocp.knots * self.ocp.nu
@@ -144,10 +178,16 @@ class ExportedMPC(Controller):
         lbx, ubx = np.full(nz, -np.inf), np.full(nz, np.inf)
         lbx[qp.box], ubx[qp.box] = qp.l[:k], qp.u[:k]
         C = np.asarray(qp.C.toarray() if hasattr(qp.C, "toarray") else qp.C, dtype=float)[k:]
+        rows = general_rows(self.ocp)
+        if C.shape[0] > rows:
+            raise ValueError(f"qp has {C.shape[0]} general rows, this library's QP {rows}")
+        pad = rows - C.shape[0]
+        C = np.vstack([C, np.zeros((pad, nz))])
+        lo, hi = np.r_[qp.l[k:], np.full(pad, -np.inf)], np.r_[qp.u[k:], np.full(pad, np.inf)]
         col = (lambda v: np.ascontiguousarray(v, dtype=float))
         z, status = np.empty(nz), ctypes.c_int()
-        self._solve_qp(self._mem, col(np.asarray(qp.P, dtype=float).T), col(qp.q), col(C.T), col(qp.l[k:]),
-                       col(qp.u[k:]), col(lbx), col(ubx), z, ctypes.addressof(status))
+        self._solve_qp(self._mem, col(np.asarray(qp.P, dtype=float).T), col(qp.q), col(C.T), col(lo), col(hi),
+                       col(lbx), col(ubx), z, ctypes.addressof(status))
         return STATUSES[status.value], z
 
     def _solve(self, x: np.ndarray, goal: np.ndarray) -> Solution:

@@ -12,6 +12,7 @@ from ocpkit.certificate import TOL as CERT_TOL
 from ocpkit.controller import INFEASIBLE, LIMITED, SUCCESS
 from ocpkit.export.constants import CERT_CODE, ILL_CONDITIONED, c_array, step_constants
 from ocpkit.qp_backends import DAQP_EXIT
+from ocpkit.task import ACTIVATION, ROWS_PER_SPHERE
 from ocpkit.ocp import OCP
 from ocpkit.transcription import CondensedQP
 
@@ -40,23 +41,29 @@ def _render(template: str, **values) -> str:
 
 
 def _task_values(ocp: OCP, code: bool) -> dict:
-    """The task's terms and targets in words (``code``: target names as Markdown code)."""
+    """The task's terms and targets in words (``code``: target names as Markdown code), and its obstacles: how many,
+    the robot's spheres, the margin and the rows' bound (:meth:`ocpkit.task_rows.TaskRows.select`)."""
     targets = ", ".join(f"`{k}`: {v}" if code else f"{k}: {v}" for k, v in ocp.task.targets.items())
-    return {"terms": ", ".join(ocp.terms[2:]), "targets": targets or "none"}
+    task = ocp.task
+    return {"terms": ", ".join(ocp.terms[2:]), "targets": targets or "none", "n_obstacles": len(task.obstacles),
+            "robot_spheres": len(task.robot), "margin": f"{task.margin:g}", "activation": f"{ACTIVATION:g}",
+            "per_sphere": ROWS_PER_SPHERE}
 
 
 def header(name: str, sizes: dict, ocp: OCP, form: str, qp: str, linearization: str) -> str:
     """``<name>.h``: the API, the sizes (``sizes``: macro name → value) and the memory struct."""
     task = ocp.task_functions is not None
     return _render("header.in.h", name=name, N=name.upper(), sizes=sizes, ocp=repr(ocp), form=form, qp=qp,
-                   ubar=_UBAR[linearization], task=task, rti=linearization == "trajectory",
+                   ubar=_UBAR[linearization], task=task, obstacles=task and ocp.task_functions.pairs > 0,
+                   rti=linearization == "trajectory",
                    cert_tol=repr(CERT_TOL), cert_code=CERT_CODE, ill_conditioned=ILL_CONDITIONED,
                    **(_task_values(ocp, code=False) if task else {}))
 
 
 def step(name: str, qp: str, linearization: str, tr: CondensedQP, jac, tf=None, iterations: int = 1,
-         tol: float = 0.0) -> str:
-    """``<name>.c``: the step around the generated model and QP solver, with its constants."""
+         tol: float = 0.0, obstacle_rows: int = 0) -> str:
+    """``<name>.c``: the step around the generated model and QP solver, with its constants (``obstacle_rows``: the
+    most clearance rows a stage, 0 without obstacles)."""
     N = name.upper()
     # a nonzero return: qrqp's 4 is "no search direction" (an infeasible or degenerate QP); DAQP's failed exit
     # flags as DAQP_EXIT says (its successes return 0)
@@ -65,7 +72,8 @@ def step(name: str, qp: str, linearization: str, tr: CondensedQP, jac, tf=None, 
     status_of_rc = "".join(f"rc == {rc} ? {N}_{status.upper()} : " for rc, status in failures.items()
                            if status != LIMITED) + f"{N}_LIMITED"
     return _render("step.in.c", name=name, N=N, qp=qp, status_of_rc=status_of_rc, task=tf is not None,
-                   constants=step_constants(tr, linearization, jac, tf, iterations, tol))
+                   obstacles=bool(obstacle_rows), constants=step_constants(tr, linearization, jac, tf, iterations, tol,
+                                                                           obstacle_rows))
 
 
 def example(name: str, x0, goal, steps: int, dt: float, task: bool = False) -> str:
@@ -87,5 +95,6 @@ def readme(info, ocp: OCP, eps: float, max_iter: int) -> str:
                    knots=info.knots, nu=info.nu, n_constraints=info.n_constraints, horizon=info.horizon,
                    dt=ocp.dt, qp=info.qp, eps=f"{eps:g}", max_iter=max_iter, ubar=_UBAR[info.linearization],
                    cert_tol=f"{CERT_TOL:g}", solver_note=_SOLVER_NOTE[info.qp], task=task,
+                   obstacle_rows=info.obstacle_rows,
                    ng=ocp.ng if task else None, opt=OPT_FLAGS, opt_step=OPT_STEP, max_instances=MAX_INSTANCES,
                    folder=info.out_dir.name, **(_task_values(ocp, code=True) if task else {}))

@@ -6,6 +6,15 @@
  * The task's cost terms ({{ terms }}) enter the QP by Gauss–Newton about the plan (the
  * previous plan shifted a step; the input goal at a cold start) and its predicted states.
 {% endif %}
+{% if obstacles %}
+ * Its obstacles ({{ n_obstacles }} spheres, kept {{ margin }} m from {{ robot_spheres }} spheres along the robot) enter as hard rows
+ * after the state-bound rows: at each predicted state x_k, k = 1 … HORIZON, the clearances d within
+ * {{ activation }} m of the margin (each robot sphere's {{ per_sphere }} closest obstacles, the {{ N }}_NOS closest pairs
+ * of a stage) linearized about the plan, d + ∂d/∂x S_k (z − z̄) >= 0 (ocpkit.task_rows.TaskRows).
+ * Where they make the QP infeasible (a start already inside the margin) the step returns
+ * {{ N }}_INFEASIBLE and the fallback: it has no softened QP (ocpkit's LinearMPC then solves the
+ * one with the obstacle rows softened in Python).
+{% endif %}
  *
  * Usage (any number of instances, up to MAX_INSTANCES in the Makefile live at once per process):
  *   {{ name }}_memory* mem = malloc(sizeof *mem);   // caller-owned: all work space, the plan, warm start
@@ -88,6 +97,14 @@ typedef struct {
   double zbar[{{ N }}_NZ], tx[{{ N }}_NX], tu[{{ N }}_NU], ty[{{ N }}_NL], tr[{{ N }}_NR1], trx[{{ N }}_NR1 * {{ N }}_NX], tru[{{ N }}_NR1 * {{ N }}_NU];
   double LamA[{{ N }}_LMAX * {{ N }}_NX * {{ N }}_NL], JL[{{ N }}_NR1 * {{ N }}_NL], GX[{{ N }}_NR1 * {{ N }}_NZ1], G[{{ N }}_NR1 * {{ N }}_NZ];
 {% endif %}
+{% if obstacles %}
+  /* the obstacles' rows at a stage: the robot spheres' centres and Jacobians (column-major, as generated),
+     the candidate pairs (each sphere's closest obstacles), the rows kept (sphere, obstacle, d − margin),
+     their ∂d/∂x, its product with Λ_s and with R (row-major); the rows filled this step */
+  double oc[3 * {{ N }}_NK], ocx[3 * {{ N }}_NK * {{ N }}_NX], cand_d[{{ N }}_NOC], od[{{ N }}_NOS];
+  double og[{{ N }}_NOS * {{ N }}_NX], oJL[{{ N }}_NOS * {{ N }}_NL], oGX[{{ N }}_NOS * {{ N }}_NZ1];
+  int cand_i[{{ N }}_NOC], cand_j[{{ N }}_NOC], oi[{{ N }}_NOS], oj[{{ N }}_NOS], n_orows;
+{% endif %}
 {% if rti %}
   /* the real-time iteration: each stage's affine model Λ_k = [A_k B_k 0 w_k] (row-major) along
      x̄_k, ū_k (the knots z̄ it linearizes about), the plan's predicted states x_0 … x_T and the
@@ -113,6 +130,12 @@ int {{ name }}_step_timed({{ name }}_memory* mem, const double* x, const double*
                       double* t);
 /* Copy the current plan's knots (the solution, or the fallback plan after a failure). */
 void {{ name }}_knots(const {{ name }}_memory* mem, double* knots);
+{% if obstacles %}
+/* Make knots (as {{ name }}_knots gives them) the plan the next step linearizes about, shifted a step; NULL: none (the
+   input goal, as at a cold start). For a step answered elsewhere: where the obstacle rows make the QP infeasible,
+   the softened QP ocpkit solves in Python, or a caller's own fallback. */
+void {{ name }}_set_plan({{ name }}_memory* mem, const double* knots);
+{% endif %}
 /* The QP solver's raw return code of the last step (0: solved and certified; see CERT_TOL above). */
 int {{ name }}_solver_return(const {{ name }}_memory* mem);
 /* The QP solver's name ("daqp", "qrqp", "osqp"). */

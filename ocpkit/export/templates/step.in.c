@@ -424,6 +424,10 @@ static void finish_qp(mem_t* m, double* prev, const double* xg) {
 }
 {% if task %}
 
+{% if obstacles %}
+{% include 'obstacles.in.c' %}
+
+{% endif %}
 {% include 'task.in.c' %}
 {% endif %}
 
@@ -888,6 +892,14 @@ void {{ name }}_knots(const mem_t* m, double* knots) {
   int i;
   for (i = 0; i < NZ; ++i) knots[i] = m->plan[i];
 }
+{% if obstacles %}
+
+void {{ name }}_set_plan(mem_t* m, const double* knots) {
+  int i;
+  m->has_plan = knots != 0;
+  for (i = 0; i < NZ; ++i) m->plan[i] = knots ? knots[i] : 0;
+}
+{% endif %}
 
 int {{ name }}_solver_return(const mem_t* m) { return m->solver_rc; }
 

@@ -110,6 +110,9 @@ static int task_terms(mem_t* m, const double* x, const double* goal) {
       else v = clip(m->ug[i], LBX[j * NU + i], UBX[j * NU + i]);
       m->zbar[j * NU + i] = v;
     }
+{% if obstacles %}
+  m->n_orows = 0;
+{% endif %}
   memcpy(m->LamA, m->Lam1, sizeof m->Lam1);
   for (s = 1; s < LMAX; ++s) times_ahat(m->LamA + (s - 1) * NX * NL, NX, NL, m->Lam1, 1, m->LamA + s * NX * NL);
 #if TASK_STAGE
@@ -139,6 +142,9 @@ static int task_terms(mem_t* m, const double* x, const double* goal) {
         for (l = 0; l < NL; ++l) v += L[i * NL + l] * y[l];
         m->tx[i] = v;
       }
+{% if obstacles %}
+      if (obstacle_rows(m, L, prev, cp, phi, del, c)) return 1;
+{% endif %}
       if (a + s + 1 < {{ N }}_HORIZON) {
 #if TASK_STAGE
         if (task_stage(m, a + s + 1, m->tx, L, prev, cp, phi, del, c, targets)) return 1;
@@ -156,5 +162,8 @@ static int task_terms(mem_t* m, const double* x, const double* goal) {
   }
   for (j = 0; j < NZ; ++j)  /* the lower triangle from the upper */
     for (i = 0; i < j; ++i) m->h[j + NZ * i] = m->h[i + NZ * j];
+{% if obstacles %}
+  obstacle_rows_unused(m);
+{% endif %}
   return 0;
 }
