@@ -53,12 +53,15 @@ MAX_VARIABLES = 256
 
 def wanted(ocp: OCP) -> bool:
     """Whether the OCP's ``compiled`` policy asks for the C step: True, or None (the default) for a model as large as
-    :data:`ocpkit.ocp.BACKGROUND_MIN_INSTRUCTIONS` (below it the Python step is already fast) and a knot QP of at
-    most :data:`MAX_VARIABLES` variables."""
+    :data:`ocpkit.ocp.BACKGROUND_MIN_INSTRUCTIONS` (below it the Python step is already fast), a knot QP of at
+    most :data:`MAX_VARIABLES` variables and no obstacles. The obstacles are constants of the generated C, so each
+    placement is a build of its own (the Panda's: 10-30 s), where a study's seeds each place theirs: the C step
+    with obstacles is built when asked (``native=True``, ``compiled=True``)."""
     if ocp.compiled is not None:
         return ocp.compiled
+    tf = ocp.task_functions
     return (not ocp.model.linear and ocp.model.jacobian.n_instructions() >= BACKGROUND_MIN_INSTRUCTIONS
-            and ocp.knots * ocp.nu <= MAX_VARIABLES)
+            and ocp.knots * ocp.nu <= MAX_VARIABLES and (tf is None or not tf.pairs))
 
 
 def start(ocp: OCP, *, eps: float, max_iter: int, wait: bool = False, linearization: str = "goal",
