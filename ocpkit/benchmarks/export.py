@@ -125,3 +125,92 @@ def format_table(rows: list[dict], header: bool = True) -> str:
                      f"{r['max_abs_du']:>9.2e} "
                      f"{r['python_failures']:>4}/{r['c_failures']:<5}")
     return "\n".join(lines)
+
+
+README_OBSTACLE = ((0.4, -0.25, 0.35), 0.08)  # the README's Panda reach: this sphere, target (0.4, 0, 0.3), sample(0)
+README_TARGET = (0.4, 0.0, 0.3)
+
+
+def readme_obstacles(problem, count: int, seed: int = 0) -> list:
+    """The README Panda case's sphere and ``count`` − 1 more balls (radius 1-4 cm) about the hand's straight path to
+    the target (centres at 20-80 % of the way, 8 cm normal scatter per axis), each 3 cm clear of the arm at the start
+    (``problem.sample(0)``) and of the target point."""
+    from ocpkit.kinematics import spheres_along_links
+    from ocpkit.task import Sphere, clearances
+
+    kin = problem.kinematics
+    q0 = problem.sample(0)[0][:kin.n]
+    robot = spheres_along_links(kin, problem.link_radius)
+    start, target = kin.positions(problem.end_effector, q0)[0], np.asarray(README_TARGET)
+    rng, balls = np.random.default_rng(seed), [Sphere(*README_OBSTACLE)]
+    while len(balls) < count:
+        centre = start + rng.uniform(0.2, 0.8) * (target - start) + rng.normal(0.0, 0.08, 3)
+        ball = Sphere(tuple(centre), float(rng.uniform(0.01, 0.04)))
+        if clearances(kin, robot, [ball], q0[None])[0] > 0.03 and np.linalg.norm(centre - target) > ball.radius + 0.03:
+            balls.append(ball)
+    return balls
+
+
+def bench_obstacle_steps(counts=(1, 10, 100), *, steps: int = 100, linearization: str = "plan",
+                         out=print) -> list[dict]:
+    """The C step against the Python step with obstacles (issue 43): the README's Panda reach past 1, 10, 100 balls
+    (:func:`readme_obstacles`), LinearMPC(native=True) and LinearMPC(native=False), each in its own closed loop of
+    ``steps`` steps on the discrete model from the same start, steps interleaved (the machine's load falls alike on
+    both), compiled parts ready. Per count and controller: median and largest step time (``Solution.times["total"]``,
+    the certificate's rollout on the nonlinear model included), the statuses and the smallest true clearance; for the
+    C step its split (medians over the steps it answered: affine model, condensing with the task's terms and
+    obstacle rows, DAQP; timed in C) and the steps its hard QP could not answer (the QP with the obstacle rows
+    softened answered them, in Python)."""
+    from ocpkit import problems as registry
+    from ocpkit.kinematics import spheres_along_links
+    from ocpkit.solvers.qp import LinearMPC
+    from ocpkit.task import clearances, reach
+
+    panda = registry.make("panda")
+    robot = spheres_along_links(panda.kinematics, panda.link_radius)
+    steps = integer(steps, "steps", 1)
+    rows = []
+    for count in counts:
+        balls = readme_obstacles(panda, count)
+        ocp = reach(panda, balls, knots=5)
+        x0, _ = panda.sample(0)
+        goal = ocp.goal(x0, position=README_TARGET)
+        t0 = time.perf_counter()
+        loops = {"C": LinearMPC(ocp, native=True, linearization=linearization)}
+        build_s = time.perf_counter() - t0
+        loops["Python"] = LinearMPC(ocp, native=False, linearization=linearization)
+        loops["Python"].wait_compiled(600)
+        F = ocp.discrete()
+        states = {name: [x0] for name in loops}
+        sols = {name: [] for name in loops}
+        for _ in range(steps):
+            for name, ctrl in loops.items():
+                sol = ctrl.solve(states[name][-1], goal)
+                sols[name].append(sol)
+                states[name].append(np.asarray(F(states[name][-1], sol.u)).ravel())
+        row = {"obstacles": count, "steps": steps, "build_s": build_s}
+        for name in loops:
+            t = np.array([s.times["total"] for s in sols[name]])
+            statuses = {}
+            for sol in sols[name]:
+                statuses[sol.status] = statuses.get(sol.status, 0) + 1
+            q = np.array(states[name])[:, :panda.kinematics.n]
+            row[name] = {"median_s": float(np.median(t)), "max_s": float(t.max()), "statuses": statuses,
+                         "min_clearance": float(clearances(panda.kinematics, robot, balls, q).min())}
+        answered = [s for s in sols["C"] if "DAQP" not in s.raw_status and not s.fallback]
+        row["C"]["split_s"] = ([float(v) for v in np.median([[s.times[k] for k in ("model", "build", "solve")]
+                                                             for s in answered], axis=0)] if answered else [])
+        row["C"]["softened_in_python"] = sum("DAQP" in s.raw_status for s in sols["C"])
+        rows.append(row)
+    lines = [f"Panda README reach, LinearMPC {linearization!r}, C step (native=True) and Python step each in its own "
+             f"closed loop, {steps} steps; cores {os.cpu_count()}, load {_load()}"]
+    for r in rows:
+        c, py = r["C"], r["Python"]
+        lines.append(f"{r['obstacles']:>4} obstacles: C {1e3 * c['median_s']:.2f} / {1e3 * c['max_s']:.2f} ms "
+                     f"(median / max; in C model/condensing/QP "
+                     f"{'/'.join(f'{1e3 * v:.2f}' for v in c['split_s'])} ms; softened in Python "
+                     f"{c['softened_in_python']}), Python {1e3 * py['median_s']:.2f} / {1e3 * py['max_s']:.2f} ms; "
+                     f"statuses C {c['statuses']} Python {py['statuses']}; min clearance C {c['min_clearance']:.4f} "
+                     f"Python {py['min_clearance']:.4f} m")
+    out("\n".join(lines))
+    return rows
