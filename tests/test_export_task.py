@@ -118,17 +118,17 @@ def test_obstacles_are_exported_as_rows_and_said(nlink3_ball):
     assert run.returncode == 0 and "failures 0" in run.stdout, run.stdout + run.stderr
 
 
-def _recorded(ctrl) -> list:
-    """The list the hard QPs that the Python step ``ctrl`` builds are appended to, step by step."""
-    tr, built = ctrl._transcriptions[0], []
-    build_qp = tr.build
+def _recorded(obj, method: str) -> list:
+    """The list the results of ``obj.method`` are appended to, call by call (the Python step's hard QP:
+    ``_recorded(ctrl._transcriptions[0], "build")``)."""
+    results, call = [], getattr(obj, method)
 
-    def build_and_keep(*args, **kwargs):
-        built.append(build_qp(*args, **kwargs))
-        return built[-1]
+    def call_and_keep(*args, **kwargs):
+        results.append(call(*args, **kwargs))
+        return results[-1]
 
-    tr.build = build_and_keep
-    return built
+    setattr(obj, method, call_and_keep)
+    return results
 
 
 def test_c_steps_obstacle_rows_are_the_python_steps(nlink3_ball):
@@ -139,7 +139,7 @@ def test_c_steps_obstacle_rows_are_the_python_steps(nlink3_ball):
     x, _ = problem.sample(0)
     goal = ocp.goal(x, position=_target(problem, 1))
     py = LinearMPC(ocp, native=False)
-    built = _recorded(py)
+    built = _recorded(py._transcriptions[0], "build")
     F, rows, statuses = ocp.discrete(), 0, set()
     with ExportedMPC(ocp, out.out_dir) as c:
         for _ in range(60):
@@ -216,3 +216,36 @@ def test_reach_c_step_equals_python_step_panda(tmp_path):
     # The arm's reach QP is ill-conditioned (cond P ≈ 5e7 at |z| ≈ 220 N·m): summation order alone moves u by
     # ~1e-8 here, and so does x0 + 1e-12 in the Python step itself (8e-9 along this loop): agreement to 5e-8.
     _same_closed_loop(arm, ocp, out.out_dir, seed=1, duration=1.0, tol=5e-8)
+
+
+def test_obstacle_rows_are_bounded_as_the_python_step_bounds_them(tmp_path):
+    """Eight balls along both sides of the arm, 1.2 cm from it at the start: each robot sphere has 2 to 4 obstacles
+    within the activation distance, so each keeps its 2 closest and a stage its 24 closest pairs (TaskRows.select).
+    The C step keeps the same rows: its steps equal the Python step's."""
+    from ocpkit.kinematics import sphere_centers, spheres_along_links
+    from ocpkit.task import Sphere
+
+    problem = make("nlink:3")
+    x, _ = problem.sample(0)
+    robot = spheres_along_links(problem.kinematics, problem.link_radius)
+    C = np.asarray(sphere_centers(problem.kinematics, robot)(x[:3]))[:2]
+    balls = []
+    for i in (2, 6, 10, 14):
+        along = (C[:, i + 1] - C[:, i - 1]) / np.linalg.norm(C[:, i + 1] - C[:, i - 1])
+        for side in (1, -1):
+            centre = C[:, i] + side * 0.12 * np.array([-along[1], along[0]])
+            balls.append(Sphere((*centre, 0.0), 0.03))
+    ocp = reach(problem, balls, knots=5, compiled=False)
+    goal = ocp.goal(x, position=_target(problem, 1))
+    out = export(ocp, tmp_path / "balls")
+    build(out.out_dir)
+    py = LinearMPC(ocp, native=False)
+    kept = _recorded(py._transcriptions[0].task, "select")
+    F = ocp.discrete()
+    with ExportedMPC(ocp, out.out_dir) as c:
+        for _ in range(10):
+            a, b = c.solve(x, goal), py.solve(x, goal)
+            assert a.status == b.status and not a.fallback, (a.raw_status, b.raw_status)
+            np.testing.assert_allclose(a.knots, b.knots, atol=1e-8, rtol=0)
+            x = np.asarray(F(x, a.u)).ravel()
+    assert max(np.bincount(stage).max() for stage, _, _ in kept) == 24
