@@ -305,6 +305,8 @@ class LinearMPC(Controller):
         """The whole step (model, build, DAQP) as compiled C; a failure gives the Python step's fallback."""
         if not self._costs.fits("C step", time_left(deadline)):
             return self.fallback(LIMITED, skipped("C step", self._costs, deadline, 0).raw_status)
+        if step.sets_plan and self.plan is not None:  # the plan Python answered last (a softened QP, the brake)
+            step.set_plan(self.plan)
         sol = step._solve(x, self.task_goal)
         self._costs.add("C step", step.step_seconds)
         self._warm, self._x_plan = None, None

@@ -363,9 +363,12 @@ def _prebuild(args):
             library = folder / f"lib{native.NAME}.so"
             print(f"C step (LinearMPC: condensed, daqp, linearization goal): {library} ({_how(library, start)})")
     else:
+        pairs = ocp.task_functions.pairs if ocp.task_functions is not None else 0
         why = ("a linear model" if ocp.model.linear else
                f"a model of {size} VM instructions, below {BACKGROUND_MIN_INSTRUCTIONS}"
                if size < BACKGROUND_MIN_INSTRUCTIONS else
+               "obstacles, constants of the generated C (a build per placement: --compiled builds it)"
+               if pairs else
                f"a knot QP of {ocp.knots * ocp.nu} variables, over ocpkit.native.MAX_VARIABLES = "
                f"{native.MAX_VARIABLES}")
         print(f"C step: none (the default LinearMPC keeps its Python step here: {why})")
