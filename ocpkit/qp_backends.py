@@ -371,12 +371,12 @@ class DAQP(QPBackend):
     previous step's active set (the signs of its multipliers become DAQP's ``sense`` flags); a warm start DAQP
     rejects (an overdetermined initial working set) is retried cold.
 
-    A solve cannot be stopped from outside, so with a deadline it is given an iteration limit that fits: its set-up
-    (the dense data, DAQP's factorizations; the call's time less DAQP's own solve time) starts only if its measured
-    time fits, and the iterations left are what remains over the measured time of one iteration (DAQP's solve time
-    per iteration), at most ``max_iter``: a step then ends within about one iteration of its deadline (an obstacle
-    step of 754 variables had run 17-25 s past a 10 s ceiling). DAQP's own ``time_limit``, checked every 32
-    iterations, bounds a solve whose iterations were not measured yet (a first soft QP) or run slower than measured.
+    DAQP cannot be stopped from outside, so a deadline is kept in two parts (a ``daqp.Model``: set-up, then solve). Its
+    set-up (the dense data, the factorizations, A R⁻¹) starts only if its measured time fits; the solve then gets the
+    iterations that fit in the time left over the measured time of one (:meth:`iterations`), at most ``max_iter``,
+    and that time as DAQP's own ``time_limit`` (checked every few dozen iterations: the bound for iterations slower
+    than measured, or not measured yet). A step thus ends within about an iteration of its deadline, or of a set-up
+    that ran longer than measured (an obstacle step of 754 variables had run 17-25 s past a 10 s ceiling).
     """
 
     INF = 1e30  # DAQP's "no bound"
@@ -398,36 +398,23 @@ class DAQP(QPBackend):
     def reset(self):
         self._measured = set()  # the ops timed since the last reset (an unmeasured one is not refused)
 
-    def budget(self, n: int, deadline: float | None, done: int = 0) -> tuple[int, float] | Result:
-        """(iteration limit, DAQP's time limit in s, 0: none) for a QP of ``n`` variables to be solved by ``deadline``
-        (``done`` iterations already spent on it), or the LIMITED result where not one iteration fits."""
-        setup, step = f"set-up n={n}", f"iteration n={n}"
-        left = time_left(deadline)
-        if left is None:
-            return self.max_iter, 0.0
-        if setup in self._measured and not self.costs.fits(setup, left):
-            return skipped(setup, self.costs, deadline, n, done)
-        left -= self.costs.predict(setup)
-        per = self.costs.predict(step)
-        cap = self.max_iter if per <= 0.0 else min(self.max_iter, int(left / per))
-        if cap < 1 or left <= 0.0:
-            return Result(np.full(n, np.nan), (), LIMITED,
-                          f"time budget: {1e3 * max(left, 0.0):.3g} ms left after the set-up, one iteration measured "
-                          f"at {1e3 * per:.3g} ms", done)
-        return cap, left
-
     def solve(self, qp: QP, warm: tuple | None, deadline: float | None) -> Result:
-        limits = self.budget(qp.n, deadline)
-        if isinstance(limits, Result):
-            return limits
-        start = time.perf_counter()
         n, k = qp.n, 0 if qp.box is None else len(qp.box)
+        size = n + qp.l.size - k + qp.b.size  # DAQP's rows: the simple bounds and the general rows
+        setup = f"set-up n={n}"
+        left = time_left(deadline)
+        # the set-up's time and each iteration's are measured per row and scaled to this QP's rows: both grow with
+        # them (A R⁻¹, each iteration's constraint check), and an obstacle step's rows vary threefold step to step
+        if left is not None and setup in self._measured and not self.costs.fits(setup, left / size):
+            return Result(np.full(n, np.nan), (), LIMITED, f"time budget: {1e3 * max(left, 0.0):.3g} ms left, DAQP's "
+                          f"set-up measured at {1e3 * self.costs.predict(setup) * size:.3g} ms", 0)
+        start = time.perf_counter()
         lo, hi = np.full(n, -self.INF), np.full(n, self.INF)
         if k:
             lo[qp.box], hi[qp.box] = qp.l[:k], qp.u[:k]
         dense = (lambda M: M.toarray() if sp.issparse(M) else np.asarray(M, dtype=float))
-        rows = [dense(qp.C)[k:]] + ([dense(qp.A)] if qp.b.size else [])
-        A = np.ascontiguousarray(np.vstack(rows)) if sum(r.shape[0] for r in rows) else np.zeros((0, n))
+        parts = [dense(qp.C)[k:]] + ([dense(qp.A)] if qp.b.size else [])
+        A = np.ascontiguousarray(np.vstack(parts)) if size > n else np.zeros((0, n))
         bu = np.clip(np.concatenate([hi, qp.u[k:], qp.b]), -self.INF, self.INF)
         bl = np.clip(np.concatenate([lo, qp.l[k:], qp.b]), -self.INF, self.INF)
         sense = np.zeros(bu.size, dtype=np.int32)
@@ -437,15 +424,24 @@ class DAQP(QPBackend):
             free = sense[: lam.size]
             free[lam > 0] = 1  # active at the upper bound
             free[lam < 0] = 3  # active at the lower bound
-        H = np.ascontiguousarray(dense(qp.P))
-        z, flag, info = self._call(H, np.asarray(qp.q, dtype=float), A, bu, bl, sense, limits, start)
+        data = (np.ascontiguousarray(dense(qp.P)), np.asarray(qp.q, dtype=float), A, bu, bl)
+        model = self._daqp.Model()
+        flag, _ = model.setup(*data, sense)
         if flag == -6 and sense[: bu.size - qp.b.size].any():  # the warm working set is not usable: cold
             sense[: bu.size - qp.b.size] = 0
-            limits = self.budget(qp.n, deadline, int(info.get("iterations", 0)))
-            if isinstance(limits, Result):
-                return limits
-            z, flag, info = self._call(H, np.asarray(qp.q, dtype=float), A, bu, bl, sense, limits,
-                                       time.perf_counter())
+            flag, _ = model.setup(*data, sense)
+        self.costs.add(setup, (time.perf_counter() - start) / size)
+        self._measured.add(setup)
+        if flag < 0:  # refused at the set-up (a Hessian not positive definite, an overdetermined equality set)
+            return Result(np.full(n, np.nan), (), DAQP_EXIT.get(flag, ("", EXCEPTION))[1], daqp_exit_name(flag), 0)
+        limits = self.iterations(n, size, deadline)
+        if isinstance(limits, str):
+            return Result(np.full(n, np.nan), (), LIMITED, limits, 0)
+        model.settings = {"iter_limit": limits[0], "time_limit": limits[1], "primal_tol": self.tolerance}
+        z, _, flag, info = model.solve()
+        done = int(info.get("iterations", 0))
+        if done:
+            self.costs.add(f"iteration n={n}", float(info.get("solve_time", 0.0)) / done / size)
         status, raw = DAQP_EXIT.get(flag, ("", EXCEPTION))[1], daqp_exit_name(flag)
         if flag == -7 or (flag == -4 and limits[0] < self.max_iter):
             raw = f"{raw} (time budget: {limits[0]} iterations in {1e3 * limits[1]:.3g} ms)"
@@ -456,20 +452,20 @@ class DAQP(QPBackend):
         # λ = [simple bounds on z; the other bound rows; equality rows]: w of C's rows (box first), y of A's
         n_free = bu.size - qp.b.size
         w = np.r_[lam[:n][qp.box] if k else np.zeros(0), lam[n:n_free]]
-        return Result(z, (z, lam), status, raw, int(info.get("iterations", 0)), y=lam[n_free:], w=w)
+        return Result(z, (z, lam), status, raw, done, y=lam[n_free:], w=w)
 
-    def _call(self, H, f, A, bu, bl, sense, limits, start):
-        """DAQP within ``limits`` (iterations, time limit); its set-up and iteration times measured."""
-        iterations, seconds = limits
-        z, _, flag, info = self._daqp.solve(H, f, A, bu, bl, sense, iter_limit=iterations,
-                                            primal_tol=self.tolerance, time_limit=seconds)
-        n = H.shape[0]
-        solve, done = float(info.get("solve_time", 0.0)), int(info.get("iterations", 0))
-        self.costs.add(f"set-up n={n}", max(0.0, time.perf_counter() - start - solve))
-        if done:
-            self.costs.add(f"iteration n={n}", solve / done)
-        self._measured.add(f"set-up n={n}")
-        return z, flag, info
+    def iterations(self, n: int, size: int, deadline: float | None) -> tuple[int, float] | str:
+        """(iteration limit, DAQP's own time limit in s, 0: none) for a QP of ``n`` variables and ``size`` rows once it
+        is set up, from the time left until ``deadline`` and the measured time of an iteration; why none fits."""
+        left = time_left(deadline)
+        if left is None:
+            return self.max_iter, 0.0
+        per = self.costs.predict(f"iteration n={n}") * size
+        cap = self.max_iter if per <= 0.0 else min(self.max_iter, int(left / per))
+        if cap < 1 or left <= 0.0:
+            return (f"time budget: {1e3 * max(left, 0.0):.3g} ms left after DAQP's set-up, one iteration measured at "
+                    f"{1e3 * per:.3g} ms")
+        return cap, left
 
 
 def _upper_csc(P):

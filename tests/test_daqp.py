@@ -96,14 +96,15 @@ def test_daqp_deadline_becomes_an_iteration_limit():
     backend = DAQP(max_iter=10_000, eps=1e-9)
     full = backend.solve(qp, None, None)
     assert full.status == SUCCESS and full.iterations > 20
+    per_row = 1e-3 / (qp.n + qp.l.size)  # DAQP's times are measured per row of the data (n + rows)
     backend.costs = OperationCosts()
     backend.costs.add(f"set-up n={qp.n}", 0.0)
-    backend.costs.add(f"iteration n={qp.n}", 1e-3)
+    backend.costs.add(f"iteration n={qp.n}", per_row)
     capped = backend.solve(qp, None, time.perf_counter() + 10.5e-3)
     assert capped.status == LIMITED and 1 <= capped.iterations <= 10, (capped.iterations, capped.raw_status)
     assert "time budget" in capped.raw_status
-    backend.costs.add(f"iteration n={qp.n}", 1e-3)  # the median again 1 ms a step, whatever the solve measured
-    backend.costs.add(f"iteration n={qp.n}", 1e-3)
+    backend.costs.add(f"iteration n={qp.n}", per_row)  # the median again 1 ms a step, whatever the solve measured
+    backend.costs.add(f"iteration n={qp.n}", per_row)
     none = backend.solve(qp, None, time.perf_counter() + 0.5e-3)
     assert none.status == LIMITED and none.iterations == 0 and "time budget" in none.raw_status
     assert backend.solve(qp, capped.duals, None).status == SUCCESS  # the limited iterate warm-starts the next solve

@@ -48,10 +48,10 @@ def test_clear_errors_for_what_does_not_take_a_task(nlink3, tmp_path):
         solvers.make("qp", ocp, form="sparse")
     with pytest.raises(ValueError, match="fatrop"):
         solvers.make("ipopt", ocp, method="fatrop")
-    with pytest.raises(ValueError, match="no C step: a task"):
-        solvers.make("qp", ocp, native=True)
-    with pytest.raises(ValueError, match="cannot be exported"):
-        export(ocp, tmp_path / "out")
+    with pytest.raises(ValueError, match="no C step: a task with the trajectory linearization"):
+        solvers.make("qp", ocp, native=True, linearization="trajectory")
+    with pytest.raises(ValueError, match="cannot be exported with linearization 'trajectory'"):
+        export(ocp, tmp_path / "out", linearization="trajectory")
     with pytest.raises(ValueError, match="needs kinematics"):
         Task(obstacles=[Sphere((0, 0, 0), 0.1)])
     with pytest.raises(ValueError, match="no kinematics"):
