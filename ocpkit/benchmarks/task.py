@@ -6,6 +6,9 @@ step where it applies, and the Python step), the reach task (frame-position term
 reach task with a ball on the way. Every controller waits for its compiled parts first (the steady state). Printed:
 median and 95th-percentile step time, the ratio of medians to the joint-space default, the successes and the end
 effector's final distance to its target (the worst over the seeds).
+
+:func:`bench_obstacles` times LinearMPC's obstacle steps as the obstacles multiply (issue 43): the Panda reaching past
+1, 10, 100 balls scattered about the straight path of its hand, and the construction of a controller for 1,000.
 """
 from __future__ import annotations
 
@@ -31,6 +34,75 @@ def _scene(problem, seed: int):
         if clearances(kin, robot, [ball], ends).min() > 0.03:
             return x0, goal, target, ball
     raise ValueError(f"no clear scene for {problem!r} from seed {seed}")
+
+
+def _scattered(problem, seed: int, count: int):
+    """Start, target point and ``count`` balls (radius 1-4 cm) about the straight path between them (centres at
+    20-80 % of the way, 8 cm normal scatter per axis), each at least 3 cm clear of the robot's link spheres at the
+    start and at the goal."""
+    from ocpkit.kinematics import spheres_along_links
+    from ocpkit.task import Sphere, clearances
+
+    kin = problem.kinematics
+    robot = spheres_along_links(kin, problem.link_radius)
+    x0, goal = problem.sample(seed)
+    ends = np.vstack([x0[:kin.n], goal[:kin.n]])
+    start, target = kin.positions(problem.end_effector, ends)
+    rng, balls = np.random.default_rng(seed), []
+    while len(balls) < count:
+        centre = start + rng.uniform(0.2, 0.8) * (target - start) + rng.normal(0.0, 0.08, 3)
+        ball = Sphere(tuple(centre), float(rng.uniform(0.01, 0.04)))
+        if clearances(kin, robot, [ball], ends).min() > 0.03:
+            balls.append(ball)
+    return x0, target, balls
+
+
+def bench_obstacles(counts=(1, 10, 100), *, seeds=(11, 12, 13), duration: float = 1.0, build: int = 1000,
+                    out=print) -> list[dict]:
+    """Per obstacle count: LinearMPC (trajectory linearization, its defaults) on the Panda's reach past that many balls
+    (:func:`_scattered`), a ``duration`` closed loop per seed: median and largest step time, the statuses, the
+    smallest true clearance; then the seconds to build a controller for ``build`` balls and take its first step."""
+    from ocpkit import problems as registry
+    from ocpkit.kinematics import spheres_along_links
+    from ocpkit.simulate import simulate
+    from ocpkit.solvers.qp import LinearMPC
+    from ocpkit.task import clearances, reach
+
+    panda = registry.make("panda")
+    robot = spheres_along_links(panda.kinematics, panda.link_radius)
+    rows = []
+    out(f"{'obstacles':>9} {'seed':>4} {'median [ms]':>11} {'max [ms]':>9} {'min clearance [m]':>17}  statuses")
+    for count in counts:
+        for seed in seeds:
+            x0, target, balls = _scattered(panda, seed, count)
+            ocp = reach(panda, balls)
+            traj = simulate(panda.plant(), LinearMPC(ocp, linearization="trajectory"), x0,
+                            ocp.goal(x0, position=target), duration)
+            t = np.array([s.times["total"] for s in traj.solutions])
+            statuses = {}
+            for sol in traj.solutions:
+                statuses[sol.status] = statuses.get(sol.status, 0) + 1
+            row = {"obstacles": count, "seed": seed, "median_s": float(np.median(t)), "max_s": float(t.max()),
+                   "statuses": statuses,
+                   "min_clearance": float(clearances(panda.kinematics, robot, balls, traj.x[:, :7]).min())}
+            rows.append(row)
+            out(f"{count:>9} {seed:>4} {1e3 * row['median_s']:>11.1f} {1e3 * row['max_s']:>9.1f} "
+                f"{row['min_clearance']:>17.4f}  {statuses}")
+    if build:
+        x0, target, balls = _scattered(panda, seeds[0], build)
+        start = time.perf_counter()
+        ocp = reach(panda, balls)
+        made = time.perf_counter()
+        ctrl = LinearMPC(ocp, linearization="trajectory")
+        built = time.perf_counter()
+        sol = ctrl.solve(x0, ocp.goal(x0, position=target))
+        done = time.perf_counter()
+        row = {"obstacles": build, "reach_s": made - start, "controller_s": built - made, "first_step_s": done - built,
+               "status": sol.status}
+        rows.append(row)
+        out(f"{build} obstacles: reach {row['reach_s']:.2f} s, LinearMPC {row['controller_s']:.2f} s, first step "
+            f"{row['first_step_s']:.2f} s ({sol.status})")
+    return rows
 
 
 def bench_task(problems=("panda", "nlink:3"), *, steps: int = 200, seeds: int = 2, knots: int = 5,
