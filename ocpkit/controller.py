@@ -239,6 +239,7 @@ class Controller:
         self._rollout = None
         self.stale_steps = self.STALE_STEPS
         self._plan_check = PlanCheck(ocp)
+        self._check_costs = OperationCosts()  # the certificate's measured time, kept out of the solvers' budgets
         self._brake = Brake(ocp)
         nq = ocp.model.second_order
         velocities = np.arange(nq or 0, ocp.nx if nq else 0)
@@ -374,8 +375,10 @@ class Controller:
         "soft" where the plan breaks a clearance or a state bound; refused ("nan") where its prediction diverges."""
         if not (sol.ok and self._plan_check.needed):
             return sol
+        start = time.perf_counter()
         xs = self.rollout(x, self.ocp.parameterization.inputs(sol.knots))
         violation = self._plan_check.violation(xs)
+        self._check_costs.add("certificate", time.perf_counter() - start)
         if violation is None:
             return sol
         if violation.kind == "non-finite":
@@ -420,11 +423,18 @@ class Controller:
     def _discard(self) -> None:
         """Drop solver state a rejected result may have left (warm starts, workspaces); subclasses extend."""
 
-    def remaining(self, budget: float | None) -> float | None:
-        """Seconds left of a step budget ``budget`` counted from the start of the step in flight (None: no budget)."""
-        if budget is None or self._step_start is None:
+    def deadline(self, budget: float | None) -> float | None:
+        """The perf_counter time by which the solver must be done for the step to keep ``budget`` (None: no budget,
+        or an infinite one): the step's start plus the budget, less the task certificate's measured time."""
+        if budget is None or budget == float("inf") or self._step_start is None:
             return None
-        return budget - (time.perf_counter() - self._step_start)
+        return self._step_start + budget - self._check_costs.predict("certificate")
+
+    def remaining(self, budget: float | None) -> float | None:
+        """Seconds left to the solver of a step budget ``budget`` counted from the start of the step in flight (None:
+        no budget), less the task certificate's measured time (it runs after the solver, inside the budget)."""
+        end = self.deadline(budget)
+        return None if end is None else end - time.perf_counter()
 
     def _solve(self, x: np.ndarray, goal: np.ndarray) -> Solution:
         raise NotImplementedError

@@ -88,7 +88,9 @@ class PlanCheck:
                 amount = float(excess[k, j] + (self._lo_tol[j] if V[k, j] < self._lo[j] else self._hi_tol[j]))
                 worst = Violation("state bound", int(k) + 1, amount, f"x[{int(self._bounded[j])}]")
         if self.pairs:
-            d = np.asarray(self.ocp.task_maps()["clearance"](X.T)[0]).reshape(self.pairs, -1, order="F")
+            tf = self.ocp.task_functions
+            centres = np.asarray(self.ocp.task_maps()["spheres"](X.T)[0]).reshape(3, len(X), -1)
+            d = tf.pair_clearances(centres).reshape(len(X), -1).T  # (pairs, stages): pair robot sphere · N + obstacle
             k = int(np.argmin(d.min(axis=0)))
             pair = int(np.argmin(d[:, k]))
             if d[pair, k] < -self._clear_tol:

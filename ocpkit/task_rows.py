@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 
 from ocpkit.compiled import SwitchingFunction
-from ocpkit.numeric import BufferedFunction
 from ocpkit.ocp import OCP
 from ocpkit.quadratic_program import QP
 
@@ -35,9 +34,7 @@ class TaskRows:
         self.stage, self.terminal = self._maps["stage"], self._maps["terminal"]
         self.ws, self.wt = tf.stage_weight, tf.terminal_weight
         self.obstacles = obstacles and tf.pairs > 0  # whether this QP has obstacle rows
-        # The spheres' kinematics on CasADi's VM: 0.8 ms a step for the Panda's 23 spheres over 50 stages, not worth
-        # a compile per OCP.
-        self.spheres = BufferedFunction(tf.spheres.map(self.T)) if self.obstacles else None
+        self.spheres = self._maps["spheres"] if self.obstacles else None
         self.weight, self.activation, self.soft = ocp.task.obstacle_weight, ACTIVATION, soft
         self.per_sphere, self.per_stage = ROWS_PER_SPHERE, ROWS_PER_STAGE
 

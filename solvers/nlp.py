@@ -70,7 +70,36 @@ _STATUS = {
     "Not_Enough_Degrees_Of_Freedom": INFEASIBLE,
     "Invalid_Number_Detected": NAN,
     "Diverging_Iterates": NAN,
+    "User_Requested_Stop": LIMITED,  # sqpmethod stopped by _Deadline at the step's budget
 }
+
+
+class _Deadline(ca.Callback):
+    """sqpmethod's iteration callback: asks it to stop once ``deadline`` (perf_counter) has passed, so an SQP step
+    keeps its budget (sqpmethod has no wall-time option). Checked after every SQP iteration."""
+
+    def __init__(self, sizes: dict):
+        ca.Callback.__init__(self)
+        self.sizes, self.deadline = sizes, None
+        self.construct("sqp_deadline", {})
+
+    def get_n_in(self):
+        return ca.nlpsol_n_out()
+
+    def get_n_out(self):
+        return 1
+
+    def get_name_in(self, i):
+        return ca.nlpsol_out(i)
+
+    def get_name_out(self, i):
+        return "stop"
+
+    def get_sparsity_in(self, i):
+        return ca.Sparsity.dense(self.sizes[ca.nlpsol_out(i)], 1)
+
+    def eval(self, arg):
+        return [int(self.deadline is not None and time.perf_counter() > self.deadline)]
 
 
 class RealTimeIteration(LinearMPC):
@@ -145,8 +174,9 @@ class NonlinearMPC(Controller):
     and ``options`` pass to LinearMPC (e.g. ``{"eps": 1e-8}``). "fatrop" takes ``max_iter`` and ``options``
     for fatrop (e.g. ``{"tol": 1e-10}``), not ``time_limit``.
 
-    ``max_iter`` and ``time_limit`` (wall-clock seconds, IPOPT's max_wall_time; IPOPT only) limit each
-    solve; a solve stopped by either is ``limited`` and falls back. IPOPT checks its clock once per
+    ``max_iter`` and ``time_limit`` (wall-clock seconds: IPOPT's max_wall_time, checked by SQP after each of its
+    iterations; :attr:`ceiling`, 10 s, where none is given) limit each solve; a solve stopped by either is
+    ``limited`` and falls back. IPOPT checks its clock once per
     iteration, after derivative evaluations it cannot interrupt (with the exact Hessian, 30 ms of constraint
     Jacobian at nlink:7, T=50 before the first check), so with a time limit a solve starts only if the measured
     time of one iteration (median of the last five solves: wall time / (iterations + 1)) fits in the step's
@@ -206,6 +236,10 @@ class NonlinearMPC(Controller):
         self._limits = (integer(value, "max_iter", 1), self._limits[1])
         self._build(self.ocp)
 
+    # seconds: the budget of a step without a time_limit (IPOPT's max_wall_time, SQP's deadline), as LinearMPC's
+    # ceiling: without it an IPOPT or SQP step had no bound at all
+    ceiling = 10.0
+
     @property
     def time_limit(self) -> float | None:
         return self._limits[1]
@@ -218,8 +252,8 @@ class NonlinearMPC(Controller):
     def _checked_time_limit(self, value):
         if value is None:
             return None
-        if self.method in ("sqp", "fatrop"):
-            raise ValueError(f"time_limit is an IPOPT and RTI limit; method={self.method!r} only takes max_iter")
+        if self.method == "fatrop":
+            raise ValueError(f"time_limit is an IPOPT, SQP and RTI limit; method={self.method!r} only takes max_iter")
         return positive(value, "time_limit")
 
     @property
@@ -283,6 +317,11 @@ class NonlinearMPC(Controller):
         # Input bounds on the knots, as LinearMPC: with a convex-combination basis they bound every u_k.
         self._lbx = np.r_[np.tile(ocp.x_min, T), np.tile(ocp.u_min, p)]
         self._ubx = np.r_[np.tile(ocp.x_max, T), np.tile(ocp.u_max, p)]
+        if self.method == "sqp":
+            nw, ng, npar = nlp["x"].numel(), nlp["g"].numel(), nlp["p"].numel()
+            self._deadline = _Deadline({"f": 1, "x": nw, "g": ng, "lam_x": nw, "lam_g": ng, "p": npar,
+                                        "lam_p": npar})
+            opts["iteration_callback"] = self._deadline
         try:
             self._solver = ca.nlpsol("nonlinear_mpc", "ipopt" if self.method == "ipopt" else "sqpmethod", nlp, opts)
         except RuntimeError as exc:
@@ -476,8 +515,7 @@ class NonlinearMPC(Controller):
             ipopt = {"print_level": 0, "sb": "yes", "max_iter": self.max_iter,
                      # Start from the supplied primal and dual point (the shifted previous solution).
                      "warm_start_init_point": "yes", "mu_strategy": "adaptive"}
-            if self.time_limit is not None:
-                ipopt["max_wall_time"] = self.time_limit
+            ipopt["max_wall_time"] = self.ceiling if self.time_limit is None else self.time_limit
             ipopt.update(self.options)
             return {"ipopt": ipopt, "print_time": False, "error_on_fail": False}
         qpsol = self.options.get("qpsol", "qrqp")
@@ -555,6 +593,8 @@ class NonlinearMPC(Controller):
             return self.fallback(LIMITED, f"time budget: {1e3 * max(left, 0.0):.3g} ms left, an IPOPT iteration "
                                           f"measured at {1e3 * self._costs.predict('iteration'):.3g} ms (a solve "
                                           f"is at least two)", times)
+        if self.method == "sqp":
+            self._deadline.deadline = self.deadline(self.ceiling if self.time_limit is None else self.time_limit)
         try:
             res = self._solver(**args)
         except Exception as exc:  # a solver that throws must not stop the control loop

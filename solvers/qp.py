@@ -291,8 +291,7 @@ class LinearMPC(Controller):
         return max(self.CEILING_MIN, self.CEILING_PER_VARIABLE * variables)
 
     def _deadline(self) -> float | None:
-        limit = self.ceiling if self._time_limit is None else self._time_limit
-        return None if limit == float("inf") else self._step_start + limit
+        return self.deadline(self.ceiling if self._time_limit is None else self._time_limit)
 
     def _solve(self, x: np.ndarray, goal: np.ndarray) -> Solution:
         step = self._native_step()

@@ -288,7 +288,7 @@ class SamplingMPC(Controller):
             times["copies"] += time.perf_counter() - t
             self._start(x, goal, cold)
             best, done = (np.inf, np.inf), 0
-            while done < self.generations and not self._out_of_time(start):
+            while done < self.generations and not self._out_of_time():
                 best = self._generation(cold and done == 0)
                 self.counter += 1
                 done += 1
@@ -327,8 +327,9 @@ class SamplingMPC(Controller):
         """Everything after the linearization except the preconditioner's QP build counts as solve."""
         self._times["solve"] = time.perf_counter() - start - self._times["build"]
 
-    def _out_of_time(self, start: float) -> bool:
-        return self.time_limit is not None and time.perf_counter() - start >= self.time_limit
+    def _out_of_time(self) -> bool:
+        end = self.deadline(self.time_limit)
+        return end is not None and time.perf_counter() >= end
 
     def _launch(self, kernel, *args) -> None:
         """Run one population kernel, its time counted as ``generations``."""

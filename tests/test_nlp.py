@@ -201,7 +201,7 @@ def test_nan_model_reports_nan():
 
 @pytest.mark.parametrize("kwargs, word", [
     ({"dynamics": "linear"}, "dynamics"), ({"method": "fmincon"}, "method"), ({"max_iter": 0}, "max_iter"),
-    ({"time_limit": -1.0}, "time_limit"), ({"method": "sqp", "time_limit": 1.0}, "time_limit"),
+    ({"time_limit": -1.0}, "time_limit"), ({"method": "fatrop", "time_limit": 1.0}, "time_limit"),
     ({"linearization": "state"}, "linearization"), ({"hessian": "newton"}, "hessian"),
     ({"method": "rti", "hessian": "exact"}, "hessian"),
     ({"options": {"no_such_option": 1}}, "options"), ({"options": {"qpsol": "nosuch"}, "method": "sqp"}, "options"),
