@@ -48,15 +48,20 @@ def _same_closed_loop(problem, ocp, out_dir, seed, duration, tol=1e-8):
     return a, target
 
 
-@pytest.fixture(scope="module")
-def nlink3(tmp_path_factory):
+def _built_reach(folder, obstacles=()):
+    """nlink:3's reach OCP (5 knots) past ``obstacles``, exported with an example loop of 100 steps and built."""
     problem = make("nlink:3")
-    ocp = reach(problem, knots=5, compiled=False)
+    ocp = reach(problem, list(obstacles), knots=5, compiled=False)
     x0, _ = problem.sample(0)
     goal = ocp.goal(x0, position=_target(problem, 1))
-    out = export(ocp, tmp_path_factory.mktemp("reach_nlink3"), x0=x0, goal=goal, steps=100)
+    out = export(ocp, folder, x0=x0, goal=goal, steps=100)
     build(out.out_dir, target="all")
     return problem, ocp, out
+
+
+@pytest.fixture(scope="module")
+def nlink3(tmp_path_factory):
+    return _built_reach(tmp_path_factory.mktemp("reach_nlink3"))
 
 
 def test_reach_c_step_equals_python_step_nlink3(nlink3):
@@ -96,13 +101,7 @@ BALL = "0.58,-0.02,0,0.06"
 
 @pytest.fixture(scope="module")
 def nlink3_ball(tmp_path_factory):
-    problem = make("nlink:3")
-    ocp = reach(problem, [BALL], knots=5, compiled=False)
-    x0, _ = problem.sample(0)
-    goal = ocp.goal(x0, position=_target(problem, 1))
-    out = export(ocp, tmp_path_factory.mktemp("reach_ball"), x0=x0, goal=goal, steps=100)
-    build(out.out_dir, target="all")
-    return problem, ocp, out
+    return _built_reach(tmp_path_factory.mktemp("reach_ball"), [BALL])
 
 
 def test_obstacles_are_exported_as_rows_and_said(nlink3_ball):
