@@ -24,7 +24,7 @@ from ocpkit.certificate import Certificate
 from ocpkit.compiled import SwitchingFunction
 from ocpkit.numeric import BufferedFunction
 from ocpkit.ocp import OCP
-from ocpkit.safety import Brake, PlanCheck
+from ocpkit.safety import Brake, PlanCheck, Violation
 
 SUCCESS, LIMITED, INFEASIBLE, NAN, EXCEPTION = "success", "limited", "infeasible", "nan", "exception"
 # A step the solver answered whose plan, rolled out on the controller's nonlinear model, breaks an obstacle clearance
@@ -177,6 +177,7 @@ class Solution:
     certificate: Certificate | None = None  # the KKT certificate of a QP step's answer (None: no QP solved)
     path: str = ""  # what answered: the controller's ``path`` ("C step", "Python step", …) or "fallback (plan)",
     # "fallback (brake)", "fallback (hold)"
+    violation: Violation | None = None  # a "soft" step's worst broken constraint (kind, stage, amount, which)
 
     @property
     def ok(self) -> bool:
@@ -383,7 +384,7 @@ class Controller:
             return sol
         if violation.kind == "non-finite":
             return self._rejected(NAN, f"{sol.raw_status} but its {violation}", sol)
-        sol.status, sol.raw_status = SOFT, f"{sol.raw_status}; soft: {violation}"
+        sol.status, sol.raw_status, sol.violation = SOFT, f"{sol.raw_status}; soft: {violation}", violation
         return sol
 
     def _outside_trust_region(self, x: np.ndarray) -> str:

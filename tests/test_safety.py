@@ -109,6 +109,7 @@ def test_soft_step_is_applied_not_a_fallback():
     ocp = PENDULUM.ocp(knots=3, x_min=[-np.inf, -1.0], x_max=[np.inf, 1.0])
     sol = LinearMPC(ocp).solve([0.0, 1.3], [1.0, 0.0])
     assert sol.status == SOFT and sol.applied and not sol.fallback and not sol.ok
+    assert (sol.violation.kind, sol.violation.stage, sol.violation.which) == ("state bound", 1, "x[1]")
     assert "soft: state bound x[1] violated by" in sol.raw_status and "at x_1 " in sol.raw_status
 
 
