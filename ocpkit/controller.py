@@ -209,7 +209,8 @@ class Controller:
       (then clipped), otherwise the fallback with status "limited";
     * the task certificate of a success (:class:`ocpkit.safety.PlanCheck`, where the OCP has obstacles or state
       bounds): the plan rolled out on the nonlinear model keeps every clearance and state bound, else the step is
-      "soft" (its input applied, the violation in ``raw_status``), or refused where the prediction is not finite;
+      "soft" (its input applied, the violation in ``raw_status``), or refused where the prediction is not finite or
+      collides within ``COLLISION_AHEAD`` steps (deeper than the start: a start inside an obstacle may still move);
     * a safe fallback on a refused step (:meth:`fallback`); ``stale_steps`` (settable, default STALE_STEPS) bounds
       how many refused steps in a row may replay the previous plan before the controller brakes;
     * a state outside the model's trust region — a bounded joint velocity beyond ``TRUST_REGION`` times its bound —
@@ -224,6 +225,9 @@ class Controller:
     # A joint velocity beyond this many times its bound leaves the model's trust region: no solve, the brake. The
     # Panda's RTI, re-solving from 6-15 rad/s (limits 2.2-2.6), planned torques at their limits that spun it further.
     TRUST_REGION = 1.5
+    # A plan whose nonlinear prediction collides (deeper than the start) within this many steps is refused: the
+    # sampling planners, judging collisions on the affine model, had applied such plans as "soft" on the Panda.
+    COLLISION_AHEAD = 5
 
     def __init__(self, ocp: OCP, *, raise_on_fail: bool = False, threads: int | None = 1):
         if not isinstance(ocp, OCP):
@@ -378,12 +382,13 @@ class Controller:
             return sol
         start = time.perf_counter()
         xs = self.rollout(x, self.ocp.parameterization.inputs(sol.knots))
-        violation = self._plan_check.violation(xs)
+        violation = self._plan_check.violation(xs, ahead=self.COLLISION_AHEAD)
         self._check_costs.add("certificate", time.perf_counter() - start)
         if violation is None:
             return sol
-        if violation.kind == "non-finite":
-            return self._rejected(NAN, f"{sol.raw_status} but its {violation}", sol)
+        if violation.kind in ("non-finite", "collision"):
+            return self._rejected(NAN if violation.kind == "non-finite" else INFEASIBLE,
+                                  f"{sol.raw_status} but its {violation}", sol)
         sol.status, sol.raw_status, sol.violation = SOFT, f"{sol.raw_status}; soft: {violation}", violation
         return sol
 

@@ -35,8 +35,8 @@ STATE_TOL = 1e-3
 
 @dataclass(frozen=True)
 class Violation:
-    """The worst broken constraint of a plan: ``kind`` ("clearance", "state bound" or "non-finite"), the stage k of
-    x_k (1 … T) where it is worst, by how much (m, or the state's unit), and which (a pair or a state index)."""
+    """The worst broken constraint of a plan: ``kind`` ("clearance", "state bound", "collision" or "non-finite"), the
+    stage k of x_k (1 … T) where it is worst, by how much (m, or the state's unit), and which (a pair or a state)."""
 
     kind: str
     stage: int
@@ -46,6 +46,8 @@ class Violation:
     def __str__(self) -> str:
         if self.kind == "non-finite":
             return f"prediction not finite from x_{self.stage} on the nonlinear model"
+        if self.kind == "collision":
+            return f"prediction collides at x_{self.stage} ({self.amount:.3g} m deep) on the nonlinear model"
         return (f"{self.kind} {self.which} violated by {self.amount:.3g} at x_{self.stage} of the plan on the "
                 f"nonlinear model")
 
@@ -73,8 +75,11 @@ class PlanCheck:
         """Whether the OCP has anything to certify beyond finiteness (obstacles or finite state bounds)."""
         return bool(self.pairs or self._bounded.size)
 
-    def violation(self, xs: np.ndarray) -> Violation | None:
-        """The worst violation along x_1 … x_T of ``xs`` (T+1, n), or None if the plan keeps them all."""
+    def violation(self, xs: np.ndarray, ahead: int = 0) -> Violation | None:
+        """The worst violation along x_1 … x_T of ``xs`` (T+1, n), or None if the plan keeps them all. With ``ahead``
+        a collision within x_1 … x_ahead — true clearance below zero and below x_0's (a start already inside an
+        obstacle may move within it, not deeper) — comes first, as kind "collision": a plan that drives into an
+        obstacle within those steps is refused, not applied as "soft"."""
         X = xs[1:]
         bad = ~np.isfinite(X).all(axis=1)
         if bad.any():
@@ -91,6 +96,13 @@ class PlanCheck:
             tf = self.ocp.task_functions
             centres = np.asarray(self.ocp.task_maps()["spheres"](X.T)[0]).reshape(3, len(X), -1)
             d = tf.pair_clearances(centres).reshape(len(X), -1).T  # (pairs, stages): pair robot sphere · N + obstacle
+            if ahead:
+                start = np.asarray(tf.spheres(xs[0])[0]).reshape(3, 1, -1)
+                floor = min(0.0, float(tf.pair_clearances(start).min()) + self.margin)
+                near = d[:, :ahead].min(axis=0) + self.margin  # true clearance at x_1 … x_ahead
+                if near.min() < floor - 1e-9:
+                    k = int(np.argmax(near < floor - 1e-9))
+                    return Violation("collision", k + 1, float(-near[k]), "(robot spheres in an obstacle)")
             k = int(np.argmin(d.min(axis=0)))
             pair = int(np.argmin(d[:, k]))
             if d[pair, k] < -self._clear_tol:

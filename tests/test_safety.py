@@ -121,3 +121,22 @@ def test_divergence_warning_names_substeps():
         warnings.simplefilter("error", RuntimeWarning)
         LinearMPC(_oscillator(0.05, 20)).solve(x0, goal)  # 2.5 ms RK4 sub-steps: stable, no warning
         LinearMPC(PENDULUM.ocp(knots=3)).solve([np.pi, 0.0], [np.pi, 0.0])  # unstable upright, physically: none
+
+
+def test_a_collision_within_the_first_steps_is_refused_a_deeper_start_is_not():
+    """violation(xs, ahead=k): a plan whose x_1 … x_k enter an obstacle is a "collision" (refused); one that starts
+    inside and moves out is a clearance violation (soft), not a collision."""
+    arm = make("nlink:3")
+    x_out = np.r_[0.3, 0.4, 0.3, 0.0, 0.0, 0.0]
+    x_in = x_out + np.r_[0.4, 0.0, 0.0, 0.0, 0.0, 0.0]  # the arm swung: its tip on the ball's centre
+    tip = np.asarray(arm.kinematics.function(arm.end_effector)(x_in[:3])[0]).ravel()
+    ocp = reach(arm, [Sphere(tuple(tip), 0.03)], knots=3, horizon=10)
+    d = clearances(ocp.task.kinematics, ocp.task.robot, ocp.task.obstacles, np.vstack([x_in[:3], x_out[:3]]))
+    assert d[0] < 0 < d[1] - ocp.task.margin
+    check = PlanCheck(ocp)
+    into = np.vstack([x_out, x_out, x_in] + [x_in] * 8)
+    v = check.violation(into, ahead=5)
+    assert v.kind == "collision" and v.stage == 2
+    assert check.violation(into, ahead=1).kind == "clearance"  # beyond the look-ahead: soft
+    out = np.vstack([x_in] + [x_out] * 10)
+    assert check.violation(out, ahead=5) is None
