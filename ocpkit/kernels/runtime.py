@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import ctypes.util
 import os
 import sys
 import threading
@@ -46,7 +47,7 @@ def init(arch: str = "auto") -> str:
                                   "only where there is one")
         use_cuda = arch == "cuda" or (arch == "auto" and _cuda_driver_present())
         # ti.init prints "[Taichi] Starting on arch=…" to stdout: keep stdout for results (--json).
-        with contextlib.redirect_stdout(sys.stderr):
+        with contextlib.redirect_stdout(sys.stderr), _floating_point_kept():
             threads = {"cpu_max_num_threads": _cpu_threads()} if os.environ.get(CPU_THREADS) else {}
             ti.init(arch=ti.cuda if use_cuda else ti.cpu, default_fp=ti.f64,
                     log_level=ti.WARN, unrolling_limit=0, **_offline_cache(), **threads)
@@ -58,6 +59,27 @@ def init(arch: str = "auto") -> str:
         raise RuntimeError(f"arch={arch!r} requested but Taichi already runs on {running!r} in "
                            f"this process (it can be started only once)")
     return running
+
+
+@contextlib.contextmanager
+def _floating_point_kept():
+    """The calling thread's floating-point environment (fenv: rounding, exception masks, and on x86 the SSE
+    flush-to-zero and denormals-are-zero flags) as it was before the block, restored after it. ``ti.init`` turns
+    flush-to-zero on in the thread that calls it: every later float in the process — CasADi, IPOPT, qrqp, numpy —
+    then read 1e-310 as 0, and CasADi's SQP on nlink:3 from a start inside a ball took 10-13 s a step after any
+    sampling planner had started Taichi in the process, against 0.1 s without."""
+    try:
+        libm = ctypes.CDLL(ctypes.util.find_library("m") or "libm.so.6")
+    except OSError:  # no C maths library to ask (not a glibc/musl system): nothing to keep
+        yield
+        return
+    env = ctypes.create_string_buffer(256)  # fenv_t is 28-32 bytes on glibc x86-64 and aarch64
+    saved = libm.fegetenv(env) == 0
+    try:
+        yield
+    finally:
+        if saved:
+            libm.fesetenv(env)
 
 
 def _offline_cache() -> dict:
