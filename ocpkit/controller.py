@@ -24,7 +24,7 @@ from ocpkit.certificate import Certificate
 from ocpkit.compiled import SwitchingFunction
 from ocpkit.numeric import BufferedFunction
 from ocpkit.ocp import OCP
-from ocpkit.safety import Brake, PlanCheck, Violation
+from ocpkit.safety import Brake, PlanCheck, Violation, spectral_radius
 
 SUCCESS, LIMITED, INFEASIBLE, NAN, EXCEPTION = "success", "limited", "infeasible", "nan", "exception"
 # A step the solver answered whose plan, rolled out on the controller's nonlinear model, breaks an obstacle clearance
@@ -377,7 +377,8 @@ class Controller:
 
     def _certified(self, x: np.ndarray, sol: Solution) -> Solution:
         """``sol`` if it is no success or its plan passes the task certificate (:class:`ocpkit.safety.PlanCheck`);
-        "soft" where the plan breaks a clearance or a state bound; refused ("nan") where its prediction diverges."""
+        "soft" where the plan breaks a clearance or a state bound; refused where its prediction diverges ("nan") or
+        collides within COLLISION_AHEAD steps ("infeasible")."""
         if not (sol.ok and self._plan_check.needed):
             return sol
         start = time.perf_counter()
@@ -408,11 +409,10 @@ class Controller:
         joint, as for a light wrist at 10 ms)."""
         ocp = self.ocp
         u = np.clip(ocp.input_goal(goal), ocp.u_min, ocp.u_max)
-        Ad = np.asarray(ocp.affine()(x, u)[0], dtype=float)
+        rho = spectral_radius(ocp, x, u)
         Ac = np.asarray(ocp.model.jacobian(x, u)[1], dtype=float)
-        if not (np.isfinite(Ad).all() and np.isfinite(Ac).all()):
+        if not (np.isfinite(rho) and np.isfinite(Ac).all()):
             return
-        rho = float(np.abs(np.linalg.eigvals(Ad)).max())
         expected = max(1.0, float(np.exp(ocp.dt * np.linalg.eigvals(Ac).real.max())))
         if rho > 1.05 * expected:
             warnings.warn(f"{type(self).__name__}: the controller's discrete model diverges at the start: |eig A_d| = "

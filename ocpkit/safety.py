@@ -112,6 +112,13 @@ class PlanCheck:
         return worst
 
 
+def spectral_radius(ocp, x: np.ndarray, u: np.ndarray) -> float:
+    """max |eig A_d| of the OCP's affine model about (x, u): how much its prediction grows a step (NaN where the
+    model is not finite there)."""
+    Ad = np.asarray(ocp.affine()(x, u)[0], dtype=float)
+    return float(np.abs(np.linalg.eigvals(Ad)).max()) if np.isfinite(Ad).all() else float("nan")
+
+
 class Brake:
     """The braking input at a state (module docstring), or None for models that are not x = [q, q̇]."""
 

@@ -25,15 +25,10 @@ from ocpkit.export import ExportedMPC
 from ocpkit.numeric import BufferedFunction
 from ocpkit.ocp import OCP
 from ocpkit.qp_backends import QP_SOLVERS, Result, make_backend, skipped, time_left
+from ocpkit.safety import spectral_radius
 from ocpkit.transcription import TRANSCRIPTIONS
 
 DEFAULT_QP = {"condensed": "daqp", "sparse": "proxqp"}  # LinearMPC's qp=None, by form
-
-
-def _spectral_radius(ocp: OCP, goal: np.ndarray) -> float:
-    """max |eig A_d| of the OCP's affine model about the goal and its input (x_goal, u_g(x_goal))."""
-    Ad = np.asarray(ocp.affine()(goal, ocp.input_goal(goal))[0], dtype=float)
-    return float(np.abs(np.linalg.eigvals(Ad)).max())
 
 
 class LinearMPC(Controller):
@@ -275,7 +270,7 @@ class LinearMPC(Controller):
     def _divergence(self) -> str:
         """Why a QP is ill-conditioned, said once per controller (an eigenvalue problem: not on every failed step)."""
         if self._diagnosed is None:
-            rho = _spectral_radius(self.ocp, self._goal)
+            rho = spectral_radius(self.ocp, self._goal, self.ocp.input_goal(self._goal))
             self._diagnosed = (f" (|eig A_d| = {rho:.3g} a step: the model's RK4 step of {self.ocp.dt:g} s "
                                f"diverges; more substeps, e.g. problem.ocp(..., substeps={2 * self.ocp.substeps}), "
                                f"may help)" if rho > 2 else f" (|eig A_d| = {rho:.3g} a step)")

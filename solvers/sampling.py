@@ -278,7 +278,7 @@ class SamplingMPC(Controller):
             if self.preconditioned:
                 pre = self.preconditioner
                 pre.update(model, x, goal, None if self.plan is None else self._shifted(self.plan), times,
-                           self.task_goal[ocp.nx:], None if self.time_limit is None else start + self.time_limit)
+                           self.task_goal[ocp.nx:], self.deadline(self.time_limit))
             t = time.perf_counter()
             self.engine.load(x, self.task_goal, model if self._affine else None)
             if self.preconditioned:
