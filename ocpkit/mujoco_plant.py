@@ -274,6 +274,8 @@ def _map_joints(mujoco, spec, joint_map, names: list) -> list:
 
 def _chain_spec(mujoco, problem):
     """The MJCF of a Chain: body i is joint i's frame at q = 0, its joint at the body's origin."""
+    from ocpkit.rigid_body import position_limits
+
     chain = problem.chain
     spec = mujoco.MjSpec()
     spec.modelname = problem.name.replace(":", "_")
@@ -293,8 +295,7 @@ def _chain_spec(mujoco, problem):
         kind = mujoco.mjtJoint.mjJNT_HINGE if chain.revolute[i] else mujoco.mjtJoint.mjJNT_SLIDE
         body.add_joint(name=chain.names[i], type=kind, axis=chain.axes[i])
         bodies.append(body)
-    lo, hi = (np.asarray(getattr(problem.pin_model, k), dtype=float)
-              for k in ("lowerPositionLimit", "upperPositionLimit"))
+    lo, hi = position_limits(problem.pin_model)
     for i, joint in enumerate(spec.joints):
         if max(abs(lo[i]), abs(hi[i])) < 1e10 and lo[i] < hi[i]:  # pinocchio's 'no limit' is ±1.8e308
             joint.range = [lo[i], hi[i]]

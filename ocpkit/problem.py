@@ -274,7 +274,8 @@ class URDFRobot(Problem):
     """A torque-controlled robot read from a URDF: state x = [q, q̇], input τ (forces on prismatic joints).
 
     * Kinematics and inertias come from the URDF through pinocchio (fixed joints merge into their links);
-      revolute, continuous and prismatic joints are supported, in a chain or a tree (fingers on a hand).
+      revolute, continuous and prismatic joints are supported, in a chain or a tree (fingers on a hand). A
+      continuous joint is one unbounded angle in q (pinocchio's ``pin_model`` keeps its cos/sin pair).
     * ``locked_joints``: joint names frozen at ``locked_positions`` (a dict name -> value; default 0 clipped
       into the joint's limits); they leave the state and the input.
     * ``damping`` and ``friction`` (viscous b and Coulomb f per joint, friction smoothed as f tanh(q̇ / 0.01)):
@@ -302,7 +303,7 @@ class URDFRobot(Problem):
                  position_bounds: bool = False, name: str | None = None, dt: float = 0.01, horizon: int = 50,
                  duration: float = 2.0, q_weight: float = 100.0, qd_weight: float = 1.0, r_weight: float = 1e-3,
                  step: float = 0.5, end_effector: str | None = None):
-        from ocpkit.rigid_body import Chain, load_urdf
+        from ocpkit.rigid_body import Chain, load_urdf, position_limits
 
         self.urdf = str(urdf)
         self.pin_model = load_urdf(urdf, locked_joints=locked_joints, locked_positions=locked_positions)
@@ -323,10 +324,7 @@ class URDFRobot(Problem):
         self.position_bounds = bool(position_bounds)
         self.q_weight, self.qd_weight = positive(q_weight, "q_weight"), positive(qd_weight, "qd_weight")
         self.r_weight, self.step = positive(r_weight, "r_weight"), positive(step, "step")
-        lo, hi = np.array(self.pin_model.lowerPositionLimit), np.array(self.pin_model.upperPositionLimit)
-        if self.pin_model.nq != n:
-            raise ValueError(f"{self.urdf}: continuous joints (two configuration entries each) are not supported "
-                             "by URDFRobot yet; lock them or give them limits")
+        lo, hi = position_limits(self.pin_model)
         self.q_min = np.where(np.isfinite(lo) & (lo < hi), lo, -np.inf)
         self.q_max = np.where(np.isfinite(hi) & (lo < hi), hi, np.inf)
         velocity = np.asarray(self.pin_model.velocityLimit, dtype=float)
@@ -378,8 +376,8 @@ class URDFRobot(Problem):
         rng = np.random.default_rng(seed)
         n = self.chain.n
         bounded = np.isfinite(self.q_min) & np.isfinite(self.q_max)
-        mid = np.where(bounded, (self.q_min + self.q_max) / 2, 0.0)
-        half = np.where(bounded, (self.q_max - self.q_min) / 4, np.pi / 2)
+        lo, hi = np.where(bounded, self.q_min, -np.pi), np.where(bounded, self.q_max, np.pi)  # unlimited: ±π/2
+        mid, half = (lo + hi) / 2, (hi - lo) / 4
         q0 = rng.uniform(mid - half, mid + half)
         # A prismatic joint's step is scaled to its range (fingers travel centimetres, not half a metre).
         step = np.where(np.array(self.chain.revolute) | ~bounded, self.step,

@@ -1,4 +1,4 @@
-"""Rigid-body dynamics of kinematic trees of revolute and prismatic joints as symbolic CasADi expressions.
+"""Rigid-body dynamics of kinematic trees of revolute, continuous and prismatic joints as CasADi expressions.
 
 The robots of the paper (Puma 560, eq. puma_dynamics; the N-link robots, eq. threelink; the Baxter arm)
 and any robot read from a URDF obey the canonical form
@@ -81,8 +81,7 @@ class Chain:
                 raise ValueError(f"model joint {model.names[i]!r} has velocity index {joint.idx_v}, expected {i - 1}")
             revolute, axis = _JOINTS[kind]
             if axis is None:
-                axis = np.asarray(joint.extract().axis, dtype=float)
-                axis = axis / np.linalg.norm(axis)
+                axis = _joint_axis(model, i, revolute)
             parent = model.parents[i] - 1                      # -1: the fixed base
             if parent >= i - 1:
                 raise ValueError(f"model joint {model.names[i]!r} is listed before its parent")
@@ -266,6 +265,28 @@ class Chain:
         return ca.SX(m * np.eye(3)), ca.SX(-m * cx), ca.SX(Ic - m * cx @ cx)
 
 
+def _joint_axis(model, i: int, revolute: bool) -> np.ndarray:
+    """The unit axis of 1-DoF joint i in its own frame, read from its motion subspace S = [linear; angular] at its
+    neutral configuration (pinocchio exposes no ``axis`` on an unbounded revolute joint)."""
+    import pinocchio as pin
+
+    joint = model.joints[i]
+    data = joint.createData()
+    joint.calc(data, pin.neutral(model)[joint.idx_q: joint.idx_q + joint.nq])
+    S = np.asarray(data.S, dtype=float).ravel()
+    axis = S[3:] if revolute else S[:3]
+    return axis / np.linalg.norm(axis)
+
+
+def position_limits(model) -> tuple[np.ndarray, np.ndarray]:
+    """(lower, upper): each 1-DoF joint's position limits in q's order (one entry per joint, not per pinocchio
+    configuration entry); −∞, +∞ for a continuous joint, whose cos/sin bounds in pinocchio are no angle limits."""
+    lo, hi = np.asarray(model.lowerPositionLimit, dtype=float), np.asarray(model.upperPositionLimit, dtype=float)
+    joints = [model.joints[i] for i in range(1, model.njoints)]
+    return (np.array([lo[j.idx_q] if j.nq == 1 else -np.inf for j in joints]),
+            np.array([hi[j.idx_q] if j.nq == 1 else np.inf for j in joints]))
+
+
 def _snap(a: np.ndarray) -> np.ndarray:
     a = np.array(a, dtype=float)
     for target in (0.0, 1.0, -1.0):
@@ -353,7 +374,7 @@ def load_urdf(path, *, locked_joints=(), locked_positions=None):
     pinocchio merges fixed joints into their links and reads each joint's ``<dynamics damping friction>``
     (``model.damping``, ``model.friction``) and ``<limit effort lower upper>``. A locked joint stays at
     ``locked_positions[name]`` (default 0, clipped into its limits); its link's inertia moves onto its parent
-    (``pinocchio.buildReducedModel``). Unknown joint names raise a ValueError listing the joints.
+    (``pinocchio.buildReducedModel``); a continuous joint's position is its angle. Unknown joint names raise a ValueError listing the joints.
     """
     import pinocchio as pin
 
@@ -381,13 +402,14 @@ def load_urdf(path, *, locked_joints=(), locked_positions=None):
     lo, hi = model.lowerPositionLimit, model.upperPositionLimit
     for name in locked:
         joint = model.joints[model.getJointId(name)]
-        if joint.nq != 1:
+        continuous = joint.nq == 2 and joint.nv == 1      # an unbounded revolute joint: q holds (cos θ, sin θ)
+        if joint.nq != 1 and not continuous:
             if name in positions:
                 raise ValueError(f"locked_positions: joint {name!r} has {joint.nq} configuration entries")
             continue
         k = joint.idx_q
-        value = float(positions.get(name, np.clip(0.0, lo[k], hi[k]) if lo[k] <= hi[k] else 0.0))
+        value = float(positions.get(name, np.clip(0.0, lo[k], hi[k]) if lo[k] <= hi[k] and not continuous else 0.0))
         if not np.isfinite(value):
             raise ValueError(f"locked_positions[{name!r}] must be finite, got {value!r}")
-        q[k] = value
+        q[k: k + joint.nq] = (np.cos(value), np.sin(value)) if continuous else value
     return pin.buildReducedModel(model, [model.getJointId(name) for name in locked], q)

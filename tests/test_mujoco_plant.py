@@ -1,6 +1,7 @@
 """MuJoCo as the plant: the same closed loops as ocpkit's own plant, MuJoCo's extra effects, clear errors."""
 import json
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -370,3 +371,29 @@ def test_joint_limits_and_divergence(tmp_path, monkeypatch):
         assert (x[3] < high + 0.05) if limits else (x[3] > high + 1.0)
     with pytest.raises(FloatingPointError, match=r"MuJoCo found a NaN, inf or huge value in u stepping from x = "):
         MuJoCoPlant("nlink:3").stepper(0.01, 10)(np.zeros(6), np.full(3, 1e20))
+
+
+# --- continuous joints, meshes, a user's MJCF checked against the problem's dynamics (issue 44) -----------------
+
+WHEEL_ARM = Path(__file__).parent / "data" / "wheel_arm.urdf"   # continuous "shoulder" (z) and "spin" (tilted)
+
+
+@pytest.mark.parametrize("generated", [False, True])
+def test_continuous_joints_are_hinges_without_range(generated):
+    """MuJoCo's import of a URDF with continuous joints, and the MJCF written from its Chain: hinges without a range
+    (limits=True bounds only the revolute and prismatic joints), one step equal to ocpkit's plant at angles beyond ±π."""
+    from ocpkit import Problem
+
+    problem = Problem.from_urdf(WHEEL_ARM)
+    if generated:
+        problem.urdf = None  # the robot written from the Chain, not MuJoCo's URDF import
+    plant = MuJoCoPlant(problem, limits=True)
+    assert plant.source == ("chain" if generated else f"urdf:{WHEEL_ARM}")
+    model = plant.model
+    hinge, slide = (int(getattr(_mujoco().mjtJoint, k)) for k in ("mjJNT_HINGE", "mjJNT_SLIDE"))
+    assert [int(t) for t in model.jnt_type] == [hinge, hinge, slide, hinge]
+    assert model.jnt_limited.tolist() == [0, 1, 1, 0]
+    np.testing.assert_allclose(model.jnt_range[1:3], [[-2, 2], [0, 0.1]])
+    x, u = np.r_[3.5, 0.4, 0.05, -5.0, 1.0, -1.0, 0.2, 3.0], np.array([1.0, -2.0, 3.0, 0.5])
+    exact = np.asarray(problem.plant().rk4(0.01, 10)(x, u)).ravel()
+    assert np.abs(plant.stepper(0.01, 10)(x, u) - exact).max() < 1e-11

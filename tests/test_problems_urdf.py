@@ -16,6 +16,7 @@ from ocpkit.solvers.qp import LinearMPC
 from ocpkit.problems.panda import urdf_path as panda_urdf
 
 PANDA = panda_urdf()
+WHEEL_ARM = Path(__file__).parent / "data" / "wheel_arm.urdf"   # continuous joints "shoulder" (z) and "spin" (tilted)
 FINGERS = ["panda_finger_joint1", "panda_finger_joint2"]
 TOL = 1e-9
 
@@ -125,6 +126,62 @@ def test_model_error_half_still_solves(panda):
     x0, goal = panda.sample(0)
     traj = simulate(panda.plant(), ctrl, x0, goal, 0.3)
     assert traj.fallbacks == 0 and max(s.iterations for s in traj.solutions) < 10_000
+
+
+def _pin_configuration(model, q):
+    """pinocchio's configuration of one angle (or offset) per joint: a continuous joint's angle as (cos, sin)."""
+    return np.concatenate([[np.cos(a), np.sin(a)] if model.joints[i + 1].nq == 2 else [a] for i, a in enumerate(q)])
+
+
+def test_continuous_joints_equal_pinocchio():
+    """A URDF with two continuous joints (about z and about a tilted axis), a revolute and a prismatic joint: one
+    unbounded angle per continuous joint, and M(q), h(q, q̇), ẋ and the tool frame equal pinocchio's own model of
+    the file (cos/sin configuration) at random states, angles beyond ±π included."""
+    robot = Problem.from_urdf(WHEEL_ARM)
+    model = pin.buildModelFromUrdf(str(WHEEL_ARM))
+    data = model.createData()
+    assert (model.nq, model.nv, robot.chain.n) == (6, 4, 4)
+    assert robot.joint_names == ["shoulder", "elbow", "extend", "spin"]
+    np.testing.assert_array_equal(robot.q_min, [-np.inf, -2, 0, -np.inf])
+    np.testing.assert_array_equal(robot.q_max, [np.inf, 2, 0.1, np.inf])
+    np.testing.assert_array_equal(robot.tau_max, [40, 20, 50, 5])
+    q, qd = ca.SX.sym("q", 4), ca.SX.sym("qd", 4)
+    M, h = ca.Function("M", [q], [robot.chain.crba(q)]), ca.Function("h", [q, qd], [robot.chain.bias(q, qd)])
+    f, tool = robot.plant().f, model.getFrameId("tool")
+    rng = np.random.default_rng(5)
+    for _ in range(5):
+        angles = rng.uniform([-7, -2, 0, -7], [7, 2, 0.1, 7])
+        v, tau = rng.normal(size=4) * 2, rng.normal(size=4) * 5
+        qp = _pin_configuration(model, angles)
+        pin.framesForwardKinematics(model, data, qp)
+        placement = data.oMf[tool]
+        pairs = ((M(angles), np.triu(pin.crba(model, data, qp)) + np.triu(data.M, 1).T),
+                 (h(angles, v), pin.nonLinearEffects(model, data, qp, v)),
+                 (np.asarray(f(np.r_[angles, v], tau))[4:], pin.aba(model, data, qp, v, tau - model.damping * v)),
+                 (robot.kinematics.position(angles, "tool"), placement.translation),
+                 (robot.kinematics.placement(angles, "tool")[0], placement.rotation))
+        for ours, ref in pairs:
+            np.testing.assert_allclose(np.asarray(ours).reshape(np.shape(ref)), ref, rtol=0,
+                                       atol=TOL * max(1.0, np.abs(ref).max()))
+    bounded = Problem.from_urdf(WHEEL_ARM, position_bounds=True)
+    np.testing.assert_array_equal(bounded.defaults()["x_min"][:4], [-np.inf, -2, 0, -np.inf])
+    x0, goal = robot.sample(0)
+    assert LinearMPC(robot.ocp(knots=3)).solve(x0, goal).status == "success"
+
+
+def test_locked_continuous_joint_equals_pinocchios_reduced_model():
+    """A continuous joint locked at 0.7 rad: pinocchio's reduced model at (cos 0.7, sin 0.7)."""
+    robot = Problem.from_urdf(WHEEL_ARM, locked_joints=["spin"], locked_positions={"spin": 0.7})
+    full = pin.buildModelFromUrdf(str(WHEEL_ARM))
+    reduced = pin.buildReducedModel(full, [full.getJointId("spin")],
+                                    _pin_configuration(full, [0.0, 0.0, 0.0, 0.7]))
+    data = reduced.createData()
+    f = robot.plant().f
+    rng = np.random.default_rng(3)
+    for q, qd, tau in zip(rng.uniform([-7, -2, 0], [7, 2, 0.1], (5, 3)), rng.normal(size=(5, 3)), rng.normal(size=(5, 3))):
+        ref = pin.aba(reduced, data, _pin_configuration(reduced, q), qd, tau - reduced.damping * qd)
+        np.testing.assert_allclose(np.asarray(f(np.r_[q, qd], tau)).ravel()[3:], ref, rtol=0,
+                                   atol=TOL * max(1.0, np.abs(ref).max()))
 
 
 def test_bad_urdf_options_name_the_argument(tmp_path):
