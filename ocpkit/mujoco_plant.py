@@ -67,7 +67,8 @@ class MuJoCoPlant:
     """
 
     def __init__(self, problem, *, mjcf=None, joint_map=None, integrator: str = "rk4", frictionloss=0.0,
-                 armature=0.0, ctrlrange=None, floor: float | None = None, limits: bool | None = None):
+                 armature=0.0, ctrlrange=None, floor: float | None = None, limits: bool | None = None,
+                 meshes: bool = False):
         mujoco = _mujoco()
         from ocpkit import problems
         from ocpkit.model import Model
@@ -93,6 +94,9 @@ class MuJoCoPlant:
             raise ValueError("joint_map names the joints of an MJCF file: give mjcf= too")
         if limits is not None and not isinstance(limits, bool):
             raise TypeError(f"limits must be True, False or None, got {limits!r}")
+        if not isinstance(meshes, bool):
+            raise TypeError(f"meshes must be True or False, got {meshes!r}")
+        self.meshes = meshes
         self.options = {"frictionloss": _per_joint(frictionloss, nq, "frictionloss"),
                         "armature": _per_joint(armature, nq, "armature"),
                         "ctrlrange": _ctrlrange(ctrlrange, nq), "floor": _floor(floor), "limits": limits}
@@ -102,7 +106,7 @@ class MuJoCoPlant:
             for actuator in list(spec.actuators):  # someone else's controller: u drives the joints here
                 spec.delete(actuator)
         elif getattr(problem, "urdf", None) is not None and chain is not None:
-            spec, self.source = _urdf_spec(mujoco, problem), f"urdf:{problem.urdf}"
+            spec, self.source = _urdf_spec(mujoco, problem, meshes), f"urdf:{problem.urdf}"
             self.mj_joints = list(self.joint_names)
         elif chain is not None:
             spec, self.source = _chain_spec(mujoco, problem), "chain"
@@ -111,6 +115,9 @@ class MuJoCoPlant:
             raise ValueError(f"problem {problem.name!r} has no rigid-body description (a Chain) to write an MJCF "
                              "from; MuJoCoPlant supports nlink:N, puma560, panda, urdf:… and Chain-based problems "
                              "of your own, or any problem with an MJCF of yours (mjcf=…, joint_map=…)")
+        if meshes and not self.source.startswith("urdf:"):
+            raise ValueError(f"meshes=True applies to a URDF robot (MuJoCo's import of a URDF problem's file), not to "
+                             f"the robot from {self.source}")
         if mjcf is None:
             _set_problem_dynamics(mujoco, spec, problem, self.mj_joints)
         for name in self.mj_joints:
@@ -125,6 +132,7 @@ class MuJoCoPlant:
 
     def __repr__(self):
         active = [k for k, v in self.options.items() if v is not None and (not isinstance(v, np.ndarray) or v.any())]
+        active += ["meshes"] if self.meshes else []
         return (f"MuJoCoPlant({self.problem.name!r}, source={self.source!r}, integrator={self.integrator!r}"
                 + "".join(f", {k}" for k in active) + ")")
 
@@ -326,14 +334,16 @@ def _exact_inertias(mujoco, model, chain) -> None:
         model.body_subtreemass[model.body_parentid[body]] += model.body_subtreemass[body]
 
 
-def _urdf_spec(mujoco, problem):
-    """MuJoCo's import of the problem's URDF with the joints the problem locked removed (held at 0)."""
+def _urdf_spec(mujoco, problem, meshes: bool):
+    """MuJoCo's import of the problem's URDF with the joints the problem locked removed (held at 0), without its
+    collision meshes unless ``meshes`` (MuJoCo's import discards the visual ones)."""
     from ocpkit.rigid_body import load_urdf
 
     try:
         spec = mujoco.MjSpec.from_file(problem.urdf)
     except ValueError as exc:
         raise ValueError(f"MuJoCo cannot read the URDF {problem.urdf!r}: {exc}") from None
+    _urdf_meshes(mujoco, spec, problem.urdf, meshes)
     keep = set(problem.chain.names)
     locked = [j.name for j in spec.joints if j.name not in keep]
     # The problem's Chain must be load_urdf's default locking (0 clipped into the limits), and that 0:
@@ -357,6 +367,24 @@ def _urdf_spec(mujoco, problem):
     for joint in spec.joints:
         joint.limited = mujoco.mjtLimited.mjLIMITED_FALSE
     return spec
+
+
+def _urdf_meshes(mujoco, spec, urdf: str, keep: bool) -> None:
+    """Remove the mesh geometries of a URDF's import, or (``keep``) check that MuJoCo finds each mesh file.
+
+    Robot files name their meshes as ``package://…`` URIs that only a ROS workspace resolves: MuJoCo fails on them,
+    and the dynamics (masses from the URDF's <inertial>) need none of them."""
+    if not keep:
+        for geom in [g for g in spec.geoms if g.type == mujoco.mjtGeom.mjGEOM_MESH]:
+            spec.delete(geom)
+        for mesh in list(spec.meshes):
+            spec.delete(mesh)
+        return
+    folder = Path(spec.modelfiledir) / spec.meshdir
+    for mesh in spec.meshes:
+        if not (folder / mesh.file).is_file():  # an absolute file name replaces the folder
+            raise ValueError(f"meshes=True: MuJoCo cannot open the mesh {mesh.file!r} of {urdf!r} (not a file "
+                             f"under {str(folder)!r}); leave meshes=False to simulate without the URDF's meshes")
 
 
 def _set_problem_dynamics(mujoco, spec, problem, joints):

@@ -397,3 +397,51 @@ def test_continuous_joints_are_hinges_without_range(generated):
     x, u = np.r_[3.5, 0.4, 0.05, -5.0, 1.0, -1.0, 0.2, 3.0], np.array([1.0, -2.0, 3.0, 0.5])
     exact = np.asarray(problem.plant().rk4(0.01, 10)(x, u)).ravel()
     assert np.abs(plant.stepper(0.01, 10)(x, u) - exact).max() < 1e-11
+
+
+def _urdf_with_meshes(tmp_path, mesh_file="package://nowhere/upper.stl"):
+    """The wheel arm with the meshes of a real robot's URDF that are not shipped: a visual mesh on the base, a visual
+    and a collision mesh on the upper arm (beside a collision cylinder)."""
+    text = WHEEL_ARM.read_text().replace('<link name="base"/>', '<link name="base"><visual><geometry><mesh '
+                                         'filename="package://nowhere/base.stl"/></geometry></visual></link>')
+    text = text.replace('<link name="upper">', f'''<link name="upper">
+    <visual><geometry><mesh filename="package://nowhere/upper.dae"/></geometry></visual>
+    <collision><geometry><mesh filename="{mesh_file}" scale="0.001 0.001 0.001"/></geometry></collision>
+    <collision><origin xyz="0 0 0.2"/><geometry><cylinder radius="0.04" length="0.3"/></geometry></collision>''')
+    path = tmp_path / "meshes.urdf"
+    path.write_text(text)
+    return path
+
+
+def test_urdf_meshes_are_left_out_of_the_dynamics_plant(tmp_path):
+    """A URDF naming meshes it does not ship (package://…, as most robot files do): the plant builds without them
+    and steps as ocpkit's plant; meshes=True keeps them and refuses an unresolvable one in one line naming it."""
+    from ocpkit import Problem
+
+    problem = Problem.from_urdf(_urdf_with_meshes(tmp_path))
+    plant = MuJoCoPlant(problem)
+    assert plant.model.nmesh == 0 and mujoco_geom_types(plant.model).count("mjGEOM_CYLINDER") == 1
+    x, u = np.r_[0.5, 0.4, 0.05, -1.0, 1.0, -1.0, 0.2, 3.0], np.array([1.0, -2.0, 3.0, 0.5])
+    exact = np.asarray(problem.plant().rk4(0.01, 10)(x, u)).ravel()
+    assert np.abs(plant.stepper(0.01, 10)(x, u) - exact).max() < 1e-11
+    with pytest.raises(ValueError) as err:
+        MuJoCoPlant(problem, meshes=True)
+    assert "'package://nowhere/upper.stl'" in str(err.value) and "meshes=True" in str(err.value)
+    assert len(str(err.value).splitlines()) == 1
+    with pytest.raises(ValueError, match="meshes=True applies to a URDF robot"):
+        MuJoCoPlant("nlink:2", meshes=True)
+
+
+def test_urdf_meshes_kept_when_they_resolve(tmp_path):
+    """meshes=True with a mesh file beside the URDF: MuJoCo loads it as a collision geometry."""
+    from ocpkit import Problem
+
+    (tmp_path / "upper.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n")
+    problem = Problem.from_urdf(_urdf_with_meshes(tmp_path, "upper.obj"))
+    assert MuJoCoPlant(problem).model.nmesh == 0
+    plant = MuJoCoPlant(problem, meshes=True)
+    assert plant.model.nmesh == 1 and "mjGEOM_MESH" in mujoco_geom_types(plant.model)
+
+
+def mujoco_geom_types(model):
+    return [_mujoco().mjtGeom(int(t)).name for t in model.geom_type]
