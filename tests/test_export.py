@@ -86,6 +86,46 @@ def test_failure_returns_the_controller_fallback(bounded_pendulum):
     assert c.solve([0.0, 0.0], goal).ok  # recovers, starting cold
 
 
+def test_a_refused_step_passed_on_says_fallback(bounded_pendulum):
+    """The library's own fallback, passed on to a caller of ``_solve`` (LinearMPC's C step), says so in ``path``."""
+    _, _, c = bounded_pendulum
+    c.reset()
+    sol = c._solve(np.array([0.0, 9.0]), np.array([1.0, 0.0]))
+    assert not sol.ok and sol.fallback and sol.path.startswith("fallback"), (sol.status, sol.path)
+    c.reset()
+
+
+def test_a_library_exported_for_another_ocp_is_refused_naming_what_differs(bounded_pendulum):
+    """The library carries its OCP's digest: other weights, another model or knot count of the same sizes are
+    refused on load in one line naming the field, not solved with the library's data."""
+    problem, ocp, c = bounded_pendulum
+    bounds = {"x_min": [-np.inf, -6.0], "x_max": [np.inf, 6.0]}
+    same = problem.ocp(knots=5, horizon=50, **bounds)
+    ExportedMPC(same, c.out_dir).close()  # an equal OCP built anew loads
+    cases = {"Q differs": problem.ocp(knots=5, horizon=50, Q=np.diag([100.0, 0.1]), **bounds),
+             "model differs": problem.ocp(knots=5, horizon=50, error=1.2, **bounds),
+             "x_max differs": problem.ocp(knots=5, horizon=50, x_min=[-np.inf, -6.0], x_max=[np.inf, 7.0]),
+             "knots 5 vs 4": problem.ocp(knots=4, horizon=50, **bounds)}
+    for what, other in cases.items():
+        with pytest.raises(ValueError, match=f"exported for another OCP: {what}") as info:
+            ExportedMPC(other, c.out_dir)
+        assert "\n" not in str(info.value) and str(c.out_dir) in str(info.value), str(info.value)
+
+
+def test_status_string_names_every_status(bounded_pendulum, tmp_path):
+    """``mpc_status_string`` (tests/c/status_names.c calls it for -1 … 5) names the statuses as ocpkit does."""
+    from ocpkit.controller import SOFT, STATUSES
+
+    out = bounded_pendulum[2].out_dir
+    program = tmp_path / "status_names"
+    subprocess.run(["cc", "-std=c99", "-Wall", "-Werror", "-I", str(out), "-o", str(program),
+                    str(Path(__file__).parent / "c" / "status_names.c"), "-L", str(out), "-lmpc",
+                    f"-Wl,-rpath,{out.resolve()}"], check=True, capture_output=True, text=True)
+    lines = subprocess.run([str(program)], check=True, capture_output=True, text=True).stdout.splitlines()
+    c_statuses = STATUSES[:STATUSES.index(SOFT)]  # the C step's codes 0 … 4
+    assert lines == ["-1 unknown"] + [f"{i} {s}" for i, s in enumerate(c_statuses)] + [f"{len(c_statuses)} unknown"]
+
+
 @pytest.mark.parametrize("name", ["nlink:3", pytest.param("nlink:7", marks=pytest.mark.slow)])
 def test_nlink_matches_linear_mpc(name, tmp_path):
     problem = _problem(name)

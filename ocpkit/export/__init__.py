@@ -37,6 +37,11 @@ dimension only through the model):
   the soft state bounds — and ``<name>_set_plan`` lets the next step linearize about the plan that answered
   (:meth:`ExportedMPC.set_plan`).
 
+The library names its statuses (``<name>_status_string``: "success" … "exception", as
+:data:`ocpkit.controller.STATUSES`) and the OCP it was exported for (``<name>_ocp_digest``: sizes and settings, and a
+hash of each weight, bound, the model and the task; :mod:`~ocpkit.export.digest`): :class:`ExportedMPC` refuses a
+library exported for another OCP, naming what differs.
+
 All memory of one controller lives in a caller-owned struct (``<name>_memory``): several instances run in one
 process, each with its own QP-solver memory slot (``MAX_INSTANCES`` in the Makefile, 16 by default).
 
@@ -60,7 +65,8 @@ computed in C: stationarity, primal feasibility, complementarity and dual sign o
 
 The package: :mod:`~ocpkit.export.generate` writes a folder (:func:`export`), :mod:`~ocpkit.export.render` renders
 the C, header, Makefile and README from ``templates/``, :mod:`~ocpkit.export.constants` computes the step's
-constants, :mod:`~ocpkit.export.qp` sets up the QP solver, :mod:`~ocpkit.export.folder` keeps the folder safe,
+constants, :mod:`~ocpkit.export.qp` sets up the QP solver, :mod:`~ocpkit.export.digest` describes the OCP,
+:mod:`~ocpkit.export.folder` keeps the folder safe,
 :mod:`~ocpkit.export.build` runs ``make`` and :mod:`~ocpkit.export.library` loads the library back
 (:class:`ExportedMPC`).
 """

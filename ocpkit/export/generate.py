@@ -12,6 +12,7 @@ import numpy as np
 
 from ocpkit._checks import choice, integer, positive
 from ocpkit.export import render
+from ocpkit.export.digest import ocp_entries
 from ocpkit.export.folder import check_out_dir, place, write
 from ocpkit.export.qp import conic, fix_daqp_setup
 from ocpkit.ocp import OCP
@@ -159,7 +160,8 @@ def export(ocp: OCP, out_dir, *, form: str = "condensed", qp: str = "daqp", name
         sizes.update(NO=no, NOS=nos, NK=spheres, NOB=obstacles, NOC=spheres * min(ROWS_PER_SPHERE, obstacles))
     info = Export(out, name, form, qp, linearization, ocp.nx, ocp.nu, ocp.knots, ocp.horizon, na, no)
     write(out / f"{name}.h", render.header(name, sizes, ocp, form, qp, linearization))
-    write(out / f"{name}.c", render.step(name, qp, linearization, tr, jac, tf, iterations, float(tol), nos))
+    write(out / f"{name}.c", render.step(name, qp, linearization, tr, jac, ocp_entries(ocp), tf, iterations,
+                                         float(tol), nos))
     write(out / "main.c", render.example(name, x0, goal, steps, ocp.dt, task=tf is not None))
     write(out / "Makefile", render.makefile(name, qp))
     write(out / "README.md", render.readme(info, ocp, eps, max_iter))

@@ -12,6 +12,7 @@ from ocpkit.certificate import TESTS, Certificate
 from ocpkit.certificate import TOL as CERT_TOL
 from ocpkit.controller import STATUSES, SUCCESS, Controller, Solution
 from ocpkit.export.constants import CERT_CODE, ILL_CONDITIONED
+from ocpkit.export.digest import differences
 from ocpkit.export.generate import general_rows
 from ocpkit.ocp import OCP
 from ocpkit.qp_backends import DAQP_EXIT, daqp_exit_name
@@ -21,11 +22,14 @@ from ocpkit.quadratic_program import ROUNDING_MARGIN
 class ExportedMPC(Controller):
     """The compiled exported step (``lib<name>.so`` in ``out_dir``) as a Controller, through ctypes.
 
-    Statuses map one to one onto ocpkit's; on failure the library returns its own fallback (the previous plan
-    shifted, which a C caller gets), and this class answers with :meth:`Controller.fallback` instead: the shifted
-    plan only while its prediction is safe, else the brake (a library with obstacles then follows that plan,
-    :meth:`set_plan`; another keeps its own). Called by another controller (``_solve``: LinearMPC's C step, which
-    answers a refused step itself) it passes the library's fallback on. ``times`` splits the C step as the DESIGN
+    The library must have been exported for ``ocp``: its digest (``<name>_ocp_digest``, :mod:`ocpkit.export.digest`)
+    is compared with ``ocp``'s on load, and a library for other sizes, weights, bounds, model or task is refused
+    (ValueError naming what differs). Statuses map one to one onto ocpkit's; on failure the library returns its own
+    fallback (the previous plan shifted, which a C caller gets), and this class answers with
+    :meth:`Controller.fallback` instead: the shifted plan only while its prediction is safe, else the brake (a
+    library with obstacles then follows that plan, :meth:`set_plan`; another keeps its own). Called by another
+    controller (``_solve``: LinearMPC's C step, which answers a refused step itself) it passes the library's
+    fallback on, ``path`` "fallback (C plan)". ``times`` splits the C step as the DESIGN
     does, measured in C:
     ``model`` (RK4 and its sensitivities), ``build`` (the condensing), ``solve`` (the QP solver);
     :attr:`step_seconds` is the last whole C step seen from Python (ctypes call included). Each instance owns
@@ -40,12 +44,7 @@ class ExportedMPC(Controller):
         if not lib_path.is_file():
             raise ValueError(f"out_dir {str(out_dir)!r} has no lib{name}.so; run export() and build() first")
         lib = ctypes.CDLL(str(lib_path.resolve()))
-        dims = [ctypes.c_int() for _ in range(4)]
-        getattr(lib, f"{name}_dims")(*map(ctypes.byref, dims))
-        dims = tuple(d.value for d in dims)
-        if dims != (ocp.nx, ocp.nu, ocp.knots, ocp.horizon):
-            raise ValueError(f"library {lib_path} was exported for (nx, nu, knots, horizon) = {dims}, "
-                             f"ocp has {(ocp.nx, ocp.nu, ocp.knots, ocp.horizon)}")
+        _check_digest(lib, name, lib_path, ocp)
         dbl = np.ctypeslib.ndpointer(dtype=np.float64, flags="C_CONTIGUOUS")
         size = getattr(lib, f"{name}_memory_size")
         size.restype = ctypes.c_size_t
@@ -228,8 +227,25 @@ class ExportedMPC(Controller):
         # A refused step of another controller's (LinearMPC's C step), which answers it itself: the library's own
         # fallback, without Controller.fallback's rollout and plan check (on the Panda with 10 obstacles they took
         # 11-19 ms of each refused step, beside a C step of 1.2 ms)
+        refused = status != SUCCESS
         return Solution(u=u, knots=knots, status=status, raw_status=raw, times=times, certificate=certificate,
-                        x_pred=x_pred, fallback=status != SUCCESS)
+                        x_pred=x_pred, fallback=refused, path="fallback (C plan)" if refused else "")
+
+
+def _check_digest(lib, name: str, lib_path: Path, ocp: OCP) -> None:
+    """A ValueError, in one line, where ``lib`` was exported for another OCP than ``ocp`` (:mod:`ocpkit.export.digest`:
+    its sizes, weights, bounds, model or task) or carries no digest (exported before ocpkit wrote one)."""
+    try:
+        stored = getattr(lib, f"{name}_ocp_digest")
+    except AttributeError:
+        raise ValueError(f"library {lib_path} has no {name}_ocp_digest (exported by an older ocpkit): its OCP cannot "
+                         "be checked; export and build it again") from None
+    stored.restype = ctypes.c_char_p
+    differs = differences(stored().decode(), ocp)
+    if differs:
+        order = " (library vs ocp)" if " vs " in differs else ""
+        raise ValueError(f"library {lib_path} was exported for another OCP: {differs}{order}; export and build it "
+                         "again for this OCP")
 
 
 def _explain_rc(name: str, qp: str, rc: int, residuals) -> str:

@@ -9,7 +9,7 @@ import casadi as ca
 import jinja2
 
 from ocpkit.certificate import TOL as CERT_TOL
-from ocpkit.controller import INFEASIBLE, LIMITED, SUCCESS
+from ocpkit.controller import INFEASIBLE, LIMITED, SOFT, STATUSES, SUCCESS
 from ocpkit.export.constants import CERT_CODE, ILL_CONDITIONED, c_array, step_constants
 from ocpkit.qp_backends import DAQP_EXIT
 from ocpkit.task import ACTIVATION, ROWS_PER_SPHERE
@@ -19,6 +19,7 @@ from ocpkit.transcription import CondensedQP
 MAX_INSTANCES = 16  # QP-solver memory slots per loaded library (CASADI_MAX_NUM_THREADS); a Makefile variable
 OPT_FLAGS = "-O2"  # the Makefile's OPT default (generated model and QP solver)
 OPT_STEP = "-O3"  # the Makefile's OPT_STEP default (the condensing loops: -O3 vectorizes them)
+C_STATUSES = STATUSES[:STATUSES.index(SOFT)]  # the C step's statuses, numbered 0 … 4 (it never answers "soft")
 _SOLVER_NOTE = {
     "qrqp": "qrqp is warm-started from the previous solution; `step` never allocates.",
     "daqp": "CasADi's DAQP code starts DAQP cold and runs its setup, which allocates, inside every step.",
@@ -54,16 +55,18 @@ def header(name: str, sizes: dict, ocp: OCP, form: str, qp: str, linearization: 
     """``<name>.h``: the API, the sizes (``sizes``: macro name → value) and the memory struct."""
     task = ocp.task_functions is not None
     return _render("header.in.h", name=name, N=name.upper(), sizes=sizes, ocp=repr(ocp), form=form, qp=qp,
+                   statuses=C_STATUSES,
                    ubar=_UBAR[linearization], task=task, obstacles=task and ocp.task_functions.pairs > 0,
                    rti=linearization == "trajectory",
                    cert_tol=repr(CERT_TOL), cert_code=CERT_CODE, ill_conditioned=ILL_CONDITIONED,
                    **(_task_values(ocp, code=False) if task else {}))
 
 
-def step(name: str, qp: str, linearization: str, tr: CondensedQP, jac, tf=None, iterations: int = 1,
-         tol: float = 0.0, obstacle_rows: int = 0) -> str:
-    """``<name>.c``: the step around the generated model and QP solver, with its constants (``obstacle_rows``: the
-    most clearance rows a stage, 0 without obstacles)."""
+def step(name: str, qp: str, linearization: str, tr: CondensedQP, jac, digest: list[str], tf=None,
+         iterations: int = 1, tol: float = 0.0, obstacle_rows: int = 0) -> str:
+    """``<name>.c``: the step around the generated model and QP solver, with its constants (``digest``: the OCP's
+    entries, :func:`ocpkit.export.digest.ocp_entries`; ``obstacle_rows``: the most clearance rows a stage, 0 without
+    obstacles)."""
     N = name.upper()
     # a nonzero return: qrqp's 4 is "no search direction" (an infeasible or degenerate QP); DAQP's failed exit
     # flags as DAQP_EXIT says (its successes return 0)
@@ -72,6 +75,7 @@ def step(name: str, qp: str, linearization: str, tr: CondensedQP, jac, tf=None, 
     status_of_rc = "".join(f"rc == {rc} ? {N}_{status.upper()} : " for rc, status in failures.items()
                            if status != LIMITED) + f"{N}_LIMITED"
     return _render("step.in.c", name=name, N=N, qp=qp, status_of_rc=status_of_rc, task=tf is not None,
+                   statuses=C_STATUSES, digest=digest,
                    obstacles=bool(obstacle_rows), constants=step_constants(tr, linearization, jac, tf, iterations, tol,
                                                                            obstacle_rows))
 

@@ -63,7 +63,7 @@ enum { {{ N }}_CERT_STATIONARITY = {{ cert_code }}, {{ N }}_CERT_PRIMAL, {{ N }}
    1 % of the curvature the input weight gives (the prediction model diverges over the horizon). */
 #define {{ N }}_ILL_CONDITIONED {{ ill_conditioned }}
 
-enum { {{ N }}_SUCCESS = 0, {{ N }}_LIMITED = 1, {{ N }}_INFEASIBLE = 2, {{ N }}_NAN = 3, {{ N }}_EXCEPTION = 4 };
+enum { {% for status in statuses %}{{ N }}_{{ status | upper }} = {{ loop.index0 }}{{ ", " if not loop.last }}{% endfor %} };
 
 /* All memory of one controller instance. Treat as opaque. */
 typedef struct {
@@ -140,6 +140,12 @@ void {{ name }}_set_plan({{ name }}_memory* mem, const double* knots);
 int {{ name }}_solver_return(const {{ name }}_memory* mem);
 /* The QP solver's name ("daqp", "qrqp", "osqp"). */
 const char* {{ name }}_qp_solver(void);
+/* A status's name, as ocpkit.controller.STATUSES has it: "success" for {{ N }}_SUCCESS ... "exception";
+   "unknown" for any other value. */
+const char* {{ name }}_status_string(int status);
+/* The OCP this step was exported for, field by field ("knots 5; Q <hash>; ..."): ocpkit.export.ExportedMPC refuses
+   to load the library for an OCP whose digest differs (ocpkit.export.digest). */
+const char* {{ name }}_ocp_digest(void);
 /* The last solve's certificate residuals: stationarity, primal feasibility, complementarity, dual sign. */
 void {{ name }}_certificate(const {{ name }}_memory* mem, double* residuals);
 /* The condensed QP min ½ zᵀhz + gᵀz s.t. lba <= a z <= uba, lbx <= z <= ubx (h: NZ x NZ, a: NA x NZ, both

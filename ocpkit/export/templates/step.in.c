@@ -905,6 +905,18 @@ int {{ name }}_solver_return(const mem_t* m) { return m->solver_rc; }
 
 const char* {{ name }}_qp_solver(void) { return "{{ qp }}"; }
 
+const char* {{ name }}_status_string(int status) {
+  static const char* const names[] = { {% for status in statuses %}"{{ status }}"{{ ", " if not loop.last }}{% endfor %} };
+  return status >= 0 && status < (int) (sizeof names / sizeof names[0]) ? names[status] : "unknown";
+}
+
+const char* {{ name }}_ocp_digest(void) {
+  return
+{% for entry in digest %}
+    "{{ entry }}{{ "; " if not loop.last }}"{{ ";" if loop.last }}
+{% endfor %}
+}
+
 int {{ name }}_model_step(mem_t* m, const double* x, const double* u, double* x_next) {
   m->arg[0] = x; m->arg[1] = u; m->res[0] = x_next;
   return {{ name }}_model(m->arg, m->res, (casadi_int*) m->iw, m->w, 0);
