@@ -14,14 +14,19 @@ Where the robot comes from:
   inertia, the rotor inertia as ``armature``, the problem's viscous damping b as joint ``damping`` (the ODE
   M q̈ + h + b q̇ = τ of :meth:`Chain.forward_dynamics`), gravity as the Chain's, the joint limits as ranges;
 * a URDF problem (``urdf:…``, ``panda``): MuJoCo's own URDF import of the same file, the joints the problem
-  locked removed (held at 0, load_urdf's default) and the problem's damping set on the others;
+  locked removed (held at 0, load_urdf's default) and the problem's damping set on the others; its collision meshes
+  left out (``meshes=True`` keeps them: most robot files name ``package://`` meshes MuJoCo cannot open, and the
+  dynamics need none); a continuous joint is a hinge without range;
 * a user's MJCF (``mjcf=``): ``joint_map`` says which of its joints are the problem's, in q's order; the file's
   actuators are replaced by torque motors on those joints. Its joints outside the map evolve on their own.
 
-A plant generated from a problem is checked against that problem's dynamics at construction (q̈ at seeded states,
-before the options below): a problem whose ``dynamics`` is not its Chain's ODE is refused rather than simulated
-as something else. The effects ocpkit's model leaves out are options, all off by default: ``frictionloss`` (dry
-joint friction, N·m, a MuJoCo constraint) and ``armature`` (rotor inertia, kg·m²), both added to the source's own;
+Every plant, a user's MJCF included, is checked against the problem's dynamics at construction (q̈ at seeded states,
+before the options below, MuJoCo's constraints off): a robot that is not the problem's (a mass, an axis, a joint
+type of its own) or a problem whose ``dynamics`` is not its Chain's ODE is refused rather than simulated as
+something else; ``check_tolerance`` (relative to the largest |q̈|) loosens the check, None skips it.
+
+The effects ocpkit's model leaves out are options, all off by default: ``frictionloss`` (dry joint friction, N·m, a
+MuJoCo constraint) and ``armature`` (rotor inertia, kg·m²), both added to the source's own;
 ``ctrlrange`` (actuator limits: MuJoCo clamps u); ``floor`` (a plane at that height that the links, capsules of
 the problem's ``link_radius`` between the joints, touch); ``limits`` (the joint ranges as constraints).
 """
@@ -40,8 +45,9 @@ _MJ_INTEGRATORS = {"rk4": "mjINT_RK4", "implicit": "mjINT_IMPLICIT", "implicitfa
 # MuJoCo resets its data (to qpos0) when q, q̇ or q̈ turn non-finite or huge, and zeros every input when one is, and
 # counts a warning: a run must fail there instead of continuing from the reset state or without its inputs.
 _DIVERGED = {"mjWARN_BADQPOS": "q", "mjWARN_BADQVEL": "q̇", "mjWARN_BADQACC": "q̈", "mjWARN_BADCTRL": "u"}
-# The construction check: q̈ of MuJoCo and of the problem's plant at seeded states agree to this (relative to the
-# largest |q̈|); round-off gives ~1e-12, a different robot or ODE gives O(1).
+# The construction check's default tolerance (check_tolerance): q̈ of MuJoCo and of the problem's plant at seeded
+# states agree to this, relative to the largest |q̈|; round-off gives ~1e-12, a different robot or ODE O(1), an MJCF
+# written with rounded numbers their rounding.
 CHECK_TOLERANCE = 1e-6
 
 
@@ -63,12 +69,14 @@ class MuJoCoPlant:
     scalars or one value per joint (>= 0) added to the source's own. ``ctrlrange``: (low, high), scalars or one
     value per input. ``floor``: the height (m) of a plane under the robot, or None. ``limits``: the joint ranges as
     MuJoCo constraints (None: off for a generated or URDF robot, as ocpkit's model has none; the file's own for
-    an MJCF). See the module docstring for the sources and conventions.
+    an MJCF). ``meshes``: keep a URDF's collision meshes (each file must exist). ``check_tolerance``: how far MuJoCo's
+    q̈ may be from the problem's, relative to the largest |q̈| (None: no check). See the module docstring for the
+    sources and conventions.
     """
 
     def __init__(self, problem, *, mjcf=None, joint_map=None, integrator: str = "rk4", frictionloss=0.0,
                  armature=0.0, ctrlrange=None, floor: float | None = None, limits: bool | None = None,
-                 meshes: bool = False):
+                 meshes: bool = False, check_tolerance: float | None = CHECK_TOLERANCE):
         mujoco = _mujoco()
         from ocpkit import problems
         from ocpkit.model import Model
@@ -96,6 +104,8 @@ class MuJoCoPlant:
             raise TypeError(f"limits must be True, False or None, got {limits!r}")
         if not isinstance(meshes, bool):
             raise TypeError(f"meshes must be True or False, got {meshes!r}")
+        if check_tolerance is not None:
+            check_tolerance = positive(check_tolerance, "check_tolerance")
         self.meshes = meshes
         self.options = {"frictionloss": _per_joint(frictionloss, nq, "frictionloss"),
                         "armature": _per_joint(armature, nq, "armature"),
@@ -123,8 +133,8 @@ class MuJoCoPlant:
         for name in self.mj_joints:
             spec.add_actuator(name=f"u_{name}", target=name, trntype=mujoco.mjtTrn.mjTRN_JOINT).set_to_motor()
         spec.option.integrator = getattr(mujoco.mjtIntegrator, _MJ_INTEGRATORS[self.integrator])
-        if mjcf is None and not np.any(getattr(problem, "friction", 0.0)):
-            self._check(mujoco, self._compile(mujoco, spec), plant)
+        if check_tolerance is not None:
+            self._check(mujoco, self._compile(mujoco, spec), plant, check_tolerance)
         _apply_options(mujoco, spec, self.mj_joints, self.options)
         self.spec = spec
         self.model = self._compile(mujoco, spec)
@@ -179,26 +189,53 @@ class MuJoCoPlant:
             mujoco.mj_setConst(model, mujoco.MjData(model))  # constants derived from the inertias (constraint scales)
         return model
 
-    def _check(self, mujoco, model, plant, samples: int = 3):
-        """Refuse a generated robot whose q̈ differs from the problem's plant's at seeded states and inputs."""
+    def _check(self, mujoco, model, plant, tolerance: float, samples: int = 3):
+        """Refuse a robot whose q̈ differs from the problem's plant's at seeded states and inputs by more than
+        ``tolerance`` times the largest |q̈| (at least 1), naming the joint nearest the difference.
+
+        Constraints are off here (joint ranges, dry friction, contacts, equalities are MuJoCo's own effects), and
+        the velocities are 0 for a problem with Coulomb friction, which ocpkit smooths and MuJoCo does not."""
+        model.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_CONSTRAINT
         data = mujoco.MjData(model)
         n = self.nx // 2
         qpos, qvel = _addresses(model, self.mj_joints)
         rng = np.random.default_rng(0)
-        worst, scale = 0.0, 1.0
+        moving = not np.any(getattr(self.problem, "friction", 0.0))
+        gap, residual, scale, torque = np.zeros(n), np.zeros(n), 1.0, 1.0
         for seed in range(samples):
-            x = self.problem.sample(seed)[0] + np.r_[np.zeros(n), rng.uniform(-1, 1, n)]
+            x = self.problem.sample(seed)[0] + np.r_[np.zeros(n), rng.uniform(-1, 1, n) * moving]
             u = rng.uniform(-1, 1, n)
             data.qpos[qpos], data.qvel[qvel], data.ctrl[:] = x[:n], x[n:], u
             mujoco.mj_forward(model, data)
             expected = np.asarray(plant.f(x, u), dtype=float).ravel()[n:]
-            worst = max(worst, float(np.abs(data.qacc[qvel] - expected).max()))
+            gap = np.maximum(gap, np.abs(data.qacc[qvel] - expected))
             scale = max(scale, float(np.abs(expected).max()))
-        if not worst <= CHECK_TOLERANCE * scale:
-            raise ValueError(f"MuJoCo's model of {self.problem.name!r} ({self.source}) gives q̈ up to {worst:.3g} away "
-                             f"from the problem's dynamics (|q̈| up to {scale:.3g}): the generated robot follows "
-                             "M(q) q̈ + h(q, q̇) + b q̇ = τ of its Chain; write an MJCF (mjcf=, joint_map=) for other "
-                             "dynamics")
+            # The torques MuJoCo needs for the problem's q̈: a wrong body shows at the joints above it only.
+            data.qacc[qvel] = expected
+            mujoco.mj_inverse(model, data)
+            residual = np.maximum(residual, np.abs(data.qfrc_inverse[qvel] - u))
+            torque = max(torque, float(np.abs(data.qfrc_inverse[qvel]).max()))
+        if gap.max() <= tolerance * scale:
+            return
+        depth = [_depth(model, model.joint(name).bodyid[0]) for name in self.mj_joints]
+        differs = [k for k in range(n) if residual[k] > tolerance * torque] or [int(np.argmax(gap))]
+        joint = model.joint(self.mj_joints[max(differs, key=lambda k: depth[k])])
+        hint = ("the generated robot follows M(q) q̈ + h(q, q̇) + b q̇ = τ of its Chain; write an MJCF (mjcf=, "
+                "joint_map=) for other dynamics" if self.source == "chain" else
+                "its masses, inertias, axes, joint types, damping or gravity are not the problem's")
+        raise ValueError(f"MuJoCo's model of {self.problem.name!r} ({self.source}) gives q̈ up to {gap.max():.3g} "
+                         f"away from the problem's dynamics (|q̈| up to {scale:.3g}, relative {gap.max() / scale:.3g} "
+                         f"> check_tolerance={tolerance:g}; the deepest joint whose torque differs: {joint.name!r}, "
+                         f"body {model.body(joint.bodyid[0]).name!r}): {hint}; a larger check_tolerance accepts it, "
+                         "check_tolerance=None skips this check")
+
+
+def _depth(model, body: int) -> int:
+    """The number of bodies between ``body`` and the world in a compiled model."""
+    depth = 0
+    while body:
+        body, depth = model.body_parentid[body], depth + 1
+    return depth
 
 
 def _addresses(model, joints):

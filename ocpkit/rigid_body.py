@@ -374,7 +374,8 @@ def load_urdf(path, *, locked_joints=(), locked_positions=None):
     pinocchio merges fixed joints into their links and reads each joint's ``<dynamics damping friction>``
     (``model.damping``, ``model.friction``) and ``<limit effort lower upper>``. A locked joint stays at
     ``locked_positions[name]`` (default 0, clipped into its limits); its link's inertia moves onto its parent
-    (``pinocchio.buildReducedModel``); a continuous joint's position is its angle. Unknown joint names raise a ValueError listing the joints.
+    (``pinocchio.buildReducedModel``); a continuous joint's position is its angle. Unknown joint names raise a
+    ValueError listing the joints.
     """
     import pinocchio as pin
 

@@ -1,5 +1,6 @@
 """MuJoCo as the plant: the same closed loops as ocpkit's own plant, MuJoCo's extra effects, clear errors."""
 import json
+import re
 import sys
 from pathlib import Path
 
@@ -381,7 +382,7 @@ WHEEL_ARM = Path(__file__).parent / "data" / "wheel_arm.urdf"   # continuous "sh
 @pytest.mark.parametrize("generated", [False, True])
 def test_continuous_joints_are_hinges_without_range(generated):
     """MuJoCo's import of a URDF with continuous joints, and the MJCF written from its Chain: hinges without a range
-    (limits=True bounds only the revolute and prismatic joints), one step equal to ocpkit's plant at angles beyond ±π."""
+    (limits=True bounds only the revolute and prismatic joints), one step equal to ocpkit's plant beyond ±π."""
     from ocpkit import Problem
 
     problem = Problem.from_urdf(WHEEL_ARM)
@@ -445,3 +446,43 @@ def test_urdf_meshes_kept_when_they_resolve(tmp_path):
 
 def mujoco_geom_types(model):
     return [_mujoco().mjtGeom(int(t)).name for t in model.geom_type]
+
+
+def _last(text, old, new):
+    head, tail = text.rsplit(old, 1)
+    return head + new + tail
+
+
+@pytest.mark.parametrize("edit,names", [
+    (lambda t: _last(t, 'mass="1"', 'mass="10"'), "'elbow', body 'fore'"),                # 10× the forearm's mass
+    (lambda t: t.replace('mass="1"', 'mass="10"', 1), "'shoulder', body 'upper'"),         # 10× the upper arm's
+    (lambda t: t.replace('name="elbow" type="hinge" axis="0 0 1"', 'name="elbow" type="hinge" axis="0 0.4 1"'),
+     "'elbow', body 'fore'"),                                                               # a tilted axis
+    (lambda t: t.replace('name="elbow" type="hinge"', 'name="elbow" type="slide"'), "'elbow', body 'fore'"),  # slide
+])
+def test_users_mjcf_must_match_the_problems_dynamics(tmp_path, edit, names):
+    """An MJCF that is not the problem's robot is refused in one line saying by how much q̈ differs and naming the
+    deepest joint (and its body) whose torque differs; a looser check_tolerance accepts it, None skips the check."""
+    path = tmp_path / "edited.xml"
+    path.write_text(edit(NLINK2))
+    joint_map = {"joint1": "shoulder", "joint2": "elbow"}
+    with pytest.raises(ValueError) as err:
+        MuJoCoPlant("nlink:2", mjcf=path, joint_map=joint_map)
+    message = str(err.value)
+    assert len(message.splitlines()) == 1 and names in message and "check_tolerance=None" in message
+    size = float(re.search(r"q̈ up to ([0-9.e+-]+) away", message).group(1))
+    assert size > 0.1
+    MuJoCoPlant("nlink:2", mjcf=path, joint_map=joint_map, check_tolerance=None)
+    MuJoCoPlant("nlink:2", mjcf=path, joint_map=joint_map, check_tolerance=1e3)
+
+
+def test_users_mjcf_check_ignores_its_constraints(tmp_path):
+    """The unedited MJCF is accepted with its own joint ranges, dry friction and a floor its links touch: the check
+    compares the smooth dynamics (masses, axes, joint types, damping, gravity), not MuJoCo's constraints."""
+    path = tmp_path / "two_links.xml"
+    text = NLINK2.replace('damping="0.01"/>', 'damping="0.01" range="-0.1 0.1" limited="true" frictionloss="5"/>')
+    path.write_text(text.replace("<worldbody>", '<worldbody><geom type="plane" size="1 1 1" pos="0 0 0.01"/>'))
+    plant = MuJoCoPlant("nlink:2", mjcf=path, joint_map=["shoulder", "elbow"])
+    assert plant.model.jnt_limited.tolist() == [1, 1]
+    with pytest.raises(ValueError, match="check_tolerance must be finite and > 0"):
+        MuJoCoPlant("nlink:2", mjcf=path, joint_map=["shoulder", "elbow"], check_tolerance=0.0)

@@ -178,7 +178,8 @@ def test_locked_continuous_joint_equals_pinocchios_reduced_model():
     data = reduced.createData()
     f = robot.plant().f
     rng = np.random.default_rng(3)
-    for q, qd, tau in zip(rng.uniform([-7, -2, 0], [7, 2, 0.1], (5, 3)), rng.normal(size=(5, 3)), rng.normal(size=(5, 3))):
+    states = rng.uniform([-7, -2, 0], [7, 2, 0.1], (5, 3)), rng.normal(size=(5, 3)), rng.normal(size=(5, 3))
+    for q, qd, tau in zip(*states):
         ref = pin.aba(reduced, data, _pin_configuration(reduced, q), qd, tau - reduced.damping * qd)
         np.testing.assert_allclose(np.asarray(f(np.r_[q, qd], tau)).ravel()[3:], ref, rtol=0,
                                    atol=TOL * max(1.0, np.abs(ref).max()))
