@@ -8,18 +8,23 @@ and backend × linearization), on a shipped, a user-declared and a URDF problem:
 * where two configurations claim the same optimum they agree: every QP backend and form, the C step and IPOPT over
   the affine model on the knot QP about the input goal; IPOPT, SQP, fatrop and iterated RTI on the NLP.
 
-A solver or variant joins by being listed in ``ocpkit.solvers.CONFIGURATIONS``. The default run takes every
-configuration on the pendulum (closed loop) and on one other problem each (a few steps); ``pytest -m slow`` the
-whole grid.
+A solver or variant joins by being listed in ``ocpkit.solvers.CONFIGURATIONS``; the exported C step loaded back
+(:class:`ocpkit.export.ExportedMPC`, not a registered solver) joins as :data:`EXPORTED`, each distinct OCP exported
+and built once a module (``exported_builds``). The default run takes every configuration on the pendulum (closed
+loop) and on one other problem each (a few steps); ``pytest -m slow`` the whole grid.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from ocpkit import solvers
 from ocpkit.controller import SOFT, STATUSES, SUCCESS
+from ocpkit.export import BuildError, ExportedMPC, build, check_tools, export
+from ocpkit.export.digest import ocp_entries
 from ocpkit.problem import Problem
 from ocpkit.problems import make
 from ocpkit.simulate import simulate
@@ -28,7 +33,44 @@ from ocpkit.problems.panda import urdf_path as panda_urdf
 
 from conftest import readme_block
 
-CONFIGS = solvers.configurations()
+
+
+class _Exports:
+    """The exported configurations' builds: each distinct OCP and linearization exported and built once, in the
+    folder the module fixture :func:`exported_builds` gives (``root``)."""
+
+    def __init__(self):
+        self.root: Path | None = None
+        self.built: dict[tuple, Path] = {}
+
+    def folder(self, ocp, linearization: str) -> Path:
+        key = (linearization, *ocp_entries(ocp))
+        if key not in self.built:
+            try:
+                check_tools()
+            except BuildError as exc:
+                pytest.skip(str(exc))
+            out = self.root / f"export{len(self.built)}"
+            build(export(ocp, out, linearization=linearization).out_dir)
+            self.built[key] = out
+        return self.built[key]
+
+
+EXPORTS = _Exports()
+
+
+@dataclass(frozen=True)
+class ExportedConfiguration(solvers.Configuration):
+    """The exported C step, built and loaded back as an :class:`ocpkit.export.ExportedMPC`."""
+
+    def make(self, ocp):
+        return ExportedMPC(ocp, EXPORTS.folder(ocp, self.options["linearization"]))
+
+
+# The C step about the input goal (the condensed knot QP LinearMPC solves) and the real-time iteration
+EXPORTED = [ExportedConfiguration("export", {"linearization": "goal"}, optimum="convex"),
+            ExportedConfiguration("export", {"linearization": "trajectory"})]
+CONFIGS = solvers.configurations() + EXPORTED
 OTHERS = ("nlink:3", "cartpole", "arm")
 HORIZON, KNOTS = 20, 3
 SAMPLING = ("empc", "cem", "mppi")
@@ -38,6 +80,14 @@ def _arm():
     """The shipped Panda URDF with its fingers locked: a 7-DoF URDF arm."""
     urdf = panda_urdf()
     return Problem.from_urdf(urdf, locked_joints=["panda_finger_joint1", "panda_finger_joint2"])
+
+
+@pytest.fixture(scope="module", autouse=True)
+def exported_builds(tmp_path_factory):
+    """The folder the exported configurations build in, each distinct OCP once a module (a build takes 1-5 s)."""
+    EXPORTS.root, EXPORTS.built = tmp_path_factory.mktemp("exported"), {}
+    yield EXPORTS
+    EXPORTS.root, EXPORTS.built = None, {}
 
 
 @pytest.fixture(scope="module")
@@ -86,7 +136,7 @@ def _grid(slow: bool):
 
 def test_every_registered_solver_has_configurations():
     assert set(solvers.names()) == set(solvers.CONFIGURATIONS), "register a solver's configurations with it"
-    assert all(c.solver in solvers.names() for c in CONFIGS)
+    assert all(c.solver in solvers.names() for c in CONFIGS if c not in EXPORTED)
 
 
 @pytest.mark.parametrize("config", [pytest.param(c, id=c.label) for c in CONFIGS])
@@ -130,8 +180,9 @@ def test_contract_steps_whole_grid(config, name, problems):
 
 
 # Configurations that cannot take a task say so at construction (the sparse QP, HPIPM's traditional form, the C step
-# and fatrop with obstacles); every other one steps within the contract on a reach task with an obstacle.
-TASK_REFUSALS = ("form='condensed'", "no C step: a task", "not its obstacles")
+# and fatrop with obstacles, the exported real-time iteration); every other one steps within the contract on a reach
+# task with an obstacle.
+TASK_REFUSALS = ("form='condensed'", "no C step: a task", "not its obstacles", "cannot be exported with linearization")
 
 
 @pytest.mark.parametrize("config", [pytest.param(c, id=c.label) for c in CONFIGS])

@@ -1,5 +1,5 @@
 """The safety contract, beside the optimality contract of test_contract.py: every registered configuration
-(``ocpkit.solvers.configurations()``) on obstacle cases
+(``ocpkit.solvers.configurations()``, and the exported C step: test_contract.EXPORTED) on obstacle cases
 
 * never reports "success" on a step whose plan, rolled out on the controller's model, or whose actual next state
   (the plant's) collides — true clearance below zero, :func:`ocpkit.task.clearances`, computed here in numpy from
@@ -28,9 +28,9 @@ from ocpkit.problems import make
 from ocpkit.simulate import simulate
 from ocpkit.task import Sphere, clearances, reach
 
-from test_contract import SAMPLING, TASK_REFUSALS
+from test_contract import EXPORTED, SAMPLING, TASK_REFUSALS, exported_builds  # noqa: F401 - the builds' fixture
 
-CONFIGS = solvers.configurations()
+CONFIGS = solvers.configurations() + EXPORTED
 CASES = ("behind", "over_start", "on_tip", "containing", "hundred")
 HORIZON, KNOTS, STEPS = 20, 3, 5
 DEFAULT_CEILING = 10.0

@@ -118,6 +118,10 @@ class ExportedMPC(Controller):
         if not self._open:
             raise RuntimeError(f"{self!r} is closed")
 
+    def wait_compiled(self, timeout: float | None = None) -> bool:
+        """True at once: the step is the compiled library (nothing of it compiles in the background)."""
+        return True
+
     def reset(self) -> None:
         super().reset()
         if getattr(self, "_open", False):
