@@ -7,6 +7,7 @@ import shutil
 import subprocess
 from pathlib import Path
 
+import casadi as ca
 import numpy as np
 import pytest
 
@@ -110,6 +111,30 @@ def test_a_library_exported_for_another_ocp_is_refused_naming_what_differs(bound
         with pytest.raises(ValueError, match=f"exported for another OCP: {what}") as info:
             ExportedMPC(other, c.out_dir)
         assert "\n" not in str(info.value) and str(c.out_dir) in str(info.value), str(info.value)
+
+
+def test_the_digest_names_task_fields_and_a_casadi_upgrade():
+    """What the digest tells apart without a build: a task's obstacles and margin; a model hash that differs under
+    another CasADi version says so; a library without a digest (an older ocpkit's) is refused."""
+    import types
+
+    from ocpkit.export.digest import differences, ocp_entries
+    from ocpkit.export.library import _check_digest
+    from ocpkit.task import Sphere, reach
+
+    problem = make("nlink:3")
+    ball = Sphere((0.5, 0.1, 0.0), 0.04)
+    stored = "; ".join(ocp_entries(reach(problem, [ball], knots=3, horizon=20)))
+    assert differences(stored, reach(problem, [ball], knots=3, horizon=20)) == ""
+    moved = reach(problem, [Sphere((0.5, 0.2, 0.0), 0.04)], knots=3, horizon=20)
+    assert differences(stored, moved) == "obstacles differs"
+    assert differences(stored, reach(problem, [ball], margin=0.02, knots=3, horizon=20)) == "margin 0.01 vs 0.02"
+    assert "targets 3 vs 0, task_terms differs" in differences(stored, problem.ocp(knots=3, horizon=20))
+    old = "; ".join(e if not e.startswith(("casadi", "model")) else e.split()[0] + " 0.0.1" for e in stored.split("; "))
+    assert differences(old, reach(problem, [ball], knots=3, horizon=20)) == \
+        f"model differs (exported with CasADi 0.0.1, running {ca.__version__}: its serialization may differ too)"
+    with pytest.raises(ValueError, match="has no mpc_ocp_digest \\(exported by an older ocpkit\\)"):
+        _check_digest(types.SimpleNamespace(), "mpc", Path("old/libmpc.so"), moved)
 
 
 def test_status_string_names_every_status(bounded_pendulum, tmp_path):

@@ -66,15 +66,16 @@ def differences(stored: str, ocp: OCP) -> str:
     """What differs between a library's digest ``stored`` and ``ocp`` ("" for nothing), in words: "Q differs",
     "knots 5 vs 7" (the library's value first)."""
     have, want = _parse(stored), _parse("; ".join(ocp_entries(ocp)))
-    if have.get("ocpkit-ocp-digest") != want["ocpkit-ocp-digest"]:
-        return (f"its digest has format {have.get('ocpkit-ocp-digest', 'unknown')!r}, this ocpkit writes "
-                f"{want['ocpkit-ocp-digest']!r}")
+    kind = FORMAT.split()[0]
+    if have.get(kind) != want[kind]:  # another format's entries are not comparable
+        return f"digest format {have.get(kind, 'unknown')} vs {want[kind]}"
     words = []
     for key, value in want.items():
-        if key in ("ocpkit-ocp-digest", "casadi") or have.get(key) == value:
+        if key in (kind, "casadi") or have.get(key) == value:
             continue
         words.append(f"{key} {have.get(key, 'absent')} vs {value}" if key in _VALUES else f"{key} differs")
-    casadi = (have.get("casadi"), want["casadi"])
-    if casadi[0] != casadi[1] and any(w.split()[0] in _SERIALIZED for w in words):
-        words.append(f"(exported with CasADi {casadi[0]}, running {casadi[1]}: its serialization may differ too)")
-    return ", ".join(words)
+    text = ", ".join(words)
+    if have.get("casadi") != want["casadi"] and any(w.split()[0] in _SERIALIZED for w in words):
+        text += (f" (exported with CasADi {have.get('casadi')}, running {want['casadi']}: its serialization may "
+                 "differ too)")
+    return text
