@@ -204,7 +204,10 @@ def closed_loop(trajectories: dict, path, *, title: str = "", state_names=None, 
     for ax in axes:
         ax.grid(alpha=0.3)
     axes[-1].set_xlabel("time [s]")
-    legend_outside(axes[0], ncol=1 + len(trajectories) // 20)
+    # below the panels, as wide as the figure: a long controller label beside them squeezed them to a third
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="outside lower center", fontsize=7,
+               ncol=min(len(labels), max(1, 110 // (max(map(len, labels)) + 8))))
     if title:
         set_title(axes[0], title)
     return save(fig, path)

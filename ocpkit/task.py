@@ -44,6 +44,73 @@ ROWS_PER_SPHERE, ROWS_PER_STAGE = 2, 24
 # reach()'s obstacle penalty weight (per metre of violation, and its square): far above the multipliers of a clearance
 # constraint under its default position weight, so the exact penalty keeps the constraint wherever it can be met.
 REACH_OBSTACLE_WEIGHT = 1e5
+# The largest link radius and |margin| (m) a task takes. The arms ocpkit models span 0.6-1.5 m (Puma 560, Panda,
+# Baxter) and a robot cell a few metres: 10 m is beyond any of them, while 1e6 m (a unit slip) makes every obstacle
+# a collision that no plan can clear.
+MAX_LENGTH = 10.0
+# A position target farther from the world origin than this many times the robot's size (its farthest frame at
+# q = 0) is a typo or a unit slip, not a reach: 100 x leaves room for targets beyond reach (the loop then stalls, as
+# it should), and keeps the squared position cost far from overflow (a target at 1e300 m made every step NaN).
+WORKSPACE_FACTOR = 100.0
+
+
+def length(value, name: str, *, signed: bool = False) -> float:
+    """A length in metres within MAX_LENGTH: > 0, or any sign within ±MAX_LENGTH when ``signed`` (a margin)."""
+    if not signed:
+        v = positive(value, name)
+    else:
+        try:
+            v = float(value)
+        except (TypeError, ValueError):
+            raise TypeError(f"{name} must be a number (m), got {value!r}") from None
+    if not np.isfinite(v) or abs(v) > MAX_LENGTH:
+        span = f"within ±{MAX_LENGTH:g} m" if signed else f"> 0 and at most {MAX_LENGTH:g} m"
+        raise ValueError(f"{name} must be {span} (a robot's scale), got {value!r}")
+    return v
+
+
+def check_frame(kinematics, frame: str) -> str:
+    """``frame`` if it names a frame that moves with the joints; a frame fixed to the world ("universe", a base
+    link) cannot be brought anywhere, so a target for it is refused."""
+    q = ca.SX.sym("q", kinematics.n)
+
+    def moves(name):  # an unknown frame fails here, with its name and the model's frames
+        R, p = kinematics.placement(q, name)
+        return ca.depends_on(ca.vertcat(p, ca.vec(R)), q)
+
+    if not moves(frame):
+        moving = [f for f in kinematics.frames if moves(f)]
+        raise ValueError(f"frame {frame!r} is fixed to the world (it does not move with the joints); a target needs "
+                         f"one of the robot's moving frames: {', '.join(moving)}")
+    return frame
+
+
+def workspace_radius(kinematics) -> float:
+    """The farthest a position target may lie from the world origin (m): WORKSPACE_FACTOR × the robot's size, its
+    farthest frame from the origin at q = 0 (at least 0.1 m)."""
+    q = ca.SX.sym("q", kinematics.n)
+    frames = ca.Function("frames", [q], [ca.horzcat(*(kinematics.position(q, f) for f in kinematics.frames))])
+    size = float(np.linalg.norm(np.asarray(frames(np.zeros(kinematics.n))), axis=0).max())
+    return WORKSPACE_FACTOR * max(size, 0.1)
+
+
+def check_point(point, radius: float, name: str) -> np.ndarray:
+    """A position target (3 finite numbers) within ``radius`` m of the world origin (:func:`workspace_radius`)."""
+    p = _vector(point, name, 3)
+    scale = float(np.abs(p).max())
+    distance = scale * float(np.linalg.norm(p / scale)) if scale else 0.0  # no overflow at 1e300
+    if distance > radius:
+        raise ValueError(f"{name} {p.tolist()} is {distance:.3g} m from the world origin, beyond the robot's "
+                         f"plausible workspace ({radius:.3g} m, {WORKSPACE_FACTOR:g} × its size); give it in metres")
+    return p
+
+
+def check_rotation(value, name: str) -> np.ndarray:
+    """A rotation target as its 9 entries row by row: a 3 × 3 orthonormal matrix with determinant +1."""
+    R = _vector(value, name, 9).reshape(3, 3)
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+        raise ValueError(f"{name} must be a rotation matrix (orthonormal, determinant +1), got {R.tolist()}")
+    return R.ravel()
 
 
 def _vector(value, name: str, size: int | None = None) -> np.ndarray:
@@ -61,10 +128,11 @@ class Term:
     ``residual(x, u, target)`` returns a CasADi column (x, u, target are SX columns of nx, nu and
     ``target_size`` entries; a terminal term's residual must not depend on u). ``weight`` is a scalar or one
     value per residual entry (≥ 0); ``terminal_weight`` (default ``weight``) weights x_T when ``terminal``.
-    ``active=False`` keeps the term declared but leaves it out of every controller's cost."""
+    ``active=False`` keeps the term declared but leaves it out of every controller's cost. ``target_check``
+    (target, name) -> target, if given, validates a target when the goal is built (:meth:`ocpkit.ocp.OCP.goal`)."""
 
     def __init__(self, name: str, residual, weight=1.0, *, target_size: int = 0, stage: bool = True,
-                 terminal: bool = False, terminal_weight=None, active: bool = True):
+                 terminal: bool = False, terminal_weight=None, active: bool = True, target_check=None):
         if not isinstance(name, str) or not name.isidentifier():
             raise ValueError(f"a term's name must be a Python identifier (it names its target), got {name!r}")
         if name in ("state", "input", "x_goal"):
@@ -77,6 +145,7 @@ class Term:
         self.target_size = int(target_size)
         self.stage, self.terminal, self.active = bool(stage), bool(terminal), bool(active)
         self._weight, self._terminal_weight = weight, terminal_weight
+        self.target_check = target_check
 
     def __repr__(self):
         where = "+".join(w for w, on in (("stage", self.stage), ("terminal", self.terminal)) if on)
@@ -99,17 +168,26 @@ class Term:
 
 def FramePosition(kinematics, frame: str, weight=1.0, *, name: str = "position", stage: bool = True,
                   terminal: bool = True, terminal_weight=None, active: bool = True) -> Term:
-    """p_frame(q) − target: a frame's world position (3 entries) towards a target point given in the goal."""
-    kinematics.position(ca.SX.sym("q", kinematics.n), frame)  # an unknown frame fails here, with its name
+    """p_frame(q) − target: a frame's world position (3 entries) towards a target point given in the goal (within
+    :func:`workspace_radius` of the world origin)."""
+    check_frame(kinematics, frame)
+    radius = None  # computed at the first goal, once
+
+    def check(target, where):
+        nonlocal radius
+        radius = workspace_radius(kinematics) if radius is None else radius
+        return check_point(target, radius, where)
+
     return Term(name, lambda x, u, target: kinematics.position(x[:kinematics.n], frame) - target, weight,
-                target_size=3, stage=stage, terminal=terminal, terminal_weight=terminal_weight, active=active)
+                target_size=3, stage=stage, terminal=terminal, terminal_weight=terminal_weight, active=active,
+                target_check=check)
 
 
 def FrameOrientation(kinematics, frame: str, weight=1.0, *, name: str = "orientation", stage: bool = True,
                      terminal: bool = True, terminal_weight=None, active: bool = True) -> Term:
     """½ vee(R_tᵀR − RᵀR_t): a frame's orientation R(q) towards a target rotation R_t (the goal carries its 9
     entries row by row). It is sin θ times the rotation axis of R_tᵀR: zero at the target, smooth everywhere."""
-    kinematics.position(ca.SX.sym("q", kinematics.n), frame)
+    check_frame(kinematics, frame)
 
     def residual(x, u, target):
         R = kinematics.placement(x[:kinematics.n], frame)[0]
@@ -119,7 +197,7 @@ def FrameOrientation(kinematics, frame: str, weight=1.0, *, name: str = "orienta
         return 0.5 * ca.vertcat(A[2, 1], A[0, 2], A[1, 0])
 
     return Term(name, residual, weight, target_size=9, stage=stage, terminal=terminal,
-                terminal_weight=terminal_weight, active=active)
+                terminal_weight=terminal_weight, active=active, target_check=check_rotation)
 
 
 def JointLimitBarrier(q_min, q_max, weight=1e3, *, margin: float = 0.05, name: str = "joint_limits",
@@ -205,10 +283,13 @@ class Task:
         if self.obstacles and (self.kinematics is None or not self.robot):
             raise ValueError("a Task with obstacles needs kinematics= and robot= (the robot's spheres, e.g. "
                              "ocpkit.kinematics.spheres_along_links(problem.kinematics, problem.link_radius))")
-        self.margin = float(self.margin)
-        if not np.isfinite(self.margin):
-            raise ValueError(f"margin must be finite, got {self.margin!r}")
+        self.margin = length(self.margin, "margin", signed=True)
         self.obstacle_weight = positive(self.obstacle_weight, "obstacle_weight")
+
+    def check_target(self, name: str, value) -> np.ndarray:
+        """Term ``name``'s target as the goal holds it (its own ``target_check`` applied)."""
+        term = next(t for t in self.terms if t.name == name)
+        return value if term.target_check is None else term.target_check(value, name)
 
     @property
     def active_terms(self) -> list:
@@ -357,15 +438,18 @@ def clearances(kinematics, robot, obstacles, q_rows) -> np.ndarray:
 
 def reach(problem, obstacles=(), *, frame: str | None = None, position_weight: float = 1e3,
           terminal_weight: float | None = None, margin: float = 0.01, link_radius: float | None = None,
-          obstacle_weight: float = REACH_OBSTACLE_WEIGHT, velocity_limits: bool = True, **ocp_options):
+          obstacle_weight: float = REACH_OBSTACLE_WEIGHT, velocity_limits: bool = True, terms=(), **ocp_options):
     """The OCP "bring ``frame`` to a point, clear of ``obstacles``" for a robot problem with ``kinematics``.
 
     Cost: the frame-position term "position" (``position_weight`` per m² at every stage and, ``terminal_weight``,
     by default the same, at x_T: ten times as much made the light-wristed Panda's condensed QP ill-conditioned
     beyond what a QP solver can answer), the problem's velocity weights as the "state" term (its joint-angle
-    weights set to zero: the posture is free) and its input term. Obstacles (:class:`Sphere` s, or "x,y,z,r" strings) are kept
-    ``margin`` away from spheres of ``link_radius`` (default the problem's) along the robot's links. Other
-    keywords go to ``problem.ocp`` (``knots``, ``horizon``, ...). The goal is ``ocp.goal(x_ref, position=p)``.
+    weights set to zero: the posture is free) and its input term. Obstacles (:class:`Sphere` s, or "x,y,z,r"
+    strings) are kept ``margin`` away from spheres of ``link_radius`` (default the problem's) along the robot's links
+    (both within ``MAX_LENGTH``). ``terms``: more :class:`Term` s, such as :func:`FrameOrientation`, another frame's
+    :func:`FramePosition` or :func:`JointLimitBarrier`. Other keywords go to ``problem.ocp`` (``knots``,
+    ``horizon``, ...). The goal is ``ocp.goal(x_ref, position=p, **the other terms' targets)``; a position target
+    beyond :func:`workspace_radius` is refused there.
 
     ``velocity_limits``: the robot's joint velocity limits (``problem.velocity_limit``, a URDF's ``<limit
     velocity>``) as the OCP's state bounds — soft in LinearMPC, constraints for IPOPT, a penalty in the sampling
@@ -380,10 +464,10 @@ def reach(problem, obstacles=(), *, frame: str | None = None, position_weight: f
                          "(nlink, puma560, baxter, panda, a URDF)")
     frame = frame or problem.end_effector
     obstacles = [o if isinstance(o, Sphere) else Sphere.parse(o) for o in obstacles]
-    radius = problem.link_radius if link_radius is None else positive(link_radius, "link_radius")
+    radius = problem.link_radius if link_radius is None else length(link_radius, "link_radius")
     weight = positive(position_weight, "position_weight")
     terminal = weight if terminal_weight is None else positive(terminal_weight, "terminal_weight")
-    task = Task([FramePosition(kinematics, frame, weight, terminal_weight=terminal)], obstacles,
+    task = Task([FramePosition(kinematics, frame, weight, terminal_weight=terminal), *terms], obstacles,
                 kinematics=kinematics if obstacles else None,
                 robot=spheres_along_links(kinematics, radius) if obstacles else (), margin=margin,
                 obstacle_weight=obstacle_weight)

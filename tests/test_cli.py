@@ -1,6 +1,8 @@
 import json
+import re
 import subprocess
 import sys
+import time
 
 import pytest
 
@@ -312,3 +314,65 @@ def test_build_fills_the_taichi_kernels_a_later_run_loads(tmp_path):
     assert solved.returncode == 0, solved.stderr
     assert json.loads(solved.stdout)["path"] == "Taichi kernel (cpu)"
     assert sorted(p.name for p in kernels.glob("*.tic")) == before
+
+
+def test_export_offers_only_what_it_exports(capsys):
+    """Issue 44, item 14: --qp hpipm and --form sparse were offered and always refused; the choices are the pairs
+    ocpkit.export generates."""
+    from ocpkit.cli.options import EXPORT_FORMS, EXPORT_QPS
+    from ocpkit.export import SUPPORTED
+
+    assert {(f, q) for f in EXPORT_FORMS for q in EXPORT_QPS} == SUPPORTED and EXPORT_QPS[0] == "daqp"
+    for option, value in (("--qp", "hpipm"), ("--form", "sparse")):
+        with pytest.raises(SystemExit) as exit_:
+            main(["export", "pendulum", option, value])
+        assert exit_.value.code == 2 and f"invalid choice: '{value}'" in capsys.readouterr().err
+
+
+def test_simulate_writes_a_figure_only_when_asked(tmp_path, monkeypatch, capsys):
+    """Issue 44, item 15: without --out no figure is written (it overwrote results/simulate.png on every run); the
+    step times carry their unit; the figure's legend is the controller's short label, not its OCP's repr."""
+    from ocpkit import plots
+
+    monkeypatch.chdir(tmp_path)
+    assert main(["simulate", "pendulum:linear", "--knots", "3", "--duration", "0.2"]) == 0
+    out = capsys.readouterr().out
+    assert not any(tmp_path.iterdir()) and "figure:" not in out
+    assert re.search(r"total solve time median \d+\.\d{3} ms \(p90 \d+\.\d{3} ms, max \d+\.\d{3} ms\)", out), out
+    drawn = []
+    monkeypatch.setattr(plots, "closed_loop", lambda trajectories, path, **kw: drawn.append(list(trajectories)) or path)
+    assert main(["simulate", "pendulum:linear", "--knots", "3", "--duration", "0.2", "--out", "f.png", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["figure"] == "f.png"
+    assert drawn == [["LinearMPC(condensed, daqp, Python step, 3 knots)"]]
+
+
+def test_long_runs_say_what_they_do_on_stderr(tmp_path, monkeypatch, capsys):
+    """Issue 44, item 15: export and simulate waited up to 50 s in silence; a phase that lasts (here: any) is said
+    on stderr as it starts, and a closed loop's progress as it runs."""
+    from ocpkit.cli import commands
+
+    monkeypatch.setattr(commands, "SLOW", 0.0)
+    monkeypatch.setattr(commands._Progress, "FIRST", 0.0)
+    monkeypatch.setattr(commands._Progress, "EVERY", 0.0)
+    slow = commands.Controller.solve
+
+    def solve(self, x, goal):
+        time.sleep(0.01)  # the timer's thread gets its turn
+        return slow(self, x, goal)
+
+    monkeypatch.setattr(commands.Controller, "solve", solve)
+    assert main(["simulate", "pendulum:linear", "--knots", "3", "--duration", "0.05"]) == 0
+    err = capsys.readouterr().err
+    assert "ocpkit: LinearMPC(condensed, daqp, Python step, 3 knots): first solve, compiling" in err, err
+    assert "ocpkit: simulating 5 steps: 1/5" in err and "ocpkit: simulating 5 steps: 4/5" in err, err
+    assert main(["export", "pendulum", "--horizon", "10", "--out", str(tmp_path / "c")]) == 0
+    err = capsys.readouterr().err
+    assert re.search(r"ocpkit: building the C step in \S+ \(make: \d+ kB of C, about \d+ s the first time\)…",
+                     err), err
+
+
+def test_study_help_says_its_defaults(capsys):
+    with pytest.raises(SystemExit):
+        main(["study", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "quick (minutes, the default) or full" in text and "(default: results/reproduce)" in text

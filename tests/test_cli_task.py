@@ -8,7 +8,9 @@ import pytest
 from conftest import README, readme_block
 from ocpkit import cli
 from ocpkit.cli import main
-from ocpkit.cli.task import read_task_file
+from ocpkit.cli.task import reach_ocp, reach_task, read_task_file
+from ocpkit.problems import make
+from pinocchio.rpy import rpyToMatrix
 
 # nlink:3 (planar, z = 0): the tip from seed 0's start, (0.43, -0.21), round a ball to (0.3, 0.5); without the ball
 # the tip's path passes through it.
@@ -115,9 +117,18 @@ def _bad_files(tmp_path):
              "obstacle.toml": "target = [0.3, 0.5, 0]\n[[obstacle]]\ncentre = [1, 2, 3]\n",
              "radius.toml": "target = [0.3, 0.5, 0]\n[[obstacle]]\ncenter = [1, 2, 3]\nradius = -1\n",
              "weight.toml": "target = [0.3, 0.5, 0]\nposition_weight = 0\n", "short.toml": "target = [0.3, 0.5]\n",
-             "frame.toml": "target = [0.3, 0.5, 0]\nframe = \"hand\"\n"}
+             "frame.toml": "target = [0.3, 0.5, 0]\nframe = \"hand\"\n",
+             # issue 44, item 10: booleans, bytes that are not UTF-8, lengths, the world frame, a target at 1e300
+             "bools.toml": "target = [true, false, true]\n", "strings.toml": "target = [\"1\", \"2\", \"3\"]\n",
+             "radius6.toml": "target = [0.3, 0.5, 0]\nlink_radius = 1e6\n",
+             "margin6.toml": "target = [0.3, 0.5, 0]\nmargin = 1e6\n",
+             "universe.toml": "target = [0.3, 0.5, 0]\nframe = \"universe\"\n",
+             "far.toml": "target = [1e300, 0, 0]\n", "turn.toml": "target = [0.3, 0.5, 0]\norientation = [0, 0]\n",
+             "limits.toml": "target = [0.3, 0.5, 0]\njoint_limits = 1\n",
+             "elbow.toml": "target = [0.3, 0.5, 0]\n[[frame_target]]\nframe = \"joint3\"\n"}
     for name, text in files.items():
         (tmp_path / name).write_text(text)
+    (tmp_path / "latin1.toml").write_bytes("target = [0.3, 0.5, 0]\n# café\n".encode("latin-1"))
 
 
 @pytest.mark.parametrize("args,message", [
@@ -142,6 +153,33 @@ def _bad_files(tmp_path):
     (["nlink:3", "--task", "frame.toml"], "--task frame.toml: frame 'hand': unknown frame 'hand'; the model's "
                                           "frames: universe, joint1, joint2, joint3, tip"),
     (["pendulum", "--task", "short.toml"], "--task short.toml: target is [x, y, z]"),
+    (["nlink:3", "--task", "bools.toml"], "--task bools.toml: target is [x, y, z] (the end effector's target point in "
+                                          "metres, world frame), got [True, False, True]"),
+    (["nlink:3", "--task", "strings.toml"], "--task strings.toml: target is [x, y, z]"),
+    (["nlink:3", "--task", "latin1.toml"], "--task latin1.toml: not UTF-8 text (byte 28); a TOML file is UTF-8"),
+    (["nlink:3", "--task", "radius6.toml"], "--task radius6.toml: link_radius must be > 0 and at most 10 m (a robot's "
+                                            "scale), got 1000000.0"),
+    (["nlink:3", "--task", "margin6.toml"], "--task margin6.toml: margin must be within ±10 m"),
+    (["nlink:3", "--task", "universe.toml"], "--task universe.toml: frame 'universe': frame 'universe' is fixed to the "
+                                             "world (it does not move with the joints)"),
+    (["nlink:3", "--target", "0.3,0.5,0", "--frame", "universe"], "--frame 'universe': frame 'universe' is fixed"),
+    (["nlink:3", "--task", "far.toml"], "--task far.toml: target [1e+300, 0.0, 0.0] is 1e+300 m from the world "
+                                        "origin, beyond the robot's plausible workspace (75 m, 100 × its size)"),
+    (["nlink:3", "--target", "1e300,0,0"], "--target [1e+300, 0.0, 0.0] is 1e+300 m from the world origin"),
+    (["nlink:3", "--target", "0.3,0.5,0", "--frame-target", "tip=0,0,1e300"], "--frame-target tip=0,0,1e300 [0.0, "
+                                                                              "0.0, 1e+300] is 1e+300 m"),
+    # issue 44, item 12: the orientation, other frames and joint-limit terms, checked as the rest
+    (["nlink:3", "--task", "turn.toml"], "--task turn.toml: orientation is roll, pitch, yaw (rad"),
+    (["nlink:3", "--target", "0.3,0.5,0", "--orientation", "1,2"], "--orientation is roll, pitch, yaw (rad"),
+    (["nlink:3", "--task", "limits.toml"], "--task limits.toml: joint_limits must be true or false, got 1"),
+    (["nlink:3", "--target", "0.3,0.5,0", "--joint-limits"], "--joint-limits: nlink:3 has no joint limits"),
+    (["nlink:3", "--orientation", "0,0,1"], "--orientation needs --target x,y,z"),
+    (["nlink:3", "--task", "elbow.toml"], "--task elbow.toml: frame_target 1 has the keys ['frame']; it takes frame"),
+    (["nlink:3", "--target", "0.3,0.5,0", "--frame-target", "elbow"], "--frame-target is NAME=x,y,z"),
+    (["nlink:3", "--target", "0.3,0.5,0", "--frame-target", "hand=0,0,0"], "--frame-target hand=0,0,0: unknown "
+                                                                           "frame 'hand'"),
+    (["nlink:3", "--target", "0.3,0.5,0", "--frame-target", "tip=0,0,0"], "--frame-target tip=0,0,0: frame 'tip' "
+                                                                          "already has a target"),
 ])
 @pytest.mark.parametrize("command", ["solve", "simulate"])
 def test_bad_input_is_one_line_naming_the_option(command, args, message, tmp_path, monkeypatch, capsys):
@@ -183,3 +221,60 @@ def test_readme_reach_example(tmp_path, monkeypatch, capsys):
     assert reach["frame"] == "panda_hand_tcp" and reach["collisions"] == 0
     assert np.isclose(reach["final_distance"], distance, atol=5e-4), (reach, distance)
     assert np.isclose(reach["min_clearance"], clearance, atol=5e-4), (reach, clearance)
+
+
+TURN = """
+target = [0.3, 0.5, 0.0]
+orientation = [0.0, 0.0, 2.0]
+[[frame_target]]
+frame = "joint3"
+target = [0.404, 0.273, 0.0]
+weight = 10.0
+"""
+
+
+def test_orientation_and_other_frames_from_the_flags_and_the_file(tmp_path, capsys):
+    """Issue 44, item 12: the command line takes FrameOrientation (roll, pitch, yaw) and other frames' FramePosition
+    terms, as Python does; the planar arm brings its tip to the point at yaw 2 rad."""
+    flags = ["nlink:3", "--target", "0.3,0.5,0", "--orientation", "0,0,2", "--frame-target", "joint3=0.404,0.273,0"]
+    out = _simulate([*flags, "--linearization", "trajectory"], tmp_path, capsys)
+    reach = out["reach"]
+    assert reach["final_distance"] < 0.02 and reach["final_orientation_error"] < 0.05, reach
+    assert reach["frame_targets"][0]["frame"] == "joint3" and reach["frame_targets"][0]["target"] == [0.404, 0.273, 0.0]
+    (tmp_path / "turn.toml").write_text(TURN)
+    args = cli._parser().parse_args(["solve", "nlink:3", "--task", str(tmp_path / "turn.toml")])
+    task = reach_task(args)
+    ocp = reach_ocp(make("nlink:3"), args, task)
+    assert ocp.terms == ["state", "input", "position", "orientation", "position_joint3"]
+    assert task.goal(ocp, np.zeros(6))[6:].tolist() == [0.3, 0.5, 0.0, *np.ravel(rpyToMatrix(0, 0, 2.0)), 0.404,
+                                                         0.273, 0]
+    assert main(["solve", *flags, "--json"]) == 0
+    assert "final_orientation_error" in json.loads(capsys.readouterr().out)["reach"]
+    assert main(["solve", *flags]) == 0
+    assert re.search(r"reach: tip \d\.\d{4} m from the target \(0\.3, 0\.5, 0\) at the plan's end .*, \d\.\d{4} rad "
+                     r"from its orientation; joint3 \d\.\d{4} m from \(0\.404, 0\.273, 0\)", capsys.readouterr().out)
+
+
+def test_joint_limits_term_from_the_flag_and_the_file(tmp_path):
+    """--joint-limits and joint_limits = true: JointLimitBarrier at the robot's limits (the Puma's)."""
+    (tmp_path / "limits.toml").write_text("target = [0.3, 0.3, 0.5]\njoint_limits = true\njoint_limit_weight = 50\n")
+    for argv, weight in ((["--target", "0.3,0.3,0.5", "--joint-limits"], 1e3),
+                         (["--task", str(tmp_path / "limits.toml")], 50.0)):
+        args = cli._parser().parse_args(["solve", "puma560", *argv])
+        task = reach_task(args)
+        assert task.joint_limits == weight
+        ocp = reach_ocp(make("puma560"), args, task)
+        assert ocp.terms == ["state", "input", "position", "joint_limits"]
+
+
+def test_export_takes_the_task_options(tmp_path, capsys):
+    """Issue 44, item 12: `ocpkit export` takes --target/--frame/--task as solve and simulate do, and its round trip
+    runs on the task's goal."""
+    (tmp_path / "reach.toml").write_text("target = [0.3, 0.2, 0.0]\nframe = \"tip\"\n")
+    assert main(["export", "nlink:2", "--horizon", "20", "--task", str(tmp_path / "reach.toml"), "--out",
+                 str(tmp_path / "c")]) == 0
+    out = capsys.readouterr().out
+    assert "round trip:" in out and "— agree" in out, out
+    assert "NG" in (tmp_path / "c" / "mpc.h").read_text()  # the step's goal is [x_goal; target]
+    assert main(["export", "nlink:2", "--horizon", "20", "--target", "1e300,0,0", "--out", str(tmp_path / "d")]) == 2
+    assert "--target [1e+300, 0.0, 0.0] is 1e+300 m" in capsys.readouterr().err and not (tmp_path / "d").exists()

@@ -28,3 +28,23 @@ def test_ratio_axis_is_labelled_in_plain_decimals(tmp_path):
     plots.plt.close(fig)
     assert len(labels) >= 3 and all("10^" not in s and "times" not in s for s in labels), labels
     assert path.stat().st_size > 5000
+
+
+def test_a_long_label_does_not_squeeze_the_closed_loop_panels(tmp_path, monkeypatch):
+    """Issue 44, item 15: a controller's long label in a legend beside the panels squeezed them into a third of the
+    image; below them, the panels keep the figure's width."""
+    from ocpkit.simulate import Trajectory
+
+    t = np.linspace(0, 1, 11)
+    traj = Trajectory(t=t, x=np.zeros((11, 4)), u=np.zeros((10, 2)), goal=np.ones(4), solutions=[])
+    widths = []
+
+    def measure(fig, path):
+        fig.canvas.draw()
+        widths.extend(ax.get_position().width for ax in fig.axes)
+        return path
+
+    monkeypatch.setattr(plots, "save", measure)
+    plots.closed_loop({"LinearMPC(condensed, daqp, Python step, OCP('nlink:2', dt=0.01, horizon=50, linear "
+                       "knots=5))": traj}, tmp_path / "f.png", title="nlink:2, seed 0")
+    assert len(widths) == 4 and min(widths) > 0.8, widths

@@ -208,3 +208,34 @@ def test_daqp_softens_the_obstacle_rows_before_the_state_bounds(nlink3, monkeypa
     assert len(sizes) == 2 and sizes[0] == nz and nz < sizes[1] <= nz + HORIZON < nz + soft.ns, sizes
     ref = solvers.make("qp", ocp, qp="proxqp", eps=1e-10).solve(x0, goal)
     assert sol.status == ref.status and np.abs(sol.knots - ref.knots).max() < 1e-5, (sol.raw_status, ref.raw_status)
+
+
+def test_targets_and_lengths_beyond_a_robots_scale_are_refused(nlink3):
+    """Issue 44, item 10: a target at 1e300 m made every step a NaN fallback; a 1e6 m link radius or margin and the
+    world frame were taken. Each is refused where it is given, naming it and the plausible range."""
+    ocp = reach(nlink3, knots=KNOTS, horizon=HORIZON)
+    with pytest.raises(ValueError, match=r"position \[1e\+300, 0.0, 0.0\] is 1e\+300 m from the world origin, beyond "
+                                         r"the robot's plausible workspace \(75 m"):
+        ocp.goal(np.zeros(6), position=[1e300, 0, 0])
+    assert ocp.goal(np.zeros(6), position=[0.8, 0.6, 0])[-3:].tolist() == [0.8, 0.6, 0]  # beyond reach, but a reach
+    with pytest.raises(ValueError, match=r"link_radius must be > 0 and at most 10 m"):
+        reach(nlink3, ["1,1,0,0.1"], link_radius=1e6)
+    with pytest.raises(ValueError, match=r"margin must be within ±10 m"):
+        reach(nlink3, ["1,1,0,0.1"], margin=1e6)
+    with pytest.raises(ValueError, match=r"frame 'universe' is fixed to the world .* moving frames: joint1, joint2"):
+        reach(nlink3, frame="universe")
+    turned = reach(nlink3, terms=[FrameOrientation(nlink3.kinematics, "tip")], knots=KNOTS, horizon=HORIZON)
+    with pytest.raises(ValueError, match="orientation must be a rotation matrix"):
+        turned.goal(np.zeros(6), position=[0.3, 0.5, 0], orientation=2 * np.eye(3))
+
+
+def test_reach_takes_more_terms(nlink3):
+    """reach(terms=...): an orientation, another frame's position and the joint-limit barrier beside the position."""
+    kin = nlink3.kinematics
+    ocp = reach(nlink3, terms=[FrameOrientation(kin, "tip", 10.0), FramePosition(kin, "joint3", name="elbow"),
+                               JointLimitBarrier([-2.0] * 3, [2.0] * 3)], knots=KNOTS, horizon=HORIZON)
+    assert ocp.terms == ["state", "input", "position", "orientation", "elbow", "joint_limits"]
+    g = ocp.goal(np.zeros(6), position=[0.3, 0.5, 0], orientation=np.eye(3), elbow=[0.2, 0.2, 0])
+    assert g.size == 6 + 3 + 9 + 3
+    sol = solvers.make("qp", ocp).solve(np.zeros(6), g)
+    assert sol.ok, sol.status

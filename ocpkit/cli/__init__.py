@@ -10,7 +10,8 @@ import sys
 
 from ocpkit import __version__, solvers, studies
 from ocpkit.cli.commands import BENCHMARKS, COMMANDS, PROBLEM_BENCHMARKS, PROBLEM_STUDIES
-from ocpkit.cli.options import DEFAULT_KNOTS, DYNAMICS, NLP_METHODS, QP_BACKENDS, SAMPLING, SPEC_HELP, VARIANTS
+from ocpkit.cli.options import (DEFAULT_KNOTS, DYNAMICS, EXPORT_FORMS, EXPORT_QPS, NLP_METHODS, QP_BACKENDS, SAMPLING,
+                                SPEC_HELP, VARIANTS)
 from ocpkit.cli.task import NUMBERS
 from ocpkit.controller import LINEARIZATIONS, TRAJECTORY
 from ocpkit.model import INTEGRATORS
@@ -79,7 +80,7 @@ def _add_controller_args(p):
 
 
 def _add_task_args(p):
-    """A task-space target (ocpkit.task.reach) instead of the seeded joint-space goal: solve and simulate."""
+    """A task-space target (ocpkit.task.reach) instead of the seeded joint-space goal: solve, simulate and export."""
     p.add_argument("--target", metavar="X,Y,Z",
                    help="bring the end effector (or --frame) to this point (m, world frame) from the seeded start "
                         "instead of the seeded joint goal (ocpkit.task.reach; a robot problem with kinematics)")
@@ -88,16 +89,30 @@ def _add_task_args(p):
                         "(repeatable)")
     p.add_argument("--frame", metavar="NAME", help="with a target: the frame brought to it (default: the "
                                                     "problem's end effector)")
+    p.add_argument("--orientation", metavar="R,P,Y",
+                   help="with a target: the frame's orientation too, as roll, pitch, yaw (rad, about the world's x, "
+                        "y, z: R = Rz(yaw) Ry(pitch) Rx(roll), as a URDF's rpy; ocpkit.task.FrameOrientation)")
+    p.add_argument("--frame-target", action="append", metavar="NAME=X,Y,Z",
+                   help="with a target: another frame brought to a point as well (m, world frame; "
+                        "ocpkit.task.FramePosition; repeatable)")
+    p.add_argument("--joint-limits", action="store_true",
+                   help="with a target: keep the joints off their limits (ocpkit.task.JointLimitBarrier at the "
+                        "robot's limits, 0.05 rad inside)")
     p.add_argument("--task", metavar="FILE",
-                   help="a TOML reach task: target = [x, y, z], optional frame, margin, position_weight, "
-                        "terminal_weight, link_radius, obstacle_weight and [[obstacle]] tables (center = [x, y, z], "
-                        "radius = r); --target and --frame override its values, --obstacle adds to its obstacles")
+                   help="a TOML reach task: target = [x, y, z], optional frame, orientation = [roll, pitch, yaw] "
+                        "(or a 3 × 3 matrix), joint_limits = true, margin, position_weight, terminal_weight, "
+                        "orientation_weight, joint_limit_weight, link_radius, obstacle_weight, [[obstacle]] tables "
+                        "(center = [x, y, z], radius = r) and [[frame_target]] tables (frame = NAME, target = "
+                        "[x, y, z], optional weight); the flags override its values, --obstacle and --frame-target "
+                        "add to its lists")
 
 
 def _add_study_args(p, size=True):
     if size:
-        p.add_argument("--size", default="quick", choices=("quick", "full"))
-    p.add_argument("--out", default="results/reproduce", help="results folder (store, figures, report)")
+        p.add_argument("--size", default="quick", choices=("quick", "full"),
+                       help="quick (minutes, the default) or full (the paper's scale)")
+    p.add_argument("--out", default="results/reproduce",
+                   help="results folder: store, figures, report (default: results/reproduce)")
     p.add_argument("--workers", type=int, default=None, help="local worker processes (default: CPU count)")
     p.add_argument("--scheduler", default=None, help="Dask scheduler address tcp://HOST:PORT")
     p.add_argument("--trial-timeout", type=float, default=None, metavar="SECONDS",
@@ -123,10 +138,10 @@ def _parser() -> argparse.ArgumentParser:
     _add_controller_args(solve)
     _add_task_args(solve)
     solve.add_argument("--json", action="store_true", help="print one JSON object")
-    sim = sub.add_parser("simulate", help="closed loop: actual cost, solve times, a figure")
+    sim = sub.add_parser("simulate", help="closed loop: actual cost, solve times, a figure with --out")
     _add_controller_args(sim)
     sim.add_argument("--duration", type=float, default=None, help="seconds (default: the problem's)")
-    sim.add_argument("--out", default="results/simulate.png", help="figure path")
+    sim.add_argument("--out", metavar="FIG.png", help="write the closed loop's figure to this file (default: none)")
     sim.add_argument("--plant", default="ocpkit", choices=("ocpkit", "mujoco"),
                      help="the simulated robot: ocpkit's model integrated by RK4 (default), or MuJoCo's (pip install "
                           "\"ocpkit[mujoco]\"; RK4 at the same sub-step) from the problem's robot or --mjcf")
@@ -171,10 +186,11 @@ def _parser() -> argparse.ArgumentParser:
     _add_study_args(rep, size=False)
     exp = sub.add_parser("export", help="generate, build and check a C MPC step")
     _add_problem_args(exp)
-    exp.add_argument("--form", default="condensed", choices=("sparse", "condensed"),
-                     help="QP transcription (default condensed, the one exported)")
-    exp.add_argument("--qp", default="daqp", choices=("daqp", "qrqp", "osqp", "hpipm"),
-                     help="QP backend (default daqp)")
+    exp.add_argument("--form", default=EXPORT_FORMS[0], choices=EXPORT_FORMS,
+                     help="QP transcription: condensed, the one exported (the sparse form is solved in Python only)")
+    exp.add_argument("--qp", default=EXPORT_QPS[0], choices=EXPORT_QPS,
+                     help="QP backend generated into the C: daqp (default), qrqp or osqp (hpipm needs a stage-wise "
+                          "QP, which the knot QP is not)")
     exp.add_argument("--linearization", default="goal", choices=LINEARIZATIONS + (TRAJECTORY,),
                      help="the affine model's expansion point, as solve's: goal (default), plan, or trajectory (the "
                           "real-time iteration: per stage along the shifted plan)")
@@ -183,6 +199,7 @@ def _parser() -> argparse.ArgumentParser:
     exp.add_argument("--seed", type=int, default=0, help="seed of the example closed loop's start and goal")
     exp.add_argument("--out", default="export", help="output folder (absent or empty unless --force)")
     exp.add_argument("--force", action="store_true", help="export into a non-empty --out, overwriting its files")
+    _add_task_args(exp)
     pre = sub.add_parser("build", help="fill the cache ahead of deployment with what a controller loads: the default "
                                        "LinearMPC's C step and compiled model, or with --solver and its options "
                                        "(as simulate takes them) that controller's C step or Taichi kernels (a "
@@ -239,13 +256,13 @@ def _error_line(exc: BaseException, debug: bool) -> str:
 
 
 def _attach_values(argv) -> list[str]:
-    """``--target -0.3,0.5,0`` as ``--target=-0.3,0.5,0`` (and so --obstacle): argparse takes a value that starts
-    with '-' and is not one plain number for an option ("expected one argument")."""
+    """``--target -0.3,0.5,0`` as ``--target=-0.3,0.5,0`` (and so --obstacle and --orientation): argparse takes a
+    value that starts with '-' and is not one plain number for an option ("expected one argument")."""
     out = []
     for k, a in enumerate(argv):
         if a == "--":
             return out + list(argv[k:])
-        if out and out[-1] in ("--target", "--obstacle") and NUMBERS.match(a):
+        if out and out[-1] in ("--target", "--obstacle", "--orientation") and NUMBERS.match(a):
             out[-1] = f"{out[-1]}={a}"
         else:
             out.append(a)

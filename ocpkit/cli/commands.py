@@ -1,9 +1,12 @@
 """The commands of the command line: solve, simulate, demo, study, reproduce, export, build and bench."""
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import sys
+import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -45,9 +48,49 @@ def _controller(args, task: Reach | None = None) -> tuple:
 
 
 def _start(problem, ocp, seed: int, task: Reach | None) -> tuple:
-    """The seeded start and goal; with a reach task the goal is the target, at rest (joint velocities zero)."""
+    """The seeded start and goal; with a reach task the goal is its targets, at rest (joint velocities zero)."""
     x0, goal = problem.sample(seed)
-    return (x0, goal) if task is None else (x0, ocp.goal(x0, position=task.target))
+    return (x0, goal) if task is None else (x0, task.goal(ocp, x0))
+
+
+# Seconds a phase of work runs before it is said on stderr (_said_if_slow): quick runs stay quiet.
+SLOW = 1.0
+
+
+@contextlib.contextmanager
+def _said_if_slow(text: str):
+    """``text…`` on stderr once the block has run ``SLOW`` seconds: what a long wait is spent on (quick work prints
+    nothing)."""
+    timer = threading.Timer(SLOW, lambda: print(f"ocpkit: {text}…", file=sys.stderr, flush=True))
+    timer.daemon = True
+    timer.start()
+    try:
+        yield
+    finally:
+        timer.cancel()
+
+
+class _Progress:
+    """A closed loop's progress on stderr, "simulating 200 steps: 40/200 (5 s)": first after ``FIRST`` seconds, then
+    every ``EVERY`` (quick runs print nothing); a simulate() callback."""
+
+    FIRST, EVERY = 2.0, 5.0
+
+    def __init__(self, steps: int):
+        self.steps, self.start = steps, time.perf_counter()
+        self.next = self.start + self.FIRST
+
+    def __call__(self, k: int, x, solution) -> None:
+        now = time.perf_counter()
+        if now >= self.next and k + 1 < self.steps:
+            print(f"ocpkit: simulating {self.steps} steps: {k + 1}/{self.steps} ({now - self.start:.0f} s)",
+                  file=sys.stderr, flush=True)
+            self.next = now + self.EVERY
+
+
+def _label(ctrl: Controller) -> str:
+    """The controller's repr with its OCP as its knot count: "LinearMPC(condensed, daqp, C step, 5 knots)"."""
+    return repr(ctrl).replace(repr(ctrl.ocp), f"{ctrl.ocp.knots} knots")
 
 
 def _solve(args):
@@ -71,20 +114,21 @@ def _solve(args):
 
 def _run_closed_loop(problem, ctrl: Controller, seed: int, duration: float | None = None, start=None, plant=None):
     """The closed loop from the seeded start (or ``start``, (x0, goal)) against ``plant`` (default the problem's),
-    after one untimed solve that compiles what the controller needs (Taichi kernels take seconds): said on stderr
-    when it takes over a second, never counted in the step times."""
-    import time
-
+    after one untimed solve that compiles what the controller needs (Taichi kernels take seconds), never counted in
+    the step times; a first solve over a second and a loop over two seconds are said on stderr as they run."""
     from ocpkit.metrics import actual_cost
     from ocpkit.simulate import simulate
 
     x0, goal = problem.sample(seed) if start is None else start
     start = time.perf_counter()
-    ctrl.solve(x0, goal)  # simulate() resets the controller: this solve only compiles and warms up
+    with _said_if_slow(f"{_label(ctrl)}: first solve, compiling what it needs (not in the step times)"):
+        ctrl.solve(x0, goal)  # simulate() resets the controller: this solve only compiles and warms up
     first = time.perf_counter() - start
-    if first > 1.0:
-        print(f"  ({ctrl!r}: first solve, compiling, took {first:.1f} s; not in the step times)", file=sys.stderr)
-    traj = simulate(plant or problem.plant(), ctrl, x0, goal, duration or problem.duration)
+    if first > SLOW:
+        print(f"ocpkit: first solve took {first:.1f} s", file=sys.stderr)
+    duration = duration or problem.duration
+    traj = simulate(plant or problem.plant(), ctrl, x0, goal, duration,
+                    callback=_Progress(int(round(duration / ctrl.ocp.dt))))
     return traj, actual_cost(traj, ctrl.ocp)
 
 
@@ -142,7 +186,8 @@ def _plant(problem, args):
 def _simulate(args):
     from ocpkit import plots
 
-    check_output_file(args.out, "--out")
+    if args.out is not None:
+        check_output_file(args.out, "--out")
     if args.animate is not None:
         from ocpkit import animation
 
@@ -167,15 +212,17 @@ def _simulate(args):
         goal[:problem.kinematics.n] = np.nan
         shown = dataclasses.replace(traj, goal=goal)
         title += f", {task.frame} to {point_text(task.target)}"
-    panels = None if task is None else reach_panels(problem, ocp, task, traj.x)
-    fig = plots.closed_loop({repr(ctrl): shown}, args.out, title=title, task=panels, **_labels(problem))
+    fig = None
+    if args.out is not None:  # a figure only when asked: never one overwritten unasked
+        panels = None if task is None else reach_panels(problem, ocp, task, traj.x)
+        fig = plots.closed_loop({_label(ctrl): shown}, args.out, title=title, task=panels, **_labels(problem))
     # success: status "success" only; a soft step applied the solver's input but broke a clearance or state bound
     progress = traj.progress() if task is None else traj.progress(problem.kinematics, task.frame, task.target)
     summary = {"problem": args.problem, "solver": args.solver, "controller": repr(ctrl), "actual_cost": cost,
                "successes": traj.successes, "soft": traj.soft_steps, "soft_causes": traj.soft_causes(),
                "fallbacks": traj.fallbacks, "fallback_causes": traj.fallback_causes(), "steps": len(traj.solutions),
                "progress": progress.to_dict(), "total_time": _time_summary(traj),
-               "figure": str(fig), "plant": "ocpkit" if plant is None else repr(plant)}
+               "figure": None if fig is None else str(fig), "plant": "ocpkit" if plant is None else repr(plant)}
     if task is not None:
         summary["reach"] = reach_report(problem, ocp, task, traj.x, dt=float(traj.t[1] - traj.t[0]),
                                         success_while_colliding=traj.success_while_colliding(ocp))
@@ -190,8 +237,8 @@ def _simulate(args):
         print(f"{ctrl!r}: actual cost {cost:.4f}; {len(traj.solutions)} steps: {traj.successes} success, "
               f"{traj.soft_steps} soft{soft}, {traj.fallbacks} fallbacks{causes}; "
               f"total solve time median {summary['total_time']['median_ms']:.3f} ms "
-              f"(p90 {summary['total_time']['p90_ms']:.3f}, max {summary['total_time']['max_ms']:.3f})\n"
-              f"figure: {fig}" + ("" if plant is None else f"\nplant: {plant!r}"))
+              f"(p90 {summary['total_time']['p90_ms']:.3f} ms, max {summary['total_time']['max_ms']:.3f} ms)"
+              + ("" if fig is None else f"\nfigure: {fig}") + ("" if plant is None else f"\nplant: {plant!r}"))
         if task is not None:
             print(reach_line(summary["reach"], f"after {traj.t[-1]:g} s"))
         print(progress.text())
@@ -343,8 +390,6 @@ def _prebuild(args):
     """`ocpkit build`: what the default LinearMPC of the problem's OCP loads from the cache — its C step and the
     compiled affine model of its Python step — built into the cache unless there (and loading), paths printed; with
     another solver or options, :func:`_prebuild_controller`."""
-    import time
-
     from ocpkit import compiled, native
     from ocpkit.cache import cache_root
     from ocpkit.ocp import BACKGROUND_MIN_INSTRUCTIONS
@@ -385,8 +430,6 @@ def _prebuild(args):
 def _prebuild_controller(args):
     """`ocpkit build --solver …`: the controller as `simulate` constructs it, one step from the seeded start (a
     Taichi kernel compiles at its first launch, into the cache) and its background builds waited for."""
-    import time
-
     start = time.perf_counter()
     problem, ocp, ctrl = _controller(args)
     x0, goal = problem.sample(args.seed)
@@ -406,16 +449,20 @@ def _export(args):
 
     try:
         check_tools()  # before any work: a missing cc or make is one line
+        task = reach_task(args)
         problem = problems.make(args.problem)
-        ocp = make_ocp(problem, args)
-        x0, goal = problem.sample(args.seed)
-        exported = export(ocp, args.out, form=args.form, qp=args.qp, linearization=args.linearization, x0=x0,
-                          goal=goal, force=args.force, iterations=args.iterations)
-        build(args.out)
+        ocp = make_ocp(problem, args) if task is None else reach_ocp(problem, args, task)
+        x0, goal = _start(problem, ocp, args.seed, task)
+        with _said_if_slow(f"generating the C step of {args.problem} (CasADi code generation)"):
+            exported = export(ocp, args.out, form=args.form, qp=args.qp, linearization=args.linearization, x0=x0,
+                              goal=goal, force=args.force, iterations=args.iterations)
+        with _said_if_slow(f"building the C step in {args.out} (make: {_build_estimate(exported.out_dir)})"):
+            build(args.out)
     except BuildError as exc:
         print(f"ocpkit: error: {exc}", file=sys.stderr)
         return 2
-    du, steps, failures = _round_trip(problem, ocp, args, exported)
+    with _said_if_slow("round trip: the compiled step and the Python step on the same closed loop"):
+        du, steps, failures = _round_trip(problem, ocp, args, exported, (x0, goal))
     ok = failures == 0 and du <= 1e-6
     print(f"exported and built {args.problem} ({args.form}, {ocp.parameterization.kind} with {ocp.knots} knots over "
           f"T = {ocp.horizon}, {args.qp}, linearization {args.linearization}) in {exported.out_dir}; "
@@ -425,9 +472,17 @@ def _export(args):
     return 0 if ok else 1
 
 
-def _round_trip(problem, ocp, args, exported, steps: int = 20):
-    """The compiled step (through ctypes) and LinearMPC in Python on the same closed loop (the discrete model,
-    driven by LinearMPC's input): their largest first-input difference and the steps where either failed."""
+def _build_estimate(folder) -> str:
+    """How long ``make`` may take on the generated C in ``folder``: about 1 s per 150 kB on one core (measured on
+    nlink:7's 225 kB: 1.3 s with two jobs, the folder's default)."""
+    size = sum(path.stat().st_size for path in Path(folder).glob("*.c"))
+    return f"{size / 1e3:.0f} kB of C, about {max(1, round(size / 150e3))} s the first time"
+
+
+def _round_trip(problem, ocp, args, exported, start, steps: int = 20):
+    """The compiled step (through ctypes) and LinearMPC in Python on the same closed loop from ``start`` (x0, goal;
+    the discrete model, driven by LinearMPC's input): their largest first-input difference and the steps where either
+    failed."""
     from ocpkit.export import ExportedMPC
     from ocpkit.problem import check_dynamics
     from ocpkit.solvers.nlp import RealTimeIteration
@@ -439,7 +494,7 @@ def _round_trip(problem, ocp, args, exported, steps: int = 20):
     else:
         py = LinearMPC(ocp, form="condensed", eps=1e-10, linearization=exported.linearization, native=False)
     F = ocp.discrete()
-    x, goal = problem.sample(args.seed)
+    x, goal = start
     du, failures = 0.0, 0
     for k in range(steps):
         a, b = py.solve(x, goal), c.solve(x, goal)

@@ -18,6 +18,10 @@ DYNAMICS = ("nonlinear", "affine")
 QP_BACKENDS = ("proxqp", "osqp", "daqp", "hpipm")
 VARIANTS = ("preconditioned", "paper")
 SAMPLING = ("empc", "cem", "mppi")
+# What `ocpkit export` offers: the (form, qp) pairs ocpkit.export generates (its SUPPORTED; tests/test_cli.py checks),
+# DAQP first, the default.
+EXPORT_FORMS = ("condensed",)
+EXPORT_QPS = ("daqp", "qrqp", "osqp")
 
 
 # Solver-specific options: where each applies, as (test of the configuration, where it applies in words). A given

@@ -11,35 +11,109 @@ from ocpkit.cli.options import knot_count
 
 # --- task-space targets: --target, --obstacle, --frame, --task (ocpkit.task.reach) --------------------------------
 
-# The keys of a --task file beside target, frame and [[obstacle]]: reach()'s keyword arguments, all positive but
-# margin (any finite number: the clearance kept, m).
-_TASK_NUMBERS = ("margin", "position_weight", "terminal_weight", "link_radius", "obstacle_weight")
-_TASK_KEYS = ("target", "frame", "obstacle") + _TASK_NUMBERS
-# A value of --target or --obstacle that argparse would take for an option ("-0.3,0.5,0"): see _attach_values.
+# The keys of a --task file beside target, frame, orientation, joint_limits and the [[obstacle]] and [[frame_target]]
+# tables: numbers, reach()'s keyword arguments and the weights of the orientation and joint-limit terms, all positive
+# but margin (the clearance kept, m, of either sign); link_radius and margin are lengths within ocpkit.task.MAX_LENGTH.
+_TASK_NUMBERS = ("margin", "position_weight", "terminal_weight", "link_radius", "obstacle_weight",
+                 "orientation_weight", "joint_limit_weight")
+_REACH_OPTIONS = _TASK_NUMBERS[:5]
+_TASK_KEYS = ("target", "frame", "orientation", "joint_limits", "obstacle", "frame_target") + _TASK_NUMBERS
+# The orientation term's default weight: position_weight / 100, so an orientation 0.1 rad off costs what a position
+# 1 cm off does (the residual is sin θ, the position's metres).
+ORIENTATION_PER_POSITION = 1e-2
+# A value of --target, --obstacle or --orientation that argparse would take for an option ("-0.3,0.5,0"): see
+# _attach_values.
 NUMBERS = re.compile(r"^-[0-9.][0-9.eE+-]*(,\s*[-+]?[0-9.][0-9.eE+-]*)*$")
 
 
 @dataclasses.dataclass
 class Reach:
     """A reach task from the command line: the target point, the frame (None: the problem's end effector), the
-    obstacles (ocpkit.task.Sphere) and reach()'s other options; ``source`` names where target and frame came from."""
+    obstacles (ocpkit.task.Sphere) and reach()'s other options; the frame's orientation target (a rotation, 9 entries
+    row by row, or None) and its term's weight (None: the default), more frames' targets (:class:`FrameTarget`), the
+    joint-limit term's weight (None: no such term); ``source`` names where each came from."""
 
     target: np.ndarray
     frame: str | None
     obstacles: list
     options: dict
     source: dict
+    orientation: np.ndarray | None = None
+    orientation_weight: float | None = None
+    frame_targets: list = dataclasses.field(default_factory=list)
+    joint_limits: float | None = None
+
+    def goal(self, ocp, x_goal) -> np.ndarray:
+        """The OCP's goal vector: ``x_goal`` and every target, by its term's name."""
+        targets = {"position": self.target, **{t.term: t.target for t in self.frame_targets}}
+        if self.orientation is not None:
+            targets["orientation"] = self.orientation
+        return ocp.goal(x_goal, **targets)
+
+
+@dataclasses.dataclass
+class FrameTarget:
+    """Another frame brought to a point (a --frame-target or a [[frame_target]] table), by the term ``term``."""
+
+    frame: str
+    target: np.ndarray
+    weight: float | None
+    source: str
+
+    @property
+    def term(self) -> str:
+        return "position_" + re.sub(r"\W", "_", self.frame)
+
+
+def _numbers(value, count: int) -> list | None:
+    """``value`` as ``count`` finite floats ("a,b,c" or a list of numbers, where booleans and strings are not
+    numbers), else None."""
+    if isinstance(value, str):
+        items = value.split(",")
+    elif isinstance(value, list) and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
+        items = value
+    else:
+        return None
+    try:
+        values = [float(v) for v in items]
+    except ValueError:
+        return None
+    return values if len(values) == count and np.isfinite(values).all() else None
 
 
 def _point(text, option: str, form: str = "'x,y,z'") -> np.ndarray:
     """x,y,z (m) from "x,y,z" or a list of three numbers."""
-    try:
-        values = [float(v) for v in (text.split(",") if isinstance(text, str) else text)]
-    except (TypeError, ValueError):
-        values = []
-    if len(values) != 3 or not np.isfinite(values).all():
+    values = _numbers(text, 3)
+    if values is None:
         raise ValueError(f"{option} is {form} (the end effector's target point in metres, world frame), got {text!r}")
     return np.array(values)
+
+
+def _rotation(value, option: str) -> np.ndarray:
+    """A rotation target (9 entries row by row) from roll, pitch, yaw (rad; R = Rz(yaw) Ry(pitch) Rx(roll), URDF's
+    rpy) as "r,p,y" or [r, p, y], or from a 3 × 3 matrix [[…], […], […]] (ocpkit.task.check_rotation checks it)."""
+    import pinocchio as pin
+
+    from ocpkit.task import check_rotation
+
+    if isinstance(value, list) and len(value) == 3 and all(isinstance(row, list) for row in value):
+        rows = [_numbers(row, 3) for row in value]
+        R = None if None in rows else np.array(rows)
+    else:
+        rpy = _numbers(value, 3)
+        R = None if rpy is None else pin.rpy.rpyToMatrix(*rpy)
+    if R is None:
+        raise ValueError(f"{option} is roll, pitch, yaw (rad, about the world's x, y, z: R = Rz(yaw) Ry(pitch) "
+                         f"Rx(roll)) or a 3 × 3 rotation matrix, got {value!r}")
+    return check_rotation(R, option)
+
+
+def _frame_target(text: str) -> tuple[str, np.ndarray]:
+    """(frame, point) from --frame-target "NAME=x,y,z"."""
+    frame, sep, point = text.partition("=")
+    if not (sep and frame.strip()):
+        raise ValueError(f"--frame-target is NAME=x,y,z (a frame and its target point in metres), got {text!r}")
+    return frame.strip(), _point(point, f"--frame-target {text}")
 
 
 def _number(value, where: str, positive: bool) -> float:
@@ -49,11 +123,25 @@ def _number(value, where: str, positive: bool) -> float:
     return float(value)
 
 
+def _frame_name(value, where: str) -> str:
+    if not isinstance(value, str) or not value:
+        raise ValueError(f"{where} must be a frame name (a string), got {value!r}")
+    return value
+
+
+def _tables(data, key: str, where: str, form: str) -> list:
+    tables = data.get(key, [])
+    if not isinstance(tables, list) or not all(isinstance(t, dict) for t in tables):
+        raise ValueError(f"{where}: {key} entries are [[{key}]] tables with {form}")
+    return tables
+
+
 def read_task_file(path) -> dict:
-    """A --task TOML file as {target, frame, obstacles, options}, every value checked (errors name the file)."""
+    """A --task TOML file as {target, frame, orientation, joint_limits, obstacles, frame_targets, options}, every
+    value checked (errors name the file and the key)."""
     import tomllib
 
-    from ocpkit.task import Sphere
+    from ocpkit.task import Sphere, length
 
     where = f"--task {path}"
     try:
@@ -63,54 +151,67 @@ def read_task_file(path) -> dict:
         raise ValueError(f"{where}: no such file") from None
     except IsADirectoryError:
         raise ValueError(f"{where}: is a folder; give a TOML file") from None
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"{where}: not UTF-8 text (byte {exc.start}); a TOML file is UTF-8") from None
     except tomllib.TOMLDecodeError as exc:
         raise ValueError(f"{where}: not valid TOML: {exc}") from None
     unknown = sorted(set(data) - set(_TASK_KEYS))
     if unknown:
         raise ValueError(f"{where}: unknown key {unknown[0]!r}; a task file has {', '.join(_TASK_KEYS)}")
-    out = {"target": None, "frame": None, "obstacles": [], "options": {}}
+    out = {"target": None, "frame": None, "orientation": None, "joint_limits": False, "obstacles": [],
+           "frame_targets": [], "options": {}}
     if "target" in data:
         out["target"] = _point(data["target"], f"{where}: target", "[x, y, z]")
     if "frame" in data:
-        if not isinstance(data["frame"], str) or not data["frame"]:
-            raise ValueError(f"{where}: frame must be a frame name (a string), got {data['frame']!r}")
-        out["frame"] = data["frame"]
-    obstacles = data.get("obstacle", [])
-    if not isinstance(obstacles, list) or not all(isinstance(o, dict) for o in obstacles):
-        raise ValueError(f"{where}: obstacles are [[obstacle]] tables with center = [x, y, z] and radius = r")
-    for k, o in enumerate(obstacles, 1):
+        out["frame"] = _frame_name(data["frame"], f"{where}: frame")
+    if "orientation" in data:
+        out["orientation"] = _rotation(data["orientation"], f"{where}: orientation")
+    if "joint_limits" in data:
+        if not isinstance(data["joint_limits"], bool):
+            raise ValueError(f"{where}: joint_limits must be true or false, got {data['joint_limits']!r}")
+        out["joint_limits"] = data["joint_limits"]
+    for k, o in enumerate(_tables(data, "obstacle", where, "center = [x, y, z] and radius = r"), 1):
         if set(o) != {"center", "radius"}:
             raise ValueError(f"{where}: obstacle {k} has the keys {sorted(o)}; it needs exactly center = [x, y, z] "
                              f"and radius = r (m)")
-        center = o["center"]
-        if not isinstance(center, list) or len(center) != 3 or not all(
-                isinstance(c, (int, float)) and not isinstance(c, bool) for c in center):
-            raise ValueError(f"{where}: obstacle {k}: center must be [x, y, z] (m), got {center!r}")
+        center = _point(o["center"], f"{where}: obstacle {k}: center", "[x, y, z]")
         radius = _number(o["radius"], f"{where}: obstacle {k}: radius", positive=True)
-        try:
-            out["obstacles"].append(Sphere(tuple(float(c) for c in center), radius))
-        except ValueError as exc:
-            raise ValueError(f"{where}: obstacle {k}: {exc}") from None
+        out["obstacles"].append(Sphere(tuple(center), radius))
+    form = 'frame = "NAME", target = [x, y, z] and optionally weight = w'
+    for k, t in enumerate(_tables(data, "frame_target", where, form), 1):
+        at = f"{where}: frame_target {k}"
+        if not {"frame", "target"} <= set(t) <= {"frame", "target", "weight"}:
+            raise ValueError(f"{at} has the keys {sorted(t)}; it takes {form}")
+        weight = _number(t["weight"], f"{at}: weight", positive=True) if "weight" in t else None
+        out["frame_targets"].append(FrameTarget(_frame_name(t["frame"], f"{at}: frame"),
+                                                _point(t["target"], f"{at}: target", "[x, y, z]"), weight, at))
     for key in _TASK_NUMBERS:
         if key in data:
-            out["options"][key] = _number(data[key], f"{where}: {key}", positive=key != "margin")
+            value = _number(data[key], f"{where}: {key}", positive=key != "margin")
+            if key in ("link_radius", "margin"):
+                value = length(value, f"{where}: {key}", signed=key == "margin")
+            out["options"][key] = value
     return out
 
 
 def reach_task(args) -> Reach | None:
-    """The reach task that --target, --obstacle, --frame and --task ask for (None: none, the seeded joint goal)."""
+    """The reach task that --target, --obstacle, --frame, --orientation, --frame-target, --joint-limits and --task ask
+    for (None: none, the seeded joint goal)."""
     from ocpkit.task import Sphere
 
-    file = read_task_file(args.task) if args.task else {"target": None, "frame": None, "obstacles": [],
-                                                              "options": {}}
-    source = {"target": "--target", "frame": "--frame"}
+    file = read_task_file(args.task) if args.task else {"target": None, "frame": None, "orientation": None,
+                                                         "joint_limits": False, "obstacles": [], "frame_targets": [],
+                                                         "options": {}}
+    source = {"target": "--target", "frame": "--frame", "orientation": "--orientation"}
     target = None
     if args.target is not None:
         target = _point(args.target, "--target")
     elif file["target"] is not None:
-        target, source["target"] = file["target"], f"--task {args.task}"
+        target, source["target"] = file["target"], f"--task {args.task}: target"
     if target is None:
-        given = [o for o, v in (("--obstacle", args.obstacle), ("--frame", args.frame)) if v]
+        given = [o for o, v in (("--obstacle", args.obstacle), ("--frame", args.frame),
+                                ("--orientation", args.orientation), ("--frame-target", args.frame_target),
+                                ("--joint-limits", args.joint_limits)) if v]
         if given:
             raise ValueError(f"{given[0]} needs --target x,y,z (or a --task file with target = [x, y, z]): it "
                              f"belongs to a reach task")
@@ -126,12 +227,44 @@ def reach_task(args) -> Reach | None:
     frame = args.frame
     if frame is None and file["frame"] is not None:
         frame, source["frame"] = file["frame"], f"--task {args.task}: frame"
-    return Reach(target, frame, obstacles, file["options"], source)
+    orientation = file["orientation"]
+    if args.orientation is not None:
+        orientation = _rotation(args.orientation, "--orientation")
+    elif orientation is not None:
+        source["orientation"] = f"--task {args.task}: orientation"
+    frame_targets = list(file["frame_targets"])
+    for text in args.frame_target or ():
+        name, point = _frame_target(text)
+        frame_targets.append(FrameTarget(name, point, None, f"--frame-target {text}"))
+    options = {k: v for k, v in file["options"].items() if k in _REACH_OPTIONS}
+    joint_limits = None
+    if args.joint_limits or file["joint_limits"]:
+        joint_limits = file["options"].get("joint_limit_weight", 1e3)  # JointLimitBarrier's default
+        source["joint_limits"] = "--joint-limits" if args.joint_limits else f"--task {args.task}: joint_limits"
+    return Reach(target, frame, obstacles, options, source, orientation, file["options"].get("orientation_weight"),
+                 frame_targets, joint_limits)
+
+
+def _joint_limits(problem, where: str) -> tuple[np.ndarray, np.ndarray]:
+    """The robot's joint limits (q_min, q_max; ±inf: none), from its ``q_min``/``q_max`` or its pinocchio model
+    (whose ±1.8e308 means none); a ValueError naming ``where`` if no joint has one."""
+    n = problem.kinematics.n
+    if getattr(problem, "q_min", None) is not None:
+        lo, hi = (np.asarray(v, dtype=float) for v in (problem.q_min, problem.q_max))
+    else:
+        model = problem.pin_model
+        lo, hi = (np.asarray(v, dtype=float) for v in (model.lowerPositionLimit, model.upperPositionLimit))
+        lo, hi = np.where(lo > -1e300, lo, -np.inf), np.where(hi < 1e300, hi, np.inf)
+    if lo.size != n or not (np.isfinite(lo) & np.isfinite(hi)).any():
+        raise ValueError(f"{where}: {problem.name} has no joint limits to keep away from")
+    return lo, hi
 
 
 def reach_ocp(problem, args, task: Reach, **options):
-    """ocpkit.task.reach for the command line's task, after the checks that name its options."""
-    from ocpkit.task import reach
+    """ocpkit.task.reach for the command line's task, after the checks that name its options: frames, targets
+    within the robot's workspace, and the orientation, other frames and joint-limit terms (ocpkit.task)."""
+    from ocpkit.task import (FrameOrientation, FramePosition, JointLimitBarrier, check_frame, check_point, reach,
+                             workspace_radius)
 
     kinematics = getattr(problem, "kinematics", None)
     if kinematics is None:
@@ -142,13 +275,31 @@ def reach_ocp(problem, args, task: Reach, **options):
         if task.frame is None:
             raise ValueError(f"{args.problem} names no end effector; give --frame NAME, one of its frames: "
                              f"{', '.join(kinematics.frames)}")
-    else:
+    radius = workspace_radius(kinematics)
+    for frame, point, where, named in [(task.frame, task.target, task.source["target"],
+                                        f"{task.source['frame']} {task.frame!r}"),
+                                       *((t.frame, t.target, t.source, t.source) for t in task.frame_targets)]:
         try:
-            kinematics.function(task.frame)
+            check_frame(kinematics, frame)
         except (TypeError, ValueError) as exc:
-            raise ValueError(f"{task.source['frame']} {task.frame!r}: {exc}") from None
+            raise ValueError(f"{named}: {exc}") from None
+        check_point(point, radius, where)
+    terms = []
+    weight = task.options.get("position_weight", 1e3)  # reach()'s default
+    if task.orientation is not None:
+        terms.append(FrameOrientation(kinematics, task.frame, task.orientation_weight or
+                                      ORIENTATION_PER_POSITION * weight))
+    names = [task.frame]
+    for t in task.frame_targets:
+        if t.frame in names:
+            raise ValueError(f"{t.source}: frame {t.frame!r} already has a target")
+        names.append(t.frame)
+        terms.append(FramePosition(kinematics, t.frame, weight if t.weight is None else t.weight, name=t.term))
+    if task.joint_limits is not None:
+        terms.append(JointLimitBarrier(*_joint_limits(problem, task.source["joint_limits"]), task.joint_limits))
     return reach(problem, task.obstacles, frame=task.frame, knots=knot_count(problem, args), horizon=args.horizon,
-                 parameterization=args.parameterization, integrator=args.integrator, **task.options, **options)
+                 parameterization=args.parameterization, integrator=args.integrator, terms=terms, **task.options,
+                 **options)
 
 
 def reach_panels(problem, ocp, task: Reach, xs) -> dict:
@@ -179,8 +330,10 @@ def reach_report(problem, ocp, task: Reach, xs, dt: float | None = None,
     """How the states ``xs`` (N, nx) did on the task: the frame's distance to the target at the last state, and the
     smallest clearance — distance from a robot sphere's surface to an obstacle's — over all states (negative: they
     overlap, a collision); for a closed loop, ``success_while_colliding``: the steps reported "success" whose next
-    state collides."""
+    state collides. With an orientation target, the frame's final angle to it (rad); with more frames' targets,
+    each one's final distance."""
     positions, closest = _reach_series(problem, ocp, task, xs)
+    q = np.atleast_2d(xs)[-1, :problem.kinematics.n]
     report = {"frame": task.frame, "target": task.target.tolist(), "final_position": positions[-1].tolist(),
               "final_distance": float(np.linalg.norm(positions[-1] - task.target)),
               "obstacles": [[*map(float, o.center), float(o.radius)] for o in task.obstacles],
@@ -190,6 +343,15 @@ def reach_report(problem, ocp, task: Reach, xs, dt: float | None = None,
         hit = np.flatnonzero(closest < 0)
         report.update(min_clearance=float(closest.min()), collisions=int(hit.size),
                       first_collision=None if not hit.size else int(hit[0]) if dt is None else float(hit[0] * dt))
+    if task.orientation is not None:
+        R = np.asarray(problem.kinematics.function(task.frame)(q)[1])
+        cosine = (np.trace(task.orientation.reshape(3, 3).T @ R) - 1) / 2
+        report["final_orientation_error"] = float(np.arccos(np.clip(cosine, -1.0, 1.0)))
+    if task.frame_targets:
+        report["frame_targets"] = [
+            {"frame": t.frame, "target": t.target.tolist(), "final_distance": float(np.linalg.norm(
+                np.asarray(problem.kinematics.function(t.frame)(q)[0]).ravel() - t.target))}
+            for t in task.frame_targets]
     if success_while_colliding is not None:
         report["success_while_colliding"] = int(success_while_colliding)
     return report
@@ -199,6 +361,10 @@ def reach_line(report: dict, what: str) -> str:
     """The report as one line of text."""
     line = (f"reach: {report['frame']} {report['final_distance']:.4f} m from the target "
             f"{point_text(report['target'])} {what}")
+    if "final_orientation_error" in report:
+        line += f", {report['final_orientation_error']:.4f} rad from its orientation"
+    for t in report.get("frame_targets", ()):
+        line += f"; {t['frame']} {t['final_distance']:.4f} m from {point_text(t['target'])}"
     n = len(report["obstacles"])
     if not n:
         return line + "; no obstacles"
