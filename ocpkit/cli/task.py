@@ -202,7 +202,7 @@ def reach_task(args) -> Reach | None:
     file = read_task_file(args.task) if args.task else {"target": None, "frame": None, "orientation": None,
                                                          "joint_limits": False, "obstacles": [], "frame_targets": [],
                                                          "options": {}}
-    source = {"target": "--target", "frame": "--frame", "orientation": "--orientation"}
+    source = {"target": "--target", "frame": "--frame"}
     target = None
     if args.target is not None:
         target = _point(args.target, "--target")
@@ -227,11 +227,7 @@ def reach_task(args) -> Reach | None:
     frame = args.frame
     if frame is None and file["frame"] is not None:
         frame, source["frame"] = file["frame"], f"--task {args.task}: frame"
-    orientation = file["orientation"]
-    if args.orientation is not None:
-        orientation = _rotation(args.orientation, "--orientation")
-    elif orientation is not None:
-        source["orientation"] = f"--task {args.task}: orientation"
+    orientation = file["orientation"] if args.orientation is None else _rotation(args.orientation, "--orientation")
     frame_targets = list(file["frame_targets"])
     for text in args.frame_target or ():
         name, point = _frame_target(text)
