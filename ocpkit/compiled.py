@@ -33,8 +33,8 @@ from pathlib import Path
 import casadi as ca
 
 from ocpkit.builder import build_entry, child_failure, entry_key, loadable, signal_name, spawn
-from ocpkit.cache import (CacheReadOnlyError, cache_dir, entry_ok, install, load_problem, read_only_error,
-                          warn_read_only)
+from ocpkit.cache import (CacheReadOnlyError, cache_dir, check_trusted, entry_ok, install, load_problem, read_only,
+                          read_only_error, warn_read_only)
 
 
 class CompileError(RuntimeError):
@@ -66,8 +66,11 @@ def _load(name: str, library: Path, rebuild) -> ca.Function:
 
 
 def _entry(fn: ca.Function, flags: str) -> Path:
-    """Where the library of ``fn`` compiled with ``flags`` is cached (keyed by the serialized Function)."""
-    return cache_dir("compiled") / entry_key(fn.serialize().encode(), flags.encode()) / f"{fn.name()}.so"
+    """Where the library of ``fn`` compiled with ``flags`` is cached (keyed by the serialized Function), once the
+    folders down to it and the library are proved safe to load from (:func:`ocpkit.cache.check_trusted`)."""
+    library = cache_dir("compiled") / entry_key(fn.serialize().encode(), flags.encode()) / f"{fn.name()}.so"
+    check_trusted(library)
+    return library
 
 
 def _cached(fn: ca.Function, flags: str) -> ca.Function | None:
@@ -81,14 +84,16 @@ def _cached(fn: ca.Function, flags: str) -> ca.Function | None:
 
 def _library(fn: ca.Function, flags: str) -> Path:
     """The cached library of ``fn`` compiled with ``flags``, built first (:func:`ocpkit.builder.build_entry`) unless a
-    sound one is there; :class:`CacheReadOnlyError` where it is not and the cache is read-only."""
+    sound one is there; :class:`CacheReadOnlyError` where it is not and the cache is read-only or full."""
     library = _entry(fn, flags)
     try:
         build_entry(library, lambda: _build(fn, flags, library.parent, library), "a compiled function")
-    except CacheReadOnlyError:
+    except OSError as exc:  # CacheReadOnlyError, or a write on a full file system
+        if not read_only(exc):
+            raise
         state = "is damaged" if library.exists() else "is not in the cache"
         raise read_only_error(f"the compiled function {fn.name()!r} ({library}) {state}",
-                              library.parent.parent) from None
+                              library.parent.parent, exc) from None
     return library
 
 

@@ -26,8 +26,8 @@ from concurrent.futures import Future
 from pathlib import Path
 
 from ocpkit.builder import build_entry, child_failure, entry_key, loadable, signal_name, spawn, warn_damaged
-from ocpkit.cache import (CacheReadOnlyError, cache_dir, entry_ok, install, load_problem, read_only_error,
-                          scratch_dir, warn_read_only)
+from ocpkit.cache import (CacheReadOnlyError, UnsafeCacheError, cache_dir, check_trusted, entry_ok, install,
+                          load_problem, read_only, read_only_error, scratch_dir, warn_read_only)
 from ocpkit.compiled import compiler_available
 from ocpkit.export import BuildError, check_tools, export
 from ocpkit.ocp import BACKGROUND_MIN_INSTRUCTIONS, OCP
@@ -100,25 +100,12 @@ def _start(ocp: OCP, settings: tuple, wait: bool) -> Future | None:
     """:func:`start` for an OCP met the first time: export, hash, then the cached library or a build."""
     root = cache_dir("native")
     try:
-        scratch, writable = scratch_dir(root, f".build-{os.getpid()}-"), True
-    except CacheReadOnlyError:  # generated all the same: its hash names the entry to look for
-        try:
-            scratch, writable = Path(tempfile.mkdtemp(prefix="ocpkit-native-")), False
-        except OSError as exc:  # a read-only root without a writable temporary folder
-            error = read_only_error(f"LinearMPC's C step cannot be looked up: its code is generated to a temporary "
-                                    f"folder, and none can be written ({exc.strerror or exc}; set TMPDIR)", root)
-            if wait:
-                raise error from None
-            warn_read_only(error, "LinearMPC runs its Python step", stacklevel=4)
-            return None
-    try:
-        eps, max_iter, linearization, iterations, tol = settings
-        export(ocp, scratch / "src", name=NAME, qp="daqp", eps=eps, max_iter=max_iter, linearization=linearization,
-               iterations=iterations, tol=tol)
-        key = _key(scratch / "src")
-    except BaseException:
-        shutil.rmtree(scratch, ignore_errors=True)
-        raise
+        scratch, key, unwritable = _generate(ocp, settings, root)
+    except CacheReadOnlyError as error:  # not even generated: a read-only (or full) cache and temporary folder
+        if wait:
+            raise
+        warn_read_only(error, "LinearMPC runs its Python step", stacklevel=4)
+        return None
     folder = root / key
     with _builds_lock:
         future = _builds.get(key)
@@ -132,20 +119,21 @@ def _start(ocp: OCP, settings: tuple, wait: bool) -> Future | None:
             future.result()
         return future
     try:
-        if not writable:
+        check_trusted(folder / f"lib{NAME}.so")  # refused before anything is loaded from it or built into it
+        if unwritable is not None:
             shutil.rmtree(scratch, ignore_errors=True)
-            _check_read_only_entry(folder, root)
+            _check_read_only_entry(folder, root, unwritable)
             future.set_result(folder)
             return future
         if not entry_ok(folder / f"lib{NAME}.so"):
             check_tools()  # a sound cached library needs neither cc nor make
-    except (CacheReadOnlyError, BuildError) as exc:
+    except (CacheReadOnlyError, BuildError, UnsafeCacheError) as exc:
         shutil.rmtree(scratch, ignore_errors=True)
         with _builds_lock:
             if _builds.get(key) is future:
                 del _builds[key]
         future.set_exception(exc)
-        if wait:
+        if wait or isinstance(exc, UnsafeCacheError):
             raise
         if isinstance(exc, CacheReadOnlyError):
             warn_read_only(exc, "LinearMPC runs its Python step", stacklevel=4)
@@ -165,22 +153,57 @@ def _start(ocp: OCP, settings: tuple, wait: bool) -> Future | None:
     return future
 
 
+def _generate(ocp: OCP, settings: tuple, root: Path) -> tuple[Path, str, OSError | None]:
+    """Export the C step of ``ocp`` to a scratch folder and key it: (scratch, key, None) with the scratch folder in
+    the cache, where a build is installed by a rename; where the cache cannot be written (read-only, or full: the
+    export's files do not fit), generated all the same to a temporary folder, its key naming the entry to look for,
+    with the cache's error last. :class:`ocpkit.cache.CacheReadOnlyError` where no temporary folder can be written
+    either."""
+    try:
+        scratch = scratch_dir(root, f".build-{os.getpid()}-")
+        return scratch, _export(ocp, settings, scratch), None
+    except OSError as exc:
+        if not read_only(exc):
+            raise
+        unwritable = exc
+    try:
+        scratch = Path(tempfile.mkdtemp(prefix="ocpkit-native-"))
+        return scratch, _export(ocp, settings, scratch), unwritable
+    except OSError as exc:  # a read-only or full cache without a writable temporary folder
+        raise read_only_error(f"LinearMPC's C step cannot be looked up: its code is generated to a temporary "
+                              f"folder, and none can be written ({exc.strerror or exc}; set TMPDIR)", root,
+                              unwritable) from None
+
+
+def _export(ocp: OCP, settings: tuple, scratch: Path) -> str:
+    """The key of the C step of ``ocp`` exported to ``scratch``/src (``scratch`` removed if that fails)."""
+    eps, max_iter, linearization, iterations, tol = settings
+    try:
+        export(ocp, scratch / "src", name=NAME, qp="daqp", eps=eps, max_iter=max_iter, linearization=linearization,
+               iterations=iterations, tol=tol)
+        return _key(scratch / "src")
+    except BaseException:
+        shutil.rmtree(scratch, ignore_errors=True)
+        raise
+
+
 def _key(source: Path) -> str:
     """The cache key of the generated files and the build's settings (:func:`ocpkit.builder.entry_key`)."""
     files = (path.name.encode() + b"\0" + path.read_bytes() for path in sorted(source.iterdir()))
     return entry_key(" ".join(MAKE_VARS).encode(), *files)
 
 
-def _check_read_only_entry(folder: Path, root: Path) -> None:
-    """Raise :class:`CacheReadOnlyError` unless the read-only cache's library in ``folder`` is sound and loads."""
+def _check_read_only_entry(folder: Path, root: Path, unwritable: OSError) -> None:
+    """Raise :class:`CacheReadOnlyError` unless the library in ``folder`` of the cache that cannot be written (as
+    ``unwritable`` says: read-only, or full) is sound and loads."""
     library = folder / f"lib{NAME}.so"
     if not entry_ok(library):
         state = ("is damaged (its content does not match the hash recorded beside it)" if library.exists() else
                  "is not in the cache")
-        raise read_only_error(f"LinearMPC's C step for this OCP ({library}) {state}", root)
+        raise read_only_error(f"LinearMPC's C step for this OCP ({library}) {state}", root, unwritable)
     problem = _load_problem(library)
     if problem is not None:
-        raise read_only_error(f"LinearMPC's cached C step {library} does not load ({problem})", root)
+        raise read_only_error(f"LinearMPC's cached C step {library} does not load ({problem})", root, unwritable)
 
 
 def _load_problem(library: Path) -> str | None:

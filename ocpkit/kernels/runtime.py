@@ -14,6 +14,7 @@ import ctypes.util
 import os
 import sys
 import threading
+from pathlib import Path
 
 import numpy as np
 import taichi as ti
@@ -85,24 +86,32 @@ def _floating_point_kept():
 def _offline_cache() -> dict:
     """ti.init's offline-cache settings: Taichi's compiled kernels kept in ocpkit's cache (``taichi-kernels`` under
     :func:`ocpkit.cache.cache_root`, so ``OCPKIT_CACHE_DIR`` and ``ocpkit build`` cover them with the rest), or in
-    ``$TI_OFFLINE_CACHE_FILE_PATH`` where that is set. On a read-only folder Taichi cannot take its lock, so it neither
-    loads nor stores kernels, and warns three times a run to "run 'ti cache clean'" (even with the cache off): there,
-    the cache is off and pointed at a folder of this process's own, removed at exit."""
+    ``$TI_OFFLINE_CACHE_FILE_PATH`` where that is set. Taichi loads compiled code from that folder, so it is refused
+    (:class:`ocpkit.cache.UnsafeCacheError`) where another user could have planted anything in it. On a read-only
+    folder Taichi cannot take its lock, so it neither loads nor stores kernels, and warns three times a run to "run
+    'ti cache clean'" (even with the cache off); on a full one it cannot store them: there, the cache is off and
+    pointed at a folder of this process's own, removed at exit (a full one said once,
+    :func:`ocpkit.cache.warn_read_only`: every run compiles its kernels again until room is made)."""
     import atexit
     import shutil
     import tempfile
 
-    from ..cache import cache_dir
+    from ..cache import cache_dir, check_trusted, full, read_only_error, warn_read_only
 
     path = os.environ.get("TI_OFFLINE_CACHE_FILE_PATH") or str(cache_dir("taichi-kernels"))
     try:
         os.makedirs(path, exist_ok=True)
-        with tempfile.TemporaryFile(dir=path):
-            return {"offline_cache": True, "offline_cache_file_path": path}
-    except OSError:
+        with tempfile.TemporaryFile(dir=path) as probe:  # a page written: a full file system refuses it
+            probe.write(bytes(4096))
+            probe.flush()
+    except OSError as exc:
+        if full(exc):
+            warn_read_only(read_only_error("Taichi's compiled kernels cannot be cached", Path(path), exc),
+                           "they are compiled again each run", stacklevel=4)
         private = tempfile.mkdtemp(prefix="ocpkit-ticache-")
         atexit.register(shutil.rmtree, private, True)
         return {"offline_cache": False, "offline_cache_file_path": private}
+    return {"offline_cache": True, "offline_cache_file_path": str(check_trusted(path, tree=True))}
 
 
 def _cpu_threads() -> int:
