@@ -110,7 +110,8 @@ class OCP:
         if missing:
             raise ValueError(f"goal needs a target for {', '.join(repr(m) for m in missing)}")
         # a rotation target may come as a 3 × 3 matrix: its rows, in order
-        parts = [x_goal] + [array(np.ravel(targets[name]), name, (size,)) for name, size in sizes.items()]
+        parts = [x_goal] + [self.task.check_target(name, array(np.ravel(targets[name]), name, (size,)))
+                            for name, size in sizes.items()]
         return np.concatenate(parts)
 
     def check_goal(self, goal, name: str = "goal") -> np.ndarray:
