@@ -211,8 +211,8 @@ class EvolutionaryMPC(SamplingMPC):
         if cold and self.preconditioned:  # every parent starts as the holding input
             hold = self.preconditioner.hold
             parents.from_numpy(np.broadcast_to(hold, parents.shape).astype(self.engine.ntype))
-        elif not cold and self._shift_parents:  # the last step ran out of time before a generation: its shift is owed
-            parents.from_numpy(self._shifted(parents.to_numpy().astype(np.float64)).astype(self.engine.ntype))
+        elif not cold and (owed := self._missed + int(self._shift_parents)):  # steps that ran no generation
+            parents.from_numpy(self._shifted(parents.to_numpy().astype(np.float64), owed).astype(self.engine.ntype))
         self._shift_parents = not cold  # the first generation breeds from the shifted parents
         self._scale = 1.0  # paper: σ_eff = σ_min + (σ − σ_min)·scale
         if not self.preconditioned and self.shrink_distance is not None:

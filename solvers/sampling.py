@@ -46,7 +46,8 @@ import taichi as ti
 
 from ocpkit._checks import array, choice, integer, positive
 from ocpkit.boxqp import solve_box_qp
-from ocpkit.controller import EXCEPTION, LIMITED, NAN, SUCCESS, Controller, Solution, check_linearization
+from ocpkit.controller import (EXCEPTION, LIMITED, NAN, SUCCESS, Controller, OperationCosts, Solution,
+                               check_linearization)
 from ocpkit.kernels import runtime
 from ocpkit.kernels.random import normal, seed_key
 from ocpkit.kernels.rollout import FEASIBILITY_TOLERANCE, Rollout, constrained
@@ -116,6 +117,7 @@ class Preconditioner:
         f = ocp.model.xdot
         self._statics = ca.Function("statics", [x, u], [f, ca.jacobian(f, u)])
         self._hold_goal, self._hold = None, None
+        self.L = None  # until the first update
 
     def holding_input(self, goal: np.ndarray) -> np.ndarray:
         """u_g corrected so that the continuous dynamics rest at the goal: u_g − J⁺ f(x_goal, u_g) with
@@ -188,9 +190,17 @@ class SamplingMPC(Controller):
     ``stage_cost``/``terminal_cost`` replace the OCP's cost in the fitness (any CasADi Function of (x, u, goal) /
     (x, goal), goal of ``ocp.ng`` entries, non-smooth allowed; default: :func:`ocpkit.kernels.rollout.fitness`, the
     OCP's terms and the exact penalties of its state bounds and a task's obstacles); ``seed`` makes runs repeatable.
-    ``linearization`` picks the affine model's expansion input as in LinearMPC. ``time_limit`` (s) stops the
-    generations once exceeded (a launched generation always completes; the DAQP seed stops at it too): the step then
-    returns the best candidate so far with status "limited". ``threads`` limits BLAS/OpenMP threads inside a step
+    ``linearization`` picks the affine model's expansion input as in LinearMPC. ``time_limit`` (s) bounds the whole
+    step: each stage — the linearization, the preconditioner, the copies to the device, each generation — starts only
+    if its measured time (:class:`ocpkit.controller.OperationCosts`) and that of the stages that must follow it fit in
+    what is left (measured from the second step of a new controller on: the first compiles the kernels, 0.5 s for
+    a generation on nlink:13, which as a measurement locked it out of a 100 ms budget). Where the first generation
+    cannot fit, the step answers at once from the incumbent plan advanced a
+    step (:meth:`Controller.fallback`, "limited") and the next step that searches advances the incumbent by the steps
+    it missed; where the preconditioner cannot fit, a warm step searches with the previous step's (seeds and whitening)
+    and says so; where later generations cannot, the step returns the best candidate so far ("limited"), as it does
+    when its last generation ends past the budget. The first step of a new controller measures these costs and is not
+    bounded: call :meth:`warm_up` (two steps) first. ``threads`` limits BLAS/OpenMP threads inside a step
     (see Controller); Taichi's own CPU threads are set at its start (``OCPKIT_CPU_THREADS``).
     """
 
@@ -224,6 +234,8 @@ class SamplingMPC(Controller):
         runtime.stage(self._u_min, ocp.u_min)
         runtime.stage(self._u_max, ocp.u_max)
         self._affine = dynamics == "affine"
+        self._costs = OperationCosts()  # the stages of a step (see time_limit)
+        self._compiled = False  # whether a step has run: the first one compiles the kernels, its times are not kept
         self._results = self.engine.results()  # the last generation's (cost, violation) per candidate
         # The warm start's time shift is linear in the knots: U⁺ = S U.
         self._shift = ocp.parameterization.shift(np.eye(p))
@@ -260,42 +272,53 @@ class SamplingMPC(Controller):
         super().reset()
         self.counter = 0  # generations drawn so far; with the seed it keys every random draw
         self._warm = False
+        self._missed = 0  # steps answered without a search since the last search: the incumbent's owed shifts
 
     def _solve(self, x: np.ndarray, goal: np.ndarray) -> Solution:
         ocp = self.ocp
         times = self._times = dict.fromkeys(PARTS, 0.0)
+        cold = not self._warm
+        pre = self.preconditioner if self.preconditioned else None
+        # A cold start has no incumbent: it needs this step's seeds. Otherwise the preconditioner may be an earlier's.
+        fresh = pre is not None and (cold or pre.L is None)
+        linearize = self._affine or pre is not None
+        must = ("start", "load") + (("model",) if linearize else ()) + (("preconditioner",) if fresh else ())
+        if not self._fits("generation", *must):
+            return self._missed_step(("generation",) + must, times)
         model = None
-        if self._affine or self.preconditioned:
+        if linearize:
             start = time.perf_counter()
             model = self.affine_model(x, goal, self.linearization)
-            times["model"] = time.perf_counter() - start
+            times["model"] = self._measured("model", start)
             if model is None:
                 self._warm = False
                 return self.fallback(NAN, f"non-finite affine model at x = {x.tolist()}", times)
         start = time.perf_counter()
-        cold = not self._warm
+        stale = False
         try:
-            if self.preconditioned:
-                pre = self.preconditioner
-                pre.update(model, x, goal, None if self.plan is None else self._shifted(self.plan), times,
-                           self.task_goal[ocp.nx:], self.deadline(self.time_limit))
+            if pre is not None:
+                if fresh or self._fits("preconditioner", "load", "start", "generation"):
+                    self._precondition(model, x, goal, times)
+                else:
+                    stale = True
+                if not self._fits("generation", "load", "start"):
+                    self._close_times(start)
+                    return self._missed_step(("generation", "load", "start"), times)
             t = time.perf_counter()
             self.engine.load(x, self.task_goal, model if self._affine else None)
-            if self.preconditioned:
-                np.concatenate([pre.whiten.ravel(), pre.newton.ravel(), pre.hold.ravel()],
-                               out=self._upload_buffer, casting="same_kind")
-                self._upload_preconditioner(self._upload_buffer)
-            times["copies"] += time.perf_counter() - t
+            times["copies"] += self._measured("load", t)
+            t = time.perf_counter()
             self._start(x, goal, cold)
+            self._missed = 0
+            self._measured("start", t)
             best, done = (np.inf, np.inf), 0
-            while done < self.generations and not self._out_of_time():
+            while done < self.generations and (done == 0 or self._fits("generation")):
+                t = time.perf_counter()
                 best = self._generation(cold and done == 0)
+                self._measured("generation", t)
                 self.counter += 1
                 done += 1
-            if done:
-                knots, best = self._result(best)
-            else:
-                knots = None
+            knots, best = self._result(best)
         except ti.TaichiCompilationError:
             # A kernel that does not compile is a bug, the same at every step: raised, never a fallback at every
             # step (variant="paper" of CEM and MPPI ran whole closed loops on the fallback input that way).
@@ -306,22 +329,61 @@ class SamplingMPC(Controller):
             self._warm = False
             return self.fallback(EXCEPTION, f"{type(exc).__name__}: {exc}", times, self.generations)
         self._close_times(start)
-        if knots is None:
-            return self.fallback(LIMITED, f"time limit {self.time_limit:g} s reached before a generation", times)
         cost, violation = best
         if not np.isfinite(cost) or not np.isfinite(knots).all():
             self._warm = False
             return self.fallback(NAN, f"best rollout cost {cost}", times, self.generations)
-        self._warm = True
+        self._warm = self._compiled = True
         knots = np.clip(knots, ocp.u_min, ocp.u_max)
         u = np.clip(ocp.parameterization.u_at(knots, 0), ocp.u_min, ocp.u_max)
         found = f"cost {cost:.6g}" + (f", predicted violation {violation:.3g}" if self.engine.constrained else "")
+        if stale:
+            found += "; preconditioner of an earlier step (time budget)"
         if done < self.generations:
             return Solution(u=u, knots=knots, status=LIMITED, iterations=done, times=times,
                             raw_status=f"time limit {self.time_limit:g} s reached after {done} of "
                                        f"{self.generations} generations (best {found})")
+        if self._out_of_time():
+            return Solution(u=u, knots=knots, status=LIMITED, iterations=done, times=times,
+                            raw_status=f"time limit {self.time_limit:g} s exceeded by the last generation "
+                                       f"(best {found})")
         return Solution(u=u, knots=knots, status=SUCCESS, raw_status=f"best {found}",
                         iterations=self.generations, times=times)
+
+    def _precondition(self, model, x: np.ndarray, goal: np.ndarray, times: dict) -> None:
+        """Update the preconditioner at this step's linearization and copy its whitening and seeds to the device."""
+        t = time.perf_counter()
+        pre, ocp = self.preconditioner, self.ocp
+        pre.update(model, x, goal, None if self.plan is None else self._shifted(self.plan), times,
+                   self.task_goal[ocp.nx:], self.deadline(self.time_limit))
+        t_copy = time.perf_counter()
+        np.concatenate([pre.whiten.ravel(), pre.newton.ravel(), pre.hold.ravel()],
+                       out=self._upload_buffer, casting="same_kind")
+        self._upload_preconditioner(self._upload_buffer)
+        times["copies"] += time.perf_counter() - t_copy
+        self._measured("preconditioner", t)
+
+    def _fits(self, op: str, *after: str) -> bool:
+        """Whether stage ``op`` fits in what is left of the step's budget with the stages ``after`` still to come, by
+        their measured times (always, without a budget)."""
+        left = self.remaining(self.time_limit)
+        return self._costs.fits(op, None if left is None else left - sum(map(self._costs.predict, after)))
+
+    def _measured(self, op: str, since: float) -> float:
+        """Record stage ``op``, begun at perf_counter ``since``, as just ended; its seconds."""
+        seconds = time.perf_counter() - since
+        if self._compiled:
+            self._costs.add(op, seconds)
+        return seconds
+
+    def _missed_step(self, stages: tuple, times: dict) -> Solution:
+        """The fallback of a step whose budget cannot pay for ``stages``: the incumbent plan advanced a step; the
+        next search advances its own incumbent by the steps missed."""
+        self._missed += 1
+        left = max(0.0, self.remaining(self.time_limit))
+        need = sum(map(self._costs.predict, stages))
+        return self.fallback(LIMITED, f"time budget: {1e3 * left:.3g} ms left, {' + '.join(stages)} measured at "
+                                      f"{1e3 * need:.3g} ms", times)
 
     def _close_times(self, start: float) -> None:
         """Everything after the linearization except the preconditioner's QP build counts as solve."""
@@ -344,9 +406,11 @@ class SamplingMPC(Controller):
         self._times["copies"] += time.perf_counter() - t
         return picked
 
-    def _shifted(self, knots: np.ndarray) -> np.ndarray:
-        """Knots (…, p, m) advanced one control step and clipped to the input bounds."""
-        return np.clip(np.einsum("jl,...la->...ja", self._shift, knots), self.ocp.u_min, self.ocp.u_max)
+    def _shifted(self, knots: np.ndarray, steps: int = 1) -> np.ndarray:
+        """Knots (…, p, m) advanced ``steps`` control steps and clipped to the input bounds."""
+        for _ in range(steps):
+            knots = np.clip(np.einsum("jl,...la->...ja", self._shift, knots), self.ocp.u_min, self.ocp.u_max)
+        return knots
 
     def _ranked(self, count: int) -> np.ndarray:
         """Indices of the ``count`` best candidates of the last generation by constraint domination, best first
@@ -475,7 +539,7 @@ class GaussianSampling(SamplingMPC):
         search; a tie keeps the incumbent."""
         ocp = self.ocp
         if not cold:
-            start = self._shifted(mean)
+            start = self._shifted(mean, 1 + self._missed)
         elif self.preconditioned:
             start = self.preconditioner.hold
         else:
