@@ -40,6 +40,8 @@ Two more methods solve the same NLP:
 """
 from __future__ import annotations
 
+import inspect
+import re
 import time
 
 import casadi as ca
@@ -53,6 +55,14 @@ from ocpkit.ocp import OCP
 from ocpkit.solvers.qp import LinearMPC
 
 METHODS = ("ipopt", "sqp", "fatrop", "rti")
+SOLVER_NAMES = {"ipopt": "IPOPT", "sqp": "sqpmethod", "fatrop": "fatrop"}
+# The options of method "rti": LinearMPC's arguments that NonlinearMPC does not set from its own.
+RTI_OPTIONS = ("eps", "slack_weight", "native")
+# Solver options NonlinearMPC sets from its own arguments: refused in ``options``, naming the argument.
+SET_BY_ARGUMENT = {"max_iter": "max_iter", "max_wall_time": "time_limit", "time_limit": "time_limit",
+                   "iteration_callback": "time_limit"}
+# How CasADi names an option its solver does not know.
+_UNKNOWN = re.compile(r"(?:No such IPOPT option|Unknown option|Fatrop option not supported): (\w+)")
 DYNAMICS = ("nonlinear", "affine")
 HESSIANS = ("gauss-newton", "exact")
 
@@ -171,8 +181,8 @@ class NonlinearMPC(Controller):
     "rti" takes ``iterations`` (SQP steps per control step), ``tol`` (stop earlier once an iteration moves
     the plan less), and LinearMPC's ``form``, ``qp`` and ``state_bounds`` ("soft" by default, as LinearMPC);
     its ``max_iter`` caps each QP's iterations (default 10 000), ``time_limit`` is the whole step's budget
-    and ``options`` pass to LinearMPC (e.g. ``{"eps": 1e-8}``). "fatrop" takes ``max_iter`` and ``options``
-    for fatrop (e.g. ``{"tol": 1e-10}``), not ``time_limit``.
+    and ``options`` pass to LinearMPC: ``eps``, ``slack_weight`` and ``native`` (RTI_OPTIONS). "fatrop" takes
+    ``max_iter`` and ``options`` for fatrop (e.g. ``{"tol": 1e-10}``), not ``time_limit``.
 
     ``max_iter`` and ``time_limit`` (wall-clock seconds: IPOPT's max_wall_time, checked by SQP after each of its
     iterations; :attr:`ceiling`, 10 s, where none is given) limit each solve; a solve stopped by either is
@@ -180,8 +190,11 @@ class NonlinearMPC(Controller):
     iteration, after derivative evaluations it cannot interrupt (with the exact Hessian, 30 ms of constraint
     Jacobian at nlink:7, T=50 before the first check), so with a time limit a solve starts only if the measured
     time of one iteration (median of the last five solves: wall time / (iterations + 1)) fits in the step's
-    budget. Both can be changed between steps (the NLP solver is rebuilt). ``options`` pass through to IPOPT
-    (e.g. ``{"tol": 1e-10, "max_wall_time": 0.01}``) or to ``sqpmethod`` (e.g. ``{"qpsol": "osqp"}``).
+    budget. Both can be changed between steps (the solver is remade over the NLP, which is not rebuilt). ``options``
+    pass through to IPOPT (e.g. ``{"tol": 1e-10}``) or to ``sqpmethod`` (e.g. ``{"qpsol": "osqp"}``). An option
+    that does not apply to the method — unknown to its solver, or one NonlinearMPC sets from its own arguments
+    (SET_BY_ARGUMENT: ``max_iter``, ``max_wall_time`` from ``time_limit``) — is refused at construction
+    (ValueError naming the option and the method).
     ``linearization`` ("goal" or "plan") is the affine model's expansion input, as in LinearMPC.
     """
 
@@ -197,6 +210,7 @@ class NonlinearMPC(Controller):
         choice(hessian, HESSIANS, "hessian")
         if options is not None and not isinstance(options, dict):
             raise TypeError(f"options must be a dict or None, got {type(options).__name__}")
+        _check_options(method, options or {})
         if method in ("rti", "fatrop") and dynamics != "nonlinear":
             raise ValueError(f"method {method!r} solves the nonlinear dynamics; dynamics 'affine' is for ipopt/sqp")
         if method == "fatrop" and ocp.task_functions is not None and ocp.task_functions.pairs:
@@ -234,7 +248,7 @@ class NonlinearMPC(Controller):
     @max_iter.setter
     def max_iter(self, value: int) -> None:
         self._limits = (integer(value, "max_iter", 1), self._limits[1])
-        self._build(self.ocp)
+        self._apply_limits()
 
     # seconds: the budget of a step without a time_limit (IPOPT's max_wall_time, SQP's deadline), as LinearMPC's
     # ceiling: without it an IPOPT or SQP step had no bound at all
@@ -247,7 +261,15 @@ class NonlinearMPC(Controller):
     @time_limit.setter
     def time_limit(self, value: float | None) -> None:
         self._limits = (self._limits[0], self._checked_time_limit(value))
-        self._build(self.ocp)
+        self._apply_limits()
+
+    def _apply_limits(self) -> None:
+        """Put ``max_iter`` and ``time_limit`` in force: RTI's attributes, or the NLP solver made anew over the NLP
+        built once (the build cost 0.14 s on nlink:7, T = 50, and warm_up's two changes of the time limit made two)."""
+        if self._rti is not None:
+            self._rti.max_iter, self._rti.time_limit = self.max_iter, self.time_limit
+        else:
+            self._solver = self._nlpsol()
 
     def _checked_time_limit(self, value):
         if value is None:
@@ -273,8 +295,7 @@ class NonlinearMPC(Controller):
         self._order = None  # fatrop: positions of [x_1 … x_T, U] in its stage-ordered w
         self._stage_model = None  # Gauss–Newton: the affine model in the NLP's derivatives (rebuilt once compiled)
         if self.method == "rti":
-            self._rti.max_iter, self._rti.time_limit = self.max_iter, self.time_limit
-            return
+            return self._apply_limits()
         if self.method == "fatrop":
             return self._build_fatrop(ocp)
         # MX graph over mapped calls of the SX step and cost Functions: derivatives are generated per step
@@ -322,10 +343,24 @@ class NonlinearMPC(Controller):
             self._deadline = _Deadline({"f": 1, "x": nw, "g": ng, "lam_x": nw, "lam_g": ng, "p": npar,
                                         "lam_p": npar})
             opts["iteration_callback"] = self._deadline
+        self._nlp = ("ipopt" if self.method == "ipopt" else "sqpmethod", nlp, opts)
+        self._apply_limits()
+
+    def _nlpsol(self) -> ca.Function:
+        """The NLP solver over the built NLP (``_nlp``: plugin, problem, options) with ``max_iter``, the time limit
+        (IPOPT's max_wall_time) and ``options`` in its options."""
+        plugin, nlp, opts = self._nlp
+        limits = {"max_iter": self.max_iter}
+        if self.method == "ipopt":
+            limits["max_wall_time"] = self.ceiling if self.time_limit is None else self.time_limit
+        if plugin == "sqpmethod":
+            opts = {**opts, **limits, **self.options}
+        else:
+            opts = {**opts, plugin: {**opts[plugin], **limits, **self.options}}
         try:
-            self._solver = ca.nlpsol("nonlinear_mpc", "ipopt" if self.method == "ipopt" else "sqpmethod", nlp, opts)
+            return ca.nlpsol("nonlinear_mpc", plugin, nlp, opts)
         except RuntimeError as exc:
-            raise ValueError(f"options rejected by {self.method}: {exc}") from None
+            raise _refused(self.method, exc) from None
 
     def _gauss_newton(self, ocp: OCP, nlp: dict, quadratic, X, starts, inputs, targets, stages) -> dict:
         """nlpsol options that evaluate the NLP's derivatives from per-stage Jacobians instead of CasADi's AD of
@@ -458,16 +493,13 @@ class NonlinearMPC(Controller):
         self._lbg = self._ubg = 0.0
         nx = [0] + [n if traditional else n + c] * (T - 1) + [n]
         nu = [c] + [m if traditional else 0] * (T - 1) + [0]
-        fatrop = {"print_level": 0, "max_iter": self.max_iter, "tol": 1e-8}
-        fatrop.update(self.options)
         # Not expanded to SX: the expanded exact Hessian of the Puma 560's 50 inlined RK4 steps is one SX graph of
         # 30 M instructions (25 s to build; the Panda's 40 s); over MX its derivatives are generated per Function.
         opts = {"structure_detection": "manual", "N": T, "nx": nx, "nu": nu, "ng": [0] * (T + 1),
-                "expand": False, "fatrop": fatrop, "print_time": False, "error_on_fail": False}
-        try:
-            self._solver = ca.nlpsol("nonlinear_mpc", "fatrop", nlp, opts)
-        except RuntimeError as exc:
-            raise ValueError(f"options rejected by fatrop: {exc}") from None
+                "expand": False, "fatrop": {"print_level": 0, "tol": 1e-8}, "print_time": False,
+                "error_on_fail": False}
+        self._nlp = ("fatrop", nlp, opts)
+        self._apply_limits()
 
     def _frozen_first_order(self, ocp: OCP, starts, inputs, last, targets):
         """The predicted states x_1 … x_T (columns) and the task's cost with the dynamics and the task's residuals
@@ -512,16 +544,14 @@ class NonlinearMPC(Controller):
 
     def _solver_options(self, ocp: OCP) -> dict:
         if self.method == "ipopt":
-            ipopt = {"print_level": 0, "sb": "yes", "max_iter": self.max_iter,
+            ipopt = {"print_level": 0, "sb": "yes",
                      # Start from the supplied primal and dual point (the shifted previous solution).
                      "warm_start_init_point": "yes", "mu_strategy": "adaptive"}
-            ipopt["max_wall_time"] = self.ceiling if self.time_limit is None else self.time_limit
-            ipopt.update(self.options)
             return {"ipopt": ipopt, "print_time": False, "error_on_fail": False}
         qpsol = self.options.get("qpsol", "qrqp")
         quiet = {"qrqp": {"print_iter": False, "print_header": False, "print_info": False},
                  "osqp": {"osqp": {"verbose": False}}}.get(qpsol, {})
-        opts = {"qpsol": qpsol, "qpsol_options": {**quiet, "error_on_fail": False}, "max_iter": self.max_iter,
+        opts = {"qpsol": qpsol, "qpsol_options": {**quiet, "error_on_fail": False},
                 "print_header": False, "print_iteration": False, "print_status": False, "print_time": False,
                 "error_on_fail": False}
         if self.hessian == "exact":
@@ -533,7 +563,6 @@ class NonlinearMPC(Controller):
                 # A task's forward kinematics: the regularized exact Hessian ran into the 200-iteration limit on
                 # every step of an nlink:3 reach (with or without an obstacle); BFGS converged in 12 iterations.
                 opts["hessian_approximation"] = "limited-memory"
-        opts.update(self.options)
         return opts
 
     def wait_compiled(self, timeout: float | None = None) -> bool:
@@ -650,6 +679,48 @@ class NonlinearMPC(Controller):
         """Fallback solution and a cold start for the next step (no stale warm start)."""
         self._warm = None
         return self.fallback(status, raw, times, iterations)
+
+
+def _check_options(method: str, options: dict) -> None:
+    """Refuse (ValueError) an option NonlinearMPC sets from its own arguments, one method "rti" does not take (its
+    solver, LinearMPC, raised a TypeError) or one fatrop rejects; IPOPT and sqpmethod check theirs as they are made
+    (:meth:`NonlinearMPC._nlpsol`)."""
+    arguments = inspect.signature(NonlinearMPC).parameters
+    takes = f" (it takes: {', '.join(RTI_OPTIONS)})" if method == "rti" else ""
+    for name in options:
+        argument = SET_BY_ARGUMENT.get(name) or (name if method == "rti" and name in arguments else None)
+        if method == "fatrop" and argument == "time_limit":
+            raise ValueError(f"option {name!r} does not apply to method 'fatrop': it takes no time limit, only "
+                             "max_iter")
+        if argument is not None:
+            raise ValueError(f"option {name!r} does not apply to method {method!r}{takes}: NonlinearMPC sets it "
+                             f"from its argument; use {argument}=")
+        if method == "rti" and name not in RTI_OPTIONS:
+            raise ValueError(f"option {name!r} does not apply to method 'rti'{takes}")
+    if method == "fatrop" and options:
+        _check_fatrop_options(options)
+
+
+def _refused(method: str, exc: RuntimeError) -> ValueError:
+    """The ValueError for options ``method``'s solver rejected with ``exc``: one line naming the option where CasADi
+    says which."""
+    unknown = _UNKNOWN.search(str(exc))
+    if unknown:
+        return ValueError(f"option {unknown.group(1)!r} does not apply to method {method!r} (not one of "
+                          f"{SOLVER_NAMES[method]}'s options)")
+    return ValueError(f"options rejected by {method}: {' '.join(str(exc).split())}")
+
+
+def _check_fatrop_options(options: dict) -> None:
+    """fatrop reads its options at the first solve (an unknown one made every step an "exception"): try them on a
+    one-stage NLP, a few milliseconds, and refuse what it rejects (:func:`_refused`)."""
+    w = ca.MX.sym("w", 2)
+    opts = {"structure_detection": "manual", "N": 1, "nx": [0, 1], "nu": [1, 0], "ng": [0, 0], "print_time": False,
+            "error_on_fail": False, "fatrop": {"print_level": 0, **options}}
+    try:
+        ca.nlpsol("fatrop_options", "fatrop", {"x": w, "f": ca.sumsqr(w), "g": w[1] - w[0]}, opts)(x0=0, lbg=0, ubg=0)
+    except RuntimeError as exc:
+        raise _refused("fatrop", exc) from None
 
 
 def _block(M, k: int, size: int):

@@ -204,7 +204,7 @@ def test_nan_model_reports_nan():
     ({"time_limit": -1.0}, "time_limit"), ({"method": "fatrop", "time_limit": 1.0}, "time_limit"),
     ({"linearization": "state"}, "linearization"), ({"hessian": "newton"}, "hessian"),
     ({"method": "rti", "hessian": "exact"}, "hessian"),
-    ({"options": {"no_such_option": 1}}, "options"), ({"options": {"qpsol": "nosuch"}, "method": "sqp"}, "options"),
+    ({"options": {"no_such_option": 1}}, "no_such_option"), ({"options": {"qpsol": "nosuch"}, "method": "sqp"}, "options"),
 ])
 def test_bad_options_raise_value_error(kwargs, word):
     ocp = problems.make("pendulum").ocp(knots=3)
@@ -212,3 +212,71 @@ def test_bad_options_raise_value_error(kwargs, word):
         NonlinearMPC(ocp, **kwargs)
     with pytest.raises(TypeError, match="options"):
         NonlinearMPC(ocp, options=[("tol", 1e-6)])
+
+
+NLP_METHODS = ("ipopt", "sqp", "fatrop", "rti")
+# For each method an option its solver takes, the baseline's options, and the option's effect on one step from the
+# start: a predicate of the Solution that the baseline's step does not meet.
+APPLIES = {
+    "ipopt": ({"max_cpu_time": 1e-9}, None, lambda sol: sol.raw_status == "Maximum_CpuTime_Exceeded"),
+    "sqp": ({"tol_pr": 1e3, "tol_du": 1e3}, None, lambda sol: sol.ok and sol.iterations <= 1),
+    "fatrop": ({"tol": 1e-1}, None, lambda sol: sol.ok and sol.iterations <= 4),
+    "rti": ({"native": True}, {"native": False}, lambda sol: sol.ok and sol.path == "C step"),
+}
+
+
+@pytest.mark.parametrize("method", NLP_METHODS)
+def test_an_option_of_each_method_applies(method):
+    """Issue 44: each option either applies or is refused. A solver's own option applies (its effect seen against the
+    baseline step), and so does max_iter=1 as an argument (the step is limited)."""
+    prob = problems.make("nlink:2")
+    ocp = prob.ocp(horizon=20, knots=3)
+    x0, goal = prob.sample(0)
+    options, baseline, effect = APPLIES[method]
+    default = NonlinearMPC(ocp, method=method, options=baseline).solve(x0, goal)
+    assert default.ok and not effect(default), default.raw_status
+    sol = NonlinearMPC(ocp, method=method, options=options).solve(x0, goal)
+    assert effect(sol), (sol.status, sol.iterations, sol.path, sol.raw_status)
+    assert NonlinearMPC(ocp, method=method, max_iter=1, options=baseline).solve(x0, goal).status == LIMITED
+
+
+@pytest.mark.parametrize("method", NLP_METHODS)
+@pytest.mark.parametrize("option, hint", [
+    ("max_wall_time", "time_limit"), ("max_iter", "max_iter"), ("time_limit", "time_limit"), ("no_such_option", ""),
+    ("qpsol", ""), ("tol", "tol"),
+])
+def test_an_option_that_does_not_apply_is_refused_naming_it_and_the_method(method, option, hint):
+    """Refused at construction with one line naming the option and the method (and the argument that sets it): rti's
+    tol and max_iter raised TypeError (given twice), its max_wall_time a TypeError naming LinearMPC, fatrop's unknown
+    options failed every step as "exception"."""
+    valid = {("ipopt", "tol"), ("fatrop", "tol"), ("sqp", "qpsol")}  # the solver's own options: they apply
+    if (method, hint) in {("fatrop", "time_limit"), ("ipopt", "tol"), ("sqp", "tol"), ("fatrop", "tol")}:
+        hint = ""  # fatrop takes no time limit; tol is NonlinearMPC's argument for rti only
+    ocp = problems.make("nlink:2").ocp(horizon=20, knots=3)
+    options = {option: "osqp" if option == "qpsol" else 0.5}
+    if (method, option) in valid:
+        NonlinearMPC(ocp, method=method, options=options)
+        return
+    with pytest.raises(ValueError, match=f"option '{option}' does not apply to method '{method}'") as error:
+        NonlinearMPC(ocp, method=method, options=options)
+    assert "\n" not in str(error.value) and (not hint or f"use {hint}=" in str(error.value)), str(error.value)
+
+
+def test_a_time_limit_does_not_rebuild_the_nlp(monkeypatch):
+    """Issue 44: warm_up with a time_limit built the NLP twice more (the time_limit set to None and back, each a
+    rebuild). The limits now only remake the solver over the NLP built once."""
+    prob = problems.make("nlink:2")
+    ocp = prob.ocp(horizon=20, knots=3)
+    x0, goal = prob.sample(0)
+    builds = []
+    build = NonlinearMPC._build
+    monkeypatch.setattr(NonlinearMPC, "_build", lambda self, ocp: (builds.append(ocp), build(self, ocp))[1])
+    for method in ("ipopt", "sqp"):
+        ctrl = NonlinearMPC(ocp, method=method, time_limit=0.5)
+        ctrl.wait_compiled()
+        ctrl.solve(x0, goal)  # takes up the compiled affine model, if it arrived after the build (a second build)
+        builds.clear()
+        assert ctrl.warm_up(x0, goal).ok and ctrl.time_limit == 0.5
+        ctrl.time_limit, ctrl.max_iter = 1e-9, 100
+        assert not builds, method
+        assert ctrl.solve(x0, goal).status == LIMITED  # the new limit is in force
