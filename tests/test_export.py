@@ -113,6 +113,26 @@ def test_a_library_exported_for_another_ocp_is_refused_naming_what_differs(bound
         assert "\n" not in str(info.value) and str(c.out_dir) in str(info.value), str(info.value)
 
 
+def test_a_library_others_can_write_is_not_loaded(bounded_pendulum, tmp_path):
+    """An exported library in a folder others can write, or itself writable by others, is refused before dlopen
+    (a planted library's constructor would run as whoever loads it)."""
+    from ocpkit.cache import UnsafeCacheError
+
+    problem, ocp, c = bounded_pendulum
+    copy = shutil.copytree(c.out_dir, tmp_path / "copy")
+    try:
+        for path, mode in ((copy, 0o777), (copy / "libmpc.so", 0o666)):
+            original = path.stat().st_mode & 0o777
+            path.chmod(mode)
+            with pytest.raises(UnsafeCacheError, match="writable by other users") as info:
+                ExportedMPC(ocp, copy)
+            assert "\n" not in str(info.value)
+            path.chmod(original)
+        ExportedMPC(ocp, copy).close()
+    finally:
+        copy.chmod(0o700)
+
+
 def test_the_digest_names_task_fields_and_a_casadi_upgrade():
     """What the digest tells apart without a build: a task's obstacles and margin; a model hash that differs under
     another CasADi version says so; a library without a digest (an older ocpkit's) is refused."""

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from ocpkit._checks import array
+from ocpkit.cache import check_trusted
 from ocpkit.certificate import TESTS, Certificate
 from ocpkit.certificate import TOL as CERT_TOL
 from ocpkit.controller import STATUSES, SUCCESS, Controller, Solution
@@ -43,7 +44,7 @@ class ExportedMPC(Controller):
         lib_path = Path(out_dir) / f"lib{name}.so"
         if not lib_path.is_file():
             raise ValueError(f"out_dir {str(out_dir)!r} has no lib{name}.so; run export() and build() first")
-        lib = ctypes.CDLL(str(lib_path.resolve()))
+        lib = ctypes.CDLL(str(check_trusted(lib_path)))
         _check_digest(lib, name, lib_path, ocp)
         dbl = np.ctypeslib.ndpointer(dtype=np.float64, flags="C_CONTIGUOUS")
         size = getattr(lib, f"{name}_memory_size")

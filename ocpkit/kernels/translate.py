@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import hashlib
 import importlib.util
-import os
 import sys
 import tempfile
 import warnings
@@ -27,7 +26,7 @@ import numpy as np
 import taichi as ti
 
 from ocpkit.cache import cache_dir as shared_cache_dir
-from ocpkit.cache import read_only
+from ocpkit.cache import check_trusted, read_only, write_atomically
 from ocpkit.kernels import runtime
 
 # Bumped whenever the generated text changes, so stale cache files are never imported.
@@ -266,19 +265,16 @@ def _literal(value: float) -> str:
 
 def _write_atomically(path: Path, text: str) -> Path:
     """Write the generated module (other processes, Dask workers or parallel tests, may generate the same file at
-    once); where the cache is read-only, into a folder of this process's own instead (the text is regenerated
+    once); where the cache is read-only or full, into a folder of this process's own instead (the text is regenerated
     every run anyway: nothing is lost but the file). Returns the path written."""
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
+        write_atomically(path, text.encode())
     except OSError as exc:
         if not read_only(exc):
             raise
         path = _private_dir() / path.name
-        fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
-    with os.fdopen(fd, "w") as handle:
-        handle.write(text)
-    os.replace(tmp, path)
+        write_atomically(path, text.encode())
     return path
 
 
@@ -299,7 +295,7 @@ def _private_dir() -> Path:
 def _import(path: Path, module_name: str):
     if module_name in sys.modules:
         return sys.modules[module_name]
-    spec = importlib.util.spec_from_file_location(module_name, path)
+    spec = importlib.util.spec_from_file_location(module_name, check_trusted(path))
     module = importlib.util.module_from_spec(spec)
     sys.modules[module_name] = module
     spec.loader.exec_module(module)
