@@ -193,14 +193,13 @@ class SamplingMPC(Controller):
     ``linearization`` picks the affine model's expansion input as in LinearMPC. ``time_limit`` (s) bounds the whole
     step: each stage — the linearization, the preconditioner, the copies to the device, each generation — starts only
     if its measured time (:class:`ocpkit.controller.OperationCosts`) and that of the stages that must follow it fit in
-    what is left (measured from the second step of a new controller on: the first compiles the kernels, 0.5 s for
-    a generation on nlink:13, which as a measurement locked it out of a 100 ms budget). Where the first generation
-    cannot fit, the step answers at once from the incumbent plan advanced a
+    what is left. Where the first generation cannot fit, the step answers at once from the incumbent plan advanced a
     step (:meth:`Controller.fallback`, "limited") and the next step that searches advances the incumbent by the steps
     it missed; where the preconditioner cannot fit, a warm step searches with the previous step's (seeds and whitening)
     and says so; where later generations cannot, the step returns the best candidate so far ("limited"), as it does
-    when its last generation ends past the budget. The first step of a new controller measures these costs and is not
-    bounded: call :meth:`warm_up` (two steps) first. ``threads`` limits BLAS/OpenMP threads inside a step
+    when its last generation ends past the budget. A new controller's first step compiles the kernels and is not
+    measured (0.5 s for a generation on nlink:13, which as a measurement locked it out of a 100 ms budget), its
+    second measures: neither is bounded, so call :meth:`warm_up` (two steps) first. ``threads`` limits BLAS/OpenMP threads inside a step
     (see Controller); Taichi's own CPU threads are set at its start (``OCPKIT_CPU_THREADS``).
     """
 
@@ -319,6 +318,7 @@ class SamplingMPC(Controller):
                 self.counter += 1
                 done += 1
             knots, best = self._result(best)
+            self._compiled = True
         except ti.TaichiCompilationError:
             # A kernel that does not compile is a bug, the same at every step: raised, never a fallback at every
             # step (variant="paper" of CEM and MPPI ran whole closed loops on the fallback input that way).
@@ -333,7 +333,7 @@ class SamplingMPC(Controller):
         if not np.isfinite(cost) or not np.isfinite(knots).all():
             self._warm = False
             return self.fallback(NAN, f"best rollout cost {cost}", times, self.generations)
-        self._warm = self._compiled = True
+        self._warm = True
         knots = np.clip(knots, ocp.u_min, ocp.u_max)
         u = np.clip(ocp.parameterization.u_at(knots, 0), ocp.u_min, ocp.u_max)
         found = f"cost {cost:.6g}" + (f", predicted violation {violation:.3g}" if self.engine.constrained else "")
