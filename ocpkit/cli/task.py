@@ -278,7 +278,7 @@ def reach_ocp(problem, args, task: Reach, **options):
         try:
             check_frame(kinematics, frame)
         except (TypeError, ValueError) as exc:
-            raise ValueError(f"{named}: {exc}") from None
+            raise ValueError(f"{named}: {str(exc).removeprefix(f'frame {frame!r} ')}") from None
         check_point(point, radius, where)
     terms = []
     weight = task.options.get("position_weight", 1e3)  # reach()'s default
