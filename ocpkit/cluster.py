@@ -32,18 +32,30 @@ class SchedulerLostError(ConnectionError):
 
 def run_dask(fn, source: _Claims, scheduler: str, timeout: float | None, mine: _Provenance, placement: Counter):
     """(params, outcome) pairs as trials finish on the Dask cluster at ``scheduler``, counting in ``placement``
-    the trials each worker ran: a generator, but whether distributed is installed and the scheduler answers
-    are checked now."""
-    try:
-        from distributed import Client
-    except ImportError:
-        raise ImportError('running a study on a Dask cluster needs distributed: pip install "ocpkit[dask]"') from None
-    check_scheduler(scheduler)
+    the trials each worker ran: a generator (the caller checks the scheduler first: :func:`check_scheduler`)."""
+    from distributed import Client
+
     return _dask_outcomes(Client, fn, source, scheduler, timeout, mine, placement)
 
 
+HANDSHAKE_S = 10.0  # seconds a server has to answer Dask's handshake as a scheduler
+
+
 def check_scheduler(scheduler: str, timeout: float = 5.0) -> None:
-    """Raise ConnectionError (one line) unless a TCP connection to the Dask scheduler opens within ``timeout`` s."""
+    """Raise ConnectionError (one line) unless a TCP connection to ``scheduler`` opens within ``timeout`` s and the
+    server there answers Dask's handshake as a Dask scheduler within :data:`HANDSHAKE_S` s; ImportError without
+    distributed. A web server or a listener that never answers would keep distributed's Client waiting forever,
+    whatever its timeout."""
+    try:
+        import distributed  # noqa: F401
+    except ImportError:
+        raise ImportError('running a study on a Dask cluster needs distributed: pip install "ocpkit[dask]"') from None
+    _connect(scheduler, timeout)
+    _handshake(scheduler, HANDSHAKE_S)
+
+
+def _connect(scheduler: str, timeout: float) -> None:
+    """Raise ConnectionError (one line) unless a TCP connection to ``scheduler`` opens within ``timeout`` s."""
     import socket
     from urllib.parse import urlsplit
 
@@ -63,6 +75,45 @@ def check_scheduler(scheduler: str, timeout: float = 5.0) -> None:
         reason = exc.strerror or str(exc) or type(exc).__name__
         raise ConnectionError(f"cannot reach the Dask scheduler at {scheduler} ({reason}); start one "
                               f"(`dask scheduler`) or check the address") from None
+
+
+def _handshake(scheduler: str, timeout: float) -> None:
+    """Raise ConnectionError (one line) unless the server at ``scheduler`` answers Dask's comm handshake and an
+    identity request as a scheduler within ``timeout`` s. Run on a thread with its own event loop (the caller may
+    be running one: a notebook), bounded by asyncio.wait_for: distributed's own connect timeout does not cover the
+    handshake."""
+    import asyncio
+    from concurrent.futures import ThreadPoolExecutor
+
+    from distributed.comm import connect
+    from distributed.security import Security
+
+    address = scheduler if "://" in scheduler else f"tcp://{scheduler}"
+
+    async def identity():
+        comm = await connect(address, timeout=timeout, **Security().get_connection_args("client"))
+        try:
+            await comm.write({"op": "identity"})
+            return await comm.read()
+        finally:
+            comm.abort()
+
+    async def bounded():
+        return await asyncio.wait_for(identity(), timeout)
+    with ThreadPoolExecutor(1, thread_name_prefix="ocpkit-handshake") as pool:
+        try:
+            reply = pool.submit(asyncio.run, bounded()).result()
+        except asyncio.TimeoutError:
+            reason = f"no answer to the Dask handshake within {timeout:g} s"
+        except Exception as exc:
+            reason = f"the Dask handshake failed: {type(exc).__name__} {(str(exc).splitlines() or [''])[0]}".strip()
+        else:
+            kind = reply.get("type") if isinstance(reply, dict) else None
+            if kind == "Scheduler":
+                return
+            reason = f"it answers as a Dask {kind}" if isinstance(kind, str) else "an unknown answer to its identity"
+    raise ConnectionError(f"the server at {scheduler} is not a Dask scheduler ({reason}): start one "
+                          f"(`dask scheduler`) or check the address")
 
 
 def _dask_outcomes(Client, fn, source: _Claims, scheduler: str, timeout: float | None, mine: _Provenance,
@@ -87,8 +138,9 @@ def _dask_outcomes(Client, fn, source: _Claims, scheduler: str, timeout: float |
                     if params is None:
                         break
                     code = mine.codes[canonical_key(params)]
-                    running[client.submit(_execute_remote, fn, params, timeout, mine.version, code, pure=False)] = \
-                        (params, time.monotonic())
+                    variables = mine.manifests[code].get("environment", {})
+                    running[client.submit(_execute_remote, fn, params, timeout, mine.version, code, variables,
+                                          pure=False)] = (params, time.monotonic())
                 if not running:
                     if not source.others:
                         return
@@ -155,7 +207,7 @@ def _scheduler_gone(client, scheduler: str) -> bool:
     if client.status != "running":
         return True
     try:
-        check_scheduler(scheduler, timeout=2.0)
+        _connect(scheduler, timeout=2.0)
     except ConnectionError:
         return True
     return False
@@ -186,15 +238,16 @@ def _check_versions(client, workers: list, version: str, scheduler: str | None =
 _VERIFIED: set = set()  # (version, code hash) pairs a Dask worker process found its own code to match
 
 
-def _execute_remote(fn, params: dict, timeout: float | None, version: str, code: str):
+def _execute_remote(fn, params: dict, timeout: float | None, version: str, code: str, variables: dict):
     """:func:`execute` on a Dask worker: (the worker's address, the outcome). A worker first checks, once per code
     hash, that it runs the client's ocpkit version and code: if not, the outcome is ``{"mismatch": (its version,
-    its manifest)}`` and the trial is not run."""
+    its manifest)}`` and the trial is not run. Its manifest takes the client's environment ``variables``: a worker's
+    own are its cluster's (Dask's nanny sets the BLAS threads to 1), see :mod:`ocpkit.provenance`."""
     from distributed import get_worker
 
     address = get_worker().address
     if (version, code) not in _VERIFIED:
-        theirs = provenance.manifest(fn, params)
+        theirs = provenance.manifest(fn, params, variables)
         if package_version() != version or provenance.manifest_hash(theirs) != code:
             return address, {"mismatch": (package_version(), theirs)}
         _VERIFIED.add((version, code))

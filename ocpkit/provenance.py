@@ -14,7 +14,24 @@ versions of :data:`DEPENDENCIES`. Its files are
 
 Other third-party code is neither hashed nor versioned, and a module imported by a name computed at run time
 outside those patterns is not seen. A trial's code hash (:func:`manifest_hash`) is a hash of its manifest; the
-study runner stores both, so a resumed study can say which modules or versions changed (:func:`changes`).
+study runner stores both, so a resumed study can say which modules, versions or variables changed (:func:`changes`).
+
+The manifest also records the **environment variables that change a trial's results** (:func:`environment`), as set
+in the process that runs the study, when any is set:
+
+* ``OMP_NUM_THREADS``, ``OPENBLAS_NUM_THREADS``, ``MKL_NUM_THREADS``: the BLAS/OpenMP threads of numpy, CasADi and
+  the QP solvers: their measured times, and the order of floating-point sums in multithreaded BLAS calls;
+* ``OCPKIT_CPU_THREADS``: Taichi's CPU threads (the sampling planners' times and parallel reductions);
+* ``TI_*``: Taichi reads ``TI_<option>`` for any ``ti.init`` option (``TI_ARCH`` picks the CPU or the GPU,
+  ``TI_FAST_MATH`` its floating point), except ``TI_OFFLINE_CACHE*`` and ``TI_LOG_LEVEL`` (where compiled kernels are
+  kept, how much Taichi says);
+* ``CC``: the C compiler of CasADi's JIT and of generated C steps (their floating point and speed).
+
+Not recorded, since they change where files are kept and not what is computed: ``OCPKIT_CACHE_DIR``,
+``XDG_CACHE_HOME``, ``TI_OFFLINE_CACHE_FILE_PATH``. Nor are the thread counts the study runner gives its local
+worker processes where the user set none (from ``--workers`` and the cores, like the machine itself). A Dask worker
+is checked for the manifest's code and versions, not for its environment: Dask's nanny sets the BLAS threads of its
+workers to 1 itself, and the trial records the submitting process's variables.
 
 Hashing reads and parses each file once per process, and again only when its size, inode or times change: a
 closed-loop trial's manifest (37 files) took ~0.2 s the first time and ~15 ms after on a busy 2-core machine;
@@ -39,6 +56,12 @@ from ocpkit import __version__
 # The numerical libraries whose version is part of every manifest (distribution names, as pip knows them).
 DEPENDENCIES = ("casadi", "numpy", "scipy", "proxsuite", "osqp", "daqp", "pin", "taichi", "control")
 
+# Environment variables that change a trial's results (see the module docstring): these names, and those that begin
+# with one of the prefixes other than the ones that do not.
+ENVIRONMENT = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "OCPKIT_CPU_THREADS", "CC")
+ENVIRONMENT_PREFIXES = ("TI_",)
+NOT_RESULTS = ("TI_OFFLINE_CACHE", "TI_LOG_LEVEL")  # prefixes of variables that change no result
+
 _FILES: dict[str, tuple] = {}   # path -> (stat signature, digest, import references)
 
 
@@ -59,10 +82,18 @@ def dependency_versions() -> dict[str, str | None]:
     return versions
 
 
-def manifest(fn, params: Mapping | None = None) -> dict:
+def environment() -> dict[str, str]:
+    """{name: value} of the environment variables set in this process that change a trial's results (see the
+    module docstring), sorted by name."""
+    return {name: value for name, value in sorted(os.environ.items())
+            if (name in ENVIRONMENT or name.startswith(ENVIRONMENT_PREFIXES)) and not name.startswith(NOT_RESULTS)}
+
+
+def manifest(fn, params: Mapping | None = None, variables: Mapping | None = None) -> dict:
     """The manifest of trial function ``fn`` run with ``params``:
-    ``{"code": {module name or file as named in params: sha256[:16]}, "dependencies": {name: version}}``."""
-    return _manifest(fn, _param_references(params or {}, {}))
+    ``{"code": {module name or file as named in params: sha256[:16]}, "dependencies": {name: version}}``, and
+    ``"environment": {name: value}`` when :func:`environment` (or ``variables``, given instead) is not empty."""
+    return _manifest(fn, _param_references(params or {}, {}), variables)
 
 
 def manifests(fn, trials) -> list[tuple[str, dict]]:
@@ -78,7 +109,7 @@ def manifests(fn, trials) -> list[tuple[str, dict]]:
     return out
 
 
-def _manifest(fn, refs: tuple) -> dict:
+def _manifest(fn, refs: tuple, variables: Mapping | None = None) -> dict:
     name = getattr(fn, "__module__", None) or ""
     walk = _Walk(name.partition(".")[0])
     path = _locate(name) if name else None
@@ -95,7 +126,10 @@ def _manifest(fn, refs: tuple) -> dict:
             walk.visit(target, None, target, explicit=True)
         else:
             walk.module(target, explicit=True)
-    return {"code": dict(sorted(walk.code.items())), "dependencies": dict(dependency_versions())}
+    variables = environment() if variables is None else dict(sorted(variables.items()))
+    # Left out when empty: the code hash of a trial run with none set is the one stored before it was recorded.
+    return {"code": dict(sorted(walk.code.items())), "dependencies": dict(dependency_versions()),
+            **({"environment": variables} if variables else {})}
 
 
 def _param_references(params: Mapping, seen: dict) -> tuple:
@@ -115,8 +149,8 @@ def manifest_hash(manifest: Mapping) -> str:
 
 
 def changes(old: Mapping | None, new: Mapping) -> list[str]:
-    """What differs from manifest ``old`` to ``new``, as phrases naming the modules, files and versions
-    (one phrase saying so when ``old`` is None: trials stored before manifests were kept)."""
+    """What differs from manifest ``old`` to ``new``, as phrases naming the modules, files, versions and environment
+    variables (one phrase saying so when ``old`` is None: trials stored before manifests were kept)."""
     if old is None:
         return ["code recorded before ocpkit 0.2.0 or by another program, without the list of its files, so what "
                 "changed is unknown"]
@@ -128,11 +162,17 @@ def changes(old: Mapping | None, new: Mapping) -> list[str]:
         if names:
             names = sorted(names)
             phrases.append(f"{verb} {', '.join(names[:8])}" + (f" and {len(names) - 8} more" if len(names) > 8 else ""))
-    was, now = old.get("dependencies", {}), new.get("dependencies", {})
-    for name in [*now, *(k for k in was if k not in now)]:
-        if was.get(name) != now.get(name):
-            phrases.append(f"{name} {was.get(name) or 'not installed'} → {now.get(name) or 'not installed'}")
+    for key, absent in (("dependencies", "not installed"), ("environment", "unset")):
+        was, now = old.get(key, {}), new.get(key, {})
+        for name in [*now, *(k for k in was if k not in now)]:
+            if was.get(name) != now.get(name):
+                phrases.append(f"{name} {_shown(was.get(name), absent)} → {_shown(now.get(name), absent)}")
     return phrases
+
+
+def _shown(value: str | None, absent: str) -> str:
+    """A version or variable's value as a change names it: ``absent`` where there is none, quoted where empty."""
+    return absent if value is None else value or "''"
 
 
 class _Walk:

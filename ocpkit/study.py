@@ -7,9 +7,10 @@ trial that raises is stored as failed.
 Before a trial starts, the parent **claims** it in the store (a lease renewed by a heartbeat),
 so several processes on one folder share the grid and run each trial once, and the trials of
 a claimant that died are taken over. Each trial records the package version and a hash of the
-code it runs (its module, the ocpkit and user modules that imports, the user files its parameters name)
-and of the numerical libraries' versions (:mod:`ocpkit.provenance`); resuming refuses trials computed by
-other code, naming what changed, unless told what to do with them.
+code it runs (its module, the ocpkit and user modules that imports, the user files its parameters name),
+of the numerical libraries' versions and of the environment variables that change results (thread counts, Taichi's
+settings: :mod:`ocpkit.provenance`); resuming refuses trials computed by other code or under other settings, naming
+what changed, unless told what to do with them.
 """
 from __future__ import annotations
 
@@ -35,7 +36,7 @@ from tqdm.auto import tqdm
 from . import provenance
 from ._checks import choice, integer
 from .kernels import CPU_THREADS
-from .cluster import run_dask
+from .cluster import check_scheduler, run_dask
 from .provenance import package_version
 from .store import RESERVED, Store, StoreError, canonical_key, now, owner_id
 from .trial import execute, failure, timeout_message
@@ -45,7 +46,8 @@ LEASE = 60.0  # seconds a claim lives without a heartbeat
 
 
 class StaleTrialsError(ValueError):
-    """Stored trials were computed by another package version, other code or other dependency versions."""
+    """Stored trials were computed by another package version, other code, other dependency versions or under other
+    result-changing environment variables."""
 
 
 @dataclass(frozen=True)
@@ -59,8 +61,8 @@ class _Provenance:
 
 
 def code_hash(fn, params: Mapping | None = None) -> str:
-    """The hash a trial of ``fn`` with ``params`` is stored with: of the code it runs and the numerical
-    libraries' versions (see :mod:`ocpkit.provenance`)."""
+    """The hash a trial of ``fn`` with ``params`` is stored with: of the code it runs, the numerical libraries'
+    versions and the environment variables that change results (see :mod:`ocpkit.provenance`)."""
     return provenance.manifest_hash(provenance.manifest(fn, params))
 
 
@@ -130,13 +132,15 @@ def run(study: Study, out_dir, *, workers: int | None = None, scheduler: str | N
     Trials run on ``workers`` local processes (default: one per CPU), or on the Dask cluster at ``scheduler``
     ("tcp://host:port"; :mod:`ocpkit.cluster`: :class:`~ocpkit.cluster.ClusterMismatchError` if its scheduler or a
     worker runs another ocpkit version or other code, :class:`~ocpkit.cluster.SchedulerLostError` if the scheduler
-    goes away). Each trial is claimed in the store before it starts, so other processes running the same study on
-    the same folder take other trials; a claim lives ``lease`` seconds unless renewed (a heartbeat renews it while
-    this process runs), and the claims of a process that died on this host are taken over at once. Each finished trial is
+    goes away; ConnectionError, before ``out_dir`` is created, where no Dask scheduler answers there). Each trial is
+    claimed in the store before it starts, so other processes running the same study on the same folder take other
+    trials; a claim lives ``lease`` seconds unless renewed (a heartbeat renews it while this process runs), and the
+    claims of a process that died on this host are taken over at once. Each finished trial is
     committed as it arrives; a trial that raises (or kills its worker, or runs longer than
     ``trial_timeout`` seconds) is stored as failed and the rest go on. Stored failures are
     skipped like successes unless ``retry_failed``. Stored trials computed by another package
-    version, other code or other versions of the numerical libraries (see :func:`code_hash`) make
+    version, other code, other versions of the numerical libraries or under other thread counts or Taichi settings
+    (see :func:`code_hash`) make
     the run raise :class:`StaleTrialsError`, naming what changed, unless ``stale`` is "reuse" (keep
     them) or "rerun" (compute them again). On Ctrl-C the workers are stopped and KeyboardInterrupt
     propagates; every trial finished before it stays stored. At the end the store is checkpointed, so ``results.sqlite``
@@ -162,6 +166,8 @@ def run(study: Study, out_dir, *, workers: int | None = None, scheduler: str | N
     current = provenance.manifests(study.fn, study.trials)  # hashed once per run, each file read once per process
     codes = {key: code for key, (code, _) in zip(keys, current)}
     manifests = dict(current)
+    if scheduler is not None:  # before the store is created: a server that is no Dask scheduler leaves nothing
+        check_scheduler(scheduler)
     with Store(out_dir) as store:
         stored = store.provenance(study.name)
         old = {k: row for k, row in stored.items() if k in keys and (row[2], row[3]) != (version, codes[k])}
@@ -258,7 +264,7 @@ def _stale_message(name, path, old, n_stored, version, codes, manifests, recorde
             reasons.update(dict.fromkeys(provenance.changes(recorded.get(row[3]), manifests[codes[key]])))
     reasons = list(reasons)
     text = "; ".join(reasons[:6]) + (f"; and {len(reasons) - 6} more differences" if len(reasons) > 6 else "")
-    return (f"{len(old)} of the {n_stored} stored trials of study {name!r} in {path} were computed by other code "
+    return (f"{len(old)} of the {n_stored} stored trials of study {name!r} in {path} were computed by other code or settings "
             f"({text or 'unknown'}): pass --reuse-stale (stale='reuse') to keep them, --rerun-stale (stale='rerun') "
             f"to compute them again, or choose another --out")
 

@@ -1,12 +1,17 @@
 """Studies on a real Dask cluster: `dask scheduler` and `dask worker` processes on 127.0.0.1, `ocpkit study`
 against them, and a cluster's faults (a worker killed, the scheduler killed, a worker with other code, a trial
 past its timeout). Each trial must be stored exactly once and equal to what local worker processes store."""
+import http.server
 import json
+import math
 import os
+import re
 import signal
+import socket
 import sqlite3
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -15,6 +20,7 @@ import pytest
 
 pytest.importorskip("distributed")
 
+from ocpkit import cluster as ocpkit_cluster  # noqa: E402
 from ocpkit.cli import main  # noqa: E402
 from ocpkit.store import Store  # noqa: E402
 from ocpkit.study import Study, grid, run  # noqa: E402
@@ -277,13 +283,98 @@ def test_a_worker_without_ocpkit_or_with_another_version_or_other_code_is_refuse
 def test_the_trial_timeout_holds_on_remote_workers(cluster, tmp_path):
     address = cluster.scheduler()
     cluster.workers(2)
+    # The timeout from a measured baseline, not a fixed second: a study of trivial trials on this cluster (connecting,
+    # checking the scheduler and workers, each worker's first trial checking its code), however busy the machine.
+    t0 = time.monotonic()
+    warm = run(Study("warm", spin, grid(x=range(4), seeds=1)), tmp_path / "warm", scheduler=address, progress=False)
+    assert (warm["status"] == "ok").all()
+    timeout = float(math.ceil(3 * (time.monotonic() - t0)))
     # x = 10 runs long in Python: its worker raises the timeout inside it and goes on with the next trial;
     # x = 11 runs long in C: the client abandons it after a grace period. The rest are quick.
     study = Study("spin", spin, grid(x=range(6), seeds=1, seconds=0.0) + [
-        {"x": 10, "seed": 0, "seconds": 60.0}, {"x": 11, "seed": 0, "seconds": 60.0, "in_c": True}])
-    df = run(study, tmp_path / "dask", scheduler=address, trial_timeout=1.0, progress=False).set_index("x")
+        {"x": 10, "seed": 0, "seconds": 20 * timeout}, {"x": 11, "seed": 0, "seconds": 20 * timeout, "in_c": True}])
+    df = run(study, tmp_path / "dask", scheduler=address, trial_timeout=timeout, progress=False).set_index("x")
     assert df.loc[10, "status"] == "failed" and df.loc[10, "error"] == \
-        "TrialTimeout: the trial ran longer than the trial timeout of 1 s and was stopped"
+        f"TrialTimeout: the trial ran longer than the trial timeout of {timeout:g} s and was stopped"
     assert df.loc[11, "status"] == "failed" and df.loc[11, "error"].endswith("(abandoned on the Dask cluster)")
     assert (df.loc[range(6), "status"] == "ok").all() and df.loc[range(6), "y"].tolist() == list(range(6))
     assert writes(tmp_path / "dask") == len(study.trials)
+
+class _QuietHandler(http.server.SimpleHTTPRequestHandler):
+    def log_message(self, *args):  # off the stderr the test reads
+        pass
+
+
+@pytest.fixture(params=["web server", "silent listener"])
+def not_dask(request):
+    """The address of a server that is no Dask scheduler: a web server (``python -m http.server``), or a listener
+    whose connections the kernel accepts and nothing ever answers."""
+    if request.param == "web server":
+        server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), _QuietHandler)
+        thread = threading.Thread(target=server.serve_forever, daemon=True)
+        thread.start()
+        yield f"tcp://127.0.0.1:{server.server_address[1]}"
+        server.shutdown()
+        server.server_close()
+    else:
+        with socket.socket() as listener:
+            listener.bind(("127.0.0.1", 0))
+            listener.listen()
+            yield f"tcp://127.0.0.1:{listener.getsockname()[1]}"
+
+
+NOT_DASK = r"the server at {} is not a Dask scheduler \(no answer to the Dask handshake within {:g} s\)"
+
+
+def _closed_port() -> str:
+    """An address nothing listens on: refused at once."""
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return f"tcp://127.0.0.1:{probe.getsockname()[1]}"
+
+
+def test_a_server_that_is_not_a_dask_scheduler_is_refused_in_time_leaving_nothing(not_dask, tmp_path, monkeypatch,
+                                                                                  capsys):
+    monkeypatch.setattr(ocpkit_cluster, "HANDSHAKE_S", 2.0)
+
+    def refused(address: str, folder: Path) -> float:
+        """Seconds that run() then the command line take to refuse ``address``; neither leaves ``folder``."""
+        t0 = time.monotonic()
+        with pytest.raises(ConnectionError, match=re.escape(f" at {address} ")):
+            run(Study("spin", spin, grid(x=range(2), seeds=1)), folder / "api", scheduler=address, progress=False)
+        assert main(["study", "robustness", "--problem", "pendulum", "--scheduler", address, "--out",
+                     str(folder / "cli")]) == 2
+        assert not (folder / "api").exists() and not (folder / "cli").exists()
+        return time.monotonic() - t0
+
+    baseline = refused(_closed_port(), tmp_path / "closed")  # what the two refusals cost without a handshake
+    capsys.readouterr()
+    assert refused(not_dask, tmp_path) < 2 * 2.0 + 2 * baseline + 1
+    (line,) = errors(capsys.readouterr().err)
+    assert re.match("ocpkit: error: " + NOT_DASK.format(re.escape(not_dask), 2.0), line), line
+
+
+@pytest.mark.slow
+def test_the_command_line_refuses_a_web_server_as_scheduler_within_its_timeout(tmp_path):
+    port = int(_closed_port().rpartition(":")[2])  # free for `python -m http.server`, as a user would start it
+    server = subprocess.Popen([sys.executable, "-m", "http.server", str(port), "--bind", "127.0.0.1"], cwd=tmp_path,
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+    def refused(address: str) -> tuple[float, int, str]:
+        t0 = time.monotonic()
+        code, out, err = finish(ocpkit(*STUDY, "--scheduler", address, "--out", tmp_path / "out", cwd=tmp_path),
+                                timeout=300)
+        assert not (tmp_path / "out").exists()
+        return time.monotonic() - t0, code, err
+    try:
+        baseline, code, err = refused(_closed_port())  # the command's start and refusal without a handshake
+        assert code == 2 and "cannot reach the Dask scheduler" in err, err
+        _wait_for(lambda: socket.socket().connect_ex(("127.0.0.1", port)) == 0, server, "web server")
+        elapsed, code, err = refused(f"tcp://127.0.0.1:{port}")
+    finally:
+        server.kill()
+        server.wait()
+    assert code == 2 and errors(err) == [f"ocpkit: error: the server at tcp://127.0.0.1:{port} is not a Dask "
+                                         "scheduler (no answer to the Dask handshake within 10 s): start one "
+                                         "(`dask scheduler`) or check the address"], err
+    assert elapsed < ocpkit_cluster.HANDSHAKE_S + 2 * baseline + 1, (elapsed, baseline)

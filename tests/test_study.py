@@ -278,8 +278,12 @@ def test_parquet_export_error_without_pyarrow(tmp_path):
             assert pd.read_parquet(store.to_parquet(tmp_path / "r.parquet")).y.tolist() == [2.0]
 
 
-def test_dask_local_cluster_matches_local_processes(tmp_path):
+def test_dask_local_cluster_matches_local_processes(tmp_path, monkeypatch):
     distributed = pytest.importorskip("distributed")
+    # The BLAS threads Dask's nanny sets in this process's environment for its workers, set for both runs: they are
+    # part of a trial's provenance, so the two runs store the same code hash.
+    for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+        monkeypatch.setenv(name, "1")
     study = Study("sq", square, grid(x=range(4), seeds=2, fail=3))
     local = run(study, tmp_path / "local", workers=2, progress=False)
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
