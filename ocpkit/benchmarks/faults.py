@@ -448,8 +448,8 @@ def unbounded_default_rows() -> list[RealTimeRow]:
 def realtime_rows() -> list[RealTimeRow]:
     """Every real-time row (about a minute and a half here: calibrating sparse ProxQP at nlink:13, and the
     unbounded-default rows' 10-15 s steps)."""
-    return (budget_rows() + huge_state_rows() + [spiral_row()] + beyond_bounds_rows() + two_threads_rows()
-            + [loaded_row()] + unbounded_default_rows())
+    return (budget_rows() + sampling_budget_rows() + huge_state_rows() + [spiral_row()] + beyond_bounds_rows()
+            + two_threads_rows() + [loaded_row()] + unbounded_default_rows() + not_dask_rows())
 
 
 def format_realtime(rows: list[RealTimeRow]) -> str:
@@ -546,7 +546,7 @@ def cache_rows(out=print) -> list[RealTimeRow]:
                                         f"{': ' + _gist(r['warnings'][0]) if r['warnings'] else ''}", r["wall"],
                                         r["status"], bool(ok), criterion))
         rows.append(_concurrent_row(tmp))
-    return rows
+    return rows + [planted_entry_row()] + full_disk_rows(out)
 
 
 def _gist(warning: str) -> str:
@@ -584,3 +584,154 @@ def _concurrent_row(tmp, scripts: int = 4) -> RealTimeRow:
                        f"{in_c}/{scripts} scripts then in C, {errors} raised", wall,
                        _counts(r.get("status", "exception") for r in results), builds == 1 and in_c == scripts,
                        "one build machine-wide, every script then in C")
+
+
+def planted_entry_row() -> RealTimeRow:
+    """Another user's planted C step: nlink:13's default entry folder opened to everyone (mode 777), its libmpc.so
+    and content hash replaced by a library whose constructor leaves a marker. A script's default LinearMPC must not
+    load it (no marker) and refuse in one line (``UnsafeCacheError``)."""
+    import os
+    import shutil
+    import subprocess
+    import tempfile
+    import time
+    from pathlib import Path
+
+    from ocpkit import native, problems
+    from ocpkit.cache import write_entry
+    from ocpkit.solvers.qp import LinearMPC
+
+    with tempfile.TemporaryDirectory(prefix="ocpkit-bench-planted-") as tmp:
+        tmp = Path(tmp)
+        root, marker = tmp / "cache", tmp / "constructor-ran"
+        env = {**os.environ, "OCPKIT_CACHE_DIR": str(root)}
+        ocp = problems.make("nlink:13").ocp(knots=5)
+        python = LinearMPC(ocp, native=False)  # the settings a default LinearMPC hands to ocpkit.native
+        settings = (python._backend.tolerance, python.max_iter, python.linearization, 1, 0.0)
+        root.mkdir(mode=0o700)
+        scratch, key, _ = native._generate(ocp, settings, root / "native")  # the entry's key; nothing built
+        shutil.rmtree(scratch)
+        entry = root / "native" / key
+        entry.mkdir(mode=0o777)
+        entry.chmod(0o777)
+        (tmp / "planted.c").write_text('#include <stdio.h>\n__attribute__((constructor)) static void planted(void) '
+                                       f'{{ FILE *f = fopen("{marker}", "w"); if (f) fclose(f); }}\n')
+        subprocess.run([os.environ.get("CC", "cc"), "-shared", "-fPIC", str(tmp / "planted.c"), "-o",
+                        str(tmp / "planted.so")], check=True)
+        write_entry(entry / f"lib{native.NAME}.so", (tmp / "planted.so").read_bytes())
+        t0 = time.perf_counter()
+        run = subprocess.run(_cache_script(0), env=env, capture_output=True, text=True, timeout=600, cwd=tmp)
+        wall = time.perf_counter() - t0
+        r = _script_result(run)
+        refused = r.get("error", "").startswith("ocpkit.cache.UnsafeCacheError: ")
+        planted_ran = marker.exists()
+    return RealTimeRow("planted cache entry", "qp condensed daqp (default)",
+                       f"nlink:13 p=5, entry folder 777: {'not loaded' if not planted_ran else 'LOADED'}, "
+                       f"{_gist(r['error']) if refused else 'not refused'}", wall,
+                       "refused" if refused else r.get("status", "exception"), refused and not planted_ran,
+                       "the planted library never loaded; one-line refusal")
+
+
+def full_disk_rows(out=print) -> list[RealTimeRow]:
+    """A script's default LinearMPC of nlink:13 with its cache on a full file system (a filled tmpfs,
+    :func:`ocpkit.benchmarks.readonly.run_full`; root with mount namespaces only): the Python step, success, one
+    warning naming the folder as full, nothing raised."""
+    import os
+    import tempfile
+    from pathlib import Path
+
+    from ocpkit.benchmarks import readonly
+
+    if readonly.method() != readonly.BIND_MOUNT:
+        out("cache rows: the full-disk one skipped (a full file system needs root with mount namespaces)")
+        return []
+    with tempfile.TemporaryDirectory(prefix="ocpkit-bench-full-") as tmp:
+        root = Path(tmp) / "cache"
+        root.mkdir(mode=0o700)
+        run = readonly.run_full(root, _cache_script(0), env={**os.environ, "OCPKIT_CACHE_DIR": str(root)},
+                                capture_output=True, text=True, timeout=600, cwd=tmp)
+    r = _script_result(run)
+    if "error" in r:
+        return [RealTimeRow("full disk", "qp condensed daqp (default)", f"raised: {r['error'][:100]}",
+                            float("nan"), "exception", False, "nothing raised")]
+    ok = (not r["native"] and r["status"] == SUCCESS and len(r["warnings"]) == 1
+          and f"{root}/native is full" in r["warnings"][0])
+    return [RealTimeRow("full disk", "qp condensed daqp (default)", f"nlink:13 p=5 (filled tmpfs): "
+                        f"{'C step' if r['native'] else 'Python step'}, {len(r['warnings'])} warnings"
+                        f"{': ' + _gist(r['warnings'][0]) if r['warnings'] else ''}", r["wall"], r["status"],
+                        bool(ok), "Python step, success, one warning naming the folder as full, nothing raised")]
+
+
+def not_dask_rows() -> list[RealTimeRow]:
+    """`ocpkit study … --scheduler` at a server that is no Dask scheduler: a web server (``python -m http.server``)
+    and a listener that never answers. Each must end in one line within the handshake timeout
+    (:data:`ocpkit.cluster.HANDSHAKE_S`) plus twice the command's cost against a closed port (its start, measured
+    first), and leave no results store."""
+    import os
+    import socket
+    import subprocess
+    import sys
+    import tempfile
+    import time
+    from pathlib import Path
+
+    from ocpkit.cluster import HANDSHAKE_S
+
+    def study(address: str, tmp: Path) -> tuple[float, int, list[str], bool]:
+        out_dir = tmp / "out"
+        t0 = time.perf_counter()
+        run = subprocess.run([sys.executable, "-m", "ocpkit.cli", "study", "robustness", "--problem", "pendulum",
+                              "--scheduler", address, "--out", str(out_dir)], capture_output=True, text=True,
+                             timeout=600, cwd=tmp)  # outside any checkout, which would shadow the installed ocpkit
+        lines = [line for line in run.stderr.splitlines() if line.strip()]
+        return time.perf_counter() - t0, run.returncode, lines, out_dir.exists()
+
+    def free_port() -> int:
+        with socket.socket() as probe:
+            probe.bind(("127.0.0.1", 0))
+            return probe.getsockname()[1]
+
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="ocpkit-bench-not-dask-") as tmp:
+        tmp = Path(tmp)
+        baseline = study(f"tcp://127.0.0.1:{free_port()}", tmp)[0]  # refused at once: the command's own cost
+        port = free_port()
+        web = subprocess.Popen([sys.executable, "-m", "http.server", str(port), "--bind", "127.0.0.1"], cwd=tmp,
+                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        try:
+            deadline = time.monotonic() + 60
+            while socket.socket().connect_ex(("127.0.0.1", port)) and time.monotonic() < deadline:
+                time.sleep(0.05)
+            cases = [("web server", f"tcp://127.0.0.1:{port}")]
+            with socket.socket() as silent:
+                silent.bind(("127.0.0.1", 0))
+                silent.listen()
+                cases.append(("silent listener", f"tcp://127.0.0.1:{silent.getsockname()[1]}"))
+                for label, address in cases:
+                    wall, code, lines, left = study(address, tmp)
+                    ok = (code == 2 and len(lines) == 1 and "is not a Dask scheduler" in lines[0] and not left
+                          and wall <= HANDSHAKE_S + 2 * baseline + 1)
+                    rows.append(RealTimeRow("scheduler not Dask", f"cli study, {label}",
+                                            f"exit {code}, {len(lines)} line(s): {lines[-1][15:95] if lines else '-'}"
+                                            f"{', store LEFT' if left else ', no store'}", wall,
+                                            "refused" if code == 2 else f"exit {code}", ok,
+                                            f"one line ≤ {HANDSHAKE_S:g} s + 2 × {baseline:.1f} s start, no store"))
+        finally:
+            web.kill()
+            web.wait()
+    return rows
+
+
+def sampling_budget_rows(steps=20, budget=1e-3) -> list[RealTimeRow]:
+    """"EMPC 1 ms budget": EMPC, CEM and MPPI (population 1024, CPU) on nlink:13 after warm_up, ``steps`` replayed
+    steps at ``budget``: the budget covers the whole call (issue 44: 88 ms-1.1 s a call, the linearization and the
+    preconditioner running before it was checked); acceptable as the other step budgets, slowest ≤ 2 × budget + 2 ms."""
+    problem = problems.make("nlink:13")
+    ocp = problem.ocp()
+    xs, goal = _replayed_states(problem, ocp, steps)
+    rows = []
+    for name in ("empc", "cem", "mppi"):
+        for row in _budgeted(solvers.make(name, ocp, arch="cpu"), name, "nlink:13 T=50", xs, goal, (budget,)):
+            row.case = "EMPC 1 ms budget"
+            rows.append(row)
+    return rows
