@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from ocpkit.controller import EXCEPTION, INFEASIBLE, LIMITED, NAN, SUCCESS, OperationCosts
+from ocpkit.status import EXCEPTION, INFEASIBLE, LIMITED, NAN, SUCCESS, OperationCosts
 from ocpkit.quadratic_program import QP
 from ocpkit.transcription import SparseQP
 

@@ -15,7 +15,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ocpkit._checks import integer, positive
-from ocpkit.controller import SOFT, SUCCESS, Controller, Solution
+from ocpkit.controller import Controller
+from ocpkit.status import SOFT, SUCCESS, Solution
 from ocpkit.model import Model
 from ocpkit.problem import check_dynamics
 

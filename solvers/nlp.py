@@ -49,8 +49,8 @@ import numpy as np
 
 from ocpkit._checks import choice, integer, positive
 from ocpkit.compiled import SwitchingFunction, prebuild
-from ocpkit.controller import (EXCEPTION, INFEASIBLE, LIMITED, NAN, SUCCESS, Controller, OperationCosts,
-                               Solution, check_linearization)
+from ocpkit.controller import Controller, check_linearization
+from ocpkit.status import EXCEPTION, INFEASIBLE, LIMITED, NAN, SUCCESS, OperationCosts, Solution
 from ocpkit.ocp import OCP
 from ocpkit.solvers.qp import LinearMPC
 

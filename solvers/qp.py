@@ -19,8 +19,8 @@ import numpy as np
 from ocpkit import native as _native
 from ocpkit._checks import choice, integer, positive
 from ocpkit.certificate import certify
-from ocpkit.controller import (EXCEPTION, INFEASIBLE, LIMITED, NAN, SUCCESS, Controller, OperationCosts,
-                               Solution, check_linearization)
+from ocpkit.controller import Controller, check_linearization
+from ocpkit.status import EXCEPTION, INFEASIBLE, LIMITED, NAN, SUCCESS, OperationCosts, Solution
 from ocpkit.export import ExportedMPC
 from ocpkit.numeric import BufferedFunction
 from ocpkit.ocp import OCP

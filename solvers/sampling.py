@@ -46,8 +46,8 @@ import taichi as ti
 
 from ocpkit._checks import array, choice, integer, positive
 from ocpkit.boxqp import solve_box_qp
-from ocpkit.controller import (EXCEPTION, LIMITED, NAN, SUCCESS, Controller, OperationCosts, Solution,
-                               check_linearization)
+from ocpkit.controller import Controller, check_linearization
+from ocpkit.status import EXCEPTION, LIMITED, NAN, SUCCESS, OperationCosts, Solution
 from ocpkit.kernels import runtime
 from ocpkit.kernels.random import normal, seed_key
 from ocpkit.kernels.rollout import FEASIBILITY_TOLERANCE, Rollout, constrained
@@ -192,7 +192,7 @@ class SamplingMPC(Controller):
     OCP's terms and the exact penalties of its state bounds and a task's obstacles); ``seed`` makes runs repeatable.
     ``linearization`` picks the affine model's expansion input as in LinearMPC. ``time_limit`` (s) bounds the whole
     step: each stage — the linearization, the preconditioner, the copies to the device, each generation — starts only
-    if its measured time (:class:`ocpkit.controller.OperationCosts`) and that of the stages that must follow it fit in
+    if its measured time (:class:`ocpkit.status.OperationCosts`) and that of the stages that must follow it fit in
     what is left. Where the first generation cannot fit, the step answers at once from the incumbent plan advanced a
     step (:meth:`Controller.fallback`, "limited") and the next step that searches advances the incumbent by the steps
     it missed; where the preconditioner cannot fit, a warm step searches with the previous step's (seeds and whitening)

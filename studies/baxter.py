@@ -19,7 +19,8 @@ import pandas as pd
 
 from ocpkit import plots, problems, solvers
 from ocpkit._checks import choice
-from ocpkit.controller import SUCCESS, Controller, Solution
+from ocpkit.controller import Controller
+from ocpkit.status import SUCCESS, Solution
 from ocpkit.kernels.runtime import current_arch
 from ocpkit.metrics import itae
 from ocpkit.problems.baxter import JOINTS

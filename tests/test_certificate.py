@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from ocpkit.certificate import TOL, certify
-from ocpkit.controller import SUCCESS
+from ocpkit.status import SUCCESS
 from ocpkit.export import ExportedMPC, build, export
 from ocpkit.problems import make
 from ocpkit.solvers.qp import LinearMPC

@@ -2,7 +2,8 @@
 import numpy as np
 import pytest
 
-from ocpkit.controller import INFEASIBLE, LIMITED, SolverError
+from ocpkit.controller import SolverError
+from ocpkit.status import INFEASIBLE, LIMITED
 from ocpkit.metrics import actual_cost, itae, step_metrics
 from ocpkit.problems import make
 from ocpkit.simulate import REACHED, simulate

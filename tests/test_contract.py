@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 
 from ocpkit import solvers
-from ocpkit.controller import SOFT, STATUSES, SUCCESS
+from ocpkit.status import SOFT, STATUSES, SUCCESS
 from ocpkit.export import BuildError, ExportedMPC, build, check_tools, export
 from ocpkit.export.digest import ocp_entries
 from ocpkit.problem import Problem

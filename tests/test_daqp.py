@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from ocpkit.controller import INFEASIBLE, LIMITED, NAN, SUCCESS
+from ocpkit.status import INFEASIBLE, LIMITED, NAN, SUCCESS
 from ocpkit.problems import make
 from ocpkit.simulate import simulate
 from ocpkit.solvers.qp import LinearMPC
@@ -89,7 +89,7 @@ def test_daqp_deadline_becomes_an_iteration_limit():
     its measured time per iteration (here set to 1 ms: 10.5 ms left allow 10), and refuses a solve where none fits."""
     import time
 
-    from ocpkit.controller import OperationCosts
+    from ocpkit.status import OperationCosts
     from ocpkit.qp_backends import DAQP
 
     qp = _many_active_rows()

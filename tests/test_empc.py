@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from ocpkit import problems
-from ocpkit.controller import LIMITED, NAN, SUCCESS
+from ocpkit.status import LIMITED, NAN, SUCCESS
 from ocpkit.metrics import actual_cost
 from ocpkit.simulate import simulate
 from ocpkit.solvers.cem import CrossEntropyMPC

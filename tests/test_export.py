@@ -11,7 +11,7 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from ocpkit.controller import SUCCESS
+from ocpkit.status import SUCCESS
 from ocpkit.export import ExportedMPC, build, export
 from ocpkit.problems import make
 from ocpkit.solvers.qp import LinearMPC
@@ -159,7 +159,7 @@ def test_the_digest_names_task_fields_and_a_casadi_upgrade():
 
 def test_status_string_names_every_status(bounded_pendulum, tmp_path):
     """``mpc_status_string`` (tests/c/status_names.c calls it for -1 … 5) names the statuses as ocpkit does."""
-    from ocpkit.controller import SOFT, STATUSES
+    from ocpkit.status import SOFT, STATUSES
 
     out = bounded_pendulum[2].out_dir
     program = tmp_path / "status_names"

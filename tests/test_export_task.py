@@ -9,7 +9,7 @@ import subprocess
 import numpy as np
 import pytest
 
-from ocpkit.controller import INFEASIBLE, SOFT, SUCCESS
+from ocpkit.status import INFEASIBLE, SOFT, SUCCESS
 from ocpkit.export import ExportedMPC, build, export
 from ocpkit.problem import Problem
 from ocpkit.problems import make

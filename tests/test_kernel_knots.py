@@ -7,7 +7,7 @@ import taichi as ti
 from scipy.interpolate import BSpline
 
 from ocpkit import problems
-from ocpkit.controller import SUCCESS
+from ocpkit.status import SUCCESS
 from ocpkit.kernels import runtime
 from ocpkit.kernels.rollout import Rollout, SparseRows
 from ocpkit.ocp import OCP

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from ocpkit import problems
-from ocpkit.controller import LIMITED, SOFT, SUCCESS, Solution
+from ocpkit.status import LIMITED, SOFT, SUCCESS, Solution
 from ocpkit.simulate import MOVING, REACHED, STALLED, Trajectory, simulate, soft_cause
 from ocpkit.solvers.qp import LinearMPC
 from ocpkit.task import Sphere, reach

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from ocpkit import native, problems
-from ocpkit.controller import LIMITED, SOFT, SUCCESS
+from ocpkit.status import LIMITED, SOFT, SUCCESS
 from ocpkit.export import check_tools
 from ocpkit.solvers.qp import LinearMPC
 

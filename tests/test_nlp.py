@@ -5,7 +5,8 @@ import pytest
 
 import ocpkit.problems as problems
 from conftest import random_lti
-from ocpkit.controller import INFEASIBLE, LIMITED, NAN, SUCCESS, SolverError
+from ocpkit.controller import SolverError
+from ocpkit.status import INFEASIBLE, LIMITED, NAN, SUCCESS
 from ocpkit.metrics import actual_cost
 from ocpkit.model import Model
 from ocpkit.ocp import OCP

@@ -7,7 +7,8 @@ from threadpoolctl import threadpool_info
 
 from ocpkit import problems
 from ocpkit.benchmarks.faults import beyond_bounds_rows, huge_state_rows, realtime_rows, two_threads_rows
-from ocpkit.controller import LIMITED, NAN, SOFT, SUCCESS, Controller, OperationCosts, Solution
+from ocpkit.controller import Controller
+from ocpkit.status import LIMITED, NAN, SOFT, SUCCESS, OperationCosts, Solution
 from ocpkit.solvers.nlp import NonlinearMPC
 from ocpkit.solvers.qp import LinearMPC
 

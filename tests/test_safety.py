@@ -8,7 +8,7 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from ocpkit.controller import INFEASIBLE, LIMITED, SOFT
+from ocpkit.status import INFEASIBLE, LIMITED, SOFT
 from ocpkit.model import Model
 from ocpkit.ocp import OCP
 from ocpkit.problems import make

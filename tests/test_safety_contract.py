@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 
 from ocpkit import solvers
-from ocpkit.controller import SOFT, STATUSES, SUCCESS
+from ocpkit.status import SOFT, STATUSES, SUCCESS
 from ocpkit.problems import make
 from ocpkit.simulate import simulate
 from ocpkit.task import Sphere, clearances, reach

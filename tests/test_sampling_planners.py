@@ -8,7 +8,7 @@ import pytest
 import taichi as ti
 
 from ocpkit import Model, Problem, problems
-from ocpkit.controller import LIMITED, SUCCESS
+from ocpkit.status import LIMITED, SUCCESS
 from ocpkit.metrics import actual_cost
 from ocpkit.simulate import simulate
 from ocpkit.solvers.cem import CrossEntropyMPC

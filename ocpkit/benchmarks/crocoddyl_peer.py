@@ -38,7 +38,8 @@ import numpy as np
 
 from ocpkit import problems as registry
 from ocpkit._checks import integer, positive
-from ocpkit.controller import LIMITED, NAN, SUCCESS, Controller, Solution
+from ocpkit.controller import Controller
+from ocpkit.status import LIMITED, NAN, SUCCESS, Solution
 from ocpkit.ocp import OCP
 
 INSTALL = 'pip install "ocpkit[peers]"'

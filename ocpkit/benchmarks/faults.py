@@ -14,7 +14,7 @@ import numpy as np
 
 from ocpkit import problems, solvers
 from ocpkit.benchmarks.step import load_medians
-from ocpkit.controller import SOFT, SUCCESS
+from ocpkit.status import SOFT, SUCCESS
 from ocpkit.problems.pendulum import Pendulum
 
 BUDGET = 0.05  # s: the time budget of the budget case, and the slack allowed on top of it

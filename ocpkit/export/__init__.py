@@ -38,7 +38,7 @@ dimension only through the model):
   (:meth:`ExportedMPC.set_plan`).
 
 The library names its statuses (``<name>_status_string``: "success" … "exception", as
-:data:`ocpkit.controller.STATUSES`) and the OCP it was exported for (``<name>_ocp_digest``: sizes and settings, and a
+:data:`ocpkit.status.STATUSES`) and the OCP it was exported for (``<name>_ocp_digest``: sizes and settings, and a
 hash of each weight, bound, the model and the task; :mod:`~ocpkit.export.digest`): :class:`ExportedMPC` refuses a
 library exported for another OCP, naming what differs.
 

@@ -11,7 +11,8 @@ from ocpkit._checks import array
 from ocpkit.cache import check_trusted
 from ocpkit.certificate import TESTS, Certificate
 from ocpkit.certificate import TOL as CERT_TOL
-from ocpkit.controller import STATUSES, SUCCESS, Controller, Solution
+from ocpkit.controller import Controller
+from ocpkit.status import STATUSES, SUCCESS, Solution
 from ocpkit.export.constants import CERT_CODE, ILL_CONDITIONED
 from ocpkit.export.digest import differences
 from ocpkit.export.generate import general_rows

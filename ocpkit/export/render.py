@@ -9,7 +9,7 @@ import casadi as ca
 import jinja2
 
 from ocpkit.certificate import TOL as CERT_TOL
-from ocpkit.controller import INFEASIBLE, LIMITED, SOFT, STATUSES, SUCCESS
+from ocpkit.status import INFEASIBLE, LIMITED, SOFT, STATUSES, SUCCESS
 from ocpkit.export.constants import CERT_CODE, ILL_CONDITIONED, c_array, step_constants
 from ocpkit.qp_backends import DAQP_EXIT
 from ocpkit.task import ACTIVATION, ROWS_PER_SPHERE

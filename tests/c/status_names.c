@@ -1,5 +1,5 @@
 /* Prints "<code> <name>" for each code from -1 to MPC_EXCEPTION + 1 as mpc_status_string names it (the exported
- * library linked with -lmpc): tests/test_export.py compares the names with ocpkit.controller.STATUSES. */
+ * library linked with -lmpc): tests/test_export.py compares the names with ocpkit.status.STATUSES. */
 #include <stdio.h>
 #include "mpc.h"
 
