@@ -8,17 +8,14 @@ import threading
 import time
 from collections import Counter
 from concurrent.futures import CancelledError
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ocpkit import provenance
+from ocpkit.claims import Claims, OwnProvenance
 from ocpkit.provenance import package_version
 from ocpkit.store import canonical_key
 from ocpkit.trial import execute, failure, grace, timeout_message
-
-if TYPE_CHECKING:
-    from ocpkit.study import _Claims, _Provenance
 
 
 class ClusterMismatchError(ValueError):
@@ -30,7 +27,7 @@ class SchedulerLostError(ConnectionError):
     """The connection to the Dask scheduler was lost while a study ran on it."""
 
 
-def run_dask(fn, source: _Claims, scheduler: str, timeout: float | None, mine: _Provenance, placement: Counter):
+def run_dask(fn, source: Claims, scheduler: str, timeout: float | None, mine: OwnProvenance, placement: Counter):
     """(params, outcome) pairs as trials finish on the Dask cluster at ``scheduler``, counting in ``placement``
     the trials each worker ran: a generator (the caller checks the scheduler first: :func:`check_scheduler`)."""
     from distributed import Client
@@ -116,7 +113,7 @@ def _handshake(scheduler: str, timeout: float) -> None:
                           f"(`dask scheduler`) or check the address")
 
 
-def _dask_outcomes(Client, fn, source: _Claims, scheduler: str, timeout: float | None, mine: _Provenance,
+def _dask_outcomes(Client, fn, source: Claims, scheduler: str, timeout: float | None, mine: OwnProvenance,
                    placement: Counter):
     """The generator behind :func:`run_dask`. The scheduler, then each worker as it joins, is refused unless it
     runs this process's ocpkit version (:func:`_check_versions`); each worker checks its code on its first trial
@@ -174,7 +171,7 @@ def _dask_outcomes(Client, fn, source: _Claims, scheduler: str, timeout: float |
                 "the same command to resume") from None
 
 
-def _received(future, params: dict, scheduler: str, mine: _Provenance) -> tuple[str | None, dict]:
+def _received(future, params: dict, scheduler: str, mine: OwnProvenance) -> tuple[str | None, dict]:
     """A finished Dask future's (worker address, outcome), releasing it; raises :class:`ClusterMismatchError` when
     the scheduler or the worker could not load the trial or the worker runs other code, CancelledError when the
     future was cancelled (the scheduler went away)."""

@@ -38,6 +38,7 @@ from ._checks import choice, integer
 from .kernels import CPU_THREADS
 from .cluster import check_scheduler, run_dask
 from .provenance import package_version
+from .claims import Claims, Heartbeat, OwnProvenance
 from .store import RESERVED, Store, StoreError, canonical_key, now, owner_id
 from .trial import execute, failure, timeout_message
 
@@ -48,16 +49,6 @@ LEASE = 60.0  # seconds a claim lives without a heartbeat
 class StaleTrialsError(ValueError):
     """Stored trials were computed by another package version, other code, other dependency versions or under other
     result-changing environment variables."""
-
-
-@dataclass(frozen=True)
-class _Provenance:
-    """What this process computes trials with: its ocpkit version, each trial's code hash (by canonical key) and
-    each code hash's manifest."""
-
-    version: str
-    codes: dict
-    manifests: dict
 
 
 def code_hash(fn, params: Mapping | None = None) -> str:
@@ -188,7 +179,7 @@ def run(study: Study, out_dir, *, workers: int | None = None, scheduler: str | N
             store._writable()
         if todo:
             store.record_code({codes[k]: manifests[codes[k]] for k in todo})
-        source = _Claims(store, study.name, todo, keys, owner, lease, done)
+        source = Claims(store, study.name, todo, keys, owner, lease, done)
         executed, t0 = 0, time.perf_counter()
         placement = Counter()  # Dask worker address -> trials of this run it ran
         if not todo:
@@ -196,12 +187,12 @@ def run(study: Study, out_dir, *, workers: int | None = None, scheduler: str | N
         elif scheduler is None:
             finished = _run_local(study.fn, source, max(1, min(workers, len(todo))), trial_timeout)
         else:
-            finished = run_dask(study.fn, source, scheduler, trial_timeout, _Provenance(version, codes, manifests),
+            finished = run_dask(study.fn, source, scheduler, trial_timeout, OwnProvenance(version, codes, manifests),
                                  placement)
         failed = 0
         with tqdm(total=len(study.trials), initial=len(study.trials) - len(todo), desc=study.name,
                   unit="trial", disable=not progress, dynamic_ncols=True) as bar:
-            heartbeat = _Heartbeat(store.path.parent, owner, lease) if todo else None
+            heartbeat = Heartbeat(store.path.parent, owner, lease) if todo else None
             try:
                 for params, outcome in finished:
                     store.write(study.name, params, **outcome, version=version, code=codes[canonical_key(params)],
@@ -269,56 +260,6 @@ def _stale_message(name, path, old, n_stored, version, codes, manifests, recorde
             f"to compute them again, or choose another --out")
 
 
-class _Claims:
-    """The trials this process may run, claimed from the store one at a time as workers free up."""
-
-    def __init__(self, store: Store, study: str, todo: list, params: dict, owner: str, lease: float, done):
-        self.store, self.study, self.params, self.owner, self.lease = store, study, params, owner, lease
-        self.remaining, self.done, self.others = list(todo), done, 0
-
-    def take(self) -> dict | None:
-        """Claim the next trial no process has; None when there is none now (``others`` says how many other
-        processes hold, so the caller may wait for them to finish or die)."""
-        if not self.remaining:
-            self.others = 0
-            return None
-        finished = set()
-
-        def done(key, row):
-            if self.done(key, row):
-                finished.add(key)
-                return True
-            return False
-        key, self.others = self.store.claim(self.study, self.remaining, self.owner, self.lease, done=done)
-        self.remaining = [k for k in self.remaining if k not in finished and k != key]
-        return None if key is None else self.params[key]
-
-    def pause(self) -> None:
-        """Wait a little before looking again for trials that other processes hold."""
-        time.sleep(min(1.0, self.lease / 10))
-
-    def __len__(self) -> int:
-        return len(self.remaining)
-
-
-class _Heartbeat:
-    """Renews this process's claims every lease/4 seconds, on its own thread and database connection."""
-
-    def __init__(self, folder, owner: str, lease: float):
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._beat, args=(folder, owner, lease), daemon=True)
-        self._thread.start()
-
-    def _beat(self, folder, owner, lease):
-        with contextlib.suppress(Exception), Store(folder) as store:
-            while not self._stop.wait(lease / 4):
-                store.renew(owner, lease)
-
-    def stop(self) -> None:
-        self._stop.set()
-        self._thread.join()
-
-
 def _check_importable(fn) -> None:
     if not callable(fn):
         raise TypeError(f"fn must be a callable trial function, got {fn!r}")
@@ -347,7 +288,7 @@ def _exit_when_orphaned(parent: int) -> None:
     os._exit(1)
 
 
-def _run_local(fn, source: _Claims, workers: int, timeout: float | None = None):
+def _run_local(fn, source: Claims, workers: int, timeout: float | None = None):
     """Yield (params, outcome) as trials finish on a pool of spawn-started processes.
 
     At most ``workers`` trials are in flight, so when a worker dies the culprit is among them:
@@ -374,7 +315,7 @@ def _thread_budget(threads: int):
                 os.environ.pop(name, None)
 
 
-def _run_pool(fn, source: _Claims, workers: int, timeout: float | None = None):
+def _run_pool(fn, source: Claims, workers: int, timeout: float | None = None):
     suspects = deque()
     context = multiprocessing.get_context("spawn")  # fork is unsafe with Taichi/CUDA threads
     while True:
