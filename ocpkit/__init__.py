@@ -1,11 +1,11 @@
 """ocpkit: parameterized and GPU-parallelized real-time MPC for high-DoF robots (Hyatt, Williams, Killpack).
 
-``from ocpkit import Problem, Model`` declares a problem of your own (see ``ocpkit.problem``).
+``from ocpkit import Problem, Model`` declares a problem of your own (see ``ocpkit.model.problem``).
 """
 import os
 
 # The package version (pyproject.toml reads it from here); bumped by hand with a CHANGELOG.md entry. Study trials
-# record it, and it is what `ocpkit.study.package_version()` reports even in an editable install not reinstalled.
+# record it, and it is what `ocpkit.runs.study.package_version()` reports even in an editable install not reinstalled.
 __version__ = "0.8.0"
 
 # Taichi prints a banner to stdout on import; keep stdout clean for `--json` output and reports.
@@ -17,9 +17,9 @@ __all__ = ["Model", "Problem", "URDFRobot"]
 def __getattr__(name):
     # Imported on first use so that `import ocpkit` (the CLI's start-up, worker processes) stays light.
     if name == "Model":
-        from ocpkit.model import Model
+        from ocpkit.model.dynamics import Model
         return Model
     if name in ("Problem", "URDFRobot"):
-        from ocpkit import problem
+        from ocpkit.model import problem
         return getattr(problem, name)
     raise AttributeError(f"module 'ocpkit' has no attribute {name!r}")

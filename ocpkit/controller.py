@@ -17,9 +17,9 @@ import warnings
 import numpy as np
 
 from ocpkit._checks import choice, integer, positive
-from ocpkit.compiled import SwitchingFunction
+from ocpkit.codegen.compiled import SwitchingFunction
 from ocpkit.numeric import BufferedFunction
-from ocpkit.ocp import OCP
+from ocpkit.model.ocp import OCP
 from ocpkit.safety import Brake, PlanCheck, spectral_radius
 from ocpkit.status import INFEASIBLE, LIMITED, NAN, SOFT, OperationCosts, Solution
 

@@ -1,6 +1,6 @@
 """What a success certifies about the task, and the safe input when no plan can be trusted.
 
-A QP's KKT certificate (:mod:`ocpkit.certificate`) proves the QP was solved, not that the plan keeps the robot clear of
+A QP's KKT certificate (:mod:`ocpkit.qp.certificate`) proves the QP was solved, not that the plan keeps the robot clear of
 obstacles: the QP's rows are linearized, softened where they cannot be met, and a sampling planner's fitness only
 penalizes them. :class:`PlanCheck` therefore rolls a plan out on the controller's *nonlinear* discrete model (the
 OCP's F, RK4 or Euler at its substeps) and checks x_1 … x_T against
@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ocpkit.boxqp import solve_box_qp
+from ocpkit.qp.boxqp import solve_box_qp
 from ocpkit.numeric import BufferedFunction
 
 # Clearance (m) a certified plan may lose below the task's margin on the nonlinear rollout: a linearized row met

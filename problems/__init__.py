@@ -7,7 +7,7 @@ A spec is one of
 * ``"package.module:Name"`` — an attribute of an importable module;
 * ``"path/to/file.py:Name"`` — an attribute of a Python file (loaded once per file version).
 
-``Name`` is a :class:`~ocpkit.problem.Problem` subclass, a Problem instance or a factory returning one;
+``Name`` is a :class:`~ocpkit.model.problem.Problem` subclass, a Problem instance or a factory returning one;
 ``"…:Name:arg"`` passes the string ``arg`` to the class or factory, as ``"nlink:7"`` passes ``"7"``.
 """
 from __future__ import annotations
@@ -19,7 +19,7 @@ import sys
 from importlib import import_module
 from pathlib import Path
 
-from ocpkit.problem import NotAProblemError, Problem, ProblemError, _shown, describe, where_defined, where_raised
+from ocpkit.model.problem import NotAProblemError, Problem, ProblemError, _shown, describe, where_defined, where_raised
 
 # family -> module defining it (imported only when the family is used)
 _FAMILIES = {"pendulum": "pendulum", "nlink": "nlink", "puma560": "puma560", "baxter": "baxter", "panda": "panda"}

@@ -18,10 +18,10 @@ import casadi as ca
 import numpy as np
 
 from ocpkit._checks import integer, positive
-from ocpkit.kinematics import Kinematics
-from ocpkit.model import Model
-from ocpkit.problem import Problem
-from ocpkit.rigid_body import Chain
+from ocpkit.model.kinematics import Kinematics
+from ocpkit.model.dynamics import Model
+from ocpkit.model.problem import Problem
+from ocpkit.model.rigid_body import Chain
 
 JOINTS = ("right_s0", "right_s1", "right_e0", "right_e1", "right_w0", "right_w1", "right_w2")
 # Low servo gains: natural frequencies sqrt(K_p / M_ii(0)) of 0.5–1.5 Hz and damping ratios
@@ -92,7 +92,7 @@ class Baxter(Problem):
     uniform in the middle half of each joint's range; goal: a step of up to ±0.5 rad on every joint at
     once, within the joint limits (seeded). ``kinematics``: the URDF's frames (``end_effector``
     "right_gripper", the URDF's endpoint between the fingertips); ``link_radius`` for
-    :func:`ocpkit.kinematics.spheres_along_links`.
+    :func:`ocpkit.model.kinematics.spheres_along_links`.
     """
 
     horizon = 100

@@ -11,10 +11,10 @@ import casadi as ca
 import numpy as np
 
 from ocpkit._checks import integer, positive
-from ocpkit.kinematics import Kinematics
-from ocpkit.model import Model
-from ocpkit.problem import Problem
-from ocpkit.rigid_body import Chain
+from ocpkit.model.kinematics import Kinematics
+from ocpkit.model.dynamics import Model
+from ocpkit.model.problem import Problem
+from ocpkit.model.rigid_body import Chain
 
 
 def planar_chain(links: int, mass: float = 1.0, length: float = 0.25):
@@ -53,7 +53,7 @@ class NLink(Problem):
     ring on 7 links), R = 0.01 I, terminal weight 100 Q.
     Start and goal: at rest, every joint angle uniform in [−π/2, π/2] (seeded).
     ``kinematics``: its frames (``end_effector`` "tip", the end of the last link); ``link_radius`` for
-    :func:`ocpkit.kinematics.spheres_along_links`.
+    :func:`ocpkit.model.kinematics.spheres_along_links`.
     """
 
     duration = 10.0

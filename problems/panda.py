@@ -1,15 +1,15 @@
 """The Franka Emika Panda: a 7-DoF torque-controlled arm under gravity, its two fingers locked (a URDF robot).
 
 The URDF is example-robot-data's ``panda_description`` (upstream franka_ros), meshes removed, in
-``problems/data/panda/`` (Apache-2.0). Everything else is :class:`ocpkit.problem.URDFRobot`'s: the URDF's damping
+``problems/data/panda/`` (Apache-2.0). Everything else is :class:`ocpkit.model.problem.URDFRobot`'s: the URDF's damping
 and effort limits, gravity compensation of the goal, Q = diag(100 per angle, 1 per rate), R = 1e-3 I, and its
-kinematics with the end effector ``panda_hand_tcp`` for task-space targets (:func:`ocpkit.task.reach`).
+kinematics with the end effector ``panda_hand_tcp`` for task-space targets (:func:`ocpkit.model.task.reach`).
 """
 from __future__ import annotations
 
 from importlib import resources
 
-from ocpkit.problem import URDFRobot
+from ocpkit.model.problem import URDFRobot
 
 FINGERS = ("panda_finger_joint1", "panda_finger_joint2")
 

@@ -8,8 +8,8 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
-from ocpkit.model import Model
-from ocpkit.problem import Problem
+from ocpkit.model.dynamics import Model
+from ocpkit.model.problem import Problem
 
 
 class Pendulum(Problem):

@@ -14,10 +14,10 @@ from functools import cached_property
 import casadi as ca
 import numpy as np
 
-from ocpkit.kinematics import Kinematics
-from ocpkit.model import Model
-from ocpkit.problem import Problem
-from ocpkit.rigid_body import Chain
+from ocpkit.model.kinematics import Kinematics
+from ocpkit.model.dynamics import Model
+from ocpkit.model.problem import Problem
+from ocpkit.model.rigid_body import Chain
 
 # Standard DH per link: d (m), a (m), alpha (rad).
 DH = ((0.0, 0.0, np.pi / 2), (0.0, 0.4318, 0.0), (0.15005, 0.0203, -np.pi / 2),
@@ -75,7 +75,7 @@ class Puma560(Problem):
     Defaults: dt = 0.01 s, T = 50, 1 s closed loop (the paper's setup), Q = diag(100 per angle,
     1 per rate), R = 1e-3 I, terminal weight 10 Q. Start and goal at rest, joint angles uniform in the
     middle half of each joint's range (seeded). ``kinematics``: its frames (``end_effector`` "tool", DH frame
-    6 at the wrist centre); ``link_radius`` for :func:`ocpkit.kinematics.spheres_along_links`.
+    6 at the wrist centre); ``link_radius`` for :func:`ocpkit.model.kinematics.spheres_along_links`.
     """
 
     duration = 1.0

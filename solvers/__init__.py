@@ -5,7 +5,7 @@ from dataclasses import dataclass, field
 from importlib import import_module
 
 from ocpkit.controller import Controller
-from ocpkit.ocp import OCP
+from ocpkit.model.ocp import OCP
 
 # solver name -> module defining it (imported only when used: the sampling solvers start Taichi)
 _SOLVERS = {"qp": "qp", "ipopt": "nlp", "empc": "empc", "cem": "cem", "mppi": "mppi"}

@@ -25,9 +25,9 @@ import numpy as np
 import taichi as ti
 
 from ocpkit._checks import integer, positive
-from ocpkit.kernels import runtime
-from ocpkit.kernels.random import normal, uniform
-from ocpkit.kernels.rollout import SparseRows
+from ocpkit.codegen.kernels import runtime
+from ocpkit.codegen.kernels.random import normal, uniform
+from ocpkit.codegen.kernels.rollout import SparseRows
 from ocpkit.solvers.sampling import SEEDS, SamplingMPC
 
 

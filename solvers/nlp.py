@@ -48,10 +48,10 @@ import casadi as ca
 import numpy as np
 
 from ocpkit._checks import choice, integer, positive
-from ocpkit.compiled import SwitchingFunction, prebuild
+from ocpkit.codegen.compiled import SwitchingFunction, prebuild
 from ocpkit.controller import Controller, check_linearization
 from ocpkit.status import EXCEPTION, INFEASIBLE, LIMITED, NAN, SUCCESS, OperationCosts, Solution
-from ocpkit.ocp import OCP
+from ocpkit.model.ocp import OCP
 from ocpkit.solvers.qp import LinearMPC
 
 METHODS = ("ipopt", "sqp", "fatrop", "rti")
@@ -121,7 +121,7 @@ class RealTimeIteration(LinearMPC):
     iteration after the first fails (a time budget, a QP limit), the previous iteration's plan is returned:
     every iterate is a usable plan, the point of RTI.
 
-    Where LinearMPC builds its C step (:mod:`ocpkit.native`: DAQP, a robot-sized model, no task) the whole
+    Where LinearMPC builds its C step (:mod:`ocpkit.export.native`: DAQP, a robot-sized model, no task) the whole
     iteration runs as compiled C (:func:`ocpkit.export.export` with linearization "trajectory"), the same steps to
     rounding: until it is built, and after a failed step's soft-bound retry, in Python."""
 

@@ -5,7 +5,7 @@ expected now, builds the chosen transcription from the affine model (A_d, B_d, w
 with DAQP (the condensed form's default), ProxQP (dense backend for the condensed form, sparse for the sparse
 form), OSQP (the paper's own solver) or HPIPM. Input bounds are imposed on the knots, which keeps the whole
 piecewise-linear (or zero-order-hold) input trajectory within bounds because every u_k is a convex combination of
-knots. In the default configuration a robot's step runs as compiled C once it is built (:mod:`ocpkit.native`).
+knots. In the default configuration a robot's step runs as compiled C once it is built (:mod:`ocpkit.export.native`).
 """
 from __future__ import annotations
 
@@ -16,17 +16,17 @@ import weakref
 
 import numpy as np
 
-from ocpkit import native as _native
+from ocpkit.export import native as _native
 from ocpkit._checks import choice, integer, positive
-from ocpkit.certificate import certify
+from ocpkit.qp.certificate import certify
 from ocpkit.controller import Controller, check_linearization
 from ocpkit.status import EXCEPTION, INFEASIBLE, LIMITED, NAN, SUCCESS, OperationCosts, Solution
 from ocpkit.export import ExportedMPC
 from ocpkit.numeric import BufferedFunction
-from ocpkit.ocp import OCP
-from ocpkit.qp_backends import QP_SOLVERS, Result, make_backend, skipped, time_left
+from ocpkit.model.ocp import OCP
+from ocpkit.qp.backends import QP_SOLVERS, Result, make_backend, skipped, time_left
 from ocpkit.safety import spectral_radius
-from ocpkit.transcription import TRANSCRIPTIONS
+from ocpkit.qp.transcription import TRANSCRIPTIONS
 
 DEFAULT_QP = {"condensed": "daqp", "sparse": "proxqp"}  # LinearMPC's qp=None, by form
 
@@ -75,25 +75,25 @@ class LinearMPC(Controller):
     and OSQP hit their iteration limits; about u_goal = 0 the same robot gives eigenvalues 0.06…6e4, and
     in closed loop on nlink:7 "goal" was never worse (3 seeded trials, 0 vs 118 fallbacks).
 
-    With a task (``ocp.task``: terms in task space, obstacles; :mod:`ocpkit.task`) the condensed QP carries the
+    With a task (``ocp.task``: terms in task space, obstacles; :mod:`ocpkit.model.task`) the condensed QP carries the
     terms' Gauss–Newton model about the plan (the last plan shifted a step; RTI: each iterate) and the obstacles'
-    clearances linearized there as rows (:class:`ocpkit.task_rows.TaskRows`, a bounded number a stage) — hard for
+    clearances linearized there as rows (:class:`ocpkit.qp.task_rows.TaskRows`, a bounded number a stage) — hard for
     DAQP, soft where those cannot be met (first the obstacle rows alone, then the state bounds too) or for the other
-    backends (:class:`ocpkit.transcription.CondensedQP`). The C step takes a task's terms and its obstacles' hard rows
+    backends (:class:`ocpkit.qp.transcription.CondensedQP`). The C step takes a task's terms and its obstacles' hard rows
     (the softened QPs in Python); the sparse form takes no task (a ValueError).
 
     Every "success" is proven: the backend's answer and multipliers must pass the KKT certificate of
-    :mod:`ocpkit.certificate` (stationarity, primal feasibility, complementarity, dual sign, each within
+    :mod:`ocpkit.qp.certificate` (stationarity, primal feasibility, complementarity, dual sign, each within
     ``certificate.TOL`` relative to the data), otherwise the step is "limited" with the test that failed; and
     Controller.solve checks u against the input bounds.
 
     ``native`` runs the whole step as compiled C: the exported step of :mod:`ocpkit.export` (the same affine model,
-    condensed QP and DAQP solve in C, :mod:`ocpkit.native`), loaded through ctypes — nlink:13, T = 100: 0.3 ms
+    condensed QP and DAQP solve in C, :mod:`ocpkit.export.native`), loaded through ctypes — nlink:13, T = 100: 0.3 ms
     instead of 0.8 ms. It serves the condensed form with DAQP, every linearization — "trajectory" is the real-time
     iteration in C: the Puma 560 at 5 knots, T = 50, 0.68 instead of 1.55 ms, the same closed loop to 1e-13 — (with
     soft state bounds it solves the hard QP, and a failure goes on to the soft QP in Python). None (default)
     follows the OCP's ``compiled`` policy: for models from BACKGROUND_MIN_INSTRUCTIONS up and knot QPs of at most
-    ``ocpkit.native.MAX_VARIABLES`` variables (where it pays: not the traditional QP) the library is built in
+    ``ocpkit.export.native.MAX_VARIABLES`` variables (where it pays: not the traditional QP) the library is built in
     the background (seconds; cached by hash, once per OCP) while the Python step runs, and the next step after it
     is ready runs in C. True builds it here and now (a ValueError where the configuration has no C step);
     False keeps the Python step. The C step cannot be stopped from outside: with a ``time_limit`` it starts only

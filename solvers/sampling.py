@@ -2,7 +2,7 @@
 
 Each control step: linearize the model about (x, ū) as LinearMPC does (``linearization``), copy x,
 the goal and (A_d, B_d, w_d) to the device, run ``generations`` rounds of the planner's update rule
-over populations rolled out by :class:`ocpkit.kernels.rollout.Rollout`, and copy the chosen knots back.
+over populations rolled out by :class:`ocpkit.codegen.kernels.rollout.Rollout`, and copy the chosen knots back.
 
 ``variant="preconditioned"`` (the default) fixes what defeats the paper's Algorithm 1 on the N-link
 robots (DESIGN, "Sampling planners: what we learnt"): the knot QP's Hessian is so anisotropic
@@ -10,7 +10,7 @@ robots (DESIGN, "Sampling planners: what we learnt"): the knot QP's Hessian is s
 :class:`Preconditioner` builds the condensed knot QP ½zᵀPz + qᵀz at this step's linearization (the
 rollout cost of affine dynamics is exactly twice it plus a constant), factors P = LLᵀ, and supplies
 *seeds* evaluated in every population: the optimum of that QP within the input bounds (a Newton candidate,
-:func:`ocpkit.boxqp.solve_box_qp`; with obstacles or state bounds, within their linearized rows too, by DAQP) and
+:func:`ocpkit.qp.boxqp.solve_box_qp`; with obstacles or state bounds, within their linearized rows too, by DAQP) and
 the input that holds the goal (u_g corrected for gravity and
 other static loads). Perturbations are drawn as L⁻ᵀε (covariance ∝ P⁻¹), so every direction costs
 alike. CEM and MPPI start each step's Gaussian at the best by rollout of their incumbent and the
@@ -20,8 +20,8 @@ algorithm: isotropic sampling in input coordinates, no seeds.
 
 Both variants select by constraint domination ("feasibility first", Deb's rule) wherever they compare candidates
 — EMPC's parents and its pick, CEM's elites, MPPI's weights, the incumbent against the seeds and the plan returned:
-each rollout brings its cost J (with the exact penalties of :func:`ocpkit.kernels.rollout.fitness`) and its
-violation V of the obstacle clearances and hard state bounds (:func:`ocpkit.kernels.rollout.violation`, judged on
+each rollout brings its cost J (with the exact penalties of :func:`ocpkit.codegen.kernels.rollout.fitness`) and its
+violation V of the obstacle clearances and hard state bounds (:func:`ocpkit.codegen.kernels.rollout.violation`, judged on
 the rollout's ``dynamics``); a candidate with V ≤ FEASIBILITY_TOLERANCE beats every other, among the others the
 smaller V wins, among the feasible the smaller J (:func:`best_first`). By the penalty alone the weight decides: at
 ``obstacle_weight`` 10 all three planners drove nlink:3 through a ball on its path (down to −0.09 m); by domination
@@ -45,14 +45,14 @@ import scipy.linalg
 import taichi as ti
 
 from ocpkit._checks import array, choice, integer, positive
-from ocpkit.boxqp import solve_box_qp
+from ocpkit.qp.boxqp import solve_box_qp
 from ocpkit.controller import Controller, check_linearization
 from ocpkit.status import EXCEPTION, LIMITED, NAN, SUCCESS, OperationCosts, Solution
-from ocpkit.kernels import runtime
-from ocpkit.kernels.random import normal, seed_key
-from ocpkit.kernels.rollout import FEASIBILITY_TOLERANCE, Rollout, constrained
-from ocpkit.qp_backends import DAQP
-from ocpkit.transcription import CondensedQP
+from ocpkit.codegen.kernels import runtime
+from ocpkit.codegen.kernels.random import normal, seed_key
+from ocpkit.codegen.kernels.rollout import FEASIBILITY_TOLERANCE, Rollout, constrained
+from ocpkit.qp.backends import DAQP
+from ocpkit.qp.transcription import CondensedQP
 
 VARIANTS = ("preconditioned", "paper")
 SEEDS = 2  # Newton candidate, holding input
@@ -91,13 +91,13 @@ def best_first(results: np.ndarray, count: int) -> np.ndarray:
 class Preconditioner:
     """The knot QP ½zᵀPz + qᵀz (z = knots, p·m) of ``ocp`` at one linearization, P = LLᵀ, and the seeds.
 
-    :meth:`update` builds it with :class:`ocpkit.transcription.CondensedQP` (the structure-exploiting
+    :meth:`update` builds it with :class:`ocpkit.qp.transcription.CondensedQP` (the structure-exploiting
     build LinearMPC uses), factors P and computes ``newton`` (the QP's optimum within the input
     bounds, warm-started from the previous plan) and ``hold`` (:meth:`holding_input` at every knot).
     ``whiten`` = L⁻ᵀ maps N(0, I) draws to N(0, P⁻¹).
 
     With obstacles or state bounds the QP also holds them as LinearMPC does, hard rows: the state bounds on the
-    affine prediction and each obstacle clearance linearized about the warm start's prediction (ocpkit.task_rows).
+    affine prediction and each obstacle clearance linearized about the warm start's prediction (ocpkit.qp.task_rows).
     ``newton`` is then that QP's optimum by DAQP, a candidate that keeps the constraints to first order, and the
     box-constrained optimum only where the rows cannot all be met (a start inside a margin), DAQP fails or runs out
     of the step's time; ``seed_status`` says which. P, and so the preconditioning, is the same either way: hard rows
@@ -188,7 +188,7 @@ class SamplingMPC(Controller):
     each step) or "nonlinear" (the discrete model F in the kernel), which also judges each candidate's violation of
     the obstacles and state bounds (module docstring: which to choose around obstacles);
     ``stage_cost``/``terminal_cost`` replace the OCP's cost in the fitness (any CasADi Function of (x, u, goal) /
-    (x, goal), goal of ``ocp.ng`` entries, non-smooth allowed; default: :func:`ocpkit.kernels.rollout.fitness`, the
+    (x, goal), goal of ``ocp.ng`` entries, non-smooth allowed; default: :func:`ocpkit.codegen.kernels.rollout.fitness`, the
     OCP's terms and the exact penalties of its state bounds and a task's obstacles); ``seed`` makes runs repeatable.
     ``linearization`` picks the affine model's expansion input as in LinearMPC. ``time_limit`` (s) bounds the whole
     step: each stage — the linearization, the preconditioner, the copies to the device, each generation — starts only
@@ -221,7 +221,7 @@ class SamplingMPC(Controller):
         if (stage_cost is not None or terminal_cost is not None) and (ocp.has_state_bounds or ocp.task_functions):
             raise ValueError(f"{type(self).__name__}: stage_cost/terminal_cost replace the whole fitness, which "
                              "carries the OCP's state bounds and task as penalties: build yours on "
-                             "ocpkit.kernels.rollout.fitness(ocp), or leave them out of the OCP")
+                             "ocpkit.codegen.kernels.rollout.fitness(ocp), or leave them out of the OCP")
         self.key = seed_key(seed)
         self.engine = Rollout(ocp, self.population, num_picked=num_picked, dynamics=dynamics,
                               stage_cost=stage_cost, terminal_cost=terminal_cost,

@@ -17,18 +17,19 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from ocpkit import plots, problems, solvers
+from ocpkit import problems, solvers
+from ocpkit.sim import plots
 from ocpkit._checks import choice
 from ocpkit.controller import Controller
 from ocpkit.status import SUCCESS, Solution
-from ocpkit.kernels.runtime import current_arch
-from ocpkit.metrics import itae
+from ocpkit.codegen.kernels.runtime import current_arch
+from ocpkit.sim.metrics import itae
 from ocpkit.problems.baxter import JOINTS
-from ocpkit.simulate import Trajectory, simulate
-from ocpkit.study import Study, grid
+from ocpkit.sim.simulate import Trajectory, simulate
+from ocpkit.runs.study import Study, grid
 from ocpkit.studies.closed_loop import run_record
 from ocpkit.studies.comparison import responses, row_arrays
-from ocpkit.plots import number
+from ocpkit.sim.plots import number
 from ocpkit.studies.evidence import NOT_TESTED, median_claim, on_gpu, paired, series, timing
 from ocpkit.studies.report import ANSWERED, Claim, answered, markdown_table, section, timing_context, trials_line
 from ocpkit.studies.solve_times import quartiles

@@ -10,8 +10,8 @@ import os
 import numpy as np
 
 from ocpkit import problems, solvers
-from ocpkit.metrics import actual_cost, itae, step_metrics
-from ocpkit.simulate import simulate
+from ocpkit.sim.metrics import actual_cost, itae, step_metrics
+from ocpkit.sim.simulate import simulate
 
 
 def trial(problem: str, seed: int, solver: str = "qp", knots: int | None = None, horizon: int | None = None,

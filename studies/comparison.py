@@ -15,19 +15,20 @@ import json
 
 import numpy as np
 
-from ocpkit import plots, problems, solvers
+from ocpkit import problems, solvers
+from ocpkit.sim import plots
 from ocpkit._checks import choice
-from ocpkit.kernels.runtime import current_arch
-from ocpkit.metrics import actual_cost
-from ocpkit.simulate import Trajectory, simulate
-from ocpkit.store import Store
-from ocpkit.study import Study, grid
+from ocpkit.codegen.kernels.runtime import current_arch
+from ocpkit.sim.metrics import actual_cost
+from ocpkit.sim.simulate import Trajectory, simulate
+from ocpkit.runs.store import Store
+from ocpkit.runs.study import Study, grid
 from ocpkit.studies.closed_loop import run_record
-from ocpkit.plots import number
+from ocpkit.sim.plots import number
 from ocpkit.studies.evidence import NOT_TESTED, combine, median_claim, on_gpu, paired, series, timing
 from ocpkit.studies.report import ANSWERED, Claim, answered, markdown_table, section, timing_context, trials_line
 from ocpkit.studies.solve_times import quartiles
-from ocpkit.transcription import CondensedQP
+from ocpkit.qp.transcription import CondensedQP
 
 NAME = "comparison"
 TITLE = "EMPC vs parameterized and traditional MPC on N-link robots (Figs. 11–13)"

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ocpkit.plots import number
+from ocpkit.sim.plots import number
 
 HELD, NOT_HELD, INCONCLUSIVE, NOT_TESTED = "held", "not held", "inconclusive", "not tested"
 LEVEL = 0.95

@@ -6,12 +6,12 @@ than parameterizing the inputs. Normalized by traditional MPC with a horizon spa
 """
 from __future__ import annotations
 
-from ocpkit import plots
+from ocpkit.sim import plots
 from ocpkit.problems import filename
-from ocpkit.study import Study, grid
+from ocpkit.runs.study import Study, grid
 from ocpkit.studies.closed_loop import grid_size, trial
 from ocpkit.studies.knots import PROBLEMS, REFERENCE_HORIZON
-from ocpkit.store import Store
+from ocpkit.runs.store import Store
 from ocpkit.studies.evidence import NOT_TESTED, combine, median_claim, paired, series
 from ocpkit.studies.report import Claim, markdown_table, section, timing_context, trials_line
 

@@ -14,14 +14,15 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
-from ocpkit import plots, problems, solvers
+from ocpkit import problems, solvers
+from ocpkit.sim import plots
 from ocpkit._checks import choice
-from ocpkit.kernels.runtime import current_arch
-from ocpkit.metrics import actual_cost
-from ocpkit.simulate import simulate
-from ocpkit.study import Study, grid
+from ocpkit.codegen.kernels.runtime import current_arch
+from ocpkit.sim.metrics import actual_cost
+from ocpkit.sim.simulate import simulate
+from ocpkit.runs.study import Study, grid
 from ocpkit.studies.closed_loop import run_record
-from ocpkit.plots import number
+from ocpkit.sim.plots import number
 from ocpkit.studies.report import ANSWERED, answered, markdown_table, section, timing_context, trials_line
 
 NAME = "keepout"

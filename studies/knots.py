@@ -7,14 +7,14 @@ over its own closed-loop duration.
 """
 from __future__ import annotations
 
-from ocpkit import plots
+from ocpkit.sim import plots
 from ocpkit.problems import filename
-from ocpkit.study import Study, grid
+from ocpkit.runs.study import Study, grid
 from ocpkit.studies.closed_loop import grid_size, trial
 from ocpkit.studies.evidence import (NOT_TESTED, combine, decide, every, median_claim, median_interval, paired,
                                      series)
 from ocpkit.studies.report import Claim, markdown_table, section, timing_context, trials_line
-from ocpkit.plots import number
+from ocpkit.sim.plots import number
 
 NAME = "knots"
 TITLE = "Actual cost ratio vs number of knot points (Fig. 3)"

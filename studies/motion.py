@@ -1,4 +1,4 @@
-"""Pictures of motion for the reproduce report: one short closed loop per robot family, animated (ocpkit.animation).
+"""Pictures of motion for the reproduce report: one short closed loop per robot family, animated (ocpkit.sim.animation).
 
 Not a study (nothing is stored or resumed): three seeded LinearMPC runs (5 knots) against ocpkit's plant — the
 pendulum to its joint goal, the planar 3-link arm and the Panda reaching a point past a sphere (the README's
@@ -12,10 +12,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ocpkit import animation, problems, solvers
-from ocpkit.plots import number
-from ocpkit.simulate import simulate
-from ocpkit.task import Sphere, clearances, reach
+from ocpkit import problems, solvers
+from ocpkit.sim import animation
+from ocpkit.sim.plots import number
+from ocpkit.sim.simulate import simulate
+from ocpkit.model.task import Sphere, clearances, reach
 
 FOLDER = "motion"   # beside report.md
 KNOTS = 5           # the command line's default

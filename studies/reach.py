@@ -10,23 +10,23 @@ target the forward kinematics of its goal configuration (so the target is reacha
 straight end-effector path at a fraction uniform in [0.35, 0.65] of it, moved sideways by up to half its
 radius (so the straight path is blocked: the end effector's own sphere would hit it). Scenarios whose start or
 target configuration is within the margin of the obstacle are rejected and redrawn from s = seed + 1 000 003·k
-(k = 1, 2, ...), deterministically. Every controller gets the same OCP, :func:`ocpkit.task.reach`
+(k = 1, 2, ...), deterministically. Every controller gets the same OCP, :func:`ocpkit.model.task.reach`
 (frame-position term, the problem's velocity and input weights, obstacle margin 0.01 m, robot spheres along
 the links of the problem's ``link_radius``), the goal ``ocp.goal(x_start, position=target)`` (no joint target:
 the posture is free). A trial succeeds when the final end effector is within 1 cm of the target and the true
 clearance (without margin) is ≥ 0 at every recorded plant state.
 
-What a trial records about its steps and its loop (:mod:`ocpkit.simulate`): a step counts as a success only with
+What a trial records about its steps and its loop (:mod:`ocpkit.sim.simulate`): a step counts as a success only with
 status "success"; "soft" steps (the solver's input applied, its plan breaking a clearance or state bound) and
 fallbacks are counted apart, with their causes; "success while colliding" counts the steps reported "success" whose
 actual next state collides (true clearance < 0: a success the plant contradicts); ``collision_steps`` the colliding
-states. The loop-level verdict (:meth:`ocpkit.simulate.Trajectory.progress`) is "reached" (within 1 cm at the
+states. The loop-level verdict (:meth:`ocpkit.sim.simulate.Trajectory.progress`) is "reached" (within 1 cm at the
 end), "stalled" (not reached, and the distance changed by at most 1 mm over the last 0.5 s: every step may have
 succeeded, the loop did not) or "moving" (not reached, still changing when the run ended).
 
 **Keep-out, fair baseline.** The joint-space ball of :mod:`ocpkit.studies.keepout` (3-link arm, radius
 r = 0.3 rad half-way between start and goal, hinge penalty w·max(0, r − ‖q − c‖), w = 100): EMPC with that
-penalized fitness against IPOPT and RTI given the penalty in C¹ form, a :class:`ocpkit.task.UserTerm` with the
+penalized fitness against IPOPT and RTI given the penalty in C¹ form, a :class:`ocpkit.model.task.UserTerm` with the
 squared hinge residual max(0, r + 0.01 − ‖q − c‖) and weight :data:`HINGE_WEIGHT`, and EMPC given that same
 OCP (its fitness then is the squared hinge: the search, not the cost, differs from IPOPT's). Every run is
 scored on the same actual penalized cost as in keepout: the quadratic cost plus the hinge penalty on every
@@ -38,20 +38,21 @@ import casadi as ca
 import numpy as np
 import pandas as pd
 
-from ocpkit import plots, problems, solvers
+from ocpkit import problems, solvers
+from ocpkit.sim import plots
 from ocpkit._checks import choice
-from ocpkit.kernels.runtime import current_arch
-from ocpkit.kinematics import spheres_along_links
-from ocpkit.metrics import actual_cost
-from ocpkit.plots import number
-from ocpkit.simulate import MOVING, REACHED, STALLED, simulate
+from ocpkit.codegen.kernels.runtime import current_arch
+from ocpkit.model.kinematics import spheres_along_links
+from ocpkit.sim.metrics import actual_cost
+from ocpkit.sim.plots import number
+from ocpkit.sim.simulate import MOVING, REACHED, STALLED, simulate
 from ocpkit.studies import keepout
 from ocpkit.studies.closed_loop import run_record
 from ocpkit.studies.evidence import NOT_TESTED, Interval, combine, decide, every, median_claim, proportion
 from ocpkit.studies.report import ANSWERED, Claim, answered, markdown_table, section, timing_context, trials_line
-from ocpkit.study import Study, grid
-from ocpkit.task import REACH_OBSTACLE_WEIGHT, Sphere, Task, UserTerm, reach
-from ocpkit.task import clearances as task_clearances
+from ocpkit.runs.study import Study, grid
+from ocpkit.model.task import REACH_OBSTACLE_WEIGHT, Sphere, Task, UserTerm, reach
+from ocpkit.model.task import clearances as task_clearances
 
 NAME = "reach"
 TITLE = "Reaching past spherical obstacles (every controller, one task OCP) and the keep-out ball with a fair baseline"
@@ -88,7 +89,7 @@ SIZES = {"quick": {"seeds": {"nlink:3": 4, "baxter": 1, "panda": 0, KEEPOUT: 2},
 
 def clearances(pb, obstacles, q_rows) -> np.ndarray:
     """True clearance d (m, no margin) per configuration (rows of ``q_rows``) of the robot's spheres as
-    :func:`ocpkit.task.reach` places them: min over sphere/obstacle pairs."""
+    :func:`ocpkit.model.task.reach` places them: min over sphere/obstacle pairs."""
     return task_clearances(pb.kinematics, spheres_along_links(pb.kinematics, pb.link_radius), obstacles, q_rows)
 
 
@@ -354,7 +355,7 @@ def _reach_section(r, out_dir, figs, tables, notes, claims):
         + f". Sampling planners: population {r['population'].iloc[0]}, 1 generation, affine model re-linearized about "
           f"the plan each step (dynamics 'affine', linearization 'plan'), on {sample or '–'}. The seeds were not "
           f"tuned on: they are 0 … n−1, and the first scenario each seed draws that passes the checks is used.")
-    notes.append("How each controller holds the obstacle (ocpkit.task): IPOPT as a hard constraint d ≥ margin at "
+    notes.append("How each controller holds the obstacle (ocpkit.model.task): IPOPT as a hard constraint d ≥ margin at "
                  "every predicted state; RTI and LinearMPC as QP rows linearized about the plan, hard for DAQP "
                  "and softened (exact penalty) only where infeasible; EMPC, CEM and MPPI as the penalty "
                  f"{REACH_OBSTACLE_WEIGHT:g}·(h + ½h²), h = max(0, margin − min clearance), in the rollout "

@@ -6,11 +6,11 @@ import numbers
 import os
 from dataclasses import dataclass
 
-from ocpkit.plots import number
+from ocpkit.sim.plots import number
 
 
 def markdown_table(df) -> str:
-    """A pandas DataFrame as a Markdown table (index as the first column), numbers as :func:`ocpkit.plots.number`
+    """A pandas DataFrame as a Markdown table (index as the first column), numbers as :func:`ocpkit.sim.plots.number`
     prints them."""
     def cell(v):
         return number(v) if isinstance(v, numbers.Number) and not isinstance(v, bool) else str(v)

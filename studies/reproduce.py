@@ -9,8 +9,8 @@ import time
 from importlib import metadata
 from pathlib import Path
 
-from ocpkit import study as study_runner
-from ocpkit.store import Store
+from ocpkit.runs import study as study_runner
+from ocpkit.runs.store import Store
 from ocpkit.studies import NAMES, get, motion
 from ocpkit.studies.report import markdown_table
 
@@ -36,7 +36,7 @@ def run_study(name: str, size: str, out_dir, *, workers=None, scheduler=None, pr
               **options) -> str:
     """Run one study (resuming from its store in ``out_dir``), write its table as <the study's name>.csv and return
     its report section. ``plant="mujoco"``: the robustness study's MuJoCo variant. ``options`` go to
-    :func:`ocpkit.study.run` (trial_timeout, retry_failed, stale, lease)."""
+    :func:`ocpkit.runs.study.run` (trial_timeout, retry_failed, stale, lease)."""
     if plant != "ocpkit" and name != "robustness":
         raise ValueError(f"plant {plant!r} applies to the robustness study only, not {name!r}")
     study_options = {} if plant == "ocpkit" else {"plant": plant}

@@ -7,7 +7,7 @@ each controller is. ``problems`` (specs) replace the paper's problems (``ocpkit 
 ./cartpole.py:CartPole``); the error multiplier then scales whatever that problem's ``dynamics(error)`` scales.
 
 ``study(size, plant="mujoco")`` (``ocpkit study robustness --plant mujoco``) asks the same question of mismatch the
-controller's model cannot express: MuJoCo as the plant (:class:`ocpkit.mujoco_plant.MuJoCoPlant`) with dry joint
+controller's model cannot express: MuJoCo as the plant (:class:`ocpkit.sim.mujoco_plant.MuJoCoPlant`) with dry joint
 friction or added rotor inertia (armature), LinearMPC, RTI and EMPC side by side. Normalized cost there = actual cost
 on the mismatched plant / actual cost of the same controller, start and goal on ocpkit's plant.
 """
@@ -16,14 +16,15 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
-from ocpkit import plots, problems, solvers
+from ocpkit import problems, solvers
+from ocpkit.sim import plots
 from ocpkit._checks import choice
-from ocpkit.metrics import actual_cost
+from ocpkit.sim.metrics import actual_cost
 from ocpkit.problems import filename, make as make_problem
-from ocpkit.simulate import simulate
-from ocpkit.study import Study, grid
+from ocpkit.sim.simulate import simulate
+from ocpkit.runs.study import Study, grid
 from ocpkit.studies.closed_loop import grid_size, run_record, trial
-from ocpkit.plots import number
+from ocpkit.sim.plots import number
 from ocpkit.studies.evidence import (HELD, NOT_HELD, combine, decide, every, median_claim, median_interval,
                                      paired, series)
 from ocpkit.studies.report import (ANSWERED, Claim, answered, markdown_table, section, timing_context,
@@ -202,7 +203,7 @@ def mujoco_study(size: str, problems=None) -> Study:
 
 def mujoco_plant(problem, mismatch: str, level: float):
     """The MuJoCo plant of ``problem`` with ``mismatch`` ("none", "friction" or "armature") at ``level``."""
-    from ocpkit.mujoco_plant import MuJoCoPlant
+    from ocpkit.sim.mujoco_plant import MuJoCoPlant
 
     choice(mismatch, ("none",) + MISMATCHES, "mismatch")
     if mismatch == "friction":

@@ -13,10 +13,11 @@ import os
 
 import numpy as np
 
-from ocpkit import plots, problems, solvers
+from ocpkit import problems, solvers
+from ocpkit.sim import plots
 from ocpkit._checks import choice, integer
-from ocpkit.study import Study, grid
-from ocpkit.plots import number
+from ocpkit.runs.study import Study, grid
+from ocpkit.sim.plots import number
 from ocpkit.studies.evidence import HELD, INCONCLUSIVE, NOT_HELD, combine, decide, median_interval, timing
 from ocpkit.studies.report import Claim, markdown_table, section, timing_context, trials_line
 

@@ -6,7 +6,7 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from ocpkit.model import Model
+from ocpkit.model.dynamics import Model
 
 
 def random_lti(seed: int, n: int = 4, m: int = 2) -> Model:
@@ -33,7 +33,7 @@ def pytest_addoption(parser):
 @pytest.fixture(scope="session")
 def taichi_arch(request):
     """Start Taichi on the arch given by `pytest --arch` (the process keeps it)."""
-    from ocpkit.kernels import runtime
+    from ocpkit.codegen.kernels import runtime
     return runtime.init(request.config.getoption("arch"))
 
 

@@ -1,4 +1,4 @@
-"""Pictures of motion (ocpkit.animation): the GIF a closed loop becomes, the robot it draws, and `simulate --animate`.
+"""Pictures of motion (ocpkit.sim.animation): the GIF a closed loop becomes, the robot it draws, and `simulate --animate`.
 
 What a frame shows is checked on the artists' data against forward kinematics computed another way (the planar
 chain's closed form, pinocchio's frame placements), and the written GIF by its frames and size."""
@@ -9,10 +9,10 @@ import pytest
 from PIL import Image
 
 from ocpkit import problems, solvers
-from ocpkit.animation import MotionPicture, Skeleton, animate, check_path
+from ocpkit.sim.animation import MotionPicture, Skeleton, animate, check_path
 from ocpkit.cli import main
-from ocpkit.simulate import Trajectory, simulate
-from ocpkit.task import Sphere, reach
+from ocpkit.sim.simulate import Trajectory, simulate
+from ocpkit.model.task import Sphere, reach
 
 MAX_BYTES = 2_000_000
 # the README's planar reach: the tip from seed 0's start round a ball to a point (as tests/test_cli_task.py)

@@ -4,8 +4,8 @@ import proxsuite
 import pytest
 
 from ocpkit import problems
-from ocpkit.boxqp import solve_box_qp
-from ocpkit.transcription import CondensedQP
+from ocpkit.qp.boxqp import solve_box_qp
+from ocpkit.qp.transcription import CondensedQP
 
 
 def proxqp_box(P, q, lo, hi):

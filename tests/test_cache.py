@@ -5,8 +5,8 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from ocpkit.cache import UnsafeCacheError, cache_dir, entry_ok, write_entry
-from ocpkit.compiled import CompileError, compile_function
+from ocpkit.codegen.cache import UnsafeCacheError, cache_dir, entry_ok, write_entry
+from ocpkit.codegen.compiled import CompileError, compile_function
 
 
 @pytest.fixture
@@ -68,11 +68,11 @@ def test_an_entry_lock_waits_for_its_holder_and_not_for_a_dead_one(tmp_path):
     import sys
     import time
 
-    from ocpkit.cache import entry_lock
+    from ocpkit.codegen.cache import entry_lock
 
     entry = tmp_path / "native" / "0123abcd"
     holder = subprocess.Popen([sys.executable, "-c", "import sys, time; from pathlib import Path; "
-                               "from ocpkit.cache import entry_lock\n"
+                               "from ocpkit.codegen.cache import entry_lock\n"
                                "with entry_lock(Path(sys.argv[1])):\n print('locked', flush=True); time.sleep(300)",
                                str(entry)], stdout=subprocess.PIPE, text=True)
     try:
@@ -91,7 +91,7 @@ def test_an_entry_lock_waits_for_its_holder_and_not_for_a_dead_one(tmp_path):
 
 
 def test_a_compiled_library_that_does_not_load_is_evicted_and_rebuilt_once(cache):
-    from ocpkit import compiled
+    from ocpkit.codegen import compiled
 
     fn = square_fn()
     library = compiled._library(fn, "-O1")  # compiled, not loaded by this process

@@ -17,9 +17,11 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from ocpkit import cache, compiled, native, problems
+from ocpkit import problems
+from ocpkit.codegen import cache, compiled
+from ocpkit.export import native
 from ocpkit.benchmarks import readonly
-from ocpkit.cache import CacheReadOnlyError
+from ocpkit.codegen.cache import CacheReadOnlyError
 from ocpkit.export import check_tools
 
 try:
@@ -93,8 +95,8 @@ def test_compiled_code_asked_for_on_a_full_cache_is_refused_in_one_line(full):
 
 
 def test_taichi_kernels_on_a_full_cache_are_kept_in_memory_with_one_warning(full, recwarn, taichi_arch):
-    from ocpkit.kernels import runtime
-    from ocpkit.kernels import translate as tr
+    from ocpkit.codegen.kernels import runtime
+    from ocpkit.codegen.kernels import translate as tr
 
     root, code = full
     settings = runtime._offline_cache()

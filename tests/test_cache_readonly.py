@@ -20,9 +20,11 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from ocpkit import cache, native, problems
+from ocpkit import problems
+from ocpkit.codegen import cache
+from ocpkit.export import native
 from ocpkit.benchmarks import readonly
-from ocpkit.cache import CacheReadOnlyError
+from ocpkit.codegen.cache import CacheReadOnlyError
 from ocpkit.export import check_tools
 
 try:
@@ -192,7 +194,7 @@ def test_native_on_a_simulated_read_only_cache(read_only, recwarn):
 
 
 def test_compiled_model_on_a_simulated_read_only_cache(read_only):
-    from ocpkit.compiled import compile_function
+    from ocpkit.codegen.compiled import compile_function
 
     root, freeze = read_only
     x = ca.SX.sym("x", 2)
@@ -207,7 +209,7 @@ def test_compiled_model_on_a_simulated_read_only_cache(read_only):
 def test_taichi_kernels_on_a_simulated_read_only_cache(read_only, taichi_arch):
     """The generated kernel module a read-only cache lacks goes to a folder of the process's own (it is generated
     every run anyway), instead of an OSError."""
-    from ocpkit.kernels import translate as tr
+    from ocpkit.codegen.kernels import translate as tr
 
     root, freeze = read_only
     freeze()

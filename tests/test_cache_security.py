@@ -10,8 +10,10 @@ from pathlib import Path
 import casadi as ca
 import pytest
 
-from ocpkit import compiled, native, problems
-from ocpkit.cache import UnsafeCacheError, check_trusted, write_entry
+from ocpkit import problems
+from ocpkit.codegen import compiled
+from ocpkit.export import native
+from ocpkit.codegen.cache import UnsafeCacheError, check_trusted, write_entry
 
 SPEC, KNOTS, HORIZON = "nlink:5", 3, 20  # as tests/test_cache_readonly.py: a default LinearMPC that wants its C step
 OTHER_UID = 12345
@@ -113,11 +115,11 @@ def test_a_planted_c_step_is_not_loaded_by_a_default_linear_mpc(cache, tmp_path,
                          capture_output=True, text=True, timeout=300, cwd=tmp_path)
     assert run.returncode == 1 and not marker.exists(), run.stdout + run.stderr
     last = run.stderr.strip().splitlines()[-1]
-    assert last.startswith("ocpkit.cache.UnsafeCacheError: ") and f"{unsafe} " in last, run.stderr
+    assert last.startswith("ocpkit.codegen.cache.UnsafeCacheError: ") and f"{unsafe} " in last, run.stderr
 
 
 def test_taichi_kernel_cache_with_a_file_others_can_write_is_refused(cache):
-    from ocpkit.kernels import runtime
+    from ocpkit.codegen.kernels import runtime
 
     assert runtime._offline_cache()["offline_cache"]  # created private, so trusted
     planted = cache / "taichi-kernels" / "Tplanted.tic"
@@ -128,7 +130,7 @@ def test_taichi_kernel_cache_with_a_file_others_can_write_is_refused(cache):
 
 
 def test_a_generated_kernel_module_others_can_write_is_not_imported(cache, taichi_arch):
-    from ocpkit.kernels import translate as tr
+    from ocpkit.codegen.kernels import translate as tr
 
     x = ca.SX.sym("x", 2)
     fn = ca.Function("trusted_kernel", [x], [x[0] * x[1] + 2.5])

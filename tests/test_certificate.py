@@ -14,12 +14,12 @@ import textwrap
 import numpy as np
 import pytest
 
-from ocpkit.certificate import TOL, certify
+from ocpkit.qp.certificate import TOL, certify
 from ocpkit.status import SUCCESS
 from ocpkit.export import ExportedMPC, build, export
 from ocpkit.problems import make
 from ocpkit.solvers.qp import LinearMPC
-from ocpkit.quadratic_program import QP
+from ocpkit.qp.quadratic_program import QP
 from ocpkit.problems.panda import urdf_path as panda_urdf
 
 BACKENDS = [("condensed", "daqp"), ("condensed", "proxqp"), ("condensed", "osqp"), ("sparse", "proxqp"),
@@ -216,7 +216,7 @@ def test_c_step_refuses_a_stale_answer_by_its_certificate(c_step):
 
 DIVERGING_ARM = textwrap.dedent('''
     import sys, numpy as np
-    from ocpkit.problem import URDFRobot
+    from ocpkit.model.problem import URDFRobot
     from ocpkit.solvers.qp import LinearMPC
 
     class Panda(URDFRobot):

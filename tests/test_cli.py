@@ -332,7 +332,7 @@ def test_export_offers_only_what_it_exports(capsys):
 def test_simulate_writes_a_figure_only_when_asked(tmp_path, monkeypatch, capsys):
     """Issue 44, item 15: without --out no figure is written (it overwrote results/simulate.png on every run); the
     step times carry their unit; the figure's legend is the controller's short label, not its OCP's repr."""
-    from ocpkit import plots
+    from ocpkit.sim import plots
 
     monkeypatch.chdir(tmp_path)
     assert main(["simulate", "pendulum:linear", "--knots", "3", "--duration", "0.2"]) == 0

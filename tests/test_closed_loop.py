@@ -4,9 +4,9 @@ import pytest
 
 from ocpkit.controller import SolverError
 from ocpkit.status import INFEASIBLE, LIMITED
-from ocpkit.metrics import actual_cost, itae, step_metrics
+from ocpkit.sim.metrics import actual_cost, itae, step_metrics
 from ocpkit.problems import make
-from ocpkit.simulate import REACHED, simulate
+from ocpkit.sim.simulate import REACHED, simulate
 from ocpkit.solvers.qp import LinearMPC
 
 

@@ -1,4 +1,4 @@
-"""The default affine model: CasADi's VM until a background compile finishes, then the compiled C (ocpkit.compiled)."""
+"""The default affine model: CasADi's VM until a background compile finishes, then the compiled C (ocpkit.codegen.compiled)."""
 import threading
 import warnings
 import weakref
@@ -6,9 +6,9 @@ import weakref
 import numpy as np
 import pytest
 
-import ocpkit.compiled as compiled
-import ocpkit.ocp as ocp_module
-from ocpkit.compiled import SwitchingFunction
+import ocpkit.codegen.compiled as compiled
+import ocpkit.model.ocp as ocp_module
+from ocpkit.codegen.compiled import SwitchingFunction
 from ocpkit.numeric import BufferedFunction
 from ocpkit.problems import make
 from ocpkit.solvers.qp import LinearMPC
@@ -115,8 +115,8 @@ def test_exit_during_a_background_compile_leaves_no_compiler_nor_scratch(tmp_pat
     import subprocess
     import sys
 
-    script = ("import time, ocpkit.ocp as o\nfrom ocpkit.problems import make\no.BACKGROUND_MIN_INSTRUCTIONS = 0\n"
-              "fn = make('nlink:3').ocp(knots=3).affine()\nimport ocpkit.compiled as c\n"
+    script = ("import time, ocpkit.model.ocp as o\nfrom ocpkit.problems import make\no.BACKGROUND_MIN_INSTRUCTIONS = 0\n"
+              "fn = make('nlink:3').ocp(knots=3).affine()\nimport ocpkit.codegen.compiled as c\n"
               "for _ in range(600):\n    time.sleep(0.05)\n    if c._compiling: break\n"
               "print(len(c._compiling))\n")
     env = {**os.environ, "OCPKIT_CACHE_DIR": str(tmp_path)}

@@ -3,9 +3,9 @@ import numpy as np
 import pytest
 
 from conftest import random_lti
-from ocpkit.ocp import OCP
-from ocpkit.parameterization import Parameterization
-from ocpkit.transcription import CondensedQP
+from ocpkit.model.ocp import OCP
+from ocpkit.model.parameterization import Parameterization
+from ocpkit.qp.transcription import CondensedQP
 
 
 def _reference(ocp, Ad, Bd, wd, x0, goal):

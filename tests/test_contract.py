@@ -3,7 +3,7 @@ and backend × linearization), on a shipped, a user-declared and a URDF problem:
 
 * it constructs and steps; every status is one of STATUSES, ``fallback`` is set exactly when it is not a success,
   u is finite and within the input bounds;
-* a QP step's success carries a KKT certificate that holds (:mod:`ocpkit.certificate`);
+* a QP step's success carries a KKT certificate that holds (:mod:`ocpkit.qp.certificate`);
 * in closed loop on the pendulum it reaches the goal;
 * where two configurations claim the same optimum they agree: every QP backend and form, the C step and IPOPT over
   the affine model on the knot QP about the input goal; IPOPT, SQP, fatrop and iterated RTI on the NLP.
@@ -25,9 +25,9 @@ from ocpkit import solvers
 from ocpkit.status import SOFT, STATUSES, SUCCESS
 from ocpkit.export import BuildError, ExportedMPC, build, check_tools, export
 from ocpkit.export.digest import ocp_entries
-from ocpkit.problem import Problem
+from ocpkit.model.problem import Problem
 from ocpkit.problems import make
-from ocpkit.simulate import simulate
+from ocpkit.sim.simulate import simulate
 from ocpkit.solvers.qp import LinearMPC
 from ocpkit.problems.panda import urdf_path as panda_urdf
 
@@ -190,7 +190,7 @@ def test_contract_with_a_task(config, problems):
     """Every configuration takes the same task — the tip of nlink:3 to a point, a ball on the way — or refuses it at
     construction with an error that says why; its steps keep the contract and never report success in collision
     at the plan it returns."""
-    from ocpkit.task import Sphere, reach
+    from ocpkit.model.task import Sphere, reach
 
     problem = problems("nlink:3")
     x0 = np.r_[0.3, 0.4, 0.3, 0.0, 0.0, 0.0]
@@ -248,11 +248,11 @@ def test_contract_configurations_agree_on_their_optimum(name, optimum, problems)
 
 @pytest.mark.parametrize("config", [pytest.param(c, id=c.label) for c in CONFIGS])
 def test_contract_against_mujoco(config, problems):
-    """Every configuration steps nlink:3 against MuJoCo (:class:`ocpkit.mujoco_plant.MuJoCoPlant`) within the
+    """Every configuration steps nlink:3 against MuJoCo (:class:`ocpkit.sim.mujoco_plant.MuJoCoPlant`) within the
     contract, and as it does against ocpkit's plant: the two plants agree to about 1e-12 for the same inputs, so
     the states agree to 1e-6 and the inputs to the solvers' tolerances (1e-4 of the torque limit)."""
     pytest.importorskip("mujoco")
-    from ocpkit.mujoco_plant import MuJoCoPlant
+    from ocpkit.sim.mujoco_plant import MuJoCoPlant
 
     problem = problems("nlink:3")
     ocp = _ocp(problem, config)

@@ -4,7 +4,7 @@ import pytest
 
 from ocpkit.status import INFEASIBLE, LIMITED, NAN, SUCCESS
 from ocpkit.problems import make
-from ocpkit.simulate import simulate
+from ocpkit.sim.simulate import simulate
 from ocpkit.solvers.qp import LinearMPC
 
 pytest.importorskip("daqp")
@@ -76,7 +76,7 @@ def test_daqp_needs_the_condensed_form():
 
 def _many_active_rows(n=40, rows=400, seed=0):
     """A dense QP whose solution has many active rows: DAQP needs dozens of iterations from a cold start."""
-    from ocpkit.quadratic_program import QP
+    from ocpkit.qp.quadratic_program import QP
     rng = np.random.default_rng(seed)
     M = rng.normal(size=(n, n))
     C = rng.normal(size=(rows, n))
@@ -90,7 +90,7 @@ def test_daqp_deadline_becomes_an_iteration_limit():
     import time
 
     from ocpkit.status import OperationCosts
-    from ocpkit.qp_backends import DAQP
+    from ocpkit.qp.backends import DAQP
 
     qp = _many_active_rows()
     backend = DAQP(max_iter=10_000, eps=1e-9)

@@ -20,10 +20,10 @@ import pytest
 
 pytest.importorskip("distributed")
 
-from ocpkit import cluster as ocpkit_cluster  # noqa: E402
+from ocpkit.runs import cluster as ocpkit_cluster  # noqa: E402
 from ocpkit.cli import main  # noqa: E402
-from ocpkit.store import Store  # noqa: E402
-from ocpkit.study import Study, grid, run  # noqa: E402
+from ocpkit.runs.store import Store  # noqa: E402
+from ocpkit.runs.study import Study, grid, run  # noqa: E402
 
 # The scheduler and the workers unpickle trials: this module's trial functions by name, as pytest imported it.
 IMPORTABLE = {"PYTHONPATH": os.pathsep.join(filter(None, [str(Path(__file__).resolve().parent),

@@ -6,8 +6,8 @@ import pytest
 
 from ocpkit import problems
 from ocpkit.status import LIMITED, NAN, SUCCESS
-from ocpkit.metrics import actual_cost
-from ocpkit.simulate import simulate
+from ocpkit.sim.metrics import actual_cost
+from ocpkit.sim.simulate import simulate
 from ocpkit.solvers.cem import CrossEntropyMPC
 from ocpkit.solvers.empc import EvolutionaryMPC
 from ocpkit.solvers.mppi import MPPI

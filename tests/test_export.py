@@ -116,7 +116,7 @@ def test_a_library_exported_for_another_ocp_is_refused_naming_what_differs(bound
 def test_a_library_others_can_write_is_not_loaded(bounded_pendulum, tmp_path):
     """An exported library in a folder others can write, or itself writable by others, is refused before dlopen
     (a planted library's constructor would run as whoever loads it)."""
-    from ocpkit.cache import UnsafeCacheError
+    from ocpkit.codegen.cache import UnsafeCacheError
 
     problem, ocp, c = bounded_pendulum
     copy = shutil.copytree(c.out_dir, tmp_path / "copy")
@@ -140,7 +140,7 @@ def test_the_digest_names_task_fields_and_a_casadi_upgrade():
 
     from ocpkit.export.digest import differences, ocp_entries
     from ocpkit.export.library import _check_digest
-    from ocpkit.task import Sphere, reach
+    from ocpkit.model.task import Sphere, reach
 
     problem = make("nlink:3")
     ball = Sphere((0.5, 0.1, 0.0), 0.04)

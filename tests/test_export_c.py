@@ -20,7 +20,7 @@ import pytest
 
 from ocpkit.export import export
 from ocpkit.problems import make
-from ocpkit.task import reach
+from ocpkit.model.task import reach
 
 pytestmark = pytest.mark.skipif(shutil.which("cc") is None or shutil.which("make") is None,
                                 reason="needs a C compiler and make")

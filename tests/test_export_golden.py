@@ -17,7 +17,7 @@ import pytest
 
 from ocpkit.export import export
 from ocpkit.problems import make
-from ocpkit.task import reach
+from ocpkit.model.task import reach
 
 GOLDEN = Path(__file__).parent / "golden" / "export"
 RENDERED = ("mpc.c", "mpc.h", "main.c", "Makefile", "README.md")

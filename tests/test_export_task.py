@@ -1,5 +1,5 @@
-"""The exported C step with a task's cost terms (issue 29): the frame-position term of ocpkit.task.reach in C, equal
-to LinearMPC's Python step (Gauss–Newton about the plan, ocpkit.task_rows.TaskRows) along closed loops; with
+"""The exported C step with a task's cost terms (issue 29): the frame-position term of ocpkit.model.task.reach in C, equal
+to LinearMPC's Python step (Gauss–Newton about the plan, ocpkit.qp.task_rows.TaskRows) along closed loops; with
 obstacles, their linearized clearance rows built in C as the Python step builds them (issue 43)."""
 from __future__ import annotations
 
@@ -11,11 +11,11 @@ import pytest
 
 from ocpkit.status import INFEASIBLE, SOFT, SUCCESS
 from ocpkit.export import ExportedMPC, build, export
-from ocpkit.problem import Problem
+from ocpkit.model.problem import Problem
 from ocpkit.problems import make
-from ocpkit.simulate import simulate
+from ocpkit.sim.simulate import simulate
 from ocpkit.solvers.qp import LinearMPC
-from ocpkit.task import reach
+from ocpkit.model.task import reach
 from ocpkit.problems.panda import urdf_path as panda_urdf
 
 pytestmark = pytest.mark.skipif(shutil.which("cc") is None or shutil.which("make") is None,
@@ -172,7 +172,7 @@ def test_inside_the_margin_the_pure_export_says_infeasible(nlink3_ball):
 
 def _inside_the_margin(problem, ocp):
     """A state whose arm is under 5 mm from the ball (inside the margin): sample(0) turned about the first joint."""
-    from ocpkit.task import clearances
+    from ocpkit.model.task import clearances
 
     x, _ = problem.sample(0)
     for q0 in np.linspace(x[0], x[0] - 0.3, 301):
@@ -221,8 +221,8 @@ def test_obstacle_rows_are_bounded_as_the_python_step_bounds_them(tmp_path):
     """Eight balls along both sides of the arm, 1.2 cm from it at the start: each robot sphere has 2 to 4 obstacles
     within the activation distance, so each keeps its 2 closest and a stage its 24 closest pairs (TaskRows.select).
     The C step keeps the same rows: its steps equal the Python step's."""
-    from ocpkit.kinematics import sphere_centers, spheres_along_links
-    from ocpkit.task import Sphere
+    from ocpkit.model.kinematics import sphere_centers, spheres_along_links
+    from ocpkit.model.task import Sphere
 
     problem = make("nlink:3")
     x, _ = problem.sample(0)

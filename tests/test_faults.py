@@ -4,7 +4,7 @@ import pytest
 
 from ocpkit import problems, solvers
 from ocpkit.benchmarks.faults import BUDGET, SOLVERS, format_matrix, matrix
-from ocpkit.simulate import simulate
+from ocpkit.sim.simulate import simulate
 
 
 def test_adversarial_matrix_every_solver():

@@ -1,8 +1,8 @@
-"""Figures are readable and honest, checked on each figure as :func:`ocpkit.plots.save` writes it: no text outside
+"""Figures are readable and honest, checked on each figure as :func:`ocpkit.sim.plots.save` writes it: no text outside
 the saved image or over another title, label or legend; no legend entry whose series another one draws over
 (same look, same pixels) and no blended histogram colours the legend does not have; integer ticks on count
 axes (links, knots); every seed drawn where a group has few. Each figure kind is rendered through
-``ocpkit.plots`` and through the studies' reports on small synthetic tables."""
+``ocpkit.sim.plots`` and through the studies' reports on small synthetic tables."""
 from itertools import combinations
 
 import matplotlib as mpl
@@ -13,8 +13,8 @@ from matplotlib.container import BarContainer
 from matplotlib.figure import Figure
 from matplotlib.transforms import TransformedBbox
 
-from ocpkit import plots
-from ocpkit.simulate import Trajectory
+from ocpkit.sim import plots
+from ocpkit.sim.simulate import Trajectory
 from ocpkit.studies import baxter, comparison, horizon, keepout, knots, robustness, solve_times
 
 TOLERANCE_PX = 1.0

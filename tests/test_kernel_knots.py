@@ -8,10 +8,10 @@ from scipy.interpolate import BSpline
 
 from ocpkit import problems
 from ocpkit.status import SUCCESS
-from ocpkit.kernels import runtime
-from ocpkit.kernels.rollout import Rollout, SparseRows
-from ocpkit.ocp import OCP
-from ocpkit.parameterization import Parameterization
+from ocpkit.codegen.kernels import runtime
+from ocpkit.codegen.kernels.rollout import Rollout, SparseRows
+from ocpkit.model.ocp import OCP
+from ocpkit.model.parameterization import Parameterization
 from ocpkit.solvers.cem import CrossEntropyMPC
 from ocpkit.solvers.empc import EvolutionaryMPC
 

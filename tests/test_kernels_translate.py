@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from ocpkit import problems
-from ocpkit.kernels.translate import SUPPORTED_OPERATIONS, translate
+from ocpkit.codegen.kernels.translate import SUPPORTED_OPERATIONS, translate
 
 
 pytestmark = pytest.mark.usefixtures("taichi_arch")
@@ -134,7 +134,7 @@ def test_damaged_or_planted_cache_entry_is_rewritten_not_executed(taichi_arch, t
 
     import casadi as ca
 
-    from ocpkit.kernels import translate as tr
+    from ocpkit.codegen.kernels import translate as tr
 
     monkeypatch.setattr(tr, "cache_dir", lambda: tmp_path)
     x = ca.SX.sym("x", 2)

@@ -9,7 +9,7 @@ import pinocchio as pin
 import pytest
 
 from ocpkit import Problem
-from ocpkit.kinematics import (Kinematics, RobotSphere, collision_spheres, sphere_centers,
+from ocpkit.model.kinematics import (Kinematics, RobotSphere, collision_spheres, sphere_centers,
                                spheres_along_links)
 from ocpkit.problems import make
 from ocpkit.problems.panda import urdf_path as panda_urdf

@@ -4,9 +4,9 @@ import pytest
 
 from ocpkit import problems
 from ocpkit.status import LIMITED, SOFT, SUCCESS, Solution
-from ocpkit.simulate import MOVING, REACHED, STALLED, Trajectory, simulate, soft_cause
+from ocpkit.sim.simulate import MOVING, REACHED, STALLED, Trajectory, simulate, soft_cause
 from ocpkit.solvers.qp import LinearMPC
-from ocpkit.task import Sphere, reach
+from ocpkit.model.task import Sphere, reach
 
 ARM = problems.make("nlink:3")  # planar, three 0.25 m links: the tip reaches 0.75 m from the base
 CLEARANCE = "DAQP optimal; soft: clearance (robot sphere 2, obstacle 0) violated by 0.012 at x_3 of the plan on the " \

@@ -5,12 +5,12 @@ import pytest
 import scipy.sparse as sp
 
 from conftest import random_lti
-from ocpkit.ocp import OCP
-from ocpkit.parameterization import Parameterization
+from ocpkit.model.ocp import OCP
+from ocpkit.model.parameterization import Parameterization
 from ocpkit.problems import make
-from ocpkit.simulate import simulate
+from ocpkit.sim.simulate import simulate
 from ocpkit.solvers.qp import LinearMPC
-from ocpkit.transcription import CondensedQP, SparseQP
+from ocpkit.qp.transcription import CondensedQP, SparseQP
 
 
 
@@ -151,7 +151,7 @@ def test_compiled_and_threaded_per_stage_models_equal_the_sx_ones(tmp_path, monk
 def test_default_per_stage_models_switch_to_the_compiled_map(tmp_path, monkeypatch):
     """The default OCP (compiled not given): the per-stage map runs on the VM until the background compile
     finishes, then on the compiled model by itself, with the SX model's numbers to 1e-10."""
-    import ocpkit.ocp as ocp_module
+    import ocpkit.model.ocp as ocp_module
 
     monkeypatch.setenv("OCPKIT_CACHE_DIR", str(tmp_path))
     monkeypatch.setattr(ocp_module, "BACKGROUND_MIN_INSTRUCTIONS", 0)

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from conftest import random_lti
-from ocpkit.model import Model
+from ocpkit.model.dynamics import Model
 from ocpkit.problems import make
 
 

@@ -10,10 +10,10 @@ import pytest
 pytest.importorskip("mujoco")
 
 from ocpkit.cli import main  # noqa: E402
-from ocpkit.mujoco_plant import MuJoCoPlant, _mujoco  # noqa: E402
+from ocpkit.sim.mujoco_plant import MuJoCoPlant, _mujoco  # noqa: E402
 from ocpkit.problems import make  # noqa: E402
 from ocpkit.problems.nlink import NLink  # noqa: E402
-from ocpkit.simulate import simulate  # noqa: E402
+from ocpkit.sim.simulate import simulate  # noqa: E402
 from ocpkit.solvers.qp import LinearMPC  # noqa: E402
 
 # The paper's 2-link robot written by hand from its description (1 kg, 0.25 m uniform rods, b = 0.01 N·m·s, joints
@@ -235,11 +235,11 @@ def test_cli_plant_errors_are_one_line(extra, message, tmp_path, capsys):
 def test_cli_mujoco_options_reach_the_plant(tmp_path, capsys):
     """simulate's MuJoCo options are MuJoCoPlant's, with its defaults: the same run as the Python API gives."""
     from ocpkit import cli
-    from ocpkit.mujoco_plant import INTEGRATORS, MuJoCoPlant
+    from ocpkit.sim.mujoco_plant import INTEGRATORS, MuJoCoPlant
     from ocpkit.problems import make
-    from ocpkit.simulate import simulate
+    from ocpkit.sim.simulate import simulate
     from ocpkit.solvers.qp import LinearMPC
-    from ocpkit.metrics import actual_cost
+    from ocpkit.sim.metrics import actual_cost
 
     assert cli.MUJOCO_INTEGRATORS == INTEGRATORS
     options = {"frictionloss": 0.5, "armature": 0.01, "floor": -1.0, "integrator": "implicit"}

@@ -1,11 +1,12 @@
-"""LinearMPC's compiled C step (ocpkit.native): the same step as the Python one, its fallbacks, budget and cache."""
+"""LinearMPC's compiled C step (ocpkit.export.native): the same step as the Python one, its fallbacks, budget and cache."""
 import os
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from ocpkit import native, problems
+from ocpkit import problems
+from ocpkit.export import native
 from ocpkit.status import LIMITED, SOFT, SUCCESS
 from ocpkit.export import check_tools
 from ocpkit.solvers.qp import LinearMPC
@@ -150,7 +151,7 @@ def test_goal_input_is_generated_into_the_c_step(ocp):
     """An input goal nonlinear in the goal (gravity compensation's kind): the same step in C as in Python."""
     import casadi as ca
 
-    from ocpkit.problem import GoalInputOCP
+    from ocpkit.model.problem import GoalInputOCP
 
     xg = ca.SX.sym("x_goal", ocp.nx)
     h = ca.Function("h", [xg], [ca.vertcat(3 * ca.sin(xg[0]), ca.cos(xg[1]) * xg[0])])
@@ -217,7 +218,7 @@ def test_a_cached_library_that_does_not_load_is_evicted_and_rebuilt_once(tmp_pat
     import sys
     import warnings
 
-    from ocpkit.cache import write_entry
+    from ocpkit.codegen.cache import write_entry
 
     monkeypatch.setenv("OCPKIT_CACHE_DIR", str(tmp_path / "cache"))
     # LinearMPC's entry (its eps and max_iter), built by another process: this one must not have loaded the
@@ -270,7 +271,7 @@ def test_a_killed_build_says_it_was_killed(tmp_path, monkeypatch):
     with pytest.raises(BuildError, match="make was killed by SIGKILL"):
         native.start(PROBLEM.ocp(knots=3, horizon=31), eps=1e-9, max_iter=1000, wait=True)
     # The background build's own process (make's parent, the child that runs it) killed.
-    _make_wrapper(tmp_path / "b", monkeypatch, 'if grep -q "ocpkit.native import _child" /proc/$PPID/cmdline; then '
+    _make_wrapper(tmp_path / "b", monkeypatch, 'if grep -q "ocpkit.export.native import _child" /proc/$PPID/cmdline; then '
                                                'kill -KILL $PPID; exit 1; fi')
     future = native.start(PROBLEM.ocp(knots=3, horizon=32), eps=1e-9, max_iter=1000)
     with pytest.raises(BuildError, match=r"its build process \(pid \d+\) was killed by SIGKILL"):
@@ -282,7 +283,7 @@ def test_a_killed_build_says_it_was_killed(tmp_path, monkeypatch):
 def _same_steps_with_obstacles(problem, ocp, x, goal, steps, tol, **options):
     """LinearMPC's C step and its Python step from the same states: the same statuses, knots to ``tol``; the
     closed loop's clearances (true, no margin)."""
-    from ocpkit.task import clearances
+    from ocpkit.model.task import clearances
 
     c, py = LinearMPC(ocp, native=True, **options), LinearMPC(ocp, native=False, **options)
     assert c.native and c.path == "C step"
@@ -304,7 +305,7 @@ def _ee_target(problem, seed):
 def test_c_step_with_obstacles_equals_python_step_past_a_ball():
     """nlink:3 reaching past a ball it starts 1.2 cm from (margin 1 cm): 150 steps, the obstacle rows in the QP
     while the arm passes the ball; every step answered by the C step's hard QP."""
-    from ocpkit.task import ACTIVATION, reach
+    from ocpkit.model.task import ACTIVATION, reach
 
     problem = problems.make("nlink:3")
     ocp = reach(problem, ["0.58,-0.02,0,0.06"], knots=5, compiled=False)
@@ -316,7 +317,7 @@ def test_c_step_with_obstacles_equals_python_step_past_a_ball():
 def test_c_step_with_obstacles_inside_the_margin_goes_on_to_the_softened_qp():
     """A start under 5 mm from the ball: the C step's hard QP is infeasible, and the QP with the obstacle rows
     softened answers in Python — the Python step's answer."""
-    from ocpkit.task import clearances, reach
+    from ocpkit.model.task import clearances, reach
 
     problem = problems.make("nlink:3")
     ocp = reach(problem, ["0.58,-0.02,0,0.06"], knots=5, compiled=False)
@@ -334,7 +335,7 @@ def test_c_step_with_obstacles_inside_the_margin_goes_on_to_the_softened_qp():
 def test_c_step_with_obstacles_equals_python_step_on_the_readme_panda_case():
     """The README's Panda reach past a sphere: 10 steps of the C step equal the Python step's. The arm's reach QP is
     ill-conditioned (tests/test_export_task.py): knots to 5e-8."""
-    from ocpkit.task import Sphere, reach
+    from ocpkit.model.task import Sphere, reach
 
     problem = problems.make("panda")
     ocp = reach(problem, [Sphere((0.4, -0.25, 0.35), 0.08)], knots=5, compiled=False)

@@ -7,11 +7,11 @@ import ocpkit.problems as problems
 from conftest import random_lti
 from ocpkit.controller import SolverError
 from ocpkit.status import INFEASIBLE, LIMITED, NAN, SUCCESS
-from ocpkit.metrics import actual_cost
-from ocpkit.model import Model
-from ocpkit.ocp import OCP
-from ocpkit.parameterization import Parameterization
-from ocpkit.simulate import simulate
+from ocpkit.sim.metrics import actual_cost
+from ocpkit.model.dynamics import Model
+from ocpkit.model.ocp import OCP
+from ocpkit.model.parameterization import Parameterization
+from ocpkit.sim.simulate import simulate
 from ocpkit.solvers.nlp import NonlinearMPC
 from ocpkit.solvers.qp import LinearMPC
 

@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 
 import ocpkit.problems as problems
-from ocpkit.compiled import SwitchingFunction, compile_function
-from ocpkit.simulate import simulate
+from ocpkit.codegen.compiled import SwitchingFunction, compile_function
+from ocpkit.sim.simulate import simulate
 from ocpkit.solvers.nlp import NonlinearMPC
-from ocpkit.task import Sphere, reach
+from ocpkit.model.task import Sphere, reach
 
 # Every solver converged far below the 1e-6 the optima are compared at.
 TIGHT = {"ipopt": {"tol": 1e-10}, "sqp": {"tol_pr": 1e-9, "tol_du": 1e-9, "min_step_size": 1e-16}, "fatrop": {"tol": 1e-10}}
@@ -122,7 +122,7 @@ def test_a_compile_finishing_mid_loop_is_taken_up(method, monkeypatch):
 def test_a_task_without_targets_reaches_the_exact_optimum():
     """A task whose terms take no targets (the goal vector is x_goal alone): the reach study's keep-out hinge."""
     from ocpkit.studies.reach import squared_hinge_term
-    from ocpkit.task import Task
+    from ocpkit.model.task import Task
 
     prob = problems.make("nlink:3")
     x0, goal = prob.sample(0)

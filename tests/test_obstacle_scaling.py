@@ -1,17 +1,17 @@
 """Many obstacles (issue 43 §4): clearances as one pair's Function mapped over a table of obstacles, so that 1,000
 spheres build and step on the Panda; the QP's obstacle rows bounded. Checked against independent numpy geometry
-(ocpkit.task.clearances, and per pair here) and against CasADi's own derivative of the mapped clearances."""
+(ocpkit.model.task.clearances, and per pair here) and against CasADi's own derivative of the mapped clearances."""
 from __future__ import annotations
 
 import casadi as ca
 import numpy as np
 import pytest
 
-from ocpkit.kinematics import sphere_centers, spheres_along_links
+from ocpkit.model.kinematics import sphere_centers, spheres_along_links
 from ocpkit.problems import make
 from ocpkit.solvers.qp import LinearMPC
-from ocpkit.task import ACTIVATION, ROWS_PER_SPHERE, ROWS_PER_STAGE, Sphere, Task, clearances, reach
-from ocpkit.task_rows import TaskRows
+from ocpkit.model.task import ACTIVATION, ROWS_PER_SPHERE, ROWS_PER_STAGE, Sphere, Task, clearances, reach
+from ocpkit.qp.task_rows import TaskRows
 
 
 @pytest.fixture(scope="module")

@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from ocpkit.ocp import OCP
-from ocpkit.parameterization import Parameterization
+from ocpkit.model.ocp import OCP
+from ocpkit.model.parameterization import Parameterization
 from ocpkit.problems import make
 
 MODEL = make("pendulum").plant()

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from ocpkit.parameterization import Parameterization
+from ocpkit.model.parameterization import Parameterization
 
 
 def test_paper_T5_p3_basis():

@@ -1,7 +1,7 @@
 """The one number style of reports and figures."""
 import numpy as np
 
-from ocpkit import plots
+from ocpkit.sim import plots
 
 
 def test_number_formatter():
@@ -33,7 +33,7 @@ def test_ratio_axis_is_labelled_in_plain_decimals(tmp_path):
 def test_a_long_label_does_not_squeeze_the_closed_loop_panels(tmp_path, monkeypatch):
     """Issue 44, item 15: a controller's long label in a legend beside the panels squeezed them into a third of the
     image; below them, the panels keep the figure's width."""
-    from ocpkit.simulate import Trajectory
+    from ocpkit.sim.simulate import Trajectory
 
     t = np.linspace(0, 1, 11)
     traj = Trajectory(t=t, x=np.zeros((11, 4)), u=np.zeros((10, 2)), goal=np.ones(4), solutions=[])

@@ -11,7 +11,7 @@ import pytest
 
 from ocpkit import Problem, URDFRobot
 from ocpkit.problems import make
-from ocpkit.simulate import simulate
+from ocpkit.sim.simulate import simulate
 from ocpkit.solvers.qp import LinearMPC
 from ocpkit.problems.panda import urdf_path as panda_urdf
 

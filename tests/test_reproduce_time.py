@@ -1,7 +1,7 @@
 """`reproduce` reports compute time summed over runs: a resume does not overwrite it with its own seconds."""
 import re
 
-from ocpkit.store import Store
+from ocpkit.runs.store import Store
 from ocpkit.studies import get
 from ocpkit.studies.reproduce import SECONDS_PER_TRIAL, estimate, reproduce
 

@@ -10,7 +10,7 @@ import pytest
 from ocpkit.problems.baxter import Baxter, baxter_arm_model
 from ocpkit.problems.nlink import NLink, planar_chain
 from ocpkit.problems.puma560 import Puma560, puma560_model
-from ocpkit.rigid_body import Chain
+from ocpkit.model.rigid_body import Chain
 from ocpkit.problems.panda import urdf_path as panda_urdf
 
 TOL = 1e-9

@@ -7,7 +7,7 @@ import pytest
 
 from ocpkit.problems.baxter import Baxter
 from ocpkit.problems.nlink import NLink
-from ocpkit.simulate import simulate
+from ocpkit.sim.simulate import simulate
 from ocpkit.solvers.qp import LinearMPC
 
 

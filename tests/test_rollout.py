@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from ocpkit import problems
-from ocpkit.kernels import runtime
-from ocpkit.kernels.rollout import Rollout
+from ocpkit.codegen.kernels import runtime
+from ocpkit.codegen.kernels.rollout import Rollout
 
 
 pytestmark = pytest.mark.usefixtures("taichi_arch")
@@ -131,9 +131,9 @@ def test_cpu_thread_setting_is_checked(monkeypatch):
 
 
 def test_starting_taichi_keeps_the_process_floating_point():
-    """ti.init turns flush-to-zero on in its thread; ocpkit.kernels.runtime.init restores the environment, so CasADi,
+    """ti.init turns flush-to-zero on in its thread; ocpkit.codegen.kernels.runtime.init restores the environment, so CasADi,
     IPOPT and numpy keep subnormal numbers (with it on, an SQP step on nlink:3 took 10-13 s instead of 0.1 s)."""
-    from ocpkit.kernels import runtime
+    from ocpkit.codegen.kernels import runtime
 
     runtime.init("cpu")
     assert (np.array([1e-310]) * 1.0)[0] != 0.0

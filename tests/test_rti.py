@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from ocpkit.problems import make
-from ocpkit.simulate import simulate
+from ocpkit.sim.simulate import simulate
 from ocpkit.solvers.nlp import NonlinearMPC, RealTimeIteration
 from ocpkit.solvers.qp import LinearMPC
 

@@ -5,10 +5,10 @@ import pytest
 
 from ocpkit import problems
 from ocpkit.export import export
-from ocpkit.simulate import simulate
+from ocpkit.sim.simulate import simulate
 from ocpkit.solvers.nlp import NonlinearMPC, RealTimeIteration
 from ocpkit.solvers.qp import LinearMPC
-from ocpkit.task import FramePosition, Task
+from ocpkit.model.task import FramePosition, Task
 
 
 @pytest.mark.parametrize("name, horizon, iterations, tol, integrator", [

@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 
 from ocpkit.status import INFEASIBLE, LIMITED, SOFT
-from ocpkit.model import Model
-from ocpkit.ocp import OCP
+from ocpkit.model.dynamics import Model
+from ocpkit.model.ocp import OCP
 from ocpkit.problems import make
 from ocpkit.safety import CLEARANCE_TOL, Brake, PlanCheck
 from ocpkit.solvers.qp import LinearMPC
-from ocpkit.task import Sphere, clearances, reach
+from ocpkit.model.task import Sphere, clearances, reach
 
 PENDULUM = make("pendulum")
 
@@ -44,7 +44,7 @@ def test_plan_check_names_the_worst_state_bound_by_hand():
 
 
 def test_plan_check_clearance_matches_numpy():
-    """The clearance the certificate reads equals ocpkit.task.clearances (numpy) minus the margin, and it certifies a
+    """The clearance the certificate reads equals ocpkit.model.task.clearances (numpy) minus the margin, and it certifies a
     plan down to margin − CLEARANCE_TOL, never into a collision."""
     arm = make("nlink:3")
     x = np.r_[0.3, 0.4, 0.3, 0.0, 0.0, 0.0]

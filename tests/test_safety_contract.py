@@ -2,13 +2,13 @@
 (``ocpkit.solvers.configurations()``, and the exported C step: test_contract.EXPORTED) on obstacle cases
 
 * never reports "success" on a step whose plan, rolled out on the controller's model, or whose actual next state
-  (the plant's) collides — true clearance below zero, :func:`ocpkit.task.clearances`, computed here in numpy from
+  (the plant's) collides — true clearance below zero, :func:`ocpkit.model.task.clearances`, computed here in numpy from
   the robot's sphere centres, not by the controller's CasADi rows;
 * keeps the step contract: statuses from STATUSES, a fallback exactly when the step was refused (a "soft" step
   applies the solver's own input), finite inputs within the bounds;
 * never takes longer a step than its ceiling (LinearMPC's and NonlinearMPC's ``ceiling``, 10 s; 10 s for the others)
   and one uninterruptible iteration. (It found that starting Taichi turned flush-to-zero on process-wide: SQP steps
-  from a start inside a ball then ran to the ceiling, 10-13 s, instead of 0.1 s; ocpkit.kernels.runtime now keeps
+  from a start inside a ball then ran to the ceiling, 10-13 s, instead of 0.1 s; ocpkit.codegen.kernels.runtime now keeps
   the floating-point environment.)
 
 The cases, on the planar 3-link arm: the target behind a ball, a ball over a link of the start pose, a ball on the
@@ -25,8 +25,8 @@ import pytest
 from ocpkit import solvers
 from ocpkit.status import SOFT, STATUSES, SUCCESS
 from ocpkit.problems import make
-from ocpkit.simulate import simulate
-from ocpkit.task import Sphere, clearances, reach
+from ocpkit.sim.simulate import simulate
+from ocpkit.model.task import Sphere, clearances, reach
 
 from test_contract import EXPORTED, SAMPLING, TASK_REFUSALS, exported_builds  # noqa: F401 - the builds' fixture
 

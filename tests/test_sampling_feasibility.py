@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from ocpkit import problems, solvers
-from ocpkit.boxqp import solve_box_qp
-from ocpkit.kernels.rollout import Rollout
-from ocpkit.simulate import simulate
-from ocpkit.task import Sphere, clearances, reach
+from ocpkit.qp.boxqp import solve_box_qp
+from ocpkit.codegen.kernels.rollout import Rollout
+from ocpkit.sim.simulate import simulate
+from ocpkit.model.task import Sphere, clearances, reach
 
 pytestmark = pytest.mark.usefixtures("taichi_arch")
 
@@ -41,7 +41,7 @@ def _affine(ocp, x, goal):
 
 
 def _reference_violation(ocp, xs):
-    """Σ_{k≥1} max(0, margin − clearance(x_k)) + the state bounds' excess, by ocpkit.task.clearances and numpy."""
+    """Σ_{k≥1} max(0, margin − clearance(x_k)) + the state bounds' excess, by ocpkit.model.task.clearances and numpy."""
     task = ocp.task
     c = clearances(task.kinematics, task.robot, task.obstacles, xs[1:, :task.kinematics.n])
     bounds = np.maximum(0.0, xs[1:] - ocp.x_max) + np.maximum(0.0, ocp.x_min - xs[1:])
@@ -51,7 +51,7 @@ def _reference_violation(ocp, xs):
 @pytest.mark.parametrize("dynamics", ["affine", "nonlinear"])
 def test_kernel_violation_equals_an_independent_rollout(case, dynamics):
     """(a) Each candidate's violation — clearances below the margin and state bounds exceeded, summed over x_1 … x_T
-    — is what a numpy rollout of the same knots and ocpkit.task.clearances give; some candidates collide, some not."""
+    — is what a numpy rollout of the same knots and ocpkit.model.task.clearances give; some candidates collide, some not."""
     problem, _, goal, target, x = case
     vmax = np.full(3, 6.0)
     ocp = reach(problem, [BALL], knots=3, horizon=20, obstacle_weight=10, x_min=np.r_[np.full(3, -np.inf), -vmax],

@@ -9,8 +9,8 @@ import taichi as ti
 
 from ocpkit import Model, Problem, problems
 from ocpkit.status import LIMITED, SUCCESS
-from ocpkit.metrics import actual_cost
-from ocpkit.simulate import simulate
+from ocpkit.sim.metrics import actual_cost
+from ocpkit.sim.simulate import simulate
 from ocpkit.solvers.cem import CrossEntropyMPC
 from ocpkit.solvers.empc import EvolutionaryMPC
 from ocpkit.solvers.mppi import MPPI

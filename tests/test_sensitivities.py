@@ -10,11 +10,11 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from ocpkit.model import INTEGRATORS, Model
-from ocpkit.problem import URDFRobot
+from ocpkit.model.dynamics import INTEGRATORS, Model
+from ocpkit.model.problem import URDFRobot
 from ocpkit.problems import make
 from ocpkit.problems.panda import FINGERS, urdf_path as panda_urdf
-from ocpkit.rigid_body import Chain
+from ocpkit.model.rigid_body import Chain
 
 # forward_dynamics smooths Coulomb friction as f tanh(q̇ / v_f); the problems use its default v_f
 FRICTION_VELOCITY = inspect.signature(Chain.forward_dynamics).parameters["friction_velocity"].default

@@ -3,11 +3,11 @@ import numpy as np
 import pytest
 
 from conftest import random_lti
-from ocpkit.ocp import OCP
-from ocpkit.parameterization import Parameterization
+from ocpkit.model.ocp import OCP
+from ocpkit.model.parameterization import Parameterization
 from ocpkit.problems import make
 from ocpkit.solvers.qp import LinearMPC
-from ocpkit.transcription import CondensedQP
+from ocpkit.qp.transcription import CondensedQP
 
 
 def _reference(tr, Ad, Bd, wd, x0, x_goal):

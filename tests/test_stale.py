@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from ocpkit.study import StaleTrialsError, Study, code_hash, grid, run
+from ocpkit.runs.study import StaleTrialsError, Study, code_hash, grid, run
 
 
 def _module(folder: Path, name: str, text: str) -> Path:
@@ -90,7 +90,7 @@ def test_a_module_that_is_not_imported_does_not_make_trials_stale(trial_folder, 
 
 
 def test_a_dependency_version_change_is_refused_naming_it(trial_folder, tmp_path, monkeypatch):
-    from ocpkit import provenance
+    from ocpkit.runs import provenance
 
     _module(trial_folder, "stale_helper_c", "FACTOR = 2\n")
     _module(trial_folder, "stale_trial_c", _TRIAL.format(helper="stale_helper_c"))
@@ -118,7 +118,7 @@ def test_a_dependency_version_change_is_refused_naming_it(trial_folder, tmp_path
 def test_a_changed_thread_count_or_taichi_setting_is_refused_naming_it(trial_folder, tmp_path, monkeypatch):
     """Variables that change results (BLAS and Taichi threads, TI_ARCH) mark finished trials stale; where files are
     kept (OCPKIT_CACHE_DIR, Taichi's kernel cache) does not."""
-    from ocpkit import provenance
+    from ocpkit.runs import provenance
 
     for name in provenance.environment():
         monkeypatch.delenv(name)
@@ -146,12 +146,13 @@ def test_a_changed_thread_count_or_taichi_setting_is_refused_naming_it(trial_fol
 
 def test_a_change_in_an_ocpkit_module_the_trial_runs_is_refused_naming_it(trial_folder, tmp_path, monkeypatch):
     """ocpkit's own files cannot be edited here: their hash is altered as an edit would alter it."""
-    from ocpkit import metrics, provenance
+    from ocpkit.runs import provenance
+    from ocpkit.sim import metrics
 
     _module(trial_folder, "stale_trial_d", """
         import os, pathlib, time
         def trial(x):
-            from ocpkit.metrics import itae
+            from ocpkit.sim.metrics import itae
             pathlib.Path(os.environ["STALE_TEST_LOG"], f"{x}-{time.time_ns()}").touch()
             return {"y": x}
     """)
@@ -166,22 +167,22 @@ def test_a_change_in_an_ocpkit_module_the_trial_runs_is_refused_naming_it(trial_
         return (digest[::-1], refs) if Path(path) == Path(metrics.__file__) else (digest, refs)
     monkeypatch.setattr(provenance, "_read", edited)
     # (other ocpkit modules may be named too where someone edits them meanwhile)
-    with pytest.raises(StaleTrialsError, match=r"\(changed [^;)]*\bocpkit\.metrics\b"):
+    with pytest.raises(StaleTrialsError, match=r"\(changed [^;)]*\bocpkit\.sim\.metrics\b"):
         run(study, tmp_path / "out", workers=1, progress=False)
 
 
 def test_a_closed_loop_trials_manifest_covers_the_solvers_and_problems_it_may_run():
     """The solver and problem modules are imported by computed name (``import_module(f"ocpkit.solvers.{name}")``):
     all of them count; modules the trial never imports (the CLI, the store, other studies) do not."""
-    from ocpkit import provenance
+    from ocpkit.runs import provenance
     from ocpkit.studies import closed_loop
 
     code = provenance.manifest(closed_loop.trial)["code"]
     for name in ("ocpkit.studies.closed_loop", "ocpkit.solvers.qp", "ocpkit.solvers.nlp", "ocpkit.solvers.mppi",
-                 "ocpkit.problems.nlink", "ocpkit.problems.baxter", "ocpkit.simulate", "ocpkit.metrics", "ocpkit",
+                 "ocpkit.problems.nlink", "ocpkit.problems.baxter", "ocpkit.sim.simulate", "ocpkit.sim.metrics", "ocpkit",
                  "ocpkit.studies"):
         assert name in code, name
-    for name in ("ocpkit.cli", "ocpkit.store", "ocpkit.study", "ocpkit.studies.knots", "ocpkit.studies.report",
+    for name in ("ocpkit.cli", "ocpkit.runs.store", "ocpkit.runs.study", "ocpkit.studies.knots", "ocpkit.studies.report",
                  "ocpkit.benchmarks.faults"):
         assert name not in code, name
     assert not any(name.startswith(("numpy", "casadi", "scipy")) for name in code)  # versions, not files
@@ -190,7 +191,7 @@ def test_a_closed_loop_trials_manifest_covers_the_solvers_and_problems_it_may_ru
 
 def test_hashing_is_cached_per_process(tmp_path, monkeypatch):
     """Each file is read and parsed once per process; again only when its stat changes."""
-    from ocpkit import provenance
+    from ocpkit.runs import provenance
     from ocpkit.studies import closed_loop
 
     monkeypatch.setattr(provenance, "_FILES", {})  # the baseline: every file read and parsed (~0.2 s)
@@ -235,8 +236,8 @@ def test_a_change_in_the_users_problem_file_is_refused_naming_it(cartpole_dir):
 
 def test_trials_stored_by_0_1_0_are_refused_saying_what_is_known(trial_folder, tmp_path):
     """Trials from before manifests were recorded: the version change is named, the code's is said to be unknown."""
-    from ocpkit.store import Store
-    from ocpkit.study import package_version
+    from ocpkit.runs.store import Store
+    from ocpkit.runs.study import package_version
 
     _module(trial_folder, "stale_helper_e", "FACTOR = 2\n")
     _module(trial_folder, "stale_trial_e", _TRIAL.format(helper="stale_helper_e"))

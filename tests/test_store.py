@@ -5,8 +5,8 @@ import sqlite3
 
 import pytest
 
-from ocpkit.store import FILENAME, Store, StoreError
-from ocpkit.study import Study, grid, run
+from ocpkit.runs.store import FILENAME, Store, StoreError
+from ocpkit.runs.study import Study, grid, run
 
 
 def trial(x):

@@ -1,7 +1,7 @@
 """The paper's studies end to end on tiny grids: trials stored, ratios computed, figures and tables written."""
 import pytest
 
-from ocpkit.store import Store
+from ocpkit.runs.store import Store
 from ocpkit.studies import get
 from ocpkit.studies.closed_loop import trial
 from ocpkit.studies.reproduce import reproduce

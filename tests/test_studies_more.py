@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from ocpkit import study as runner
-from ocpkit.store import Store
+from ocpkit.runs import study as runner
+from ocpkit.runs.store import Store
 from ocpkit.studies import baxter, comparison, solve_times
 
 

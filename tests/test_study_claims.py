@@ -14,8 +14,8 @@ from pathlib import Path
 
 import pytest
 
-from ocpkit.store import Store
-from ocpkit.study import StaleTrialsError, Study, code_hash, grid, package_version, run
+from ocpkit.runs.store import Store
+from ocpkit.runs.study import StaleTrialsError, Study, code_hash, grid, package_version, run
 
 LOG = "OCPKIT_TEST_TRIAL_LOG"
 HANG_GUARD = 300  # seconds: only a hang reaches it, however busy the machine

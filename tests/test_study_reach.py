@@ -3,8 +3,8 @@ import numpy as np
 import pytest
 
 from ocpkit import problems
-from ocpkit import study as runner
-from ocpkit.simulate import MOVING, STALLED
+from ocpkit.runs import study as runner
+from ocpkit.sim.simulate import MOVING, STALLED
 from ocpkit.studies import NAMES, get, reach
 
 TINY = {"seeds": {"nlink:3": 1, "baxter": 0, "panda": 0, reach.KEEPOUT: 1},

@@ -1,4 +1,4 @@
-"""Tasks beyond the joint-space goal (ocpkit.task): named terms, targets in the goal, obstacles, for every controller.
+"""Tasks beyond the joint-space goal (ocpkit.model.task): named terms, targets in the goal, obstacles, for every controller.
 
 Independent paths compared: the Gauss–Newton QP iterated by real-time iteration against IPOPT on the same NLP
 (terms and an active obstacle); an inactive task against no task, bit for bit, for every registered configuration.
@@ -12,8 +12,8 @@ import pytest
 from ocpkit import solvers
 from ocpkit.export import export
 from ocpkit.problems import make
-from ocpkit.simulate import simulate
-from ocpkit.task import FrameOrientation, FramePosition, JointLimitBarrier, Sphere, Task, UserTerm, reach
+from ocpkit.sim.simulate import simulate
+from ocpkit.model.task import FrameOrientation, FramePosition, JointLimitBarrier, Sphere, Task, UserTerm, reach
 
 KNOTS, HORIZON = 3, 20
 
@@ -180,7 +180,7 @@ def test_user_term_as_a_function_and_metrics(nlink3):
     assert ocp.ng == ocp.nx and ocp.terms == ["state", "input", "power"]
     x0, goal = nlink3.sample(1)
     traj = simulate(nlink3.plant(), solvers.make("qp", ocp), x0, goal, duration=0.2)
-    from ocpkit.metrics import actual_cost
+    from ocpkit.sim.metrics import actual_cost
     plain = nlink3.ocp(knots=KNOTS, horizon=HORIZON)
     extra = sum(2.0 * float(np.sum((traj.u[i] * traj.x[i, 3:]) ** 2)) for i in range(traj.u.shape[0]))
     assert actual_cost(traj, ocp) == pytest.approx(actual_cost(traj, plain) + extra, rel=1e-12)
@@ -190,7 +190,7 @@ def test_daqp_softens_the_obstacle_rows_before_the_state_bounds(nlink3, monkeypa
     """A start inside the margin makes the hard QP infeasible: DAQP then solves the QP with only the obstacle rows
     softened (one slack per stage with rows), not the soft QP with two slacks per bounded state and stage, and
     gives the soft QP's answer (ProxQP's)."""
-    from ocpkit.qp_backends import DAQP
+    from ocpkit.qp.backends import DAQP
 
     x0, target, _ = _blocked(nlink3)
     tip = _tip(nlink3, x0[:3])

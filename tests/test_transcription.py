@@ -3,11 +3,11 @@ import numpy as np
 import pytest
 
 from conftest import random_lti
-from ocpkit.ocp import OCP
-from ocpkit.parameterization import Parameterization
+from ocpkit.model.ocp import OCP
+from ocpkit.model.parameterization import Parameterization
 from ocpkit.problems import make
 from ocpkit.solvers.qp import LinearMPC
-from ocpkit.transcription import CondensedQP, SparseQP
+from ocpkit.qp.transcription import CondensedQP, SparseQP
 
 
 def _ocp(model, T=5, p=3, **kw):

@@ -122,7 +122,7 @@ CASES = [  # spec, file:line it must name, the exception it must name
 
 @pytest.mark.parametrize("spec, where, what", CASES)
 def test_broken_spec_is_a_problem_error_naming_file_and_line(user_dir, spec, where, what):
-    from ocpkit.problem import ProblemError
+    from ocpkit.model.problem import ProblemError
 
     with pytest.raises(ProblemError) as info:
         make(spec)
@@ -154,8 +154,8 @@ def test_debug_prints_the_full_traceback(user_dir, capsys):
 
 
 def test_simulate_names_nan_dynamics(user_dir):
-    from ocpkit.problem import DynamicsError, ProblemError
-    from ocpkit.simulate import simulate
+    from ocpkit.model.problem import DynamicsError, ProblemError
+    from ocpkit.sim.simulate import simulate
     from ocpkit.solvers.qp import LinearMPC
 
     problem = make("./nan_everywhere.py:NaNPole")
@@ -183,7 +183,7 @@ def test_cli_simulate_names_nan_dynamics_in_one_line(user_dir, capsys, spec):
 @pytest.mark.skipif(shutil.which("cc") is None or shutil.which("make") is None, reason="needs cc and make")
 def test_export_names_nan_dynamics(user_dir, capsys):
     from ocpkit.export import export
-    from ocpkit.problem import DynamicsError
+    from ocpkit.model.problem import DynamicsError
 
     problem = make("./nan_everywhere.py:NaNPole")
     with pytest.raises(DynamicsError, match=r"NaNPole.dynamics\(error\) returned NaN .*at x = \[0.1, 0.0\]"):

@@ -43,7 +43,7 @@ def test_cartpole_dynamics_match_an_independent_derivation(cartpole_dir):
 
 
 def test_cartpole_closed_loop_reaches_its_goals(cartpole_dir):
-    from ocpkit.simulate import simulate
+    from ocpkit.sim.simulate import simulate
     from ocpkit.solvers.qp import LinearMPC
 
     p = make("./cartpole.py:CartPole")

@@ -1,10 +1,10 @@
 """Crocoddyl (loco-3d/crocoddyl) as a peer of ocpkit's nonlinear MPC: the same OCP solved by its FDDP.
 
 Crocoddyl is the reference DDP library for arms; the comparison is only fair on the very same problem, so
-:class:`ShootingOCP` builds ocpkit's OCP (``ocpkit.ocp``) out of Crocoddyl's C++ models and checks that it is:
+:class:`ShootingOCP` builds ocpkit's OCP (``ocpkit.model.ocp``) out of Crocoddyl's C++ models and checks that it is:
 
 * dynamics: ``DifferentialActionModelFreeFwdDynamics`` on the problem's pinocchio model (``pin_model``): the ABA
-  with the armature, as :meth:`ocpkit.rigid_body.Chain.forward_dynamics`. Crocoddyl's free dynamics have no joint
+  with the armature, as :meth:`ocpkit.model.rigid_body.Chain.forward_dynamics`. Crocoddyl's free dynamics have no joint
   damping b q̇ or friction (its C++ actuation models map u alone to τ), so the comparison runs the problems
   without them (:func:`undamped`). Construction checks ẋ against ``ocp.model.f`` at seeded random states.
 * integrator: the OCP's (``ocp.integrator``, one step a dt): ``IntegratedActionModelRK`` (RK4) for "rk4", ocpkit's
@@ -40,7 +40,7 @@ from ocpkit import problems as registry
 from ocpkit._checks import integer, positive
 from ocpkit.controller import Controller
 from ocpkit.status import LIMITED, NAN, SUCCESS, Solution
-from ocpkit.ocp import OCP
+from ocpkit.model.ocp import OCP
 
 INSTALL = 'pip install "ocpkit[peers]"'
 # |ẋ_Crocoddyl − ẋ_ocpkit| allowed at the construction check, relative to max(1, |ẋ|): both are the ABA in

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from ocpkit import problems
-from ocpkit.kernels import runtime
+from ocpkit.codegen.kernels import runtime
 from ocpkit.solvers.sampling import VARIANTS
 
 LINKS = (1, 2, 4, 7, 10, 13)

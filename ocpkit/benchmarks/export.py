@@ -135,8 +135,8 @@ def readme_obstacles(problem, count: int, seed: int = 0) -> list:
     """The README Panda case's sphere and ``count`` − 1 more balls (radius 1-4 cm) about the hand's straight path to
     the target (centres at 20-80 % of the way, 8 cm normal scatter per axis), each 3 cm clear of the arm at the start
     (``problem.sample(0)``) and of the target point."""
-    from ocpkit.kinematics import spheres_along_links
-    from ocpkit.task import Sphere, clearances
+    from ocpkit.model.kinematics import spheres_along_links
+    from ocpkit.model.task import Sphere, clearances
 
     kin = problem.kinematics
     q0 = problem.sample(0)[0][:kin.n]
@@ -162,9 +162,9 @@ def bench_obstacle_steps(counts=(1, 10, 100), *, steps: int = 100, linearization
     obstacle rows, DAQP; timed in C) and the steps its hard QP could not answer (the QP with the obstacle rows
     softened answered them, in Python)."""
     from ocpkit import problems as registry
-    from ocpkit.kinematics import spheres_along_links
+    from ocpkit.model.kinematics import spheres_along_links
     from ocpkit.solvers.qp import LinearMPC
-    from ocpkit.task import clearances, reach
+    from ocpkit.model.task import clearances, reach
 
     panda = registry.make("panda")
     robot = spheres_along_links(panda.kinematics, panda.link_radius)

@@ -331,7 +331,7 @@ def beyond_bounds_rows(labels=("qp condensed daqp", "qp condensed proxqp", "qp c
     about the goal beyond it mispredicts gravity there); OSQP, first-order, is accepted with its success rate reported (at eps 1e-9 its ADMM needs
     10⁴–6.5·10⁴ iterations on this QP: README, "for state bounds that may be active, use DAQP or ProxQP") as long
     as each step stays within the default budget."""
-    from ocpkit.simulate import simulate
+    from ocpkit.sim.simulate import simulate
 
     ocp = PENDULUM.ocp(knots=5, x_min=[-1.0, -np.inf], x_max=[1.0, np.inf])
     rows = []
@@ -597,8 +597,9 @@ def planted_entry_row() -> RealTimeRow:
     import time
     from pathlib import Path
 
-    from ocpkit import native, problems
-    from ocpkit.cache import write_entry
+    from ocpkit import problems
+    from ocpkit.export import native
+    from ocpkit.codegen.cache import write_entry
     from ocpkit.solvers.qp import LinearMPC
 
     with tempfile.TemporaryDirectory(prefix="ocpkit-bench-planted-") as tmp:
@@ -606,7 +607,7 @@ def planted_entry_row() -> RealTimeRow:
         root, marker = tmp / "cache", tmp / "constructor-ran"
         env = {**os.environ, "OCPKIT_CACHE_DIR": str(root)}
         ocp = problems.make("nlink:13").ocp(knots=5)
-        python = LinearMPC(ocp, native=False)  # the settings a default LinearMPC hands to ocpkit.native
+        python = LinearMPC(ocp, native=False)  # the settings a default LinearMPC hands to ocpkit.export.native
         settings = (python._backend.tolerance, python.max_iter, python.linearization, 1, 0.0)
         root.mkdir(mode=0o700)
         scratch, key, _ = native._generate(ocp, settings, root / "native")  # the entry's key; nothing built
@@ -623,7 +624,7 @@ def planted_entry_row() -> RealTimeRow:
         run = subprocess.run(_cache_script(0), env=env, capture_output=True, text=True, timeout=600, cwd=tmp)
         wall = time.perf_counter() - t0
         r = _script_result(run)
-        refused = r.get("error", "").startswith("ocpkit.cache.UnsafeCacheError: ")
+        refused = r.get("error", "").startswith("ocpkit.codegen.cache.UnsafeCacheError: ")
         planted_ran = marker.exists()
     return RealTimeRow("planted cache entry", "qp condensed daqp (default)",
                        f"nlink:13 p=5, entry folder 777: {'not loaded' if not planted_ran else 'LOADED'}, "
@@ -665,7 +666,7 @@ def full_disk_rows(out=print) -> list[RealTimeRow]:
 def not_dask_rows() -> list[RealTimeRow]:
     """`ocpkit study … --scheduler` at a server that is no Dask scheduler: a web server (``python -m http.server``)
     and a listener that never answers. Each must end in one line within the handshake timeout
-    (:data:`ocpkit.cluster.HANDSHAKE_S`) plus twice the command's cost against a closed port (its start, measured
+    (:data:`ocpkit.runs.cluster.HANDSHAKE_S`) plus twice the command's cost against a closed port (its start, measured
     first), and leave no results store."""
     import os
     import socket
@@ -675,7 +676,7 @@ def not_dask_rows() -> list[RealTimeRow]:
     import time
     from pathlib import Path
 
-    from ocpkit.cluster import HANDSHAKE_S
+    from ocpkit.runs.cluster import HANDSHAKE_S
 
     def study(address: str, tmp: Path) -> tuple[float, int, list[str], bool]:
         out_dir = tmp / "out"

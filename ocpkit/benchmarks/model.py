@@ -6,7 +6,7 @@ CasADi's SX virtual machine from Python.
 
 Then the plants: wall time to simulate one second (100 control periods of 10 RK4 sub-steps, zero input, from the
 seeded starts) with ocpkit's plant (the problem's ``plant().rk4``, CasADi from Python) and with MuJoCo
-(:class:`ocpkit.mujoco_plant.MuJoCoPlant`, its RK4 at the same sub-step; "–" for the Baxter arm, whose plant is a
+(:class:`ocpkit.sim.mujoco_plant.MuJoCoPlant`, its RK4 at the same sub-step; "–" for the Baxter arm, whose plant is a
 sampled servo, or without MuJoCo installed).
 """
 from __future__ import annotations
@@ -85,7 +85,7 @@ def bench_model(links=range(1, 14), *, states: int = 20, repeats: int = 5, seed:
 def _mujoco_second(problem, starts, dt: float) -> float:
     """:func:`_one_second` on MuJoCo (NaN where it is not installed or cannot simulate the problem)."""
     try:
-        from ocpkit.mujoco_plant import MuJoCoPlant
+        from ocpkit.sim.mujoco_plant import MuJoCoPlant
 
         plant = MuJoCoPlant(problem)
     except (ImportError, ValueError):

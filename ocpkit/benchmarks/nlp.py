@@ -4,7 +4,7 @@ For each problem and seeded start/goal every controller runs its own closed loop
 starts, goals and duration); the table gives each one's time to its steady state (construction plus the
 background builds it waits for: C steps, compiled models), its median step time (model + build + solve, ms) and
 that median's split into the model's sensitivities, the QP's build (condensing) and the QP solve, its
-closed-loop actual cost (ocpkit.metrics.actual_cost) as a ratio to IPOPT's (converged to its default tol
+closed-loop actual cost (ocpkit.sim.metrics.actual_cost) as a ratio to IPOPT's (converged to its default tol
 1e-8), its fallbacks and its final error max |x_T − x_goal|. All controllers use the same OCP (knots,
 horizon); IPOPT is the reference solution of the nonlinear problem, so a ratio below 1 is luck of the
 closed loop, not a better optimizer.
@@ -31,8 +31,8 @@ import numpy as np
 from ocpkit import problems as registry
 from ocpkit._checks import integer
 from ocpkit.benchmarks import crocoddyl_peer
-from ocpkit.metrics import actual_cost
-from ocpkit.simulate import simulate
+from ocpkit.sim.metrics import actual_cost
+from ocpkit.sim.simulate import simulate
 
 ROBOTS = ("nlink:3", "nlink:7", "puma560", "baxter")
 CONTROLLERS = ("ipopt", "fatrop", "rti1", "rti3", "lti", "ltv")
@@ -43,7 +43,7 @@ PER_SOLVE_STEPS = 10
 
 def readme_cartpole() -> str | None:
     """The README's cart-pole as a problem spec (a file written to the cache), or None outside the source tree."""
-    from ocpkit.cache import cache_dir
+    from ocpkit.codegen.cache import cache_dir
 
     readme = Path(__file__).resolve().parents[2] / "README.md"
     if not readme.exists():
@@ -94,7 +94,7 @@ def bench_nlp(problems=None, knots: int | None = 5, horizon: int | None = 50, sa
     ``knots`` None is traditional MPC (p = T); ``horizon`` None is the problem's own. The cart-pole swing-up
     keeps its own horizon (1 s, 100 steps: half of it cannot see the pole come up) with 10 knots, and runs
     for the problem's duration plus one second. ``samples`` seeded start/goal pairs (seeds ``first_seed``, …) run
-    ``steps`` control steps. ``integrator`` is every controller's prediction (:data:`ocpkit.model.INTEGRATORS`);
+    ``steps`` control steps. ``integrator`` is every controller's prediction (:data:`ocpkit.model.dynamics.INTEGRATORS`);
     the plant is RK4 whatever it is, so the costs of two runs compare across integrators.
 
     ``compiled`` evaluates the affine model as compiled C (RTI's and LTV's T per-stage models, LinearMPC's one):

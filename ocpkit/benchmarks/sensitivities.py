@@ -1,14 +1,14 @@
-"""What the controller's integrator (``problem.ocp(integrator=...)``, :data:`ocpkit.model.INTEGRATORS`) costs and loses.
+"""What the controller's integrator (``problem.ocp(integrator=...)``, :data:`ocpkit.model.dynamics.INTEGRATORS`) costs and loses.
 
 :func:`bench_sensitivities`: µs per stage of the affine model (A_d, B_d, w_d), compiled C mapped over the horizon as
 the real-time iteration evaluates it, with RK4 and with Euler, beside its parts — f and its Jacobian
-(:attr:`ocpkit.model.Model.jacobian`) — and pinocchio's analytical ``computeABADerivatives`` (C++, one call from
+(:attr:`ocpkit.model.dynamics.Model.jacobian`) — and pinocchio's analytical ``computeABADerivatives`` (C++, one call from
 Python: its bindings' overhead included); and each integrator's one-step error, the median over the sampled states of
 max |F(x, u) − x⁺| with x⁺ from RK4 over 100 sub-steps.
 
 :func:`bench_integrators`: closed loops on the plant (RK4, never changed) of the real-time iteration
-(``NonlinearMPC(ocp, method="rti")``, its Python step, so that the integrator measured is :mod:`ocpkit.model`'s) and
-of IPOPT, each predicting with each integrator: actual costs (:func:`ocpkit.metrics.actual_cost`) per seed as ratios,
+(``NonlinearMPC(ocp, method="rti")``, its Python step, so that the integrator measured is :mod:`ocpkit.model.dynamics`'s) and
+of IPOPT, each predicting with each integrator: actual costs (:func:`ocpkit.sim.metrics.actual_cost`) per seed as ratios,
 IPOPT with RK4 the reference. A problem named "cartpole" (the README's) swings up from hanging as in
 :func:`ocpkit.benchmarks.nlp.bench_nlp`.
 
@@ -21,11 +21,11 @@ import time
 import numpy as np
 
 from ocpkit import problems as registry
-from ocpkit.compiled import compile_function
-from ocpkit.metrics import actual_cost
-from ocpkit.model import INTEGRATORS
+from ocpkit.codegen.compiled import compile_function
+from ocpkit.sim.metrics import actual_cost
+from ocpkit.model.dynamics import INTEGRATORS
 from ocpkit.numeric import BufferedFunction
-from ocpkit.simulate import simulate
+from ocpkit.sim.simulate import simulate
 
 
 def _states(problem, count: int, seed: int):
@@ -114,7 +114,7 @@ def bench_integrators(problems=("puma560", "baxter", "nlink:13", "cartpole"), *,
         for ocp in ocps.values():
             ocp.affine()  # compiled (or loaded from the cache) before any step is timed
         duration = problem.duration + 1.0 if swing else steps * ocps["rk4"].dt
-        # RTI's Python step: where LinearMPC would build its C step (ocpkit.native), that one has its own integrator
+        # RTI's Python step: where LinearMPC would build its C step (ocpkit.export.native), that one has its own integrator
         controllers = {f"{m} {i}": NonlinearMPC(ocps[i], method=m, options={"native": False} if m == "rti" else None)
                        for m in methods for i in INTEGRATORS}
         for seed in seeds:

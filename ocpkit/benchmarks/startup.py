@@ -146,8 +146,10 @@ def _instrument(split: dict) -> None:
     """Time the start-up's parts where the library does them (see the module docstring)."""
     from taichi.lang import kernel_impl
 
-    from ocpkit import compiled, export, native
-    from ocpkit.kernels import rollout, translate
+    from ocpkit import export
+    from ocpkit.codegen import compiled
+    from ocpkit.export import native
+    from ocpkit.codegen.kernels import rollout, translate
 
     _timed(split, "codegen", native, "export")
     _timed(split, "codegen", export, "export")

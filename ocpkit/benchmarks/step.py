@@ -8,9 +8,9 @@ as in a control loop. Each replay runs one controller alone, as a real loop woul
 model (A_d, B_d, w_d) ocpkit linearized at that state and is timed on its solve() alone.
 
 The default row is LinearMPC as constructed without options, timed once its background builds have finished:
-for models from nlink:5 up the whole step as compiled C (:mod:`ocpkit.native`), below it the Python step. The
+for models from nlink:5 up the whole step as compiled C (:mod:`ocpkit.export.native`), below it the Python step. The
 "Python step" row keeps the Python step (``native=False``) with the default affine model (CasADi's VM until the
-background compile of ``ocpkit.compiled`` finishes, then compiled C); the "VM model" row the Python step on the VM
+background compile of ``ocpkit.codegen.compiled`` finishes, then compiled C); the "VM model" row the Python step on the VM
 throughout (``compiled=False``). The floor estimate is build FLOPs / GEMM rate + the fastest QP solve + the
 compiled model.
 """

@@ -2,7 +2,7 @@
 
 For each robot, one closed loop per variant from the same seeded starts, steps interleaved round-robin so that the
 machine's load falls alike on every variant (each keeps its own state): the joint-space step (today's default: the C
-step where it applies, and the Python step), the reach task (frame-position term, :func:`ocpkit.task.reach`) and the
+step where it applies, and the Python step), the reach task (frame-position term, :func:`ocpkit.model.task.reach`) and the
 reach task with a ball on the way. Every controller waits for its compiled parts first (the steady state). Printed:
 median and 95th-percentile step time, the ratio of medians to the joint-space default, the successes and the end
 effector's final distance to its target (the worst over the seeds).
@@ -21,8 +21,8 @@ def _scene(problem, seed: int):
     """Start, target point (the end effector at a sampled goal) and a ball half-way on the straight path between
     them, of radius 0.15 × their distance (at most 0.08 m), at least 3 cm clear of the robot's link spheres at the start
     and at the goal (else the next sample: seed·1000 + 1, + 2, …)."""
-    from ocpkit.kinematics import spheres_along_links
-    from ocpkit.task import Sphere, clearances
+    from ocpkit.model.kinematics import spheres_along_links
+    from ocpkit.model.task import Sphere, clearances
 
     kin = problem.kinematics
     robot = spheres_along_links(kin, problem.link_radius)
@@ -40,8 +40,8 @@ def _scattered(problem, seed: int, count: int):
     """Start, target point and ``count`` balls (radius 1-4 cm) about the straight path between them (centres at
     20-80 % of the way, 8 cm normal scatter per axis), each at least 3 cm clear of the robot's link spheres at the
     start and at the goal."""
-    from ocpkit.kinematics import spheres_along_links
-    from ocpkit.task import Sphere, clearances
+    from ocpkit.model.kinematics import spheres_along_links
+    from ocpkit.model.task import Sphere, clearances
 
     kin = problem.kinematics
     robot = spheres_along_links(kin, problem.link_radius)
@@ -63,10 +63,10 @@ def bench_obstacles(counts=(1, 10, 100), *, seeds=(11, 12, 13), duration: float 
     (:func:`_scattered`), a ``duration`` closed loop per seed: median and largest step time, the statuses, the
     smallest true clearance; then the seconds to build a controller for ``build`` balls and take its first step."""
     from ocpkit import problems as registry
-    from ocpkit.kinematics import spheres_along_links
-    from ocpkit.simulate import simulate
+    from ocpkit.model.kinematics import spheres_along_links
+    from ocpkit.sim.simulate import simulate
     from ocpkit.solvers.qp import LinearMPC
-    from ocpkit.task import clearances, reach
+    from ocpkit.model.task import clearances, reach
 
     panda = registry.make("panda")
     robot = spheres_along_links(panda.kinematics, panda.link_radius)
@@ -110,7 +110,7 @@ def bench_task(problems=("panda", "nlink:3"), *, steps: int = 200, seeds: int = 
     """Per robot and variant: step-time median and p95 (ms), ratio to the joint-space default, successes."""
     from ocpkit import problems as registry
     from ocpkit.solvers.qp import LinearMPC
-    from ocpkit.task import reach
+    from ocpkit.model.task import reach
 
     rows = []
     out(f"{'robot':<10} {'variant':<24} {'median [ms]':>11} {'p95 [ms]':>9} {'ratio':>6} {'success':>9} "

@@ -14,9 +14,9 @@ from ocpkit.cli.options import (DEFAULT_KNOTS, DYNAMICS, EXPORT_FORMS, EXPORT_QP
                                 SPEC_HELP, VARIANTS)
 from ocpkit.cli.task import NUMBERS
 from ocpkit.controller import LINEARIZATIONS, TRAJECTORY
-from ocpkit.model import INTEGRATORS
+from ocpkit.model.dynamics import INTEGRATORS
 
-MUJOCO_INTEGRATORS = ("rk4", "implicit", "implicitfast", "euler")  # ocpkit.mujoco_plant.INTEGRATORS
+MUJOCO_INTEGRATORS = ("rk4", "implicit", "implicitfast", "euler")  # ocpkit.sim.mujoco_plant.INTEGRATORS
 
 __all__ = ["main", "DEFAULT_KNOTS", "DYNAMICS", "NLP_METHODS", "QP_BACKENDS", "SAMPLING", "VARIANTS"]
 
@@ -80,10 +80,10 @@ def _add_controller_args(p):
 
 
 def _add_task_args(p):
-    """A task-space target (ocpkit.task.reach) instead of the seeded joint-space goal: solve, simulate and export."""
+    """A task-space target (ocpkit.model.task.reach) instead of the seeded joint-space goal: solve, simulate and export."""
     p.add_argument("--target", metavar="X,Y,Z",
                    help="bring the end effector (or --frame) to this point (m, world frame) from the seeded start "
-                        "instead of the seeded joint goal (ocpkit.task.reach; a robot problem with kinematics)")
+                        "instead of the seeded joint goal (ocpkit.model.task.reach; a robot problem with kinematics)")
     p.add_argument("--obstacle", action="append", metavar="X,Y,Z,R",
                    help="with a target: a sphere (centre and radius, m, world frame) the robot keeps clear of "
                         "(repeatable)")
@@ -91,12 +91,12 @@ def _add_task_args(p):
                                                     "problem's end effector)")
     p.add_argument("--orientation", metavar="R,P,Y",
                    help="with a target: the frame's orientation too, as roll, pitch, yaw (rad, about the world's x, "
-                        "y, z: R = Rz(yaw) Ry(pitch) Rx(roll), as a URDF's rpy; ocpkit.task.FrameOrientation)")
+                        "y, z: R = Rz(yaw) Ry(pitch) Rx(roll), as a URDF's rpy; ocpkit.model.task.FrameOrientation)")
     p.add_argument("--frame-target", action="append", metavar="NAME=X,Y,Z",
                    help="with a target: another frame brought to a point as well (m, world frame; "
-                        "ocpkit.task.FramePosition; repeatable)")
+                        "ocpkit.model.task.FramePosition; repeatable)")
     p.add_argument("--joint-limits", action="store_true",
-                   help="with a target: keep the joints off their limits (ocpkit.task.JointLimitBarrier at the "
+                   help="with a target: keep the joints off their limits (ocpkit.model.task.JointLimitBarrier at the "
                         "robot's limits, 0.05 rad inside)")
     p.add_argument("--task", metavar="FILE",
                    help="a TOML reach task: target = [x, y, z], optional frame, orientation = [roll, pitch, yaw] "
@@ -149,7 +149,7 @@ def _parser() -> argparse.ArgumentParser:
     sim.add_argument("--joint-map", metavar="J1,J2,…|NAME=J,…",
                      help="--mjcf: the file's joints for the problem's, in q's order or as problem=mjcf name pairs "
                           "(default: the problem's joint names)")
-    # MuJoCoPlant's options for what ocpkit's model leaves out, with its defaults (ocpkit.mujoco_plant)
+    # MuJoCoPlant's options for what ocpkit's model leaves out, with its defaults (ocpkit.sim.mujoco_plant)
     sim.add_argument("--frictionloss", type=float, default=0.0, metavar="N·m",
                      help="--plant mujoco: dry joint friction added at every joint (default 0)")
     sim.add_argument("--armature", type=float, default=0.0, metavar="KG·M²",
@@ -232,8 +232,8 @@ def _one_line_error(exc: BaseException) -> bool:
     if isinstance(exc, (ValueError, TypeError, OSError, ImportError)):
         return True
     kinds = [getattr(sys.modules.get(module), name, None) for module, name in (
-        ("ocpkit.store", "StoreError"), ("ocpkit.kernels.runtime", "ArchUnavailable"),
-        ("ocpkit.compiled", "CompileError"))]
+        ("ocpkit.runs.store", "StoreError"), ("ocpkit.codegen.kernels.runtime", "ArchUnavailable"),
+        ("ocpkit.codegen.compiled", "CompileError"))]
     return any(kind is not None and isinstance(exc, kind) for kind in kinds)
 
 
@@ -249,7 +249,7 @@ def _debug_first(argv) -> list[str]:
 
 def _error_line(exc: BaseException, debug: bool) -> str:
     """The one line an error is shown as; a failure inside the user's own code points at --debug."""
-    from ocpkit.problem import ProblemError
+    from ocpkit.model.problem import ProblemError
 
     hint = isinstance(exc, ProblemError) and exc.__cause__ is not None and not debug
     return f"ocpkit: error: {exc}" + (" (--debug prints its traceback)" if hint else "")

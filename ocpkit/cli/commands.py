@@ -116,8 +116,8 @@ def _run_closed_loop(problem, ctrl: Controller, seed: int, duration: float | Non
     """The closed loop from the seeded start (or ``start``, (x0, goal)) against ``plant`` (default the problem's),
     after one untimed solve that compiles what the controller needs (Taichi kernels take seconds), never counted in
     the step times; a first solve over a second and a loop over two seconds are said on stderr as they run."""
-    from ocpkit.metrics import actual_cost
-    from ocpkit.simulate import simulate
+    from ocpkit.sim.metrics import actual_cost
+    from ocpkit.sim.simulate import simulate
 
     x0, goal = problem.sample(seed) if start is None else start
     start = time.perf_counter()
@@ -170,7 +170,7 @@ def _plant(problem, args):
     """The plant of --plant: None for the problem's own, else a MuJoCoPlant of its robot or of --mjcf."""
     if args.plant == "ocpkit":
         return None
-    from ocpkit.mujoco_plant import MuJoCoPlant
+    from ocpkit.sim.mujoco_plant import MuJoCoPlant
 
     joint_map = None
     if args.joint_map:
@@ -184,12 +184,12 @@ def _plant(problem, args):
 
 
 def _simulate(args):
-    from ocpkit import plots
+    from ocpkit.sim import plots
 
     if args.out is not None:
         check_output_file(args.out, "--out")
     if args.animate is not None:
-        from ocpkit import animation
+        from ocpkit.sim import animation
 
         check_output_file(animation.check_path(args.animate, "--animate"), "--animate")
     task = reach_task(args)
@@ -249,7 +249,7 @@ def _simulate(args):
 
 def _demo(args):
     """Every registered controller configuration on one seeded pendulum swing, side by side."""
-    from ocpkit import plots
+    from ocpkit.sim import plots
     from ocpkit.solvers.qp import LinearMPC
 
     check_output_folder(args.out, "--out")
@@ -284,7 +284,7 @@ def _demo(args):
 
 def _study_options(args) -> dict:
     """The study runner's options from the command line, with the output paths and the scheduler checked first."""
-    from ocpkit.cluster import check_scheduler
+    from ocpkit.runs.cluster import check_scheduler
 
     check_output_folder(args.out, "--out")
     if args.export is not None:
@@ -298,7 +298,7 @@ def _study_options(args) -> dict:
 
 def _export_store(args) -> None:
     if args.export is not None:
-        from ocpkit.store import Store
+        from ocpkit.runs.store import Store
 
         with Store(args.out) as store:
             print(f"results database: {store.export(args.export)}")
@@ -324,7 +324,7 @@ def _study(args):
 
 def _study_problems(args, options) -> str:
     """A closed-loop study on the problems of --problem: its table (CSV), figures and report section."""
-    from ocpkit import study as study_runner
+    from ocpkit.runs import study as study_runner
     from ocpkit.studies import get
 
     if args.name not in PROBLEM_STUDIES:
@@ -390,9 +390,10 @@ def _prebuild(args):
     """`ocpkit build`: what the default LinearMPC of the problem's OCP loads from the cache — its C step and the
     compiled affine model of its Python step — built into the cache unless there (and loading), paths printed; with
     another solver or options, :func:`_prebuild_controller`."""
-    from ocpkit import compiled, native
-    from ocpkit.cache import cache_root
-    from ocpkit.ocp import BACKGROUND_MIN_INSTRUCTIONS
+    from ocpkit.codegen import compiled
+    from ocpkit.export import native
+    from ocpkit.codegen.cache import cache_root
+    from ocpkit.model.ocp import BACKGROUND_MIN_INSTRUCTIONS
     from ocpkit.solvers.qp import LinearMPC
 
     print(f"cache: {cache_root()} (set OCPKIT_CACHE_DIR to fill another)")
@@ -414,7 +415,7 @@ def _prebuild(args):
                if size < BACKGROUND_MIN_INSTRUCTIONS else
                "obstacles, constants of the generated C (a build per placement: --compiled builds it)"
                if pairs else
-               f"a knot QP of {ocp.knots * ocp.nu} variables, over ocpkit.native.MAX_VARIABLES = "
+               f"a knot QP of {ocp.knots * ocp.nu} variables, over ocpkit.export.native.MAX_VARIABLES = "
                f"{native.MAX_VARIABLES}")
         print(f"C step: none (the default LinearMPC keeps its Python step here: {why})")
     if size >= BACKGROUND_MIN_INSTRUCTIONS:
@@ -484,7 +485,7 @@ def _round_trip(problem, ocp, args, exported, start, steps: int = 20):
     the discrete model, driven by LinearMPC's input): their largest first-input difference and the steps where either
     failed."""
     from ocpkit.export import ExportedMPC
-    from ocpkit.problem import check_dynamics
+    from ocpkit.model.problem import check_dynamics
     from ocpkit.solvers.nlp import RealTimeIteration
     from ocpkit.solvers.qp import LinearMPC
 

@@ -1,4 +1,4 @@
-"""Task-space targets on the command line: --target, --obstacle, --frame and --task (:func:`ocpkit.task.reach`), and
+"""Task-space targets on the command line: --target, --obstacle, --frame and --task (:func:`ocpkit.model.task.reach`), and
 how a run did on them."""
 from __future__ import annotations
 
@@ -9,11 +9,11 @@ import numpy as np
 
 from ocpkit.cli.options import knot_count
 
-# --- task-space targets: --target, --obstacle, --frame, --task (ocpkit.task.reach) --------------------------------
+# --- task-space targets: --target, --obstacle, --frame, --task (ocpkit.model.task.reach) --------------------------------
 
 # The keys of a --task file beside target, frame, orientation, joint_limits and the [[obstacle]] and [[frame_target]]
 # tables: numbers, reach()'s keyword arguments and the weights of the orientation and joint-limit terms, all positive
-# but margin (the clearance kept, m, of either sign); link_radius and margin are lengths within ocpkit.task.MAX_LENGTH.
+# but margin (the clearance kept, m, of either sign); link_radius and margin are lengths within ocpkit.model.task.MAX_LENGTH.
 _TASK_NUMBERS = ("margin", "position_weight", "terminal_weight", "link_radius", "obstacle_weight",
                  "orientation_weight", "joint_limit_weight")
 _REACH_OPTIONS = _TASK_NUMBERS[:5]
@@ -29,7 +29,7 @@ NUMBERS = re.compile(r"^-[0-9.][0-9.eE+-]*(,\s*[-+]?[0-9.][0-9.eE+-]*)*$")
 @dataclasses.dataclass
 class Reach:
     """A reach task from the command line: the target point, the frame (None: the problem's end effector), the
-    obstacles (ocpkit.task.Sphere) and reach()'s other options; the frame's orientation target (a rotation, 9 entries
+    obstacles (ocpkit.model.task.Sphere) and reach()'s other options; the frame's orientation target (a rotation, 9 entries
     row by row, or None) and its term's weight (None: the default), more frames' targets (:class:`FrameTarget`), the
     joint-limit term's weight (None: no such term); ``source`` names where each came from."""
 
@@ -91,10 +91,10 @@ def _point(text, option: str, form: str = "'x,y,z'") -> np.ndarray:
 
 def _rotation(value, option: str) -> np.ndarray:
     """A rotation target (9 entries row by row) from roll, pitch, yaw (rad; R = Rz(yaw) Ry(pitch) Rx(roll), URDF's
-    rpy) as "r,p,y" or [r, p, y], or from a 3 × 3 matrix [[…], […], […]] (ocpkit.task.check_rotation checks it)."""
+    rpy) as "r,p,y" or [r, p, y], or from a 3 × 3 matrix [[…], […], […]] (ocpkit.model.task.check_rotation checks it)."""
     import pinocchio as pin
 
-    from ocpkit.task import check_rotation
+    from ocpkit.model.task import check_rotation
 
     if isinstance(value, list) and len(value) == 3 and all(isinstance(row, list) for row in value):
         rows = [_numbers(row, 3) for row in value]
@@ -141,7 +141,7 @@ def read_task_file(path) -> dict:
     value checked (errors name the file and the key)."""
     import tomllib
 
-    from ocpkit.task import Sphere, length
+    from ocpkit.model.task import Sphere, length
 
     where = f"--task {path}"
     try:
@@ -197,7 +197,7 @@ def read_task_file(path) -> dict:
 def reach_task(args) -> Reach | None:
     """The reach task that --target, --obstacle, --frame, --orientation, --frame-target, --joint-limits and --task ask
     for (None: none, the seeded joint goal)."""
-    from ocpkit.task import Sphere
+    from ocpkit.model.task import Sphere
 
     file = read_task_file(args.task) if args.task else {"target": None, "frame": None, "orientation": None,
                                                          "joint_limits": False, "obstacles": [], "frame_targets": [],
@@ -257,9 +257,9 @@ def _joint_limits(problem, where: str) -> tuple[np.ndarray, np.ndarray]:
 
 
 def reach_ocp(problem, args, task: Reach, **options):
-    """ocpkit.task.reach for the command line's task, after the checks that name its options: frames, targets
-    within the robot's workspace, and the orientation, other frames and joint-limit terms (ocpkit.task)."""
-    from ocpkit.task import (FrameOrientation, FramePosition, JointLimitBarrier, check_frame, check_point, reach,
+    """ocpkit.model.task.reach for the command line's task, after the checks that name its options: frames, targets
+    within the robot's workspace, and the orientation, other frames and joint-limit terms (ocpkit.model.task)."""
+    from ocpkit.model.task import (FrameOrientation, FramePosition, JointLimitBarrier, check_frame, check_point, reach,
                              workspace_radius)
 
     kinematics = getattr(problem, "kinematics", None)
@@ -311,7 +311,7 @@ def reach_panels(problem, ocp, task: Reach, xs) -> dict:
 def _reach_series(problem, ocp, task: Reach, xs):
     """The frame's positions (N, 3) along the states ``xs`` (N, nx) and the smallest clearance at each (None without
     obstacles): distance from a robot sphere's surface to an obstacle's."""
-    from ocpkit.task import clearances
+    from ocpkit.model.task import clearances
 
     xs = np.atleast_2d(np.asarray(xs, dtype=float))
     kin = problem.kinematics

@@ -15,20 +15,20 @@ dimension only through the model):
   model for the example, and the QP solver.
 * ``<name>.c`` — the hand-written step. The affine model: RK4 calling ``<name>_fjac`` four times per substep,
   its sensitivities propagated by sparse-times-dense products (the exact chain rule of ``ocp.affine()``).
-  The condensing mirrors :class:`~ocpkit.transcription.CondensedQP.build`: Λ_s = [A_d^s E_s F_s e_s],
+  The condensing mirrors :class:`~ocpkit.qp.transcription.CondensedQP.build`: Λ_s = [A_d^s E_s F_s e_s],
   Γ_L = Σ_{s≤L} Λ_sᵀQΛ_s and per piece of the parameterization Rᵀ Γ_L R. Γ_L is built in O(log L) products
   (Λ_s = C Â^s for the piece's augmented state [x; v; d; 1], so Γ_2s = Γ_s + (Â^s)ᵀ Γ_s Â^s, Λ_2s = Λ_s Â^s),
   and every product is one small GEMM kernel whose tiles of C stay in vector registers (GCC/Clang vector
   extensions: SSE2, plus AVX2+FMA chosen at run time on CPUs that have them; ``make SIMD=sse2|none``).
   Constants (Q^½, R, the basis' pieces, bounds, the Γ schedule) are static arrays.
-* With a task (:mod:`ocpkit.task`: cost terms such as a frame's position) its stage and terminal residuals and
+* With a task (:mod:`ocpkit.model.task`: cost terms such as a frame's position) its stage and terminal residuals and
   their dense Jacobians are generated per stage (``<name>_task_stage``, ``<name>_task_terminal``), and the step
-  adds their Gauss–Newton model about the plan to the condensed QP as :class:`ocpkit.task_rows.TaskRows` does
+  adds their Gauss–Newton model about the plan to the condensed QP as :class:`ocpkit.qp.task_rows.TaskRows` does
   (``task_terms`` in ``<name>.c``: the plan's states and ∂r/∂x S piece by piece, ∂r/∂x S as (∂r/∂x Λ_s) R). The
   step's goal is then the whole goal vector [x_goal; targets] (``ocp.goal(...)``, ``NG`` entries).
 * With obstacles the robot spheres' centres and Jacobians are generated too (``<name>_spheres``, the obstacles a
   table of constants), and at each of the plan's states the step computes the clearances, keeps the pairs
-  :meth:`~ocpkit.task_rows.TaskRows.select` keeps (within ``ACTIVATION`` of the margin, each sphere's closest, a
+  :meth:`~ocpkit.qp.task_rows.TaskRows.select` keeps (within ``ACTIVATION`` of the margin, each sphere's closest, a
   bounded number a stage) and appends their rows d + ∂d/∂x S_k (z − z̄) ≥ 0 after the state-bound rows, in the
   Python step's order (``obstacles.in.c``). The QP has room for the bound at every stage (``NO`` rows, the Panda's:
   24 × 50); the rows a step leaves unused are zero and unbounded, and DAQP leaves zero rows out. The rows are hard:
@@ -60,7 +60,7 @@ QP solvers (CasADi conic plugins with code generation in CasADi 3.8):
 * ``hpipm`` — refused: CasADi's HPIPM interface needs a stage-wise OCP structure, which the condensed
   QP over knots does not have.
 
-Whatever the solver says, a "solved" answer is accepted only if its KKT certificate holds (:mod:`ocpkit.certificate`,
+Whatever the solver says, a "solved" answer is accepted only if its KKT certificate holds (:mod:`ocpkit.qp.certificate`,
 computed in C: stationarity, primal feasibility, complementarity and dual sign of the answer and its multipliers).
 
 The package: :mod:`~ocpkit.export.generate` writes a folder (:func:`export`), :mod:`~ocpkit.export.render` renders

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from ocpkit.quadratic_program import ROUNDING_MARGIN
-from ocpkit.task import ACTIVATION, ROWS_PER_SPHERE
-from ocpkit.transcription import CondensedQP
+from ocpkit.qp.quadratic_program import ROUNDING_MARGIN
+from ocpkit.model.task import ACTIVATION, ROWS_PER_SPHERE
+from ocpkit.qp.transcription import CondensedQP
 
 # The C step's solver return for a "solved" answer whose certificate failed: CERT_CODE + the test's index in
-# ocpkit.certificate.TESTS.
+# ocpkit.qp.certificate.TESTS.
 CERT_CODE = 9001
 ILL_CONDITIONED = 9000  # a QP refused before its solve: Hessian ill-conditioned (QP.not_definite)
 

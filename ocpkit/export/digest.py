@@ -12,7 +12,7 @@ import hashlib
 import casadi as ca
 import numpy as np
 
-from ocpkit.ocp import OCP
+from ocpkit.model.ocp import OCP
 
 FORMAT = "ocpkit-ocp-digest 1"  # the first entry: the digest's own format
 _SERIALIZED = ("model", "goal_input", "task_terms", "robot_spheres")  # hashes of CasADi's serialization

@@ -15,10 +15,10 @@ from ocpkit.export import render
 from ocpkit.export.digest import ocp_entries
 from ocpkit.export.folder import check_out_dir, place, write
 from ocpkit.export.qp import conic, fix_daqp_setup
-from ocpkit.ocp import OCP
-from ocpkit.problem import check_dynamics
-from ocpkit.task import ROWS_PER_SPHERE, ROWS_PER_STAGE
-from ocpkit.transcription import CondensedQP
+from ocpkit.model.ocp import OCP
+from ocpkit.model.problem import check_dynamics
+from ocpkit.model.task import ROWS_PER_SPHERE, ROWS_PER_STAGE
+from ocpkit.qp.transcription import CondensedQP
 
 FORMS = ("condensed", "sparse")
 QP_SOLVERS = ("qrqp", "daqp", "osqp", "hpipm")
@@ -213,13 +213,13 @@ def general_rows(ocp: OCP) -> int:
 
 
 def rows_a_stage(tf) -> int:
-    """The most clearance rows one stage can have under :meth:`ocpkit.task_rows.TaskRows.select`'s bound (``tf``:
-    :class:`ocpkit.task.CompiledTask` with obstacles): the QP has room for them at every stage."""
+    """The most clearance rows one stage can have under :meth:`ocpkit.qp.task_rows.TaskRows.select`'s bound (``tf``:
+    :class:`ocpkit.model.task.CompiledTask` with obstacles): the QP has room for them at every stage."""
     return min(ROWS_PER_STAGE, tf.radii.size * min(ROWS_PER_SPHERE, tf.table.shape[1]))
 
 
 def _task_functions(tf, name: str) -> list:
-    """The task's functions for the C step (``tf``: :class:`ocpkit.task.CompiledTask`), generated per stage:
+    """The task's functions for the C step (``tf``: :class:`ocpkit.model.task.CompiledTask`), generated per stage:
     ``<name>_task_stage`` (x, u, targets) -> (r, ∂r/∂x, ∂r/∂u) and ``<name>_task_terminal`` (x, targets) -> (r,
     ∂r/∂x), the Jacobians dense (column-major); a part without terms is left out. With obstacles ``<name>_spheres``
     (x) -> (C, C_x): the robot spheres' centres and their Jacobians as ``tf.spheres`` gives them, from which the step

@@ -8,17 +8,17 @@ from pathlib import Path
 import numpy as np
 
 from ocpkit._checks import array
-from ocpkit.cache import check_trusted
-from ocpkit.certificate import TESTS, Certificate
-from ocpkit.certificate import TOL as CERT_TOL
+from ocpkit.codegen.cache import check_trusted
+from ocpkit.qp.certificate import TESTS, Certificate
+from ocpkit.qp.certificate import TOL as CERT_TOL
 from ocpkit.controller import Controller
 from ocpkit.status import STATUSES, SUCCESS, Solution
 from ocpkit.export.constants import CERT_CODE, ILL_CONDITIONED
 from ocpkit.export.digest import differences
 from ocpkit.export.generate import general_rows
-from ocpkit.ocp import OCP
-from ocpkit.qp_backends import DAQP_EXIT, daqp_exit_name
-from ocpkit.quadratic_program import ROUNDING_MARGIN
+from ocpkit.model.ocp import OCP
+from ocpkit.qp.backends import DAQP_EXIT, daqp_exit_name
+from ocpkit.qp.quadratic_program import ROUNDING_MARGIN
 
 
 class ExportedMPC(Controller):
@@ -167,7 +167,7 @@ class ExportedMPC(Controller):
         return sol
 
     def certificate(self) -> Certificate:
-        """The KKT certificate the C code computed for its last QP solve (:mod:`ocpkit.certificate`)."""
+        """The KKT certificate the C code computed for its last QP solve (:mod:`ocpkit.qp.certificate`)."""
         self._check_open()
         out = np.zeros(4)
         self._certificate(self._mem, out)
@@ -175,7 +175,7 @@ class ExportedMPC(Controller):
 
     def solve_qp(self, qp) -> tuple[str, np.ndarray]:
         """(status, z) of the C step's QP solve and certificate on ``qp``, a condensed knot QP of this library's size
-        (an :class:`ocpkit.transcription.QP` with the knot bounds as its box and state-bound rows after them, then
+        (an :class:`ocpkit.qp.transcription.QP` with the knot bounds as its box and state-bound rows after them, then
         with obstacles up to the library's room for obstacle rows; the rest is filled with zero rows, unbounded) — to
         test the solver and the certificate in C on QPs of one's own. The next step starts cold."""
         self._check_open()

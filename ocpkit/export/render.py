@@ -8,13 +8,13 @@ from pathlib import Path
 import casadi as ca
 import jinja2
 
-from ocpkit.certificate import TOL as CERT_TOL
+from ocpkit.qp.certificate import TOL as CERT_TOL
 from ocpkit.status import INFEASIBLE, LIMITED, SOFT, STATUSES, SUCCESS
 from ocpkit.export.constants import CERT_CODE, ILL_CONDITIONED, c_array, step_constants
-from ocpkit.qp_backends import DAQP_EXIT
-from ocpkit.task import ACTIVATION, ROWS_PER_SPHERE
-from ocpkit.ocp import OCP
-from ocpkit.transcription import CondensedQP
+from ocpkit.qp.backends import DAQP_EXIT
+from ocpkit.model.task import ACTIVATION, ROWS_PER_SPHERE
+from ocpkit.model.ocp import OCP
+from ocpkit.qp.transcription import CondensedQP
 
 MAX_INSTANCES = 16  # QP-solver memory slots per loaded library (CASADI_MAX_NUM_THREADS); a Makefile variable
 OPT_FLAGS = "-O2"  # the Makefile's OPT default (generated model and QP solver)
@@ -43,7 +43,7 @@ def _render(template: str, **values) -> str:
 
 def _task_values(ocp: OCP, code: bool) -> dict:
     """The task's terms and targets in words (``code``: target names as Markdown code), and its obstacles: how many,
-    the robot's spheres, the margin and the rows' bound (:meth:`ocpkit.task_rows.TaskRows.select`)."""
+    the robot's spheres, the margin and the rows' bound (:meth:`ocpkit.qp.task_rows.TaskRows.select`)."""
     targets = ", ".join(f"`{k}`: {v}" if code else f"{k}: {v}" for k, v in ocp.task.targets.items())
     task = ocp.task
     return {"terms": ", ".join(ocp.terms[2:]), "targets": targets or "none", "n_obstacles": len(task.obstacles),

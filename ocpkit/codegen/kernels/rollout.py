@@ -26,8 +26,8 @@ import numpy as np
 import taichi as ti
 
 from ocpkit._checks import choice
-from ocpkit.kernels import runtime
-from ocpkit.kernels.translate import translate
+from ocpkit.codegen.kernels import runtime
+from ocpkit.codegen.kernels.translate import translate
 
 DYNAMICS = ("affine", "nonlinear")
 
@@ -52,7 +52,7 @@ def _bound_violations(ocp, x):
 
 def fitness(ocp):
     """(stage (x, u, goal), terminal (x, goal)): the OCP's cost over its whole goal vector, plus at every state
-    x_0 … x_T the exact penalties of what the QPs hold as constraints: a task's obstacles (ocpkit.task) and the
+    x_0 … x_T the exact penalties of what the QPs hold as constraints: a task's obstacles (ocpkit.model.task) and the
     state bounds, STATE_BOUND_WEIGHT·Σ_i (h_i + ½h_i²) with h_i the violation of component i's bound."""
     stage, terminal = ocp.full_costs()
     tf = ocp.task_functions
@@ -76,7 +76,7 @@ def constrained(ocp) -> bool:
 
 def violation(ocp):
     """v (x) -> how far one state breaks the constraints the QPs hold: max(0, −min_pairs(d − margin)) over a task's
-    obstacle clearances d (ocpkit.task) plus Σ_i h_i over the state bounds; 0 exactly where x satisfies them. A
+    obstacle clearances d (ocpkit.model.task) plus Σ_i h_i over the state bounds; 0 exactly where x satisfies them. A
     candidate's violation sums it over x_1 … x_T (x_0 is the same for every candidate): a plan that grazes a
     constraint at many stages counts against one that breaks it as much once."""
     tf = ocp.task_functions

@@ -11,7 +11,7 @@ u_g = u_goal + K x_goal with K = ``u_goal_gain`` (zero by default, the paper's u
 inputs are servo set points (Baxter) the input that holds the goal is the goal position itself. Every solver reads this one
 description: the QPs through its affine model, IPOPT through F, EMPC through the translated kernels.
 
-The two quadratic sums are the cost's built-in terms "state" and "input"; a :class:`ocpkit.task.Task` adds named,
+The two quadratic sums are the cost's built-in terms "state" and "input"; a :class:`ocpkit.model.task.Task` adds named,
 weighted terms (frame position and orientation targets, joint-limit barriers, user residuals) and obstacles. The
 goal is then [x_goal; the terms' targets] (``ng`` entries, :meth:`OCP.goal`); without a task it is x_goal.
 """
@@ -21,11 +21,11 @@ import casadi as ca
 import numpy as np
 
 from ocpkit._checks import array, bounds, choice, integer, positive, weight
-from ocpkit.compiled import SwitchingFunction, compile_function, compile_in_background
-from ocpkit.model import INTEGRATORS, Model
+from ocpkit.codegen.compiled import SwitchingFunction, compile_function, compile_in_background
+from ocpkit.model.dynamics import INTEGRATORS, Model
 from ocpkit.numeric import BufferedFunction
-from ocpkit.parameterization import Parameterization
-from ocpkit.task import Task
+from ocpkit.model.parameterization import Parameterization
+from ocpkit.model.task import Task
 
 # The default path (``compiled`` not given) compiles the affine model in the background only from this size up
 # (CasADi VM instructions of the continuous Jacobian, Model.jacobian, which the affine model evaluates 4 times
@@ -39,7 +39,7 @@ class OCP:
 
     ``integrator`` is how the controller predicts a nonlinear model over a step dt (``substeps`` sub-steps each):
     "rk4" or "euler" (semi-implicit for x = [q, q̇]; one Jacobian a sub-step instead of four, see
-    :data:`ocpkit.model.INTEGRATORS`). The plant the simulator integrates is not affected.
+    :data:`ocpkit.model.dynamics.INTEGRATORS`). The plant the simulator integrates is not affected.
     """
 
     def __init__(self, model: Model, dt: float, horizon: int, Q, R, *, Q_terminal=None, u_goal=None,
@@ -81,7 +81,7 @@ class OCP:
         self.terminal_cost = ca.Function("terminal_cost", [x, xg], [ca.bilin(ca.DM(self.Q_terminal), ex, ex)],
                                          ["x", "x_goal"], ["l_T"])
         if task is not None and not isinstance(task, Task):
-            raise TypeError(f"task must be an ocpkit.task.Task or None, got {type(task).__name__}")
+            raise TypeError(f"task must be an ocpkit.model.task.Task or None, got {type(task).__name__}")
         self.task = task
         # The task's Functions (None without a task, or with no active term and no obstacle: nothing changes)
         self.task_functions = None if task is None or not (task.active_terms or task.obstacles) else task.compile(n, m)
@@ -151,11 +151,11 @@ class OCP:
     def affine(self) -> ca.Function:
         """The affine model (x̄, ū) -> (A_d, B_d, w_d) of :meth:`discrete`.
 
-        ``compiled=True``: compiled C, compiled here and now (see :mod:`ocpkit.compiled`: about 2x faster for large
+        ``compiled=True``: compiled C, compiled here and now (see :mod:`ocpkit.codegen.compiled`: about 2x faster for large
         robots after a one-off compile, cached by hash). ``compiled=False``: CasADi's virtual machine.
         Not given (default): the virtual machine, which switches by itself to the compiled C as soon as a compile
         started in the background at this first call finishes (models of ``BACKGROUND_MIN_INSTRUCTIONS`` and
-        more; a :class:`ocpkit.compiled.SwitchingFunction`); without a C compiler, the VM with one warning."""
+        more; a :class:`ocpkit.codegen.compiled.SwitchingFunction`); without a C compiler, the VM with one warning."""
         fn = self.model.affine(self.dt, self.substeps, self.integrator)
         if not (self.compiled or (self.compiled is None
                                   and self.model.jacobian.n_instructions() >= BACKGROUND_MIN_INSTRUCTIONS)):
@@ -169,7 +169,7 @@ class OCP:
 
     def _compile(self, fn: ca.Function) -> ca.Function:
         """``fn`` as compiled C under the ``compiled`` policy: True compiles it here and now; None in the background,
-        the VM answering meanwhile (a :class:`ocpkit.compiled.SwitchingFunction`; the VM alone, with one warning,
+        the VM answering meanwhile (a :class:`ocpkit.codegen.compiled.SwitchingFunction`; the VM alone, with one warning,
         without a C compiler)."""
         if self.compiled:
             return compile_function(fn)

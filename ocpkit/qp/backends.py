@@ -2,7 +2,7 @@
 planners' preconditioner): ProxQP, OSQP, HPIPM and DAQP behind one small interface, :class:`QPBackend`.
 
 A backend is made once per controller (:func:`make_backend`) and then asked, step after step, to ``solve`` the
-step's QP (:class:`ocpkit.transcription.QP`) with a warm start (the previous answer's ``duals``) and a deadline. It
+step's QP (:class:`ocpkit.qp.transcription.QP`) with a warm start (the previous answer's ``duals``) and a deadline. It
 sets itself up on the first solve (and again when the QP's structure changes), updates its numbers on the later
 ones, and forgets everything on ``reset``. Every operation that cannot be stopped from outside starts only if its
 measured time (``costs``) fits in what is left of the deadline.
@@ -16,8 +16,8 @@ import numpy as np
 import scipy.sparse as sp
 
 from ocpkit.status import EXCEPTION, INFEASIBLE, LIMITED, NAN, SUCCESS, OperationCosts
-from ocpkit.quadratic_program import QP
-from ocpkit.transcription import SparseQP
+from ocpkit.qp.quadratic_program import QP
+from ocpkit.qp.transcription import SparseQP
 
 QP_SOLVERS = ("proxqp", "osqp", "hpipm", "daqp")
 # DAQP's exit flags (daqp/include/constants.h): their names and ocpkit statuses, for the Python step and the C
@@ -37,7 +37,7 @@ def daqp_exit_name(flag: int) -> str:
 @dataclass
 class Result:
     """A backend's answer: z, its warm start (``duals``, backend-specific), status, and the multipliers in the
-    convention of :mod:`ocpkit.certificate` (y of the equality rows, w of the bound rows; None: not returned)."""
+    convention of :mod:`ocpkit.qp.certificate` (y of the equality rows, w of the bound rows; None: not returned)."""
     z: np.ndarray
     duals: tuple
     status: str

@@ -17,8 +17,8 @@ import numpy as np
 from ocpkit._checks import integer, positive
 from ocpkit.controller import Controller
 from ocpkit.status import SOFT, SUCCESS, Solution
-from ocpkit.model import Model
-from ocpkit.problem import check_dynamics
+from ocpkit.model.dynamics import Model
+from ocpkit.model.problem import check_dynamics
 
 # The loop-level verdict (Trajectory.progress) on the task error e(t): the frame's distance to its target point (m),
 # or for a joint goal the state error max_i |x_i − x_goal,i| (the state's units, rad and rad/s for an arm).
@@ -126,7 +126,7 @@ class Trajectory:
     def clearances(self, ocp) -> np.ndarray:
         """The true clearance (m, no margin) of ``ocp``'s task at every state: the smallest distance between the
         surfaces of a robot sphere and an obstacle (negative: a collision; +inf without obstacles)."""
-        from ocpkit.task import clearances
+        from ocpkit.model.task import clearances
 
         task = getattr(ocp, "task", None)
         if task is None or not task.obstacles:
@@ -142,7 +142,7 @@ class Trajectory:
     def progress(self, kinematics=None, frame: str | None = None, target=None, *, tolerance: float = TOLERANCE,
                  window: float = WINDOW, still: float = STILL) -> Progress:
         """The loop-level verdict on the task (:class:`Progress`): with ``kinematics`` (an
-        :class:`ocpkit.kinematics.Kinematics`, ``problem.kinematics``), ``frame`` and ``target`` (x, y, z), the
+        :class:`ocpkit.model.kinematics.Kinematics`, ``problem.kinematics``), ``frame`` and ``target`` (x, y, z), the
         frame's distance (m) to the target point; without them the joint goal's state error max_i |x_i − x_goal,i|.
         Defaults: reached within 1 cm (TOLERANCE), stalled when the error stays within 1 mm (STILL) over the last
         0.5 s (WINDOW)."""
@@ -173,8 +173,8 @@ class Trajectory:
         return np.array([s.times[key] for s in self.solutions])
 
     def animate(self, path, problem, **options):
-        """The run as an animated GIF of ``problem``'s robot at ``path`` (:func:`ocpkit.animation.animate`)."""
-        from ocpkit.animation import animate  # matplotlib loads only when a picture is asked for
+        """The run as an animated GIF of ``problem``'s robot at ``path`` (:func:`ocpkit.sim.animation.animate`)."""
+        from ocpkit.sim.animation import animate  # matplotlib loads only when a picture is asked for
         return animate(self, path, problem, **options)
 
 
@@ -184,7 +184,7 @@ def simulate(plant, controller: Controller, x0, goal, duration: float, *, dt: fl
 
     The plant, an ocpkit Model, is integrated with RK4 over ``plant_substeps`` sub-steps per control period, input
     held (zero-order hold). Any other plant has ``nx``, ``nu`` and ``stepper(dt, substeps)`` returning its step
-    F(x, u) -> x⁺ over one period in ``plant_substeps`` sub-steps (:class:`ocpkit.mujoco_plant.MuJoCoPlant`).
+    F(x, u) -> x⁺ over one period in ``plant_substeps`` sub-steps (:class:`ocpkit.sim.mujoco_plant.MuJoCoPlant`).
     ``callback(k, x, solution)``, if given, is called after every step.
     """
     model = isinstance(plant, Model)

@@ -8,7 +8,7 @@ process in a session of its own builds it with ``make`` at lower priority (``nic
 running control loop keeps a core) and moves it into the cache atomically with its content hash beside it (a
 damaged entry is rebuilt; one that does not load is removed and built once more). The child outlives this process
 if need be: a script shorter than the build finds the C step ready on its next run. Several controllers of one OCP
-share one build, and so do processes: the builder holds the entry's lock file (:func:`ocpkit.cache.entry_lock`),
+share one build, and so do processes: the builder holds the entry's lock file (:func:`ocpkit.codegen.cache.entry_lock`),
 and another process's build child waits for it and finds the library built. A read-only cache is used as it is:
 its sound library is loaded, and where it has none the Python step runs (one warning); ``ocpkit build`` fills a
 cache ahead of deployment.
@@ -25,12 +25,12 @@ import weakref
 from concurrent.futures import Future
 from pathlib import Path
 
-from ocpkit.builder import build_entry, child_failure, entry_key, loadable, signal_name, spawn, warn_damaged
-from ocpkit.cache import (CacheReadOnlyError, UnsafeCacheError, cache_dir, check_trusted, entry_ok, install,
+from ocpkit.codegen.builder import build_entry, child_failure, entry_key, loadable, signal_name, spawn, warn_damaged
+from ocpkit.codegen.cache import (CacheReadOnlyError, UnsafeCacheError, cache_dir, check_trusted, entry_ok, install,
                           load_problem, read_only, read_only_error, scratch_dir, warn_read_only)
-from ocpkit.compiled import compiler_available
+from ocpkit.codegen.compiled import compiler_available
 from ocpkit.export import BuildError, check_tools, export
-from ocpkit.ocp import BACKGROUND_MIN_INSTRUCTIONS, OCP
+from ocpkit.model.ocp import BACKGROUND_MIN_INSTRUCTIONS, OCP
 
 NAME = "mpc"
 SLOTS = 64  # controllers of one OCP live at once in one process (the library's QP-solver memory slots)
@@ -53,7 +53,7 @@ MAX_VARIABLES = 256
 
 def wanted(ocp: OCP) -> bool:
     """Whether the OCP's ``compiled`` policy asks for the C step: True, or None (the default) for a model as large as
-    :data:`ocpkit.ocp.BACKGROUND_MIN_INSTRUCTIONS` (below it the Python step is already fast), a knot QP of at
+    :data:`ocpkit.model.ocp.BACKGROUND_MIN_INSTRUCTIONS` (below it the Python step is already fast), a knot QP of at
     most :data:`MAX_VARIABLES` variables and no obstacles. The obstacles are constants of the generated C, so each
     placement is a build of its own (the Panda's: 10-30 s), where a study's seeds each place theirs: the C step
     with obstacles is built when asked (``native=True``, ``compiled=True``)."""
@@ -72,11 +72,11 @@ def start(ocp: OCP, *, eps: float, max_iter: int, wait: bool = False, linearizat
 
     A sound cached library that loads is used as it is: no compiler needed, and the cache may be read-only. One
     whose hash matches but which does not load (another machine's, a damaged one) is removed and built once more.
-    Otherwise it is built — ``wait``: here and now (BuildError if it cannot be, :class:`ocpkit.cache.
+    Otherwise it is built — ``wait``: here and now (BuildError if it cannot be, :class:`ocpkit.codegen.cache.
     CacheReadOnlyError` where the cache is read-only); else in the background — and the result is None where
     it cannot be: ``cc`` or ``make`` missing (one warning for ``make``: a missing compiler is said once by
-    :mod:`ocpkit.compiled` when the Python step's model cannot be compiled either), or a read-only cache (one
-    warning per process, :func:`ocpkit.cache.warn_read_only`)."""
+    :mod:`ocpkit.codegen.compiled` when the Python step's model cannot be compiled either), or a read-only cache (one
+    warning per process, :func:`ocpkit.codegen.cache.warn_read_only`)."""
     runs = _by_ocp.setdefault(ocp, {})
     settings = (eps, max_iter, linearization, iterations, tol)
     known = runs.get(settings, False)
@@ -157,7 +157,7 @@ def _generate(ocp: OCP, settings: tuple, root: Path) -> tuple[Path, str, OSError
     """Export the C step of ``ocp`` to a scratch folder and key it: (scratch, key, None) with the scratch folder in
     the cache, where a build is installed by a rename; where the cache cannot be written (read-only, or full: the
     export's files do not fit), generated all the same to a temporary folder, its key naming the entry to look for,
-    with the cache's error last. :class:`ocpkit.cache.CacheReadOnlyError` where no temporary folder can be written
+    with the cache's error last. :class:`ocpkit.codegen.cache.CacheReadOnlyError` where no temporary folder can be written
     either."""
     try:
         scratch = scratch_dir(root, f".build-{os.getpid()}-")
@@ -188,7 +188,7 @@ def _export(ocp: OCP, settings: tuple, scratch: Path) -> str:
 
 
 def _key(source: Path) -> str:
-    """The cache key of the generated files and the build's settings (:func:`ocpkit.builder.entry_key`)."""
+    """The cache key of the generated files and the build's settings (:func:`ocpkit.codegen.builder.entry_key`)."""
     files = (path.name.encode() + b"\0" + path.read_bytes() for path in sorted(source.iterdir()))
     return entry_key(" ".join(MAKE_VARS).encode(), *files)
 
@@ -245,7 +245,7 @@ def _build(scratch: Path, folder: Path, future: Future, background: bool = True,
 
 def _spawn(scratch: Path, folder: Path) -> subprocess.Popen:
     """The background build's child process (:func:`_child`), in a session of its own so that it outlives us."""
-    return spawn("ocpkit.native", str(scratch), str(folder), cwd=scratch, stdout=subprocess.DEVNULL,
+    return spawn("ocpkit.export.native", str(scratch), str(folder), cwd=scratch, stdout=subprocess.DEVNULL,
                  stderr=subprocess.DEVNULL)
 
 

@@ -1,6 +1,6 @@
 """A study's trials as this process claims them from the store (a lease per trial, renewed by a heartbeat), and what
-this process computes them with: shared by the local runner (:mod:`ocpkit.study`) and the Dask one
-(:mod:`ocpkit.cluster`)."""
+this process computes them with: shared by the local runner (:mod:`ocpkit.runs.study`) and the Dask one
+(:mod:`ocpkit.runs.cluster`)."""
 from __future__ import annotations
 
 import contextlib
@@ -8,7 +8,7 @@ import threading
 import time
 from dataclasses import dataclass
 
-from ocpkit.store import Store
+from ocpkit.runs.store import Store
 
 
 @dataclass(frozen=True)

@@ -1,17 +1,17 @@
 """A task beyond the joint-space goal: named, weighted cost terms and spherical obstacles, for every controller.
 
-The OCP's cost (ocpkit.ocp) is a sum of named terms. Two are built in and always there — "state",
+The OCP's cost (ocpkit.model.ocp) is a sum of named terms. Two are built in and always there — "state",
 (x − x_goal)ᵀQ(x − x_goal), and "input", (u − u_g)ᵀR(u − u_g) — and a :class:`Task` adds more, each a
 weighted least-squares residual in the style of Crocoddyl's ``CostModelSum``::
 
     term_i = Σ_k r_i(x_k, u_k, target_i)ᵀ W_i r_i(x_k, u_k, target_i)   (stage, k = 0 … T−1; terminal: x_T)
 
 with W_i = diag(weight) and ``active`` switching a term off. Targets are part of the goal: with a task the goal
-vector that ``solve(x, goal)`` takes is [x_goal; target_1; target_2; …] (:meth:`ocpkit.ocp.OCP.goal` builds it
+vector that ``solve(x, goal)`` takes is [x_goal; target_1; target_2; …] (:meth:`ocpkit.model.ocp.OCP.goal` builds it
 by name), so a frame-position target moves at run time like a joint goal.
 
 Obstacles are spheres in the world; the robot is approximated by spheres fixed in its frames
-(:mod:`ocpkit.kinematics`). Each pair's clearance d = ‖c_robot(q) − c_obstacle‖ − r_robot − r_obstacle must stay
+(:mod:`ocpkit.model.kinematics`). Each pair's clearance d = ‖c_robot(q) − c_obstacle‖ − r_robot − r_obstacle must stay
 at or above ``margin`` at x_1 … x_T. Each controller takes this in the way that suits it:
 
 * NonlinearMPC (IPOPT, SQP): nonlinear inequality constraints d ≥ margin at every predicted state.
@@ -23,8 +23,8 @@ at or above ``margin`` at x_1 … x_T. Each controller takes this in the way tha
 * EMPC, CEM, MPPI: the same penalty in the rollout fitness, with h_k = max(0, margin − min d at x_k) in place of
   the slack: ``obstacle_weight``·(h_k + ½h_k²) per stage (``penalty``).
 
-Residuals are CasADi expressions, so the QPs take their Gauss–Newton model (ocpkit.transcription), IPOPT their
-exact derivatives and the sampling kernels their translation (ocpkit.kernels.translate).
+Residuals are CasADi expressions, so the QPs take their Gauss–Newton model (ocpkit.qp.transcription), IPOPT their
+exact derivatives and the sampling kernels their translation (ocpkit.codegen.kernels.translate).
 """
 from __future__ import annotations
 
@@ -38,7 +38,7 @@ from ocpkit._checks import positive
 # A stage's linearized obstacle rows enter the QP only where some pair's clearance at the plan is within this
 # many metres of the margin (a plan this far from every obstacle will not reach one within a step).
 ACTIVATION = 0.1
-# The QPs' obstacle rows are bounded (ocpkit.task_rows.TaskRows.select): each robot sphere's closest obstacles, at
+# The QPs' obstacle rows are bounded (ocpkit.qp.task_rows.TaskRows.select): each robot sphere's closest obstacles, at
 # most this many, and at most this many rows a stage (the closest pairs first; the Panda has 23 spheres).
 ROWS_PER_SPHERE, ROWS_PER_STAGE = 2, 24
 # reach()'s obstacle penalty weight (per metre of violation, and its square): far above the multipliers of a clearance
@@ -129,7 +129,7 @@ class Term:
     ``target_size`` entries; a terminal term's residual must not depend on u). ``weight`` is a scalar or one
     value per residual entry (≥ 0); ``terminal_weight`` (default ``weight``) weights x_T when ``terminal``.
     ``active=False`` keeps the term declared but leaves it out of every controller's cost. ``target_check``
-    (target, name) -> target, if given, validates a target when the goal is built (:meth:`ocpkit.ocp.OCP.goal`)."""
+    (target, name) -> target, if given, validates a target when the goal is built (:meth:`ocpkit.model.ocp.OCP.goal`)."""
 
     def __init__(self, name: str, residual, weight=1.0, *, target_size: int = 0, stage: bool = True,
                  terminal: bool = False, terminal_weight=None, active: bool = True, target_check=None):
@@ -258,7 +258,7 @@ class Task:
     """Cost terms and obstacles added to an OCP (see the module docstring).
 
     ``terms``: :class:`Term` s (names unique). ``obstacles``: :class:`Sphere` s; they need ``kinematics`` (an
-    :class:`ocpkit.kinematics.Kinematics`) and ``robot`` (its :class:`~ocpkit.kinematics.RobotSphere` s).
+    :class:`ocpkit.model.kinematics.Kinematics`) and ``robot`` (its :class:`~ocpkit.model.kinematics.RobotSphere` s).
     ``margin`` is the clearance kept (m); ``obstacle_weight`` the exact penalty's weight in the QPs and the
     sampling planners' fitness."""
 
@@ -274,15 +274,15 @@ class Task:
         names = [t.name for t in self.terms]
         for t in self.terms:
             if not isinstance(t, Term):
-                raise TypeError(f"Task terms must be ocpkit.task.Term, got {type(t).__name__}")
+                raise TypeError(f"Task terms must be ocpkit.model.task.Term, got {type(t).__name__}")
         if len(set(names)) != len(names):
             raise ValueError(f"Task term names must be unique, got {names}")
         for o in self.obstacles:
             if not isinstance(o, Sphere):
-                raise TypeError(f"Task obstacles must be ocpkit.task.Sphere, got {type(o).__name__}")
+                raise TypeError(f"Task obstacles must be ocpkit.model.task.Sphere, got {type(o).__name__}")
         if self.obstacles and (self.kinematics is None or not self.robot):
             raise ValueError("a Task with obstacles needs kinematics= and robot= (the robot's spheres, e.g. "
-                             "ocpkit.kinematics.spheres_along_links(problem.kinematics, problem.link_radius))")
+                             "ocpkit.model.kinematics.spheres_along_links(problem.kinematics, problem.link_radius))")
         self.margin = length(self.margin, "margin", signed=True)
         self.obstacle_weight = positive(self.obstacle_weight, "obstacle_weight")
 
@@ -390,7 +390,7 @@ class CompiledTask:
 
     def _spheres(self, x) -> ca.Function:
         """(x) -> (C, C_x): the robot spheres' centres (3 × k) and ∂c_i/∂x side by side (3 × k·nx, dense)."""
-        from ocpkit.kinematics import sphere_centers
+        from ocpkit.model.kinematics import sphere_centers
 
         kin, k = self.task.kinematics, len(self.task.robot)
         C = sphere_centers(kin, self.task.robot)(x[:kin.n])
@@ -422,9 +422,9 @@ class CompiledTask:
 
 def clearances(kinematics, robot, obstacles, q_rows) -> np.ndarray:
     """The true clearance (m, no margin) at each configuration (rows of ``q_rows``, (N, n)): the smallest distance
-    between the surfaces of a robot sphere (:class:`ocpkit.kinematics.RobotSphere`) and an obstacle; negative: they
+    between the surfaces of a robot sphere (:class:`ocpkit.model.kinematics.RobotSphere`) and an obstacle; negative: they
     overlap, a collision."""
-    from ocpkit.kinematics import sphere_centers
+    from ocpkit.model.kinematics import sphere_centers
 
     q_rows = np.atleast_2d(np.asarray(q_rows, dtype=float))
     radii = np.array([s.radius for s in robot])
@@ -456,7 +456,7 @@ def reach(problem, obstacles=(), *, frame: str | None = None, position_weight: f
     planners. Without them a reach across the workspace saturated the Panda's torques from the first step, its
     joints passed 4 rad/s within 40 ms, the prediction model diverged and 17 of 24 closed loops failed (seeds 1–6,
     four linearizations); with them, none."""
-    from ocpkit.kinematics import spheres_along_links
+    from ocpkit.model.kinematics import spheres_along_links
 
     kinematics = getattr(problem, "kinematics", None)
     if kinematics is None:

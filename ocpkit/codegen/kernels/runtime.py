@@ -20,8 +20,8 @@ import numpy as np
 import taichi as ti
 from taichi.lang import impl
 
-from .._checks import choice
-from . import CPU_THREADS
+from ocpkit._checks import choice
+from ocpkit.codegen.kernels import CPU_THREADS
 
 ARCHS = ("auto", "cpu", "cuda")
 
@@ -85,18 +85,18 @@ def _floating_point_kept():
 
 def _offline_cache() -> dict:
     """ti.init's offline-cache settings: Taichi's compiled kernels kept in ocpkit's cache (``taichi-kernels`` under
-    :func:`ocpkit.cache.cache_root`, so ``OCPKIT_CACHE_DIR`` and ``ocpkit build`` cover them with the rest), or in
+    :func:`ocpkit.codegen.cache.cache_root`, so ``OCPKIT_CACHE_DIR`` and ``ocpkit build`` cover them with the rest), or in
     ``$TI_OFFLINE_CACHE_FILE_PATH`` where that is set. Taichi loads compiled code from that folder, so it is refused
-    (:class:`ocpkit.cache.UnsafeCacheError`) where another user could have planted anything in it. On a read-only
+    (:class:`ocpkit.codegen.cache.UnsafeCacheError`) where another user could have planted anything in it. On a read-only
     folder Taichi cannot take its lock, so it neither loads nor stores kernels, and warns three times a run to "run
     'ti cache clean'" (even with the cache off); on a full one it cannot store them: there, the cache is off and
     pointed at a folder of this process's own, removed at exit (a full one said once,
-    :func:`ocpkit.cache.warn_read_only`: every run compiles its kernels again until room is made)."""
+    :func:`ocpkit.codegen.cache.warn_read_only`: every run compiles its kernels again until room is made)."""
     import atexit
     import shutil
     import tempfile
 
-    from ..cache import cache_dir, check_trusted, full, read_only_error, warn_read_only
+    from ocpkit.codegen.cache import cache_dir, check_trusted, full, read_only_error, warn_read_only
 
     path = os.environ.get("TI_OFFLINE_CACHE_FILE_PATH") or str(cache_dir("taichi-kernels"))
     try:

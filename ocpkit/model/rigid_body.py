@@ -57,7 +57,7 @@ class Chain:
         try:
             import pinocchio as pin
         except ImportError as err:  # pragma: no cover - pin is a hard dependency
-            raise ImportError("ocpkit.rigid_body needs pinocchio (pip install pin)") from err
+            raise ImportError("ocpkit.model.rigid_body needs pinocchio (pip install pin)") from err
         if not isinstance(model, pin.Model):
             raise TypeError(f"model must be a pinocchio.Model, got {type(model).__name__}")
         n = model.njoints - 1

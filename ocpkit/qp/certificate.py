@@ -1,6 +1,6 @@
 """Optimality certificates: a QP "success" is accepted only where the KKT conditions hold at the answer.
 
-For the QP  min ½ zᵀPz + qᵀz  s.t.  A z = b,  l ≤ C z ≤ u  (:class:`ocpkit.transcription.QP`) with multipliers y
+For the QP  min ½ zᵀPz + qᵀz  s.t.  A z = b,  l ≤ C z ≤ u  (:class:`ocpkit.qp.transcription.QP`) with multipliers y
 (equality rows) and w (bound rows; w_i > 0 where the upper bound is active, w_i < 0 where the lower one is), the
 four tests, each relative to the data's scale, are
 
@@ -65,7 +65,7 @@ def _finite_norm(*arrays) -> float:
 
 
 def certify(qp, z, y, w) -> Certificate:
-    """The certificate of (z, y, w) for ``qp`` (a :class:`ocpkit.transcription.QP`): y the equality rows' multipliers,
+    """The certificate of (z, y, w) for ``qp`` (a :class:`ocpkit.qp.transcription.QP`): y the equality rows' multipliers,
     w the bound rows' (positive at an active upper bound). Missing multipliers (None) count as zero."""
     z = np.asarray(z, dtype=float)
     y = np.zeros(qp.b.size) if y is None else np.asarray(y, dtype=float)

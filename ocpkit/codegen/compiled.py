@@ -5,8 +5,8 @@ same Function compiled at -O1 takes about 0.3 ms, at the price of a one-off comp
 cached on disk by the Function's hash so it is paid once per model. The library is checked against the content
 hash recorded beside it before it is loaded; a damaged one (truncated, empty) is rebuilt with a warning, and one
 that does not load (another machine's) is removed and compiled once more. One compile per entry machine-wide: the
-compiler runs under the entry's lock (:func:`ocpkit.cache.entry_lock`). A read-only cache is used as it is; a
-Function it lacks raises :class:`ocpkit.cache.CacheReadOnlyError` (in the background: the VM, one warning).
+compiler runs under the entry's lock (:func:`ocpkit.codegen.cache.entry_lock`). A read-only cache is used as it is; a
+Function it lacks raises :class:`ocpkit.codegen.cache.CacheReadOnlyError` (in the background: the VM, one warning).
 
 :func:`compile_in_background` runs that compile in a child process at lower priority (``nice`` +10), and
 :class:`SwitchingFunction` evaluates the Function on the virtual machine until the compiled twin is ready, then on the
@@ -32,8 +32,8 @@ from pathlib import Path
 
 import casadi as ca
 
-from ocpkit.builder import build_entry, child_failure, entry_key, loadable, signal_name, spawn
-from ocpkit.cache import (CacheReadOnlyError, cache_dir, check_trusted, entry_ok, install, load_problem, read_only,
+from ocpkit.codegen.builder import build_entry, child_failure, entry_key, loadable, signal_name, spawn
+from ocpkit.codegen.cache import (CacheReadOnlyError, cache_dir, check_trusted, entry_ok, install, load_problem, read_only,
                           read_only_error, warn_read_only)
 
 
@@ -60,14 +60,14 @@ def prebuild(fn: ca.Function, flags: str = "-O1") -> Path:
 
 
 def _load(name: str, library: Path, rebuild) -> ca.Function:
-    """``ca.external`` of the cached ``library`` once it proves loadable (:func:`ocpkit.builder.loadable`: one that
+    """``ca.external`` of the cached ``library`` once it proves loadable (:func:`ocpkit.codegen.builder.loadable`: one that
     does not load is removed and ``rebuild()`` compiles it once more)."""
     return ca.external(name, str(loadable(library, name, rebuild, f"the compiled function {name!r}", CompileError)))
 
 
 def _entry(fn: ca.Function, flags: str) -> Path:
     """Where the library of ``fn`` compiled with ``flags`` is cached (keyed by the serialized Function), once the
-    folders down to it and the library are proved safe to load from (:func:`ocpkit.cache.check_trusted`)."""
+    folders down to it and the library are proved safe to load from (:func:`ocpkit.codegen.cache.check_trusted`)."""
     library = cache_dir("compiled") / entry_key(fn.serialize().encode(), flags.encode()) / f"{fn.name()}.so"
     check_trusted(library)
     return library
@@ -83,7 +83,7 @@ def _cached(fn: ca.Function, flags: str) -> ca.Function | None:
 
 
 def _library(fn: ca.Function, flags: str) -> Path:
-    """The cached library of ``fn`` compiled with ``flags``, built first (:func:`ocpkit.builder.build_entry`) unless a
+    """The cached library of ``fn`` compiled with ``flags``, built first (:func:`ocpkit.codegen.builder.build_entry`) unless a
     sound one is there; :class:`CacheReadOnlyError` where it is not and the cache is read-only or full."""
     library = _entry(fn, flags)
     try:
@@ -178,7 +178,7 @@ def _library_out_of_process(fn: ca.Function, flags: str) -> Path:
     with tempfile.TemporaryDirectory(prefix="ocpkit-compile-") as tmp:
         saved = Path(tmp) / f"{fn.name()}.casadi"
         fn.save(str(saved))
-        with spawn("ocpkit.compiled", str(saved), flags, cwd=Path(tmp), stdout=subprocess.PIPE,
+        with spawn("ocpkit.codegen.compiled", str(saved), flags, cwd=Path(tmp), stdout=subprocess.PIPE,
                    stderr=subprocess.PIPE, text=True) as proc:
             code, out, err = _tracked(proc, None)
     if code:

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from ._checks import choice
+from ocpkit._checks import choice
 
 FILENAME = "results.sqlite"
 STATUSES = ("ok", "failed")
@@ -50,7 +50,7 @@ CREATE TABLE IF NOT EXISTS trials (
 """
 # Columns added after the first release: older stores gain them (NULL for their trials) when opened for writing.
 _ADDED_COLUMNS = {"ocpkit_version": "TEXT",   # the package version that computed the trial
-                  "code_hash": "TEXT"}        # hash of the code the trial ran (see ocpkit.provenance; manifest in code)
+                  "code_hash": "TEXT"}        # hash of the code the trial ran (see ocpkit.runs.provenance; manifest in code)
 _CLAIMS = """
 CREATE TABLE IF NOT EXISTS claims (
     study   TEXT NOT NULL,
@@ -63,7 +63,7 @@ CREATE TABLE IF NOT EXISTS claims (
 _CODE = """
 CREATE TABLE IF NOT EXISTS code (
     hash     TEXT PRIMARY KEY, -- a trials.code_hash
-    manifest TEXT NOT NULL     -- JSON: the files and dependency versions it hashes (see ocpkit.provenance)
+    manifest TEXT NOT NULL     -- JSON: the files and dependency versions it hashes (see ocpkit.runs.provenance)
 )
 """
 _RUNS = """

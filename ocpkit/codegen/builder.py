@@ -1,11 +1,11 @@
-"""Building generated code into the cache, one path for compiled models (:mod:`ocpkit.compiled`) and LinearMPC's
-C steps (:mod:`ocpkit.native`).
+"""Building generated code into the cache, one path for compiled models (:mod:`ocpkit.codegen.compiled`) and LinearMPC's
+C steps (:mod:`ocpkit.export.native`).
 
 An entry is keyed by the hash of what it is built from, the build's settings and the platform (:func:`entry_key`:
 a cache shared by machines of two architectures keeps one library for each). It is built at most once machine-wide
 (:func:`build_entry`, under the entry's lock; a damaged entry is rebuilt with a warning), built in the background by
 a child process of ocpkit's own (:func:`spawn`, its failure read back by :func:`child_failure`) at lower priority,
-checked against its recorded content hash (:func:`ocpkit.cache.entry_ok`) and loaded only once it proves loadable
+checked against its recorded content hash (:func:`ocpkit.codegen.cache.entry_ok`) and loaded only once it proves loadable
 (:func:`loadable`: one that does not load is removed and built once more).
 """
 from __future__ import annotations
@@ -19,7 +19,7 @@ import sys
 import warnings
 from pathlib import Path
 
-from ocpkit.cache import CacheReadOnlyError, entry_lock, entry_ok, evict, load_problem, read_only_error
+from ocpkit.codegen.cache import CacheReadOnlyError, entry_lock, entry_ok, evict, load_problem, read_only_error
 
 _PLATFORM = f"|{sys.platform}|{platform.machine()}"
 
@@ -44,7 +44,7 @@ def signal_name(number: int) -> str:
 def build_entry(library: Path, build, what: str | None = None) -> None:
     """Run ``build()`` to make ``library`` unless a sound one is there, under the entry's lock: where another process
     built it meanwhile, nothing is built. With ``what``, a damaged library is named in a warning
-    (:func:`warn_damaged`) before it is rebuilt. :class:`ocpkit.cache.CacheReadOnlyError` where the cache is
+    (:func:`warn_damaged`) before it is rebuilt. :class:`ocpkit.codegen.cache.CacheReadOnlyError` where the cache is
     read-only."""
     if entry_ok(library):
         return
@@ -68,7 +68,7 @@ def warn_damaged(library: Path, what: str, stacklevel: int = 3) -> None:
 def loadable(library: Path, symbol: str, rebuild, what: str, error: type[Exception]) -> Path:
     """``library`` if it loads and has ``symbol``; else it is removed (a warning naming ``what``), ``rebuild()``
     builds it once more and returns its path, and that one is returned, or ``error`` says why it does not load
-    either. Where the cache is read-only the entry cannot be removed: :class:`ocpkit.cache.CacheReadOnlyError`."""
+    either. Where the cache is read-only the entry cannot be removed: :class:`ocpkit.codegen.cache.CacheReadOnlyError`."""
     seen = library.stat()
     problem = load_problem(library, symbol)
     if problem is None:
@@ -97,7 +97,7 @@ def spawn(module: str, *args: str, cwd: Path, **popen) -> subprocess.Popen:
 
 def child_failure(code: int, pid: int, output: str, what: str, error: type[Exception], kinds=()) -> Exception:
     """The exception of the build child ``pid`` that ended with status ``code``: killed by a signal, or the last line
-    of its ``output`` (raised as one of ``kinds`` where the child printed one, e.g. ``ocpkit.cache.
+    of its ``output`` (raised as one of ``kinds`` where the child printed one, e.g. ``ocpkit.codegen.cache.
     CacheReadOnlyError: …``), as ``error`` prefixed by ``what`` ("building X failed")."""
     if code < 0:
         return error(f"{what}: its build process (pid {pid}) was killed by {signal_name(-code)}")

@@ -1,11 +1,11 @@
-"""Pictures of motion: a closed-loop :class:`~ocpkit.simulate.Trajectory` as an animated GIF of the robot.
+"""Pictures of motion: a closed-loop :class:`~ocpkit.sim.simulate.Trajectory` as an animated GIF of the robot.
 
-The robot is a stick figure drawn from the problem's forward kinematics (:mod:`ocpkit.kinematics`): one line per
-segment of :meth:`~ocpkit.kinematics.Kinematics.segments` (joint to child joint, last joint to its tip frame),
+The robot is a stick figure drawn from the problem's forward kinematics (:mod:`ocpkit.model.kinematics`): one line per
+segment of :meth:`~ocpkit.model.kinematics.Kinematics.segments` (joint to child joint, last joint to its tip frame),
 the end effector's path as a trail. A robot whose every drawn point stays in one plane z = const (the planar
 N-link chains) is drawn in that plane, any other in 3-D; the pendulum (no kinematics) as its rod, pivot at the
 origin, q = 0 hanging down. The goal is drawn where the run has one: a task-space ``target`` point (``reach``), or
-else the joint goal's pose as a faint ghost; obstacles (:class:`ocpkit.task.Sphere`) as spheres (in the plane: the
+else the joint goal's pose as a faint ghost; obstacles (:class:`ocpkit.model.task.Sphere`) as spheres (in the plane: the
 circle where they cut it). Every frame shows the simulated time.
 
 Frames play in real time, evenly spaced over the run (at most ``max_frames``), the last held a second; Pillow
@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ocpkit import plots  # before pyplot: it selects the Agg backend
+from ocpkit.sim import plots  # before pyplot: it selects the Agg backend
 from ocpkit._checks import integer, positive
 
 import matplotlib.pyplot as plt  # noqa: E402
@@ -271,7 +271,7 @@ def animate(trajectory, path, problem, *, target=None, obstacles=(), frame: str 
     """Write the closed-loop ``trajectory`` of ``problem``'s robot as an animated GIF at ``path``; its Path.
 
     ``target``: a task-space target point (x, y, z; drawn as a star), else the trajectory's joint goal is drawn as a
-    ghost pose (where the goal is a plain state, without a task's targets); ``obstacles``: :class:`ocpkit.task.Sphere`
+    ghost pose (where the goal is a plain state, without a task's targets); ``obstacles``: :class:`ocpkit.model.task.Sphere`
     s; ``frame``: the frame whose path is drawn (default the problem's end effector). Real-time playback at ``fps``
     (fewer frames per second where the run would need more than ``max_frames``); ``size`` inches square at ``dpi``."""
     path = check_path(path)

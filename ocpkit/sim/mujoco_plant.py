@@ -1,6 +1,6 @@
 """MuJoCo as the plant: a controller tested in the simulator robotics people use (issue 34).
 
-A :class:`MuJoCoPlant` stands wherever :func:`ocpkit.simulate.simulate` takes a plant. Each control period dt it
+A :class:`MuJoCoPlant` stands wherever :func:`ocpkit.sim.simulate.simulate` takes a plant. Each control period dt it
 sets MuJoCo's q, q̇ of the controlled joints from x = [q, q̇], holds the input u as joint torques (one motor per
 joint, gear 1: forces on prismatic joints) and takes ``substeps`` MuJoCo steps of dt / substeps with the
 ``integrator`` chosen — "rk4" by default, the same method and sub-step as ocpkit's own plant, so the two agree to
@@ -9,7 +9,7 @@ q̇: stable at larger steps, first order) or "euler" (semi-implicit) —, then r
 
 Where the robot comes from:
 
-* a problem described by a :class:`ocpkit.rigid_body.Chain` (``nlink:N``, ``puma560``, a user's Chain-based problem):
+* a problem described by a :class:`ocpkit.model.rigid_body.Chain` (``nlink:N``, ``puma560``, a user's Chain-based problem):
   an MJCF written from the Chain — one body per joint at its placement, its joint axis, mass, centre of mass and
   inertia, the rotor inertia as ``armature``, the problem's viscous damping b as joint ``damping`` (the ODE
   M q̈ + h + b q̇ = τ of :meth:`Chain.forward_dynamics`), gravity as the Chain's, the joint limits as ranges;
@@ -79,8 +79,8 @@ class MuJoCoPlant:
                  meshes: bool = False, check_tolerance: float | None = CHECK_TOLERANCE):
         mujoco = _mujoco()
         from ocpkit import problems
-        from ocpkit.model import Model
-        from ocpkit.problem import Problem
+        from ocpkit.model.dynamics import Model
+        from ocpkit.model.problem import Problem
 
         problem = problems.make(problem)
         if not isinstance(problem, Problem):  # pragma: no cover - problems.make returns Problems only
@@ -319,7 +319,7 @@ def _map_joints(mujoco, spec, joint_map, names: list) -> list:
 
 def _chain_spec(mujoco, problem):
     """The MJCF of a Chain: body i is joint i's frame at q = 0, its joint at the body's origin."""
-    from ocpkit.rigid_body import position_limits
+    from ocpkit.model.rigid_body import position_limits
 
     chain = problem.chain
     spec = mujoco.MjSpec()
@@ -374,7 +374,7 @@ def _exact_inertias(mujoco, model, chain) -> None:
 def _urdf_spec(mujoco, problem, meshes: bool):
     """MuJoCo's import of the problem's URDF with the joints the problem locked removed (held at 0), without its
     collision meshes unless ``meshes`` (MuJoCo's import discards the visual ones)."""
-    from ocpkit.rigid_body import load_urdf
+    from ocpkit.model.rigid_body import load_urdf
 
     try:
         spec = mujoco.MjSpec.from_file(problem.urdf)

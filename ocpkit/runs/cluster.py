@@ -11,11 +11,11 @@ from concurrent.futures import CancelledError
 
 import numpy as np
 
-from ocpkit import provenance
-from ocpkit.claims import Claims, OwnProvenance
-from ocpkit.provenance import package_version
-from ocpkit.store import canonical_key
-from ocpkit.trial import execute, failure, grace, timeout_message
+from ocpkit.runs import provenance
+from ocpkit.runs.claims import Claims, OwnProvenance
+from ocpkit.runs.provenance import package_version
+from ocpkit.runs.store import canonical_key
+from ocpkit.runs.trial import execute, failure, grace, timeout_message
 
 
 class ClusterMismatchError(ValueError):
@@ -239,7 +239,7 @@ def _execute_remote(fn, params: dict, timeout: float | None, version: str, code:
     """:func:`execute` on a Dask worker: (the worker's address, the outcome). A worker first checks, once per code
     hash, that it runs the client's ocpkit version and code: if not, the outcome is ``{"mismatch": (its version,
     its manifest)}`` and the trial is not run. Its manifest takes the client's environment ``variables``: a worker's
-    own are its cluster's (Dask's nanny sets the BLAS threads to 1), see :mod:`ocpkit.provenance`."""
+    own are its cluster's (Dask's nanny sets the BLAS threads to 1), see :mod:`ocpkit.runs.provenance`."""
     from distributed import get_worker
 
     address = get_worker().address
@@ -257,7 +257,7 @@ _SAME = ("install the same ocpkit, study code and numerical libraries on the sch
 
 def _mismatch_message(where: str, their_version, version: str, their_manifest=None, manifest=None) -> str:
     """Why the Dask ``where`` ("worker tcp://…") is refused: its ocpkit version, or what differs between the
-    manifest of the trial's code there and here (:mod:`ocpkit.provenance`)."""
+    manifest of the trial's code there and here (:mod:`ocpkit.runs.provenance`)."""
     if their_version != version:
         return f"the Dask {where} runs ocpkit {their_version}, this process ocpkit {version}: {_SAME}"
     differences = provenance.changes(manifest, their_manifest)

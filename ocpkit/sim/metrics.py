@@ -3,8 +3,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ocpkit.ocp import OCP
-from ocpkit.simulate import Trajectory
+from ocpkit.model.ocp import OCP
+from ocpkit.sim.simulate import Trajectory
 
 
 def actual_cost(traj: Trajectory, ocp: OCP) -> float:

@@ -1,16 +1,16 @@
-"""A task's cost terms and obstacles in the condensed QP (:class:`ocpkit.transcription.CondensedQP`), Gauss–Newton
-about the plan: the rows and terms that :mod:`ocpkit.task` adds to the paper's small-matrix QP."""
+"""A task's cost terms and obstacles in the condensed QP (:class:`ocpkit.qp.transcription.CondensedQP`), Gauss–Newton
+about the plan: the rows and terms that :mod:`ocpkit.model.task` adds to the paper's small-matrix QP."""
 from __future__ import annotations
 
 import numpy as np
 
-from ocpkit.compiled import SwitchingFunction
-from ocpkit.ocp import OCP
-from ocpkit.quadratic_program import QP
+from ocpkit.codegen.compiled import SwitchingFunction
+from ocpkit.model.ocp import OCP
+from ocpkit.qp.quadratic_program import QP
 
 
 class TaskRows:
-    """A task's terms and obstacles in the condensed QP, Gauss–Newton about a plan (ocpkit.task).
+    """A task's terms and obstacles in the condensed QP, Gauss–Newton about a plan (ocpkit.model.task).
 
     With the plan's knots z̄, states x̄_k = S_k z̄ + v_k (the QP's own prediction, x̄_0 = x_0) and inputs ū_k = Φ_k z̄
     (Φ_k = φ_k ⊗ I), each residual is replaced by its linearization r_k + G_k (z − z̄), G_k = ∂r/∂x S_k + ∂r/∂u Φ_k,
@@ -19,13 +19,13 @@ class TaskRows:
     d_k + D_k S_k (z − z̄) ≥ 0 for the pairs :meth:`select` picks: a hard row, or with ``soft`` the row
     d_k + D_k S_k (z − z̄) + s_k ≥ 0 with one slack s_k ≥ 0 per such stage costing obstacle_weight·(s_k + ½s_k²) in
     J (an exact penalty, like the sampling planners' fitness). The terms' functions are the OCP's
-    :meth:`~ocpkit.ocp.OCP.task_maps`. The clearances and their gradients come from the robot spheres' centres and
-    Jacobians (``spheres`` of :class:`ocpkit.task.CompiledTask`, one mapped call over the horizon) and the obstacle
+    :meth:`~ocpkit.model.ocp.OCP.task_maps`. The clearances and their gradients come from the robot spheres' centres and
+    Jacobians (``spheres`` of :class:`ocpkit.model.task.CompiledTask`, one mapped call over the horizon) and the obstacle
     table, in numpy: the kinematics once per stage, a pair's gradient only for a row kept (every pair's Jacobian,
     as ``clearance`` gives it, is 128 MB a step for 1,000 obstacles around the Panda over 50 stages)."""
 
     def __init__(self, ocp: OCP, obstacles: bool, soft: bool = True):
-        from ocpkit.task import ACTIVATION, ROWS_PER_SPHERE, ROWS_PER_STAGE
+        from ocpkit.model.task import ACTIVATION, ROWS_PER_SPHERE, ROWS_PER_STAGE
 
         self.tf = tf = ocp.task_functions
         self.T, self.n, self.m, self.p = ocp.horizon, ocp.nx, ocp.nu, ocp.knots

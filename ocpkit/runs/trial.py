@@ -9,7 +9,7 @@ import threading
 import time
 import traceback
 
-from ocpkit.store import now, split_result
+from ocpkit.runs.store import now, split_result
 
 TIMEOUT_EXIT = 124  # exit status of a worker whose trial ignored its timeout
 
@@ -43,7 +43,7 @@ def deadline(timeout: float | None):
     """Raise :class:`TrialTimeout` in the trial after ``timeout`` seconds: by SIGALRM on a worker process's main
     thread, where a trial stuck in C code also takes its worker down shortly after (the pool reports it as dead);
     on another thread (a Dask worker's) as an asynchronous exception, which Python raises between two bytecodes,
-    so a trial stuck in C code runs on and the client abandons it (:mod:`ocpkit.cluster`)."""
+    so a trial stuck in C code runs on and the client abandons it (:mod:`ocpkit.runs.cluster`)."""
     if timeout is None:
         yield
     elif threading.current_thread() is threading.main_thread():

@@ -30,9 +30,9 @@ import numpy as np
 import scipy.sparse as sp
 
 from ocpkit._checks import positive
-from ocpkit.ocp import OCP
-from ocpkit.quadratic_program import QP
-from ocpkit.task_rows import TaskRows
+from ocpkit.model.ocp import OCP
+from ocpkit.qp.quadratic_program import QP
+from ocpkit.qp.task_rows import TaskRows
 
 
 class _Transcription:
@@ -375,7 +375,7 @@ class CondensedQP(_Transcription):
         per stage, (T, n, n), (T, n, m), (T, n) (LTV: [v S] stage by stage, then one Gram product).
         With a task (``ocp.task``) its terms and obstacles are linearized about the plan ``knots`` (p, m) and
         its predicted states, towards ``targets`` (the goal's entries after x_goal): see
-        :class:`~ocpkit.task_rows.TaskRows`."""
+        :class:`~ocpkit.qp.task_rows.TaskRows`."""
         Ad, Bd, wd, ltv = _model(Ad, Bd, wd, self.n, self.m, self.T)
         x_goal = np.asarray(x_goal, dtype=float)
         if ltv:

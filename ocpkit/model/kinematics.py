@@ -1,20 +1,20 @@
 """Forward kinematics of named frames as symbolic CasADi expressions, and spheres that approximate a robot.
 
 A :class:`Kinematics` reads a pinocchio ``Model`` (the trees of 1-DoF revolute and prismatic joints that
-:class:`ocpkit.rigid_body.Chain` reads) and gives the world placement of any of its frames — a URDF link, a
+:class:`ocpkit.model.rigid_body.Chain` reads) and gives the world placement of any of its frames — a URDF link, a
 joint, a link that pinocchio merged through a fixed joint, an operational frame added in code — as CasADi
 expressions of q::
 
     ᵒM_f(q) = ᵒM_{j₁}(q₁) ⋯ ᵒM_{j}(q_j) · ʲM_f        (the joints from the base to the frame's joint j)
 
-with the same joint transforms, axes and snapped rotations as the dynamics (``ocpkit.rigid_body``), so the
+with the same joint transforms, axes and snapped rotations as the dynamics (``ocpkit.model.rigid_body``), so the
 expressions keep no term that is zero in the true kinematics.
 
 A robot is approximated for collision checks by :class:`RobotSphere` s, each a ball fixed in one frame:
 :func:`spheres_along_links` strings them along the segments between consecutive joints (any robot),
 :func:`collision_spheres` covers the URDF's ``<collision>`` primitives (spheres, cylinders, boxes), and
 :func:`sphere_centers` is the CasADi Function q -> their world centres that obstacle constraints use
-(``ocpkit.task``).
+(``ocpkit.model.task``).
 """
 from __future__ import annotations
 
@@ -29,7 +29,7 @@ import casadi as ca
 import numpy as np
 
 from ocpkit._checks import positive
-from ocpkit.rigid_body import Chain, _snap
+from ocpkit.model.rigid_body import Chain, _snap
 
 # Covering a box or cylinder with more spheres than this means the radius is far too small for the geometry.
 MAX_SPHERES_PER_GEOMETRY = 10_000
@@ -49,13 +49,13 @@ class Kinematics:
     """World placements of the frames of a pinocchio Model as CasADi expressions of the joint positions q.
 
     ``q`` has one entry per joint (n = ``model.nv``), in pinocchio's joint order, as for
-    :class:`~ocpkit.rigid_body.Chain` (a continuous joint is one angle here, not pinocchio's cos/sin pair).
+    :class:`~ocpkit.model.rigid_body.Chain` (a continuous joint is one angle here, not pinocchio's cos/sin pair).
 
     ``frames`` lists each frame name once, in the model's order. pinocchio may hold two frames of one name (a
     URDF link and a joint named alike); the name then means the BODY frame (the link), else the first frame
     of that name. A joint that has no frame in ``model.frames`` (a model built with ``addJoint`` alone) gets
     a JOINT frame of its name at its origin, so every joint name is a frame. ``joints`` lists the joint
-    names (q's order); ``chain`` is the model's :class:`~ocpkit.rigid_body.Chain`, whose joint transforms
+    names (q's order); ``chain`` is the model's :class:`~ocpkit.model.rigid_body.Chain`, whose joint transforms
     the placements compose.
     """
 

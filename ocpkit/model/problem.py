@@ -1,7 +1,7 @@
 """A robot or system to control: its true plant, the controller's model, defaults and sampling.
 
 Declare one by subclassing :class:`Problem` and implementing three public hooks — ``dynamics(error)``
-(the continuous model as a :class:`~ocpkit.model.Model`, inertias scaled by the paper's error multiplier),
+(the continuous model as a :class:`~ocpkit.model.dynamics.Model`, inertias scaled by the paper's error multiplier),
 ``defaults()`` (the OCP's weights and bounds) and ``sample(seed)`` (a seeded start and goal) — with
 ``name``, ``dt``, ``horizon`` and ``duration`` as class attributes. A robot described by a URDF needs no
 code: :meth:`Problem.from_urdf` (a :class:`URDFRobot`).
@@ -20,9 +20,9 @@ import casadi as ca
 import numpy as np
 
 from ocpkit._checks import positive
-from ocpkit.model import Model
-from ocpkit.ocp import OCP
-from ocpkit.parameterization import Parameterization
+from ocpkit.model.dynamics import Model
+from ocpkit.model.ocp import OCP
+from ocpkit.model.parameterization import Parameterization
 
 
 class ProblemError(ValueError):
@@ -43,7 +43,7 @@ class NotAProblemError(ProblemError, TypeError):
 
 class DynamicsError(ProblemError, FloatingPointError):
     """A model's dynamics returned NaN or inf at a finite state and input: ``x``, ``u`` and the entries ``rows`` of
-    ẋ (also a FloatingPointError, what :func:`~ocpkit.simulate.simulate` raised before)."""
+    ẋ (also a FloatingPointError, what :func:`~ocpkit.sim.simulate.simulate` raised before)."""
 
     def __init__(self, message: str, where: str | None = None, *, x=None, u=None, rows=()):
         super().__init__(message, where)
@@ -289,10 +289,10 @@ class URDFRobot(Problem):
       weight Q (a heavier one, 10 Q, made the condensed QP of the Panda's light wrist so ill-conditioned —
       condition ~1e9 — that ProxQP ran into its iteration limit on most steps of some starts). ``sample(seed)``: at rest, q0 uniform in the middle half of each joint's range (±π/2 for
       an unlimited joint), the goal q0 plus a uniform step of up to ±``step`` per joint, within the limits.
-    * ``end_effector``: the frame that task terms aim (``kinematics``, an :class:`ocpkit.kinematics.Kinematics`,
+    * ``end_effector``: the frame that task terms aim (``kinematics``, an :class:`ocpkit.model.kinematics.Kinematics`,
       holds every URDF link and joint); None: the deepest link fixed to the last joint of the first serial
       branch (the Panda's ``panda_hand_tcp``). ``link_radius`` (m, an attribute) sizes
-      :func:`ocpkit.kinematics.spheres_along_links`.
+      :func:`ocpkit.model.kinematics.spheres_along_links`.
     The error multiplier scales M(q) in the controller's model (not g(q), as for the paper's robots).
     """
 
@@ -303,7 +303,7 @@ class URDFRobot(Problem):
                  position_bounds: bool = False, name: str | None = None, dt: float = 0.01, horizon: int = 50,
                  duration: float = 2.0, q_weight: float = 100.0, qd_weight: float = 1.0, r_weight: float = 1e-3,
                  step: float = 0.5, end_effector: str | None = None):
-        from ocpkit.rigid_body import Chain, load_urdf, position_limits
+        from ocpkit.model.rigid_body import Chain, load_urdf, position_limits
 
         self.urdf = str(urdf)
         self.pin_model = load_urdf(urdf, locked_joints=locked_joints, locked_positions=locked_positions)
@@ -337,8 +337,8 @@ class URDFRobot(Problem):
 
     @cached_property
     def kinematics(self):
-        """The URDF's frames as CasADi expressions of q (an :class:`ocpkit.kinematics.Kinematics`)."""
-        from ocpkit.kinematics import Kinematics
+        """The URDF's frames as CasADi expressions of q (an :class:`ocpkit.model.kinematics.Kinematics`)."""
+        from ocpkit.model.kinematics import Kinematics
 
         return Kinematics(self.pin_model)
 

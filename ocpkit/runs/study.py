@@ -2,14 +2,14 @@
 
 Trials run in local worker processes (spawn-started) or on a Dask distributed cluster (whose scheduler and
 workers must run this process's ocpkit version and code); the parent process writes each finished trial to the
-:mod:`ocpkit.store` as it completes (workers never write it), so an interrupted study resumes where it stopped and a
+:mod:`ocpkit.runs.store` as it completes (workers never write it), so an interrupted study resumes where it stopped and a
 trial that raises is stored as failed.
 Before a trial starts, the parent **claims** it in the store (a lease renewed by a heartbeat),
 so several processes on one folder share the grid and run each trial once, and the trials of
 a claimant that died are taken over. Each trial records the package version and a hash of the
 code it runs (its module, the ocpkit and user modules that imports, the user files its parameters name),
 of the numerical libraries' versions and of the environment variables that change results (thread counts, Taichi's
-settings: :mod:`ocpkit.provenance`); resuming refuses trials computed by other code or under other settings, naming
+settings: :mod:`ocpkit.runs.provenance`); resuming refuses trials computed by other code or under other settings, naming
 what changed, unless told what to do with them.
 """
 from __future__ import annotations
@@ -33,14 +33,14 @@ import numpy as np
 import pandas as pd
 from tqdm.auto import tqdm
 
-from . import provenance
-from ._checks import choice, integer
-from .kernels import CPU_THREADS
-from .cluster import check_scheduler, run_dask
-from .provenance import package_version
-from .claims import Claims, Heartbeat, OwnProvenance
-from .store import RESERVED, Store, StoreError, canonical_key, now, owner_id
-from .trial import execute, failure, timeout_message
+from ocpkit.runs import provenance
+from ocpkit._checks import choice, integer
+from ocpkit.codegen.kernels import CPU_THREADS
+from ocpkit.runs.cluster import check_scheduler, run_dask
+from ocpkit.runs.provenance import package_version
+from ocpkit.runs.claims import Claims, Heartbeat, OwnProvenance
+from ocpkit.runs.store import RESERVED, Store, StoreError, canonical_key, now, owner_id
+from ocpkit.runs.trial import execute, failure, timeout_message
 
 STALE = ("refuse", "reuse", "rerun")
 LEASE = 60.0  # seconds a claim lives without a heartbeat
@@ -53,7 +53,7 @@ class StaleTrialsError(ValueError):
 
 def code_hash(fn, params: Mapping | None = None) -> str:
     """The hash a trial of ``fn`` with ``params`` is stored with: of the code it runs, the numerical libraries'
-    versions and the environment variables that change results (see :mod:`ocpkit.provenance`)."""
+    versions and the environment variables that change results (see :mod:`ocpkit.runs.provenance`)."""
     return provenance.manifest_hash(provenance.manifest(fn, params))
 
 
@@ -121,8 +121,8 @@ def run(study: Study, out_dir, *, workers: int | None = None, scheduler: str | N
     """Run the study's trials not yet stored in ``out_dir`` and return all its trials as a table.
 
     Trials run on ``workers`` local processes (default: one per CPU), or on the Dask cluster at ``scheduler``
-    ("tcp://host:port"; :mod:`ocpkit.cluster`: :class:`~ocpkit.cluster.ClusterMismatchError` if its scheduler or a
-    worker runs another ocpkit version or other code, :class:`~ocpkit.cluster.SchedulerLostError` if the scheduler
+    ("tcp://host:port"; :mod:`ocpkit.runs.cluster`: :class:`~ocpkit.runs.cluster.ClusterMismatchError` if its scheduler or a
+    worker runs another ocpkit version or other code, :class:`~ocpkit.runs.cluster.SchedulerLostError` if the scheduler
     goes away; ConnectionError, before ``out_dir`` is created, where no Dask scheduler answers there). Each trial is
     claimed in the store before it starts, so other processes running the same study on the same folder take other
     trials; a claim lives ``lease`` seconds unless renewed (a heartbeat renews it while this process runs), and the

@@ -1,0 +1,1 @@
+"""The closed loop and its pictures: ``simulate``, MuJoCo as the plant, metrics, figures and animations."""
