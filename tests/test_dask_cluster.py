@@ -262,7 +262,7 @@ def test_a_worker_without_ocpkit_or_with_another_version_or_other_code_is_refuse
     preloads = {  # a worker's preload module: what it does to the worker's ocpkit, what the refusal must say
         "lacks": ("import sys\nsys.modules['ocpkit'] = None  # import ocpkit fails\n", "cannot import ocpkit ("),
         "version": ("import ocpkit\nocpkit.__version__ = '0.0.1'\n", "runs ocpkit 0.0.1, this process ocpkit "),
-        "numpy": ("from ocpkit import provenance\n\n\ndef versions(real=provenance.dependency_versions):\n"
+        "numpy": ("from ocpkit.runs import provenance\n\n\ndef versions(real=provenance.dependency_versions):\n"
                   "    return {**real(), 'numpy': '1.0.0'}\n\n\nprovenance.dependency_versions = versions\n",
                   "runs other code than this process (here → there: numpy "),
     }

@@ -223,7 +223,7 @@ def test_a_cached_library_that_does_not_load_is_evicted_and_rebuilt_once(tmp_pat
     monkeypatch.setenv("OCPKIT_CACHE_DIR", str(tmp_path / "cache"))
     # LinearMPC's entry (its eps and max_iter), built by another process: this one must not have loaded the
     # library path before (dlopen keeps a library by its name).
-    script = ("from ocpkit import problems, native; p = problems.make('nlink:2'); "
+    script = ("from ocpkit import problems; from ocpkit.export import native; p = problems.make('nlink:2'); "
               "print(native.start(p.ocp(knots=4, horizon=30), eps=1e-9, max_iter=10_000, wait=True).result())")
     folder = Path(subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True,
                                  env=os.environ, cwd=tmp_path).stdout.split()[-1])
