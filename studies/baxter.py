@@ -30,9 +30,8 @@ from ocpkit.runs.study import Study, grid
 from ocpkit.studies.closed_loop import run_record
 from ocpkit.studies.comparison import responses, row_arrays
 from ocpkit.sim.plots import number
-from ocpkit.studies.evidence import NOT_TESTED, median_claim, on_gpu, paired, series, timing
+from ocpkit.studies.evidence import NOT_TESTED, median_claim, on_gpu, paired, quartiles, series, timing
 from ocpkit.studies.report import ANSWERED, Claim, answered, markdown_table, section, timing_context, trials_line
-from ocpkit.studies.solve_times import quartiles
 
 NAME = "baxter"
 TITLE = "Baxter arm step commands: servo vs parameterized QP MPC vs EMPC (Table III)"

@@ -25,9 +25,8 @@ from ocpkit.runs.store import Store
 from ocpkit.runs.study import Study, grid
 from ocpkit.studies.closed_loop import run_record
 from ocpkit.sim.plots import number
-from ocpkit.studies.evidence import NOT_TESTED, combine, median_claim, on_gpu, paired, series, timing
+from ocpkit.studies.evidence import NOT_TESTED, combine, median_claim, on_gpu, paired, quartiles, series, timing
 from ocpkit.studies.report import ANSWERED, Claim, answered, markdown_table, section, timing_context, trials_line
-from ocpkit.studies.solve_times import quartiles
 from ocpkit.qp.transcription import CondensedQP
 
 NAME = "comparison"

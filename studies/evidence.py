@@ -45,6 +45,12 @@ class Interval:
                 f"({number(100 * self.coverage, 3)} %, n = {self.n})")
 
 
+def quartiles(name: str, values) -> dict:
+    """``{name}_median``, ``{name}_q1`` and ``{name}_q3`` of ``values`` (seconds)."""
+    q1, median, q3 = np.percentile(values, [25, 50, 75])
+    return {f"{name}_median": float(median), f"{name}_q1": float(q1), f"{name}_q3": float(q3)}
+
+
 def median_interval(values, level: float = LEVEL) -> Interval:
     """The median of ``values`` (NaNs dropped) and its order-statistic interval of coverage ≥ ``level``, or the
     whole range and its coverage where n is too small for ``level``."""

@@ -18,7 +18,7 @@ from ocpkit.sim import plots
 from ocpkit._checks import choice, integer
 from ocpkit.runs.study import Study, grid
 from ocpkit.sim.plots import number
-from ocpkit.studies.evidence import HELD, INCONCLUSIVE, NOT_HELD, combine, decide, median_interval, timing
+from ocpkit.studies.evidence import HELD, INCONCLUSIVE, NOT_HELD, combine, decide, median_interval, quartiles, timing
 from ocpkit.studies.report import Claim, markdown_table, section, timing_context, trials_line
 
 NAME = "solve_times"
@@ -58,12 +58,6 @@ def trial(links: int, horizon: int, form: str, knots: int | None, qp: str, state
             "build_median": float(np.median([s.times["build"] for s in sols])),
             "failures": sum(not s.ok for s in sols), "solve_times": solve, "total_times": total,
             "load": os.getloadavg()[0]}
-
-
-def quartiles(name: str, values) -> dict:
-    """``{name}_median``, ``{name}_q1`` and ``{name}_q3`` of ``values`` (seconds)."""
-    q1, median, q3 = np.percentile(values, [25, 50, 75])
-    return {f"{name}_median": float(median), f"{name}_q1": float(q1), f"{name}_q3": float(q3)}
 
 
 def study(size: str) -> Study:
