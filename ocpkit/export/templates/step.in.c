@@ -68,46 +68,64 @@ static int any_above(const double* lo, const double* hi, int n) {
 
 static double clip(double v, double lo, double hi) { return v < lo ? lo : (v > hi ? hi : v); }
 
-/* u_g = u_goal + K goal (+ h(goal), the problem's goal input: gravity compensation): the input the cost pulls
-   towards. Returns nonzero if h failed. */
-static int input_goal(mem_t* m, const double* goal, double* ug) {
-  int i;
-  for (i = 0; i < NU; ++i) {
-    double s = U_GOAL[i];
+/* The input goal u_g = u_goal + K goal (+ h(goal)): the input the cost pulls towards. */
 #if HAS_K
-    int j;
-    for (j = 0; j < NX; ++j) s += K_GOAL[i * NX + j] * goal[j];
+/* ug += K goal */
+static void add_goal_gain(const double* goal, double* ug) {
+  int i, j;
+  for (i = 0; i < NU; ++i)
+    for (j = 0; j < NX; ++j) ug[i] += K_GOAL[i * NX + j] * goal[j];
+}
 #endif
-    ug[i] = s;
-  }
 #if HAS_GOAL_INPUT
-  {
-    double h[NU];
-    m->arg[0] = goal; m->res[0] = h;
-    if ({{ name }}_goal_input(m->arg, m->res, (casadi_int*) m->iw, m->w, 0)) return 1;
-    for (i = 0; i < NU; ++i) ug[i] += h[i];
-  }
-#else
-  (void) m; (void) goal;
-#endif
+/* ug += h(goal), the problem's goal input (gravity compensation). Returns nonzero if h failed. */
+static int add_goal_input(mem_t* m, const double* goal, double* ug) {
+  double h[NU];
+  int i;
+  m->arg[0] = goal; m->res[0] = h;
+  if ({{ name }}_goal_input(m->arg, m->res, (casadi_int*) m->iw, m->w, 0)) return 1;
+  for (i = 0; i < NU; ++i) ug[i] += h[i];
   return 0;
 }
+#endif
 
-/* Controller.fallback: previous plan shifted (input goal at a cold start), clipped; the next step starts cold. */
-static int fallback(mem_t* m, double* u_out, int status) {
+/* u = Σ_j w_j z_j, the knots z (NP x NU, row-major) weighted by w: the input at a stage of the basis (w = φ_k). */
+static void knot_sum(const double* w, const double* z, double* u) {
+  int i, j;
+  for (i = 0; i < NU; ++i) {
+    double s = 0;
+    for (j = 0; j < NP; ++j) s += w[j] * z[j * NU + i];
+    u[i] = s;
+  }
+}
+
+/* z = the plan's knots shifted a step (Parameterization.shift), the input goal at every knot where there is no plan. */
+static void shifted_knots(const mem_t* m, double* z) {
   int j, l, i;
   for (j = 0; j < NP; ++j)
     for (i = 0; i < NU; ++i) {
       double s = 0;
       if (m->has_plan) for (l = 0; l < NP; ++l) s += SHIFT[j * NP + l] * m->plan[l * NU + i];
       else s = m->ug[i];
-      m->z_new[j * NU + i] = clip(s, LBX[j * NU + i], UBX[j * NU + i]);
+      z[j * NU + i] = s;
     }
-  for (i = 0; i < NU; ++i) {
-    double s = 0;
-    for (j = 0; j < NP; ++j) s += PHI0[j] * m->z_new[j * NU + i];
-    u_out[i] = clip(s, LBX[i], UBX[i]);
-  }
+}
+
+/* The QP's answer (z_new and its multipliers) made the plan and the next solve's warm start. */
+static void commit_plan(mem_t* m) {
+  int i;
+  for (i = 0; i < NZ; ++i) { m->plan[i] = m->z[i] = m->z_new[i]; m->lam_x[i] = m->lam_x_new[i]; }
+  for (i = 0; i < NA; ++i) m->lam_a[i] = m->lam_a_new[i];
+  m->has_plan = m->warm = 1;
+}
+
+/* Controller.fallback: previous plan shifted (input goal at a cold start), clipped; the next step starts cold. */
+static int fallback(mem_t* m, double* u_out, int status) {
+  int i;
+  shifted_knots(m, m->z_new);
+  for (i = 0; i < NZ; ++i) m->z_new[i] = clip(m->z_new[i], LBX[i], UBX[i]);
+  knot_sum(PHI0, m->z_new, u_out);
+  for (i = 0; i < NU; ++i) u_out[i] = clip(u_out[i], LBX[i], UBX[i]);
   for (i = 0; i < NZ; ++i) m->plan[i] = m->z_new[i];
   m->has_plan = 1;
   m->warm = 0;
@@ -248,22 +266,22 @@ static void times_ahat(const double* X, int rows, int ldx, const double* Lb, int
    coordinates of X — ζ for Λ_s, [1; z] for the rows [v S] of the real-time iteration. */
 static void add_stage(mem_t* m, const double* X, int cols, int ldx, int one, const double* xg, double* G, int ldg) {
   double* W = m->W;
-  int i, j, k;
+  int i;
 #if DIAG_Q
   for (i = 0; i < NX; ++i) {
+    int j;
     for (j = 0; j < cols; ++j) W[i * cols + j] = QH[i] * X[i * ldx + j];
     W[i * cols + one] -= QH[i] * xg[i];
   }
-  (void) k;
 #else
   for (i = 0; i < NX * cols; ++i) W[i] = 0;
   gemm(NX, cols, QH, NX, 1, X, ldx, W, cols, 0);
   for (i = 0; i < NX; ++i) {
     double gx = 0;
+    int k;
     for (k = 0; k < NX; ++k) gx += QH[i * NX + k] * xg[k];
     W[i * cols + one] -= gx;
   }
-  (void) j;
 #endif
   gemm(cols, cols, W, 1, cols, W, cols, G, ldg, 1);
 }
@@ -285,7 +303,7 @@ static void grams(mem_t* m, const double* xg) {
   memcpy(Gam, m->Gam1, sizeof m->Gam1);
   for (op = 0; op < NGRAM_OPS; ++op) {
     const int code = GRAM_OPS[op];
-    if (code == 1) {  /* double */
+    if (code == GRAM_DOUBLE) {
       times_ahat(Gam, NL, NL, Lam, s, m->Y);
       for (i = 0; i < NU; ++i) {
         double* gv = Gam + (NX + i) * NL;
@@ -300,18 +318,18 @@ static void grams(mem_t* m, const double* xg) {
       symmetrize(Gam, NL);
       times_ahat(Lam, NX, NL, Lam, s, tmp);
       s *= 2;
-    } else if (code == 2) {  /* one more stage */
+    } else if (code == GRAM_INC) {  /* one more stage */
       times_ahat(Lam, NX, NL, m->Lam1, 1, tmp);
       add_stage_gram(m, tmp, xg, Gam);
       s += 1;
-    } else if (code == 3) {  /* restart from s = 1 */
+    } else if (code == GRAM_RESET) {  /* restart from s = 1 */
       memcpy(Lam, m->Lam1, sizeof m->Lam1);
       memcpy(Gam, m->Gam1, sizeof m->Gam1);
       s = 1;
       continue;
-    } else {  /* save as length code - 10 */
-      memcpy(m->GamL + (code - 10) * NL * NL, Gam, sizeof m->GamS);
-      memcpy(m->LamL + (code - 10) * NX * NL, Lam, sizeof m->LamS);
+    } else {  /* GRAM_SAVE + i: save as length i */
+      memcpy(m->GamL + (code - GRAM_SAVE) * NL * NL, Gam, sizeof m->GamS);
+      memcpy(m->LamL + (code - GRAM_SAVE) * NX * NL, Lam, sizeof m->LamS);
       continue;
     }
     sw = Lam; Lam = tmp; tmp = sw;
@@ -333,23 +351,86 @@ static void times_r(const double* X, int rows, int ldx, const double* prev, int 
   gemm(rows, cp + 1, X, ldx, 1, prev, NZ1, out, ldo, 0);
 }
 
-static void finish_qp(mem_t* m, double* prev, const double* xg);
+#if NB > 0
+/* Row ri of the QP: state bound b, XB_LO[b] <= row[0] + row[1:] z <= XB_HI[b] for a row of [v S] whose knot
+   columns past c are zero (not read). */
+static void state_bound_row(mem_t* m, int ri, int b, const double* row, int c) {
+  int col;
+  for (col = 0; col < NZ; ++col) m->a[ri + NA * col] = col < c ? row[col + 1] : 0.0;
+  m->lba[ri] = XB_LO[b] - row[0];
+  m->uba[ri] = XB_HI[b] - row[0];
+}
+
+/* The bounded rows of Λ_1 … Λ_LMAX (row b of Λ_s at LamB[(s-1) NB + b]). */
+static void bounded_rows(mem_t* m) {
+  int b, s;
+  for (b = 0; b < NB; ++b) memcpy(m->LamB + b * NL, m->Lam1 + XB_COMP[b] * NL, NL * sizeof(double));
+  for (s = 1; s < LMAX; ++s) times_ahat(m->LamB + (s - 1) * NB * NL, NB, NL, m->Lam1, 1, m->LamB + s * NB * NL);
+}
+
+/* The state-bound rows of a piece's states x_{a+1} … x_{a+Lp} (prev, cp, phi, del, c: its R as in condense): row
+   (k, b) at k*NB + b. */
+static void piece_bound_rows(mem_t* m, int a, int Lp, const double* prev, int cp, const double* phi,
+                             const double* del, int c) {
+  int s, b;
+  times_r(m->LamB, Lp * NB, NL, prev, cp, phi, del, c, m->RB, NZ1);
+  for (s = 0; s < Lp; ++s)
+    for (b = 0; b < NB; ++b) state_bound_row(m, (a + s) * NB + b, b, m->RB + (s * NB + b) * NZ1, c);
+}
+#endif
+
+#if HAS_DQT
+/* Pq += the terminal weight's extra (Q_T − Q) on [v − x_goal, S] at x_T (prev = [v_T S_T], x_goal subtracted here). */
+static void add_terminal_weight(mem_t* m, double* prev, const double* xg) {
+  int i;
+  for (i = 0; i < NX; ++i) prev[i * NZ1] -= xg[i];
+#if DIAG_Q
+  for (i = 0; i < NX; ++i) {
+    int col;
+    for (col = 0; col < NZ1; ++col) m->E2[i * NZ1 + col] = DQT[i] * prev[i * NZ1 + col];
+  }
+#else
+  for (i = 0; i < NX * NZ1; ++i) m->E2[i] = 0;
+  gemm(NX, NZ1, DQT, NX, 1, prev, NZ1, m->E2, NZ1, 0);
+#endif
+  gemm(NZ1, NZ1, prev, 1, NZ1, m->E2, NZ1, m->Pq, NZ1, 1);
+}
+#endif
+
+/* The QP from Pq (the upper triangle of Σ_s [1; z]ᵀ[v_s − x_goal, S_s]ᵀ Q [v_s − x_goal, S_s], the terminal weight
+   added): P = S'QS + φᵀφ ⊗ R, q = S'Q(v − x_goal) − φᵀ1 ⊗ R u_g and the knot bounds. */
+static void finish_qp(mem_t* m) {
+  const double* Pq = m->Pq;
+  int i, j, k;
+  /* P = S'QS + φᵀφ ⊗ R (symmetric by construction), q = S'Q(v − x_goal) − φᵀ1 ⊗ R u_g */
+  for (i = 0; i < NZ; ++i)
+    for (j = i; j < NZ; ++j) {
+      double v = Pq[(1 + i) * NZ1 + 1 + j] + R_KNOTS[i * NZ + j];
+      m->h[i + NZ * j] = m->h[j + NZ * i] = v;
+    }
+  for (i = 0; i < NZ; ++i) {
+    const int jk = i / NU, u = i % NU;
+    double ru = 0;
+    for (k = 0; k < NU; ++k) ru += R_IN[u * NU + k] * m->ug[k];
+    m->g[i] = Pq[1 + i] - PHI_SUM[jk] * ru;
+    m->lbx[i] = LBX[i];
+    m->ubx[i] = UBX[i];
+  }
+}
 
 /* The condensed QP about the affine model Λ_1 (CondensedQP.build): h, g, state-bound rows a, lba, uba. */
 static void condense(mem_t* m, const double* x, const double* xg) {
   double *prev = m->prev, *next = m->next, *Pq = m->Pq, *Y = m->Y, *sw;
-  int pc, i, r, col, s, b;
+  int pc, i, r, col;
   grams(m, xg);
 #if NB > 0
-  /* the bounded rows of Λ_1 … Λ_LMAX (row b of Λ_s at LamB[(s-1) NB + b]) */
-  for (b = 0; b < NB; ++b) memcpy(m->LamB + b * NL, m->Lam1 + XB_COMP[b] * NL, NL * sizeof(double));
-  for (s = 1; s < LMAX; ++s) times_ahat(m->LamB + (s - 1) * NB * NL, NB, NL, m->Lam1, 1, m->LamB + s * NB * NL);
+  bounded_rows(m);
 #endif
   for (i = 0; i < NX * NZ1; ++i) prev[i] = 0;
   for (i = 0; i < NX; ++i) prev[i * NZ1] = x[i];
   for (i = 0; i < NZ1 * NZ1; ++i) Pq[i] = 0;
   for (pc = 0; pc < NPIECE; ++pc) {
-    const int a = PIECE_A[pc], Lp = PIECE_L[pc], c = PIECE_C[pc], cp = PIECE_CP[pc];
+    const int c = PIECE_C[pc], cp = PIECE_CP[pc];
     const double *phi = PIECE_PHI + pc * NP, *del = PIECE_DELTA + pc * NP;
     /* Pq[:c+1, :c+1] += Rᵀ (Γ R) (upper half) */
     times_r(m->GamL + PIECE_LEN[pc] * NL * NL, NL, NL, prev, cp, phi, del, c, Y, NZ1);
@@ -366,18 +447,7 @@ static void condense(mem_t* m, const double* x, const double* xg) {
     }
     gemm(cp + 1, c + 1, prev, 1, NZ1, Y, NZ1, Pq, NZ1, 1);
 #if NB > 0
-    /* state-bound rows of [v S] at x_{a+1} … x_{a+Lp}: row (k, b) at k*NB + b */
-    times_r(m->LamB, Lp * NB, NL, prev, cp, phi, del, c, m->RB, NZ1);
-    for (s = 0; s < Lp; ++s)
-      for (b = 0; b < NB; ++b) {
-        const int ri = (a + s) * NB + b;
-        const double* row = m->RB + (s * NB + b) * NZ1;
-        for (col = 0; col < NZ; ++col) m->a[ri + NA * col] = col < c ? row[col + 1] : 0.0;
-        m->lba[ri] = XB_LO[b] - row[0];
-        m->uba[ri] = XB_HI[b] - row[0];
-      }
-#else
-    (void) a; (void) Lp; (void) s; (void) b;
+    piece_bound_rows(m, PIECE_A[pc], PIECE_L[pc], prev, cp, phi, del, c);
 #endif
     /* [v S] at the piece's end: Λ_Lp R */
     times_r(m->LamL + PIECE_LEN[pc] * NX * NL, NX, NL, prev, cp, phi, del, c, next, NZ1);
@@ -385,43 +455,12 @@ static void condense(mem_t* m, const double* x, const double* xg) {
       for (col = c + 1; col < NZ1; ++col) next[i * NZ1 + col] = 0;
     sw = prev; prev = next; next = sw;
   }
-  finish_qp(m, prev, xg);
+#if HAS_DQT
+  add_terminal_weight(m, prev, xg);
+#endif
+  finish_qp(m);
 }
 
-/* The QP from Pq (the upper triangle of Σ_s [1; z]ᵀ[v_s − x_goal, S_s]ᵀ Q [v_s − x_goal, S_s]) and the last
-   state's rows prev = [v_T S_T]: the terminal weight's extra (Q_T − Q), then P = S'QS + φᵀφ ⊗ R, q = S'Q(v − x_goal)
-   − φᵀ1 ⊗ R u_g and the knot bounds. */
-static void finish_qp(mem_t* m, double* prev, const double* xg) {
-  double* Pq = m->Pq;
-  int i, j, k, col;
-  (void) col; (void) prev; (void) xg;  /* used only with a terminal weight other than Q (HAS_DQT) */
-  /* terminal weight: (Q_T − Q) on [v − x_goal, S] at x_T */
-#if HAS_DQT
-  for (i = 0; i < NX; ++i) prev[i * NZ1] -= xg[i];
-#if DIAG_Q
-  for (i = 0; i < NX; ++i)
-    for (col = 0; col < NZ1; ++col) m->E2[i * NZ1 + col] = DQT[i] * prev[i * NZ1 + col];
-#else
-  for (i = 0; i < NX * NZ1; ++i) m->E2[i] = 0;
-  gemm(NX, NZ1, DQT, NX, 1, prev, NZ1, m->E2, NZ1, 0);
-#endif
-  gemm(NZ1, NZ1, prev, 1, NZ1, m->E2, NZ1, Pq, NZ1, 1);
-#endif
-  /* P = S'QS + φᵀφ ⊗ R (symmetric by construction), q = S'Q(v − x_goal) − φᵀ1 ⊗ R u_g */
-  for (i = 0; i < NZ; ++i)
-    for (j = i; j < NZ; ++j) {
-      double v = Pq[(1 + i) * NZ1 + 1 + j] + R_KNOTS[i * NZ + j];
-      m->h[i + NZ * j] = m->h[j + NZ * i] = v;
-    }
-  for (i = 0; i < NZ; ++i) {
-    const int jk = i / NU, u = i % NU;
-    double ru = 0;
-    for (k = 0; k < NU; ++k) ru += R_IN[u * NU + k] * m->ug[k];
-    m->g[i] = Pq[1 + i] - PHI_SUM[jk] * ru;
-    m->lbx[i] = LBX[i];
-    m->ubx[i] = UBX[i];
-  }
-}
 {% if task %}
 
 {% if obstacles %}
@@ -584,7 +623,7 @@ static int certify(mem_t* m) {
   m->cert[1] = s[1] / s_p;
   m->cert[2] = s[2] / (s_d * s_p);
   m->cert[3] = s[3] / s_d;
-  for (i = 0; i < 4; ++i) if (!(m->cert[i] <= {{ N }}_CERT_TOL)) return {{ N }}_CERT_STATIONARITY + i;
+  for (i = 0; i < {{ N }}_NCERT; ++i) if (!(m->cert[i] <= {{ N }}_CERT_TOL)) return {{ N }}_CERT_{{ cert_names[0] }} + i;
   return 0;
 }
 
@@ -596,6 +635,19 @@ static int ill_conditioned(const mem_t* m) {
   for (i = 0; i < NZ; ++i) big = amax(big, fabs(m->h[i * (NZ + 1)]));
   return !(NZ * DBL_EPSILON * big <= ROUNDING_MARGIN * CURVATURE);
 }
+
+{% if failures %}
+/* The status of the QP solver's nonzero return ({{ failures_source }}). */
+static int status_of_return(int rc) {
+  enum { {% for rc, (flag, _) in failures.items() %}{{ flag }} = {{ rc }}{{ ", " if not loop.last }}{% endfor %} };
+  switch (rc) {
+{% for rc, (flag, status) in failures.items() %}
+  case {{ flag }}: return {{ N }}_{{ status | upper }};
+{% endfor %}
+  default: return {{ N }}_LIMITED;
+  }
+}
+{% endif %}
 
 /* The QP in m (h, g, a, lba, uba, lbx, ubx) checked, solved (warm-started from the last solution where m->warm)
    and certified: its status. On a success z_new and the multipliers hold the answer; otherwise
@@ -618,7 +670,7 @@ static int solve_qp(mem_t* m) {
   m->res[0] = m->z_new; m->res[1] = 0; m->res[2] = m->lam_a_new; m->res[3] = m->lam_x_new;
   rc = {{ name }}_qp_solve(m->arg, m->res, (casadi_int*) m->iw, m->w, m->solver_mem);
   m->solver_rc = rc;
-  if (rc) return {{ status_of_rc }};
+  if (rc) return {{ "status_of_return(rc)" if failures else N ~ "_LIMITED" }};
   if (!all_finite(m->z_new, NZ)) return {{ N }}_NAN;
   rc = certify(m);
   if (rc) {
@@ -646,8 +698,7 @@ int {{ name }}_solve_qp(mem_t* m, const double* h, const double* g, const double
 }
 
 void {{ name }}_certificate(const mem_t* m, double* residuals) {
-  int i;
-  for (i = 0; i < 4; ++i) residuals[i] = m->cert[i];
+  memcpy(residuals, m->cert, sizeof m->cert);
 }
 
 /* Seconds on a monotonic clock (0 where there is none: the split then reads 0). */
@@ -668,26 +719,15 @@ static double seconds(void) {
 
 /* ū_k = Σ_j φ_kj z_j for the stages k = 0 … HORIZON−1 (HORIZON x NU, row-major). */
 static void stage_inputs(const double* z, double* u) {
-  int k, j, i;
-  for (k = 0; k < {{ N }}_HORIZON; ++k)
-    for (i = 0; i < NU; ++i) {
-      double s = 0;
-      for (j = 0; j < NP; ++j) s += PHI_ALL[k * NP + j] * z[j * NU + i];
-      u[k * NU + i] = s;
-    }
+  int k;
+  for (k = 0; k < {{ N }}_HORIZON; ++k) knot_sum(PHI_ALL + k * NP, z, u + k * NU);
 }
 
 /* The trajectory of the first iteration (LinearMPC.shifted_plan): knots z̄ = the plan shifted a step (the input goal
    at a cold start), ū_k = Φ_k z̄, x̄_0 = x and x̄_k the plan's predicted x_{k+1} (a rollout where there is none). */
 static void shifted_plan(mem_t* m, const double* x) {
-  int j, l, i, k;
-  for (j = 0; j < NP; ++j)
-    for (i = 0; i < NU; ++i) {
-      double s = 0;
-      if (m->has_plan) for (l = 0; l < NP; ++l) s += SHIFT[j * NP + l] * m->plan[l * NU + i];
-      else s = m->ug[i];
-      m->zlin[j * NU + i] = s;
-    }
+  int k;
+  shifted_knots(m, m->zlin);
   stage_inputs(m->zlin, m->ubark);
   memcpy(m->xbar, x, NX * sizeof(double));
   if (m->has_xplan)
@@ -724,7 +764,7 @@ static int stage_models(mem_t* m, int rollout) {
    columns of the knots active so far (ACTIVE), and each adds its stage cost to Pq. */
 static void condense_ltv(mem_t* m, const double* x, const double* xg) {
   double *prev = m->prev, *next = m->next, *sw;
-  int i, j, k, u, b, cols = 0;
+  int i, j, k, u, cols = 0;
   for (i = 0; i < NX * NZ1; ++i) prev[i] = next[i] = 0;
   for (i = 0; i < NX; ++i) prev[i * NZ1] = x[i];
   for (i = 0; i < NZ1 * NZ1; ++i) m->Pq[i] = 0;
@@ -743,20 +783,15 @@ static void condense_ltv(mem_t* m, const double* x, const double* xg) {
     gemm(NX, cols + 1, L, NL, 1, prev, NZ1, next, NZ1, 0);
     add_stage(m, next, c + 1, NZ1, 0, xg, m->Pq, NZ1);
 #if NB > 0
-    for (b = 0; b < NB; ++b) {  /* state-bound rows of x_{k+1}: row (k, b) at k*NB + b */
-      const int ri = k * NB + b;
-      const double* row = next + XB_COMP[b] * NZ1;
-      for (j = 0; j < NZ; ++j) m->a[ri + NA * j] = row[j + 1];
-      m->lba[ri] = XB_LO[b] - row[0];
-      m->uba[ri] = XB_HI[b] - row[0];
-    }
-#else
-    (void) b;
+    for (j = 0; j < NB; ++j) state_bound_row(m, k * NB + j, j, next + XB_COMP[j] * NZ1, NZ);  /* x_{k+1}'s */
 #endif
     cols = c;
     sw = prev; prev = next; next = sw;
   }
-  finish_qp(m, prev, xg);
+#if HAS_DQT
+  add_terminal_weight(m, prev, xg);
+#endif
+  finish_qp(m);
 }
 
 static double max_change(const double* a, const double* b, int n) {
@@ -766,15 +801,15 @@ static double max_change(const double* a, const double* b, int n) {
   return d;
 }
 
-/* The iterations of one step: their summed split in t (where given). Returns the status; on success the plan,
-   its predicted states and the warm start hold the last good iterate. */
-static int rti(mem_t* m, const double* x, const double* goal, double* u_out, double* t) {
+/* The iterations of one step: their summed split in t (where given; the first model's time from t0). Returns the
+   status; on success the plan, its predicted states and the warm start hold the last good iterate. */
+static int rti(mem_t* m, const double* x, const double* goal, double* u_out, double* t, double t0) {
   const int nxs = ({{ N }}_HORIZON + 1) * NX;
-  int it, k, i, rc, done = 0;
-  double t0 = 0, t1 = 0, moved = INFINITY;
+  int it, k, rc, done = 0;
+  double t1 = 0, moved = INFINITY;
   shifted_plan(m, x);
   for (it = 0; it < ITERATIONS; ++it) {
-    if (t) t0 = seconds();
+    if (t && it) t0 = seconds();
     rc = stage_models(m, it == 0 && !m->has_xplan);
     if (t) { t1 = seconds(); t[0] += t1 - t0; }
     if (rc == {{ N }}_SUCCESS) {
@@ -791,9 +826,7 @@ static int rti(mem_t* m, const double* x, const double* goal, double* u_out, dou
       m->warm = 0;
       break;
     }
-    for (i = 0; i < NZ; ++i) { m->plan[i] = m->z[i] = m->z_new[i]; m->lam_x[i] = m->lam_x_new[i]; }
-    for (i = 0; i < NA; ++i) m->lam_a[i] = m->lam_a_new[i];
-    m->has_plan = m->warm = 1;
+    commit_plan(m);
     /* the predicted states x_0 … x_T through the stage models */
     memcpy(m->xplan, x, NX * sizeof(double));
     stage_inputs(m->plan, m->ubark);
@@ -808,11 +841,7 @@ static int rti(mem_t* m, const double* x, const double* goal, double* u_out, dou
     /* the next iteration linearizes along this one: x̄ = [x; x_1 … x_{T−1}], ū = Φ z (ubark, set above) */
     memcpy(m->xbar + NX, m->xplan + NX, ({{ N }}_HORIZON - 1) * NX * sizeof(double));
   }
-  for (i = 0; i < NU; ++i) {
-    double s = 0;
-    for (k = 0; k < NP; ++k) s += PHI0[k] * m->plan[k * NU + i];
-    u_out[i] = s;
-  }
+  knot_sum(PHI0, m->plan, u_out);
   return {{ N }}_SUCCESS;
 }
 
@@ -823,69 +852,60 @@ int {{ name }}_states(const mem_t* m, double* x_pred) {
 }
 #endif
 
+#if !LIN_TRAJ
+/* The step about one affine model (linearization "goal" or "plan"): the model about (x, ū), the condensed QP and its
+   solve, their split in t (where given; the model's time from t0). Returns the status. */
+static int step_about_one_model(mem_t* m, const double* x, const double* goal, double* u_out, double* t, double t0) {
+  double t1 = 0, t2 = 0;
+  int rc;
+  memcpy(m->ubar, m->ug, sizeof m->ubar);
+#if LIN_PLAN
+  if (m->has_plan) knot_sum(W0, m->plan, m->ubar);
+#endif
+  if (affine_model(m, x, m->ubar, m->Lam1)) return fallback(m, u_out, {{ N }}_EXCEPTION);
+  if (!all_finite(m->Lam1, NX * NL)) return fallback(m, u_out, {{ N }}_NAN);
+  if (t) { t1 = seconds(); t[0] = t1 - t0; }
+  condense(m, x, goal);
+{% if task %}
+  if (task_terms(m, x, goal)) return fallback(m, u_out, {{ N }}_EXCEPTION);  /* a residual's evaluation failed */
+{% endif %}
+  if (t) { t2 = seconds(); t[1] = t2 - t1; }
+  rc = solve_qp(m);
+  if (t) t[2] = seconds() - t2;
+  if (rc != {{ N }}_SUCCESS) return fallback(m, u_out, rc);
+  commit_plan(m);
+  knot_sum(PHI0, m->plan, u_out);
+  return {{ N }}_SUCCESS;
+}
+#endif
+
 int {{ name }}_step(mem_t* m, const double* x, const double* goal, double* u_out, int* status) {
   return {{ name }}_step_timed(m, x, goal, u_out, status, 0);
 }
 
 int {{ name }}_step_timed(mem_t* m, const double* x, const double* goal, double* u_out, int* status, double* t) {
-  int i, j, rc;
-  double t0 = 0, t1 = 0, t2 = 0;
+  double t0 = 0;
+  int i, failed = 0;
   if (t) { t[0] = t[1] = t[2] = 0; t0 = seconds(); }
-  if (input_goal(m, goal, m->ug) || !all_finite(m->ug, NU)) {
+  memcpy(m->ug, U_GOAL, sizeof m->ug);
+#if HAS_K
+  add_goal_gain(goal, m->ug);
+#endif
+#if HAS_GOAL_INPUT
+  failed = add_goal_input(m, goal, m->ug);
+#endif
+  if (failed || !all_finite(m->ug, NU)) {
     for (i = 0; i < NU; ++i) if (!isfinite(m->ug[i])) m->ug[i] = 0;  /* the cold fallback's input, as in Python */
     *status = fallback(m, u_out, {{ N }}_NAN);
     return *status;
   }
+  m->solver_rc = 0;
 #if LIN_TRAJ
-  (void) j; (void) rc; (void) t0; (void) t1; (void) t2;
-  m->solver_rc = 0;
-  *status = rti(m, x, goal, u_out, t);
-  return *status;
+  *status = rti(m, x, goal, u_out, t, t0);
 #else
-  /* affine model about (x, u_bar) */
-  for (i = 0; i < NU; ++i) {
-    double s = m->ug[i];
-#if LIN_PLAN
-    if (m->has_plan) { s = 0; for (j = 0; j < NP; ++j) s += W0[j] * m->plan[j * NU + i]; }
+  *status = step_about_one_model(m, x, goal, u_out, t, t0);
 #endif
-    m->ubar[i] = s;
-  }
-  m->solver_rc = 0;
-  if (affine_model(m, x, m->ubar, m->Lam1)) {
-    *status = fallback(m, u_out, {{ N }}_EXCEPTION);
-    return *status;
-  }
-  if (!all_finite(m->Lam1, NX * NL)) {
-    *status = fallback(m, u_out, {{ N }}_NAN);
-    return *status;
-  }
-  if (t) { t1 = seconds(); t[0] = t1 - t0; }
-  condense(m, x, goal);
-{% if task %}
-  if (task_terms(m, x, goal)) {  /* a residual's evaluation failed */
-    *status = fallback(m, u_out, {{ N }}_EXCEPTION);
-    return *status;
-  }
-{% endif %}
-  if (t) { t2 = seconds(); t[1] = t2 - t1; }
-  rc = solve_qp(m);
-  if (t) t[2] = seconds() - t2;
-  if (rc != {{ N }}_SUCCESS) {
-    *status = fallback(m, u_out, rc);
-    return *status;
-  }
-  for (i = 0; i < NZ; ++i) { m->plan[i] = m->z[i] = m->z_new[i]; m->lam_x[i] = m->lam_x_new[i]; }
-  for (i = 0; i < NA; ++i) m->lam_a[i] = m->lam_a_new[i];
-  m->has_plan = m->warm = 1;
-  /* first input */
-  for (i = 0; i < NU; ++i) {
-    double s = 0;
-    for (j = 0; j < NP; ++j) s += PHI0[j] * m->plan[j * NU + i];
-    u_out[i] = s;
-  }
-  *status = {{ N }}_SUCCESS;
   return *status;
-#endif
 }
 
 void {{ name }}_knots(const mem_t* m, double* knots) {
