@@ -135,87 +135,85 @@ static int fallback(mem_t* m, double* u_out, int status) {
   return status;
 }
 
-/* C += A B for an M x NX matrix A with A(i, k) = A[i * ars + k * aks] (row-major: ars = lda, aks = 1; its
-   transpose: ars = 1, aks = lda) and row-major B, C. With upper set, tiles wholly below C's diagonal are
-   skipped (the lower triangle is then left partial, and is never read). The inner product runs over NX, a
-   constant. Tiles of MR rows x 8 (or 4) columns of C stay in vector registers while B's rows, contiguous,
-   stream through: GCC/Clang vector extensions, 2 doubles wide (SSE2, any x86-64) and, on x86 CPUs that have
-   them, 4 wide with AVX2 and FMA (chosen once at run time; no build flag, the library stays portable). */
+/* The products over the inner dimension NX (the state's size): C += A B for an M x NX matrix A with A(i, k) =
+   A[i * ars + k * aks] (row-major: ars = lda, aks = 1; its transpose: ars = 1, aks = lda), row-major B (NX x N)
+   and C (M x N). With upper set, tiles wholly below C's diagonal are skipped (the lower triangle is then left
+   partial, and is never read). Each entry of C gets its own sum over k in order, added to C at the end, on every
+   path below. Tiles of MR rows x 8 (or 4) columns of C stay in vector registers while B's rows, contiguous, stream
+   through: GCC/Clang vector extensions, SSE2 (any x86-64: MR = 2) and, on x86 CPUs that have them, AVX2 and FMA
+   (MR = 4; chosen once at run time; no build flag, the library stays portable). */
+#if defined(__GNUC__) || defined(__clang__)
+#define INLINE static inline __attribute__((always_inline)) /* compiled for each instruction set's caller */
+#else
+#define INLINE static inline
+#endif
 #ifndef OCPKIT_SIMD
 #define OCPKIT_SIMD 2 /* the Makefile's SIMD: 2 auto (AVX2 where the CPU has it), 1 no AVX2 path, 0 plain C */
 #endif
 #if (defined(__GNUC__) || defined(__clang__)) && OCPKIT_SIMD >= 1
 #define VECTOR_EXT 1
-typedef double vec2 __attribute__((vector_size(16), aligned(8), may_alias));
 #if (defined(__x86_64__) || defined(__i386__)) && OCPKIT_SIMD >= 2
 #define HAVE_AVX2_PATH 1
-typedef double vec4 __attribute__((vector_size(32), aligned(8), may_alias));
+#define AVX2 __attribute__((target("avx2,fma")))
 #endif
 #endif
 
-/* One sweep over NX of B's rows through the register block (rows: MR, a constant the compiler unrolls,
-   or mr). */
-#define TILE_SWEEP(rows, VT, W, NC)                                                                           \
-  for (k = 0; k < NX; ++k) {                                                                                  \
-    VT b[NC / W];                                                                                             \
-    for (v = 0; v < NC / W; ++v) b[v] = *(const VT*) (B + k * ldb + v * W);                                   \
-    for (r = 0; r < (rows); ++r) {                                                                            \
-      const double a = A[r * ars + k * aks];                                                                  \
-      for (v = 0; v < NC / W; ++v) c[r][v] += a * b[v];                                                       \
-    }                                                                                                         \
+{% for isa, w, mr in [("sse2", 2, 2), ("avx2", 4, 4)] %}
+#if {{ "VECTOR_EXT" if isa == "sse2" else "HAVE_AVX2_PATH" }}
+/* {{ isa | upper }}: vectors of {{ w }} doubles (one register), blocks of {{ mr }} rows. */
+typedef double vec{{ w }} __attribute__((vector_size({{ 8 * w }}), aligned(8), may_alias));
+
+/* C[0:rows, 0:{{ w }} nv] += A[0:rows, :] B[:, 0:{{ w }} nv] (nv <= {{ 8 // w }} vectors a row, rows <= {{ mr }}), the block of C
+   in registers; rows and nv are constants after inlining, or rows the last block's height. */
+INLINE void gemm_nx_tile_{{ isa }}(int rows, int nv, const double* restrict A, int ars, int aks,
+                                const double* restrict B, int ldb, double* restrict C, int ldc) {
+  vec{{ w }} c[{{ mr }}][{{ 8 // w }}], b[{{ 8 // w }}];
+  int r, v, k;
+  for (r = 0; r < rows; ++r)
+    for (v = 0; v < nv; ++v) c[r][v] = (vec{{ w }}){0};
+  for (k = 0; k < NX; ++k) {
+    for (v = 0; v < nv; ++v) b[v] = *(const vec{{ w }}*) (B + k * ldb + {{ w }} * v);
+    for (r = 0; r < rows; ++r) {
+      const double a = A[r * ars + k * aks];
+      for (v = 0; v < nv; ++v) c[r][v] += a * b[v];
+    }
   }
+  for (r = 0; r < rows; ++r)
+    for (v = 0; v < nv; ++v) *(vec{{ w }}*) (C + r * ldc + {{ w }} * v) += c[r][v];
+}
 
-/* A tile: C[0:mr, 0:NC] += A[0:mr, :] B[:, 0:NC], its MR x NC block of C in registers (vectors VT of W). */
-#define TILE(name, attr, VT, W, MR, NC)                                                                       \
-  attr static void name(int mr, const double* restrict A, int ars, int aks, const double* restrict B, int ldb,\
-                        double* restrict C, int ldc) {                                                        \
-    VT c[MR][NC / W];                                                                                         \
-    int r, v, k;                                                                                              \
-    for (r = 0; r < MR; ++r) for (v = 0; v < NC / W; ++v) c[r][v] = (VT){0};                                  \
-    if (mr == MR) {                                                                                           \
-      TILE_SWEEP(MR, VT, W, NC)                                                                               \
-    } else {                                                                                                  \
-      TILE_SWEEP(mr, VT, W, NC)                                                                               \
-    }                                                                                                         \
-    for (r = 0; r < mr; ++r) for (v = 0; v < NC / W; ++v) *(VT*) (C + r * ldc + v * W) += c[r][v];            \
+/* A tile of mr rows ({{ mr }}, a constant, or the last block's fewer) and {{ w }} nv columns. */
+INLINE void gemm_nx_rows_{{ isa }}(int mr, int nv, const double* restrict A, int ars, int aks,
+                                const double* restrict B, int ldb, double* restrict C, int ldc) {
+  if (mr == {{ mr }}) gemm_nx_tile_{{ isa }}({{ mr }}, nv, A, ars, aks, B, ldb, C, ldc);
+  else gemm_nx_tile_{{ isa }}(mr, nv, A, ars, aks, B, ldb, C, ldc);
+}
+
+/* C += A B by blocks of {{ mr }} rows: tiles of 8 columns, one of 4, and the last N mod 4 columns through a
+   zero-padded copy of B's columns (so that they too run in registers, not as latency-bound dot products). */
+{{ "AVX2 " if isa == "avx2" }}static void gemm_nx_{{ isa }}(int M, int N, const double* restrict A, int ars, int aks,
+                         const double* restrict B, int ldb, double* restrict C, int ldc, int upper) {
+  const int n8 = N - N % 8, n4 = N - N % 4, nrem = N - n4;
+  double Bp[NX * 4], Cp[{{ mr }} * 4];
+  int i, j, k, r;
+  for (k = 0; nrem && k < NX; ++k)
+    for (j = 0; j < 4; ++j) Bp[k * 4 + j] = j < nrem ? B[k * ldb + n4 + j] : 0.0;
+  for (i = 0; i < M; i += {{ mr }}) {
+    const int mr = M - i < {{ mr }} ? M - i : {{ mr }};
+    for (j = upper ? (i / 8) * 8 : 0; j < n8; j += 8)
+      gemm_nx_rows_{{ isa }}(mr, {{ 8 // w }}, A + i * ars, ars, aks, B + j, ldb, C + i * ldc + j, ldc);
+    if (n4 > n8) gemm_nx_rows_{{ isa }}(mr, {{ 4 // w }}, A + i * ars, ars, aks, B + n8, ldb, C + i * ldc + n8, ldc);
+    if (nrem) {
+      for (j = 0; j < {{ mr }} * 4; ++j) Cp[j] = 0;
+      gemm_nx_rows_{{ isa }}(mr, {{ 4 // w }}, A + i * ars, ars, aks, Bp, 4, Cp, 4);
+      for (r = 0; r < mr; ++r)
+        for (j = 0; j < nrem; ++j) C[(i + r) * ldc + n4 + j] += Cp[r * 4 + j];
+    }
   }
-
-/* gemm_<sfx>: tiles of 8 columns, one of 4, and the last N mod 4 columns through a zero-padded copy of B's
-   columns (so that they too run in registers, not as latency-bound dot products). */
-#define TILES(sfx, attr, VT, W, MR)                                                                           \
-  TILE(tile8_##sfx, attr, VT, W, MR, 8)                                                                       \
-  TILE(tile4_##sfx, attr, VT, W, MR, 4)                                                                       \
-  attr static void gemm_##sfx(int M, int N, const double* restrict A, int ars, int aks,                       \
-                              const double* restrict B, int ldb, double* restrict C, int ldc, int upper) {    \
-    const int n8 = N - N % 8, n4 = N - N % 4, nrem = N - n4;                                                  \
-    double Bp[NX * 4], Cp[MR * 4];                                                                            \
-    int i, j, k, r;                                                                                           \
-    for (k = 0; nrem && k < NX; ++k)                                                                          \
-      for (j = 0; j < 4; ++j) Bp[k * 4 + j] = j < nrem ? B[k * ldb + n4 + j] : 0.0;                          \
-    for (i = 0; i < M; i += MR) {                                                                             \
-      const int mr = M - i < MR ? M - i : MR;                                                                 \
-      for (j = upper ? (i / 8) * 8 : 0; j < n8; j += 8)                                                       \
-        tile8_##sfx(mr, A + i * ars, ars, aks, B + j, ldb, C + i * ldc + j, ldc);                             \
-      if (n4 > n8) tile4_##sfx(mr, A + i * ars, ars, aks, B + n8, ldb, C + i * ldc + n8, ldc);                \
-      if (nrem) {                                                                                             \
-        for (j = 0; j < MR * 4; ++j) Cp[j] = 0;                                                               \
-        tile4_##sfx(mr, A + i * ars, ars, aks, Bp, 4, Cp, 4);                                                 \
-        for (r = 0; r < mr; ++r)                                                                              \
-          for (j = 0; j < nrem; ++j) C[(i + r) * ldc + n4 + j] += Cp[r * 4 + j];                              \
-      }                                                                                                       \
-    }                                                                                                         \
-  }
-
-#if VECTOR_EXT
-TILES(v2, , vec2, 2, 2)
-#if HAVE_AVX2_PATH
-TILES(v4, __attribute__((target("avx2,fma"))), vec4, 4, 4)
-#endif
-#else
-typedef double vec1;
-TILES(v1, , vec1, 1, 2)
+}
 #endif
 
+{% endfor %}
 #if HAVE_AVX2_PATH
 static int use_avx2(void) {
   static int avx2 = -1;  /* an idempotent race at worst: every thread writes the same value */
@@ -224,15 +222,21 @@ static int use_avx2(void) {
 }
 #endif
 
-static void gemm(int M, int N, const double* restrict A, int ars, int aks, const double* restrict B, int ldb,
-                 double* restrict C, int ldc, int upper) {
+static void gemm_nx(int M, int N, const double* restrict A, int ars, int aks, const double* restrict B, int ldb,
+                    double* restrict C, int ldc, int upper) {
 #if HAVE_AVX2_PATH
-  if (use_avx2()) { gemm_v4(M, N, A, ars, aks, B, ldb, C, ldc, upper); return; }
+  if (use_avx2()) { gemm_nx_avx2(M, N, A, ars, aks, B, ldb, C, ldc, upper); return; }
 #endif
 #if VECTOR_EXT
-  gemm_v2(M, N, A, ars, aks, B, ldb, C, ldc, upper);
+  gemm_nx_sse2(M, N, A, ars, aks, B, ldb, C, ldc, upper);
 #else
-  gemm_v1(M, N, A, ars, aks, B, ldb, C, ldc, upper);
+  int i, j, k;
+  for (i = 0; i < M; ++i)
+    for (j = upper ? i : 0; j < N; ++j) {
+      double s = 0;
+      for (k = 0; k < NX; ++k) s += A[i * ars + k * aks] * B[k * ldb + j];
+      C[i * ldc + j] += s;
+    }
 #endif
 }
 
@@ -258,7 +262,7 @@ static void times_ahat(const double* X, int rows, int ldx, const double* Lb, int
     }
     o[NL - 1] = xr[NL - 1];
   }
-  gemm(rows, NL, X, ldx, 1, Lb, NL, out, NL, 0);
+  gemm_nx(rows, NL, X, ldx, 1, Lb, NL, out, NL, 0);
 }
 
 /* G += Wᵀ W (upper triangle; row stride ldg) with W = Q^½ (X − x_goal e_oneᵀ) over the first cols columns of X
@@ -275,7 +279,7 @@ static void add_stage(mem_t* m, const double* X, int cols, int ldx, int one, con
   }
 #else
   for (i = 0; i < NX * cols; ++i) W[i] = 0;
-  gemm(NX, cols, QH, NX, 1, X, ldx, W, cols, 0);
+  gemm_nx(NX, cols, QH, NX, 1, X, ldx, W, cols, 0);
   for (i = 0; i < NX; ++i) {
     double gx = 0;
     int k;
@@ -283,7 +287,7 @@ static void add_stage(mem_t* m, const double* X, int cols, int ldx, int one, con
     W[i * cols + one] -= gx;
   }
 #endif
-  gemm(cols, cols, W, 1, cols, W, cols, G, ldg, 1);
+  gemm_nx(cols, cols, W, 1, cols, W, cols, G, ldg, 1);
 }
 
 /* Γ += the stage cost of Λ (add_stage), both triangles: the doublings read Γ whole. */
@@ -314,7 +318,7 @@ static void grams(mem_t* m, const double* xg) {
         for (j = 0; j < NL; ++j) { gv[j] += yv[j]; gd[j] += s * yv[j] + yd[j]; }
       }
       for (i = 0; i < NL; ++i) Gam[(NL - 1) * NL + i] += m->Y[(NL - 1) * NL + i];
-      gemm(NL, NL, Lam, 1, NL, m->Y, NL, Gam, NL, 1);
+      gemm_nx(NL, NL, Lam, 1, NL, m->Y, NL, Gam, NL, 1);
       symmetrize(Gam, NL);
       times_ahat(Lam, NX, NL, Lam, s, tmp);
       s *= 2;
@@ -348,7 +352,7 @@ static void times_r(const double* X, int rows, int ldx, const double* prev, int 
     for (j = 0, col = 1; col <= c; ++j)
       for (u = 0; u < NU; ++u, ++col) o[col] = phi[j] * xr[NX + u] + del[j] * xr[NX + NU + u];
   }
-  gemm(rows, cp + 1, X, ldx, 1, prev, NZ1, out, ldo, 0);
+  gemm_nx(rows, cp + 1, X, ldx, 1, prev, NZ1, out, ldo, 0);
 }
 
 #if NB > 0
@@ -391,9 +395,9 @@ static void add_terminal_weight(mem_t* m, double* prev, const double* xg) {
   }
 #else
   for (i = 0; i < NX * NZ1; ++i) m->E2[i] = 0;
-  gemm(NX, NZ1, DQT, NX, 1, prev, NZ1, m->E2, NZ1, 0);
+  gemm_nx(NX, NZ1, DQT, NX, 1, prev, NZ1, m->E2, NZ1, 0);
 #endif
-  gemm(NZ1, NZ1, prev, 1, NZ1, m->E2, NZ1, m->Pq, NZ1, 1);
+  gemm_nx(NZ1, NZ1, prev, 1, NZ1, m->E2, NZ1, m->Pq, NZ1, 1);
 }
 #endif
 
@@ -445,7 +449,7 @@ static void condense(mem_t* m, const double* x, const double* xg) {
         if (f != 0 || d != 0) for (col = r; col <= c; ++col) pr[col] += f * y1[col] + d * y2[col];
       }
     }
-    gemm(cp + 1, c + 1, prev, 1, NZ1, Y, NZ1, Pq, NZ1, 1);
+    gemm_nx(cp + 1, c + 1, prev, 1, NZ1, Y, NZ1, Pq, NZ1, 1);
 #if NB > 0
     piece_bound_rows(m, PIECE_A[pc], PIECE_L[pc], prev, cp, phi, del, c);
 #endif
@@ -472,29 +476,30 @@ static void condense(mem_t* m, const double* x, const double* xg) {
 
 #if MODEL_RK4
 /* D = J_x S + [0 J_u] with the Jacobians' nonzeros (fx, fu) at (FX_I, FX_J), (FU_I, FU_J); S, D row-major
-   NX x (NX + NU): a row of S, contiguous, per nonzero (compiled twice like gemm: SSE2 and AVX2). */
-#define SENSITIVITY_RATE(sfx, attr)                                                                           \
-  attr static void sensitivity_rate_##sfx(const mem_t* m, const double* restrict S, double* restrict D) {    \
-    int q, j;                                                                                                 \
-    for (q = 0; q < NX * (NX + NU); ++q) D[q] = 0;                                                            \
-    for (q = 0; q < {{ N }}_NNZ_FX; ++q) {                                                                       \
-      const double v = m->fx[q];                                                                              \
-      const double* restrict sk = S + FX_J[q] * (NX + NU);                                                    \
-      double* restrict di = D + FX_I[q] * (NX + NU);                                                          \
-      for (j = 0; j < NX + NU; ++j) di[j] += v * sk[j];                                                       \
-    }                                                                                                         \
-    for (q = 0; q < {{ N }}_NNZ_FU; ++q) D[FU_I[q] * (NX + NU) + NX + FU_J[q]] += m->fu[q];                      \
+   NX x (NX + NU): a row of S, contiguous, per nonzero (compiled for SSE2 and AVX2 like gemm_nx). */
+INLINE void sensitivity_rate_of(const mem_t* m, const double* restrict S, double* restrict D) {
+  int q, j;
+  for (q = 0; q < NX * (NX + NU); ++q) D[q] = 0;
+  for (q = 0; q < {{ N }}_NNZ_FX; ++q) {
+    const double v = m->fx[q];
+    const double* restrict sk = S + FX_J[q] * (NX + NU);
+    double* restrict di = D + FX_I[q] * (NX + NU);
+    for (j = 0; j < NX + NU; ++j) di[j] += v * sk[j];
   }
-SENSITIVITY_RATE(v2, )
+  for (q = 0; q < {{ N }}_NNZ_FU; ++q) D[FU_I[q] * (NX + NU) + NX + FU_J[q]] += m->fu[q];
+}
 #if HAVE_AVX2_PATH
-SENSITIVITY_RATE(v4, __attribute__((target("avx2,fma"))))
+
+AVX2 static void sensitivity_rate_avx2(const mem_t* m, const double* restrict S, double* restrict D) {
+  sensitivity_rate_of(m, S, D);
+}
 #endif
 
 static void sensitivity_rate(const mem_t* m, const double* restrict S, double* restrict D) {
 #if HAVE_AVX2_PATH
-  if (use_avx2()) { sensitivity_rate_v4(m, S, D); return; }
+  if (use_avx2()) { sensitivity_rate_avx2(m, S, D); return; }
 #endif
-  sensitivity_rate_v2(m, S, D);
+  sensitivity_rate_of(m, S, D);
 }
 
 /* D = [J_x J_u] scattered: the rate at the step's start, where S = [I 0] (no products). */
@@ -780,7 +785,7 @@ static void condense_ltv(mem_t* m, const double* x, const double* xg) {
         if (f != 0) for (u = 0; u < NU; ++u) nr[1 + j * NU + u] += f * L[i * NL + NX + u];
       }
     }
-    gemm(NX, cols + 1, L, NL, 1, prev, NZ1, next, NZ1, 0);
+    gemm_nx(NX, cols + 1, L, NL, 1, prev, NZ1, next, NZ1, 0);
     add_stage(m, next, c + 1, NZ1, 0, xg, m->Pq, NZ1);
 #if NB > 0
     for (j = 0; j < NB; ++j) state_bound_row(m, k * NB + j, j, next + XB_COMP[j] * NZ1, NZ);  /* x_{k+1}'s */
