@@ -1,4 +1,5 @@
-"""MPC solvers by name: "qp" (LinearMPC), "ipopt" (NonlinearMPC), "empc", "cem", "mppi" (sampling on Taichi)."""
+"""MPC solvers by name: "qp" (LinearMPC), "rti" (RealTimeIteration), "ipopt" (NonlinearMPC: methods ipopt, sqp,
+fatrop), "empc", "cem", "mppi" (sampling on Taichi)."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -8,7 +9,7 @@ from ocpkit.controller import Controller
 from ocpkit.model.ocp import OCP
 
 # solver name -> module defining it (imported only when used: the sampling solvers start Taichi)
-_SOLVERS = {"qp": "qp", "ipopt": "nlp", "empc": "empc", "cem": "cem", "mppi": "mppi"}
+_SOLVERS = {"qp": "qp", "rti": "rti", "ipopt": "nlp", "empc": "empc", "cem": "cem", "mppi": "mppi"}
 
 
 def names() -> list[str]:
@@ -44,6 +45,24 @@ class Configuration:
         return make(self.solver, ocp, **self.options)
 
 
+# Controllers by name, the one list the benchmarks take (`ocpkit bench nlp|startup --controller NAME`): each
+# registered solver as constructed by default, under its own name, and a few variants.
+CONTROLLERS = {
+    **{name: Configuration(name) for name in _SOLVERS},
+    "qp-python": Configuration("qp", {"native": False}),  # LinearMPC without its C step
+    "ltv": Configuration("qp", {"linearization": "trajectory"}),  # one real-time iteration, LinearMPC's
+    "rti3": Configuration("rti", {"iterations": 3}),
+    "fatrop": Configuration("ipopt", {"method": "fatrop"}),
+}
+
+
+def controller(name: str, ocp: OCP) -> Controller:
+    """The controller ``name`` of :data:`CONTROLLERS` for ``ocp``."""
+    if name not in CONTROLLERS:
+        raise ValueError(f"unknown controller {name!r}; known: {', '.join(CONTROLLERS)}")
+    return CONTROLLERS[name].make(ocp)
+
+
 def _qp_configurations():
     backends = [("condensed", "daqp"), ("condensed", "proxqp"), ("condensed", "osqp"), ("sparse", "proxqp"),
                 ("sparse", "osqp")]
@@ -63,11 +82,9 @@ CONFIGURATIONS = {
     "ipopt": [Configuration("ipopt", {"method": "ipopt"}, optimum="nlp"),
               Configuration("ipopt", {"method": "ipopt", "dynamics": "affine"}, optimum="convex"),
               Configuration("ipopt", {"method": "sqp"}, optimum="nlp"),
-              Configuration("ipopt", {"method": "fatrop"}, optimum="nlp"),
-              Configuration("ipopt", {"method": "rti"}),
-              Configuration("ipopt", {"method": "rti", "form": "sparse"}),
-              Configuration("ipopt", {"method": "rti", "iterations": 30, "tol": 1e-10, "state_bounds": "hard"},
-                            optimum="nlp")],
+              Configuration("ipopt", {"method": "fatrop"}, optimum="nlp")],
+    "rti": [Configuration("rti"), Configuration("rti", {"form": "sparse"}),
+            Configuration("rti", {"iterations": 30, "tol": 1e-10, "state_bounds": "hard"}, optimum="nlp")],
     **{name: [Configuration(name, {"variant": variant, "population": 64}) for variant in ("preconditioned", "paper")]
        for name in ("empc", "cem", "mppi")},
 }

@@ -20,7 +20,8 @@ convergence changes (Puma 560, T = 50, 5 knots, 3 closed loops of 20 steps: IPOP
 4–14, instead of 5, 3–12; 47 ms a step instead of 2.1 s, the same closed-loop cost). ``hessian="exact"`` keeps
 CasADi's AD of the whole NLP, the reference.
 
-Two more methods solve the same NLP:
+One more method solves the same NLP (real-time iteration, a QP step per control step, is its own controller:
+:class:`ocpkit.solvers.rti.RealTimeIteration`, ``solvers.make("rti", ocp)``):
 
 * ``method="fatrop"``: CasADi's fatrop plugin, an interior-point method that factorizes the KKT system by a
   Riccati recursion over the stages. It needs the variables and constraints in stage order
@@ -31,16 +32,11 @@ Two more methods solve the same NLP:
   derivatives, and the Gauss–Newton Hessian as its exact one. On the Panda (T = 50, 5 knots) it took 153 ms a
   step against IPOPT's 58 ms: CasADi's AD of that graph costs 16 ms an iteration (IPOPT's derivative functions
   6 ms), its own iteration 6 ms as IPOPT's, and it takes more iterations (median 7 against 5).
-* ``method="rti"``: real-time iteration (Diehl et al.): Gauss–Newton SQP steps on the multiple-shooting NLP,
-  one per control step by default (``iterations``). Each step is the QP of LinearMPC with the model linearized
-  stage by stage along the current iterate — the previous plan shifted by one step, then each new QP solution
-  — so it reuses the sparse and condensed knot QPs and their backends. The cost is quadratic, so the
-  Gauss–Newton Hessian is exact in the cost and a fixed point of the iteration is a KKT point of the NLP:
-  iterated, it reaches IPOPT's optimum.
+
+Which arguments each method takes, with their meaning and default there: :data:`ocpkit.solvers.methods.METHODS`.
 """
 from __future__ import annotations
 
-import inspect
 import re
 import time
 
@@ -52,19 +48,16 @@ from ocpkit.codegen.compiled import SwitchingFunction, prebuild
 from ocpkit.controller import Controller, check_linearization
 from ocpkit.status import EXCEPTION, INFEASIBLE, LIMITED, NAN, SUCCESS, OperationCosts, Solution
 from ocpkit.model.ocp import OCP
-from ocpkit.solvers.qp import LinearMPC
+from ocpkit.solvers import methods
+from ocpkit.solvers.methods import DYNAMICS, HESSIANS
 
-METHODS = ("ipopt", "sqp", "fatrop", "rti")
+METHODS = tuple(methods.METHODS)
 SOLVER_NAMES = {"ipopt": "IPOPT", "sqp": "sqpmethod", "fatrop": "fatrop"}
-# The options of method "rti": LinearMPC's arguments that NonlinearMPC does not set from its own.
-RTI_OPTIONS = ("eps", "slack_weight", "native")
 # Solver options NonlinearMPC sets from its own arguments: refused in ``options``, naming the argument.
 SET_BY_ARGUMENT = {"max_iter": "max_iter", "max_wall_time": "time_limit", "time_limit": "time_limit",
                    "iteration_callback": "time_limit"}
 # How CasADi names an option its solver does not know.
 _UNKNOWN = re.compile(r"(?:No such IPOPT option|Unknown option|Fatrop option not supported): (\w+)")
-DYNAMICS = ("nonlinear", "affine")
-HESSIANS = ("gauss-newton", "exact")
 
 # IPOPT's ApplicationReturnStatus and sqpmethod's return_status, as ocpkit statuses (unlisted: exception).
 _STATUS = {
@@ -112,131 +105,65 @@ class _Deadline(ca.Callback):
         return [int(self.deadline is not None and time.perf_counter() > self.deadline)]
 
 
-class RealTimeIteration(LinearMPC):
-    """Real-time iteration: ``iterations`` Gauss–Newton SQP steps per control step on the knot QP linearized
-    along the iterate (LinearMPC's "trajectory" linearization), warm-started by shifting the previous plan.
-
-    Iteration i + 1 linearizes at iteration i's QP solution (x̄_0 = x, x̄_k its predicted states, ū its inputs);
-    ``tol`` > 0 stops early once the knots and predicted states move less than ``tol`` (max norm). When an
-    iteration after the first fails (a time budget, a QP limit), the previous iteration's plan is returned:
-    every iterate is a usable plan, the point of RTI.
-
-    Where LinearMPC builds its C step (:mod:`ocpkit.export.native`: DAQP, a robot-sized model, no task) the whole
-    iteration runs as compiled C (:func:`ocpkit.export.export` with linearization "trajectory"), the same steps to
-    rounding: until it is built, and after a failed step's soft-bound retry, in Python."""
-
-    def __init__(self, ocp: OCP, *, iterations: int = 1, tol: float = 0.0, **options):
-        options.setdefault("state_bounds", "soft")
-        self.iterations = integer(iterations, "iterations", 1)
-        if not (isinstance(tol, (int, float)) and np.isfinite(tol) and tol >= 0):
-            raise ValueError(f"tol must be a finite number >= 0, got {tol!r}")
-        self.tol = float(tol)
-        super().__init__(ocp, linearization="trajectory", **options)
-
-    def _native_options(self) -> dict:
-        return {"iterations": self.iterations, "tol": self.tol}
-
-    def __repr__(self):
-        return f"RealTimeIteration({self.iterations}, {self.form}, {self.qp_name}, {self.path}, {self.ocp!r})"
-
-    def _solve(self, x: np.ndarray, goal: np.ndarray) -> Solution:
-        step = self._native_step()
-        if step is not None:  # the same iterations as compiled C (ocpkit.export, linearization "trajectory")
-            return self._c_step(step, x, goal, self._deadline())
-        deadline, par = self._deadline(), self.ocp.parameterization
-        times = {"model": 0.0, "build": 0.0, "solve": 0.0}
-        along, sol, qp_iterations, moved, done = self.shifted_plan(x, goal), None, 0, np.inf, 0
-        for i in range(self.iterations):
-            new = self._qp_step(x, goal, along, deadline, times, knots=None if sol is None else sol.knots)
-            qp_iterations += new.iterations
-            if not new.ok:
-                if sol is None:
-                    return new
-                self._x_plan = sol.x_pred  # the last good iterate stays the plan
-                sol.raw_status = f"{sol.raw_status}; iteration {i + 1} {new.status}: {new.raw_status}"
-                break
-            moved = (np.inf if sol is None else
-                     max(np.abs(new.knots - sol.knots).max(), np.abs(new.x_pred - sol.x_pred).max()))
-            sol, done = new, i + 1
-            if moved <= self.tol:
-                break
-            along = (np.vstack([x, sol.x_pred[1:-1]]), par.inputs(sol.knots))
-        # Each iteration's QP is certified; the NLP's KKT point only where the iteration converged.
-        converged = (f"converged (last iteration moved the plan {moved:.2g} <= tol {self.tol:g})"
-                     if moved <= self.tol else "not iterated to convergence"
-                     + (f" (last iteration moved the plan {moved:.2g})" if np.isfinite(moved) else ""))
-        sol.raw_status = f"RTI {done} of {self.iterations} iterations, {converged}; QP: {sol.raw_status}"
-        sol.iterations, sol.times = qp_iterations, times
-        return sol
-
-
 class NonlinearMPC(Controller):
     """Multiple-shooting MPC solved as an NLP: ``method`` "ipopt" (interior point), "sqp" (CasADi
-    ``sqpmethod`` with the qrqp QP solver), "fatrop" (structure-exploiting interior point, stage-ordered NLP)
-    or "rti" (real-time iteration, :class:`RealTimeIteration`), over the ``dynamics`` "nonlinear" (F) or
-    "affine" model (ipopt and sqp only), with the ``hessian`` "gauss-newton" (default; derivatives from the
-    per-stage affine model, see the module docstring) or "exact" (CasADi's AD of the whole NLP) for "ipopt",
-    "sqp" and "fatrop" ("rti" is Gauss–Newton by construction).
+    ``sqpmethod`` with the qrqp QP solver) or "fatrop" (structure-exploiting interior point, stage-ordered NLP),
+    over the ``dynamics`` "nonlinear" (F) or "affine" model (ipopt and sqp only), with the ``hessian``
+    "gauss-newton" (default; derivatives from the per-stage affine model, see the module docstring) or "exact"
+    (CasADi's AD of the whole NLP). Real-time iteration is its own controller, :class:`RealTimeIteration`
+    (``ocpkit.solvers.rti``, ``solvers.make("rti", ocp)``).
 
-    "rti" takes ``iterations`` (SQP steps per control step), ``tol`` (stop earlier once an iteration moves
-    the plan less), and LinearMPC's ``form``, ``qp`` and ``state_bounds`` ("soft" by default, as LinearMPC);
-    its ``max_iter`` caps each QP's iterations (default 10 000), ``time_limit`` is the whole step's budget
-    and ``options`` pass to LinearMPC: ``eps``, ``slack_weight`` and ``native`` (RTI_OPTIONS). "fatrop" takes
-    ``max_iter`` and ``options`` for fatrop (e.g. ``{"tol": 1e-10}``), not ``time_limit``.
-
+    Each method takes the arguments :data:`ocpkit.solvers.methods.METHODS` lists for it, with their meaning and
+    default there (None: that default); one it does not take is refused (ValueError naming the methods that do).
     ``max_iter`` and ``time_limit`` (wall-clock seconds: IPOPT's max_wall_time, checked by SQP after each of its
-    iterations; :attr:`ceiling`, 10 s, where none is given) limit each solve; a solve stopped by either is
-    ``limited`` and falls back. IPOPT checks its clock once per
+    iterations; :attr:`ceiling`, 10 s, where none is given; fatrop takes none) limit each solve; a solve stopped by
+    either is ``limited`` and falls back. IPOPT checks its clock once per
     iteration, after derivative evaluations it cannot interrupt (with the exact Hessian, 30 ms of constraint
     Jacobian at nlink:7, T=50 before the first check), so with a time limit a solve starts only if the measured
     time of one iteration (median of the last five solves: wall time / (iterations + 1)) fits in the step's
     budget. Both can be changed between steps (the solver is remade over the NLP, which is not rebuilt). ``options``
-    pass through to IPOPT (e.g. ``{"tol": 1e-10}``) or to ``sqpmethod`` (e.g. ``{"qpsol": "osqp"}``). An option
-    that does not apply to the method — unknown to its solver, or one NonlinearMPC sets from its own arguments
+    pass through to IPOPT (e.g. ``{"tol": 1e-10}``), to ``sqpmethod`` (e.g. ``{"qpsol": "osqp"}``) or to fatrop. An
+    option that does not apply to the method — unknown to its solver, or one NonlinearMPC sets from its own arguments
     (SET_BY_ARGUMENT: ``max_iter``, ``max_wall_time`` from ``time_limit``) — is refused at construction
     (ValueError naming the option and the method).
     ``linearization`` ("goal" or "plan") is the affine model's expansion input, as in LinearMPC.
     """
 
-    def __init__(self, ocp: OCP, *, dynamics: str = "nonlinear", method: str = "ipopt", max_iter: int | None = None,
+    def __init__(self, ocp: OCP, *, method: str = "ipopt", dynamics: str | None = None,
+                 linearization: str | None = None, hessian: str | None = None, max_iter: int | None = None,
                  time_limit: float | None = None, options: dict | None = None, warm_start: bool = True,
-                 raise_on_fail: bool = False, linearization: str = "goal", iterations: int = 1, tol: float = 0.0,
-                 form: str = "condensed", qp: str | None = None, state_bounds: str | None = None,
-                 hessian: str = "gauss-newton"):
+                 raise_on_fail: bool = False):
         if not isinstance(ocp, OCP):
             raise TypeError(f"ocp must be an ocpkit OCP, got {type(ocp).__name__}")
-        choice(dynamics, DYNAMICS, "dynamics")
+        if method == "rti":
+            raise ValueError("method 'rti' is its own controller now: solvers.make('rti', ocp, iterations=…) or "
+                             "ocpkit.solvers.rti.RealTimeIteration(ocp, …)")
         choice(method, METHODS, "method")
-        choice(hessian, HESSIANS, "hessian")
+        given = {"dynamics": dynamics, "linearization": linearization, "hessian": hessian, "max_iter": max_iter,
+                 "time_limit": time_limit, "options": options}
+        takes = methods.METHODS[method]
+        for name, value in given.items():
+            if value is not None and name not in takes:
+                raise ValueError(_not_taken(name, method))
+        setting = {name: takes[name].default if value is None and name in takes else value
+                   for name, value in given.items()}
         if options is not None and not isinstance(options, dict):
             raise TypeError(f"options must be a dict or None, got {type(options).__name__}")
         _check_options(method, options or {})
-        if method in ("rti", "fatrop") and dynamics != "nonlinear":
-            raise ValueError(f"method {method!r} solves the nonlinear dynamics; dynamics 'affine' is for ipopt/sqp")
         if method == "fatrop" and ocp.task_functions is not None and ocp.task_functions.pairs:
             # Declared as fatrop's stage path constraints (ng per stage after each stage's gap rows) they were
             # solved while inactive, but with a clearance active fatrop stalled at dual infeasibility 2.5e-3 for 200
             # iterations (nlink:3, T = 20), where IPOPT converged in 20.
             raise ValueError("method 'fatrop' takes a task's cost terms but not its obstacles (it stalls on an active "
-                             "clearance constraint): use method 'ipopt' or 'rti'")
-        if method != "rti" and (iterations != 1 or tol != 0.0):
-            raise ValueError(f"iterations and tol are options of method 'rti', not {method!r}")
-        if method == "rti" and hessian != "gauss-newton":
-            raise ValueError(f"hessian {hessian!r}: method 'rti' takes Gauss–Newton steps only; 'exact' is for "
-                             f"ipopt, sqp and fatrop")
-        self.dynamics, self.method, self.hessian = dynamics, method, hessian
-        self.linearization = check_linearization(linearization)
+                             "clearance constraint): use method 'ipopt' or solver 'rti'")
+        self.method = method
+        # fatrop takes no dynamics (it predicts with the nonlinear model) nor linearization
+        self.dynamics = choice(setting["dynamics"] or DYNAMICS[0], DYNAMICS, "dynamics")
+        self.linearization = check_linearization(setting["linearization"] or "goal")
+        self.hessian = choice(setting["hessian"], HESSIANS, "hessian")
         self.options = dict(options or {})
         self.warm_start = bool(warm_start)
-        if max_iter is None:
-            max_iter = 10_000 if method == "rti" else 200  # rti: the QP's iterations, as LinearMPC
-        self._limits = (integer(max_iter, "max_iter", 1), self._checked_time_limit(time_limit))
-        self._rti = None
-        if method == "rti":
-            self._rti = RealTimeIteration(ocp, iterations=iterations, tol=tol, form=form, qp=qp,
-                                          state_bounds=state_bounds, max_iter=self.max_iter,
-                                          time_limit=self.time_limit, warm_start=warm_start, threads=None,
-                                          **self.options)
+        self._limits = (integer(setting["max_iter"], "max_iter", 1), self._checked_time_limit(time_limit))
         self._build(ocp)
         self._costs = OperationCosts()
         super().__init__(ocp, raise_on_fail=raise_on_fail)
@@ -264,28 +191,24 @@ class NonlinearMPC(Controller):
         self._apply_limits()
 
     def _apply_limits(self) -> None:
-        """Put ``max_iter`` and ``time_limit`` in force: RTI's attributes, or the NLP solver made anew over the NLP
-        built once (the build cost 0.14 s on nlink:7, T = 50, and warm_up's two changes of the time limit made two)."""
-        if self._rti is not None:
-            self._rti.max_iter, self._rti.time_limit = self.max_iter, self.time_limit
-        else:
-            self._solver = self._nlpsol()
+        """Put ``max_iter`` and ``time_limit`` in force: the NLP solver made anew over the NLP built once (the build
+        cost 0.14 s on nlink:7, T = 50, and warm_up's two changes of the time limit made two)."""
+        self._solver = self._nlpsol()
 
     def _checked_time_limit(self, value):
         if value is None:
             return None
-        if self.method == "fatrop":
-            raise ValueError(f"time_limit is an IPOPT, SQP and RTI limit; method={self.method!r} only takes max_iter")
+        if "time_limit" not in methods.METHODS[self.method]:
+            raise ValueError(_not_taken("time_limit", self.method))
         return positive(value, "time_limit")
 
     @property
     def path(self) -> str:
-        """RTI's path (:attr:`LinearMPC.path`), or the NLP solver's name."""
-        return self._rti.path if self._rti is not None else self.method
+        """The NLP solver's name (the method)."""
+        return self.method
 
     def __repr__(self):
-        path = f", {self.path}" if self._rti is not None else ""
-        return f"NonlinearMPC({self.method}, {self.dynamics}{path}, {self.ocp!r})"
+        return f"NonlinearMPC({self.method}, {self.dynamics}, {self.ocp!r})"
 
     def _build(self, ocp: OCP) -> None:
         """The NLP over w = [x_1 … x_T, U_0 … U_{p−1}] with parameters (x_0, x_goal[, A_d, B_d, w_d])."""
@@ -294,8 +217,6 @@ class NonlinearMPC(Controller):
         self._gaps, self._pairs = n * T, 0  # the gap rows, then the clearance rows (pairs per stage) of g
         self._order = None  # fatrop: positions of [x_1 … x_T, U] in its stage-ordered w
         self._stage_model = None  # Gauss–Newton: the affine model in the NLP's derivatives (rebuilt once compiled)
-        if self.method == "rti":
-            return self._apply_limits()
         if self.method == "fatrop":
             return self._build_fatrop(ocp)
         # MX graph over mapped calls of the SX step and cost Functions: derivatives are generated per step
@@ -565,27 +486,14 @@ class NonlinearMPC(Controller):
                 opts["hessian_approximation"] = "limited-memory"
         return opts
 
-    def wait_compiled(self, timeout: float | None = None) -> bool:
-        """Block until the steady state is in place: RTI's C step (or its compiled model); for the others the compiled
-        affine model their derivatives come from (:meth:`Controller.wait_compiled`)."""
-        if self._rti is not None:
-            return self._rti.wait_compiled(timeout)
-        return super().wait_compiled(timeout)
-
     def reset(self) -> None:
         super().reset()
         self._warm = None  # (w, lam_x, lam_g) of the last successful solve
-        if self._rti is not None:
-            self._rti.reset()
 
     def _discard(self) -> None:
         self._warm = None
-        if self._rti is not None:
-            self._rti._discard()
 
     def _solve(self, x: np.ndarray, goal: np.ndarray) -> Solution:
-        if self._rti is not None:
-            return self._rti.solve(x, self.task_goal)
         ocp, times = self.ocp, {"model": 0.0, "build": 0.0, "solve": 0.0}
         n, m, T, p = ocp.nx, ocp.nu, ocp.horizon, ocp.knots
         t0 = time.perf_counter()
@@ -681,22 +589,21 @@ class NonlinearMPC(Controller):
         return self.fallback(status, raw, times, iterations)
 
 
+def _not_taken(argument: str, method: str) -> str:
+    """Why ``argument`` is refused for ``method``: the methods that take it (:data:`ocpkit.solvers.methods.METHODS`)."""
+    return f"{argument} does not apply to method {method!r}: it applies to methods {', '.join(methods.taking(argument))}"
+
+
 def _check_options(method: str, options: dict) -> None:
-    """Refuse (ValueError) an option NonlinearMPC sets from its own arguments, one method "rti" does not take (its
-    solver, LinearMPC, raised a TypeError) or one fatrop rejects; IPOPT and sqpmethod check theirs as they are made
-    (:meth:`NonlinearMPC._nlpsol`)."""
-    arguments = inspect.signature(NonlinearMPC).parameters
-    takes = f" (it takes: {', '.join(RTI_OPTIONS)})" if method == "rti" else ""
+    """Refuse (ValueError) an option NonlinearMPC sets from its own arguments, or one fatrop rejects; IPOPT and
+    sqpmethod check theirs as they are made (:meth:`NonlinearMPC._nlpsol`)."""
     for name in options:
-        argument = SET_BY_ARGUMENT.get(name) or (name if method == "rti" and name in arguments else None)
-        if method == "fatrop" and argument == "time_limit":
-            raise ValueError(f"option {name!r} does not apply to method 'fatrop': it takes no time limit, only "
-                             "max_iter")
+        argument = SET_BY_ARGUMENT.get(name)
+        if argument is not None and argument not in methods.METHODS[method]:
+            raise ValueError(f"option {name!r} does not apply to method {method!r}: it takes no {argument}")
         if argument is not None:
-            raise ValueError(f"option {name!r} does not apply to method {method!r}{takes}: NonlinearMPC sets it "
-                             f"from its argument; use {argument}=")
-        if method == "rti" and name not in RTI_OPTIONS:
-            raise ValueError(f"option {name!r} does not apply to method 'rti'{takes}")
+            raise ValueError(f"option {name!r} does not apply to method {method!r}: NonlinearMPC sets it from its "
+                             f"argument; use {argument}=")
     if method == "fatrop" and options:
         _check_fatrop_options(options)
 

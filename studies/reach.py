@@ -67,7 +67,7 @@ HINGE_WEIGHT = 1e3                        # the squared hinge's weight in the ke
 IPOPT, RTI, QP, QP_TRAJ, EMPC, CEM, MPPI = ("IPOPT", "RTI", "LinearMPC", "LinearMPC (trajectory)", "EMPC", "CEM",
                                             "MPPI")
 SAMPLING = {"linearization": "plan"}      # sampling planners: affine model re-linearized about the plan each step
-CONTROLLERS = {IPOPT: ("ipopt", {}), RTI: ("ipopt", {"method": "rti"}), QP: ("qp", {}),
+CONTROLLERS = {IPOPT: ("ipopt", {}), RTI: ("rti", {}), QP: ("qp", {}),
                QP_TRAJ: ("qp", {"linearization": "trajectory"}), EMPC: ("empc", SAMPLING), CEM: ("cem", SAMPLING),
                MPPI: ("mppi", SAMPLING)}
 GRADIENT = (IPOPT, RTI, QP, QP_TRAJ)
@@ -189,7 +189,7 @@ def keepout_trial(controller: str, horizon: int, duration: float, population: in
         ctrl = _controller("empc", SAMPLING, plain, population, arch, seed, stage_cost=stage, terminal_cost=terminal)
     else:
         ocp = pb.ocp(knots=keepout.KNOTS, horizon=horizon, task=Task([squared_hinge_term(centre)]))
-        solver, options = {K_IPOPT: ("ipopt", {}), K_RTI: ("ipopt", {"method": "rti"}),
+        solver, options = {K_IPOPT: ("ipopt", {}), K_RTI: ("rti", {}),
                            K_EMPC_SQUARED: ("empc", SAMPLING)}[controller]
         ctrl = _controller(solver, options, ocp, population, arch, seed)
     ctrl.solve(x0, goal)

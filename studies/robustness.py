@@ -172,7 +172,7 @@ MUJOCO_NAME = "robustness_mujoco"
 MUJOCO_TITLE = "Robustness to unmodelled friction and rotor inertia, MuJoCo as the plant"
 KNOTS = 5  # every controller plans with the command line's default knots: the comparison is of the optimizers
 # label -> (solver, options); EMPC's seed and Taichi arch are added per trial
-MUJOCO_CONTROLLERS = {"LinearMPC": ("qp", {}), "RTI": ("ipopt", {"method": "rti"}), "EMPC": ("empc", {})}
+MUJOCO_CONTROLLERS = {"LinearMPC": ("qp", {}), "RTI": ("rti", {}), "EMPC": ("empc", {})}
 # Mismatch levels: friction, MuJoCo's dry joint friction as a share of each joint's torque limit; armature, rotor
 # inertia added to each joint as a share of its diagonal entry of M(q = 0). "none" on both plants: the baseline
 # (ocpkit) and MuJoCo's copy of it (the two agree to round-off: any difference there is the simulator's).

@@ -123,9 +123,18 @@ def test_the_command_lines_choices_are_the_solvers():
 
     assert cli.NLP_METHODS == nlp.METHODS and cli.DYNAMICS == nlp.DYNAMICS
     assert sorted(cli.QP_BACKENDS) == sorted(qp.QP_SOLVERS)
-    assert set(cli.SAMPLING) | {"qp", "ipopt"} == set(solvers.names())  # a new solver must be placed in the table
+    assert set(cli.SAMPLING) | {"qp", "rti", "ipopt"} == set(solvers.names())  # a new solver must be placed in the table
     sampling = pytest.importorskip("ocpkit.solvers.sampling")  # starts Taichi
     assert cli.VARIANTS == sampling.VARIANTS
+
+
+def test_real_time_iteration_is_a_solver_not_a_method(tmp_path):
+    """Issue 45: --solver rti; --method takes NonlinearMPC's methods, read from its table (solvers.methods)."""
+    from ocpkit.solvers import methods
+
+    assert "rti" in solvers.names() and cli.NLP_METHODS == tuple(methods.METHODS) and "rti" not in cli.NLP_METHODS
+    res = run("solve", "pendulum", "--solver", "ipopt", "--method", "rti", cwd=tmp_path)
+    assert res.returncode == 2 and "invalid choice: 'rti'" in res.stderr
 
 
 @pytest.mark.parametrize("args,options", [
@@ -133,9 +142,9 @@ def test_the_command_lines_choices_are_the_solvers():
     (["--solver", "ipopt", "--method", "ipopt"], {"method": "ipopt"}),
     (["--solver", "ipopt", "--method", "sqp"], {"method": "sqp"}),
     (["--solver", "ipopt", "--method", "fatrop"], {"method": "fatrop"}),
-    (["--solver", "ipopt", "--method", "rti"], {"method": "rti"}),
-    (["--solver", "ipopt", "--method", "rti", "--iterations", "3", "--form", "sparse", "--qp", "osqp"],
-     {"method": "rti", "iterations": 3, "form": "sparse", "qp": "osqp"}),
+    (["--solver", "rti"], {}),
+    (["--solver", "rti", "--iterations", "3", "--form", "sparse", "--qp", "osqp"],
+     {"iterations": 3, "form": "sparse", "qp": "osqp"}),
     (["--solver", "ipopt", "--method", "sqp", "--dynamics", "affine", "--linearization", "plan"],
      {"method": "sqp", "dynamics": "affine", "linearization": "plan"}),
     (["--linearization", "goal"], {"linearization": "goal"}),
@@ -151,14 +160,16 @@ def test_solve_takes_every_method_and_linearization(args, options, made, capsys)
     ctrl = out["controller"]
     if name == "ipopt":
         assert ctrl.startswith(f"NonlinearMPC({options.get('method', 'ipopt')}, {options.get('dynamics', 'nonlinear')}")
+    elif name == "rti":
+        assert ctrl.startswith(f"RealTimeIteration({options.get('iterations', 1)}, {options.get('form', 'condensed')}")
     else:
         assert ctrl.startswith("LinearMPC(")
 
 
 def test_rti_iterations_reach_the_iteration(made, capsys):
     """--iterations K is RealTimeIteration's: K SQP steps per control step (here until its tolerance 0 stops)."""
-    rc = [main(["solve", "pendulum", "--horizon", "20", "--seed", "1", "--json", "--solver", "ipopt", "--method",
-                "rti", "--iterations", str(k)]) for k in (1, 4)]
+    rc = [main(["solve", "pendulum", "--horizon", "20", "--seed", "1", "--json", "--solver", "rti",
+                "--iterations", str(k)]) for k in (1, 4)]
     one, four = (json.loads(line) for line in capsys.readouterr().out.splitlines())
     assert rc == [0, 0] and [opts["iterations"] for _, _, opts in made] == [1, 4]
     assert four["iterations"] > one["iterations"]  # QP iterations summed over the SQP steps
@@ -198,29 +209,29 @@ def test_help_says_the_default_knots(command, capsys):
 
 
 @pytest.mark.parametrize("args,message", [
-    (["--iterations", "3"], "--iterations does not apply to solver 'qp': it applies to solver ipopt with --method rti"),
+    (["--iterations", "3"], "--iterations does not apply to solver 'qp': it applies to solver rti"),
     (["--solver", "ipopt", "--iterations", "3"], "--iterations does not apply to solver 'ipopt' with --method ipopt:"),
     (["--solver", "ipopt", "--method", "sqp", "--iterations", "3"],
      "--iterations does not apply to solver 'ipopt' with --method sqp:"),
     (["--solver", "cem", "--iterations", "2"], "--iterations does not apply to solver 'cem':"),
-    (["--method", "rti"], "--method does not apply to solver 'qp': it applies to solver ipopt"),
+    (["--method", "sqp"], "--method does not apply to solver 'qp': it applies to solver ipopt"),
     (["--solver", "ipopt", "--method", "fatrop", "--form", "sparse"],
-     "--form does not apply to solver 'ipopt' with --method fatrop: it applies to solver qp, and solver ipopt with "
-     "--method rti"),
+     "--form does not apply to solver 'ipopt' with --method fatrop: it applies to solvers qp, rti"),
     (["--solver", "ipopt", "--qp", "osqp"], "--qp does not apply to solver 'ipopt' with --method ipopt:"),
     (["--solver", "ipopt", "--linearization", "plan"],
      "--linearization does not apply to solver 'ipopt' with --method ipopt --dynamics nonlinear:"),
-    (["--solver", "ipopt", "--method", "rti", "--linearization", "trajectory"],
-     "--linearization does not apply to solver 'ipopt' with --method rti (--method rti always linearizes along its "
-     "iterate)"),
+    (["--solver", "rti", "--linearization", "trajectory"],
+     "--linearization does not apply to solver 'rti' (it always linearizes along its iterate)"),
     (["--solver", "ipopt", "--method", "sqp", "--dynamics", "affine", "--linearization", "trajectory"],
      "--linearization trajectory applies to solver qp only; solver 'ipopt' with --method sqp takes goal or plan"),
     (["--solver", "empc", "--linearization", "trajectory"],
      "--linearization trajectory applies to solver qp only; solver 'empc' takes goal or plan"),
     (["--solver", "mppi", "--dynamics", "nonlinear", "--variant", "paper", "--linearization", "plan"],
      "--linearization does not apply to solver 'mppi' with --dynamics nonlinear --variant paper:"),
-    (["--solver", "ipopt", "--method", "rti", "--dynamics", "affine"],
-     "--dynamics does not apply to solver 'ipopt' with --method rti:"),
+    (["--solver", "rti", "--dynamics", "affine"], "--dynamics does not apply to solver 'rti':"),
+    (["--solver", "ipopt", "--method", "fatrop", "--dynamics", "nonlinear"],
+     "--dynamics does not apply to solver 'ipopt' with --method fatrop: it applies to solver ipopt with --method "
+     "ipopt or sqp, and solvers empc, cem, mppi"),
     (["--dynamics", "affine"], "--dynamics does not apply to solver 'qp':"),
     (["--population", "8"], "--population does not apply to solver 'qp': it applies to solvers empc, cem, mppi"),
     (["--knots", "3", "--parameterization", "identity"],
@@ -286,7 +297,7 @@ def test_version(capsys):
 
 
 def test_integrator_option_reaches_the_controllers_ocp(tmp_path, capsys):
-    args = ["simulate", "nlink:2", "--solver", "ipopt", "--method", "rti", "--duration", "0.1", "--json",
+    args = ["simulate", "nlink:2", "--solver", "rti", "--duration", "0.1", "--json",
             "--out", str(tmp_path / "sim.png")]
     assert main(args + ["--integrator", "euler"]) == 0
     assert "integrator='euler'" in json.loads(capsys.readouterr().out)["controller"]

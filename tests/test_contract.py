@@ -139,6 +139,21 @@ def test_every_registered_solver_has_configurations():
     assert all(c.solver in solvers.names() for c in CONFIGS if c not in EXPORTED)
 
 
+def test_the_benchmarks_name_controllers_from_the_registry():
+    """Issue 45: one list of controller names (solvers.CONTROLLERS: every solver by its name, and variants), which
+    `ocpkit bench nlp` and `startup` take; real-time iteration is the solver "rti", no longer "rti1" of bench nlp."""
+    from ocpkit.benchmarks import nlp, startup
+    from ocpkit.solvers.rti import RealTimeIteration
+
+    assert set(solvers.names()) <= set(solvers.CONTROLLERS)
+    assert set(nlp.CONTROLLERS) | set(startup.CONTROLLERS) - {"exported"} <= set(solvers.CONTROLLERS)
+    ocp = make("nlink:2").ocp(knots=3, horizon=10)
+    rti3 = nlp.controller("rti3", ocp)
+    assert type(rti3) is RealTimeIteration and rti3.iterations == 3
+    with pytest.raises(ValueError, match="unknown controller 'rti1'"):
+        nlp.controller("rti1", ocp)
+
+
 @pytest.mark.parametrize("config", [pytest.param(c, id=c.label) for c in CONFIGS])
 def test_contract_closed_loop_on_the_pendulum(config, problems):
     """Every configuration brings the pendulum to a goal it can hold, every step within the contract."""

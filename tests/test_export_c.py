@@ -99,3 +99,16 @@ def test_step_allocations_after_init(case, per_step, tmp_path):
     steps, allocations, frees = (int(counts[k]) for k in ("steps", "allocations", "frees"))
     assert steps == 31  # the warm-up step and the loop's 30
     assert allocations == frees == per_step * steps, result.stderr
+
+
+@pytest.mark.parametrize("case", ["nlink:3 LTI, DAQP", "puma560 RTI, 2 iterations", "nlink:3 osqp"])
+def test_ocpkits_c_names_its_codes_and_casts_nothing_away(case, tmp_path):
+    """Issue 45, item 5: the Γ schedule's operations and the solver's returns by name (from the Python tables), no
+    (void) casts of unused variables, no function-like macros (the GEMM and the sensitivities are functions)."""
+    from ocpkit.export.constants import GRAM_CODES
+
+    text = (_export(case, tmp_path / "export") / "mpc.c").read_text()
+    assert not re.search(r"\(void\) *\w+;", text)
+    assert not re.search(r"^\s*#\s*define \w+\(", text, re.M)
+    assert "enum { " + ", ".join(f"GRAM_{name} = {code}" for name, code in GRAM_CODES.items()) + " };" in text
+    assert not re.search(r"\bcode (==|-) \d", text) and not re.search(r"\brc == -?\d", text)

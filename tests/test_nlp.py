@@ -12,6 +12,7 @@ from ocpkit.model.dynamics import Model
 from ocpkit.model.ocp import OCP
 from ocpkit.model.parameterization import Parameterization
 from ocpkit.sim.simulate import simulate
+from ocpkit.solvers.methods import METHODS
 from ocpkit.solvers.nlp import NonlinearMPC
 from ocpkit.solvers.qp import LinearMPC
 
@@ -204,7 +205,7 @@ def test_nan_model_reports_nan():
     ({"dynamics": "linear"}, "dynamics"), ({"method": "fmincon"}, "method"), ({"max_iter": 0}, "max_iter"),
     ({"time_limit": -1.0}, "time_limit"), ({"method": "fatrop", "time_limit": 1.0}, "time_limit"),
     ({"linearization": "state"}, "linearization"), ({"hessian": "newton"}, "hessian"),
-    ({"method": "rti", "hessian": "exact"}, "hessian"),
+    ({"method": "rti"}, "solvers.make"), ({"method": "fatrop", "dynamics": "affine"}, "dynamics"),
     ({"options": {"no_such_option": 1}}, "no_such_option"), ({"options": {"qpsol": "nosuch"}, "method": "sqp"}, "options"),
 ])
 def test_bad_options_raise_value_error(kwargs, word):
@@ -215,15 +216,28 @@ def test_bad_options_raise_value_error(kwargs, word):
         NonlinearMPC(ocp, options=[("tol", 1e-6)])
 
 
-NLP_METHODS = ("ipopt", "sqp", "fatrop", "rti")
+NLP_METHODS = tuple(METHODS)
 # For each method an option its solver takes, the baseline's options, and the option's effect on one step from the
 # start: a predicate of the Solution that the baseline's step does not meet.
 APPLIES = {
     "ipopt": ({"max_cpu_time": 1e-9}, None, lambda sol: sol.raw_status == "Maximum_CpuTime_Exceeded"),
     "sqp": ({"tol_pr": 1e3, "tol_du": 1e3}, None, lambda sol: sol.ok and sol.iterations <= 1),
     "fatrop": ({"tol": 1e-1}, None, lambda sol: sol.ok and sol.iterations <= 4),
-    "rti": ({"native": True}, {"native": False}, lambda sol: sol.ok and sol.path == "C step"),
 }
+
+
+@pytest.mark.parametrize("method", NLP_METHODS)
+def test_each_method_takes_the_arguments_of_its_table(method):
+    """Issue 45: one table (ocpkit.solvers.methods.METHODS, read by the CLI too) says which of NonlinearMPC's arguments
+    each method takes and their defaults there; any other given is refused naming the methods that take it (fatrop
+    had ignored a linearization)."""
+    ocp = problems.make("nlink:2").ocp(horizon=20, knots=3)
+    ctrl = NonlinearMPC(ocp, method=method)
+    assert (ctrl.max_iter, ctrl.hessian) == (METHODS[method]["max_iter"].default, METHODS[method]["hessian"].default)
+    for name in set().union(*METHODS.values()) - set(METHODS[method]):
+        value = {"dynamics": "affine", "linearization": "plan", "time_limit": 1.0}[name]
+        with pytest.raises(ValueError, match=f"{name} does not apply to method '{method}': it applies to methods"):
+            NonlinearMPC(ocp, method=method, **{name: value})
 
 
 @pytest.mark.parametrize("method", NLP_METHODS)
@@ -247,12 +261,11 @@ def test_an_option_of_each_method_applies(method):
     ("qpsol", ""), ("tol", "tol"),
 ])
 def test_an_option_that_does_not_apply_is_refused_naming_it_and_the_method(method, option, hint):
-    """Refused at construction with one line naming the option and the method (and the argument that sets it): rti's
-    tol and max_iter raised TypeError (given twice), its max_wall_time a TypeError naming LinearMPC, fatrop's unknown
-    options failed every step as "exception"."""
+    """Refused at construction with one line naming the option and the method (and the argument that sets it):
+    fatrop's unknown options failed every step as "exception"."""
     valid = {("ipopt", "tol"), ("fatrop", "tol"), ("sqp", "qpsol")}  # the solver's own options: they apply
     if (method, hint) in {("fatrop", "time_limit"), ("ipopt", "tol"), ("sqp", "tol"), ("fatrop", "tol")}:
-        hint = ""  # fatrop takes no time limit; tol is NonlinearMPC's argument for rti only
+        hint = ""  # fatrop takes no time limit; tol is the solver's own option
     ocp = problems.make("nlink:2").ocp(horizon=20, knots=3)
     options = {option: "osqp" if option == "qpsol" else 0.5}
     if (method, option) in valid:

@@ -3,10 +3,13 @@
 import numpy as np
 import pytest
 
+from ocpkit import solvers
+from ocpkit.status import LIMITED
 from ocpkit.problems import make
 from ocpkit.sim.simulate import simulate
-from ocpkit.solvers.nlp import NonlinearMPC, RealTimeIteration
+from ocpkit.solvers.nlp import NonlinearMPC
 from ocpkit.solvers.qp import LinearMPC
+from ocpkit.solvers.rti import RealTimeIteration
 
 
 
@@ -24,7 +27,7 @@ def test_iterated_rti_converges_to_ipopts_optimum(form, knots):
     ocp = prob.ocp(knots=knots)
     x0, goal = prob.sample(0)
     ref = _ipopt(ocp, x0, goal)
-    rti = NonlinearMPC(ocp, method="rti", form=form, iterations=60, tol=1e-11)
+    rti = RealTimeIteration(ocp, form=form, iterations=60, tol=1e-11)
     sol = rti.solve(x0, goal)
     assert sol.ok and sol.iterations > 0
     np.testing.assert_allclose(sol.knots, ref.knots, atol=1e-6)
@@ -38,7 +41,7 @@ def test_one_rti_step_moves_towards_the_optimum_and_stays_a_plan():
     ref = _ipopt(ocp, x0, goal)
     errors = []
     for k in (1, 2, 4):
-        sol = NonlinearMPC(ocp, method="rti", iterations=k).solve(x0, goal)
+        sol = RealTimeIteration(ocp, iterations=k).solve(x0, goal)
         assert sol.ok
         errors.append(np.abs(sol.knots - ref.knots).max())
     assert errors[2] < errors[0]
@@ -49,7 +52,7 @@ def test_rti_is_the_trajectory_linear_mpc_with_one_iteration():
     prob = make("nlink:2")
     ocp = prob.ocp(knots=4)
     x0, goal = prob.sample(0)
-    a = simulate(prob.plant(), NonlinearMPC(ocp, method="rti"), x0, goal, 0.2)
+    a = simulate(prob.plant(), RealTimeIteration(ocp), x0, goal, 0.2)
     b = simulate(prob.plant(), LinearMPC(ocp, linearization="trajectory"), x0, goal, 0.2)
     np.testing.assert_allclose(a.u, b.u, atol=1e-9)
 
@@ -60,7 +63,7 @@ def test_rti_on_the_compiled_model_is_the_rti_on_the_sx_model(tmp_path, monkeypa
     monkeypatch.setenv("OCPKIT_CACHE_DIR", str(tmp_path))
     prob = make("nlink:2")
     x0, goal = prob.sample(1)
-    trajs = [simulate(prob.plant(), NonlinearMPC(prob.ocp(knots=4, compiled=compiled), method="rti", iterations=2),
+    trajs = [simulate(prob.plant(), RealTimeIteration(prob.ocp(knots=4, compiled=compiled), iterations=2),
                       x0, goal, 0.1) for compiled in (False, True)]
     assert all(t.fallbacks == 0 for t in trajs)
     np.testing.assert_allclose(trajs[1].u, trajs[0].u, rtol=0, atol=1e-10)
@@ -69,15 +72,28 @@ def test_rti_on_the_compiled_model_is_the_rti_on_the_sx_model(tmp_path, monkeypa
 def test_rti_options_are_checked():
     ocp = make("nlink:2").ocp(knots=3)
     with pytest.raises(ValueError, match="iterations"):
-        NonlinearMPC(ocp, method="rti", iterations=0)
-    with pytest.raises(ValueError, match="method 'rti'"):
-        NonlinearMPC(ocp, iterations=3)
+        RealTimeIteration(ocp, iterations=0)
     with pytest.raises(ValueError, match="tol"):
         RealTimeIteration(ocp, tol=-1.0)
-    with pytest.raises(ValueError, match="dynamics"):
-        NonlinearMPC(ocp, method="rti", dynamics="affine")
+    with pytest.raises(ValueError, match="takes no linearization"):
+        RealTimeIteration(ocp, linearization="goal")
     with pytest.raises(ValueError, match="form"):
-        NonlinearMPC(ocp, method="rti", form="dense")
+        RealTimeIteration(ocp, form="dense")
+
+
+def test_rti_is_its_own_solver():
+    """Issue 45: real-time iteration is the registered solver "rti", no longer a method of NonlinearMPC, which refuses
+    method "rti" in one line naming the new way; its options apply (native: the C step; max_iter: each QP's)."""
+    prob = make("nlink:2")
+    ocp = prob.ocp(horizon=20, knots=3)
+    x0, goal = prob.sample(0)
+    assert "rti" in solvers.names() and type(solvers.make("rti", ocp)) is RealTimeIteration
+    with pytest.raises(ValueError, match=r"solvers.make\('rti'") as error:
+        NonlinearMPC(ocp, method="rti")
+    assert "\n" not in str(error.value)
+    assert RealTimeIteration(ocp, native=False).solve(x0, goal).path != "C step"
+    assert solvers.make("rti", ocp, native=True).solve(x0, goal).path == "C step"
+    assert RealTimeIteration(ocp, max_iter=1, native=False).solve(x0, goal).status == LIMITED
 
 
 def test_rti_time_budget_falls_back():
@@ -85,7 +101,7 @@ def test_rti_time_budget_falls_back():
     prob = make("nlink:3")
     ocp = prob.ocp(knots=5)
     x0, goal = prob.sample(0)
-    rti = NonlinearMPC(ocp, method="rti", iterations=3)
+    rti = RealTimeIteration(ocp, iterations=3)
     rti.solve(x0, goal)  # calibrates the measured costs
     rti.time_limit = 1e-9
     sol = rti.solve(x0, goal)
@@ -128,6 +144,6 @@ def test_fatrop_reaches_ipopts_optimum_on_the_puma():
 def test_rti_swings_the_cartpole_up(cartpole):
     x0, goal = np.r_[0.0, np.pi, 0.0, 0.0], np.zeros(4)
     ocp = cartpole.ocp(knots=10)
-    traj = simulate(cartpole.plant(), NonlinearMPC(ocp, method="rti"), x0, goal, 3.0)
+    traj = simulate(cartpole.plant(), RealTimeIteration(ocp), x0, goal, 3.0)
     assert traj.fallbacks == 0
     assert np.abs(traj.x[-1] - goal).max() <= 0.05

@@ -6,7 +6,7 @@ import pytest
 from ocpkit import problems
 from ocpkit.export import export
 from ocpkit.sim.simulate import simulate
-from ocpkit.solvers.nlp import NonlinearMPC, RealTimeIteration
+from ocpkit.solvers.rti import RealTimeIteration
 from ocpkit.solvers.qp import LinearMPC
 from ocpkit.model.task import FramePosition, Task
 
@@ -32,14 +32,14 @@ def test_c_step_equals_python_rti_in_closed_loop(name, horizon, iterations, tol,
             assert sc.certificate is not None and sc.certificate.failed() is None
 
 
-def test_linear_mpc_trajectory_and_nonlinear_rti_take_the_c_step():
+def test_linear_mpc_trajectory_and_rti_take_the_c_step():
     prob = problems.make("nlink:3")
     ocp = prob.ocp(knots=4, horizon=30)
     ltv = LinearMPC(ocp, linearization="trajectory", native=True)
-    rti = NonlinearMPC(ocp, method="rti", options={"native": True})
+    rti = RealTimeIteration(ocp, native=True)
     x0, goal = prob.sample(2)
     a, b = ltv.solve(x0, goal), rti.solve(x0, goal)
-    assert "C step" in repr(ltv) and "C step" in repr(rti._rti)
+    assert "C step" in repr(ltv) and "C step" in repr(rti)
     assert a.ok and b.ok and a.times["model"] > 0  # measured in C
     np.testing.assert_allclose(a.knots, b.knots, rtol=0, atol=1e-12)
 

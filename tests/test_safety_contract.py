@@ -128,7 +128,7 @@ def test_no_success_inside_an_obstacle_that_contains_the_arm(nlink3):
 
 PANDA_CONFIGS = [c for c in CONFIGS if c.solver == "qp" and c.options.get("form") == "condensed"
                  and c.options.get("qp") == "daqp" and not c.options.get("native")] + \
-                [c for c in CONFIGS if c.options.get("method") == "rti" and "iterations" not in c.options]
+                [c for c in CONFIGS if c.solver == "rti" and "iterations" not in c.options]
 
 
 def _panda_readme_case():

@@ -106,7 +106,7 @@ def test_iterated_rti_reaches_ipopts_optimum_with_an_active_obstacle(nlink3):
     goal = ocp.goal(x0, position=target)
     assert np.asarray(ocp.task_functions.clearance(x0)[0]).min() > 0
     ref = solvers.make("ipopt", ocp, options={"tol": 1e-10}).solve(x0, goal)
-    rti = solvers.make("ipopt", ocp, method="rti", iterations=60, tol=1e-11, state_bounds="hard").solve(x0, goal)
+    rti = solvers.make("rti", ocp, iterations=60, tol=1e-11, state_bounds="hard").solve(x0, goal)
     assert ref.ok and rti.ok, (ref.raw_status, rti.raw_status)
     assert "converged" in rti.raw_status and "not iterated" not in rti.raw_status, rti.raw_status
     clearance = np.asarray(ocp.task_functions.clearance.map(HORIZON)(ref.x_pred[1:].T)[0])
@@ -115,7 +115,7 @@ def test_iterated_rti_reaches_ipopts_optimum_with_an_active_obstacle(nlink3):
 
 
 @pytest.mark.parametrize("solver, options", [("qp", {}), ("qp", {"linearization": "trajectory"}),
-                                             ("ipopt", {"method": "rti"}),
+                                             ("rti", {}),
                                              pytest.param("ipopt", {}, marks=pytest.mark.slow),  # 1.5 s of IPOPT
                                              ("empc", {"population": 128, "arch": "cpu", "dynamics": "nonlinear"})])
 def test_reach_around_an_obstacle_in_closed_loop(nlink3, solver, options):

@@ -372,6 +372,7 @@ def compare(problems=PROBLEMS, horizon: int | None = 50, knots: int | None = 5, 
     for its goal before the timed steps.
     """
     from ocpkit.solvers.nlp import NonlinearMPC
+    from ocpkit.solvers.rti import RealTimeIteration
 
     require()
     seeds, steps, repeats = integer(seeds, "seeds", 1), integer(steps, "steps", 2), integer(repeats, "repeats", 1)
@@ -381,10 +382,10 @@ def compare(problems=PROBLEMS, horizon: int | None = 50, knots: int | None = 5, 
     # name -> (controller of (problem, its OCP), its OCP: "T" (p = T, RK4), "euler" (p = T) or "knots")
     solvers = {"fddp rk4": (CrocoddylMPC, "T"), "fddp euler": (CrocoddylMPC, "euler"),
                "ipopt": (lambda prob, ocp: NonlinearMPC(ocp), "T"),
-               "rti": (lambda prob, ocp: NonlinearMPC(ocp, method="rti"), "T")}
+               "rti": (lambda prob, ocp: RealTimeIteration(ocp), "T")}
     if knots is not None:
         solvers[f"ipopt p={knots}"] = (lambda prob, ocp: NonlinearMPC(ocp), "knots")
-        solvers[f"rti p={knots}"] = (lambda prob, ocp: NonlinearMPC(ocp, method="rti"), "knots")
+        solvers[f"rti p={knots}"] = (lambda prob, ocp: RealTimeIteration(ocp), "knots")
     rows = []
     for spec in problems:
         prob = undamped(spec)
@@ -417,6 +418,8 @@ def compare(problems=PROBLEMS, horizon: int | None = 50, knots: int | None = 5, 
 
 def _run(ctrl, ocp: OCP, x0, goal, steps: int, repeats: int) -> dict:
     """``steps`` MPC steps of ``ctrl`` on ocpkit's discrete model from x0: cold/warm times, iterations, cost."""
+    from ocpkit.solvers.rti import RealTimeIteration
+
     croc = isinstance(ctrl, CrocoddylMPC)
     # One untimed solve first: a new controller's first step pays one-offs that are no solver's work (the thread
     # limiter's scan of the loaded libraries, first calls; FDDP's problem built for this goal; RTI's QP set-up).
@@ -428,7 +431,7 @@ def _run(ctrl, ocp: OCP, x0, goal, steps: int, repeats: int) -> dict:
         x = np.asarray(F(x, sols[-1].u), dtype=float).ravel()
     cold, warm = sols[0], sols[1:]
     inputs = ctrl.ocp.parameterization.inputs(cold.knots)
-    rti = getattr(ctrl, "method", None) == "rti"
+    rti = isinstance(ctrl, RealTimeIteration)
     out = {"cold_ms": 1e3 * cold.times["total"], "warm_ms": 1e3 * float(np.median([s.times["total"] for s in warm])),
            "cold_iterations": np.nan if rti else cold.iterations,
            "warm_iterations": np.nan if rti else float(np.median([s.iterations for s in warm])),

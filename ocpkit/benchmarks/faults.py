@@ -417,6 +417,7 @@ def unbounded_default_rows() -> list[RealTimeRow]:
     import io
 
     from ocpkit import cli
+    from ocpkit.cli.checks import check_size
 
     rows = []
     for name, options, start in (("nlink:3", {}, 9e5), ("nlink:13", {"max_iter": 5}, None)):
@@ -436,7 +437,7 @@ def unbounded_default_rows() -> list[RealTimeRow]:
     err = io.StringIO()
     t0 = time.perf_counter()
     with contextlib.redirect_stderr(err):
-        cli._check_size(problems.make("pendulum"), args)
+        check_size(problems.make("pendulum"), args)
     wall = time.perf_counter() - t0
     said = "warning" in err.getvalue()
     rows.append(RealTimeRow("no budget given", "cli solve --form sparse", "pendulum T = 10⁶: "

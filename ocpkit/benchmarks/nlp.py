@@ -1,4 +1,5 @@
-"""Nonlinear MPC side by side: IPOPT, fatrop, real-time iteration (1 and 3 SQP steps) and LinearMPC (LTI, LTV).
+"""Nonlinear MPC side by side: IPOPT, fatrop, real-time iteration (1 and 3 SQP steps) and LinearMPC (LTI, LTV),
+the controllers of :data:`ocpkit.solvers.CONTROLLERS` by name ("ipopt", "fatrop", "rti", "rti3", "qp", "ltv").
 
 For each problem and seeded start/goal every controller runs its own closed loop on the plant (the same
 starts, goals and duration); the table gives each one's time to its steady state (construction plus the
@@ -29,13 +30,14 @@ from pathlib import Path
 import numpy as np
 
 from ocpkit import problems as registry
+from ocpkit import solvers
 from ocpkit._checks import integer
 from ocpkit.benchmarks import crocoddyl_peer
 from ocpkit.sim.metrics import actual_cost
 from ocpkit.sim.simulate import simulate
 
 ROBOTS = ("nlink:3", "nlink:7", "puma560", "baxter")
-CONTROLLERS = ("ipopt", "fatrop", "rti1", "rti3", "lti", "ltv")
+CONTROLLERS = ("ipopt", "fatrop", "rti", "rti3", "qp", "ltv")  # the default columns, names of solvers.CONTROLLERS
 PEERS = ("crocoddyl",)  # other libraries' controllers, run only when asked for
 # Warm steps of the peers' per-solve comparison at most (IPOPT at p = T takes a second a solve on the Puma).
 PER_SOLVE_STEPS = 10
@@ -69,27 +71,20 @@ def default_problems() -> list[str]:
 
 
 def controller(kind: str, ocp, problem=None):
-    """One of CONTROLLERS or PEERS for ``ocp`` (the peer "crocoddyl": on ``problem``'s p = T OCP of that horizon)."""
-    from ocpkit.solvers.nlp import NonlinearMPC
-    from ocpkit.solvers.qp import LinearMPC
-
+    """A controller of :data:`ocpkit.solvers.CONTROLLERS` or PEERS for ``ocp`` (the peer "crocoddyl": on
+    ``problem``'s p = T OCP of that horizon)."""
     if kind == "crocoddyl":
         return crocoddyl_peer.CrocoddylMPC(problem, problem.ocp(knots=None, horizon=ocp.horizon,
                                                                 integrator=ocp.integrator))
-    if kind == "ipopt":
-        return NonlinearMPC(ocp)
-    if kind == "fatrop":
-        return NonlinearMPC(ocp, method="fatrop")
-    if kind.startswith("rti"):
-        return NonlinearMPC(ocp, method="rti", iterations=int(kind[3:]))
-    return LinearMPC(ocp, linearization="goal" if kind == "lti" else "trajectory")
+    return solvers.controller(kind, ocp)
 
 
 def bench_nlp(problems=None, knots: int | None = 5, horizon: int | None = 50, samples: int = 3, steps: int = 50, *,
               controllers=CONTROLLERS, compiled: bool = False, integrator: str = "rk4", first_seed: int = 0,
               echo: bool = True) -> list[dict]:
     """Median step time (ms), closed-loop actual-cost ratio to IPOPT, fallbacks and final error of every
-    controller in CONTROLLERS, one row per problem × controller.
+    controller in ``controllers`` (names of :data:`ocpkit.solvers.CONTROLLERS`; default CONTROLLERS), one row per
+    problem × controller.
 
     ``knots`` None is traditional MPC (p = T); ``horizon`` None is the problem's own. The cart-pole swing-up
     keeps its own horizon (1 s, 100 steps: half of it cannot see the pole come up) with 10 knots, and runs
@@ -110,9 +105,10 @@ def bench_nlp(problems=None, knots: int | None = 5, horizon: int | None = 50, sa
     samples, steps = integer(samples, "samples", 1), integer(steps, "steps", 1)
     first_seed = integer(first_seed, "first_seed", 0)
     controllers = tuple(controllers)
-    unknown = [c for c in controllers if c not in CONTROLLERS + PEERS]
+    known = tuple(solvers.CONTROLLERS) + PEERS
+    unknown = [c for c in controllers if c not in known]
     if unknown or not controllers:
-        raise ValueError(f"controllers must be among {CONTROLLERS + PEERS}, got {controllers}")
+        raise ValueError(f"controllers must be among {known}, got {controllers}")
     peer = "crocoddyl" in controllers
     if peer:
         crocoddyl_peer.require()

@@ -7,7 +7,7 @@ Python: its bindings' overhead included); and each integrator's one-step error, 
 max |F(x, u) − x⁺| with x⁺ from RK4 over 100 sub-steps.
 
 :func:`bench_integrators`: closed loops on the plant (RK4, never changed) of the real-time iteration
-(``NonlinearMPC(ocp, method="rti")``, its Python step, so that the integrator measured is :mod:`ocpkit.model.dynamics`'s) and
+(``RealTimeIteration(ocp)``, solver "rti", its Python step, so that the integrator measured is :mod:`ocpkit.model.dynamics`'s) and
 of IPOPT, each predicting with each integrator: actual costs (:func:`ocpkit.sim.metrics.actual_cost`) per seed as ratios,
 IPOPT with RK4 the reference. A problem named "cartpole" (the README's) swings up from hanging as in
 :func:`ocpkit.benchmarks.nlp.bench_nlp`.
@@ -89,14 +89,14 @@ def bench_sensitivities(problems=("puma560", "baxter", "nlink:13", "panda"), *, 
 
 def bench_integrators(problems=("puma560", "baxter", "nlink:13", "cartpole"), *, seeds=(0, 1, 2), steps: int = 50,
                       knots: int = 5, horizon: int = 50, methods=("rti", "ipopt"), out=print) -> list[dict]:
-    """Closed-loop actual cost, median step (ms) and final error max |x_H − x_goal| of ``methods`` (NonlinearMPC's
+    """Closed-loop actual cost, median step (ms) and final error max |x_H − x_goal| of ``methods`` (the solvers
     "rti", one iteration, and "ipopt", converged: what the integrator costs without RTI's inexactness) with each
     integrator, over ``steps`` control steps from ``problem.sample(seed)``, and the cost ratios euler/rk4 per method
     and, with "ipopt", RTI's over IPOPT's with RK4 (the reference); one row per problem and seed. "cartpole" is the
     README's cart-pole swinging up (10 knots, its own horizon, its duration + 1 s) as in
     :func:`ocpkit.benchmarks.nlp.bench_nlp`."""
     from ocpkit.benchmarks.nlp import readme_cartpole
-    from ocpkit.solvers.nlp import NonlinearMPC
+    from ocpkit import solvers
 
     kinds = [f"{m} {i}" for m in methods for i in INTEGRATORS]
     ratios = {f"{m} e/r": (f"{m} euler", f"{m} rk4") for m in methods}
@@ -115,7 +115,7 @@ def bench_integrators(problems=("puma560", "baxter", "nlink:13", "cartpole"), *,
             ocp.affine()  # compiled (or loaded from the cache) before any step is timed
         duration = problem.duration + 1.0 if swing else steps * ocps["rk4"].dt
         # RTI's Python step: where LinearMPC would build its C step (ocpkit.export.native), that one has its own integrator
-        controllers = {f"{m} {i}": NonlinearMPC(ocps[i], method=m, options={"native": False} if m == "rti" else None)
+        controllers = {f"{m} {i}": solvers.make(m, ocps[i], **({"native": False} if m == "rti" else {}))
                        for m in methods for i in INTEGRATORS}
         for seed in seeds:
             x0, goal = problem.sample(seed)

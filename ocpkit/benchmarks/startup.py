@@ -27,7 +27,8 @@ import time
 import numpy as np
 
 PROBLEMS = ("nlink:13", "puma560", "panda")  # panda: a 7-DoF arm read from its URDF
-CONTROLLERS = ("linear", "linear-python", "rti", "ipopt", "fatrop", "empc", "cem", "mppi", "exported")
+# The default rows: names of ocpkit.solvers.CONTROLLERS, and "exported" (export + build + ExportedMPC)
+CONTROLLERS = ("qp", "qp-python", "rti", "ipopt", "fatrop", "empc", "cem", "mppi", "exported")
 KNOTS = 5
 PARTS = ("import", "symbolic", "setup", "codegen", "translate", "taichi", "C build", "first step")
 INNER = ("codegen", "translate", "taichi", "C build")  # timed inside the constructor or the first steps
@@ -39,11 +40,13 @@ def bench_startup(problems=PROBLEMS, controllers=CONTROLLERS, timeout: float = 9
                   out=print) -> list[dict]:
     """Every controller on every problem, empty cache then warm, each in a fresh process; prints a table per
     problem and returns its rows."""
+    from ocpkit import solvers
     from ocpkit.benchmarks.nlp import _load
 
-    unknown = [c for c in controllers if c not in CONTROLLERS]
+    known = (*solvers.CONTROLLERS, "exported")
+    unknown = [c for c in controllers if c not in known]
     if unknown:
-        raise ValueError(f"controllers must be among {', '.join(CONTROLLERS)}, got {', '.join(unknown)}")
+        raise ValueError(f"controllers must be among {', '.join(known)}, got {', '.join(unknown)}")
     out(f"start-up, fresh process per run, {KNOTS} knots; machine load {_load()}", flush=True)
     rows = []
     for problem in problems:
@@ -100,17 +103,10 @@ def _ms(value) -> str:
 
 
 def _make(name: str, ocp):
-    """The controller ``name`` of :data:`CONTROLLERS` on ``ocp``, as a user constructs it."""
+    """The controller ``name`` (of :data:`ocpkit.solvers.CONTROLLERS`, or "exported") on ``ocp``, as a user constructs
+    it."""
     from ocpkit import solvers
-    from ocpkit.solvers.nlp import NonlinearMPC
-    from ocpkit.solvers.qp import LinearMPC
 
-    if name == "linear":
-        return LinearMPC(ocp)
-    if name == "linear-python":
-        return LinearMPC(ocp, native=False)
-    if name in ("rti", "ipopt", "fatrop"):
-        return NonlinearMPC(ocp, method=name)
     if name == "exported":
         from ocpkit.export import ExportedMPC, build, export
 
@@ -118,7 +114,7 @@ def _make(name: str, ocp):
         export(ocp, folder)
         build(folder)
         return ExportedMPC(ocp, folder)
-    return solvers.make(name, ocp)
+    return solvers.controller(name, ocp)
 
 
 def _timed(split: dict, part: str, owner, attribute: str, first_only: bool = False) -> None:

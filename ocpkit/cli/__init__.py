@@ -48,16 +48,17 @@ def _add_controller_args(p):
     _add_problem_args(p)
     p.add_argument("--solver", default="qp", help=f"solver: {', '.join(solvers.names())} (default qp)")
     p.add_argument("--form", choices=("sparse", "condensed"),
-                   help="qp, ipopt --method rti: QP transcription (default condensed)")
+                   help="qp, rti: QP transcription (default condensed)")
     p.add_argument("--qp", choices=QP_BACKENDS,
-                   help="qp, ipopt --method rti: QP backend (default daqp for condensed, proxqp for sparse; hpipm: "
+                   help="qp, rti: QP backend (default daqp for condensed, proxqp for sparse; hpipm: "
                         "sparse traditional)")
     p.add_argument("--method", choices=NLP_METHODS,
                    help="ipopt: how the NLP is solved: ipopt (interior point, default), sqp (CasADi's SQP), fatrop "
-                        "(interior point with a Riccati recursion over the stages) or rti (real-time iteration: "
-                        "--iterations Gauss-Newton SQP steps per control step on the knot QP)")
+                        "(interior point with a Riccati recursion over the stages); real-time iteration is --solver "
+                        "rti")
     p.add_argument("--iterations", type=int,
-                   help="ipopt --method rti: SQP iterations per control step (default 1, the real-time iteration)")
+                   help="rti: Gauss-Newton SQP iterations per control step on the knot QP (default 1, the real-time "
+                        "iteration)")
     p.add_argument("--dynamics", choices=DYNAMICS,
                    help="ipopt --method ipopt|sqp: the prediction model (default nonlinear); empc/cem/mppi: the "
                         "rollout model (default affine, re-linearized every step)")
@@ -219,10 +220,11 @@ def _parser() -> argparse.ArgumentParser:
     bench.add_argument("--busy", type=int, help="step: busy processes for the quiet-vs-loaded comparison (default 2; "
                                                 "0 skips it)")
     bench.add_argument("--controller", action="append", metavar="NAME",
-                       help="nlp: a controller column (repeatable; default ipopt fatrop rti1 rti3 lti ltv); crocoddyl "
+                       help="nlp: a controller column (repeatable; default ipopt fatrop rti rti3 qp ltv); crocoddyl "
                             "adds Crocoddyl's FDDP and its per-solve table (pip install \"ocpkit[peers]\"); startup: "
-                            "a controller row (repeatable; default linear linear-python rti ipopt fatrop empc cem mppi "
-                            "exported)")
+                            "a controller row (repeatable; default qp qp-python rti ipopt fatrop empc cem mppi "
+                            "exported); the names: the solvers (qp, rti, ipopt, empc, cem, mppi) and qp-python, ltv, "
+                            "rti3, fatrop")
     return parser
 
 

@@ -7,7 +7,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from ocpkit.cli.options import knot_count
+from ocpkit.cli.options import QP_SOLVERS, knot_count
 
 def check_output_folder(path, option: str) -> None:
     """``path`` is (or can be created as) a folder this process can write into."""
@@ -70,7 +70,7 @@ def check_size(problem, args) -> None:
     nx, nu = model.nx, model.nu
     knots = knot_count(problem, args)
     p = T if knots is None else max(1, knots)
-    qp_based = args.solver == "qp" or args.method == "rti"
+    qp_based = args.solver in QP_SOLVERS
     condensed = qp_based and (args.form or "condensed") == "condensed"
     entries = T * p + (T * nx * p * nu + (p * nu) ** 2 if condensed or not qp_based else 0)
     need = 8.0 * entries

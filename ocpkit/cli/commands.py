@@ -32,7 +32,7 @@ BENCHMARKS = {
     "step": ("step", "bench_step", {"links": (1, 7, 13), "steps": 10}),
     "task": ("task", "bench_task", {"problems": ("panda",), "steps": 100, "seeds": 1}),
     "sensitivities": ("sensitivities", "bench_sensitivities", {"problems": ("puma560", "nlink:7"), "repeats": 50}),
-    "startup": ("startup", "bench_startup", {"problems": ("nlink:13",), "controllers": ("linear", "rti", "empc")}),
+    "startup": ("startup", "bench_startup", {"problems": ("nlink:13",), "controllers": ("qp", "rti", "empc")}),
 }
 
 
@@ -486,7 +486,7 @@ def _round_trip(problem, ocp, args, exported, start, steps: int = 20):
     failed."""
     from ocpkit.export import ExportedMPC
     from ocpkit.model.problem import check_dynamics
-    from ocpkit.solvers.nlp import RealTimeIteration
+    from ocpkit.solvers.rti import RealTimeIteration
     from ocpkit.solvers.qp import LinearMPC
 
     c = ExportedMPC(ocp, exported.out_dir, name=exported.name)

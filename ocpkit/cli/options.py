@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from ocpkit import solvers
 from ocpkit.controller import LINEARIZATIONS, TRAJECTORY
+from ocpkit.solvers.methods import DYNAMICS, METHODS  # noqa: F401 - DYNAMICS: the parser's choices
 
 SPEC_HELP = ("problem spec: a registered name (pendulum, pendulum:linear, nlink:N with N = 1…13, puma560, baxter, "
              "panda, urdf:FILE), package.module:Name or path/to/file.py:Name (a Problem subclass, instance or factory; "
@@ -12,9 +13,10 @@ SPEC_HELP = ("problem spec: a registered name (pendulum, pendulum:linear, nlink:
 # README's examples and the C step's size (traditional MPC, p = T, makes EMPC compile for minutes).
 DEFAULT_KNOTS = 5
 # The solvers' own choices, written out so that `ocpkit --help` does not import every solver (half a second);
-# tests/test_cli.py checks them against solvers.nlp.METHODS/DYNAMICS, solvers.qp.QP_SOLVERS, solvers.sampling.VARIANTS.
-NLP_METHODS = ("ipopt", "sqp", "fatrop", "rti")
-DYNAMICS = ("nonlinear", "affine")
+# tests/test_cli.py checks them against solvers.qp.QP_SOLVERS and solvers.sampling.VARIANTS. NonlinearMPC's methods
+# and the arguments each takes come from its own table, solvers.methods.METHODS.
+NLP_METHODS = tuple(METHODS)
+QP_SOLVERS = ("qp", "rti")  # the solvers that take --form and --qp: LinearMPC and the real-time iteration's QPs
 QP_BACKENDS = ("proxqp", "osqp", "daqp", "hpipm")
 VARIANTS = ("preconditioned", "paper")
 SAMPLING = ("empc", "cem", "mppi")
@@ -24,17 +26,23 @@ EXPORT_FORMS = ("condensed",)
 EXPORT_QPS = ("daqp", "qrqp", "osqp")
 
 
+
+def _with_methods(option: str) -> str:
+    """Solver ipopt with the methods that take ``option`` (solvers.methods.METHODS), in the command line's words."""
+    return f"solver ipopt with --method {' or '.join(m for m in METHODS if option in METHODS[m])}"
+
+
 # Solver-specific options: where each applies, as (test of the configuration, where it applies in words). A given
 # option that does not apply is an error naming it and the solver, never silently dropped.
 _SOLVER_OPTIONS = {
-    "form": (lambda c: c.solver == "qp" or c.method == "rti", "solver qp, and solver ipopt with --method rti"),
-    "qp": (lambda c: c.solver == "qp" or c.method == "rti", "solver qp, and solver ipopt with --method rti"),
+    "form": (lambda c: c.solver in QP_SOLVERS, f"solvers {', '.join(QP_SOLVERS)}"),
+    "qp": (lambda c: c.solver in QP_SOLVERS, f"solvers {', '.join(QP_SOLVERS)}"),
     "method": (lambda c: c.solver == "ipopt", "solver ipopt"),
-    "iterations": (lambda c: c.method == "rti", "solver ipopt with --method rti"),
-    "dynamics": (lambda c: c.method in ("ipopt", "sqp") or c.solver in SAMPLING,
-                 f"solver ipopt with --method ipopt or sqp, and solvers {', '.join(SAMPLING)}"),
+    "iterations": (lambda c: c.solver == "rti", "solver rti"),
+    "dynamics": (lambda c: "dynamics" in METHODS.get(c.method, ()) or c.solver in SAMPLING,
+                 f"{_with_methods('dynamics')}, and solvers {', '.join(SAMPLING)}"),
     "linearization": (lambda c: c.solver == "qp" or c.dynamics == "affine" or c.variant == "preconditioned",
-                      f"solver qp, solver ipopt with --method ipopt or sqp and --dynamics affine, and solvers "
+                      f"solver qp, {_with_methods('linearization')} and --dynamics affine, and solvers "
                       f"{', '.join(SAMPLING)} unless --dynamics nonlinear --variant paper (they linearize nothing)"),
     **{name: (lambda c: c.solver in SAMPLING, f"solvers {', '.join(SAMPLING)}")
        for name in ("population", "generations", "arch", "variant")},
@@ -47,10 +55,10 @@ class _Config:
 
     def __init__(self, args):
         self.solver = args.solver
-        self.method = (args.method or "ipopt") if args.solver == "ipopt" else None
+        self.method = (args.method or NLP_METHODS[0]) if args.solver == "ipopt" else None
         self.dynamics = self.variant = None
-        if self.method in ("ipopt", "sqp"):
-            self.dynamics = args.dynamics or "nonlinear"
+        if "dynamics" in METHODS.get(self.method, ()):
+            self.dynamics = args.dynamics or METHODS[self.method]["dynamics"].default
         elif args.solver in SAMPLING:
             self.dynamics, self.variant = args.dynamics or "affine", args.variant or "preconditioned"
 
@@ -72,8 +80,8 @@ def solver_options(args) -> dict:
     for option in given:
         applies, where = _SOLVER_OPTIONS[option]
         if not applies(config):
-            why = " (--method rti always linearizes along its iterate)" if option == "linearization" and \
-                config.method == "rti" else ""
+            why = " (it always linearizes along its iterate)" if option == "linearization" and \
+                config.solver == "rti" else ""
             raise ValueError(f"--{option} does not apply to {config.describe(option)}{why}: it applies to {where}")
     if given.get("linearization") == TRAJECTORY and args.solver != "qp":
         raise ValueError(f"--linearization trajectory applies to solver qp only; {config.describe('')} takes "

@@ -1,17 +1,23 @@
 """The numbers the exported C step is built from, written as C: its constants (input goal, shift, bounds, weights, the
-basis' pieces, the Γ schedule, the model's sparsity, the task's weights) and the return codes the C and Python share."""
+basis' pieces, the Γ schedule, the model's sparsity, the task's weights) and the named codes the C and Python share
+(the Γ schedule's operations, the certificate's return codes): each table here is the one both sides read."""
 from __future__ import annotations
 
 import numpy as np
 
+from ocpkit.qp.certificate import TESTS
 from ocpkit.qp.quadratic_program import ROUNDING_MARGIN
 from ocpkit.model.task import ACTIVATION, ROWS_PER_SPHERE
 from ocpkit.qp.transcription import CondensedQP
 
 # The C step's solver return for a "solved" answer whose certificate failed: CERT_CODE + the test's index in
-# ocpkit.qp.certificate.TESTS.
+# ocpkit.qp.certificate.TESTS, named <N>_CERT_<name> in the header.
 CERT_CODE = 9001
+CERT_NAMES = dict(zip(TESTS, ("STATIONARITY", "PRIMAL", "COMPLEMENTARITY", "DUAL_SIGN")))
 ILL_CONDITIONED = 9000  # a QP refused before its solve: Hessian ill-conditioned (QP.not_definite)
+# The Γ schedule's operations (gram_schedule), GRAM_<name> in the C step; SAVE + i saves length i.
+GRAM_CODES = {"DOUBLE": 1, "INC": 2, "RESET": 3, "SAVE": 10}
+DOUBLE, INC, RESET, SAVE = (GRAM_CODES[k] for k in ("DOUBLE", "INC", "RESET", "SAVE"))
 
 
 def gram_schedule(lengths) -> list[int]:
@@ -39,8 +45,6 @@ def gram_schedule(lengths) -> list[int]:
         ops.append(SAVE + i)
     return ops
 
-
-DOUBLE, INC, RESET, SAVE = 1, 2, 3, 10
 
 
 def _c_num(v: float) -> str:
@@ -93,6 +97,7 @@ def step_constants(tr: CondensedQP, linearization: str, jac, tf=None, iterations
             pdel[i, j] = rhs[n + m, 1 + j * m]
     ops = gram_schedule(lengths)
     lines = [
+        "enum { " + ", ".join(f"GRAM_{name} = {code}" for name, code in GRAM_CODES.items()) + " };",
         f"#define DIAG_Q {int(tr.diagonal_Q)}",
         f"#define HAS_DQT {int(np.any(tr._dQT))}",
         f"#define MODEL_RK4 {int(jac is not None)}",
@@ -118,14 +123,14 @@ def step_constants(tr: CondensedQP, linearization: str, jac, tf=None, iterations
         _c_const("double", "LBX", np.tile(ocp.u_min, p)),
         _c_const("double", "UBX", np.tile(ocp.u_max, p)),
         _c_const("double", "QH", tr._qh),
-        _c_const("int", "PIECE_A", pa),
-        _c_const("int", "PIECE_L", pl),
         _c_const("int", "PIECE_C", pc),
         _c_const("int", "PIECE_CP", [0] + pc[:-1]),
         _c_const("int", "PIECE_LEN", [lengths.index(L) for L in pl]),
         _c_const("double", "PIECE_PHI", pphi),
         _c_const("double", "PIECE_DELTA", pdel),
     ]
+    if bounded.size or tf is not None:  # the pieces' first stage and length: read by the state-bound and task rows
+        lines += [_c_const("int", "PIECE_A", pa), _c_const("int", "PIECE_L", pl)]
     if linearization == "plan":
         lines.append(_c_const("double", "W0", phi[0] @ M))
     lines.append(f"#define LIN_TRAJ {int(linearization == 'trajectory')}")

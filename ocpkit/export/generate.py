@@ -71,7 +71,7 @@ def export(ocp: OCP, out_dir, *, form: str = "condensed", qp: str = "daqp", name
     ``eps`` is the QP solver's tolerance, ``max_iter`` its iteration limit, ``polish`` OSQP's solution
     polishing; ``linearization`` "goal" linearizes about (x, u_g), "plan" about (x, ū) as LinearMPC's option
     of that name, "trajectory" stage by stage along the shifted plan: the real-time iteration of
-    :class:`~ocpkit.solvers.nlp.RealTimeIteration`, ``iterations`` Gauss–Newton steps per control step, fewer
+    :class:`~ocpkit.solvers.rti.RealTimeIteration`, ``iterations`` Gauss–Newton steps per control step, fewer
     where one moves the plan (knots and predicted states, max norm) by at most ``tol``; ``x0``, ``goal`` (with
     a task the goal vector [x_goal; targets] of ``ocp.goal``) and ``steps`` set the closed loop the example runs
     against the generated discrete model (where given, the dynamics must be finite there: else a DynamicsError

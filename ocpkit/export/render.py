@@ -3,6 +3,7 @@
 ``*.in.h`` so editors treat them as C)."""
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import casadi as ca
@@ -10,7 +11,7 @@ import jinja2
 
 from ocpkit.qp.certificate import TOL as CERT_TOL
 from ocpkit.status import INFEASIBLE, LIMITED, SOFT, STATUSES, SUCCESS
-from ocpkit.export.constants import CERT_CODE, ILL_CONDITIONED, c_array, step_constants
+from ocpkit.export.constants import CERT_CODE, CERT_NAMES, ILL_CONDITIONED, c_array, step_constants
 from ocpkit.qp.backends import DAQP_EXIT
 from ocpkit.model.task import ACTIVATION, ROWS_PER_SPHERE
 from ocpkit.model.ocp import OCP
@@ -37,6 +38,18 @@ _TEMPLATES = jinja2.Environment(loader=jinja2.PackageLoader("ocpkit.export", "te
                                 trim_blocks=True, lstrip_blocks=True, autoescape=False)
 
 
+def _failures(qp: str) -> tuple[dict, str]:
+    """The QP solver's failed returns the C step names, return → (C name, status), and where they come from; any
+    other nonzero return is "limited"."""
+    if qp == "qrqp":
+        return {4: ("QRQP_NO_SEARCH_DIRECTION", INFEASIBLE)}, "qrqp's 4: an infeasible or degenerate QP"
+    if qp == "daqp":
+        return ({flag: ("DAQP_" + re.sub(r"\W+", "_", name).upper(), status)
+                 for flag, (name, status) in DAQP_EXIT.items() if status not in (SUCCESS, LIMITED)},
+                "DAQP's exit flags, ocpkit.qp.backends.DAQP_EXIT")
+    return {}, ""
+
+
 def _render(template: str, **values) -> str:
     return _TEMPLATES.get_template(template).render(**values)
 
@@ -58,7 +71,8 @@ def header(name: str, sizes: dict, ocp: OCP, form: str, qp: str, linearization: 
                    statuses=C_STATUSES,
                    ubar=_UBAR[linearization], task=task, obstacles=task and ocp.task_functions.pairs > 0,
                    rti=linearization == "trajectory",
-                   cert_tol=repr(CERT_TOL), cert_code=CERT_CODE, ill_conditioned=ILL_CONDITIONED,
+                   cert_tol=repr(CERT_TOL), cert_code=CERT_CODE, cert_names=list(CERT_NAMES.values()),
+                   ill_conditioned=ILL_CONDITIONED,
                    **(_task_values(ocp, code=False) if task else {}))
 
 
@@ -67,15 +81,9 @@ def step(name: str, qp: str, linearization: str, tr: CondensedQP, jac, digest: l
     """``<name>.c``: the step around the generated model and QP solver, with its constants (``digest``: the OCP's
     entries, :func:`ocpkit.export.digest.ocp_entries`; ``obstacle_rows``: the most clearance rows a stage, 0 without
     obstacles)."""
-    N = name.upper()
-    # a nonzero return: qrqp's 4 is "no search direction" (an infeasible or degenerate QP); DAQP's failed exit
-    # flags as DAQP_EXIT says (its successes return 0)
-    failures = {"qrqp": {4: INFEASIBLE},
-                "daqp": {flag: status for flag, (_, status) in DAQP_EXIT.items() if status != SUCCESS}}.get(qp, {})
-    status_of_rc = "".join(f"rc == {rc} ? {N}_{status.upper()} : " for rc, status in failures.items()
-                           if status != LIMITED) + f"{N}_LIMITED"
-    return _render("step.in.c", name=name, N=N, qp=qp, status_of_rc=status_of_rc, task=tf is not None,
-                   statuses=C_STATUSES, digest=digest,
+    failures, failures_source = _failures(qp)
+    return _render("step.in.c", name=name, N=name.upper(), qp=qp, failures=failures, failures_source=failures_source,
+                   task=tf is not None, statuses=C_STATUSES, cert_names=list(CERT_NAMES.values()), digest=digest,
                    obstacles=bool(obstacle_rows), constants=step_constants(tr, linearization, jac, tf, iterations, tol,
                                                                            obstacle_rows))
 

@@ -58,7 +58,8 @@ extern "C" {
    DAQP a failed solve's return is DAQP's exit flag: -1 infeasible, -3 unbounded ({{ N }}_INFEASIBLE), -5 nonconvex
    (Hessian not positive definite) and -6 ({{ N }}_EXCEPTION), -2 cycling, -4 iteration limit ({{ N }}_LIMITED). */
 #define {{ N }}_CERT_TOL {{ cert_tol }}
-enum { {{ N }}_CERT_STATIONARITY = {{ cert_code }}, {{ N }}_CERT_PRIMAL, {{ N }}_CERT_COMPLEMENTARITY, {{ N }}_CERT_DUAL_SIGN };
+enum { {% for test in cert_names %}{{ N }}_CERT_{{ test }} = {{ cert_code + loop.index0 }}{{ ", " if not loop.last }}{% endfor %} };
+#define {{ N }}_NCERT {{ cert_names | length }}  /* the certificate's tests */
 /* The solver return of a QP refused before its solve (status {{ N }}_EXCEPTION): rounding in its Hessian beyond
    1 % of the curvature the input weight gives (the prediction model diverges over the horizon). */
 #define {{ N }}_ILL_CONDITIONED {{ ill_conditioned }}
@@ -89,7 +90,7 @@ typedef struct {
   double z[{{ N }}_NZ], lam_x[{{ N }}_NZ], lam_a[{{ N }}_NA1];           /* last solution: warm start */
   double z_new[{{ N }}_NZ], lam_x_new[{{ N }}_NZ], lam_a_new[{{ N }}_NA1];
   double plan[{{ N }}_NZ];                                       /* knots of the current plan */
-  double cert[4];                                            /* the last solve's certificate residuals */
+  double cert[{{ N }}_NCERT];                                      /* the last solve's certificate residuals */
 {% if task %}
   /* the task's terms: the plan z̄ linearized about, a stage's x̄, ū, a piece's y = R [1; z̄], the
      residual and Jacobians (column-major), Λ_1 … Λ_LMAX of all states, ∂r/∂x Λ_s, its product
@@ -111,9 +112,9 @@ typedef struct {
      last good iterate's knots and states */
   double LamK[{{ N }}_HORIZON * {{ N }}_NX * {{ N }}_NL], xbar[{{ N }}_HORIZON * {{ N }}_NX], ubark[{{ N }}_HORIZON * {{ N }}_NU];
   double zlin[{{ N }}_NZ], xplan[({{ N }}_HORIZON + 1) * {{ N }}_NX], xgood[({{ N }}_HORIZON + 1) * {{ N }}_NX], zgood[{{ N }}_NZ];
-  double has_xplan;                                          /* 0 or 1: xplan holds a plan */
+  int has_xplan;                                             /* xplan holds a plan */
 {% endif %}
-  double has_plan, warm;                                     /* 0 or 1 */
+  int has_plan, warm;                                        /* plan holds a plan; the next solve is warm-started */
   int solver_mem, solver_rc;
 } {{ name }}_memory;
 

@@ -80,7 +80,7 @@ static int obstacle_rows(mem_t* m, const double* L, const double* prev, int cp, 
     }
   }
   for (q = 0; q < n * NL; ++q) m->oJL[q] = 0;
-  gemm(n, NL, m->og, NX, 1, L, NL, m->oJL, NL, 0);
+  gemm_nx(n, NL, m->og, NX, 1, L, NL, m->oJL, NL, 0);
   times_r(m->oJL, n, NL, prev, cp, phi, del, c, m->oGX, NZ1);
   for (q = 0; q < n; ++q) {
     const int r = OROW0 + m->n_orows++;

@@ -68,46 +68,64 @@ static int any_above(const double* lo, const double* hi, int n) {
 
 static double clip(double v, double lo, double hi) { return v < lo ? lo : (v > hi ? hi : v); }
 
-/* u_g = u_goal + K goal (+ h(goal), the problem's goal input: gravity compensation): the input the cost pulls
-   towards. Returns nonzero if h failed. */
-static int input_goal(mem_t* m, const double* goal, double* ug) {
-  int i;
-  for (i = 0; i < NU; ++i) {
-    double s = U_GOAL[i];
+/* The input goal u_g = u_goal + K goal (+ h(goal)): the input the cost pulls towards. */
 #if HAS_K
-    int j;
-    for (j = 0; j < NX; ++j) s += K_GOAL[i * NX + j] * goal[j];
+/* ug += K goal */
+static void add_goal_gain(const double* goal, double* ug) {
+  int i, j;
+  for (i = 0; i < NU; ++i)
+    for (j = 0; j < NX; ++j) ug[i] += K_GOAL[i * NX + j] * goal[j];
+}
 #endif
-    ug[i] = s;
-  }
 #if HAS_GOAL_INPUT
-  {
-    double h[NU];
-    m->arg[0] = goal; m->res[0] = h;
-    if ({{ name }}_goal_input(m->arg, m->res, (casadi_int*) m->iw, m->w, 0)) return 1;
-    for (i = 0; i < NU; ++i) ug[i] += h[i];
-  }
-#else
-  (void) m; (void) goal;
-#endif
+/* ug += h(goal), the problem's goal input (gravity compensation). Returns nonzero if h failed. */
+static int add_goal_input(mem_t* m, const double* goal, double* ug) {
+  double h[NU];
+  int i;
+  m->arg[0] = goal; m->res[0] = h;
+  if ({{ name }}_goal_input(m->arg, m->res, (casadi_int*) m->iw, m->w, 0)) return 1;
+  for (i = 0; i < NU; ++i) ug[i] += h[i];
   return 0;
 }
+#endif
 
-/* Controller.fallback: previous plan shifted (input goal at a cold start), clipped; the next step starts cold. */
-static int fallback(mem_t* m, double* u_out, int status) {
+/* u = Σ_j w_j z_j, the knots z (NP x NU, row-major) weighted by w: the input at a stage of the basis (w = φ_k). */
+static void knot_sum(const double* w, const double* z, double* u) {
+  int i, j;
+  for (i = 0; i < NU; ++i) {
+    double s = 0;
+    for (j = 0; j < NP; ++j) s += w[j] * z[j * NU + i];
+    u[i] = s;
+  }
+}
+
+/* z = the plan's knots shifted a step (Parameterization.shift), the input goal at every knot where there is no plan. */
+static void shifted_knots(const mem_t* m, double* z) {
   int j, l, i;
   for (j = 0; j < NP; ++j)
     for (i = 0; i < NU; ++i) {
       double s = 0;
       if (m->has_plan) for (l = 0; l < NP; ++l) s += SHIFT[j * NP + l] * m->plan[l * NU + i];
       else s = m->ug[i];
-      m->z_new[j * NU + i] = clip(s, LBX[j * NU + i], UBX[j * NU + i]);
+      z[j * NU + i] = s;
     }
-  for (i = 0; i < NU; ++i) {
-    double s = 0;
-    for (j = 0; j < NP; ++j) s += PHI0[j] * m->z_new[j * NU + i];
-    u_out[i] = clip(s, LBX[i], UBX[i]);
-  }
+}
+
+/* The QP's answer (z_new and its multipliers) made the plan and the next solve's warm start. */
+static void commit_plan(mem_t* m) {
+  int i;
+  for (i = 0; i < NZ; ++i) { m->plan[i] = m->z[i] = m->z_new[i]; m->lam_x[i] = m->lam_x_new[i]; }
+  for (i = 0; i < NA; ++i) m->lam_a[i] = m->lam_a_new[i];
+  m->has_plan = m->warm = 1;
+}
+
+/* Controller.fallback: previous plan shifted (input goal at a cold start), clipped; the next step starts cold. */
+static int fallback(mem_t* m, double* u_out, int status) {
+  int i;
+  shifted_knots(m, m->z_new);
+  for (i = 0; i < NZ; ++i) m->z_new[i] = clip(m->z_new[i], LBX[i], UBX[i]);
+  knot_sum(PHI0, m->z_new, u_out);
+  for (i = 0; i < NU; ++i) u_out[i] = clip(u_out[i], LBX[i], UBX[i]);
   for (i = 0; i < NZ; ++i) m->plan[i] = m->z_new[i];
   m->has_plan = 1;
   m->warm = 0;
@@ -117,87 +135,85 @@ static int fallback(mem_t* m, double* u_out, int status) {
   return status;
 }
 
-/* C += A B for an M x NX matrix A with A(i, k) = A[i * ars + k * aks] (row-major: ars = lda, aks = 1; its
-   transpose: ars = 1, aks = lda) and row-major B, C. With upper set, tiles wholly below C's diagonal are
-   skipped (the lower triangle is then left partial, and is never read). The inner product runs over NX, a
-   constant. Tiles of MR rows x 8 (or 4) columns of C stay in vector registers while B's rows, contiguous,
-   stream through: GCC/Clang vector extensions, 2 doubles wide (SSE2, any x86-64) and, on x86 CPUs that have
-   them, 4 wide with AVX2 and FMA (chosen once at run time; no build flag, the library stays portable). */
+/* The products over the inner dimension NX (the state's size): C += A B for an M x NX matrix A with A(i, k) =
+   A[i * ars + k * aks] (row-major: ars = lda, aks = 1; its transpose: ars = 1, aks = lda), row-major B (NX x N)
+   and C (M x N). With upper set, tiles wholly below C's diagonal are skipped (the lower triangle is then left
+   partial, and is never read). Each entry of C gets its own sum over k in order, added to C at the end, on every
+   path below. Tiles of MR rows x 8 (or 4) columns of C stay in vector registers while B's rows, contiguous, stream
+   through: GCC/Clang vector extensions, SSE2 (any x86-64: MR = 2) and, on x86 CPUs that have them, AVX2 and FMA
+   (MR = 4; chosen once at run time; no build flag, the library stays portable). */
+#if defined(__GNUC__) || defined(__clang__)
+#define INLINE static inline __attribute__((always_inline)) /* compiled for each instruction set's caller */
+#else
+#define INLINE static inline
+#endif
 #ifndef OCPKIT_SIMD
 #define OCPKIT_SIMD 2 /* the Makefile's SIMD: 2 auto (AVX2 where the CPU has it), 1 no AVX2 path, 0 plain C */
 #endif
 #if (defined(__GNUC__) || defined(__clang__)) && OCPKIT_SIMD >= 1
 #define VECTOR_EXT 1
-typedef double vec2 __attribute__((vector_size(16), aligned(8), may_alias));
 #if (defined(__x86_64__) || defined(__i386__)) && OCPKIT_SIMD >= 2
 #define HAVE_AVX2_PATH 1
-typedef double vec4 __attribute__((vector_size(32), aligned(8), may_alias));
+#define AVX2 __attribute__((target("avx2,fma")))
 #endif
 #endif
 
-/* One sweep over NX of B's rows through the register block (rows: MR, a constant the compiler unrolls,
-   or mr). */
-#define TILE_SWEEP(rows, VT, W, NC)                                                                           \
-  for (k = 0; k < NX; ++k) {                                                                                  \
-    VT b[NC / W];                                                                                             \
-    for (v = 0; v < NC / W; ++v) b[v] = *(const VT*) (B + k * ldb + v * W);                                   \
-    for (r = 0; r < (rows); ++r) {                                                                            \
-      const double a = A[r * ars + k * aks];                                                                  \
-      for (v = 0; v < NC / W; ++v) c[r][v] += a * b[v];                                                       \
-    }                                                                                                         \
+{% for isa, w, mr in [("sse2", 2, 2), ("avx2", 4, 4)] %}
+#if {{ "VECTOR_EXT" if isa == "sse2" else "HAVE_AVX2_PATH" }}
+/* {{ isa | upper }}: vectors of {{ w }} doubles (one register), blocks of {{ mr }} rows. */
+typedef double vec{{ w }} __attribute__((vector_size({{ 8 * w }}), aligned(8), may_alias));
+
+/* C[0:rows, 0:{{ w }} nv] += A[0:rows, :] B[:, 0:{{ w }} nv] (nv <= {{ 8 // w }} vectors a row, rows <= {{ mr }}), the block of C
+   in registers; rows and nv are constants after inlining, or rows the last block's height. */
+INLINE void gemm_nx_tile_{{ isa }}(int rows, int nv, const double* restrict A, int ars, int aks,
+                                const double* restrict B, int ldb, double* restrict C, int ldc) {
+  vec{{ w }} c[{{ mr }}][{{ 8 // w }}], b[{{ 8 // w }}];
+  int r, v, k;
+  for (r = 0; r < rows; ++r)
+    for (v = 0; v < nv; ++v) c[r][v] = (vec{{ w }}){0};
+  for (k = 0; k < NX; ++k) {
+    for (v = 0; v < nv; ++v) b[v] = *(const vec{{ w }}*) (B + k * ldb + {{ w }} * v);
+    for (r = 0; r < rows; ++r) {
+      const double a = A[r * ars + k * aks];
+      for (v = 0; v < nv; ++v) c[r][v] += a * b[v];
+    }
   }
+  for (r = 0; r < rows; ++r)
+    for (v = 0; v < nv; ++v) *(vec{{ w }}*) (C + r * ldc + {{ w }} * v) += c[r][v];
+}
 
-/* A tile: C[0:mr, 0:NC] += A[0:mr, :] B[:, 0:NC], its MR x NC block of C in registers (vectors VT of W). */
-#define TILE(name, attr, VT, W, MR, NC)                                                                       \
-  attr static void name(int mr, const double* restrict A, int ars, int aks, const double* restrict B, int ldb,\
-                        double* restrict C, int ldc) {                                                        \
-    VT c[MR][NC / W];                                                                                         \
-    int r, v, k;                                                                                              \
-    for (r = 0; r < MR; ++r) for (v = 0; v < NC / W; ++v) c[r][v] = (VT){0};                                  \
-    if (mr == MR) {                                                                                           \
-      TILE_SWEEP(MR, VT, W, NC)                                                                               \
-    } else {                                                                                                  \
-      TILE_SWEEP(mr, VT, W, NC)                                                                               \
-    }                                                                                                         \
-    for (r = 0; r < mr; ++r) for (v = 0; v < NC / W; ++v) *(VT*) (C + r * ldc + v * W) += c[r][v];            \
+/* A tile of mr rows ({{ mr }}, a constant, or the last block's fewer) and {{ w }} nv columns. */
+INLINE void gemm_nx_rows_{{ isa }}(int mr, int nv, const double* restrict A, int ars, int aks,
+                                const double* restrict B, int ldb, double* restrict C, int ldc) {
+  if (mr == {{ mr }}) gemm_nx_tile_{{ isa }}({{ mr }}, nv, A, ars, aks, B, ldb, C, ldc);
+  else gemm_nx_tile_{{ isa }}(mr, nv, A, ars, aks, B, ldb, C, ldc);
+}
+
+/* C += A B by blocks of {{ mr }} rows: tiles of 8 columns, one of 4, and the last N mod 4 columns through a
+   zero-padded copy of B's columns (so that they too run in registers, not as latency-bound dot products). */
+{{ "AVX2 " if isa == "avx2" }}static void gemm_nx_{{ isa }}(int M, int N, const double* restrict A, int ars, int aks,
+                         const double* restrict B, int ldb, double* restrict C, int ldc, int upper) {
+  const int n8 = N - N % 8, n4 = N - N % 4, nrem = N - n4;
+  double Bp[NX * 4], Cp[{{ mr }} * 4];
+  int i, j, k, r;
+  for (k = 0; nrem && k < NX; ++k)
+    for (j = 0; j < 4; ++j) Bp[k * 4 + j] = j < nrem ? B[k * ldb + n4 + j] : 0.0;
+  for (i = 0; i < M; i += {{ mr }}) {
+    const int mr = M - i < {{ mr }} ? M - i : {{ mr }};
+    for (j = upper ? (i / 8) * 8 : 0; j < n8; j += 8)
+      gemm_nx_rows_{{ isa }}(mr, {{ 8 // w }}, A + i * ars, ars, aks, B + j, ldb, C + i * ldc + j, ldc);
+    if (n4 > n8) gemm_nx_rows_{{ isa }}(mr, {{ 4 // w }}, A + i * ars, ars, aks, B + n8, ldb, C + i * ldc + n8, ldc);
+    if (nrem) {
+      for (j = 0; j < {{ mr }} * 4; ++j) Cp[j] = 0;
+      gemm_nx_rows_{{ isa }}(mr, {{ 4 // w }}, A + i * ars, ars, aks, Bp, 4, Cp, 4);
+      for (r = 0; r < mr; ++r)
+        for (j = 0; j < nrem; ++j) C[(i + r) * ldc + n4 + j] += Cp[r * 4 + j];
+    }
   }
-
-/* gemm_<sfx>: tiles of 8 columns, one of 4, and the last N mod 4 columns through a zero-padded copy of B's
-   columns (so that they too run in registers, not as latency-bound dot products). */
-#define TILES(sfx, attr, VT, W, MR)                                                                           \
-  TILE(tile8_##sfx, attr, VT, W, MR, 8)                                                                       \
-  TILE(tile4_##sfx, attr, VT, W, MR, 4)                                                                       \
-  attr static void gemm_##sfx(int M, int N, const double* restrict A, int ars, int aks,                       \
-                              const double* restrict B, int ldb, double* restrict C, int ldc, int upper) {    \
-    const int n8 = N - N % 8, n4 = N - N % 4, nrem = N - n4;                                                  \
-    double Bp[NX * 4], Cp[MR * 4];                                                                            \
-    int i, j, k, r;                                                                                           \
-    for (k = 0; nrem && k < NX; ++k)                                                                          \
-      for (j = 0; j < 4; ++j) Bp[k * 4 + j] = j < nrem ? B[k * ldb + n4 + j] : 0.0;                          \
-    for (i = 0; i < M; i += MR) {                                                                             \
-      const int mr = M - i < MR ? M - i : MR;                                                                 \
-      for (j = upper ? (i / 8) * 8 : 0; j < n8; j += 8)                                                       \
-        tile8_##sfx(mr, A + i * ars, ars, aks, B + j, ldb, C + i * ldc + j, ldc);                             \
-      if (n4 > n8) tile4_##sfx(mr, A + i * ars, ars, aks, B + n8, ldb, C + i * ldc + n8, ldc);                \
-      if (nrem) {                                                                                             \
-        for (j = 0; j < MR * 4; ++j) Cp[j] = 0;                                                               \
-        tile4_##sfx(mr, A + i * ars, ars, aks, Bp, 4, Cp, 4);                                                 \
-        for (r = 0; r < mr; ++r)                                                                              \
-          for (j = 0; j < nrem; ++j) C[(i + r) * ldc + n4 + j] += Cp[r * 4 + j];                              \
-      }                                                                                                       \
-    }                                                                                                         \
-  }
-
-#if VECTOR_EXT
-TILES(v2, , vec2, 2, 2)
-#if HAVE_AVX2_PATH
-TILES(v4, __attribute__((target("avx2,fma"))), vec4, 4, 4)
-#endif
-#else
-typedef double vec1;
-TILES(v1, , vec1, 1, 2)
+}
 #endif
 
+{% endfor %}
 #if HAVE_AVX2_PATH
 static int use_avx2(void) {
   static int avx2 = -1;  /* an idempotent race at worst: every thread writes the same value */
@@ -206,15 +222,21 @@ static int use_avx2(void) {
 }
 #endif
 
-static void gemm(int M, int N, const double* restrict A, int ars, int aks, const double* restrict B, int ldb,
-                 double* restrict C, int ldc, int upper) {
+static void gemm_nx(int M, int N, const double* restrict A, int ars, int aks, const double* restrict B, int ldb,
+                    double* restrict C, int ldc, int upper) {
 #if HAVE_AVX2_PATH
-  if (use_avx2()) { gemm_v4(M, N, A, ars, aks, B, ldb, C, ldc, upper); return; }
+  if (use_avx2()) { gemm_nx_avx2(M, N, A, ars, aks, B, ldb, C, ldc, upper); return; }
 #endif
 #if VECTOR_EXT
-  gemm_v2(M, N, A, ars, aks, B, ldb, C, ldc, upper);
+  gemm_nx_sse2(M, N, A, ars, aks, B, ldb, C, ldc, upper);
 #else
-  gemm_v1(M, N, A, ars, aks, B, ldb, C, ldc, upper);
+  int i, j, k;
+  for (i = 0; i < M; ++i)
+    for (j = upper ? i : 0; j < N; ++j) {
+      double s = 0;
+      for (k = 0; k < NX; ++k) s += A[i * ars + k * aks] * B[k * ldb + j];
+      C[i * ldc + j] += s;
+    }
 #endif
 }
 
@@ -240,7 +262,7 @@ static void times_ahat(const double* X, int rows, int ldx, const double* Lb, int
     }
     o[NL - 1] = xr[NL - 1];
   }
-  gemm(rows, NL, X, ldx, 1, Lb, NL, out, NL, 0);
+  gemm_nx(rows, NL, X, ldx, 1, Lb, NL, out, NL, 0);
 }
 
 /* G += Wᵀ W (upper triangle; row stride ldg) with W = Q^½ (X − x_goal e_oneᵀ) over the first cols columns of X
@@ -248,24 +270,24 @@ static void times_ahat(const double* X, int rows, int ldx, const double* Lb, int
    coordinates of X — ζ for Λ_s, [1; z] for the rows [v S] of the real-time iteration. */
 static void add_stage(mem_t* m, const double* X, int cols, int ldx, int one, const double* xg, double* G, int ldg) {
   double* W = m->W;
-  int i, j, k;
+  int i;
 #if DIAG_Q
   for (i = 0; i < NX; ++i) {
+    int j;
     for (j = 0; j < cols; ++j) W[i * cols + j] = QH[i] * X[i * ldx + j];
     W[i * cols + one] -= QH[i] * xg[i];
   }
-  (void) k;
 #else
   for (i = 0; i < NX * cols; ++i) W[i] = 0;
-  gemm(NX, cols, QH, NX, 1, X, ldx, W, cols, 0);
+  gemm_nx(NX, cols, QH, NX, 1, X, ldx, W, cols, 0);
   for (i = 0; i < NX; ++i) {
     double gx = 0;
+    int k;
     for (k = 0; k < NX; ++k) gx += QH[i * NX + k] * xg[k];
     W[i * cols + one] -= gx;
   }
-  (void) j;
 #endif
-  gemm(cols, cols, W, 1, cols, W, cols, G, ldg, 1);
+  gemm_nx(cols, cols, W, 1, cols, W, cols, G, ldg, 1);
 }
 
 /* Γ += the stage cost of Λ (add_stage), both triangles: the doublings read Γ whole. */
@@ -285,7 +307,7 @@ static void grams(mem_t* m, const double* xg) {
   memcpy(Gam, m->Gam1, sizeof m->Gam1);
   for (op = 0; op < NGRAM_OPS; ++op) {
     const int code = GRAM_OPS[op];
-    if (code == 1) {  /* double */
+    if (code == GRAM_DOUBLE) {
       times_ahat(Gam, NL, NL, Lam, s, m->Y);
       for (i = 0; i < NU; ++i) {
         double* gv = Gam + (NX + i) * NL;
@@ -296,22 +318,22 @@ static void grams(mem_t* m, const double* xg) {
         for (j = 0; j < NL; ++j) { gv[j] += yv[j]; gd[j] += s * yv[j] + yd[j]; }
       }
       for (i = 0; i < NL; ++i) Gam[(NL - 1) * NL + i] += m->Y[(NL - 1) * NL + i];
-      gemm(NL, NL, Lam, 1, NL, m->Y, NL, Gam, NL, 1);
+      gemm_nx(NL, NL, Lam, 1, NL, m->Y, NL, Gam, NL, 1);
       symmetrize(Gam, NL);
       times_ahat(Lam, NX, NL, Lam, s, tmp);
       s *= 2;
-    } else if (code == 2) {  /* one more stage */
+    } else if (code == GRAM_INC) {  /* one more stage */
       times_ahat(Lam, NX, NL, m->Lam1, 1, tmp);
       add_stage_gram(m, tmp, xg, Gam);
       s += 1;
-    } else if (code == 3) {  /* restart from s = 1 */
+    } else if (code == GRAM_RESET) {  /* restart from s = 1 */
       memcpy(Lam, m->Lam1, sizeof m->Lam1);
       memcpy(Gam, m->Gam1, sizeof m->Gam1);
       s = 1;
       continue;
-    } else {  /* save as length code - 10 */
-      memcpy(m->GamL + (code - 10) * NL * NL, Gam, sizeof m->GamS);
-      memcpy(m->LamL + (code - 10) * NX * NL, Lam, sizeof m->LamS);
+    } else {  /* GRAM_SAVE + i: save as length i */
+      memcpy(m->GamL + (code - GRAM_SAVE) * NL * NL, Gam, sizeof m->GamS);
+      memcpy(m->LamL + (code - GRAM_SAVE) * NX * NL, Lam, sizeof m->LamS);
       continue;
     }
     sw = Lam; Lam = tmp; tmp = sw;
@@ -330,83 +352,60 @@ static void times_r(const double* X, int rows, int ldx, const double* prev, int 
     for (j = 0, col = 1; col <= c; ++j)
       for (u = 0; u < NU; ++u, ++col) o[col] = phi[j] * xr[NX + u] + del[j] * xr[NX + NU + u];
   }
-  gemm(rows, cp + 1, X, ldx, 1, prev, NZ1, out, ldo, 0);
+  gemm_nx(rows, cp + 1, X, ldx, 1, prev, NZ1, out, ldo, 0);
 }
 
-static void finish_qp(mem_t* m, double* prev, const double* xg);
-
-/* The condensed QP about the affine model Λ_1 (CondensedQP.build): h, g, state-bound rows a, lba, uba. */
-static void condense(mem_t* m, const double* x, const double* xg) {
-  double *prev = m->prev, *next = m->next, *Pq = m->Pq, *Y = m->Y, *sw;
-  int pc, i, r, col, s, b;
-  grams(m, xg);
 #if NB > 0
-  /* the bounded rows of Λ_1 … Λ_LMAX (row b of Λ_s at LamB[(s-1) NB + b]) */
+/* Row ri of the QP: state bound b, XB_LO[b] <= row[0] + row[1:] z <= XB_HI[b] for a row of [v S] whose knot
+   columns past c are zero (not read). */
+static void state_bound_row(mem_t* m, int ri, int b, const double* row, int c) {
+  int col;
+  for (col = 0; col < NZ; ++col) m->a[ri + NA * col] = col < c ? row[col + 1] : 0.0;
+  m->lba[ri] = XB_LO[b] - row[0];
+  m->uba[ri] = XB_HI[b] - row[0];
+}
+
+/* The bounded rows of Λ_1 … Λ_LMAX (row b of Λ_s at LamB[(s-1) NB + b]). */
+static void bounded_rows(mem_t* m) {
+  int b, s;
   for (b = 0; b < NB; ++b) memcpy(m->LamB + b * NL, m->Lam1 + XB_COMP[b] * NL, NL * sizeof(double));
   for (s = 1; s < LMAX; ++s) times_ahat(m->LamB + (s - 1) * NB * NL, NB, NL, m->Lam1, 1, m->LamB + s * NB * NL);
-#endif
-  for (i = 0; i < NX * NZ1; ++i) prev[i] = 0;
-  for (i = 0; i < NX; ++i) prev[i * NZ1] = x[i];
-  for (i = 0; i < NZ1 * NZ1; ++i) Pq[i] = 0;
-  for (pc = 0; pc < NPIECE; ++pc) {
-    const int a = PIECE_A[pc], Lp = PIECE_L[pc], c = PIECE_C[pc], cp = PIECE_CP[pc];
-    const double *phi = PIECE_PHI + pc * NP, *del = PIECE_DELTA + pc * NP;
-    /* Pq[:c+1, :c+1] += Rᵀ (Γ R) (upper half) */
-    times_r(m->GamL + PIECE_LEN[pc] * NL * NL, NL, NL, prev, cp, phi, del, c, Y, NZ1);
-    for (r = 0; r <= c; ++r) {
-      double* pr = Pq + r * NZ1;
-      if (r == 0) {
-        for (col = 0; col <= c; ++col) pr[col] += Y[(NL - 1) * NZ1 + col];
-      } else {
-        const int jr = (r - 1) / NU, ur = r - 1 - jr * NU;
-        const double f = phi[jr], d = del[jr];
-        const double *y1 = Y + (NX + ur) * NZ1, *y2 = Y + (NX + NU + ur) * NZ1;
-        if (f != 0 || d != 0) for (col = r; col <= c; ++col) pr[col] += f * y1[col] + d * y2[col];
-      }
-    }
-    gemm(cp + 1, c + 1, prev, 1, NZ1, Y, NZ1, Pq, NZ1, 1);
-#if NB > 0
-    /* state-bound rows of [v S] at x_{a+1} … x_{a+Lp}: row (k, b) at k*NB + b */
-    times_r(m->LamB, Lp * NB, NL, prev, cp, phi, del, c, m->RB, NZ1);
-    for (s = 0; s < Lp; ++s)
-      for (b = 0; b < NB; ++b) {
-        const int ri = (a + s) * NB + b;
-        const double* row = m->RB + (s * NB + b) * NZ1;
-        for (col = 0; col < NZ; ++col) m->a[ri + NA * col] = col < c ? row[col + 1] : 0.0;
-        m->lba[ri] = XB_LO[b] - row[0];
-        m->uba[ri] = XB_HI[b] - row[0];
-      }
-#else
-    (void) a; (void) Lp; (void) s; (void) b;
-#endif
-    /* [v S] at the piece's end: Λ_Lp R */
-    times_r(m->LamL + PIECE_LEN[pc] * NX * NL, NX, NL, prev, cp, phi, del, c, next, NZ1);
-    for (i = 0; i < NX; ++i)
-      for (col = c + 1; col < NZ1; ++col) next[i * NZ1 + col] = 0;
-    sw = prev; prev = next; next = sw;
-  }
-  finish_qp(m, prev, xg);
 }
 
-/* The QP from Pq (the upper triangle of Σ_s [1; z]ᵀ[v_s − x_goal, S_s]ᵀ Q [v_s − x_goal, S_s]) and the last
-   state's rows prev = [v_T S_T]: the terminal weight's extra (Q_T − Q), then P = S'QS + φᵀφ ⊗ R, q = S'Q(v − x_goal)
-   − φᵀ1 ⊗ R u_g and the knot bounds. */
-static void finish_qp(mem_t* m, double* prev, const double* xg) {
-  double* Pq = m->Pq;
-  int i, j, k, col;
-  (void) col; (void) prev; (void) xg;  /* used only with a terminal weight other than Q (HAS_DQT) */
-  /* terminal weight: (Q_T − Q) on [v − x_goal, S] at x_T */
+/* The state-bound rows of a piece's states x_{a+1} … x_{a+Lp} (prev, cp, phi, del, c: its R as in condense): row
+   (k, b) at k*NB + b. */
+static void piece_bound_rows(mem_t* m, int a, int Lp, const double* prev, int cp, const double* phi,
+                             const double* del, int c) {
+  int s, b;
+  times_r(m->LamB, Lp * NB, NL, prev, cp, phi, del, c, m->RB, NZ1);
+  for (s = 0; s < Lp; ++s)
+    for (b = 0; b < NB; ++b) state_bound_row(m, (a + s) * NB + b, b, m->RB + (s * NB + b) * NZ1, c);
+}
+#endif
+
 #if HAS_DQT
+/* Pq += the terminal weight's extra (Q_T − Q) on [v − x_goal, S] at x_T (prev = [v_T S_T], x_goal subtracted here). */
+static void add_terminal_weight(mem_t* m, double* prev, const double* xg) {
+  int i;
   for (i = 0; i < NX; ++i) prev[i * NZ1] -= xg[i];
 #if DIAG_Q
-  for (i = 0; i < NX; ++i)
+  for (i = 0; i < NX; ++i) {
+    int col;
     for (col = 0; col < NZ1; ++col) m->E2[i * NZ1 + col] = DQT[i] * prev[i * NZ1 + col];
+  }
 #else
   for (i = 0; i < NX * NZ1; ++i) m->E2[i] = 0;
-  gemm(NX, NZ1, DQT, NX, 1, prev, NZ1, m->E2, NZ1, 0);
+  gemm_nx(NX, NZ1, DQT, NX, 1, prev, NZ1, m->E2, NZ1, 0);
 #endif
-  gemm(NZ1, NZ1, prev, 1, NZ1, m->E2, NZ1, Pq, NZ1, 1);
+  gemm_nx(NZ1, NZ1, prev, 1, NZ1, m->E2, NZ1, m->Pq, NZ1, 1);
+}
 #endif
+
+/* The QP from Pq (the upper triangle of Σ_s [1; z]ᵀ[v_s − x_goal, S_s]ᵀ Q [v_s − x_goal, S_s], the terminal weight
+   added): P = S'QS + φᵀφ ⊗ R, q = S'Q(v − x_goal) − φᵀ1 ⊗ R u_g and the knot bounds. */
+static void finish_qp(mem_t* m) {
+  const double* Pq = m->Pq;
+  int i, j, k;
   /* P = S'QS + φᵀφ ⊗ R (symmetric by construction), q = S'Q(v − x_goal) − φᵀ1 ⊗ R u_g */
   for (i = 0; i < NZ; ++i)
     for (j = i; j < NZ; ++j) {
@@ -422,6 +421,50 @@ static void finish_qp(mem_t* m, double* prev, const double* xg) {
     m->ubx[i] = UBX[i];
   }
 }
+
+/* The condensed QP about the affine model Λ_1 (CondensedQP.build): h, g, state-bound rows a, lba, uba. */
+static void condense(mem_t* m, const double* x, const double* xg) {
+  double *prev = m->prev, *next = m->next, *Pq = m->Pq, *Y = m->Y, *sw;
+  int pc, i, r, col;
+  grams(m, xg);
+#if NB > 0
+  bounded_rows(m);
+#endif
+  for (i = 0; i < NX * NZ1; ++i) prev[i] = 0;
+  for (i = 0; i < NX; ++i) prev[i * NZ1] = x[i];
+  for (i = 0; i < NZ1 * NZ1; ++i) Pq[i] = 0;
+  for (pc = 0; pc < NPIECE; ++pc) {
+    const int c = PIECE_C[pc], cp = PIECE_CP[pc];
+    const double *phi = PIECE_PHI + pc * NP, *del = PIECE_DELTA + pc * NP;
+    /* Pq[:c+1, :c+1] += Rᵀ (Γ R) (upper half) */
+    times_r(m->GamL + PIECE_LEN[pc] * NL * NL, NL, NL, prev, cp, phi, del, c, Y, NZ1);
+    for (r = 0; r <= c; ++r) {
+      double* pr = Pq + r * NZ1;
+      if (r == 0) {
+        for (col = 0; col <= c; ++col) pr[col] += Y[(NL - 1) * NZ1 + col];
+      } else {
+        const int jr = (r - 1) / NU, ur = r - 1 - jr * NU;
+        const double f = phi[jr], d = del[jr];
+        const double *y1 = Y + (NX + ur) * NZ1, *y2 = Y + (NX + NU + ur) * NZ1;
+        if (f != 0 || d != 0) for (col = r; col <= c; ++col) pr[col] += f * y1[col] + d * y2[col];
+      }
+    }
+    gemm_nx(cp + 1, c + 1, prev, 1, NZ1, Y, NZ1, Pq, NZ1, 1);
+#if NB > 0
+    piece_bound_rows(m, PIECE_A[pc], PIECE_L[pc], prev, cp, phi, del, c);
+#endif
+    /* [v S] at the piece's end: Λ_Lp R */
+    times_r(m->LamL + PIECE_LEN[pc] * NX * NL, NX, NL, prev, cp, phi, del, c, next, NZ1);
+    for (i = 0; i < NX; ++i)
+      for (col = c + 1; col < NZ1; ++col) next[i * NZ1 + col] = 0;
+    sw = prev; prev = next; next = sw;
+  }
+#if HAS_DQT
+  add_terminal_weight(m, prev, xg);
+#endif
+  finish_qp(m);
+}
+
 {% if task %}
 
 {% if obstacles %}
@@ -433,29 +476,30 @@ static void finish_qp(mem_t* m, double* prev, const double* xg) {
 
 #if MODEL_RK4
 /* D = J_x S + [0 J_u] with the Jacobians' nonzeros (fx, fu) at (FX_I, FX_J), (FU_I, FU_J); S, D row-major
-   NX x (NX + NU): a row of S, contiguous, per nonzero (compiled twice like gemm: SSE2 and AVX2). */
-#define SENSITIVITY_RATE(sfx, attr)                                                                           \
-  attr static void sensitivity_rate_##sfx(const mem_t* m, const double* restrict S, double* restrict D) {    \
-    int q, j;                                                                                                 \
-    for (q = 0; q < NX * (NX + NU); ++q) D[q] = 0;                                                            \
-    for (q = 0; q < {{ N }}_NNZ_FX; ++q) {                                                                       \
-      const double v = m->fx[q];                                                                              \
-      const double* restrict sk = S + FX_J[q] * (NX + NU);                                                    \
-      double* restrict di = D + FX_I[q] * (NX + NU);                                                          \
-      for (j = 0; j < NX + NU; ++j) di[j] += v * sk[j];                                                       \
-    }                                                                                                         \
-    for (q = 0; q < {{ N }}_NNZ_FU; ++q) D[FU_I[q] * (NX + NU) + NX + FU_J[q]] += m->fu[q];                      \
+   NX x (NX + NU): a row of S, contiguous, per nonzero (compiled for SSE2 and AVX2 like gemm_nx). */
+INLINE void sensitivity_rate_of(const mem_t* m, const double* restrict S, double* restrict D) {
+  int q, j;
+  for (q = 0; q < NX * (NX + NU); ++q) D[q] = 0;
+  for (q = 0; q < {{ N }}_NNZ_FX; ++q) {
+    const double v = m->fx[q];
+    const double* restrict sk = S + FX_J[q] * (NX + NU);
+    double* restrict di = D + FX_I[q] * (NX + NU);
+    for (j = 0; j < NX + NU; ++j) di[j] += v * sk[j];
   }
-SENSITIVITY_RATE(v2, )
+  for (q = 0; q < {{ N }}_NNZ_FU; ++q) D[FU_I[q] * (NX + NU) + NX + FU_J[q]] += m->fu[q];
+}
 #if HAVE_AVX2_PATH
-SENSITIVITY_RATE(v4, __attribute__((target("avx2,fma"))))
+
+AVX2 static void sensitivity_rate_avx2(const mem_t* m, const double* restrict S, double* restrict D) {
+  sensitivity_rate_of(m, S, D);
+}
 #endif
 
 static void sensitivity_rate(const mem_t* m, const double* restrict S, double* restrict D) {
 #if HAVE_AVX2_PATH
-  if (use_avx2()) { sensitivity_rate_v4(m, S, D); return; }
+  if (use_avx2()) { sensitivity_rate_avx2(m, S, D); return; }
 #endif
-  sensitivity_rate_v2(m, S, D);
+  sensitivity_rate_of(m, S, D);
 }
 
 /* D = [J_x J_u] scattered: the rate at the step's start, where S = [I 0] (no products). */
@@ -584,7 +628,7 @@ static int certify(mem_t* m) {
   m->cert[1] = s[1] / s_p;
   m->cert[2] = s[2] / (s_d * s_p);
   m->cert[3] = s[3] / s_d;
-  for (i = 0; i < 4; ++i) if (!(m->cert[i] <= {{ N }}_CERT_TOL)) return {{ N }}_CERT_STATIONARITY + i;
+  for (i = 0; i < {{ N }}_NCERT; ++i) if (!(m->cert[i] <= {{ N }}_CERT_TOL)) return {{ N }}_CERT_{{ cert_names[0] }} + i;
   return 0;
 }
 
@@ -596,6 +640,19 @@ static int ill_conditioned(const mem_t* m) {
   for (i = 0; i < NZ; ++i) big = amax(big, fabs(m->h[i * (NZ + 1)]));
   return !(NZ * DBL_EPSILON * big <= ROUNDING_MARGIN * CURVATURE);
 }
+
+{% if failures %}
+/* The status of the QP solver's nonzero return ({{ failures_source }}). */
+static int status_of_return(int rc) {
+  enum { {% for rc, (flag, _) in failures.items() %}{{ flag }} = {{ rc }}{{ ", " if not loop.last }}{% endfor %} };
+  switch (rc) {
+{% for rc, (flag, status) in failures.items() %}
+  case {{ flag }}: return {{ N }}_{{ status | upper }};
+{% endfor %}
+  default: return {{ N }}_LIMITED;
+  }
+}
+{% endif %}
 
 /* The QP in m (h, g, a, lba, uba, lbx, ubx) checked, solved (warm-started from the last solution where m->warm)
    and certified: its status. On a success z_new and the multipliers hold the answer; otherwise
@@ -618,7 +675,7 @@ static int solve_qp(mem_t* m) {
   m->res[0] = m->z_new; m->res[1] = 0; m->res[2] = m->lam_a_new; m->res[3] = m->lam_x_new;
   rc = {{ name }}_qp_solve(m->arg, m->res, (casadi_int*) m->iw, m->w, m->solver_mem);
   m->solver_rc = rc;
-  if (rc) return {{ status_of_rc }};
+  if (rc) return {{ "status_of_return(rc)" if failures else N ~ "_LIMITED" }};
   if (!all_finite(m->z_new, NZ)) return {{ N }}_NAN;
   rc = certify(m);
   if (rc) {
@@ -646,8 +703,7 @@ int {{ name }}_solve_qp(mem_t* m, const double* h, const double* g, const double
 }
 
 void {{ name }}_certificate(const mem_t* m, double* residuals) {
-  int i;
-  for (i = 0; i < 4; ++i) residuals[i] = m->cert[i];
+  memcpy(residuals, m->cert, sizeof m->cert);
 }
 
 /* Seconds on a monotonic clock (0 where there is none: the split then reads 0). */
@@ -668,26 +724,15 @@ static double seconds(void) {
 
 /* ū_k = Σ_j φ_kj z_j for the stages k = 0 … HORIZON−1 (HORIZON x NU, row-major). */
 static void stage_inputs(const double* z, double* u) {
-  int k, j, i;
-  for (k = 0; k < {{ N }}_HORIZON; ++k)
-    for (i = 0; i < NU; ++i) {
-      double s = 0;
-      for (j = 0; j < NP; ++j) s += PHI_ALL[k * NP + j] * z[j * NU + i];
-      u[k * NU + i] = s;
-    }
+  int k;
+  for (k = 0; k < {{ N }}_HORIZON; ++k) knot_sum(PHI_ALL + k * NP, z, u + k * NU);
 }
 
 /* The trajectory of the first iteration (LinearMPC.shifted_plan): knots z̄ = the plan shifted a step (the input goal
    at a cold start), ū_k = Φ_k z̄, x̄_0 = x and x̄_k the plan's predicted x_{k+1} (a rollout where there is none). */
 static void shifted_plan(mem_t* m, const double* x) {
-  int j, l, i, k;
-  for (j = 0; j < NP; ++j)
-    for (i = 0; i < NU; ++i) {
-      double s = 0;
-      if (m->has_plan) for (l = 0; l < NP; ++l) s += SHIFT[j * NP + l] * m->plan[l * NU + i];
-      else s = m->ug[i];
-      m->zlin[j * NU + i] = s;
-    }
+  int k;
+  shifted_knots(m, m->zlin);
   stage_inputs(m->zlin, m->ubark);
   memcpy(m->xbar, x, NX * sizeof(double));
   if (m->has_xplan)
@@ -724,7 +769,7 @@ static int stage_models(mem_t* m, int rollout) {
    columns of the knots active so far (ACTIVE), and each adds its stage cost to Pq. */
 static void condense_ltv(mem_t* m, const double* x, const double* xg) {
   double *prev = m->prev, *next = m->next, *sw;
-  int i, j, k, u, b, cols = 0;
+  int i, j, k, u, cols = 0;
   for (i = 0; i < NX * NZ1; ++i) prev[i] = next[i] = 0;
   for (i = 0; i < NX; ++i) prev[i * NZ1] = x[i];
   for (i = 0; i < NZ1 * NZ1; ++i) m->Pq[i] = 0;
@@ -740,23 +785,18 @@ static void condense_ltv(mem_t* m, const double* x, const double* xg) {
         if (f != 0) for (u = 0; u < NU; ++u) nr[1 + j * NU + u] += f * L[i * NL + NX + u];
       }
     }
-    gemm(NX, cols + 1, L, NL, 1, prev, NZ1, next, NZ1, 0);
+    gemm_nx(NX, cols + 1, L, NL, 1, prev, NZ1, next, NZ1, 0);
     add_stage(m, next, c + 1, NZ1, 0, xg, m->Pq, NZ1);
 #if NB > 0
-    for (b = 0; b < NB; ++b) {  /* state-bound rows of x_{k+1}: row (k, b) at k*NB + b */
-      const int ri = k * NB + b;
-      const double* row = next + XB_COMP[b] * NZ1;
-      for (j = 0; j < NZ; ++j) m->a[ri + NA * j] = row[j + 1];
-      m->lba[ri] = XB_LO[b] - row[0];
-      m->uba[ri] = XB_HI[b] - row[0];
-    }
-#else
-    (void) b;
+    for (j = 0; j < NB; ++j) state_bound_row(m, k * NB + j, j, next + XB_COMP[j] * NZ1, NZ);  /* x_{k+1}'s */
 #endif
     cols = c;
     sw = prev; prev = next; next = sw;
   }
-  finish_qp(m, prev, xg);
+#if HAS_DQT
+  add_terminal_weight(m, prev, xg);
+#endif
+  finish_qp(m);
 }
 
 static double max_change(const double* a, const double* b, int n) {
@@ -766,15 +806,15 @@ static double max_change(const double* a, const double* b, int n) {
   return d;
 }
 
-/* The iterations of one step: their summed split in t (where given). Returns the status; on success the plan,
-   its predicted states and the warm start hold the last good iterate. */
-static int rti(mem_t* m, const double* x, const double* goal, double* u_out, double* t) {
+/* The iterations of one step: their summed split in t (where given; the first model's time from t0). Returns the
+   status; on success the plan, its predicted states and the warm start hold the last good iterate. */
+static int rti(mem_t* m, const double* x, const double* goal, double* u_out, double* t, double t0) {
   const int nxs = ({{ N }}_HORIZON + 1) * NX;
-  int it, k, i, rc, done = 0;
-  double t0 = 0, t1 = 0, moved = INFINITY;
+  int it, k, rc, done = 0;
+  double t1 = 0, moved = INFINITY;
   shifted_plan(m, x);
   for (it = 0; it < ITERATIONS; ++it) {
-    if (t) t0 = seconds();
+    if (t && it) t0 = seconds();
     rc = stage_models(m, it == 0 && !m->has_xplan);
     if (t) { t1 = seconds(); t[0] += t1 - t0; }
     if (rc == {{ N }}_SUCCESS) {
@@ -791,9 +831,7 @@ static int rti(mem_t* m, const double* x, const double* goal, double* u_out, dou
       m->warm = 0;
       break;
     }
-    for (i = 0; i < NZ; ++i) { m->plan[i] = m->z[i] = m->z_new[i]; m->lam_x[i] = m->lam_x_new[i]; }
-    for (i = 0; i < NA; ++i) m->lam_a[i] = m->lam_a_new[i];
-    m->has_plan = m->warm = 1;
+    commit_plan(m);
     /* the predicted states x_0 … x_T through the stage models */
     memcpy(m->xplan, x, NX * sizeof(double));
     stage_inputs(m->plan, m->ubark);
@@ -808,11 +846,7 @@ static int rti(mem_t* m, const double* x, const double* goal, double* u_out, dou
     /* the next iteration linearizes along this one: x̄ = [x; x_1 … x_{T−1}], ū = Φ z (ubark, set above) */
     memcpy(m->xbar + NX, m->xplan + NX, ({{ N }}_HORIZON - 1) * NX * sizeof(double));
   }
-  for (i = 0; i < NU; ++i) {
-    double s = 0;
-    for (k = 0; k < NP; ++k) s += PHI0[k] * m->plan[k * NU + i];
-    u_out[i] = s;
-  }
+  knot_sum(PHI0, m->plan, u_out);
   return {{ N }}_SUCCESS;
 }
 
@@ -823,69 +857,60 @@ int {{ name }}_states(const mem_t* m, double* x_pred) {
 }
 #endif
 
+#if !LIN_TRAJ
+/* The step about one affine model (linearization "goal" or "plan"): the model about (x, ū), the condensed QP and its
+   solve, their split in t (where given; the model's time from t0). Returns the status. */
+static int step_about_one_model(mem_t* m, const double* x, const double* goal, double* u_out, double* t, double t0) {
+  double t1 = 0, t2 = 0;
+  int rc;
+  memcpy(m->ubar, m->ug, sizeof m->ubar);
+#if LIN_PLAN
+  if (m->has_plan) knot_sum(W0, m->plan, m->ubar);
+#endif
+  if (affine_model(m, x, m->ubar, m->Lam1)) return fallback(m, u_out, {{ N }}_EXCEPTION);
+  if (!all_finite(m->Lam1, NX * NL)) return fallback(m, u_out, {{ N }}_NAN);
+  if (t) { t1 = seconds(); t[0] = t1 - t0; }
+  condense(m, x, goal);
+{% if task %}
+  if (task_terms(m, x, goal)) return fallback(m, u_out, {{ N }}_EXCEPTION);  /* a residual's evaluation failed */
+{% endif %}
+  if (t) { t2 = seconds(); t[1] = t2 - t1; }
+  rc = solve_qp(m);
+  if (t) t[2] = seconds() - t2;
+  if (rc != {{ N }}_SUCCESS) return fallback(m, u_out, rc);
+  commit_plan(m);
+  knot_sum(PHI0, m->plan, u_out);
+  return {{ N }}_SUCCESS;
+}
+#endif
+
 int {{ name }}_step(mem_t* m, const double* x, const double* goal, double* u_out, int* status) {
   return {{ name }}_step_timed(m, x, goal, u_out, status, 0);
 }
 
 int {{ name }}_step_timed(mem_t* m, const double* x, const double* goal, double* u_out, int* status, double* t) {
-  int i, j, rc;
-  double t0 = 0, t1 = 0, t2 = 0;
+  double t0 = 0;
+  int i, failed = 0;
   if (t) { t[0] = t[1] = t[2] = 0; t0 = seconds(); }
-  if (input_goal(m, goal, m->ug) || !all_finite(m->ug, NU)) {
+  memcpy(m->ug, U_GOAL, sizeof m->ug);
+#if HAS_K
+  add_goal_gain(goal, m->ug);
+#endif
+#if HAS_GOAL_INPUT
+  failed = add_goal_input(m, goal, m->ug);
+#endif
+  if (failed || !all_finite(m->ug, NU)) {
     for (i = 0; i < NU; ++i) if (!isfinite(m->ug[i])) m->ug[i] = 0;  /* the cold fallback's input, as in Python */
     *status = fallback(m, u_out, {{ N }}_NAN);
     return *status;
   }
+  m->solver_rc = 0;
 #if LIN_TRAJ
-  (void) j; (void) rc; (void) t0; (void) t1; (void) t2;
-  m->solver_rc = 0;
-  *status = rti(m, x, goal, u_out, t);
-  return *status;
+  *status = rti(m, x, goal, u_out, t, t0);
 #else
-  /* affine model about (x, u_bar) */
-  for (i = 0; i < NU; ++i) {
-    double s = m->ug[i];
-#if LIN_PLAN
-    if (m->has_plan) { s = 0; for (j = 0; j < NP; ++j) s += W0[j] * m->plan[j * NU + i]; }
+  *status = step_about_one_model(m, x, goal, u_out, t, t0);
 #endif
-    m->ubar[i] = s;
-  }
-  m->solver_rc = 0;
-  if (affine_model(m, x, m->ubar, m->Lam1)) {
-    *status = fallback(m, u_out, {{ N }}_EXCEPTION);
-    return *status;
-  }
-  if (!all_finite(m->Lam1, NX * NL)) {
-    *status = fallback(m, u_out, {{ N }}_NAN);
-    return *status;
-  }
-  if (t) { t1 = seconds(); t[0] = t1 - t0; }
-  condense(m, x, goal);
-{% if task %}
-  if (task_terms(m, x, goal)) {  /* a residual's evaluation failed */
-    *status = fallback(m, u_out, {{ N }}_EXCEPTION);
-    return *status;
-  }
-{% endif %}
-  if (t) { t2 = seconds(); t[1] = t2 - t1; }
-  rc = solve_qp(m);
-  if (t) t[2] = seconds() - t2;
-  if (rc != {{ N }}_SUCCESS) {
-    *status = fallback(m, u_out, rc);
-    return *status;
-  }
-  for (i = 0; i < NZ; ++i) { m->plan[i] = m->z[i] = m->z_new[i]; m->lam_x[i] = m->lam_x_new[i]; }
-  for (i = 0; i < NA; ++i) m->lam_a[i] = m->lam_a_new[i];
-  m->has_plan = m->warm = 1;
-  /* first input */
-  for (i = 0; i < NU; ++i) {
-    double s = 0;
-    for (j = 0; j < NP; ++j) s += PHI0[j] * m->plan[j * NU + i];
-    u_out[i] = s;
-  }
-  *status = {{ N }}_SUCCESS;
   return *status;
-#endif
 }
 
 void {{ name }}_knots(const mem_t* m, double* knots) {

@@ -57,11 +57,7 @@ static int task_stage(mem_t* m, int k, const double* xk, const double* L, const 
                       const double* p, const double* d, int c, const double* targets) {
   const double* phi = TASK_PHI + k * NP;
   int a, i, j, col, ncol = L ? c : 0;
-  for (i = 0; i < NU; ++i) {
-    double s = 0;
-    for (j = 0; j < NP; ++j) s += phi[j] * m->zbar[j * NU + i];
-    m->tu[i] = s;
-  }
+  knot_sum(phi, m->zbar, m->tu);
   m->arg[0] = xk; m->arg[1] = m->tu; m->arg[2] = targets;
   m->res[0] = m->tr; m->res[1] = m->trx; m->res[2] = m->tru;
   if ({{ name }}_task_stage(m->arg, m->res, (casadi_int*) m->iw, m->w, 0)) return 1;
@@ -103,13 +99,9 @@ static int task_terms(mem_t* m, const double* x, const double* goal) {
   const double* targets = goal + NX;
   double *prev = m->prev, *y = m->ty;
   int pc, i, j, l, s, col;
-  for (j = 0; j < NP; ++j)
-    for (i = 0; i < NU; ++i) {
-      double v = 0;
-      if (m->has_plan) for (l = 0; l < NP; ++l) v += SHIFT[j * NP + l] * m->plan[l * NU + i];
-      else v = clip(m->ug[i], LBX[j * NU + i], UBX[j * NU + i]);
-      m->zbar[j * NU + i] = v;
-    }
+  shifted_knots(m, m->zbar);
+  if (!m->has_plan)
+    for (i = 0; i < NZ; ++i) m->zbar[i] = clip(m->zbar[i], LBX[i], UBX[i]);
 {% if obstacles %}
   m->n_orows = 0;
 {% endif %}

@@ -1,0 +1,83 @@
+"""RealTimeIteration: real-time iteration (Diehl et al.), Gauss–Newton SQP steps on the multiple-shooting NLP.
+
+One step per control step by default (``iterations``). Each step is the QP of LinearMPC with the model linearized
+stage by stage along the current iterate — the previous plan shifted by one step, then each new QP solution — so it
+reuses the sparse and condensed knot QPs, their backends and LinearMPC's C step. The cost is quadratic, so the
+Gauss–Newton Hessian is exact in the cost and a fixed point of the iteration is a KKT point of the NLP: iterated, it
+reaches the optimum of NonlinearMPC (:mod:`ocpkit.solvers.nlp`).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ocpkit._checks import integer
+from ocpkit.status import Solution
+from ocpkit.model.ocp import OCP
+from ocpkit.solvers.qp import LinearMPC
+
+
+class RealTimeIteration(LinearMPC):
+    """Real-time iteration: ``iterations`` Gauss–Newton SQP steps per control step on the knot QP linearized
+    along the iterate (LinearMPC's "trajectory" linearization), warm-started by shifting the previous plan.
+
+    Iteration i + 1 linearizes at iteration i's QP solution (x̄_0 = x, x̄_k its predicted states, ū its inputs);
+    ``tol`` > 0 stops early once the knots and predicted states move less than ``tol`` (max norm). When an
+    iteration after the first fails (a time budget, a QP limit), the previous iteration's plan is returned:
+    every iterate is a usable plan, the point of RTI.
+
+    Where LinearMPC builds its C step (:mod:`ocpkit.export.native`: DAQP, a robot-sized model, no task) the whole
+    iteration runs as compiled C (:func:`ocpkit.export.export` with linearization "trajectory"), the same steps to
+    rounding: until it is built, and after a failed step's soft-bound retry, in Python.
+
+    ``options`` are LinearMPC's but ``linearization`` (always along the iterate): ``form``, ``qp``, ``state_bounds``
+    ("soft" by default), ``max_iter`` (each QP's iterations), ``time_limit`` (the whole step's budget, all iterations
+    together), ``eps``, ``slack_weight``, ``native``, ``warm_start``, ``raise_on_fail``, ``threads``."""
+
+    def __init__(self, ocp: OCP, *, iterations: int = 1, tol: float = 0.0, **options):
+        if "linearization" in options:
+            raise ValueError("RealTimeIteration takes no linearization: it always linearizes along its iterate")
+        options.setdefault("state_bounds", "soft")
+        self.iterations = integer(iterations, "iterations", 1)
+        if not (isinstance(tol, (int, float)) and np.isfinite(tol) and tol >= 0):
+            raise ValueError(f"tol must be a finite number >= 0, got {tol!r}")
+        self.tol = float(tol)
+        super().__init__(ocp, linearization="trajectory", **options)
+
+    def _native_options(self) -> dict:
+        return {"iterations": self.iterations, "tol": self.tol}
+
+    def __repr__(self):
+        return f"RealTimeIteration({self.iterations}, {self.form}, {self.qp_name}, {self.path}, {self.ocp!r})"
+
+    def _solve(self, x: np.ndarray, goal: np.ndarray) -> Solution:
+        step = self._native_step()
+        if step is not None:  # the same iterations as compiled C (ocpkit.export, linearization "trajectory")
+            return self._c_step(step, x, goal, self._deadline())
+        deadline, par = self._deadline(), self.ocp.parameterization
+        times = {"model": 0.0, "build": 0.0, "solve": 0.0}
+        along, sol, qp_iterations, moved, done = self.shifted_plan(x, goal), None, 0, np.inf, 0
+        for i in range(self.iterations):
+            new = self._qp_step(x, goal, along, deadline, times, knots=None if sol is None else sol.knots)
+            qp_iterations += new.iterations
+            if not new.ok:
+                if sol is None:
+                    return new
+                self._x_plan = sol.x_pred  # the last good iterate stays the plan
+                sol.raw_status = f"{sol.raw_status}; iteration {i + 1} {new.status}: {new.raw_status}"
+                break
+            moved = (np.inf if sol is None else
+                     max(np.abs(new.knots - sol.knots).max(), np.abs(new.x_pred - sol.x_pred).max()))
+            sol, done = new, i + 1
+            if moved <= self.tol:
+                break
+            along = (np.vstack([x, sol.x_pred[1:-1]]), par.inputs(sol.knots))
+        # Each iteration's QP is certified; the NLP's KKT point only where the iteration converged.
+        converged = (f"converged (last iteration moved the plan {moved:.2g} <= tol {self.tol:g})"
+                     if moved <= self.tol else "not iterated to convergence"
+                     + (f" (last iteration moved the plan {moved:.2g})" if np.isfinite(moved) else ""))
+        sol.raw_status = f"RTI {done} of {self.iterations} iterations, {converged}; QP: {sol.raw_status}"
+        sol.iterations, sol.times = qp_iterations, times
+        return sol
+
+
+SOLVERS = {"rti": RealTimeIteration}
