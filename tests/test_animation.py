@@ -1,4 +1,5 @@
-"""Pictures of motion (ocpkit.sim.animation): the GIF a closed loop becomes, the robot it draws, and `simulate --animate`.
+"""Pictures of motion (ocpkit.sim.animation): the GIF a closed loop becomes, the robot it draws, and
+`simulate --animate`.
 
 What a frame shows is checked on the artists' data against forward kinematics computed another way (the planar
 chain's closed form, pinocchio's frame placements), and the written GIF by its frames and size."""

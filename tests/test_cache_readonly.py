@@ -73,7 +73,8 @@ def _run_read_only(folder: Path, root: Path, command: list[str], timeout: float 
 def test_a_read_only_cache_with_a_sound_entry_is_used_as_it_is(tmp_path):
     root = tmp_path / "cache"
     filled = subprocess.run([sys.executable, "-c", SCRIPT], env=_env(root), capture_output=True, text=True,
-                            timeout=600, cwd=tmp_path)  # not the checkout: it would shadow the installed ocpkit  # the C step built in the background by a first run, as it is today
+                            timeout=600, cwd=tmp_path)  # not the checkout: it would shadow the installed ocpkit
+    # the C step built in the background by a first run, as it is today
     assert filled.returncode == 0 and json.loads(filled.stdout.splitlines()[-1])["compiled"], filled.stderr
     before = _listing(root)
 

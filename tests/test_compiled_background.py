@@ -1,4 +1,5 @@
-"""The default affine model: CasADi's VM until a background compile finishes, then the compiled C (ocpkit.codegen.compiled)."""
+"""The default affine model: CasADi's VM until a background compile finishes, then the compiled C
+(ocpkit.codegen.compiled)."""
 import threading
 import warnings
 import weakref
@@ -115,7 +116,8 @@ def test_exit_during_a_background_compile_leaves_no_compiler_nor_scratch(tmp_pat
     import subprocess
     import sys
 
-    script = ("import time, ocpkit.model.ocp as o\nfrom ocpkit.problems import make\no.BACKGROUND_MIN_INSTRUCTIONS = 0\n"
+    script = ("import time, ocpkit.model.ocp as o\nfrom ocpkit.problems import make\n"
+              "o.BACKGROUND_MIN_INSTRUCTIONS = 0\n"
               "fn = make('nlink:3').ocp(knots=3).affine()\nimport ocpkit.codegen.compiled as c\n"
               "for _ in range(600):\n    time.sleep(0.05)\n    if c._compiling: break\n"
               "print(len(c._compiling))\n")

@@ -82,8 +82,8 @@ def test_cost_is_the_objective_ipopt_minimizes(spec, integrator):
 @needs_crocoddyl
 @pytest.mark.parametrize("integrator", ["rk4", "euler"])
 def test_fddp_reaches_ipopts_optimum(integrator):
-    """Same OCP, same integrator: FDDP's converged plan is IPOPT's p = T optimum (3e-14 relative cost measured, both integrators;
-    bounds active, so BoxFDDP), cold and after a warm-started second step."""
+    """Same OCP, same integrator: FDDP's converged plan is IPOPT's p = T optimum (3e-14 relative cost measured, both
+    integrators; bounds active, so BoxFDDP), cold and after a warm-started second step."""
     prob, ocp, x0, goal = setup(horizon=50, integrator=integrator)
     fddp, ipopt = peer.CrocoddylMPC(prob, ocp), NonlinearMPC(ocp)
     F = ocp.discrete()

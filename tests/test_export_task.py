@@ -1,5 +1,5 @@
-"""The exported C step with a task's cost terms (issue 29): the frame-position term of ocpkit.model.task.reach in C, equal
-to LinearMPC's Python step (Gauss–Newton about the plan, ocpkit.qp.task_rows.TaskRows) along closed loops; with
+"""The exported C step with a task's cost terms (issue 29): the frame-position term of ocpkit.model.task.reach in C,
+equal to LinearMPC's Python step (Gauss–Newton about the plan, ocpkit.qp.task_rows.TaskRows) along closed loops; with
 obstacles, their linearized clearance rows built in C as the Python step builds them (issue 43)."""
 from __future__ import annotations
 

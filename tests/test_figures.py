@@ -289,7 +289,8 @@ def test_comparison_sample_response(saved, tmp_path):
     t = np.linspace(0, 10, 101)
     trajs = {c: Trajectory(t=t, x=np.column_stack([np.sin(t + k) * (k + 1) for k in range(12)]),
                            u=np.zeros((100, 6)), goal=np.ones(12)) for c in list(comparison.CONTROLLERS)[:3]}
-    comparison.responses(trajs, tmp_path / "sample", title="6-link robot, start/goal seed 0: joint angles (dotted: goals)")
+    comparison.responses(trajs, tmp_path / "sample",
+                         title="6-link robot, start/goal seed 0: joint angles (dotted: goals)")
     _assert_clean(saved)
 
 

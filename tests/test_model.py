@@ -42,7 +42,10 @@ def test_pendulum_error_multiplier_only_in_controller_model():
     p = make("pendulum")
     assert p.plant() is p.model(1.0)
     x, u = np.array([0.4, 0.1]), np.array([0.5])
-    f = lambda m: np.asarray(m.f(x, u)).ravel()
+
+    def f(m):
+        return np.asarray(m.f(x, u)).ravel()
+
     np.testing.assert_array_equal(f(p.model(1.0)), f(p.plant()))
     assert not np.allclose(f(p.model(1.3)), f(p.plant()))
     # m l² q̈ + b q̇ + m g l sin q = τ with m, l scaled by 1.3.

@@ -1,4 +1,5 @@
-"""LinearMPC's compiled C step (ocpkit.export.native): the same step as the Python one, its fallbacks, budget and cache."""
+"""LinearMPC's compiled C step (ocpkit.export.native): the same step as the Python one, its fallbacks, budget and
+cache."""
 import os
 from pathlib import Path
 
@@ -32,7 +33,8 @@ def _same_closed_loop(ocp, seed, steps, **options):
     F = ocp.discrete()
     for _ in range(steps):
         a, b = c.solve(x, goal), py.solve(x, goal)
-        assert a.status == b.status == (SUCCESS if abs(x[2]) <= 2.0 else SOFT)  # past a bound: "soft" and (a.path, b.path) == ("C step", "Python step")
+        assert a.status == b.status == (SUCCESS if abs(x[2]) <= 2.0 else SOFT)  # past a bound: "soft"
+        assert (a.path, b.path) == ("C step", "Python step")
         np.testing.assert_allclose(a.u, b.u, atol=1e-8)
         np.testing.assert_allclose(a.knots, b.knots, atol=1e-8)
         assert set(a.times) == {"model", "build", "solve", "total"} and a.times["total"] >= a.times["solve"] > 0
@@ -271,8 +273,8 @@ def test_a_killed_build_says_it_was_killed(tmp_path, monkeypatch):
     with pytest.raises(BuildError, match="make was killed by SIGKILL"):
         native.start(PROBLEM.ocp(knots=3, horizon=31), eps=1e-9, max_iter=1000, wait=True)
     # The background build's own process (make's parent, the child that runs it) killed.
-    _make_wrapper(tmp_path / "b", monkeypatch, 'if grep -q "ocpkit.export.native import _child" /proc/$PPID/cmdline; then '
-                                               'kill -KILL $PPID; exit 1; fi')
+    _make_wrapper(tmp_path / "b", monkeypatch, 'if grep -q "ocpkit.export.native import _child" /proc/$PPID/cmdline; '
+                                               'then kill -KILL $PPID; exit 1; fi')
     future = native.start(PROBLEM.ocp(knots=3, horizon=32), eps=1e-9, max_iter=1000)
     with pytest.raises(BuildError, match=r"its build process \(pid \d+\) was killed by SIGKILL"):
         future.result(120)

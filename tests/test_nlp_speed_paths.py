@@ -18,7 +18,8 @@ from ocpkit.solvers.nlp import NonlinearMPC
 from ocpkit.model.task import Sphere, reach
 
 # Every solver converged far below the 1e-6 the optima are compared at.
-TIGHT = {"ipopt": {"tol": 1e-10}, "sqp": {"tol_pr": 1e-9, "tol_du": 1e-9, "min_step_size": 1e-16}, "fatrop": {"tol": 1e-10}}
+TIGHT = {"ipopt": {"tol": 1e-10}, "sqp": {"tol_pr": 1e-9, "tol_du": 1e-9, "min_step_size": 1e-16},
+         "fatrop": {"tol": 1e-10}}
 
 
 def _solve(ocp, x0, goal, method="ipopt", **kwargs):

@@ -93,9 +93,11 @@ def test_matches_pinocchio(name):
     rng = np.random.default_rng(7)
     n = chain.n
     for _ in range(5):
-        q, qd, tau, qdd = rng.uniform(-np.pi, np.pi, n), rng.normal(size=n) * 2, rng.normal(size=n) * 5, rng.normal(size=n)
+        q, qd = rng.uniform(-np.pi, np.pi, n), rng.normal(size=n) * 2
+        tau, qdd = rng.normal(size=n) * 5, rng.normal(size=n)
         pairs = ((aba(q, qd, tau), pin.aba(model, data, q, qd, tau)), (crba(q), _full(pin.crba(model, data, q))),
-                 (bias(q, qd), pin.nonLinearEffects(model, data, q, qd)), (rnea(q, qd, qdd), pin.rnea(model, data, q, qd, qdd)))
+                 (bias(q, qd), pin.nonLinearEffects(model, data, q, qd)),
+                 (rnea(q, qd, qdd), pin.rnea(model, data, q, qd, qdd)))
         for ours, ref in pairs:
             ours = np.array(ours).reshape(np.shape(ref))
             # 1e-9 relative to the magnitude (Baxter's light wrist reaches q̈ ~ 1e2 rad/s²; its URDF angles

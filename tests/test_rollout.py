@@ -131,8 +131,9 @@ def test_cpu_thread_setting_is_checked(monkeypatch):
 
 
 def test_starting_taichi_keeps_the_process_floating_point():
-    """ti.init turns flush-to-zero on in its thread; ocpkit.codegen.kernels.runtime.init restores the environment, so CasADi,
-    IPOPT and numpy keep subnormal numbers (with it on, an SQP step on nlink:3 took 10-13 s instead of 0.1 s)."""
+    """ti.init turns flush-to-zero on in its thread; ocpkit.codegen.kernels.runtime.init restores the environment,
+    so CasADi, IPOPT and numpy keep subnormal numbers (with it on, an SQP step on nlink:3 took 10-13 s instead of
+    0.1 s)."""
     from ocpkit.codegen.kernels import runtime
 
     runtime.init("cpu")

@@ -8,8 +8,8 @@
   applies the solver's own input), finite inputs within the bounds;
 * never takes longer a step than its ceiling (LinearMPC's and NonlinearMPC's ``ceiling``, 10 s; 10 s for the others)
   and one uninterruptible iteration. (It found that starting Taichi turned flush-to-zero on process-wide: SQP steps
-  from a start inside a ball then ran to the ceiling, 10-13 s, instead of 0.1 s; ocpkit.codegen.kernels.runtime now keeps
-  the floating-point environment.)
+  from a start inside a ball then ran to the ceiling, 10-13 s, instead of 0.1 s; ocpkit.codegen.kernels.runtime now
+  keeps the floating-point environment.)
 
 The cases, on the planar 3-link arm: the target behind a ball, a ball over a link of the start pose, a ball on the
 tip, a sphere so large it contains the whole arm, and 100 spheres around it. A configuration that cannot take

@@ -51,7 +51,8 @@ def _reference_violation(ocp, xs):
 @pytest.mark.parametrize("dynamics", ["affine", "nonlinear"])
 def test_kernel_violation_equals_an_independent_rollout(case, dynamics):
     """(a) Each candidate's violation — clearances below the margin and state bounds exceeded, summed over x_1 … x_T
-    — is what a numpy rollout of the same knots and ocpkit.model.task.clearances give; some candidates collide, some not."""
+    — is what a numpy rollout of the same knots and ocpkit.model.task.clearances give; some candidates collide, some
+    not."""
     problem, _, goal, target, x = case
     vmax = np.full(3, 6.0)
     ocp = reach(problem, [BALL], knots=3, horizon=20, obstacle_weight=10, x_min=np.r_[np.full(3, -np.inf), -vmax],

@@ -179,11 +179,11 @@ def test_a_closed_loop_trials_manifest_covers_the_solvers_and_problems_it_may_ru
 
     code = provenance.manifest(closed_loop.trial)["code"]
     for name in ("ocpkit.studies.closed_loop", "ocpkit.solvers.qp", "ocpkit.solvers.nlp", "ocpkit.solvers.mppi",
-                 "ocpkit.problems.nlink", "ocpkit.problems.baxter", "ocpkit.sim.simulate", "ocpkit.sim.metrics", "ocpkit",
-                 "ocpkit.studies"):
+                 "ocpkit.problems.nlink", "ocpkit.problems.baxter", "ocpkit.sim.simulate", "ocpkit.sim.metrics",
+                 "ocpkit", "ocpkit.studies"):
         assert name in code, name
-    for name in ("ocpkit.cli", "ocpkit.runs.store", "ocpkit.runs.study", "ocpkit.studies.knots", "ocpkit.studies.report",
-                 "ocpkit.benchmarks.faults"):
+    for name in ("ocpkit.cli", "ocpkit.runs.store", "ocpkit.runs.study", "ocpkit.studies.knots",
+                 "ocpkit.studies.report", "ocpkit.benchmarks.faults"):
         assert name not in code, name
     assert not any(name.startswith(("numpy", "casadi", "scipy")) for name in code)  # versions, not files
     assert all(len(digest) == 16 for digest in code.values())

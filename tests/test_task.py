@@ -1,4 +1,5 @@
-"""Tasks beyond the joint-space goal (ocpkit.model.task): named terms, targets in the goal, obstacles, for every controller.
+"""Tasks beyond the joint-space goal (ocpkit.model.task): named terms, targets in the goal, obstacles, for every
+controller.
 
 Independent paths compared: the Gauss–Newton QP iterated by real-time iteration against IPOPT on the same NLP
 (terms and an active obstacle); an inactive task against no task, bit for bit, for every registered configuration.
