@@ -223,7 +223,7 @@ def test_taichi_kernels_on_a_simulated_read_only_cache(read_only, taichi_arch):
 
 @pytest.mark.slow
 def test_every_cache_row_of_bench_faults_acceptable():
-    from ocpkit.benchmarks.faults import cache_rows
+    from ocpkit.benchmarks.faults_cache import cache_rows
 
     rows = cache_rows(out=lambda line: None)
     # read-only (sound entry, no entry), concurrent builds, planted entry, full disk (mount namespaces only)

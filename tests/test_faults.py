@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from ocpkit import problems, solvers
-from ocpkit.benchmarks.faults import BUDGET, SOLVERS, format_matrix, matrix
+from ocpkit.benchmarks.faults_matrix import BUDGET, SOLVERS, format_matrix, matrix
 from ocpkit.sim.simulate import simulate
 
 

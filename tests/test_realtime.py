@@ -6,7 +6,7 @@ import pytest
 from threadpoolctl import threadpool_info
 
 from ocpkit import problems
-from ocpkit.benchmarks.faults import beyond_bounds_rows, huge_state_rows, realtime_rows, two_threads_rows
+from ocpkit.benchmarks.faults_realtime import beyond_bounds_rows, huge_state_rows, realtime_rows, two_threads_rows
 from ocpkit.controller import Controller
 from ocpkit.status import LIMITED, NAN, SOFT, SUCCESS, OperationCosts, Solution
 from ocpkit.solvers.nlp import NonlinearMPC
