@@ -14,7 +14,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from ocpkit.runs.store import FILENAME, Store, canonical_key
+from ocpkit.runs.rows import canonical_key
+from ocpkit.runs.store import FILENAME, Store
 from ocpkit.runs.study import Study, cluster_summary, grid, run
 
 LOG = "OCPKIT_TEST_TRIAL_LOG"  # folder where trials leave one file per execution

@@ -14,7 +14,7 @@ import numpy as np
 from ocpkit.runs import provenance
 from ocpkit.runs.claims import Claims, OwnProvenance
 from ocpkit.runs.provenance import package_version
-from ocpkit.runs.store import canonical_key
+from ocpkit.runs.rows import canonical_key
 from ocpkit.runs.trial import execute, failure, grace, timeout_message
 
 

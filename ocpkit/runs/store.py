@@ -13,25 +13,21 @@ from __future__ import annotations
 import contextlib
 import io
 import json
-import math
 import os
 import socket
 import sqlite3
 import time
 from collections.abc import Mapping
-from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
 from ocpkit._checks import choice
+from ocpkit.runs.rows import RESERVED, canonical_key, now, split_result
 
 FILENAME = "results.sqlite"
 STATUSES = ("ok", "failed")
-# Columns of the results table besides the parameters and metrics; neither may use these names.
-RESERVED = ("study", "status", "error", "traceback", "wall_time", "started", "finished", "ocpkit_version",
-            "code_hash")
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS trials (
@@ -50,7 +46,7 @@ CREATE TABLE IF NOT EXISTS trials (
 """
 # Columns added after the first release: older stores gain them (NULL for their trials) when opened for writing.
 _ADDED_COLUMNS = {"ocpkit_version": "TEXT",   # the package version that computed the trial
-                  "code_hash": "TEXT"}        # hash of the code the trial ran (see ocpkit.runs.provenance; manifest in code)
+                  "code_hash": "TEXT"}        # hash of the code the trial ran (ocpkit.runs.provenance; see code)
 _CLAIMS = """
 CREATE TABLE IF NOT EXISTS claims (
     study   TEXT NOT NULL,
@@ -80,66 +76,6 @@ CREATE TABLE IF NOT EXISTS runs (
 
 class StoreError(RuntimeError):
     """The results database could not be used; the message is one line naming the file and what to do."""
-
-
-def canonical_key(params: Mapping) -> str:
-    """The trial's identity: compact JSON with sorted keys and shortest round-trip floats.
-
-    numpy scalars and arrays become plain numbers and lists, tuples become lists and -0.0
-    becomes 0.0, so equal parameter sets always give the same key.
-    """
-    if not isinstance(params, Mapping):
-        raise TypeError(f"params must be a mapping of parameter names to values, got {params!r}")
-    return json.dumps(_plain(params, "params"), sort_keys=True, separators=(",", ":"), allow_nan=False)
-
-
-def _plain(value, where: str):
-    if isinstance(value, Mapping):
-        for k in value:
-            if not isinstance(k, str):
-                raise TypeError(f"{where} keys must be strings, got {k!r}")
-        return {k: _plain(v, f"{where}[{k!r}]") for k, v in value.items()}
-    if isinstance(value, (list, tuple, np.ndarray)):
-        return [_plain(v, f"{where}[{i}]") for i, v in enumerate(value)]
-    if isinstance(value, np.generic):
-        value = value.item()
-    if value is None or isinstance(value, (bool, int, str)):
-        return value
-    if isinstance(value, float):
-        if not math.isfinite(value):
-            raise ValueError(f"{where} must be finite, got {value!r}")
-        return value + 0.0  # turns -0.0 into 0.0
-    raise TypeError(f"{where} must be None, a bool, number, string, list or dict, got {type(value).__name__}")
-
-
-def split_result(params: Mapping, result) -> tuple[dict, dict]:
-    """Split a trial's returned dict into JSON scalar metrics and numpy arrays, validating names and types."""
-    if not isinstance(result, Mapping):
-        raise TypeError(f"a trial must return a dict of metrics, got {type(result).__name__}")
-    metrics, arrays = {}, {}
-    for name, value in result.items():
-        if not isinstance(name, str) or not name:
-            raise TypeError(f"metric names must be non-empty strings, got {name!r}")
-        if name in RESERVED or name in params:
-            raise ValueError(f"metric {name!r} clashes with a {'reserved column' if name in RESERVED else 'parameter'}")
-        if isinstance(value, (list, tuple)) or (isinstance(value, np.ndarray) and value.ndim > 0):
-            a = np.asarray(value)
-            if a.dtype.hasobject:
-                raise TypeError(f"array metric {name!r} must hold numbers or strings, got dtype object")
-            arrays[name] = a
-            continue
-        if isinstance(value, (np.generic, np.ndarray)):
-            value = value.item()
-        if value is not None and not isinstance(value, (bool, int, float, str)):
-            raise TypeError(f"metric {name!r} must be a number, bool, string, None or array, "
-                            f"got {type(value).__name__}")
-        metrics[name] = value
-    return metrics, arrays
-
-
-def now() -> str:
-    """The current UTC time as ISO 8601, the store's timestamp format."""
-    return datetime.now(timezone.utc).isoformat()
 
 
 def _retry_locked(action, seconds: float = 60.0):

@@ -2,8 +2,8 @@
 
 Trials run in local worker processes (spawn-started) or on a Dask distributed cluster (whose scheduler and
 workers must run this process's ocpkit version and code); the parent process writes each finished trial to the
-:mod:`ocpkit.runs.store` as it completes (workers never write it), so an interrupted study resumes where it stopped and a
-trial that raises is stored as failed.
+:mod:`ocpkit.runs.store` as it completes (workers never write it), so an interrupted study resumes where it stopped
+and a trial that raises is stored as failed.
 Before a trial starts, the parent **claims** it in the store (a lease renewed by a heartbeat),
 so several processes on one folder share the grid and run each trial once, and the trials of
 a claimant that died are taken over. Each trial records the package version and a hash of the
@@ -39,7 +39,8 @@ from ocpkit.codegen.kernels import CPU_THREADS
 from ocpkit.runs.cluster import check_scheduler, run_dask
 from ocpkit.runs.provenance import package_version
 from ocpkit.runs.claims import Claims, Heartbeat, OwnProvenance
-from ocpkit.runs.store import RESERVED, Store, StoreError, canonical_key, now, owner_id
+from ocpkit.runs.rows import RESERVED, canonical_key, now
+from ocpkit.runs.store import Store, StoreError, owner_id
 from ocpkit.runs.trial import execute, failure, timeout_message
 
 STALE = ("refuse", "reuse", "rerun")
@@ -121,21 +122,19 @@ def run(study: Study, out_dir, *, workers: int | None = None, scheduler: str | N
     """Run the study's trials not yet stored in ``out_dir`` and return all its trials as a table.
 
     Trials run on ``workers`` local processes (default: one per CPU), or on the Dask cluster at ``scheduler``
-    ("tcp://host:port"; :mod:`ocpkit.runs.cluster`: :class:`~ocpkit.runs.cluster.ClusterMismatchError` if its scheduler or a
-    worker runs another ocpkit version or other code, :class:`~ocpkit.runs.cluster.SchedulerLostError` if the scheduler
-    goes away; ConnectionError, before ``out_dir`` is created, where no Dask scheduler answers there). Each trial is
-    claimed in the store before it starts, so other processes running the same study on the same folder take other
-    trials; a claim lives ``lease`` seconds unless renewed (a heartbeat renews it while this process runs), and the
-    claims of a process that died on this host are taken over at once. Each finished trial is
-    committed as it arrives; a trial that raises (or kills its worker, or runs longer than
-    ``trial_timeout`` seconds) is stored as failed and the rest go on. Stored failures are
-    skipped like successes unless ``retry_failed``. Stored trials computed by another package
-    version, other code, other versions of the numerical libraries or under other thread counts or Taichi settings
-    (see :func:`code_hash`) make
-    the run raise :class:`StaleTrialsError`, naming what changed, unless ``stale`` is "reuse" (keep
-    them) or "rerun" (compute them again). On Ctrl-C the workers are stopped and KeyboardInterrupt
-    propagates; every trial finished before it stays stored. At the end the store is checkpointed, so ``results.sqlite``
-    alone holds every trial. Columns as in :meth:`Store.load`, rows in grid order.
+    ("tcp://host:port"; :mod:`ocpkit.runs.cluster`: :class:`~ocpkit.runs.cluster.ClusterMismatchError` if its scheduler
+    or a worker runs another ocpkit version or other code, :class:`~ocpkit.runs.cluster.SchedulerLostError` if the
+    scheduler goes away; ConnectionError, before ``out_dir`` is created, where no Dask scheduler answers there). Each
+    trial is claimed in the store before it starts, so other processes running the same study on the same folder take
+    other trials; a claim lives ``lease`` seconds unless renewed (a heartbeat renews it while this process runs), and
+    the claims of a process that died on this host are taken over at once. Each finished trial is committed as it
+    arrives; a trial that raises (or kills its worker, or runs longer than ``trial_timeout`` seconds) is stored as
+    failed and the rest go on. Stored failures are skipped like successes unless ``retry_failed``. Stored trials
+    computed by another package version, other code, other versions of the numerical libraries or under other thread
+    counts or Taichi settings (see :func:`code_hash`) make the run raise :class:`StaleTrialsError`, naming what changed,
+    unless ``stale`` is "reuse" (keep them) or "rerun" (compute them again). On Ctrl-C the workers are stopped and
+    KeyboardInterrupt propagates; every trial finished before it stays stored. At the end the store is checkpointed, so
+    ``results.sqlite`` alone holds every trial. Columns as in :meth:`Store.load`, rows in grid order.
     """
     if not isinstance(study, Study):
         raise TypeError(f"study must be a Study, got {type(study).__name__}")
@@ -255,9 +254,9 @@ def _stale_message(name, path, old, n_stored, version, codes, manifests, recorde
             reasons.update(dict.fromkeys(provenance.changes(recorded.get(row[3]), manifests[codes[key]])))
     reasons = list(reasons)
     text = "; ".join(reasons[:6]) + (f"; and {len(reasons) - 6} more differences" if len(reasons) > 6 else "")
-    return (f"{len(old)} of the {n_stored} stored trials of study {name!r} in {path} were computed by other code or settings "
-            f"({text or 'unknown'}): pass --reuse-stale (stale='reuse') to keep them, --rerun-stale (stale='rerun') "
-            f"to compute them again, or choose another --out")
+    return (f"{len(old)} of the {n_stored} stored trials of study {name!r} in {path} were computed by other code or "
+            f"settings ({text or 'unknown'}): pass --reuse-stale (stale='reuse') to keep them, --rerun-stale "
+            f"(stale='rerun') to compute them again, or choose another --out")
 
 
 def _check_importable(fn) -> None:

@@ -9,7 +9,7 @@ import threading
 import time
 import traceback
 
-from ocpkit.runs.store import now, split_result
+from ocpkit.runs.rows import now, split_result
 
 TIMEOUT_EXIT = 124  # exit status of a worker whose trial ignored its timeout
 
