@@ -56,6 +56,12 @@ CONTROLLERS = {
 }
 
 
+# The benchmarks' default controllers (`ocpkit bench nlp` columns, `startup` rows), names of CONTROLLERS; "exported"
+# is startup's ExportedMPC (export + build).
+BENCHMARKED = {"nlp": ("ipopt", "fatrop", "rti", "rti3", "qp", "ltv"),
+               "startup": ("qp", "qp-python", "rti", "ipopt", "fatrop", "empc", "cem", "mppi", "exported")}
+
+
 def controller(name: str, ocp: OCP) -> Controller:
     """The controller ``name`` of :data:`CONTROLLERS` for ``ocp``."""
     if name not in CONTROLLERS:

@@ -16,6 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from ocpkit._checks import integer
+from ocpkit.solvers.methods import CEM
 from ocpkit.solvers.sampling import GaussianSampling
 
 
@@ -24,8 +25,9 @@ class CrossEntropyMPC(GaussianSampling):
     :class:`GaussianSampling`), floor ``sigma_min`` (default σ/100) and ``smoothing`` α ∈ [0, 1):
     mean ← α·mean + (1−α)·elite mean (same for the std)."""
 
-    def __init__(self, ocp, *, population: int = 1024, num_elites: int = 32, sigma=None,
-                 generations: int = 1, sigma_min=None, smoothing: float = 0.0, **options):
+    def __init__(self, ocp, *, population: int = CEM["population"].default, num_elites: int = CEM["num_elites"].default,
+                 sigma=None, generations: int = CEM["generations"].default, sigma_min=None,
+                 smoothing: float = CEM["smoothing"].default, **options):
         population = integer(population, "population", 2)
         self.num_elites = integer(num_elites, "num_elites", 2)
         if self.num_elites > population:

@@ -28,6 +28,7 @@ from ocpkit._checks import integer, positive
 from ocpkit.codegen.kernels import runtime
 from ocpkit.codegen.kernels.random import normal, uniform
 from ocpkit.codegen.kernels.rollout import SparseRows
+from ocpkit.solvers.methods import EMPC
 from ocpkit.solvers.sampling import SEEDS, SamplingMPC
 
 
@@ -42,9 +43,10 @@ class EvolutionaryMPC(SamplingMPC):
     ``stage_cost``/``terminal_cost``, ``precision``, ``arch`` and ``seed``.
     """
 
-    def __init__(self, ocp, *, population: int = 1024, num_parents: int = 16, generations: int = 1,
+    def __init__(self, ocp, *, population: int = EMPC["population"].default,
+                 num_parents: int = EMPC["num_parents"].default, generations: int = EMPC["generations"].default,
                  scales=None, sigma=None, shrink_distance: float | None = None, sigma_min=None,
-                 variant: str = "preconditioned", **options):
+                 variant: str = EMPC["variant"].default, **options):
         population = integer(population, "population", 2)
         self.num_parents = integer(num_parents, "num_parents", 1)
         if self.num_parents >= population:

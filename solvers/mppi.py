@@ -19,6 +19,7 @@ import numpy as np
 import taichi as ti
 
 from ocpkit._checks import positive
+from ocpkit.solvers.methods import MPPI
 from ocpkit.solvers.sampling import GaussianSampling, excess
 
 
@@ -26,8 +27,9 @@ class MPPI(GaussianSampling):
     """MPPI with ``population`` samples, noise ``sigma`` (see :class:`GaussianSampling`) and temperature
     ``temperature`` λ (in the cost's units)."""
 
-    def __init__(self, ocp, *, population: int = 1024, sigma=None, temperature: float = 1.0,
-                 generations: int = 1, **options):
+    def __init__(self, ocp, *, population: int = MPPI["population"].default, sigma=None,
+                 temperature: float = MPPI["temperature"].default, generations: int = MPPI["generations"].default,
+                 **options):
         super().__init__(ocp, population=population, generations=generations, sigma=sigma,
                          **options)
         self.temperature = positive(temperature, "temperature")

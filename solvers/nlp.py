@@ -49,7 +49,7 @@ from ocpkit.controller import Controller, check_linearization
 from ocpkit.status import EXCEPTION, INFEASIBLE, LIMITED, NAN, SUCCESS, OperationCosts, Solution
 from ocpkit.model.ocp import OCP
 from ocpkit.solvers import methods
-from ocpkit.solvers.methods import DYNAMICS, HESSIANS
+from ocpkit.solvers.methods import DYNAMICS, HESSIANS, NONLINEAR
 
 METHODS = tuple(methods.METHODS)
 SOLVER_NAMES = {"ipopt": "IPOPT", "sqp": "sqpmethod", "fatrop": "fatrop"}
@@ -129,10 +129,11 @@ class NonlinearMPC(Controller):
     ``linearization`` ("goal" or "plan") is the affine model's expansion input, as in LinearMPC.
     """
 
-    def __init__(self, ocp: OCP, *, method: str = "ipopt", dynamics: str | None = None,
+    def __init__(self, ocp: OCP, *, method: str = NONLINEAR["method"].default, dynamics: str | None = None,
                  linearization: str | None = None, hessian: str | None = None, max_iter: int | None = None,
-                 time_limit: float | None = None, options: dict | None = None, warm_start: bool = True,
-                 raise_on_fail: bool = False):
+                 time_limit: float | None = None, options: dict | None = None,
+                 warm_start: bool = NONLINEAR["warm_start"].default,
+                 raise_on_fail: bool = NONLINEAR["raise_on_fail"].default):
         if not isinstance(ocp, OCP):
             raise TypeError(f"ocp must be an ocpkit OCP, got {type(ocp).__name__}")
         if method == "rti":

@@ -13,6 +13,7 @@ import numpy as np
 from ocpkit._checks import integer
 from ocpkit.status import Solution
 from ocpkit.model.ocp import OCP
+from ocpkit.solvers.methods import RTI
 from ocpkit.solvers.qp import LinearMPC
 
 
@@ -30,18 +31,18 @@ class RealTimeIteration(LinearMPC):
     rounding: until it is built, and after a failed step's soft-bound retry, in Python.
 
     ``options`` are LinearMPC's but ``linearization`` (always along the iterate): ``form``, ``qp``, ``state_bounds``
-    ("soft" by default), ``max_iter`` (each QP's iterations), ``time_limit`` (the whole step's budget, all iterations
+    (soft by default), ``max_iter`` (each QP's iterations), ``time_limit`` (the whole step's budget, all iterations
     together), ``eps``, ``slack_weight``, ``native``, ``warm_start``, ``raise_on_fail``, ``threads``."""
 
-    def __init__(self, ocp: OCP, *, iterations: int = 1, tol: float = 0.0, **options):
+    def __init__(self, ocp: OCP, *, iterations: int = RTI["iterations"].default, tol: float = RTI["tol"].default,
+                 state_bounds: str = RTI["state_bounds"].default, **options):
         if "linearization" in options:
             raise ValueError("RealTimeIteration takes no linearization: it always linearizes along its iterate")
-        options.setdefault("state_bounds", "soft")
         self.iterations = integer(iterations, "iterations", 1)
         if not (isinstance(tol, (int, float)) and np.isfinite(tol) and tol >= 0):
             raise ValueError(f"tol must be a finite number >= 0, got {tol!r}")
         self.tol = float(tol)
-        super().__init__(ocp, linearization="trajectory", **options)
+        super().__init__(ocp, linearization="trajectory", state_bounds=state_bounds, **options)
 
     def _native_options(self) -> dict:
         return {"iterations": self.iterations, "tol": self.tol}

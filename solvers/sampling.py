@@ -53,8 +53,8 @@ from ocpkit.codegen.kernels.random import normal, seed_key
 from ocpkit.codegen.kernels.rollout import FEASIBILITY_TOLERANCE, Rollout, constrained
 from ocpkit.qp.backends import DAQP
 from ocpkit.qp.transcription import CondensedQP
+from ocpkit.solvers.methods import SAMPLING, VARIANTS
 
-VARIANTS = ("preconditioned", "paper")
 SEEDS = 2  # Newton candidate, holding input
 PARTS = ("model", "build", "factor", "seed", "copies", "generations", "solve", "total")
 
@@ -203,11 +203,14 @@ class SamplingMPC(Controller):
     (see Controller); Taichi's own CPU threads are set at its start (``OCPKIT_CPU_THREADS``).
     """
 
-    def __init__(self, ocp, *, population: int = 1024, generations: int = 1, num_picked: int = 1,
-                 variant: str = "preconditioned", dynamics: str = "affine", stage_cost=None, terminal_cost=None,
-                 precision: str = "float64", arch: str = "auto", seed: int = 0,
-                 linearization: str = "goal", time_limit: float | None = None, raise_on_fail: bool = False,
-                 threads: int | None = 1):
+    def __init__(self, ocp, *, population: int = SAMPLING["population"].default,
+                 generations: int = SAMPLING["generations"].default, num_picked: int = 1,
+                 variant: str = SAMPLING["variant"].default, dynamics: str = SAMPLING["dynamics"].default,
+                 stage_cost=None, terminal_cost=None, precision: str = SAMPLING["precision"].default,
+                 arch: str = SAMPLING["arch"].default, seed: int = SAMPLING["seed"].default,
+                 linearization: str = SAMPLING["linearization"].default, time_limit: float | None = None,
+                 raise_on_fail: bool = SAMPLING["raise_on_fail"].default,
+                 threads: int | None = SAMPLING["threads"].default):
         super().__init__(ocp, raise_on_fail=raise_on_fail, threads=threads)
         self.variant = choice(variant, VARIANTS, "variant")
         self.preconditioned = variant == "preconditioned"

@@ -204,7 +204,8 @@ def test_help_says_the_default_knots(command, capsys):
         main([command, "--help"])
     text = " ".join(capsys.readouterr().out.split())
     assert exit_.value.code == 0
-    assert "knot points p (default 5, or T when the horizon is shorter)" in text
+    assert "knot points p (default 5, or T when the horizon is shorter; the Python API's Problem.ocp(knots=None) is " \
+           "traditional MPC instead)" in text
     assert "traditional MPC (one knot per step, p = T) is --parameterization identity" in text
 
 

@@ -33,11 +33,12 @@ from ocpkit import problems as registry
 from ocpkit import solvers
 from ocpkit._checks import integer
 from ocpkit.benchmarks import crocoddyl_peer
+from ocpkit.solvers.methods import KNOTS
 from ocpkit.sim.metrics import actual_cost
 from ocpkit.sim.simulate import simulate
 
 ROBOTS = ("nlink:3", "nlink:7", "puma560", "baxter")
-CONTROLLERS = ("ipopt", "fatrop", "rti", "rti3", "qp", "ltv")  # the default columns, names of solvers.CONTROLLERS
+CONTROLLERS = solvers.BENCHMARKED["nlp"]  # the default columns, names of solvers.CONTROLLERS
 PEERS = ("crocoddyl",)  # other libraries' controllers, run only when asked for
 # Warm steps of the peers' per-solve comparison at most (IPOPT at p = T takes a second a solve on the Puma).
 PER_SOLVE_STEPS = 10
@@ -79,8 +80,8 @@ def controller(kind: str, ocp, problem=None):
     return solvers.controller(kind, ocp)
 
 
-def bench_nlp(problems=None, knots: int | None = 5, horizon: int | None = 50, samples: int = 3, steps: int = 50, *,
-              controllers=CONTROLLERS, compiled: bool = False, integrator: str = "rk4", first_seed: int = 0,
+def bench_nlp(problems=None, knots: int | None = KNOTS, horizon: int | None = 50, samples: int = 3, steps: int = 50,
+              *, controllers=CONTROLLERS, compiled: bool = False, integrator: str = "rk4", first_seed: int = 0,
               echo: bool = True) -> list[dict]:
     """Median step time (ms), closed-loop actual-cost ratio to IPOPT, fallbacks and final error of every
     controller in ``controllers`` (names of :data:`ocpkit.solvers.CONTROLLERS`; default CONTROLLERS), one row per

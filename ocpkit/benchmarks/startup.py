@@ -1,11 +1,12 @@
 """`ocpkit bench startup`: the time from "new controller" to its first good step, for every solver.
 
-Each run is a fresh Python process (:func:`_worker`) that imports ocpkit, builds the problem's OCP (5 knots, the
-problem's horizon), constructs one controller and steps it in closed loop on the OCP's discrete model from a seeded
-start. It reports, in seconds from the constructor call: the first returned solution, the first verified
-``success`` (and the step and path that gave it), and the steady state (``wait_compiled``: the C step or compiled
-model loaded, the Taichi kernel compiled), then the median step there. Each configuration runs twice in a new cache
-folder of its own (``OCPKIT_CACHE_DIR``, Taichi's kernels included): empty, then warm (what the first run left).
+Each run is a fresh Python process (:func:`_worker`) that imports ocpkit, builds the problem's OCP (the command line's
+knots, :data:`ocpkit.solvers.methods.KNOTS`, the problem's horizon), constructs one controller and steps it in closed
+loop on the OCP's discrete model from a seeded start. It reports, in seconds from the constructor call: the first
+returned solution, the first verified ``success`` (and the step and path that gave it), and the steady state
+(``wait_compiled``: the C step or compiled model loaded, the Taichi kernel compiled), then the median step there.
+Each configuration runs twice in a new cache folder of its own (``OCPKIT_CACHE_DIR``, Taichi's kernels included):
+empty, then warm (what the first run left).
 
 The split says where the start-up went, each part timed around the library call that does it: ``import``
 (ocpkit, its problems and solvers), ``symbolic`` (the problem and its OCP in CasADi), ``setup`` (the constructor,
@@ -26,10 +27,11 @@ import time
 
 import numpy as np
 
+from ocpkit.solvers import BENCHMARKED
+from ocpkit.solvers.methods import KNOTS
+
 PROBLEMS = ("nlink:13", "puma560", "panda")  # panda: a 7-DoF arm read from its URDF
-# The default rows: names of ocpkit.solvers.CONTROLLERS, and "exported" (export + build + ExportedMPC)
-CONTROLLERS = ("qp", "qp-python", "rti", "ipopt", "fatrop", "empc", "cem", "mppi", "exported")
-KNOTS = 5
+CONTROLLERS = BENCHMARKED["startup"]  # the default rows: names of ocpkit.solvers.CONTROLLERS, and "exported"
 PARTS = ("import", "symbolic", "setup", "codegen", "translate", "taichi", "C build", "first step")
 INNER = ("codegen", "translate", "taichi", "C build")  # timed inside the constructor or the first steps
 MAX_STEPS = 200  # steps tried for a first success

@@ -11,7 +11,8 @@ import sys
 from ocpkit import __version__, solvers, studies
 from ocpkit.cli.commands import BENCHMARKS, COMMANDS, PROBLEM_BENCHMARKS, PROBLEM_STUDIES
 from ocpkit.cli.options import (DEFAULT_KNOTS, DYNAMICS, EXPORT_FORMS, EXPORT_QPS, NLP_METHODS, QP_BACKENDS, SAMPLING,
-                                SPEC_HELP, VARIANTS)
+                                SPEC_HELP, VARIANTS, default)
+from ocpkit.solvers.methods import QP_BY_FORM
 from ocpkit.cli.task import NUMBERS
 from ocpkit.controller import LINEARIZATIONS, TRAJECTORY
 from ocpkit.model.dynamics import INTEGRATORS
@@ -32,8 +33,9 @@ def _add_problem_args(p):
     """The problem and its OCP, the same in solve, simulate and export."""
     p.add_argument("problem", help=SPEC_HELP)
     p.add_argument("--knots", type=int, default=None,
-                   help=f"knot points p (default {DEFAULT_KNOTS}, or T when the horizon is shorter); traditional MPC "
-                        f"(one knot per step, p = T) is --parameterization identity")
+                   help=f"knot points p (default {DEFAULT_KNOTS}, or T when the horizon is shorter; the Python API's "
+                        f"Problem.ocp(knots=None) is traditional MPC instead); traditional MPC (one knot per step, "
+                        f"p = T) is --parameterization identity")
     p.add_argument("--parameterization", default="linear", choices=("linear", "zoh", "identity"),
                    help="input between the knots: linear (default, the paper's piecewise-linear), zoh (move blocking) "
                         "or identity (traditional MPC, p = T; takes no --knots)")
@@ -46,31 +48,38 @@ def _add_problem_args(p):
 
 def _add_controller_args(p):
     _add_problem_args(p)
+    # The solvers' options default to None, "not given" (one that does not apply to the solver is refused); the
+    # solver then takes its own default, the one its help names from the table (ocpkit.solvers.methods).
     p.add_argument("--solver", default="qp", help=f"solver: {', '.join(solvers.names())} (default qp)")
     p.add_argument("--form", choices=("sparse", "condensed"),
-                   help="qp, rti: QP transcription (default condensed)")
+                   help=f"qp, rti: QP transcription (default {default('qp', 'form')})")
     p.add_argument("--qp", choices=QP_BACKENDS,
-                   help="qp, rti: QP backend (default daqp for condensed, proxqp for sparse; hpipm: "
-                        "sparse traditional)")
+                   help=f"qp, rti: QP backend (default {' and '.join(f'{q} for {f}' for f, q in QP_BY_FORM.items())}; "
+                        f"hpipm: sparse traditional)")
     p.add_argument("--method", choices=NLP_METHODS,
-                   help="ipopt: how the NLP is solved: ipopt (interior point, default), sqp (CasADi's SQP), fatrop "
-                        "(interior point with a Riccati recursion over the stages); real-time iteration is --solver "
-                        "rti")
+                   help=f"ipopt: how the NLP is solved: ipopt (interior point), sqp (CasADi's SQP), fatrop (interior "
+                        f"point with a Riccati recursion over the stages) (default {default('ipopt', 'method')}); "
+                        f"real-time iteration is --solver rti")
     p.add_argument("--iterations", type=int,
-                   help="rti: Gauss-Newton SQP iterations per control step on the knot QP (default 1, the real-time "
-                        "iteration)")
+                   help=f"rti: Gauss-Newton SQP iterations per control step on the knot QP (default "
+                        f"{default('rti', 'iterations')}, the real-time iteration)")
     p.add_argument("--dynamics", choices=DYNAMICS,
-                   help="ipopt --method ipopt|sqp: the prediction model (default nonlinear); empc/cem/mppi: the "
-                        "rollout model (default affine, re-linearized every step)")
+                   help=f"ipopt --method ipopt|sqp: the prediction model (default {default('ipopt', 'dynamics')}); "
+                        f"empc/cem/mppi: the rollout model (default {default('empc', 'dynamics')}, re-linearized "
+                        f"every step)")
     p.add_argument("--linearization", choices=LINEARIZATIONS + (TRAJECTORY,),
-                   help="the affine model's expansion point: goal (default: about the goal's input), plan (the "
-                        "input the previous plan expects now) or, qp only, trajectory (stage by stage along the "
-                        "shifted plan); qp, ipopt --dynamics affine, empc/cem/mppi")
-    p.add_argument("--population", type=int, help="empc/cem/mppi: rollouts per generation")
-    p.add_argument("--generations", type=int, help="empc/cem/mppi: generations per control step")
-    p.add_argument("--arch", choices=("auto", "cpu", "cuda"), help="empc/cem/mppi: Taichi arch (default auto)")
+                   help=f"the affine model's expansion point: goal (about the goal's input), plan (the input the "
+                        f"previous plan expects now) or, qp only, trajectory (stage by stage along the shifted plan) "
+                        f"(default {default('qp', 'linearization')}); qp, ipopt --dynamics affine, empc/cem/mppi")
+    p.add_argument("--population", type=int,
+                   help=f"empc/cem/mppi: rollouts per generation (default {default('empc', 'population')})")
+    p.add_argument("--generations", type=int,
+                   help=f"empc/cem/mppi: generations per control step (default {default('empc', 'generations')})")
+    p.add_argument("--arch", choices=("auto", "cpu", "cuda"),
+                   help=f"empc/cem/mppi: Taichi arch (default {default('empc', 'arch')})")
     p.add_argument("--variant", choices=VARIANTS,
-                   help="empc/cem/mppi: preconditioned by the knot QP (default) or the paper's plain algorithm")
+                   help=f"empc/cem/mppi: preconditioned by the knot QP or the paper's plain algorithm (default "
+                        f"{default('empc', 'variant')})")
     p.add_argument("--error", type=float, default=1.0, help="model error multiplier of the controller's model")
     p.add_argument("--compiled", action="store_true", default=None,
                    help="compile the affine model to C before the first step (default: large models start on "
@@ -192,11 +201,12 @@ def _parser() -> argparse.ArgumentParser:
     exp.add_argument("--qp", default=EXPORT_QPS[0], choices=EXPORT_QPS,
                      help="QP backend generated into the C: daqp (default), qrqp or osqp (hpipm needs a stage-wise "
                           "QP, which the knot QP is not)")
-    exp.add_argument("--linearization", default="goal", choices=LINEARIZATIONS + (TRAJECTORY,),
-                     help="the affine model's expansion point, as solve's: goal (default), plan, or trajectory (the "
-                          "real-time iteration: per stage along the shifted plan)")
-    exp.add_argument("--iterations", type=int, default=1,
-                     help="--linearization trajectory: Gauss-Newton iterations per control step (default 1)")
+    exp.add_argument("--linearization", default=default("qp", "linearization"), choices=LINEARIZATIONS + (TRAJECTORY,),
+                     help="the affine model's expansion point, as solve's: goal, plan, or trajectory (the real-time "
+                          "iteration: per stage along the shifted plan) (default %(default)s)")
+    exp.add_argument("--iterations", type=int, default=default("rti", "iterations"),
+                     help="--linearization trajectory: Gauss-Newton iterations per control step (default "
+                          "%(default)s)")
     exp.add_argument("--seed", type=int, default=0, help="seed of the example closed loop's start and goal")
     exp.add_argument("--out", default="export", help="output folder (absent or empty unless --force)")
     exp.add_argument("--force", action="store_true", help="export into a non-empty --out, overwriting its files")
@@ -219,12 +229,12 @@ def _parser() -> argparse.ArgumentParser:
                                                 "start and goal (default 0)")
     bench.add_argument("--busy", type=int, help="step: busy processes for the quiet-vs-loaded comparison (default 2; "
                                                 "0 skips it)")
+    columns, rows = (" ".join(solvers.BENCHMARKED[what]) for what in ("nlp", "startup"))
     bench.add_argument("--controller", action="append", metavar="NAME",
-                       help="nlp: a controller column (repeatable; default ipopt fatrop rti rti3 qp ltv); crocoddyl "
-                            "adds Crocoddyl's FDDP and its per-solve table (pip install \"ocpkit[peers]\"); startup: "
-                            "a controller row (repeatable; default qp qp-python rti ipopt fatrop empc cem mppi "
-                            "exported); the names: the solvers (qp, rti, ipopt, empc, cem, mppi) and qp-python, ltv, "
-                            "rti3, fatrop")
+                       help=f"nlp: a controller column (repeatable; default {columns}); crocoddyl adds Crocoddyl's "
+                            f"FDDP and its per-solve table (pip install \"ocpkit[peers]\"); startup: a controller row "
+                            f"(repeatable; default {rows}); the names: the solvers ({', '.join(solvers.names())}) and "
+                            f"{', '.join(c for c in solvers.CONTROLLERS if c not in solvers.names())}")
     return parser
 
 

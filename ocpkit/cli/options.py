@@ -4,21 +4,19 @@ from __future__ import annotations
 
 from ocpkit import solvers
 from ocpkit.controller import LINEARIZATIONS, TRAJECTORY
-from ocpkit.solvers.methods import DYNAMICS, METHODS  # noqa: F401 - DYNAMICS: the parser's choices
+from ocpkit.solvers.methods import ARGUMENTS, DYNAMICS, METHODS, VARIANTS  # noqa: F401 - the parser's choices
+from ocpkit.solvers.methods import KNOTS as DEFAULT_KNOTS
 
 SPEC_HELP = ("problem spec: a registered name (pendulum, pendulum:linear, nlink:N with N = 1…13, puma560, baxter, "
              "panda, urdf:FILE), package.module:Name or path/to/file.py:Name (a Problem subclass, instance or factory; "
              "':arg' passes through)")
-# Knot points p of solve, simulate and export unless --knots or --parameterization identity says otherwise: the
-# README's examples and the C step's size (traditional MPC, p = T, makes EMPC compile for minutes).
-DEFAULT_KNOTS = 5
-# The solvers' own choices, written out so that `ocpkit --help` does not import every solver (half a second);
-# tests/test_cli.py checks them against solvers.qp.QP_SOLVERS and solvers.sampling.VARIANTS. NonlinearMPC's methods
-# and the arguments each takes come from its own table, solvers.methods.METHODS.
+# The solvers' arguments, their meaning and defaults, and the knot count p of solve, simulate and export unless
+# --knots or --parameterization identity says otherwise (DEFAULT_KNOTS; Problem.ocp's knots=None is p = T) come from
+# the one table, ocpkit.solvers.methods, which imports no solver: `ocpkit --help` does not import them (half a
+# second). The backends are written out; tests/test_cli.py checks them against solvers.qp.QP_SOLVERS.
 NLP_METHODS = tuple(METHODS)
 QP_SOLVERS = ("qp", "rti")  # the solvers that take --form and --qp: LinearMPC and the real-time iteration's QPs
 QP_BACKENDS = ("proxqp", "osqp", "daqp", "hpipm")
-VARIANTS = ("preconditioned", "paper")
 SAMPLING = ("empc", "cem", "mppi")
 # What `ocpkit export` offers: the (form, qp) pairs ocpkit.export generates (its SUPPORTED; tests/test_cli.py checks),
 # DAQP first, the default.
@@ -55,12 +53,13 @@ class _Config:
 
     def __init__(self, args):
         self.solver = args.solver
-        self.method = (args.method or NLP_METHODS[0]) if args.solver == "ipopt" else None
+        self.method = (args.method or ARGUMENTS["ipopt"]["method"].default) if args.solver == "ipopt" else None
         self.dynamics = self.variant = None
         if "dynamics" in METHODS.get(self.method, ()):
             self.dynamics = args.dynamics or METHODS[self.method]["dynamics"].default
         elif args.solver in SAMPLING:
-            self.dynamics, self.variant = args.dynamics or "affine", args.variant or "preconditioned"
+            self.dynamics = args.dynamics or ARGUMENTS[args.solver]["dynamics"].default
+            self.variant = args.variant or ARGUMENTS[args.solver]["variant"].default
 
     def describe(self, option: str) -> str:
         """The configuration in the words of the command line, with what decides whether ``option`` applies."""
@@ -68,6 +67,14 @@ class _Config:
         if option == "linearization":
             settings += [f"--{k} {v}" for k, v in (("dynamics", self.dynamics), ("variant", self.variant)) if v]
         return f"solver {self.solver!r}" + (f" with {' '.join(settings)}" if settings else "")
+
+
+def default(solver: str, argument: str):
+    """The default of ``solver``'s ``argument`` (ocpkit.solvers.methods; ipopt: its default method's)."""
+    table = ARGUMENTS[solver]
+    if argument not in table and solver == "ipopt":
+        table = METHODS[table["method"].default]
+    return table[argument].default
 
 
 def solver_options(args) -> dict:

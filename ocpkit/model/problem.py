@@ -215,7 +215,8 @@ class Problem:
 
     def ocp(self, *, knots: int | None = None, horizon: int | None = None, error: float = 1.0,
             parameterization: str = "linear", dt: float | None = None, **overrides) -> OCP:
-        """The MPC problem: ``knots`` None means traditional MPC (p = T); other keywords override defaults or set
+        """The MPC problem: ``knots`` None means traditional MPC (p = T) — unlike the command line, which takes 5
+        knots unless told otherwise (:data:`ocpkit.solvers.methods.KNOTS`); other keywords override defaults or set
         the OCP's options, e.g. ``integrator="euler"`` for the controller's prediction (the plant keeps RK4)."""
         T = self.horizon if horizon is None else horizon
         kwargs = {**self.defaults(), **overrides}
