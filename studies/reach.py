@@ -3,18 +3,18 @@
 
 **Reach.** An end-effector target behind a sphere, on the planar 3-link arm (``nlink:3``: targets in its plane
 z = 0, spheres centred in the plane), on Baxter's 7-DoF right arm (the shipped URDF, position servo) and on the
-torque-controlled Panda (``panda``, the full size only: its sampling kernels compile for minutes). A
-scenario is drawn from its seed, and the seeds were not tuned on: the start is ``problem.sample(s)``'s start, the
-target the forward kinematics of its goal configuration (so the target is reachable), at least
-:data:`MIN_DISTANCE` from the start's end effector; one sphere of radius :data:`OBSTACLE_RADIUS` sits on the
-straight end-effector path at a fraction uniform in [0.35, 0.65] of it, moved sideways by up to half its
-radius (so the straight path is blocked: the end effector's own sphere would hit it). Scenarios whose start or
-target configuration is within the margin of the obstacle are rejected and redrawn from s = seed + 1 000 003·k
-(k = 1, 2, ...), deterministically. Every controller gets the same OCP, :func:`ocpkit.model.task.reach`
-(frame-position term, the problem's velocity and input weights, obstacle margin 0.01 m, robot spheres along
-the links of the problem's ``link_radius``), the goal ``ocp.goal(x_start, position=target)`` (no joint target:
-the posture is free). A trial succeeds when the final end effector is within 1 cm of the target and the true
-clearance (without margin) is ≥ 0 at every recorded plant state.
+torque-controlled Panda (``panda``, the full size only: its sampling kernels compile for minutes). A scenario is
+drawn from its seed, and the seeds were not tuned on: the start is ``problem.sample(s)``'s start, the target the
+forward kinematics of its goal configuration (so the target is reachable), at least
+:data:`~ocpkit.studies.reach_trials.MIN_DISTANCE` from the start's end effector; one sphere of radius
+:data:`~ocpkit.studies.reach_trials.OBSTACLE_RADIUS` sits on the straight end-effector path at a fraction uniform in
+[0.35, 0.65] of it, moved sideways by up to half its radius (so the straight path is blocked: the end effector's own
+sphere would hit it). Scenarios whose start or target configuration is within the margin of the obstacle are
+rejected and redrawn from s = seed + 1 000 003·k (k = 1, 2, ...), deterministically. Every controller gets the same
+OCP, :func:`ocpkit.model.task.reach` (frame-position term, the problem's velocity and input weights, obstacle margin
+0.01 m, robot spheres along the links of the problem's ``link_radius``), the goal
+``ocp.goal(x_start, position=target)`` (no joint target: the posture is free). A trial succeeds when the final end
+effector is within 1 cm of the target and the true clearance (without margin) is ≥ 0 at every recorded plant state.
 
 What a trial records about its steps and its loop (:mod:`ocpkit.sim.simulate`): a step counts as a success only with
 status "success"; "soft" steps (the solver's input applied, its plan breaking a clearance or state bound) and
@@ -24,58 +24,37 @@ states. The loop-level verdict (:meth:`ocpkit.sim.simulate.Trajectory.progress`)
 end), "stalled" (not reached, and the distance changed by at most 1 mm over the last 0.5 s: every step may have
 succeeded, the loop did not) or "moving" (not reached, still changing when the run ended).
 
-**Keep-out, fair baseline.** The joint-space ball of :mod:`ocpkit.studies.keepout` (3-link arm, radius
-r = 0.3 rad half-way between start and goal, hinge penalty w·max(0, r − ‖q − c‖), w = 100): EMPC with that
-penalized fitness against IPOPT and RTI given the penalty in C¹ form, a :class:`ocpkit.model.task.UserTerm` with the
-squared hinge residual max(0, r + 0.01 − ‖q − c‖) and weight :data:`HINGE_WEIGHT`, and EMPC given that same
-OCP (its fitness then is the squared hinge: the search, not the cost, differs from IPOPT's). Every run is
-scored on the same actual penalized cost as in keepout: the quadratic cost plus the hinge penalty on every
-recorded state.
+**Keep-out, fair baseline.** The joint-space ball of :mod:`ocpkit.studies.keepout` (3-link arm, radius r = 0.3 rad
+half-way between start and goal, hinge penalty w·max(0, r − ‖q − c‖), w = 100): EMPC with that penalized fitness
+against IPOPT and RTI given the penalty in C¹ form, a :class:`ocpkit.model.task.UserTerm` with the squared hinge
+residual max(0, r + 0.01 − ‖q − c‖) and weight :data:`~ocpkit.studies.reach_trials.HINGE_WEIGHT`, and EMPC given
+that same OCP (its fitness then is the squared hinge: the search, not the cost, differs from IPOPT's). Every run is
+scored on the same actual penalized cost as in keepout: the quadratic cost plus the hinge penalty on every recorded
+state.
 """
 from __future__ import annotations
 
-import casadi as ca
 import numpy as np
 import pandas as pd
 
-from ocpkit import problems, solvers
-from ocpkit.sim import plots
 from ocpkit._checks import choice
-from ocpkit.codegen.kernels.runtime import current_arch
-from ocpkit.model.kinematics import spheres_along_links
-from ocpkit.sim.metrics import actual_cost
-from ocpkit.sim.plots import number
-from ocpkit.sim.simulate import MOVING, REACHED, STALLED, simulate
-from ocpkit.studies import keepout
-from ocpkit.studies.closed_loop import run_record
-from ocpkit.studies.evidence import NOT_TESTED, Interval, combine, decide, every, median_claim, proportion
-from ocpkit.studies.report import ANSWERED, Claim, answered, markdown_table, section, timing_context, trials_line
+from ocpkit.model.task import REACH_OBSTACLE_WEIGHT
 from ocpkit.runs.study import Study, grid
-from ocpkit.model.task import REACH_OBSTACLE_WEIGHT, Sphere, Task, UserTerm, reach
-from ocpkit.model.task import clearances as task_clearances
+from ocpkit.sim import plots
+from ocpkit.sim.plots import number
+from ocpkit.sim.simulate import MOVING, STALLED
+from ocpkit.studies import keepout
+from ocpkit.studies.evidence import NOT_TESTED, Interval, combine, decide, every, median_claim, proportion
+from ocpkit.studies.reach_trials import (CEM, CONTROLLERS, EMPC, HINGE_WEIGHT, IPOPT, K_EMPC_HINGE, K_EMPC_SQUARED,
+                                         K_IPOPT, K_RTI, KEEPOUT, KEEPOUT_CONTROLLERS, KNOTS, MARGIN, MPPI,
+                                         OBSTACLE_RADIUS, QP, QP_TRAJ, ROBOTS, RTI, trial)
+from ocpkit.studies.report import ANSWERED, Claim, answered, markdown_table, section, timing_context, trials_line
 
 NAME = "reach"
 TITLE = "Reaching past spherical obstacles (every controller, one task OCP) and the keep-out ball with a fair baseline"
-ROBOTS = ("nlink:3", "baxter", "panda")
-KEEPOUT = "keepout"
-MARGIN, TOLERANCE = 0.01, 0.01            # obstacle margin [m] in the OCP; success: final distance [m]
-OBSTACLE_RADIUS = {"nlink:3": 0.06, "baxter": 0.08, "panda": 0.08}
-MIN_DISTANCE = 0.25                       # start-to-target end-effector distance [m] at least
-KNOTS = {"nlink:3": 5, "baxter": 3, "panda": 5}
-ATTEMPTS = 200
-HINGE_WEIGHT = 1e3                        # the squared hinge's weight in the keep-out UserTerm
-IPOPT, RTI, QP, QP_TRAJ, EMPC, CEM, MPPI = ("IPOPT", "RTI", "LinearMPC", "LinearMPC (trajectory)", "EMPC", "CEM",
-                                            "MPPI")
-SAMPLING = {"linearization": "plan"}      # sampling planners: affine model re-linearized about the plan each step
-CONTROLLERS = {IPOPT: ("ipopt", {}), RTI: ("rti", {}), QP: ("qp", {}),
-               QP_TRAJ: ("qp", {"linearization": "trajectory"}), EMPC: ("empc", SAMPLING), CEM: ("cem", SAMPLING),
-               MPPI: ("mppi", SAMPLING)}
 GRADIENT = (IPOPT, RTI, QP, QP_TRAJ)
-K_IPOPT, K_RTI, K_EMPC_HINGE, K_EMPC_SQUARED = ("IPOPT, squared hinge term", "RTI, squared hinge term",
-                                                "EMPC, hinge fitness", "EMPC, squared hinge term")
-KEEPOUT_CONTROLLERS = (K_IPOPT, K_RTI, K_EMPC_HINGE, K_EMPC_SQUARED)
-# quick: shortened for a few minutes on 2 cores (IPOPT with the obstacle constraints: ~0.1 s a step on Baxter)
-# A robot a size leaves out has 0 seeds (or no entry).
+# quick: fewer seeds, shorter runs, Baxter at a shorter horizon, no Panda. A robot a size leaves out has 0 seeds
+# (or no entry).
 SIZES = {"quick": {"seeds": {"nlink:3": 4, "baxter": 1, "panda": 0, KEEPOUT: 2},
                    "duration": {"nlink:3": 2.5, "baxter": 1.0, KEEPOUT: 5.0},
                    "horizon": {"nlink:3": 50, "baxter": 20, KEEPOUT: 100}, "population": 256, "arch": "cpu"},
@@ -83,124 +62,6 @@ SIZES = {"quick": {"seeds": {"nlink:3": 4, "baxter": 1, "panda": 0, KEEPOUT: 2},
                   "duration": {"nlink:3": 3.0, "baxter": 3.0, "panda": 2.0, KEEPOUT: 5.0},
                   "horizon": {"nlink:3": 50, "baxter": 50, "panda": 50, KEEPOUT: 100}, "population": 1024,
                   "arch": "auto"}}
-
-
-# --- scenarios ------------------------------------------------------------------------------------------------
-
-def clearances(pb, obstacles, q_rows) -> np.ndarray:
-    """True clearance d (m, no margin) per configuration (rows of ``q_rows``) of the robot's spheres as
-    :func:`ocpkit.model.task.reach` places them: min over sphere/obstacle pairs."""
-    return task_clearances(pb.kinematics, spheres_along_links(pb.kinematics, pb.link_radius), obstacles, q_rows)
-
-
-def scenario(robot: str, seed: int) -> dict:
-    """The seeded scenario: start state, target point, obstacles and how many draws were rejected."""
-    choice(robot, ROBOTS, "robot")
-    pb = problems.make(robot)
-    n, radius = pb.kinematics.n, OBSTACLE_RADIUS[robot]
-    for attempt in range(ATTEMPTS):
-        x0, xg = pb.sample(seed + 1_000_003 * attempt)
-        p0, pg = pb.kinematics.positions(pb.end_effector, np.vstack([x0[:n], xg[:n]]))
-        length = np.linalg.norm(pg - p0)
-        if length < MIN_DISTANCE:
-            continue
-        rng = np.random.default_rng([seed, attempt])
-        along = (pg - p0) / length
-        side = np.cross(along, [0.0, 0.0, 1.0]) if robot.startswith("nlink") else np.cross(along, rng.normal(size=3))
-        side /= np.linalg.norm(side)
-        centre = p0 + rng.uniform(0.35, 0.65) * (pg - p0) + rng.uniform(-0.5, 0.5) * radius * side
-        obstacles = [Sphere(tuple(centre), radius)]
-        if clearances(pb, obstacles, np.vstack([x0[:n], xg[:n]])).min() < MARGIN:
-            continue
-        return {"x0": x0, "q_target": xg[:n], "target": pg, "obstacles": obstacles, "rejected": attempt}
-    raise RuntimeError(f"no collision-free {robot} scenario for seed {seed} in {ATTEMPTS} draws")
-
-
-# --- trials ---------------------------------------------------------------------------------------------------
-
-def trial(scenario: str, controller: str, horizon: int, duration: float, population: int, arch: str,
-          seed: int) -> dict:
-    """One closed-loop run: a reach ``scenario`` ("nlink:3", "baxter") or the keep-out ball ("keepout")."""
-    choice(scenario, (*ROBOTS, KEEPOUT), "scenario")
-    if scenario == KEEPOUT:
-        return keepout_trial(controller, horizon, duration, population, arch, seed)
-    return reach_trial(scenario, controller, horizon, duration, population, arch, seed)
-
-
-def _controller(solver, options, ocp, population, arch, seed, **extra):
-    if solver in ("empc", "cem", "mppi"):
-        options = {**options, "population": population, "arch": arch, "seed": seed}
-    return solvers.make(solver, ocp, **options, **extra)
-
-
-def _times(traj, ctrl) -> dict:
-    total = traj.times("total")
-    return {"step_median": float(np.median(total)), "step_max": float(total.max()),
-            "solve_median": float(np.median(traj.times("solve"))), **run_record(traj, ctrl)}
-
-
-def reach_trial(robot: str, controller: str, horizon: int, duration: float, population: int, arch: str,
-                seed: int) -> dict:
-    choice(controller, tuple(CONTROLLERS), "controller")
-    s = scenario(robot, seed)
-    pb = problems.make(robot)
-    n = pb.kinematics.n
-    ocp = reach(pb, s["obstacles"], margin=MARGIN, knots=KNOTS[robot], horizon=horizon)
-    goal = ocp.goal(s["x0"], position=s["target"])
-    solver, options = CONTROLLERS[controller]
-    ctrl = _controller(solver, options, ocp, population, arch, seed)
-    ctrl.solve(s["x0"], goal)  # compiles kernels and functions outside the timed run; simulate() resets ctrl
-    traj = simulate(pb.plant(), ctrl, s["x0"], goal, duration)
-    d = traj.clearances(ocp)
-    ee = pb.kinematics.positions(pb.end_effector, traj.x[:, :n])
-    progress = traj.progress(pb.kinematics, pb.end_effector, s["target"], tolerance=TOLERANCE)
-    collisions = int((d < 0).sum())
-    return {"success": bool(progress.verdict == REACHED and collisions == 0), "reached": progress.verdict == REACHED,
-            "verdict": progress.verdict, "final_change": progress.change, "collision_steps": collisions,
-            "success_while_colliding": traj.success_while_colliding(ocp), "successes": traj.successes,
-            "soft_steps": traj.soft_steps, "soft_causes": traj.soft_causes(), "steps": len(traj.solutions),
-            "min_clearance": float(d.min()), "final_distance": progress.final,
-            "start_distance": float(progress.error[0]), "actual_cost": actual_cost(traj, ocp),
-            **_times(traj, ctrl), "rejected": s["rejected"], "knots": KNOTS[robot],
-            "device": current_arch() if solver in ("empc", "cem", "mppi") else "cpu",
-            "ee": ee, "target": s["target"], "obstacles": np.array([[*o.center, o.radius] for o in s["obstacles"]])}
-
-
-def squared_hinge_term(centre) -> UserTerm:
-    """max(0, r + 0.01 − ‖q − c‖) (C¹ once squared) as a stage and terminal UserTerm of weight HINGE_WEIGHT."""
-    c = ca.DM(np.asarray(centre, dtype=float))
-
-    def residual(x, u, target):
-        e = x[:keepout.LINKS] - c
-        return ca.fmax(0, keepout.RADIUS + 0.01 - ca.sqrt(ca.dot(e, e) + 1e-12))
-
-    return UserTerm("keepout", residual, HINGE_WEIGHT, stage=True, terminal=True)
-
-
-def keepout_trial(controller: str, horizon: int, duration: float, population: int, arch: str, seed: int) -> dict:
-    choice(controller, KEEPOUT_CONTROLLERS, "controller")
-    pb = problems.make(f"nlink:{keepout.LINKS}")
-    plain = pb.ocp(knots=keepout.KNOTS, horizon=horizon)
-    x0, goal = pb.sample(seed)
-    centre = (x0[:keepout.LINKS] + goal[:keepout.LINKS]) / 2
-    penalty = keepout.keepout_penalty(centre)
-    if controller == K_EMPC_HINGE:
-        stage, terminal = keepout.penalized_costs(plain, penalty)
-        ctrl = _controller("empc", SAMPLING, plain, population, arch, seed, stage_cost=stage, terminal_cost=terminal)
-    else:
-        ocp = pb.ocp(knots=keepout.KNOTS, horizon=horizon, task=Task([squared_hinge_term(centre)]))
-        solver, options = {K_IPOPT: ("ipopt", {}), K_RTI: ("rti", {}),
-                           K_EMPC_SQUARED: ("empc", SAMPLING)}[controller]
-        ctrl = _controller(solver, options, ocp, population, arch, seed)
-    ctrl.solve(x0, goal)
-    traj = simulate(pb.plant(), ctrl, x0, goal, duration)
-    penalties = np.asarray(penalty.map(traj.x.shape[0])(traj.x.T)).ravel()
-    quadratic = actual_cost(traj, plain)
-    return {"actual_cost": quadratic + float(penalties.sum()), "quadratic_cost": quadratic,
-            "penalty": float(penalties.sum()),
-            "steps_inside": int((np.linalg.norm(traj.x[:, :keepout.LINKS] - centre, axis=1) < keepout.RADIUS).sum()),
-            "final_error": float(np.abs(traj.x[-1] - goal).max()), **_times(traj, ctrl),
-            "device": current_arch() if "EMPC" in controller else "cpu"}
 
 
 def study(size: str) -> Study:
@@ -217,7 +78,6 @@ def study(size: str) -> Study:
         trials += grid(scenario=KEEPOUT, controller=list(KEEPOUT_CONTROLLERS), horizon=s["horizon"][KEEPOUT],
                        duration=s["duration"][KEEPOUT], **common, seeds=s["seeds"][KEEPOUT])
     return Study(NAME, trial, trials)
-
 
 # --- report ---------------------------------------------------------------------------------------------------
 

@@ -122,7 +122,7 @@ def test_a_compile_finishing_mid_loop_is_taken_up(method, monkeypatch):
 
 def test_a_task_without_targets_reaches_the_exact_optimum():
     """A task whose terms take no targets (the goal vector is x_goal alone): the reach study's keep-out hinge."""
-    from ocpkit.studies.reach import squared_hinge_term
+    from ocpkit.studies.reach_trials import squared_hinge_term
     from ocpkit.model.task import Task
 
     prob = problems.make("nlink:3")

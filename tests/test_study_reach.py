@@ -5,7 +5,7 @@ import pytest
 from ocpkit import problems
 from ocpkit.runs import study as runner
 from ocpkit.sim.simulate import MOVING, STALLED
-from ocpkit.studies import NAMES, get, reach
+from ocpkit.studies import NAMES, get, reach, reach_trials
 
 TINY = {"seeds": {"nlink:3": 1, "baxter": 0, "panda": 0, reach.KEEPOUT: 1},
         "duration": {"nlink:3": 0.1, "baxter": 0.1, reach.KEEPOUT: 0.1},
@@ -21,7 +21,7 @@ def test_reach_tiny(monkeypatch, tmp_path):
     arm = df[df["scenario"] == "nlink:3"]
     # 0.1 s is too short to get there: nobody succeeds, nobody collides, every metric is recorded.
     assert not arm["success"].any() and (arm["collision_steps"] == 0).all()
-    assert (arm["final_distance"] > reach.TOLERANCE).all() and (arm["min_clearance"] > 0).all()
+    assert (arm["final_distance"] > reach_trials.TOLERANCE).all() and (arm["min_clearance"] > 0).all()
     assert (arm["step_max"] >= arm["step_median"]).all() and (arm["actual_cost"] > 0).all()
     # steps by how they were answered, and the loop's verdict: 0.1 s is shorter than the 0.5 s window
     assert (arm["successes"] + arm["soft_steps"] + arm["fallbacks"] == arm["steps"]).all()
@@ -48,12 +48,13 @@ def test_scenarios_block_the_straight_path(robot):
     pb = problems.make(robot)
     n = pb.kinematics.n
     for seed in range(3):
-        s = reach.scenario(robot, seed)
-        again = reach.scenario(robot, seed)
+        s = reach_trials.scenario(robot, seed)
+        again = reach_trials.scenario(robot, seed)
         assert np.array_equal(s["x0"], again["x0"]) and s["obstacles"] == again["obstacles"]  # deterministic
         p0, pg = pb.kinematics.positions(pb.end_effector, np.vstack([s["x0"][:n], s["q_target"]]))
-        assert np.allclose(pg, s["target"]) and np.linalg.norm(pg - p0) >= reach.MIN_DISTANCE
-        assert reach.clearances(pb, s["obstacles"], np.vstack([s["x0"][:n], s["q_target"]])).min() >= reach.MARGIN
+        assert np.allclose(pg, s["target"]) and np.linalg.norm(pg - p0) >= reach_trials.MIN_DISTANCE
+        q_rows = np.vstack([s["x0"][:n], s["q_target"]])
+        assert reach_trials.clearances(pb, s["obstacles"], q_rows).min() >= reach.MARGIN
         (o,) = s["obstacles"]
         c = np.asarray(o.center)
         t = np.clip(np.dot(c - p0, pg - p0) / np.dot(pg - p0, pg - p0), 0, 1)
@@ -66,7 +67,7 @@ def test_scenarios_block_the_straight_path(robot):
 def test_squared_hinge_term_is_zero_outside_and_grows_inside():
     import casadi as ca
 
-    term = reach.squared_hinge_term([0.0, 0.0, 0.0])
+    term = reach_trials.squared_hinge_term([0.0, 0.0, 0.0])
     x, u = ca.SX.sym("x", 6), ca.SX.sym("u", 3)
     r, w, _ = term.expression(x, u, ca.SX(0, 1))
     f = ca.Function("r", [x], [r])
