@@ -123,9 +123,11 @@ def _attribute(module, name: str, spec: str):
                          "or factory)")
     if not hasattr(module, name):
         found = sorted(k for k, v in vars(module).items()
-                       if isinstance(v, Problem) or (isinstance(v, type) and issubclass(v, Problem) and v is not Problem))
-        raise ValueError(f"problem spec {spec!r}: {module.__name__ if not hasattr(module, '__file__') else module.__file__} "
-                         f"has no {name!r}; problems there: {', '.join(found) or 'none'}")
+                       if isinstance(v, Problem)
+                       or (isinstance(v, type) and issubclass(v, Problem) and v is not Problem))
+        where = module.__name__ if not hasattr(module, '__file__') else module.__file__
+        raise ValueError(f"problem spec {spec!r}: {where} has no {name!r}; problems there: "
+                         f"{', '.join(found) or 'none'}")
     return getattr(module, name)
 
 

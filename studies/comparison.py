@@ -70,8 +70,9 @@ def trial(links: int, controller: str, duration: float, population: int, arch: s
     ctrl = solvers.make(solver, ocp, **options)
     ctrl.solve(x0, goal)  # compiles kernels and functions outside the timed run; simulate() resets ctrl
     traj = simulate(pb.plant(), ctrl, x0, goal, duration)
-    result = {"actual_cost": actual_cost(traj, ocp), "hessian_condition": hessian_condition(pb, ctrl, x0, goal), **quartiles("solve", traj.times("solve")),
-              **quartiles("total", traj.times("total")), "model_median": float(np.median(traj.times("model"))),
+    result = {"actual_cost": actual_cost(traj, ocp), "hessian_condition": hessian_condition(pb, ctrl, x0, goal),
+              **quartiles("solve", traj.times("solve")), **quartiles("total", traj.times("total")),
+              "model_median": float(np.median(traj.times("model"))),
               **run_record(traj, ctrl),
               "final_error": float(np.abs(traj.x[-1] - goal).max()),
               "device": current_arch() if solver in SAMPLING else "cpu"}

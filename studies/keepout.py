@@ -30,7 +30,8 @@ TITLE = "Where the rollout matters: a joint-space keep-out zone (EMPC's fitness 
 LINKS, HORIZON, KNOTS = 3, 100, 3
 WEIGHT, RADIUS = 100.0, 0.3  # w [cost per rad inside, per step] and r [rad]
 QP, EMPC_PENALTY, EMPC_PLAIN = "knots 3 (QP)", "EMPC, penalized fitness", "EMPC, quadratic fitness"
-CONTROLLERS = {QP: ("qp", False), EMPC_PENALTY: ("empc", True), EMPC_PLAIN: ("empc", False)}  # solver, penalized fitness
+# label -> (solver, penalized fitness)
+CONTROLLERS = {QP: ("qp", False), EMPC_PENALTY: ("empc", True), EMPC_PLAIN: ("empc", False)}
 SIZES = {"quick": {"seeds": 5, "duration": 5.0, "population": 1024, "arch": "cpu"},
          "full": {"seeds": 20, "duration": 5.0, "population": 1024, "arch": "auto"}}
 

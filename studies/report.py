@@ -73,9 +73,9 @@ def timing_context(df) -> str:
     if "load" not in df or df["load"].isna().all():
         return "Machine load while timing: not recorded."
     load = df["load"].dropna()
-    return (f"Machine load while timing: 1-min load average at the end of each trial median {number(load.median(), 2)}, "
-            f"max {number(load.max(), 2)} on {os.cpu_count()} CPUs; BLAS/OpenMP threads limited to 1 inside each "
-            "controller step; timings are medians of per-step wall times.")
+    return (f"Machine load while timing: 1-min load average at the end of each trial median "
+            f"{number(load.median(), 2)}, max {number(load.max(), 2)} on {os.cpu_count()} CPUs; BLAS/OpenMP threads "
+            "limited to 1 inside each controller step; timings are medians of per-step wall times.")
 
 
 def section(title: str, figures, tables: dict, *, trials: str, claims: list, notes=()) -> str:

@@ -62,7 +62,8 @@ def study(size: str, problems=None, plant: str = "ocpkit") -> Study:
     if choice(plant, PLANTS, "plant") == "mujoco":
         return mujoco_study(size, problems)
     s = grid_size(SIZES, size, problems, USER_QUICK)
-    return Study(NAME, trial, grid(problem=s["problems"], knots=CONTROLLERS, error_multiplier=s["errors"], seeds=s["seeds"]))
+    return Study(NAME, trial, grid(problem=s["problems"], knots=CONTROLLERS, error_multiplier=s["errors"],
+                                   seeds=s["seeds"]))
 
 
 def _label(knots) -> str:
@@ -75,7 +76,8 @@ def report(df, out_dir) -> str:
     ok = df[df["status"] == "ok"].copy()
     ok["controller"] = [_label(k) for k in ok["knots"]]
     base = ok[ok["error_multiplier"] == 1.0].set_index(["problem", "controller", "seed"])["actual_cost"]
-    ok["normalized"] = ok["actual_cost"].values / base.loc[list(zip(ok["problem"], ok["controller"], ok["seed"]))].values
+    keys = list(zip(ok["problem"], ok["controller"], ok["seed"]))
+    ok["normalized"] = ok["actual_cost"].values / base.loc[keys].values
     figs, tables, notes, out = [], {}, [], []
     seeds = ok["seed"].nunique()
     for problem, g in ok.groupby("problem", sort=False):

@@ -113,8 +113,8 @@ def _load() -> str:
 def format_table(rows: list[dict], header: bool = True) -> str:
     """The benchmark rows as a fixed-width text table (sizes in kB, times in ms, build in s)."""
     head = (f"{'problem':<10} {'nx':>3} {'nu':>3} {'C kB':>6} {'build s':>8} {'C ms':>7} {'C worst':>8} "
-            f"{'C model/cond/QP ms':>19} {'example ms':>10} {'ex. worst':>9} {'Python ms':>10} {'Py worst':>9} {'speedup':>8} "
-            f"{'max|du|':>9} {'fails py/C':>10}")
+            f"{'C model/cond/QP ms':>19} {'example ms':>10} {'ex. worst':>9} {'Python ms':>10} {'Py worst':>9} "
+            f"{'speedup':>8} {'max|du|':>9} {'fails py/C':>10}")
     lines = [head] if header else []
     for r in rows:
         split = "/".join(f"{1e3 * r[k]:.3f}" for k in ("c_model_s", "c_build_s", "c_qp_s"))

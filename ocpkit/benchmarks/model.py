@@ -62,7 +62,8 @@ def bench_model(links=range(1, 14), *, states: int = 20, repeats: int = 5, seed:
         affine(*args[0])  # first call allocates work vectors
         t_affine = _median_time(affine, args, repeats)
         data = pin_model.createData()
-        pin_args = [(pin_model, data, x0[: pin_model.nq], x0[pin_model.nq:], np.zeros(pin_model.nv)) for x0, _ in samples]
+        pin_args = [(pin_model, data, x0[: pin_model.nq], x0[pin_model.nq:], np.zeros(pin_model.nv))
+                    for x0, _ in samples]
         t_pin = _median_time(pin.computeABADerivatives, pin_args, repeats)
         row = {"robot": problem.name, "nx": model.nx, "affine_s": t_affine, "pinocchio_s": t_pin,
                "ratio": t_affine / t_pin}

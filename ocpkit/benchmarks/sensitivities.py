@@ -1,16 +1,17 @@
-"""What the controller's integrator (``problem.ocp(integrator=...)``, :data:`ocpkit.model.dynamics.INTEGRATORS`) costs and loses.
+"""What the controller's integrator (``problem.ocp(integrator=...)``, :data:`ocpkit.model.dynamics.INTEGRATORS`) costs
+and loses.
 
-:func:`bench_sensitivities`: µs per stage of the affine model (A_d, B_d, w_d), compiled C mapped over the horizon as
-the real-time iteration evaluates it, with RK4 and with Euler, beside its parts — f and its Jacobian
-(:attr:`ocpkit.model.dynamics.Model.jacobian`) — and pinocchio's analytical ``computeABADerivatives`` (C++, one call from
-Python: its bindings' overhead included); and each integrator's one-step error, the median over the sampled states of
-max |F(x, u) − x⁺| with x⁺ from RK4 over 100 sub-steps.
+:func:`bench_sensitivities`: µs per stage of the affine model (A_d, B_d, w_d), compiled C mapped over the horizon as the
+real-time iteration evaluates it, with RK4 and with Euler, beside its parts — f and its Jacobian
+(:attr:`ocpkit.model.dynamics.Model.jacobian`) — and pinocchio's analytical ``computeABADerivatives`` (C++, one call
+from Python: its bindings' overhead included); and each integrator's one-step error, the median over the sampled states
+of max |F(x, u) − x⁺| with x⁺ from RK4 over 100 sub-steps.
 
 :func:`bench_integrators`: closed loops on the plant (RK4, never changed) of the real-time iteration
-(``RealTimeIteration(ocp)``, solver "rti", its Python step, so that the integrator measured is :mod:`ocpkit.model.dynamics`'s) and
-of IPOPT, each predicting with each integrator: actual costs (:func:`ocpkit.sim.metrics.actual_cost`) per seed as ratios,
-IPOPT with RK4 the reference. A problem named "cartpole" (the README's) swings up from hanging as in
-:func:`ocpkit.benchmarks.nlp.bench_nlp`.
+(``RealTimeIteration(ocp)``, solver "rti", its Python step, so that the integrator measured is
+:mod:`ocpkit.model.dynamics`'s) and of IPOPT, each predicting with each integrator: actual costs
+(:func:`ocpkit.sim.metrics.actual_cost`) per seed as ratios, IPOPT with RK4 the reference. A problem named "cartpole"
+(the README's) swings up from hanging as in :func:`ocpkit.benchmarks.nlp.bench_nlp`.
 
 ``python -m ocpkit.benchmarks.sensitivities`` prints both tables.
 """
@@ -114,7 +115,8 @@ def bench_integrators(problems=("puma560", "baxter", "nlink:13", "cartpole"), *,
         for ocp in ocps.values():
             ocp.affine()  # compiled (or loaded from the cache) before any step is timed
         duration = problem.duration + 1.0 if swing else steps * ocps["rk4"].dt
-        # RTI's Python step: where LinearMPC would build its C step (ocpkit.export.native), that one has its own integrator
+        # RTI's Python step: where LinearMPC would build its C step (ocpkit.export.native), that one has its own
+        # integrator
         controllers = {f"{m} {i}": solvers.make(m, ocps[i], **({"native": False} if m == "rti" else {}))
                        for m in methods for i in INTEGRATORS}
         for seed in seeds:

@@ -1,18 +1,17 @@
 """`ocpkit bench step`: one whole MPC step (affine model + QP build + solve), ocpkit's condensed knots form
 against the sparse traditional baselines (HPIPM, OSQP) and, when installed, the paper lab's affine_mpc.
 
-Every controller replays the same closed-loop state sequence (recorded once with ocpkit's condensed
-knots controller on the OCP's discrete model) from a cold start, warm-starting from its own previous step
-as in a control loop. Each replay runs one controller alone, as a real loop would (its data stay in cache);
-``rounds`` rounds alternate the controllers in rotated order, so all see the same machine load. affine_mpc gets the identical affine
-model (A_d, B_d, w_d) ocpkit linearized at that state and is timed on its solve() alone.
+Every controller replays the same closed-loop state sequence (recorded once with ocpkit's condensed knots controller on
+the OCP's discrete model) from a cold start, warm-starting from its own previous step as in a control loop. Each replay
+runs one controller alone, as a real loop would (its data stay in cache); ``rounds`` rounds alternate the controllers in
+rotated order, so all see the same machine load. affine_mpc gets the identical affine model (A_d, B_d, w_d) ocpkit
+linearized at that state and is timed on its solve() alone.
 
-The default row is LinearMPC as constructed without options, timed once its background builds have finished:
-for models from nlink:5 up the whole step as compiled C (:mod:`ocpkit.export.native`), below it the Python step. The
-"Python step" row keeps the Python step (``native=False``) with the default affine model (CasADi's VM until the
-background compile of ``ocpkit.codegen.compiled`` finishes, then compiled C); the "VM model" row the Python step on the VM
-throughout (``compiled=False``). The floor estimate is build FLOPs / GEMM rate + the fastest QP solve + the
-compiled model.
+The default row is LinearMPC as constructed without options, timed once its background builds have finished: for models
+from nlink:5 up the whole step as compiled C (:mod:`ocpkit.export.native`), below it the Python step. The "Python step"
+row keeps the Python step (``native=False``) with the default affine model (CasADi's VM until the background compile of
+``ocpkit.codegen.compiled`` finishes, then compiled C); the "VM model" row the Python step on the VM throughout
+(``compiled=False``). The floor estimate is build FLOPs / GEMM rate + the fastest QP solve + the compiled model.
 """
 from __future__ import annotations
 

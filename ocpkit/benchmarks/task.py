@@ -2,8 +2,8 @@
 
 For each robot, one closed loop per variant from the same seeded starts, steps interleaved round-robin so that the
 machine's load falls alike on every variant (each keeps its own state): the joint-space step (today's default: the C
-step where it applies, and the Python step), the reach task (frame-position term, :func:`ocpkit.model.task.reach`) and the
-reach task with a ball on the way. Every controller waits for its compiled parts first (the steady state). Printed:
+step where it applies, and the Python step), the reach task (frame-position term, :func:`ocpkit.model.task.reach`) and
+the reach task with a ball on the way. Every controller waits for its compiled parts first (the steady state). Printed:
 median and 95th-percentile step time, the ratio of medians to the joint-space default, the successes and the end
 effector's final distance to its target (the worst over the seeds).
 

@@ -1,11 +1,11 @@
 """Building generated code into the cache, one path for compiled models (:mod:`ocpkit.codegen.compiled`) and LinearMPC's
 C steps (:mod:`ocpkit.export.native`).
 
-An entry is keyed by the hash of what it is built from, the build's settings and the platform (:func:`entry_key`:
-a cache shared by machines of two architectures keeps one library for each). It is built at most once machine-wide
-(:func:`build_entry`, under the entry's lock; a damaged entry is rebuilt with a warning), built in the background by
-a child process of ocpkit's own (:func:`spawn`, its failure read back by :func:`child_failure`) at lower priority,
-checked against its recorded content hash (:func:`ocpkit.codegen.cache.entry_ok`) and loaded only once it proves loadable
+An entry is keyed by the hash of what it is built from, the build's settings and the platform (:func:`entry_key`: a
+cache shared by machines of two architectures keeps one library for each). It is built at most once machine-wide
+(:func:`build_entry`, under the entry's lock; a damaged entry is rebuilt with a warning), built in the background by a
+child process of ocpkit's own (:func:`spawn`, its failure read back by :func:`child_failure`) at lower priority, checked
+against its recorded content hash (:func:`ocpkit.codegen.cache.entry_ok`) and loaded only once it proves loadable
 (:func:`loadable`: one that does not load is removed and built once more).
 """
 from __future__ import annotations
@@ -66,9 +66,9 @@ def warn_damaged(library: Path, what: str, stacklevel: int = 3) -> None:
 
 
 def loadable(library: Path, symbol: str, rebuild, what: str, error: type[Exception]) -> Path:
-    """``library`` if it loads and has ``symbol``; else it is removed (a warning naming ``what``), ``rebuild()``
-    builds it once more and returns its path, and that one is returned, or ``error`` says why it does not load
-    either. Where the cache is read-only the entry cannot be removed: :class:`ocpkit.codegen.cache.CacheReadOnlyError`."""
+    """``library`` if it loads and has ``symbol``; else it is removed (a warning naming ``what``), ``rebuild()`` builds
+    it once more and returns its path, and that one is returned, or ``error`` says why it does not load either. Where
+    the cache is read-only the entry cannot be removed: :class:`ocpkit.codegen.cache.CacheReadOnlyError`."""
     seen = library.stat()
     problem = load_problem(library, symbol)
     if problem is None:

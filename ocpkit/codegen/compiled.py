@@ -1,19 +1,18 @@
 """CasADi Functions code-generated to C, compiled with the system compiler and loaded back.
 
-The SX virtual machine evaluates a 13-link robot's RK4 affine model (264k instructions) in about 0.6 ms; the
-same Function compiled at -O1 takes about 0.3 ms, at the price of a one-off compile of tens of seconds,
-cached on disk by the Function's hash so it is paid once per model. The library is checked against the content
-hash recorded beside it before it is loaded; a damaged one (truncated, empty) is rebuilt with a warning, and one
-that does not load (another machine's) is removed and compiled once more. One compile per entry machine-wide: the
+Compiled at -O1, a Function evaluates faster than on CasADi's SX virtual machine (README, "Performance"), at the price
+of a one-off compile, cached on disk by the Function's hash so it is paid once per model. The library is checked against
+the content hash recorded beside it before it is loaded; a damaged one (truncated, empty) is rebuilt with a warning, and
+one that does not load (another machine's) is removed and compiled once more. One compile per entry machine-wide: the
 compiler runs under the entry's lock (:func:`ocpkit.codegen.cache.entry_lock`). A read-only cache is used as it is; a
 Function it lacks raises :class:`ocpkit.codegen.cache.CacheReadOnlyError` (in the background: the VM, one warning).
 
 :func:`compile_in_background` runs that compile in a child process at lower priority (``nice`` +10), and
 :class:`SwitchingFunction` evaluates the Function on the virtual machine until the compiled twin is ready, then on the
-twin: the default path of ``OCP.affine``. The child does the hashing and the code generation as well as the compiler:
-in the parent the 13-link model's 23 MB serialization became a Python string that was copied and encoded with the
-GIL held, pausing a running control loop by 10-170 ms; the parent now only writes the Function to a file with
-``Function.save`` (C++, GIL released) and loads the finished library.
+twin: the default path of ``OCP.affine``. The child does the hashing and the code generation as well as the compiler: in
+the parent a large model's serialization became a Python string that was copied and encoded with the GIL held, pausing a
+running control loop; the parent now only writes the Function to a file with ``Function.save`` (C++, GIL released) and
+loads the finished library.
 """
 from __future__ import annotations
 
@@ -33,8 +32,8 @@ from pathlib import Path
 import casadi as ca
 
 from ocpkit.codegen.builder import build_entry, child_failure, entry_key, loadable, signal_name, spawn
-from ocpkit.codegen.cache import (CacheReadOnlyError, cache_dir, check_trusted, entry_ok, install, load_problem, read_only,
-                          read_only_error, warn_read_only)
+from ocpkit.codegen.cache import (CacheReadOnlyError, cache_dir, check_trusted, entry_ok, install, load_problem,
+                                  read_only, read_only_error, warn_read_only)
 
 
 class CompileError(RuntimeError):
@@ -60,8 +59,8 @@ def prebuild(fn: ca.Function, flags: str = "-O1") -> Path:
 
 
 def _load(name: str, library: Path, rebuild) -> ca.Function:
-    """``ca.external`` of the cached ``library`` once it proves loadable (:func:`ocpkit.codegen.builder.loadable`: one that
-    does not load is removed and ``rebuild()`` compiles it once more)."""
+    """``ca.external`` of the cached ``library`` once it proves loadable (:func:`ocpkit.codegen.builder.loadable`: one
+    that does not load is removed and ``rebuild()`` compiles it once more)."""
     return ca.external(name, str(loadable(library, name, rebuild, f"the compiled function {name!r}", CompileError)))
 
 
@@ -83,8 +82,8 @@ def _cached(fn: ca.Function, flags: str) -> ca.Function | None:
 
 
 def _library(fn: ca.Function, flags: str) -> Path:
-    """The cached library of ``fn`` compiled with ``flags``, built first (:func:`ocpkit.codegen.builder.build_entry`) unless a
-    sound one is there; :class:`CacheReadOnlyError` where it is not and the cache is read-only or full."""
+    """The cached library of ``fn`` compiled with ``flags``, built first (:func:`ocpkit.codegen.builder.build_entry`)
+    unless a sound one is there; :class:`CacheReadOnlyError` where it is not and the cache is read-only or full."""
     library = _entry(fn, flags)
     try:
         build_entry(library, lambda: _build(fn, flags, library.parent, library), "a compiled function")

@@ -157,8 +157,8 @@ def _generate(ocp: OCP, settings: tuple, root: Path) -> tuple[Path, str, OSError
     """Export the C step of ``ocp`` to a scratch folder and key it: (scratch, key, None) with the scratch folder in
     the cache, where a build is installed by a rename; where the cache cannot be written (read-only, or full: the
     export's files do not fit), generated all the same to a temporary folder, its key naming the entry to look for,
-    with the cache's error last. :class:`ocpkit.codegen.cache.CacheReadOnlyError` where no temporary folder can be written
-    either."""
+    with the cache's error last. :class:`ocpkit.codegen.cache.CacheReadOnlyError` where no temporary folder can be
+    written either."""
     try:
         scratch = scratch_dir(root, f".build-{os.getpid()}-")
         return scratch, _export(ocp, settings, scratch), None

@@ -6,10 +6,10 @@ The paper's MPC problem (eq. mpc_problem) with a zero-order-hold discrete model:
          + (x_T − x_goal)ᵀ Q_T (x_T − x_goal)
     s.t. x_{k+1} = F(x_k, u_k),  u = φ U (the parameterization),  u_min ≤ u_k ≤ u_max,  x_min ≤ x_k ≤ x_max.
 
-x_0 is the measured state, so its cost term is a constant and is left out. The input goal is
-u_g = u_goal + K x_goal with K = ``u_goal_gain`` (zero by default, the paper's u_goal = 0): for a robot whose
-inputs are servo set points (Baxter) the input that holds the goal is the goal position itself. Every solver reads this one
-description: the QPs through its affine model, IPOPT through F, EMPC through the translated kernels.
+x_0 is the measured state, so its cost term is a constant and is left out. The input goal is u_g = u_goal + K x_goal
+with K = ``u_goal_gain`` (zero by default, the paper's u_goal = 0): for a robot whose inputs are servo set points
+(Baxter) the input that holds the goal is the goal position itself. Every solver reads this one description: the QPs
+through its affine model, IPOPT through F, EMPC through the translated kernels.
 
 The two quadratic sums are the cost's built-in terms "state" and "input"; a :class:`ocpkit.model.task.Task` adds named,
 weighted terms (frame position and orientation targets, joint-limit barriers, user residuals) and obstacles. The
@@ -151,7 +151,7 @@ class OCP:
     def affine(self) -> ca.Function:
         """The affine model (x̄, ū) -> (A_d, B_d, w_d) of :meth:`discrete`.
 
-        ``compiled=True``: compiled C, compiled here and now (see :mod:`ocpkit.codegen.compiled`: about 2x faster for large
+        ``compiled=True``: compiled C, compiled here and now (see :mod:`ocpkit.codegen.compiled`: faster for large
         robots after a one-off compile, cached by hash). ``compiled=False``: CasADi's virtual machine.
         Not given (default): the virtual machine, which switches by itself to the compiled C as soon as a compile
         started in the background at this first call finishes (models of ``BACKGROUND_MIN_INSTRUCTIONS`` and
@@ -169,8 +169,8 @@ class OCP:
 
     def _compile(self, fn: ca.Function) -> ca.Function:
         """``fn`` as compiled C under the ``compiled`` policy: True compiles it here and now; None in the background,
-        the VM answering meanwhile (a :class:`ocpkit.codegen.compiled.SwitchingFunction`; the VM alone, with one warning,
-        without a C compiler)."""
+        the VM answering meanwhile (a :class:`ocpkit.codegen.compiled.SwitchingFunction`; the VM alone, with one
+        warning, without a C compiler)."""
         if self.compiled:
             return compile_function(fn)
         future = compile_in_background(fn)
@@ -181,10 +181,9 @@ class OCP:
         and soft, a sampling planner's preconditioner, the plan certificate): "stage" (the stage residuals and
         Jacobians mapped over the T stages), "terminal", "spheres" (the robot spheres' centres and their Jacobians
         at x_1 … x_T, from which the clearances to every obstacle follow in numpy: ``CompiledTask.pair_clearances``);
-        None where the task has none. The residuals are compiled under the ``compiled`` policy (False: the VM): a
-        7-DoF arm's forward kinematics with 23 spheres took 8 ms a step on CasADi's VM. The spheres stay on the VM:
-        0.8 ms a step for the Panda's 23 over 50 stages, not worth a compile per OCP; the clearances mapped over the
-        horizon had been, and at 1,000 obstacles that Function alone serialized to 300 MB (6-11 s to build)."""
+        None where the task has none. The residuals are compiled under the ``compiled`` policy (False: the VM). The
+        spheres stay on the VM, too cheap to be worth a compile per OCP; the clearances are not mapped over the
+        horizon, a Function that would grow with the obstacles."""
         if self._task_maps is None:
             tf, T = self.task_functions, self.horizon
 

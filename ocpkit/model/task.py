@@ -129,7 +129,8 @@ class Term:
     ``target_size`` entries; a terminal term's residual must not depend on u). ``weight`` is a scalar or one
     value per residual entry (≥ 0); ``terminal_weight`` (default ``weight``) weights x_T when ``terminal``.
     ``active=False`` keeps the term declared but leaves it out of every controller's cost. ``target_check``
-    (target, name) -> target, if given, validates a target when the goal is built (:meth:`ocpkit.model.ocp.OCP.goal`)."""
+    (target, name) -> target, if given, validates a target when the goal is built
+    (:meth:`ocpkit.model.ocp.OCP.goal`)."""
 
     def __init__(self, name: str, residual, weight=1.0, *, target_size: int = 0, stage: bool = True,
                  terminal: bool = False, terminal_weight=None, active: bool = True, target_check=None):
@@ -422,8 +423,8 @@ class CompiledTask:
 
 def clearances(kinematics, robot, obstacles, q_rows) -> np.ndarray:
     """The true clearance (m, no margin) at each configuration (rows of ``q_rows``, (N, n)): the smallest distance
-    between the surfaces of a robot sphere (:class:`ocpkit.model.kinematics.RobotSphere`) and an obstacle; negative: they
-    overlap, a collision."""
+    between the surfaces of a robot sphere (:class:`ocpkit.model.kinematics.RobotSphere`) and an obstacle; negative:
+    they overlap, a collision."""
     from ocpkit.model.kinematics import sphere_centers
 
     q_rows = np.atleast_2d(np.asarray(q_rows, dtype=float))

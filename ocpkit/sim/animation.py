@@ -271,9 +271,10 @@ def animate(trajectory, path, problem, *, target=None, obstacles=(), frame: str 
     """Write the closed-loop ``trajectory`` of ``problem``'s robot as an animated GIF at ``path``; its Path.
 
     ``target``: a task-space target point (x, y, z; drawn as a star), else the trajectory's joint goal is drawn as a
-    ghost pose (where the goal is a plain state, without a task's targets); ``obstacles``: :class:`ocpkit.model.task.Sphere`
-    s; ``frame``: the frame whose path is drawn (default the problem's end effector). Real-time playback at ``fps``
-    (fewer frames per second where the run would need more than ``max_frames``); ``size`` inches square at ``dpi``."""
+    ghost pose (where the goal is a plain state, without a task's targets); ``obstacles``: spheres
+    (:class:`ocpkit.model.task.Sphere`); ``frame``: the frame whose path is drawn (default the problem's end
+    effector). Real-time playback at ``fps`` (fewer frames per second where the run would need more than
+    ``max_frames``); ``size`` inches square at ``dpi``."""
     path = check_path(path)
     picture = MotionPicture(trajectory, problem, target=target, obstacles=obstacles, frame=frame, fps=fps,
                             max_frames=max_frames, size=size, dpi=dpi, title=title)

@@ -9,9 +9,9 @@ q̇: stable at larger steps, first order) or "euler" (semi-implicit) —, then r
 
 Where the robot comes from:
 
-* a problem described by a :class:`ocpkit.model.rigid_body.Chain` (``nlink:N``, ``puma560``, a user's Chain-based problem):
-  an MJCF written from the Chain — one body per joint at its placement, its joint axis, mass, centre of mass and
-  inertia, the rotor inertia as ``armature``, the problem's viscous damping b as joint ``damping`` (the ODE
+* a problem described by a :class:`ocpkit.model.rigid_body.Chain` (``nlink:N``, ``puma560``, a user's Chain-based
+  problem): an MJCF written from the Chain — one body per joint at its placement, its joint axis, mass, centre of mass
+  and inertia, the rotor inertia as ``armature``, the problem's viscous damping b as joint ``damping`` (the ODE
   M q̈ + h + b q̇ = τ of :meth:`Chain.forward_dynamics`), gravity as the Chain's, the joint limits as ranges;
 * a URDF problem (``urdf:…``, ``panda``): MuJoCo's own URDF import of the same file, the joints the problem
   locked removed (held at 0, load_urdf's default) and the problem's damping set on the others; its collision meshes

@@ -85,11 +85,11 @@ def _floating_point_kept():
 
 def _offline_cache() -> dict:
     """ti.init's offline-cache settings: Taichi's compiled kernels kept in ocpkit's cache (``taichi-kernels`` under
-    :func:`ocpkit.codegen.cache.cache_root`, so ``OCPKIT_CACHE_DIR`` and ``ocpkit build`` cover them with the rest), or in
-    ``$TI_OFFLINE_CACHE_FILE_PATH`` where that is set. Taichi loads compiled code from that folder, so it is refused
-    (:class:`ocpkit.codegen.cache.UnsafeCacheError`) where another user could have planted anything in it. On a read-only
-    folder Taichi cannot take its lock, so it neither loads nor stores kernels, and warns three times a run to "run
-    'ti cache clean'" (even with the cache off); on a full one it cannot store them: there, the cache is off and
+    :func:`ocpkit.codegen.cache.cache_root`, so ``OCPKIT_CACHE_DIR`` and ``ocpkit build`` cover them with the rest), or
+    in ``$TI_OFFLINE_CACHE_FILE_PATH`` where that is set. Taichi loads compiled code from that folder, so it is refused
+    (:class:`ocpkit.codegen.cache.UnsafeCacheError`) where another user could have planted anything in it. On a
+    read-only folder Taichi cannot take its lock, so it neither loads nor stores kernels, and warns three times a run to
+    "run 'ti cache clean'" (even with the cache off); on a full one it cannot store them: there, the cache is off and
     pointed at a folder of this process's own, removed at exit (a full one said once,
     :func:`ocpkit.codegen.cache.warn_read_only`: every run compiles its kernels again until room is made)."""
     import atexit
