@@ -21,7 +21,7 @@ from ocpkit.codegen.compiled import SwitchingFunction
 from ocpkit.numeric import BufferedFunction
 from ocpkit.model.ocp import OCP
 from ocpkit.safety import Brake, PlanCheck, spectral_radius
-from ocpkit.status import INFEASIBLE, LIMITED, NAN, SOFT, OperationCosts, Solution
+from ocpkit.status import INFEASIBLE, LIMITED, NAN, SOFT, OperationCosts, Reason, Solution
 
 LINEARIZATIONS = ("goal", "plan")
 # LinearMPC also linearizes stage by stage along the shifted plan (LTV); other controllers take one model.
@@ -51,8 +51,8 @@ class _ThreadLimit:
     """BLAS/OpenMP threads limited (threadpoolctl) while any controller step runs in this process.
 
     The pools are process-wide, so nested or concurrent steps share one limit: the first step to enter sets
-    it, the last to leave restores the original. Multithreaded BLAS on small matrices on a busy machine
-    turned a 1.3 ms nlink:13 step into 24 ms (DESIGN.md), hence 1 thread by default.
+    it, the last to leave restores the original. Multithreaded BLAS on a step's small matrices only competes with
+    the machine's other work, hence 1 thread by default.
     """
 
     _lock = threading.Lock()
@@ -115,8 +115,9 @@ class Controller:
       (then clipped), otherwise the fallback with status "limited";
     * the task certificate of a success (:class:`ocpkit.safety.PlanCheck`, where the OCP has obstacles or state
       bounds): the plan rolled out on the nonlinear model keeps every clearance and state bound, else the step is
-      "soft" (its input applied, the violation in ``raw_status``), or refused where the prediction is not finite or
-      collides within ``COLLISION_AHEAD`` steps (deeper than the start: a start inside an obstacle may still move);
+      "soft" (its input applied; the violation in ``violation`` and ``reason``, in words in ``raw_status``), or
+      refused where the prediction is not finite or collides within ``COLLISION_AHEAD`` steps (deeper than the
+      start: a start inside an obstacle may still move);
     * a safe fallback on a refused step (:meth:`fallback`); ``stale_steps`` (settable, default STALE_STEPS) bounds
       how many refused steps in a row may replay the previous plan before the controller brakes;
     * a state outside the model's trust region — a bounded joint velocity beyond ``TRUST_REGION`` times its bound —
@@ -187,7 +188,7 @@ class Controller:
 
     def reset(self) -> None:
         """Forget the previous plan (cold start)."""
-        self.plan: np.ndarray | None = None  # knots (p, m) of the last successful solve
+        self.plan: np.ndarray | None = None  # knots (p, m) of the last step: the solver's plan, or the fallback's
         self._goal = np.zeros(self.ocp.nx)
         self._x = np.zeros(self.ocp.nx)  # the state of the step in flight (the fallback brakes from it)
         self.task_goal = np.zeros(self.ocp.ng)
@@ -210,9 +211,9 @@ class Controller:
             big = max(np.abs(x).max(initial=0.0), np.abs(full).max(initial=0.0))
             if big > self._state_limit:
                 sol = self.fallback(NAN, f"state or goal magnitude {big:.3g} beyond state_limit "
-                                         f"{self._state_limit:.3g}: no solver run")
+                                         f"{self._state_limit:.3g}: no solver run", reason=Reason.STATE_BEYOND_LIMIT)
             elif (outside := self._outside_trust_region(x)):
-                sol = self.fallback(INFEASIBLE, outside, replay=False)
+                sol = self.fallback(INFEASIBLE, outside, replay=False, reason=Reason.OUTSIDE_TRUST_REGION)
             else:
                 if self._first_step:
                     self._warn_divergence(x, goal)
@@ -235,8 +236,8 @@ class Controller:
         The first step of a new controller measures what its operations cost and so is not bounded; call this
         once before a real-time loop (with its first state and goal) and every step of the loop is. The second
         step is warm, as the loop's will be, and outweighs the first's one-off costs in the measurements. The
-        fallback is computed once too (and dropped): the first run of its code took 0.6 ms, which the loop's first
-        refused step paid on top of its budget."""
+        fallback is computed once too (and dropped): the first run of its code is slow, and the loop's first refused
+        step would pay it on top of its budget."""
         steps = integer(steps, "steps", 1)
         limit = getattr(self, "time_limit", None)
         if limit is not None:
@@ -272,11 +273,12 @@ class Controller:
         ocp = self.ocp
         u, knots = np.asarray(sol.u, dtype=float), np.asarray(sol.knots, dtype=float)
         if not (np.all(np.isfinite(u)) and np.all(np.isfinite(knots))):
-            return self._rejected(NAN, f"{sol.raw_status} with non-finite result", sol)
+            return self._rejected(NAN, f"{sol.raw_status} with non-finite result", sol, Reason.NON_FINITE_SOLUTION)
         excess = max(float((ocp.u_min - knots).max(initial=0.0)), float((knots - ocp.u_max).max(initial=0.0)),
                      float((ocp.u_min - u).max(initial=0.0)), float((u - ocp.u_max).max(initial=0.0)))
         if excess > BOUND_TOL * self._input_scale:
-            return self._rejected(LIMITED, f"{sol.raw_status} but an input bound violated by {excess:.3g}", sol)
+            return self._rejected(LIMITED, f"{sol.raw_status} but an input bound violated by {excess:.3g}", sol,
+                                  Reason.INPUT_BOUND)
         sol.u = np.clip(u, ocp.u_min, ocp.u_max)
         sol.knots = np.clip(knots, ocp.u_min, ocp.u_max)
         return sol
@@ -293,10 +295,11 @@ class Controller:
         self._check_costs.add("certificate", time.perf_counter() - start)
         if violation is None:
             return sol
-        if violation.kind in ("non-finite", "collision"):
-            return self._rejected(NAN if violation.kind == "non-finite" else INFEASIBLE,
-                                  f"{sol.raw_status} but its {violation}", sol)
+        if violation.kind in (Reason.NON_FINITE_PREDICTION, Reason.COLLISION):
+            return self._rejected(NAN if violation.kind is Reason.NON_FINITE_PREDICTION else INFEASIBLE,
+                                  f"{sol.raw_status} but its {violation}", sol, violation.kind)
         sol.status, sol.raw_status, sol.violation = SOFT, f"{sol.raw_status}; soft: {violation}", violation
+        sol.reason = violation.kind
         return sol
 
     def _outside_trust_region(self, x: np.ndarray) -> str:
@@ -327,10 +330,10 @@ class Controller:
                           f"substeps, e.g. problem.ocp(..., substeps={2 * ocp.substeps}), should help",
                           RuntimeWarning, stacklevel=3)
 
-    def _rejected(self, status: str, raw: str, sol: Solution) -> Solution:
+    def _rejected(self, status: str, raw: str, sol: Solution, reason: Reason) -> Solution:
         """A "success" that failed verification: the solver's workspace is stale, so reset it (``_discard``)."""
         self._discard()
-        return self.fallback(status, raw, sol.times, sol.iterations)
+        return self.fallback(status, raw, sol.times, sol.iterations, reason=reason)
 
     def _discard(self) -> None:
         """Drop solver state a rejected result may have left (warm starts, workspaces); subclasses extend."""
@@ -373,10 +376,9 @@ class Controller:
         (``Function.map``) — or None if any entry is not finite. The LTV model of real-time iteration.
 
         These T evaluations are nearly all of an LTV/RTI step. With ``ocp.compiled`` the mapped model is the
-        compiled C one (:meth:`OCP.affine`, a CasADi external mapped serially): on the Puma 560 0.09 ms a stage
-        instead of 0.7 ms in the SX virtual machine, the same numbers. With ``threads`` > 1 the stages are split
-        over that many threads (``map(T, "thread", threads)``); the default 1 evaluates them in the calling
-        thread (on a busy 2-core machine a second thread only competes with the other processes)."""
+        compiled C one (:meth:`OCP.affine`, a CasADi external mapped serially), the same numbers as the SX virtual
+        machine's. With ``threads`` > 1 the stages are split over that many threads (``map(T, "thread", threads)``);
+        the default 1 evaluates them in the calling thread (a second thread only competes with other processes)."""
         ocp = self.ocp
         n, m, T = ocp.nx, ocp.nu, ocp.horizon
         parallel = min(self._threads or 1, T)
@@ -404,7 +406,7 @@ class Controller:
         return np.clip(np.tile(ocp.input_goal(goal), (ocp.knots, 1)), ocp.u_min, ocp.u_max)
 
     def fallback(self, status: str, raw_status: str, times: dict | None = None, iterations: int = 0, *,
-                 replay: bool = True) -> Solution:
+                 replay: bool = True, reason: Reason | None = None) -> Solution:
         """A refused step's safe input, said in ``path``: "fallback (plan)", the previous plan advanced one step, with
         ``replay``, for at most ``stale_steps`` refused steps in a row and only while its prediction from x is finite
         and keeps the task (:class:`ocpkit.safety.PlanCheck`); otherwise "fallback (brake)", the input that brings the joint
@@ -425,4 +427,4 @@ class Controller:
         u = np.clip(par.u_at(knots, 0), ocp.u_min, ocp.u_max)
         times = dict(times or {"model": 0.0, "build": 0.0, "solve": 0.0, "total": 0.0})
         return Solution(u=u, knots=knots, status=status, raw_status=raw_status, iterations=iterations,
-                        times=times, fallback=True, path=f"fallback ({kind})")
+                        times=times, fallback=True, path=f"fallback ({kind})", reason=reason)

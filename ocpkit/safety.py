@@ -25,6 +25,7 @@ import numpy as np
 
 from ocpkit.qp.boxqp import solve_box_qp
 from ocpkit.numeric import BufferedFunction
+from ocpkit.status import Reason
 
 # Clearance (m) a certified plan may lose below the task's margin on the nonlinear rollout: a linearized row met
 # exactly by the QP is met to O(step²) by the nonlinear prediction. A certified plan never collides (d ≥ 0).
@@ -35,18 +36,19 @@ STATE_TOL = 1e-3
 
 @dataclass(frozen=True)
 class Violation:
-    """The worst broken constraint of a plan: ``kind`` ("clearance", "state bound", "collision" or "non-finite"), the
-    stage k of x_k (1 … T) where it is worst, by how much (m, or the state's unit), and which (a pair or a state)."""
+    """The worst broken constraint of a plan: ``kind`` (the :class:`~ocpkit.status.Reason` CLEARANCE, STATE_BOUND,
+    COLLISION or NON_FINITE_PREDICTION: "clearance", "state bound", "collision", "non-finite"), the stage k of x_k
+    (1 … T) where it is worst, by how much (m, or the state's unit), and which (a pair or a state)."""
 
-    kind: str
+    kind: Reason
     stage: int
     amount: float
     which: str = ""
 
     def __str__(self) -> str:
-        if self.kind == "non-finite":
+        if self.kind is Reason.NON_FINITE_PREDICTION:
             return f"prediction not finite from x_{self.stage} on the nonlinear model"
-        if self.kind == "collision":
+        if self.kind is Reason.COLLISION:
             return f"prediction collides at x_{self.stage} ({self.amount:.3g} m deep) on the nonlinear model"
         return (f"{self.kind} {self.which} violated by {self.amount:.3g} at x_{self.stage} of the plan on the "
                 f"nonlinear model")
@@ -78,12 +80,12 @@ class PlanCheck:
     def violation(self, xs: np.ndarray, ahead: int = 0) -> Violation | None:
         """The worst violation along x_1 … x_T of ``xs`` (T+1, n), or None if the plan keeps them all. With ``ahead``
         a collision within x_1 … x_ahead — true clearance below zero and below x_0's (a start already inside an
-        obstacle may move within it, not deeper) — comes first, as kind "collision": a plan that drives into an
+        obstacle may move within it, not deeper) — comes first, as kind COLLISION: a plan that drives into an
         obstacle within those steps is refused, not applied as "soft"."""
         X = xs[1:]
         bad = ~np.isfinite(X).all(axis=1)
         if bad.any():
-            return Violation("non-finite", int(np.argmax(bad)) + 1, np.inf)
+            return Violation(Reason.NON_FINITE_PREDICTION, int(np.argmax(bad)) + 1, np.inf)
         worst = None
         if self._bounded.size:
             V = X[:, self._bounded]
@@ -91,7 +93,7 @@ class PlanCheck:
             k, j = np.unravel_index(int(np.argmax(excess)), excess.shape)
             if excess[k, j] > 0:
                 amount = float(excess[k, j] + (self._lo_tol[j] if V[k, j] < self._lo[j] else self._hi_tol[j]))
-                worst = Violation("state bound", int(k) + 1, amount, f"x[{int(self._bounded[j])}]")
+                worst = Violation(Reason.STATE_BOUND, int(k) + 1, amount, f"x[{int(self._bounded[j])}]")
         if self.pairs:
             tf = self.ocp.task_functions
             centres = np.asarray(self.ocp.task_maps()["spheres"](X.T)[0]).reshape(3, len(X), -1)
@@ -102,12 +104,12 @@ class PlanCheck:
                 near = d[:, :ahead].min(axis=0) + self.margin  # true clearance at x_1 … x_ahead
                 if near.min() < floor - 1e-9:
                     k = int(np.argmax(near < floor - 1e-9))
-                    return Violation("collision", k + 1, float(-near[k]), "(robot spheres in an obstacle)")
+                    return Violation(Reason.COLLISION, k + 1, float(-near[k]), "(robot spheres in an obstacle)")
             k = int(np.argmin(d.min(axis=0)))
             pair = int(np.argmin(d[:, k]))
             if d[pair, k] < -self._clear_tol:
                 robot, obstacle = divmod(pair, len(self.ocp.task.obstacles))
-                worst = Violation("clearance", k + 1, float(-d[pair, k]),
+                worst = Violation(Reason.CLEARANCE, k + 1, float(-d[pair, k]),
                                   f"(robot sphere {robot}, obstacle {obstacle})")
         return worst
 

@@ -1,22 +1,73 @@
-"""What every layer may say about a solve: the statuses, the Solution of one MPC step and the measured costs of a
-backend's operations (:class:`OperationCosts`). The QP backends, the controllers, the exported C step's wrapper and
-the simulator all speak these; :mod:`ocpkit.controller` builds the Controller interface on them.
+"""What every layer may say about a solve: the statuses and failure reasons, the Solution of one MPC step and the
+measured costs of a backend's operations (:class:`OperationCosts`). The QP backends, the controllers, the exported C
+step's wrapper and the simulator all speak these; :mod:`ocpkit.controller` builds the Controller interface on them.
 """
 from __future__ import annotations
 
 import statistics
 from collections import deque
 from dataclasses import dataclass, field
+from enum import StrEnum
 
 import numpy as np
 
-SUCCESS, LIMITED, INFEASIBLE, NAN, EXCEPTION = "success", "limited", "infeasible", "nan", "exception"
-# A step the solver answered whose plan, rolled out on the controller's nonlinear model, breaks an obstacle clearance
-# or a hard state bound (a softened constraint, a linearization that mispredicted): its input is applied (it is the
-# solver's best answer, often the way out of a collision), but it is not a success. Last in STATUSES: the exported
-# C step numbers the others 0-4.
-SOFT = "soft"
-STATUSES = (SUCCESS, LIMITED, INFEASIBLE, NAN, EXCEPTION, SOFT)
+
+class Status(StrEnum):
+    """A step's status. Each member is its string ("success", …): it equals, prints and stores as that string."""
+
+    SUCCESS = "success"
+    LIMITED = "limited"
+    INFEASIBLE = "infeasible"
+    NAN = "nan"
+    EXCEPTION = "exception"
+    # A step the solver answered whose plan, rolled out on the controller's nonlinear model, breaks an obstacle
+    # clearance or a hard state bound (a softened constraint, a linearization that mispredicted): its input is
+    # applied (it is the solver's best answer, often the way out of a collision), but it is not a success. Last: the
+    # exported C step numbers the others 0-4 (its status code indexes STATUSES).
+    SOFT = "soft"
+
+
+SUCCESS, LIMITED, INFEASIBLE, NAN, EXCEPTION, SOFT = Status
+STATUSES = tuple(Status)
+
+
+class Reason(StrEnum):
+    """Why a step is not a success, for code to decide on (``Solution.reason``; its ``raw_status`` says it in words
+    for people). Each member is a few words, as it is tallied and printed."""
+
+    TIME_BUDGET = "time budget"  # the step's budget could not pay for an operation, or was overrun
+    ITERATION_LIMIT = "iteration limit"  # the QP solver stopped at its iteration limit
+    STATE_BEYOND_LIMIT = "state beyond limit"  # |x| or |goal| beyond the controller's state_limit: no solve
+    OUTSIDE_TRUST_REGION = "outside trust region"  # a joint velocity beyond the model's trust region: no solve
+    NON_FINITE_MODEL = "non-finite model"  # the affine model (A_d, B_d, w_d) is not finite
+    QP_DATA = "QP data"  # the QP's data refused before a solve: not finite, or P not symmetric
+    BOUNDS_CROSSED = "bounds crossed"  # a lower bound above its upper bound in the QP
+    ILL_CONDITIONED = "ill-conditioned"  # the Hessian's rounding swamps its curvature (QP.not_definite)
+    NOT_DEFINITE = "not positive definite"  # the Hessian failed its factorization
+    QP_INFEASIBLE = "QP infeasible"  # the QP solver found the QP infeasible (or unbounded)
+    SOLVER_ERROR = "solver error"  # the QP solver raised or failed to update
+    NON_FINITE_SOLUTION = "non-finite solution"  # the solver's answer is not finite
+    CERTIFICATE_FAILED = "certificate failed"  # the answer failed the KKT certificate
+    INPUT_BOUND = "input bound"  # the answer breaks an input bound beyond BOUND_TOL
+    # the plan rolled out on the nonlinear model (ocpkit.safety.PlanCheck): the kind of its worst violation
+    CLEARANCE = "clearance"
+    STATE_BOUND = "state bound"
+    COLLISION = "collision"
+    NON_FINITE_PREDICTION = "non-finite"
+
+
+class Refusal(str):
+    """Why a QP or a step is refused: the words (this str, for people) and their :class:`Reason` (``reason``)."""
+
+    reason: Reason
+
+    def __new__(cls, text: str, reason: Reason):
+        self = super().__new__(cls, text)
+        self.reason = reason
+        return self
+
+    def __getnewargs__(self):  # pickled with its reason
+        return str(self), self.reason
 
 
 
@@ -74,8 +125,8 @@ class Solution:
 
     u: np.ndarray
     knots: np.ndarray
-    status: str
-    raw_status: str = ""
+    status: Status
+    raw_status: str = ""  # the status in words, for people
     iterations: int = 0
     x_pred: np.ndarray | None = None
     times: dict = field(default_factory=lambda: {"model": 0.0, "build": 0.0, "solve": 0.0, "total": 0.0})
@@ -86,6 +137,7 @@ class Solution:
     # "fallback (brake)", "fallback (hold)"
     violation: object | None = None  # a "soft" step's worst broken constraint (an ocpkit.safety.Violation: kind, stage,
     # amount, which)
+    reason: Reason | None = None  # why the step is not a success, for code (None: a success, or not said)
 
     @property
     def ok(self) -> bool:
@@ -98,7 +150,7 @@ class Solution:
         return not self.fallback
 
     def to_dict(self) -> dict:
-        """JSON-ready summary (first input, knots, status, iterations, times)."""
+        """JSON-ready summary (first input, knots, status, reason, iterations, times)."""
         return {"u": self.u.tolist(), "knots": self.knots.tolist(), "status": self.status,
-                "raw_status": self.raw_status, "iterations": int(self.iterations), "fallback": self.fallback,
-                "path": self.path, "times": {k: float(v) for k, v in self.times.items()}}
+                "raw_status": self.raw_status, "reason": self.reason, "iterations": int(self.iterations),
+                "fallback": self.fallback, "path": self.path, "times": {k: float(v) for k, v in self.times.items()}}

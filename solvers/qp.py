@@ -20,11 +20,12 @@ from ocpkit.export import native as _native
 from ocpkit._checks import choice, integer, positive
 from ocpkit.qp.certificate import certify
 from ocpkit.controller import Controller, check_linearization
-from ocpkit.status import EXCEPTION, INFEASIBLE, LIMITED, NAN, SUCCESS, OperationCosts, Solution
+from ocpkit.status import EXCEPTION, INFEASIBLE, LIMITED, NAN, SUCCESS, OperationCosts, Reason, Solution
 from ocpkit.export import ExportedMPC
 from ocpkit.numeric import BufferedFunction
 from ocpkit.model.ocp import OCP
-from ocpkit.qp.backends import QP_SOLVERS, Result, make_backend, skipped, time_left
+from ocpkit.qp.backends import QP_SOLVERS, make_backend
+from ocpkit.qp.interface import Result, skipped, time_left
 from ocpkit.safety import spectral_radius
 from ocpkit.qp.transcription import TRANSCRIPTIONS
 
@@ -32,74 +33,35 @@ DEFAULT_QP = {"condensed": "daqp", "sparse": "proxqp"}  # LinearMPC's qp=None, b
 
 
 class LinearMPC(Controller):
-    """Re-linearized MPC through a QP: ``form`` "sparse" (large matrix) or "condensed" (small matrix),
-    ``qp`` "proxqp", "osqp", "hpipm" (sparse traditional form only) or "daqp" (dense active set, condensed form
-    only), any parameterization of the OCP. Warm-starts from the previous solution. The default (None) is
-    :data:`DEFAULT_QP` of the form: DAQP for the condensed QP — an exact active-set solve, as fast as ProxQP or
-    faster, where ProxQP (an iterative method) never met its tolerance on ill-conditioned QPs (a 7-DoF URDF arm
-    with error multiplier 0.5: Hessian condition up to 1e11, 153 of 200 steps at its iteration limit with 8
-    knots; DAQP 200/200, median 1 iteration) — and ProxQP for the sparse one.
+    """Re-linearized MPC through a QP (paper Section V). Each step linearizes the model, transcribes the OCP into the
+    ``form`` "condensed" (small matrix: the knots) or "sparse" (large matrix: knots and states) QP and solves it with
+    ``qp``: "daqp" (dense active set, condensed form only; its default), "proxqp" (the sparse form's default),
+    "osqp" (the paper's solver) or "hpipm" (sparse traditional form, hard state bounds); warm-started from the
+    previous answer. ``max_iter`` caps the QP iterations.
 
-    ``max_iter`` caps the QP iterations (ProxQP: its total inner iterations) and ``time_limit`` (seconds) is
-    a hard budget for the whole step, model and QP build included, counted from the start of ``solve``:
-    OSQP gets the time left as its own limit, ProxQP iterates in chunks checking the clock between them, and
-    any operation that cannot be stopped from outside (the affine model and build, a backend's init, update
-    or factorization, HPIPM's whole solve) starts only if its measured time (median of its last five) fits in
-    what is left. Without a ``time_limit`` the budget is :attr:`ceiling`: 10 s, or 0.1 ms per QP variable where that
-    is more (the sparse traditional QP at nlink:13, T = 100: 10 s; the pendulum's sparse QP at T = 10⁶: 300 s);
-    ``time_limit=float("inf")`` removes it (a benchmark timing slow formulations to the end). A step that hits
-    either limit returns status "limited" with the fallback input and keeps
-    the backend's workspace and iterate, so the next, warm step can fit again. The first step of a new (or
-    reset) controller may have nothing measured yet and is not bounded: it calibrates (``warm_up`` runs it
-    outside the budget before a real-time loop).
+    ``time_limit`` (s) bounds the whole step from the start of ``solve``: iterative solvers get the time left, and an
+    operation that cannot be stopped (the affine model and build, a factorization, the C step) starts only if its
+    measured time fits (the first step, with nothing measured, calibrates: ``warm_up``). Without one the budget is
+    :attr:`ceiling`; ``float("inf")`` removes it. A step over budget is "limited" with the fallback and keeps the
+    solver's iterate for the next, warm step.
 
-    ``state_bounds`` "soft" (default) turns the OCP's state bounds into an exact L1 penalty: a slack
-    s ≥ 0 per bounded state component, x_min − s ≤ x_k ≤ x_max + s, cost ``slack_weight``·Σ(s + ½s²) (larger than
-    the bounds' multipliers, so the bounds hold exactly whenever they can be met). A state the plant has
-    already pushed past a bound, or a goal beyond one, then drives to the bound instead of failing as
-    infeasible. "hard" keeps them as constraints; HPIPM supports hard state bounds only. DAQP, an exact method,
-    solves the hard QP first and the soft one only where the hard one is infeasible: the same solution wherever
-    the penalty is exact (and the bounds met wherever they can be, whatever ``slack_weight``), at a fraction of
-    the soft QP's size (two slacks per bounded state component per step: a 7-DoF arm with joint limits over 50
-    steps has 735 variables instead of 35; 363 ms a step instead of 0.3).
+    ``state_bounds`` "soft" (default; "hard" for HPIPM) makes the state bounds an exact L1 penalty (slacks s ≥ 0 at
+    cost ``slack_weight``·Σ(s + ½s²)): a state past a bound drives back to it instead of failing. DAQP solves the hard
+    QP first and the soft one only where it is infeasible, the same solution wherever the penalty is exact.
+    ``linearization`` is the expansion point: "goal" (default) about the input goal u_g, "plan" about the input the
+    previous plan expects now (the paper's scheme), "trajectory" stage by stage along the shifted plan (the LTV
+    model; it follows plans that leave the neighbourhood of x). About a nonzero torque an arm's linearized dynamics
+    are unstable and the condensed P ill-conditioned, hence "goal".
 
-    ``linearization`` picks the expansion point: "goal" (default) linearizes once about (x, u_g) with u_g the
-    input goal (OCP.input_goal), "plan" about (x, ū) with ū the input the previous plan expects now — one
-    model for the whole horizon, the paper's scheme — and "trajectory" stage by stage along the previous plan
-    shifted by one step (LTV: x̄_0 = x, x̄_k the plan's predicted x_{k+1}, ū_k its inputs; after a cold start
-    or a fallback the states are a rollout of the model from x under the shifted inputs), one mapped call of
-    the affine model for all stages. Only "trajectory" follows a plan that leaves the neighbourhood of x
-    (a cart-pole swing-up); its step costs T model evaluations instead of one. For robots the two differ: about a
-    nonzero torque the linearized N-link dynamics are exponentially unstable (|eig A_d| ≈ 1.12 per 10 ms step at nlink:13),
-    which over a 1 s horizon makes the condensed P ill-conditioned (eigenvalues 0.06…6e10) and both ProxQP
-    and OSQP hit their iteration limits; about u_goal = 0 the same robot gives eigenvalues 0.06…6e4, and
-    in closed loop on nlink:7 "goal" was never worse (3 seeded trials, 0 vs 118 fallbacks).
+    With a task (``ocp.task``) the condensed QP carries the terms' Gauss–Newton model about the plan and the
+    obstacles' clearances linearized there (:class:`ocpkit.qp.task_rows.TaskRows`), hard first, softened where they
+    cannot be met. Every "success" passes the KKT certificate (:mod:`ocpkit.qp.certificate`), else it is "limited".
 
-    With a task (``ocp.task``: terms in task space, obstacles; :mod:`ocpkit.model.task`) the condensed QP carries the
-    terms' Gauss–Newton model about the plan (the last plan shifted a step; RTI: each iterate) and the obstacles'
-    clearances linearized there as rows (:class:`ocpkit.qp.task_rows.TaskRows`, a bounded number a stage) — hard for
-    DAQP, soft where those cannot be met (first the obstacle rows alone, then the state bounds too) or for the other
-    backends (:class:`ocpkit.qp.transcription.CondensedQP`). The C step takes a task's terms and its obstacles' hard rows
-    (the softened QPs in Python); the sparse form takes no task (a ValueError).
-
-    Every "success" is proven: the backend's answer and multipliers must pass the KKT certificate of
-    :mod:`ocpkit.qp.certificate` (stationarity, primal feasibility, complementarity, dual sign, each within
-    ``certificate.TOL`` relative to the data), otherwise the step is "limited" with the test that failed; and
-    Controller.solve checks u against the input bounds.
-
-    ``native`` runs the whole step as compiled C: the exported step of :mod:`ocpkit.export` (the same affine model,
-    condensed QP and DAQP solve in C, :mod:`ocpkit.export.native`), loaded through ctypes — nlink:13, T = 100: 0.3 ms
-    instead of 0.8 ms. It serves the condensed form with DAQP, every linearization — "trajectory" is the real-time
-    iteration in C: the Puma 560 at 5 knots, T = 50, 0.68 instead of 1.55 ms, the same closed loop to 1e-13 — (with
-    soft state bounds it solves the hard QP, and a failure goes on to the soft QP in Python). None (default)
-    follows the OCP's ``compiled`` policy: for models from BACKGROUND_MIN_INSTRUCTIONS up and knot QPs of at most
-    ``ocpkit.export.native.MAX_VARIABLES`` variables (where it pays: not the traditional QP) the library is built in
-    the background (seconds; cached by hash, once per OCP) while the Python step runs, and the next step after it
-    is ready runs in C. True builds it here and now (a ValueError where the configuration has no C step);
-    False keeps the Python step. The C step cannot be stopped from outside: with a ``time_limit`` it starts only
-    if its measured time fits. On a failure it gives the same fallback as the Python step; it does not report the
-    QP's iterations (0), and the predicted states only for "trajectory". Changing ``max_iter`` returns to the
-    Python step.
+    ``native`` runs the whole step as compiled C (:mod:`ocpkit.export.native`; the condensed form with DAQP, hard
+    QP only: a failure goes on to the softer QPs in Python). None (default) follows the OCP's ``compiled`` policy and
+    builds it in the background while the Python step runs; True builds it now (a ValueError where this
+    configuration has none); False keeps the Python step. Changing ``max_iter`` returns to the Python step. Measured
+    step times: README, "Performance".
     """
 
     CEILING_MIN, CEILING_PER_VARIABLE = 10.0, 1e-4  # seconds: the default budget (:attr:`ceiling`)
@@ -126,11 +88,10 @@ class LinearMPC(Controller):
         # The QPs a step solves, in order, until one is not infeasible. DAQP, an exact method, finds a hard QP
         # infeasible at once: it solves the hard QP first and the soft one only where that is infeasible — the
         # same solution where the penalty is exact, and a few variables instead of two slacks per bounded state
-        # per step (a 7-DoF arm with joint limits: 35 instead of 735, 0.3 ms instead of 363). The iterative
-        # backends (ProxQP, OSQP) only stop at their limits on an infeasible QP: they solve the soft QP alone.
-        # A task's obstacle rows likewise: hard first, then only they softened (a start in the margin, a plan that
-        # cannot clear every linearized row: one slack per stage), then all. On the Panda reaching past 10 obstacles
-        # the QP with only the obstacle rows soft (400 variables) took 0.1 s where the soft QP (1,100) took 3.6 s.
+        # per step (README, "Reliability"). The iterative backends (ProxQP, OSQP) only stop at their limits on an
+        # infeasible QP: they solve the soft QP alone. A task's obstacle rows likewise: hard first, then only they
+        # softened (a start in the margin, a plan that cannot clear every linearized row: one slack per stage, far
+        # fewer variables than the soft QP's), then all.
         task = getattr(self.transcription, "task", None)
         obstacles = task is not None and task.obstacles
         chain = [TRANSCRIPTIONS[form](ocp)]
@@ -280,7 +241,7 @@ class LinearMPC(Controller):
     def ceiling(self) -> float:
         """The step's budget when no ``time_limit`` is given (seconds): CEILING_MIN, or CEILING_PER_VARIABLE per QP
         variable where that is more. No MPC step is of use after it; it bounds the solvers that run on where nobody
-        set a budget (sparse ProxQP ran 30-75 s on nlink:3 at x = 9e5, and 36 s with max_iter=5 on nlink:13)."""
+        set a budget (README, "Reliability")."""
         tr = self.transcription
         variables = tr.nz + (tr.ns if self.form == "condensed" else 0)
         return max(self.CEILING_MIN, self.CEILING_PER_VARIABLE * variables)
@@ -298,7 +259,8 @@ class LinearMPC(Controller):
     def _c_step(self, step, x: np.ndarray, goal: np.ndarray, deadline: float | None) -> Solution:
         """The whole step (model, build, DAQP) as compiled C; a failure gives the Python step's fallback."""
         if not self._costs.fits("C step", time_left(deadline)):
-            return self.fallback(LIMITED, skipped("C step", self._costs, deadline, 0).raw_status)
+            return self.fallback(LIMITED, skipped("C step", self._costs, deadline, 0).raw_status,
+                                 reason=Reason.TIME_BUDGET)
         if step.sets_plan and self.plan is not None:  # the plan Python answered last (a softened QP, the brake)
             step.set_plan(self.plan)
         sol = step._solve(x, self.task_goal)
@@ -306,12 +268,13 @@ class LinearMPC(Controller):
         self._warm, self._x_plan = None, None
         if sol.status == SUCCESS and deadline is not None and time.perf_counter() > deadline:
             sol.status, sol.raw_status = LIMITED, f"time budget exceeded ({sol.raw_status})"
+            sol.reason = Reason.TIME_BUDGET
         if sol.status != SUCCESS and len(self._transcriptions) > 1 and sol.status != NAN:
             # The C step solved the hard QP: the soft one, in Python (state pushed past a bound, say).
             along = self.shifted_plan(x, goal) if self.linearization == "trajectory" else None
             return self._qp_step(x, goal, along, deadline, dict(sol.times), self._transcriptions[1:])
         if sol.status != SUCCESS:
-            return self._fail(sol.status, sol.raw_status, sol.times)
+            return self._fail(sol.status, sol.raw_status, sol.times, reason=sol.reason)
         return sol
 
     def shifted_plan(self, x: np.ndarray, goal: np.ndarray):
@@ -336,8 +299,8 @@ class LinearMPC(Controller):
         linearized about ``knots`` (default: the last plan shifted a step, or the input goal at a cold start)."""
         ocp, times = self.ocp, times or {"model": 0.0, "build": 0.0, "solve": 0.0}
         if not self._costs.fits("prepare", time_left(deadline)):
-            res = skipped("prepare", self._costs, deadline, 0)
-            return self.fallback(LIMITED, res.raw_status.replace("prepare", "model and QP build"), times)
+            res = skipped("prepare", self._costs, deadline, 0, name="model and QP build")
+            return self.fallback(LIMITED, res.raw_status, times, reason=res.reason)
         t0 = time.perf_counter()
         if along is None:
             model = self.affine_model(x, goal, self.linearization)
@@ -349,7 +312,8 @@ class LinearMPC(Controller):
         t1 = time.perf_counter()
         times["model"] += t1 - t0
         if model is None:
-            return self._fail(NAN, f"non-finite affine model at x = {x.tolist()}", times)
+            return self._fail(NAN, f"non-finite affine model at x = {x.tolist()}", times,
+                              reason=Reason.NON_FINITE_MODEL)
         transcriptions = transcriptions or self._transcriptions
         task = {}
         if ocp.task_functions is not None:
@@ -361,7 +325,7 @@ class LinearMPC(Controller):
             retry = None if tr is self._transcriptions[0] else f"QP {self._transcriptions.index(tr) + 1} build"
             if retry and not self._costs.fits(retry, time_left(deadline)):
                 res = skipped(retry, self._costs, deadline, 0)
-                return self._fail(LIMITED, res.raw_status, times)
+                return self._fail(LIMITED, res.raw_status, times, reason=res.reason)
             t1 = time.perf_counter()
             qp = tr.build(*model, x, goal, **task)
             t2 = time.perf_counter()
@@ -369,30 +333,32 @@ class LinearMPC(Controller):
             self._costs.add(retry or "prepare", t2 - (t1 if retry else t0))
             problem = qp.check()
             if problem is not None:
-                return self._fail(INFEASIBLE if "above" in problem else NAN, problem, times)
+                status = INFEASIBLE if problem.reason is Reason.BOUNDS_CROSSED else NAN
+                return self._fail(status, problem, times, reason=problem.reason)
             if not qp.convex:
                 problem = qp.not_definite(factorize=not self._backend.factorizes)
                 if problem is not None:
-                    return self._fail(EXCEPTION, problem, times)
+                    return self._fail(EXCEPTION, problem, times, reason=problem.reason)
             try:
                 res = self._backend.solve(qp, self._warm if self.warm_start else None, deadline)
             except Exception as exc:  # a backend that throws must not stop the control loop
                 times["solve"] += time.perf_counter() - t2
-                return self._fail(EXCEPTION, f"{type(exc).__name__}: {exc}", times)
+                return self._fail(EXCEPTION, f"{type(exc).__name__}: {exc}", times, reason=Reason.SOLVER_ERROR)
             times["solve"] += time.perf_counter() - t2
             if res.status != INFEASIBLE:
                 break
         if res.status == SUCCESS:
             if not np.isfinite(res.z).all():
                 res.status, res.raw_status = NAN, f"{res.raw_status} with non-finite solution"
+                res.reason = Reason.NON_FINITE_SOLUTION
             else:
                 certificate = certify(qp, res.z, res.y, res.w)
                 why = certificate.failed()
                 if why is not None:  # not a solution (or an inaccurate one): no warm start from it
                     return self._fail(LIMITED, f"{res.raw_status} but certificate failed: {why}", times,
-                                      res.iterations)
+                                      res.iterations, reason=Reason.CERTIFICATE_FAILED)
         if res.status != SUCCESS:
-            return self._fail(res.status, res.raw_status, times, res.iterations, keep=res)
+            return self._fail(res.status, res.raw_status, times, res.iterations, keep=res, reason=res.reason)
         self._warm = res.duals
         knots = tr.knots(res.z).copy()
         x_pred = tr.states(res.z) if self.form == "sparse" else tr.states(res.z, x)
@@ -401,19 +367,21 @@ class LinearMPC(Controller):
         return Solution(u=u, knots=knots, status=SUCCESS, raw_status=res.raw_status, iterations=res.iterations,
                         x_pred=x_pred, times=times, certificate=certificate)
 
-    def _fail(self, status, raw, times, iterations=0, keep: Result | None = None) -> Solution:
+    def _fail(self, status, raw, times, iterations=0, keep: Result | None = None, *,
+              reason: Reason | None = None) -> Solution:
         """Fallback solution. After "limited" the backend's workspace stays and its (finite) iterate is the next
         warm start: resetting it made every later step start cold, so a budget between the warm and the cold
-        solve time never succeeded again. Any other failure leaves a clean workspace (no stale warm start)."""
+        solve time never succeeded again. Any other failure leaves a clean workspace (no stale warm start).
+        An ill-conditioned QP's raw status adds why (the model's divergence)."""
         self._x_plan = None  # the plan advances by the fallback now, not by the predictions
-        if "ill-conditioned" in raw:
+        if reason is Reason.ILL_CONDITIONED:
             raw = f"{raw}{self._divergence()}"
         if status == LIMITED and keep is not None:
             if keep.duals and all(np.isfinite(d).all() for d in keep.duals):
                 self._warm = keep.duals
         else:
             self._discard()
-        return self.fallback(status, raw, times, iterations)
+        return self.fallback(status, raw, times, iterations, reason=reason)
 
 
 SOLVERS = {"qp": LinearMPC}

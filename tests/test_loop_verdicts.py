@@ -3,8 +3,8 @@ import numpy as np
 import pytest
 
 from ocpkit import problems
-from ocpkit.status import LIMITED, SOFT, SUCCESS, Solution
-from ocpkit.sim.simulate import MOVING, REACHED, STALLED, Trajectory, simulate, soft_cause
+from ocpkit.status import LIMITED, SOFT, SUCCESS, Reason, Solution
+from ocpkit.sim.simulate import MOVING, REACHED, STALLED, Trajectory, simulate
 from ocpkit.solvers.qp import LinearMPC
 from ocpkit.model.task import Sphere, reach
 
@@ -14,8 +14,9 @@ CLEARANCE = "DAQP optimal; soft: clearance (robot sphere 2, obstacle 0) violated
 BOUND = "DAQP optimal; soft: state bound x[4] violated by 0.2 at x_1 of the plan on the nonlinear model"
 
 
-def _step(status=SUCCESS, raw="", fallback=False) -> Solution:
-    return Solution(u=np.zeros(1), knots=np.zeros((1, 1)), status=status, raw_status=raw, fallback=fallback)
+def _step(status=SUCCESS, raw="", fallback=False, reason=None) -> Solution:
+    return Solution(u=np.zeros(1), knots=np.zeros((1, 1)), status=status, raw_status=raw, fallback=fallback,
+                    reason=reason)
 
 
 def _trajectory(x, steps=None, goal=None) -> Trajectory:
@@ -65,19 +66,21 @@ def test_progress_names_what_is_missing():
 
 
 def test_soft_steps_are_counted_apart_from_successes_and_fallbacks():
-    steps = [_step(), _step(SOFT, CLEARANCE), _step(SOFT, CLEARANCE), _step(SOFT, BOUND),
-             _step(LIMITED, "iteration limit", fallback=True)]
+    steps = [_step(), _step(SOFT, CLEARANCE, reason=Reason.CLEARANCE), _step(SOFT, CLEARANCE, reason=Reason.CLEARANCE),
+             _step(SOFT, BOUND, reason=Reason.STATE_BOUND), _step(LIMITED, "iteration limit", fallback=True)]
     traj = _trajectory(np.zeros(6), steps)
     assert (traj.successes, traj.soft_steps, traj.fallbacks) == (1, 3, 1)
     assert traj.soft_causes() == "clearance 2, state bound 1" and traj.fallback_causes() == "limited 1"
-    assert soft_cause("optimal; soft: something new") == "something new" and soft_cause("") == SOFT
+    # the causes are the steps' reasons, not words of their raw status: a soft step that says none is "soft"
+    said = [_step(SOFT, BOUND, reason=Reason.CLEARANCE), _step(SOFT, CLEARANCE)]
+    assert _trajectory(np.zeros(3), said).soft_causes() == "clearance 1, soft 1"
 
 
 def test_success_while_colliding_counts_successes_the_plant_contradicts():
     ball = Sphere((0.75, 0.0, 0.0), 0.05)  # on the tip when the arm is stretched along x (q = 0)
     ocp = reach(ARM, [ball], knots=3, horizon=5)
     clear, hit = [0.5, 0.5, 0.5, 0, 0, 0], [0.0, 0.0, 0.0, 0, 0, 0]
-    steps = [_step(), _step(SOFT, CLEARANCE), _step(), _step()]  # success into hit, soft into hit, success out, in
+    steps = [_step(), _step(SOFT, CLEARANCE, reason=Reason.CLEARANCE), _step(), _step()]  # success into hit, soft into hit, success out, in
     traj = _trajectory([clear, hit, hit, clear, hit], steps, goal=np.zeros(9))
     d = traj.clearances(ocp)
     assert (d[[0, 3]] > 0).all() and (d[[1, 2, 4]] < 0).all()

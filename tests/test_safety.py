@@ -8,7 +8,7 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from ocpkit.status import INFEASIBLE, LIMITED, SOFT
+from ocpkit.status import INFEASIBLE, LIMITED, SOFT, Reason
 from ocpkit.model.dynamics import Model
 from ocpkit.model.ocp import OCP
 from ocpkit.problems import make
@@ -110,6 +110,7 @@ def test_soft_step_is_applied_not_a_fallback():
     sol = LinearMPC(ocp).solve([0.0, 1.3], [1.0, 0.0])
     assert sol.status == SOFT and sol.applied and not sol.fallback and not sol.ok
     assert (sol.violation.kind, sol.violation.stage, sol.violation.which) == ("state bound", 1, "x[1]")
+    assert sol.reason is sol.violation.kind is Reason.STATE_BOUND  # the kind is a reason, said as its words
     assert "soft: state bound x[1] violated by" in sol.raw_status and "at x_1 " in sol.raw_status
 
 
@@ -136,7 +137,7 @@ def test_a_collision_within_the_first_steps_is_refused_a_deeper_start_is_not():
     check = PlanCheck(ocp)
     into = np.vstack([x_out, x_out, x_in] + [x_in] * 8)
     v = check.violation(into, ahead=5)
-    assert v.kind == "collision" and v.stage == 2
+    assert v.kind is Reason.COLLISION and v.stage == 2
     assert check.violation(into, ahead=1).kind == "clearance"  # beyond the look-ahead: soft
     out = np.vstack([x_in] + [x_out] * 10)
     assert check.violation(out, ahead=5) is None

@@ -12,12 +12,12 @@ from ocpkit.codegen.cache import check_trusted
 from ocpkit.qp.certificate import TESTS, Certificate
 from ocpkit.qp.certificate import TOL as CERT_TOL
 from ocpkit.controller import Controller
-from ocpkit.status import STATUSES, SUCCESS, Solution
+from ocpkit.status import STATUSES, SUCCESS, Reason, Solution
 from ocpkit.export.constants import CERT_CODE, ILL_CONDITIONED
 from ocpkit.export.digest import differences
 from ocpkit.export.generate import general_rows
 from ocpkit.model.ocp import OCP
-from ocpkit.qp.backends import DAQP_EXIT, daqp_exit_name
+from ocpkit.qp.backends import DAQP_EXIT, DAQP_REASON, daqp_exit_name
 from ocpkit.qp.quadratic_program import ROUNDING_MARGIN
 
 
@@ -219,7 +219,7 @@ class ExportedMPC(Controller):
         status = STATUSES[self._status.value]
         rc = self._rc(self._mem)
         certificate = self.certificate() if status == SUCCESS or rc >= CERT_CODE else None  # a QP solved
-        raw = _explain_rc(self.name, self.qp, rc, certificate.residuals if certificate else ())
+        raw, reason = _explain_rc(self.name, self.qp, rc, certificate.residuals if certificate else ())
         model, build_s, solve = (float(t) for t in self._split)
         x_pred = None
         if self._states is not None and status == SUCCESS:
@@ -229,13 +229,14 @@ class ExportedMPC(Controller):
         times = {"model": model, "build": build_s, "solve": solve}
         knots = knots.reshape(self.ocp.knots, self.ocp.nu)
         if status != SUCCESS and self._step_start is not None:  # this controller's own step (solve)
-            return self.fallback(status, raw, times)
+            return self.fallback(status, raw, times, reason=reason)
         # A refused step of another controller's (LinearMPC's C step), which answers it itself: the library's own
         # fallback, without Controller.fallback's rollout and plan check (on the Panda with 10 obstacles they took
         # 11-19 ms of each refused step, beside a C step of 1.2 ms)
         refused = status != SUCCESS
         return Solution(u=u, knots=knots, status=status, raw_status=raw, times=times, certificate=certificate,
-                        x_pred=x_pred, fallback=refused, path="fallback (C plan)" if refused else "")
+                        x_pred=x_pred, fallback=refused, path="fallback (C plan)" if refused else "",
+                        reason=None if status == SUCCESS else reason)
 
 
 def _check_digest(lib, name: str, lib_path: Path, ocp: OCP) -> None:
@@ -254,15 +255,16 @@ def _check_digest(lib, name: str, lib_path: Path, ocp: OCP) -> None:
                          "again for this OCP")
 
 
-def _explain_rc(name: str, qp: str, rc: int, residuals) -> str:
-    """The raw status of a C step whose solver (``qp``) returned ``rc`` (``residuals``: its certificate)."""
+def _explain_rc(name: str, qp: str, rc: int, residuals) -> tuple[str, Reason | None]:
+    """The raw status of a C step whose solver (``qp``) returned ``rc`` (``residuals``: its certificate), and its
+    reason where ``rc`` says one."""
     if CERT_CODE <= rc < CERT_CODE + len(TESTS):
         test = TESTS[rc - CERT_CODE]
         return (f"{name}_qp_solve returned 0 but certificate failed: {test} residual "
-                f"{residuals[rc - CERT_CODE]:.3g} > {CERT_TOL:.0e}")
+                f"{residuals[rc - CERT_CODE]:.3g} > {CERT_TOL:.0e}"), Reason.CERTIFICATE_FAILED
     if rc == ILL_CONDITIONED:
         return (f"{name}: Hessian ill-conditioned (rounding beyond {ROUNDING_MARGIN:g} x the input weight's "
-                f"curvature): the prediction model diverges over the horizon")
+                f"curvature): the prediction model diverges over the horizon"), Reason.ILL_CONDITIONED
     if qp == "daqp" and rc in DAQP_EXIT:
-        return f"{name}_qp_solve returned {rc}: {daqp_exit_name(rc)}"
-    return f"{name}_qp_solve returned {rc}"
+        return f"{name}_qp_solve returned {rc}: {daqp_exit_name(rc)}", DAQP_REASON.get(rc)
+    return f"{name}_qp_solve returned {rc}", None

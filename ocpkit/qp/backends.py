@@ -1,5 +1,6 @@
 """The QP solvers behind :class:`~ocpkit.solvers.qp.LinearMPC` (and through it the real-time iteration and the sampling
-planners' preconditioner): ProxQP, OSQP, HPIPM and DAQP behind one small interface, :class:`QPBackend`.
+planners' preconditioner): ProxQP, OSQP, HPIPM and DAQP behind one small interface,
+:class:`~ocpkit.qp.interface.QPBackend`.
 
 A backend is made once per controller (:func:`make_backend`) and then asked, step after step, to ``solve`` the
 step's QP (:class:`ocpkit.qp.transcription.QP`) with a warm start (the previous answer's ``duals``) and a deadline. It
@@ -10,12 +11,12 @@ measured time (``costs``) fits in what is left of the deadline.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
 
-from ocpkit.status import EXCEPTION, INFEASIBLE, LIMITED, NAN, SUCCESS, OperationCosts
+from ocpkit.status import EXCEPTION, INFEASIBLE, LIMITED, NAN, SUCCESS, OperationCosts, Reason
+from ocpkit.qp.interface import QPBackend, Result, skipped, time_left
 from ocpkit.qp.quadratic_program import QP
 from ocpkit.qp.transcription import SparseQP
 
@@ -26,58 +27,14 @@ DAQP_EXIT = {1: ("optimal", SUCCESS), 2: ("soft optimal", SUCCESS), -1: ("infeas
              -2: ("cycling", LIMITED), -3: ("unbounded", INFEASIBLE), -4: ("iteration limit", LIMITED),
              -5: ("nonconvex", EXCEPTION), -6: ("overdetermined initial working set", EXCEPTION),
              -7: ("time limit", LIMITED)}
+DAQP_REASON = {-1: Reason.QP_INFEASIBLE, -3: Reason.QP_INFEASIBLE, -4: Reason.ITERATION_LIMIT,
+               -5: Reason.NOT_DEFINITE, -7: Reason.TIME_BUDGET}  # the failed flags' reasons, where one is said
 
 
 def daqp_exit_name(flag: int) -> str:
     """DAQP's exit flag in words, as a raw status."""
     name = DAQP_EXIT[flag][0] if flag in DAQP_EXIT else f"exit flag {flag}"
     return f"DAQP {name}" + (" (Hessian not positive definite)" if flag == -5 else "")
-
-
-@dataclass
-class Result:
-    """A backend's answer: z, its warm start (``duals``, backend-specific), status, and the multipliers in the
-    convention of :mod:`ocpkit.qp.certificate` (y of the equality rows, w of the bound rows; None: not returned)."""
-    z: np.ndarray
-    duals: tuple
-    status: str
-    raw_status: str
-    iterations: int
-    y: np.ndarray | None = None
-    w: np.ndarray | None = None
-
-
-def time_left(deadline: float | None) -> float | None:
-    """Seconds left until ``deadline`` (a perf_counter value; None: no deadline)."""
-    return None if deadline is None else deadline - time.perf_counter()
-
-
-def skipped(op: str, costs: OperationCosts, deadline: float, n: int, iterations: int = 0) -> Result:
-    """The LIMITED result of a step whose budget cannot pay for ``op``."""
-    left = max(0.0, deadline - time.perf_counter())
-    return Result(np.full(n, np.nan), (), LIMITED,
-                   f"time budget: {1e3 * left:.3g} ms left, {op} measured at {1e3 * costs.predict(op):.3g} ms",
-                   iterations)
-
-
-class QPBackend:
-    """What every backend offers LinearMPC. ``max_iter`` (settable; :meth:`reset` after changing it) and ``eps``
-    are its iteration limit and tolerance, ``costs`` the measured times of its operations, ``factorizes`` whether
-    it refuses a Hessian that is not positive definite itself (LinearMPC checks for the others)."""
-
-    factorizes = False
-    max_iter: int
-    eps: float
-    costs: OperationCosts
-
-    def solve(self, qp: QP, warm: tuple | None, deadline: float | None) -> Result:
-        """The answer to ``qp``, warm-started from ``warm`` (a previous :attr:`Result.duals`; None: cold) and
-        stopped at ``deadline`` (a ``time.perf_counter()`` value; None: no deadline) with status "limited"."""
-        raise NotImplementedError
-
-    def reset(self) -> None:
-        """Forget the set-up, the iterate and the warm start: the next solve starts cold."""
-        raise NotImplementedError
 
 
 class ProxQP(QPBackend):
@@ -169,11 +126,11 @@ class ProxQP(QPBackend):
         warm_started = reuse or bool(first)
         costs.add(op, time.perf_counter() - t)
         out = px.QPSolverOutput
-        iterations, chunks, why, outer = 0, 0, None, self.CHUNK_OUTER
+        iterations, chunks, why, reason, outer = 0, 0, None, None, self.CHUNK_OUTER
         while True:
             left_iter = max_iter - iterations
             if left_iter <= 0:
-                why = f"max_iter {self.max_iter} reached"
+                why, reason = f"max_iter {self.max_iter} reached", Reason.ITERATION_LIMIT
                 break
             if warm_started and iterations >= self.WARM_INNER:  # stalled from the warm start
                 return self._cold_again(qp, deadline, left_iter, iterations)
@@ -181,6 +138,7 @@ class ProxQP(QPBackend):
             if not costs.fits(chunk, time_left(deadline)):
                 why = (f"time budget reached after {iterations} iterations (a chunk measured at "
                        f"{1e3 * costs.predict(chunk):.3g} ms)")
+                reason = Reason.TIME_BUDGET
                 break
             s.max_iter_in = min(self.CHUNK_INNER, left_iter)
             s.max_iter = max(1, min(outer, left_iter // (s.max_iter_in + 1)))
@@ -202,7 +160,7 @@ class ProxQP(QPBackend):
             return self._cold_again(qp, deadline, max_iter - iterations, iterations)
         duals = (np.array(r.x), np.array(r.y), np.array(r.z))
         if not chunks:
-            return Result(duals[0], duals, LIMITED, why, 0)
+            return Result(duals[0], duals, LIMITED, why, 0, reason=reason)
         status = {out.PROXQP_SOLVED: SUCCESS, out.PROXQP_MAX_ITER_REACHED: LIMITED,
                   out.PROXQP_PRIMAL_INFEASIBLE: INFEASIBLE, out.PROXQP_DUAL_INFEASIBLE: INFEASIBLE,
                   out.PROXQP_SOLVED_CLOSEST_PRIMAL_FEASIBLE: INFEASIBLE}.get(r.info.status, EXCEPTION)
@@ -210,7 +168,7 @@ class ProxQP(QPBackend):
         if status == LIMITED and why is not None:
             raw = f"{why} ({raw})"
         return Result(duals[0], duals, status, raw, int(iterations), y=duals[1],
-                       w=self._bound_duals(qp, duals[2], key[3]))
+                      w=self._bound_duals(qp, duals[2], key[3]), reason=reason if status == LIMITED else None)
 
     @staticmethod
     def _bound_duals(qp: QP, z_in: np.ndarray, has_box: bool) -> np.ndarray:
@@ -225,7 +183,7 @@ class ProxQP(QPBackend):
         """The QP again from a cold start, with ``max_iter`` inner iterations left (``spent`` already used)."""
         self.reset()
         res = self._solve(qp, None, deadline, max_iter) if max_iter > 0 else Result(
-            np.full(qp.n, np.nan), (), LIMITED, f"max_iter {self.max_iter} reached", 0)
+            np.full(qp.n, np.nan), (), LIMITED, f"max_iter {self.max_iter} reached", 0, reason=Reason.ITERATION_LIMIT)
         res.iterations += spent
         return res
 
@@ -289,7 +247,7 @@ class OSQP(QPBackend):
                 if any(codes):
                     self.solver = None  # the workspace still holds the previous problem
                     return Result(np.full(qp.n, np.nan), (), EXCEPTION,
-                                   f"OSQP update failed (codes {codes[0]}, {codes[1]})", 0)
+                                  f"OSQP update failed (codes {codes[0]}, {codes[1]})", 0, reason=Reason.SOLVER_ERROR)
         costs.add(op, time.perf_counter() - t)
         if warm is not None and len(warm) == 2 and warm[0].shape == (qp.n,) and warm[1].shape == lb.shape:
             solver.warm_start(x=warm[0], y=warm[1])
@@ -299,9 +257,12 @@ class OSQP(QPBackend):
                   S.OSQP_SOLVED_INACCURATE: LIMITED, S.OSQP_PRIMAL_INFEASIBLE: INFEASIBLE,
                   S.OSQP_PRIMAL_INFEASIBLE_INACCURATE: INFEASIBLE, S.OSQP_DUAL_INFEASIBLE: INFEASIBLE,
                   S.OSQP_DUAL_INFEASIBLE_INACCURATE: INFEASIBLE}.get(r.info.status_val, EXCEPTION)
+        reason = {S.OSQP_MAX_ITER_REACHED: Reason.ITERATION_LIMIT,
+                  S.OSQP_TIME_LIMIT_REACHED: Reason.TIME_BUDGET}.get(r.info.status_val)
         z = np.array(r.x, dtype=float) if r.x is not None else np.full(qp.n, np.nan)
         y = np.array(r.y, dtype=float) if r.y is not None else np.zeros(lb.size)
-        return Result(z, (z, y), status, r.info.status, int(r.info.iter), y=y[: qp.b.size], w=y[qp.b.size:])
+        return Result(z, (z, y), status, r.info.status, int(r.info.iter), y=y[: qp.b.size], w=y[qp.b.size:],
+                      reason=reason)
 
 
 class HPIPM(QPBackend):
@@ -362,14 +323,15 @@ class HPIPM(QPBackend):
         status = {0: SUCCESS, 1: LIMITED, 2: LIMITED, 3: NAN}.get(code, EXCEPTION)
         raw = {0: "HPIPM success", 1: "HPIPM max iterations", 2: "HPIPM minimum step length",
                3: "HPIPM NaN"}.get(code, f"HPIPM status {code}")
+        reason = Reason.ITERATION_LIMIT if code == 1 else None
         if status == SUCCESS and deadline is not None and time.perf_counter() > deadline:
-            status, raw = LIMITED, f"time budget exceeded ({raw})"
+            status, raw, reason = LIMITED, f"time budget exceeded ({raw})", Reason.TIME_BUDGET
         z, lam_x = np.empty(qp.n), np.empty(qp.n)
         z[perm] = np.asarray(r["x"]).ravel()
         lam_x[perm] = np.asarray(r["lam_x"]).ravel()
         # CasADi's convention Hz + g + Aᵀλ_a + λ_x = 0: the dynamics rows' λ_a, and x_0 = x0 (rows −I z = b) as bounds
         y = np.r_[-lam_x[:n], np.asarray(r["lam_a"]).ravel()]
-        return Result(z, (z,), status, raw, int(stats.get("iter_count", 0)), y=y, w=lam_x[sel])
+        return Result(z, (z,), status, raw, int(stats.get("iter_count", 0)), y=y, w=lam_x[sel], reason=reason)
 
 
 class DAQP(QPBackend):
@@ -414,7 +376,8 @@ class DAQP(QPBackend):
         # them (A R⁻¹, each iteration's constraint check), and an obstacle step's rows vary threefold step to step
         if left is not None and setup in self._measured and not self.costs.fits(setup, left / size):
             return Result(np.full(n, np.nan), (), LIMITED, f"time budget: {1e3 * max(left, 0.0):.3g} ms left, DAQP's "
-                          f"set-up measured at {1e3 * self.costs.predict(setup) * size:.3g} ms", 0)
+                          f"set-up measured at {1e3 * self.costs.predict(setup) * size:.3g} ms", 0,
+                          reason=Reason.TIME_BUDGET)
         start = time.perf_counter()
         lo, hi = np.full(n, -self.INF), np.full(n, self.INF)
         if k:
@@ -440,26 +403,28 @@ class DAQP(QPBackend):
         self.costs.add(setup, (time.perf_counter() - start) / size)
         self._measured.add(setup)
         if flag < 0:  # refused at the set-up (a Hessian not positive definite, an overdetermined equality set)
-            return Result(np.full(n, np.nan), (), DAQP_EXIT.get(flag, ("", EXCEPTION))[1], daqp_exit_name(flag), 0)
+            return Result(np.full(n, np.nan), (), DAQP_EXIT.get(flag, ("", EXCEPTION))[1], daqp_exit_name(flag), 0,
+                          reason=DAQP_REASON.get(flag))
         limits = self.iterations(n, size, deadline)
         if isinstance(limits, str):
-            return Result(np.full(n, np.nan), (), LIMITED, limits, 0)
+            return Result(np.full(n, np.nan), (), LIMITED, limits, 0, reason=Reason.TIME_BUDGET)
         model.settings = {"iter_limit": limits[0], "time_limit": limits[1], "primal_tol": self.tolerance}
         z, _, flag, info = model.solve()
         done = int(info.get("iterations", 0))
         if done:
             self.costs.add(f"iteration n={n}", float(info.get("solve_time", 0.0)) / done / size)
-        status, raw = DAQP_EXIT.get(flag, ("", EXCEPTION))[1], daqp_exit_name(flag)
+        status, raw, reason = DAQP_EXIT.get(flag, ("", EXCEPTION))[1], daqp_exit_name(flag), DAQP_REASON.get(flag)
         if flag == -7 or (flag == -4 and limits[0] < self.max_iter):
             raw = f"{raw} (time budget: {limits[0]} iterations in {1e3 * limits[1]:.3g} ms)"
+            reason = Reason.TIME_BUDGET
         if status == SUCCESS and deadline is not None and time.perf_counter() > deadline:
-            status, raw = LIMITED, f"time budget exceeded ({raw})"
+            status, raw, reason = LIMITED, f"time budget exceeded ({raw})", Reason.TIME_BUDGET
         z = np.array(z, dtype=float)
         lam = np.array(info.get("lam", np.zeros(bu.size)), dtype=float)
         # λ = [simple bounds on z; the other bound rows; equality rows]: w of C's rows (box first), y of A's
         n_free = bu.size - qp.b.size
         w = np.r_[lam[:n][qp.box] if k else np.zeros(0), lam[n:n_free]]
-        return Result(z, (z, lam), status, raw, done, y=lam[n_free:], w=w)
+        return Result(z, (z, lam), status, raw, done, y=lam[n_free:], w=w, reason=reason)
 
     def iterations(self, n: int, size: int, deadline: float | None) -> tuple[int, float] | str:
         """(iteration limit, DAQP's own time limit in s, 0: none) for a QP of ``n`` variables and ``size`` rows once it

@@ -2,7 +2,7 @@
 
 What counts as success. A step counts as a success only with status "success": the solver's answer certified and its
 plan keeping the task's clearances and hard state bounds (:class:`ocpkit.controller.Controller`). A "soft" step applied
-the solver's input but is not a success (its plan broke a clearance or a state bound, named in its raw status); a
+the solver's input but is not a success (its plan broke a clearance or a state bound: its reason and violation); a
 fallback step applied the controller's safe input instead of the solver's. Steps say nothing about the task as a
 whole: a loop whose every step succeeds can stop short of its target. :meth:`Trajectory.progress` gives that
 loop-level verdict — "reached", "stalled" or "moving" — and :meth:`Trajectory.success_while_colliding` counts the
@@ -74,18 +74,6 @@ def _tally(labels) -> str:
     return ", ".join(f"{label} {n}" for label, n in sorted(counts.items(), key=lambda kv: (-kv[1], kv[0])))
 
 
-def soft_cause(raw_status: str) -> str:
-    """The kind of constraint a "soft" step's plan broke, from its raw status: the leading words after "soft: "
-    ("…; soft: clearance (robot sphere 2, obstacle 0) violated by …" -> "clearance", "state bound x[9] violated …"
-    -> "state bound"; "soft" when it names none)."""
-    kind = []
-    for word in raw_status.rpartition("soft: ")[2].partition(" violated")[0].split():
-        if not word.isalpha():
-            break
-        kind.append(word)
-    return " ".join(kind) or SOFT
-
-
 @dataclass
 class Trajectory:
     """A closed-loop run: times t (H+1,), states x (H+1, n), applied inputs u (H, m) and every Solution."""
@@ -120,8 +108,9 @@ class Trajectory:
         return sum(s.status == SOFT for s in self.solutions)
 
     def soft_causes(self) -> str:
-        """The soft steps by the kind of constraint broken, most frequent first ("clearance 4, state bound 1")."""
-        return _tally(soft_cause(s.raw_status) for s in self.solutions if s.status == SOFT)
+        """The soft steps by the kind of constraint broken (their ``reason``; "soft" where none is said), most frequent
+        first ("clearance 4, state bound 1")."""
+        return _tally(str(s.reason or SOFT) for s in self.solutions if s.status == SOFT)
 
     def clearances(self, ocp) -> np.ndarray:
         """The true clearance (m, no margin) of ``ocp``'s task at every state: the smallest distance between the
