@@ -197,6 +197,7 @@ class _Tangent:
         return _Tangent(ca.mtimes(M, self.value), ca.mtimes(M, self.dx), ca.mtimes(M, self.du))
 
 
+# C twin: step.in.c affine_model() and sensitivity_rate(); parity: tests/test_twins.py
 def _affine(model: Model, dt: float, substeps: int, integrator: str) -> ca.Function:
     """Linear models: the Jacobians of the exact discretization (constant). Others: the integrator's forward
     sensitivities (:class:`_Tangent`): each evaluation of f at a stage x_s(x̄, ū) gives ∂f/∂(x̄, ū) = J·∂x_s/∂(x̄, ū)

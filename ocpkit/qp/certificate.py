@@ -64,6 +64,7 @@ def _finite_norm(*arrays) -> float:
     return float(v[np.isfinite(v)].max(initial=0.0))
 
 
+# C twin: step.in.c certify() and bound_row(); parity: tests/test_twins.py
 def certify(qp, z, y, w) -> Certificate:
     """The certificate of (z, y, w) for ``qp`` (a :class:`ocpkit.qp.transcription.QP`): y the equality rows' multipliers,
     w the bound rows' (positive at an active upper bound). Missing multipliers (None) count as zero."""

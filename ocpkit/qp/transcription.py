@@ -394,6 +394,7 @@ class CondensedQP(_Transcription):
                              np.asarray(knots, dtype=float))
         return self.task.constrain(self._qp(P, q), rows)
 
+    # C twin: step.in.c condense_ltv() (with _predict_ltv); parity: tests/test_twins.py
     def _cost_ltv(self, x_goal):
         """P, q from the stage rows [v S]: the Gram matrix of Q^½ [v − x_goal, S], Q_T's difference at x_T."""
         E = self._SV.copy()
@@ -408,6 +409,7 @@ class CondensedQP(_Transcription):
         P *= 0.5
         return P, Pq[1:, 0] + self.q_knots(x_goal)
 
+    # C twin: step.in.c condense() (forward over the pieces, Γ_L by grams' doubling); parity: tests/test_twins.py
     def _cost_lti(self, x_goal):
         """P, q of the last (one-model) prediction: Γ_L, then the backward pass over the pieces (class docstring)."""
         n, nz, K, M, W = self.n, self.nz, self._K, self._M, self._W

@@ -119,7 +119,8 @@ static void commit_plan(mem_t* m) {
   m->has_plan = m->warm = 1;
 }
 
-/* Controller.fallback: previous plan shifted (input goal at a cold start), clipped; the next step starts cold. */
+/* Controller.fallback: previous plan shifted (input goal at a cold start), clipped; the next step starts cold.
+   Python twin: ocpkit.controller.Controller.fallback ("plan"), Parameterization.shift (tests/test_twins.py). */
 static int fallback(mem_t* m, double* u_out, int status) {
   int i;
   shifted_knots(m, m->z_new);
@@ -422,7 +423,8 @@ static void finish_qp(mem_t* m) {
   }
 }
 
-/* The condensed QP about the affine model Λ_1 (CondensedQP.build): h, g, state-bound rows a, lba, uba. */
+/* The condensed QP about the affine model Λ_1 (CondensedQP.build): h, g, state-bound rows a, lba, uba.
+   Python twin: ocpkit.qp.transcription.CondensedQP._cost_lti (a backward pass) (tests/test_twins.py). */
 static void condense(mem_t* m, const double* x, const double* xg) {
   double *prev = m->prev, *next = m->next, *Pq = m->Pq, *Y = m->Y, *sw;
   int pc, i, r, col;
@@ -512,7 +514,8 @@ static void jacobian_rate(const mem_t* m, double* restrict D) {
 #endif
 
 /* L = [A_d B_d 0 w_d] (row-major, NX x NL) of the affine model about (x, ū): RK4 over SUBSTEPS with its
-   sensitivities (the generated f, ∂f/∂x, ∂f/∂u at each stage), or the generated constant model of a linear one. */
+   sensitivities (the generated f, ∂f/∂x, ∂f/∂u at each stage), or the generated constant model of a linear one.
+   Python twin: ocpkit.model.dynamics._affine (RK4 or Euler on tangents) (tests/test_twins.py). */
 static int affine_model(mem_t* m, const double* x, const double* u, double* L) {
   int i, j;
 #if MODEL_RK4 && EULER
@@ -603,7 +606,8 @@ static void bound_row(double v, double l, double u, double lam, double* s) {
 /* The KKT certificate of the QP's answer (z_new, lam_x_new, lam_a_new), as ocpkit.certificate computes it, in
    CasADi's multiplier convention h z + g + aᵀ lam_a + lam_x = 0: m->cert = the relative residuals of
    stationarity, primal feasibility, complementarity and dual sign; returns the code of the first one above
-   CERT_TOL (or NaN), 0 when all hold. A stale or zero answer fails stationarity. */
+   CERT_TOL (or NaN), 0 when all hold. A stale or zero answer fails stationarity.
+   Python twin: ocpkit.qp.certificate.certify (tests/test_twins.py). */
 static int certify(mem_t* m) {
   const double *z = m->z_new, *lx = m->lam_x_new, *la = m->lam_a_new;
   double s[4] = {0, 0, 0, 0}, norms[4] = {0, 0, 0, 0}, stat = 0, s_d, s_p;
@@ -633,7 +637,8 @@ static int certify(mem_t* m) {
 }
 
 /* Rounding in h (NZ ε max h_ii) beyond ROUNDING_MARGIN of the curvature h has in exact arithmetic (φᵀφ⊗R): the
-   prediction model diverges over the horizon and no solver's answer means anything (QP.not_definite). */
+   prediction model diverges over the horizon and no solver's answer means anything (QP.not_definite).
+   Python twin: ocpkit.qp.quadratic_program.QP.not_definite (tests/test_twins.py). */
 static int ill_conditioned(const mem_t* m) {
   double big = 0;
   int i;
@@ -766,7 +771,8 @@ static int stage_models(mem_t* m, int rollout) {
 
 /* The condensed QP of the stage models (CondensedQP.build with one model per stage): the rows [v_k S_k] of
    x_k = S_k z + v_k (prev, NX x NZ1: column 0 is v_k) advance by x_{k+1} = A_k x_k + B_k Φ_k z + w_k, only over the
-   columns of the knots active so far (ACTIVE), and each adds its stage cost to Pq. */
+   columns of the knots active so far (ACTIVE), and each adds its stage cost to Pq.
+   Python twin: ocpkit.qp.transcription.CondensedQP._predict_ltv and _cost_ltv (tests/test_twins.py). */
 static void condense_ltv(mem_t* m, const double* x, const double* xg) {
   double *prev = m->prev, *next = m->next, *sw;
   int i, j, k, u, cols = 0;
@@ -807,7 +813,8 @@ static double max_change(const double* a, const double* b, int n) {
 }
 
 /* The iterations of one step: their summed split in t (where given; the first model's time from t0). Returns the
-   status; on success the plan, its predicted states and the warm start hold the last good iterate. */
+   status; on success the plan, its predicted states and the warm start hold the last good iterate.
+   Python twin: ocpkit.solvers.rti.RealTimeIteration._solve (tests/test_twins.py). */
 static int rti(mem_t* m, const double* x, const double* goal, double* u_out, double* t, double t0) {
   const int nxs = ({{ N }}_HORIZON + 1) * NX;
   int it, k, rc, done = 0;
