@@ -8,6 +8,8 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
+from ocpkit.status import Reason, Refusal
+
 # A QP whose rounding in P (n·ε·max P_ii) exceeds this fraction of its exact-arithmetic curvature is refused.
 ROUNDING_MARGIN = 0.01
 
@@ -39,7 +41,7 @@ class QP:
         stack = sp.vstack if sp.issparse(self.A) else np.vstack
         return self.P, self.q, stack([self.A, self.C]), np.r_[self.b, self.l], np.r_[self.b, self.u]
 
-    def check(self) -> str | None:
+    def check(self) -> Refusal | None:
         """Why this QP must not reach a backend (non-finite data, l > u, asymmetric P), or None."""
         dense = [_values(M) for M in (self.P, self.A, self.C)] + [self.q, self.b]
         # A finite sum of sums has no inf or NaN entry below it (one would make it inf or NaN): the per-array test
@@ -49,20 +51,22 @@ class QP:
         if not finite:
             for name, values in zip(("P", "A", "C", "q", "b"), dense):
                 if not np.all(np.isfinite(values)):
-                    return f"non-finite entries in {name}"
+                    return Refusal(f"non-finite entries in {name}", Reason.QP_DATA)
         if np.isnan(self.l).any() or np.isnan(self.u).any():
-            return "NaN in the bounds l, u"
+            return Refusal("NaN in the bounds l, u", Reason.QP_DATA)
         if (self.l > self.u).any():
-            return f"lower bound above upper bound in {int((self.l > self.u).sum())} constraint rows"
+            return Refusal(f"lower bound above upper bound in {int((self.l > self.u).sum())} constraint rows",
+                           Reason.BOUNDS_CROSSED)
         P = self.P
         if not sp.issparse(P) and np.array_equal(P, P.T):
             return None
         asym = abs(P - P.T).max() if sp.issparse(P) else np.abs(P - P.T).max(initial=0.0)
         if asym > 1e-9 * max(1.0, abs(P).max() if sp.issparse(P) else np.abs(P).max(initial=0.0)):
-            return "P is not symmetric"
+            return Refusal("P is not symmetric", Reason.QP_DATA)
         return None
 
-    def not_definite(self, factorize: bool = True) -> str | None:
+    # C twin: step.in.c ill_conditioned() (the rounding test); parity: tests/test_twins.py
+    def not_definite(self, factorize: bool = True) -> Refusal | None:
         """Why P is not numerically positive definite, or None: rounding in P beyond ROUNDING_MARGIN × the
         curvature it has in exact arithmetic (``curvature``), or (``factorize``) a failed Cholesky factorization.
 
@@ -75,16 +79,17 @@ class QP:
         if self.curvature > 0:
             rounding = self.n * np.finfo(float).eps * float(np.abs(np.diag(P)).max(initial=0.0))
             if not rounding <= ROUNDING_MARGIN * self.curvature:
-                return (f"Hessian ill-conditioned: its rounding {rounding:.3g} (n·ε·max P_ii) exceeds "
-                        f"{ROUNDING_MARGIN:g} x the curvature {self.curvature:.3g} the input weight gives: the "
-                        f"prediction model diverges over the horizon")
+                return Refusal(f"Hessian ill-conditioned: its rounding {rounding:.3g} (n·ε·max P_ii) exceeds "
+                               f"{ROUNDING_MARGIN:g} x the curvature {self.curvature:.3g} the input weight gives: "
+                               f"the prediction model diverges over the horizon", Reason.ILL_CONDITIONED)
         if not factorize:
             return None
         try:
             np.linalg.cholesky(P)
         except np.linalg.LinAlgError:
             scale = float(np.abs(np.diag(P)).max(initial=0.0))
-            return f"Hessian not positive definite (Cholesky failed; largest diagonal entry {scale:.3g})"
+            return Refusal(f"Hessian not positive definite (Cholesky failed; largest diagonal entry {scale:.3g})",
+                           Reason.NOT_DEFINITE)
         return None
 
 
