@@ -1,7 +1,7 @@
 """CasADi Functions called on numpy arrays through CasADi's evaluation buffer.
 
-``fn(x, u)`` wraps every argument in a DM and every result in a DM that numpy then copies: for the
-13-link robot's affine model that conversion alone takes ~70 µs of a ~1 ms MPC step. A
+``fn(x, u)`` wraps every argument in a DM and every result in a DM that numpy then copies: for a
+large robot's affine model that conversion alone is a sizeable part of an MPC step. A
 :class:`BufferedFunction` binds preallocated numpy arrays to the Function's inputs and outputs
 once and evaluates in place.
 """

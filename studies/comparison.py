@@ -2,7 +2,7 @@
 
 Each controller runs the robot from a seeded random start to a seeded random goal, both at rest, at
 100 Hz with a 100-step horizon: traditional MPC (large matrix; HPIPM, which reaches the same optimum as
-the paper's OSQP 5–10× faster here, so the 13-link robot fits the quick run), parameterized MPC with 3
+the paper's OSQP several times faster, so the 13-link robot fits the quick run), parameterized MPC with 3
 knot points (small matrix, on LinearMPC's default backend, DAQP; the paper used OSQP), EMPC with 3 knot
 points and 1 or 3 generations per control step, both preconditioned (the default,
 :mod:`ocpkit.solvers.sampling`) and as the paper prints Algorithm 1, and the preconditioned CEM and MPPI on

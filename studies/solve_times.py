@@ -29,8 +29,7 @@ FORMS = ("sparse", "condensed")
 NOT_REDUCED = 0.1  # "does not reduce": faster by less than this fraction
 HARDLY = 1.5  # "hardly depends on the horizon": twice the horizon, at most this factor in time
 # "max_dense_vars": the traditional small matrix QP has links × T dense variables and its OSQP solve grows
-# steeply (measured on 2 cores: 0.3–0.5 s at 7 links, T = 50; 2.5–4 s at 7 links, T = 100; 18–36 s at
-# 13 links, T = 100); quick skips it above this size. None: no skip.
+# steeply with them; quick skips it above this size. None: no skip.
 SIZES = {"quick": {"links": [1, 3, 7, 13], "states": 20, "qp": "osqp", "max_dense_vars": 700},
          "full": {"links": list(range(1, 14)), "states": 100, "qp": "osqp", "max_dense_vars": None}}
 

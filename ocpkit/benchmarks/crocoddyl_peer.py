@@ -17,17 +17,16 @@ Crocoddyl is the reference DDP library for arms; the comparison is only fair on 
   same RK4 quadrature (the state term at the four stage states, not at x_k), so with RK4 the state term of x_k
   (k = 1 … T−1) sits on its own node before node k's dynamics: an ``ActionModelLQR`` without input (x⁺ = x, cost
   xᵀQx − 2 x_gᵀQx), ocpkit's term less the constant x_gᵀQx_g (``ShootingOCP.offset``). These T − 1 extra nodes
-  cost 1 µs each in calc + calcDiff against 50 µs for an RK4 node of a 7-DoF arm; one BoxFDDP iteration of the
-  Panda at T = 50 took 4.6 ms with them, 4.2 ms with the state term inside the RK4 node (Crocoddyl's integrated
-  cost, another OCP). With Euler the running cost is dt ℓ(x_k, u_k) already: one node per step, the first without
+  are cheap next to the RK4 nodes (the state term inside the RK4 node, Crocoddyl's integrated cost, would be
+  another OCP). With Euler the running cost is dt ℓ(x_k, u_k) already: one node per step, the first without
   its state term.
 * input bounds: ``SolverBoxFDDP`` (FDDP with the box-QP backward pass) wherever the OCP bounds the inputs.
 
 Crocoddyl has no knot parameterization: it solves traditional MPC, p = T, and is compared with ocpkit on
 ``problem.ocp(knots=None)``. Its solves are timed as its own benchmarks time them (``benchmark/*_optctrl.py``):
-C++ models, ``solve`` called from Python, one thread per problem (``nthreads`` 1: with its default, one OpenMP
-thread per core, ``calc`` + ``calcDiff`` of a Panda at T = 50 took 15 ms on a 2-core machine with two busy
-processes instead of 3.6 ms; quiet, 1.5 ms instead of 4.2). Passing the node lists from Python costs 0.02 ms.
+C++ models, ``solve`` called from Python, one thread per problem (``nthreads`` 1: its default, one OpenMP thread
+per core, makes ``calc`` + ``calcDiff`` hostage to the machine's other processes). Passing the node lists from Python
+is a small part of a solve.
 """
 from __future__ import annotations
 

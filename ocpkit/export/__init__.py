@@ -50,7 +50,7 @@ QP solvers (CasADi conic plugins with code generation in CasADi 3.8):
 * ``qrqp`` — CasADi's own active-set solver, generated as plain C: the folder needs nothing else. It can
   report success at a point outside the bounds (seen on nlink:3, T = 50).
 * ``daqp`` (default) — links CasADi's shipped ``libdaqpstat.a`` (headers under ``casadi/include``); DAQP's setup
-  runs inside each step and allocates there (16 blocks a step, about 1.5 µs: ``tests/test_export_c.py``). CasADi
+  runs inside each step and allocates there (16 blocks a step: ``tests/test_export_c.py``). CasADi
   3.8's generated call ignores a failed set-up (DAQP's factorization refusing a Hessian that is not positive
   definite) and then reads an uninitialized success flag: in some processes the step reported success with the
   previous, zero answer. :func:`ocpkit.export.qp.fix_daqp_setup` makes the generated function return the set-up's

@@ -1,17 +1,16 @@
 """LinearMPC's compiled step: the exported C step (:mod:`ocpkit.export`) built without asking, cached by hash.
 
-The Python step of the condensed knot QP spends most of a robot's step in per-call overheads (nlink:13, T = 100:
-0.8 ms in Python, 0.3 ms as the exported C step). :func:`start` exports the step of an OCP (condensed form,
-DAQP, linearization about the input goal) to a scratch folder — code generation in this process, 0.1 s at
-nlink:13 — and keys it by the hash of the generated files. A cached library is used at once; otherwise a child
-process in a session of its own builds it with ``make`` at lower priority (``nice`` +10, one compile job, so a
-running control loop keeps a core) and moves it into the cache atomically with its content hash beside it (a
-damaged entry is rebuilt; one that does not load is removed and built once more). The child outlives this process
-if need be: a script shorter than the build finds the C step ready on its next run. Several controllers of one OCP
-share one build, and so do processes: the builder holds the entry's lock file (:func:`ocpkit.codegen.cache.entry_lock`),
-and another process's build child waits for it and finds the library built. A read-only cache is used as it is:
-its sound library is loaded, and where it has none the Python step runs (one warning); ``ocpkit build`` fills a
-cache ahead of deployment.
+The Python step of the condensed knot QP spends most of a robot's step in per-call overheads (README, "The MPC step on
+the CPU"). :func:`start` exports the step of an OCP (condensed form, DAQP, linearization about the input goal) to a
+scratch folder — code generation in this process — and keys it by the hash of the generated files. A cached library is
+used at once; otherwise a child process in a session of its own builds it with ``make`` at lower priority (``nice`` +10,
+one compile job, so a running control loop keeps a core) and moves it into the cache atomically with its content hash
+beside it (a damaged entry is rebuilt; one that does not load is removed and built once more). The child outlives this
+process if need be: a script shorter than the build finds the C step ready on its next run. Several controllers of one
+OCP share one build, and so do processes: the builder holds the entry's lock file
+(:func:`ocpkit.codegen.cache.entry_lock`), and another process's build child waits for it and finds the library built. A
+read-only cache is used as it is: its sound library is loaded, and where it has none the Python step runs (one warning);
+``ocpkit build`` fills a cache ahead of deployment.
 """
 from __future__ import annotations
 
@@ -34,8 +33,8 @@ from ocpkit.model.ocp import BACKGROUND_MIN_INSTRUCTIONS, OCP
 
 NAME = "mpc"
 SLOTS = 64  # controllers of one OCP live at once in one process (the library's QP-solver memory slots)
-# The generated model and DAQP at -O1: nlink:13 builds in 3.6 s instead of 8.8 s at the export's -O2, and its
-# C step ran as fast (0.222 vs 0.222 ms); the condensing keeps the export's -O3.
+# The generated model and DAQP at -O1: a build far shorter than at the export's -O2, and a C step as fast (README,
+# "The MPC step on the CPU"); the condensing keeps the export's -O3.
 MAKE_VARS = (f"MAX_INSTANCES={SLOTS}", "OPT=-O1")
 
 _builds: dict[str, Future] = {}  # by the hash of the generated files
@@ -44,10 +43,9 @@ _builds_lock = threading.Lock()
 _warned = set()
 
 
-# The default builds the C step for knot QPs up to this many variables (knots × inputs). nlink:13, T = 100, C step
-# against the Python step: 65 variables 0.29 vs 0.81 ms, 130: 1.14 vs 1.55, 260: 6.0 vs 7.1, 520: 40 vs 46; the
-# traditional QP (p = T = 100, 1300 variables) no faster (the generated DAQP starts cold and sets up every step)
-# and 2.5 s of code generation at construction, a 27 MB library.
+# The default builds the C step for knot QPs up to this many variables (knots × inputs): above it the C step's lead
+# over the Python step fades, and the traditional QP is no faster in C (the generated DAQP starts cold and sets up
+# every step) for a long code generation at construction and a large library (README, "The MPC step on the CPU").
 MAX_VARIABLES = 256
 
 
@@ -55,7 +53,7 @@ def wanted(ocp: OCP) -> bool:
     """Whether the OCP's ``compiled`` policy asks for the C step: True, or None (the default) for a model as large as
     :data:`ocpkit.model.ocp.BACKGROUND_MIN_INSTRUCTIONS` (below it the Python step is already fast), a knot QP of at
     most :data:`MAX_VARIABLES` variables and no obstacles. The obstacles are constants of the generated C, so each
-    placement is a build of its own (the Panda's: 10-30 s), where a study's seeds each place theirs: the C step
+    placement is a build of its own, where a study's seeds each place theirs: the C step
     with obstacles is built when asked (``native=True``, ``compiled=True``)."""
     if ocp.compiled is not None:
         return ocp.compiled
@@ -218,7 +216,7 @@ def _build(scratch: Path, folder: Path, future: Future, background: bool = True,
 
     In the background the build is a child process in a session of its own at lower priority: it finishes and
     fills the cache even when this process exits first (a short script's next run finds the C step ready). A
-    caller that waits builds here at full priority (niced on a busy machine the Panda's build took 33 s, not 4).
+    caller that waits builds here at full priority (niced, a busy machine would slow its build manyfold).
     ``child``: that child, already started (:func:`_spawn`)."""
     library = folder / f"lib{NAME}.so"
     try:

@@ -333,8 +333,7 @@ class CompiledTask:
 
     The clearances are one pair's Function mapped (``Function.map``) over the obstacles and then over the robot
     spheres, on the spheres' kinematics computed once: their expression and generated C grow with the robot's
-    spheres, not with the pairs (written out pair by pair, 1,000 obstacles made a 19 MB C file that compiled for
-    41 minutes).
+    spheres, not with the pairs (written out pair by pair, the C file and its compile grew with the obstacles).
     """
 
     def __init__(self, task: Task, nx: int, nu: int):

@@ -33,9 +33,8 @@ worker processes where the user set none (from ``--workers`` and the cores, like
 is checked for the manifest's code and versions, not for its environment: Dask's nanny sets the BLAS threads of its
 workers to 1 itself, and the trial records the submitting process's variables.
 
-Hashing reads and parses each file once per process, and again only when its size, inode or times change: a
-closed-loop trial's manifest (37 files) took ~0.2 s the first time and ~15 ms after on a busy 2-core machine;
-the study runner computes it once per run (once per distinct set of files the trials' parameters name).
+Hashing reads and parses each file once per process, and again only when its size, inode or times change; the
+study runner computes a manifest once per run (once per distinct set of files the trials' parameters name).
 """
 from __future__ import annotations
 

@@ -245,8 +245,8 @@ class MotionPicture:
 
     def images(self):
         """The frames as Pillow images. The figure is laid out and drawn once without the moving artists; each frame
-        restores that background and draws them alone (a full redraw per frame, constrained layout included, took
-        20 times as long)."""
+        restores that background and draws them alone (a full redraw per frame, constrained layout included, is far
+        slower)."""
         from PIL import Image
 
         moving = self.draw(len(self.indices) - 1)   # the layout fits the last frame: the trail at its longest

@@ -2,7 +2,7 @@
 
 Every draw is a hash of (seed, generation counter, candidate, slot), so it does not depend
 on how Taichi spreads the population over threads: the same seed gives the same population,
-bit for bit, on any number of CPU threads (DESIGN: every random draw takes a seed).
+bit for bit, on any number of CPU threads (every random draw takes a seed).
 """
 # No "from __future__ import annotations": Taichi reads the annotations as types.
 import math

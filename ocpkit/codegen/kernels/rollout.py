@@ -15,9 +15,9 @@ caller each control step, or the full nonlinear discrete model F translated from
 (the paper's future work). Costs are translated CasADi Functions, so non-smooth ones
 (if/else, |·|, penalties) are evaluated exactly as written.
 
-Kernels loop over knots and knot parameters at run time instead of unrolling them, so their compile
-time does not grow with p (unrolled, EMPC on nlink:3 at p = T = 50 compiled for 46 minutes): the basis
-enters as its few nonzeros per row (:class:`SparseRows`), and the knots are read from their field.
+Kernels loop over knots and knot parameters at run time instead of unrolling them, so their compile time does not grow
+with p (unrolled, it did): the basis enters as its few nonzeros per row
+(:class:`SparseRows`), and the knots are read from their field.
 """
 
 # No "from __future__ import annotations": Taichi reads kernel annotations as types.
@@ -184,13 +184,12 @@ class Rollout:
             self._w = ti.field(F, shape=n)
             A, B, w = self._A, self._B, self._w
 
-            # Both forms unroll the rows and loop over the columns (a full unroll compiles for
-            # ~20 s at nlink:13 instead of ~1 s). On the CPU, one dot product per row (measured
-            # faster: its n accumulators would not fit in registers). On CUDA, the column loop
-            # outside: each column's n multiply-adds are independent, so a thread issues them back
-            # to back instead of waiting on one row's running sum (H100, nlink:13, T = 100, 4096
-            # candidates: ~0.9 ms instead of ~4 ms per generation, estimated by subtracting the
-            # nlink:1 time of the same run, i.e. the launch overhead).
+            # Both forms unroll the rows and loop over the columns (a full unroll compiles far longer
+            # at nlink:13). On the CPU, one dot product per row (measured faster: its n accumulators
+            # would not fit in registers). On CUDA, the column loop outside: each column's n
+            # multiply-adds are independent, so a thread issues them back to back instead of waiting
+            # on one row's running sum (measured faster per generation on an H100, the launch
+            # overhead subtracted).
             column_outer = self.arch == "cuda"
 
             @ti.func

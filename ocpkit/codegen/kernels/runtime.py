@@ -67,8 +67,8 @@ def _floating_point_kept():
     """The calling thread's floating-point environment (fenv: rounding, exception masks, and on x86 the SSE
     flush-to-zero and denormals-are-zero flags) as it was before the block, restored after it. ``ti.init`` turns
     flush-to-zero on in the thread that calls it: every later float in the process — CasADi, IPOPT, qrqp, numpy —
-    then read 1e-310 as 0, and CasADi's SQP on nlink:3 from a start inside a ball took 10-13 s a step after any
-    sampling planner had started Taichi in the process, against 0.1 s without."""
+    then read 1e-310 as 0, and CasADi's SQP on nlink:3 from a start inside a ball slowed by two orders of magnitude
+    after any sampling planner had started Taichi in the process."""
     try:
         libm = ctypes.CDLL(ctypes.util.find_library("m") or "libm.so.6")
     except OSError:  # no C maths library to ask (not a glibc/musl system): nothing to keep
@@ -153,8 +153,8 @@ _staged_lock = threading.Lock()
 
 def stage(field, values) -> None:
     """Queue ``values`` (the field's shape) for ``field``; :func:`upload` copies every queued array in one kernel
-    launch. Taichi's own ``from_numpy`` compiles a kernel per field at its first call, 80–110 ms each even from a
-    warm cache: most of a sampling planner's construction, where six fields of constants were filled that way."""
+    launch. Taichi's own ``from_numpy`` compiles a kernel per field at its first call, even from a warm cache: most
+    of a sampling planner's construction, where six fields of constants were filled that way."""
     values = np.asarray(values, dtype=np.float64)
     if values.shape != tuple(field.shape):
         raise ValueError(f"values must have the field's shape {tuple(field.shape)}, got {values.shape}")
