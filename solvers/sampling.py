@@ -1,4 +1,4 @@
-"""The frame shared by the sampling planners (EMPC, CEM, MPPI) on one rollout engine, and their preconditioner.
+"""The frame shared by the sampling planners (EMPC, CEM, MPPI) on one rollout engine.
 
 Each control step: linearize the model about (x, ū) as LinearMPC does (``linearization``), copy x,
 the goal and (A_d, B_d, w_d) to the device, run ``generations`` rounds of the planner's update rule
@@ -7,30 +7,29 @@ over populations rolled out by :class:`ocpkit.codegen.kernels.rollout.Rollout`, 
 ``variant="preconditioned"`` (the default) fixes what defeats the paper's Algorithm 1 on the N-link
 robots (DESIGN, "Sampling planners: what we learnt"): the knot QP's Hessian is so anisotropic
 (condition 1e5–1e7 from 3 links) that isotropic mutations land far uphill. Each step the
-:class:`Preconditioner` builds the condensed knot QP ½zᵀPz + qᵀz at this step's linearization (the
-rollout cost of affine dynamics is exactly twice it plus a constant), factors P = LLᵀ, and supplies
-*seeds* evaluated in every population: the optimum of that QP within the input bounds (a Newton candidate,
+:class:`ocpkit.solvers.preconditioner.Preconditioner` builds the condensed knot QP ½zᵀPz + qᵀz at this step's
+linearization (the rollout cost of affine dynamics is exactly twice it plus a constant), factors P = LLᵀ, and
+supplies *seeds* evaluated in every population: the optimum of that QP within the input bounds (a Newton candidate,
 :func:`ocpkit.qp.boxqp.solve_box_qp`; with obstacles or state bounds, within their linearized rows too, by DAQP) and
-the input that holds the goal (u_g corrected for gravity and
-other static loads). Perturbations are drawn as L⁻ᵀε (covariance ∝ P⁻¹), so every direction costs
-alike. CEM and MPPI start each step's Gaussian at the best by rollout of their incumbent and the
-seeds (:class:`GaussianSampling`). The fitness stays the rollout, so ``dynamics="nonlinear"`` and any
-CasADi stage cost keep working; the QP only shapes the search. ``variant="paper"`` is the plain
-algorithm: isotropic sampling in input coordinates, no seeds.
+the input that holds the goal (u_g corrected for gravity and other static loads). Perturbations are drawn as L⁻ᵀε
+(covariance ∝ P⁻¹), so every direction costs alike. CEM and MPPI start each step's Gaussian at the best by rollout of
+their incumbent and the seeds (:class:`GaussianSampling`). The fitness stays the rollout, so
+``dynamics="nonlinear"`` and any CasADi stage cost keep working; the QP only shapes the search.
+``variant="paper"`` is the plain algorithm: isotropic sampling in input coordinates, no seeds.
 
-Both variants select by constraint domination ("feasibility first", Deb's rule) wherever they compare candidates
-— EMPC's parents and its pick, CEM's elites, MPPI's weights, the incumbent against the seeds and the plan returned:
-each rollout brings its cost J (with the exact penalties of :func:`ocpkit.codegen.kernels.rollout.fitness`) and its
-violation V of the obstacle clearances and hard state bounds (:func:`ocpkit.codegen.kernels.rollout.violation`, judged on
-the rollout's ``dynamics``); a candidate with V ≤ FEASIBILITY_TOLERANCE beats every other, among the others the
-smaller V wins, among the feasible the smaller J (:func:`best_first`). By the penalty alone the weight decides: at
-``obstacle_weight`` 10 all three planners drove nlink:3 through a ball on its path (down to −0.09 m); by domination
-none did, at any weight. The rollouts stay affine by default even around obstacles, the violation then judged on
-the affine prediction while the controller's certificate rolls the plan out on the nonlinear model: on nlink:3 past
-a ball, affine rollouts kept the arm clear but 8–49 % of their steps were "soft" (the prediction's drift over the
-horizon), where ``dynamics="nonlinear"`` made every step a certified success; on the README's Panda reach the
-nonlinear rollouts took 194 s to compile and 213 ms a step, and their population diverged (final distance 1.03 m
-instead of 1 mm). Choose "nonlinear" where the robot's discrete model is cheap and stable over the horizon.
+Both variants select by constraint domination ("feasibility first", Deb's rule) wherever they compare candidates —
+EMPC's parents and its pick, CEM's elites, MPPI's weights, the incumbent against the seeds and the plan returned: each
+rollout brings its cost J (with the exact penalties of :func:`ocpkit.codegen.kernels.rollout.fitness`) and its violation
+V of the obstacle clearances and hard state bounds (:func:`ocpkit.codegen.kernels.rollout.violation`, judged on the
+rollout's ``dynamics``); a candidate with V ≤ FEASIBILITY_TOLERANCE beats every other, among the others the smaller V
+wins, among the feasible the smaller J (:func:`best_first`). By the penalty alone the weight decides: at
+``obstacle_weight`` 10 all three planners drove nlink:3 through a ball on its path (down to −0.09 m); by domination none
+did, at any weight. The rollouts stay affine by default even around obstacles, the violation then judged on the affine
+prediction while the controller's certificate rolls the plan out on the nonlinear model: on nlink:3 past a ball, affine
+rollouts kept the arm clear but 8–49 % of their steps were "soft" (the prediction's drift over the horizon), where
+``dynamics="nonlinear"`` made every step a certified success; on the README's Panda reach the nonlinear rollouts took
+194 s to compile and 213 ms a step, and their population diverged (final distance 1.03 m instead of 1 mm). Choose
+"nonlinear" where the robot's discrete model is cheap and stable over the horizon.
 
 Timings: ``model`` is the linearization; ``build`` the preconditioner's QP; ``solve`` the rest
 (``factor``, ``seed`` — the Newton (or DAQP) and holding candidates —, ``copies`` between host and device and
@@ -39,21 +38,17 @@ Timings: ``model`` is the linearization; ``build`` the preconditioner's QP; ``so
 # No "from __future__ import annotations": Taichi reads kernel annotations as types.
 import time
 
-import casadi as ca
 import numpy as np
-import scipy.linalg
 import taichi as ti
 
 from ocpkit._checks import array, choice, integer, positive
-from ocpkit.qp.boxqp import solve_box_qp
 from ocpkit.controller import Controller, check_linearization
 from ocpkit.status import EXCEPTION, LIMITED, NAN, SUCCESS, OperationCosts, Solution
 from ocpkit.codegen.kernels import runtime
 from ocpkit.codegen.kernels.random import normal, seed_key
-from ocpkit.codegen.kernels.rollout import FEASIBILITY_TOLERANCE, Rollout, constrained
-from ocpkit.qp.backends import DAQP
-from ocpkit.qp.transcription import CondensedQP
+from ocpkit.codegen.kernels.rollout import FEASIBILITY_TOLERANCE, Rollout
 from ocpkit.solvers.methods import SAMPLING, VARIANTS
+from ocpkit.solvers.preconditioner import Preconditioner
 
 SEEDS = 2  # Newton candidate, holding input
 PARTS = ("model", "build", "factor", "seed", "copies", "generations", "solve", "total")
@@ -88,98 +83,6 @@ def best_first(results: np.ndarray, count: int) -> np.ndarray:
     return idx[order[:count]]
 
 
-class Preconditioner:
-    """The knot QP ½zᵀPz + qᵀz (z = knots, p·m) of ``ocp`` at one linearization, P = LLᵀ, and the seeds.
-
-    :meth:`update` builds it with :class:`ocpkit.qp.transcription.CondensedQP` (the structure-exploiting
-    build LinearMPC uses), factors P and computes ``newton`` (the QP's optimum within the input
-    bounds, warm-started from the previous plan) and ``hold`` (:meth:`holding_input` at every knot).
-    ``whiten`` = L⁻ᵀ maps N(0, I) draws to N(0, P⁻¹).
-
-    With obstacles or state bounds the QP also holds them as LinearMPC does, hard rows: the state bounds on the
-    affine prediction and each obstacle clearance linearized about the warm start's prediction (ocpkit.qp.task_rows).
-    ``newton`` is then that QP's optimum by DAQP, a candidate that keeps the constraints to first order, and the
-    box-constrained optimum only where the rows cannot all be met (a start inside a margin), DAQP fails or runs out
-    of the step's time; ``seed_status`` says which. P, and so the preconditioning, is the same either way: hard rows
-    add no cost. On the README's Panda case this seed is what keeps the hand out of the sphere: with the
-    box-constrained one alone no candidate was feasible for long stretches and the hand ended 7–13 cm inside.
-    """
-
-    def __init__(self, ocp):
-        self.ocp = ocp
-        # A task's terms enter by Gauss-Newton about the warm start.
-        self.transcription = CondensedQP(ocp)
-        self.rows = constrained(ocp)
-        self._daqp = DAQP(max_iter=1000, eps=1e-9) if self.rows else None
-        self.seed_status = "box QP"
-        self.lo, self.hi = np.tile(ocp.u_min, ocp.knots), np.tile(ocp.u_max, ocp.knots)
-        x, u = ocp.model.x, ocp.model.u
-        f = ocp.model.xdot
-        self._statics = ca.Function("statics", [x, u], [f, ca.jacobian(f, u)])
-        self._hold_goal, self._hold = None, None
-        self.L = None  # until the first update
-
-    def holding_input(self, goal: np.ndarray) -> np.ndarray:
-        """u_g corrected so that the continuous dynamics rest at the goal: u_g − J⁺ f(x_goal, u_g) with
-        J = ∂f/∂u (exact for robots, whose dynamics are affine in the torques: gravity compensation),
-        clipped to the input bounds; u_g where that is not finite. Cached per goal."""
-        ocp = self.ocp
-        if self._hold_goal is None or not np.array_equal(goal, self._hold_goal):
-            u_g = np.clip(ocp.input_goal(goal), ocp.u_min, ocp.u_max)
-            f, J = (np.asarray(v, dtype=float) for v in self._statics(goal, u_g))
-            u = u_g - np.linalg.lstsq(J, f.ravel(), rcond=None)[0]
-            self._hold = np.clip(u, ocp.u_min, ocp.u_max) if np.isfinite(u).all() else u_g
-            self._hold_goal = goal.copy()
-        return self._hold
-
-    def update(self, model, x, goal, warm: np.ndarray | None, times: dict, targets=None,
-               deadline: float | None = None) -> None:
-        """Build, factor and seed for the affine ``model`` = (A_d, B_d, w_d) at state x; ``warm`` (p, m)
-        starts the Newton candidate (the holding input if None) and, with a task, is where its terms and obstacles
-        are linearized towards ``targets``. DAQP stops at ``deadline`` (a perf_counter value; None: none). Adds its
-        parts to ``times``."""
-        p, m = self.ocp.knots, self.ocp.nu
-        t0 = time.perf_counter()
-        task = {}
-        if self.transcription.task is not None:
-            task = {"targets": targets, "knots": np.tile(self.holding_input(goal), (p, 1)) if warm is None else warm}
-        qp = self.transcription.build(*model, x, goal, **task)
-        t1 = time.perf_counter()
-        self.P, self.q = qp.P, qp.q
-        try:
-            self.L = np.linalg.cholesky(self.P)
-        except np.linalg.LinAlgError:  # P ≻ 0 in exact arithmetic (R ≻ 0); lift rounding-level negatives
-            w, V = np.linalg.eigh(self.P)
-            self.L = np.linalg.cholesky((V * np.maximum(w, 1e-12 * w.max())) @ V.T)
-        self.whiten = scipy.linalg.solve_triangular(self.L, np.eye(p * m), lower=True).T
-        t2 = time.perf_counter()
-        self.hold = np.tile(self.holding_input(goal), (p, 1))
-        start = self.hold if warm is None else warm
-        self.newton = self._constrained_seed(qp, deadline)
-        if self.newton is None:
-            self.newton = solve_box_qp(self.P, self.q, self.lo, self.hi, start.ravel()).z.reshape(p, m)
-        times["build"] += t1 - t0
-        times["factor"] += t2 - t1
-        times["seed"] += time.perf_counter() - t2
-
-    def _constrained_seed(self, qp, deadline) -> np.ndarray | None:
-        """The knots (p, m) of ``qp``'s optimum with its constraint rows, by DAQP (cold: the rows change with the
-        linearization) within ``deadline``, or None where it has no rows beyond the knots' box or DAQP finds none."""
-        if not self.rows or qp.C.shape[0] == len(qp.box):
-            self.seed_status = "box QP"
-            return None
-        result = self._daqp.solve(qp, None, deadline)
-        self.seed_status = f"DAQP {result.raw_status}"
-        if result.status != SUCCESS or not np.isfinite(result.z).all():
-            return None
-        return np.clip(result.z, self.lo, self.hi).reshape(self.ocp.knots, self.ocp.nu)
-
-    def whitened(self, knots: np.ndarray, center: np.ndarray) -> np.ndarray:
-        """Lᵀ(U − center) for knots (…, p, m): deviations in the coordinates where P is the identity."""
-        d = self.L.shape[0]
-        return (knots.reshape(-1, d) - center.reshape(d)) @ self.L
-
-
 class SamplingMPC(Controller):
     """Base class: subclasses implement ``_start``, ``_generation`` and ``_result``.
 
@@ -188,8 +91,9 @@ class SamplingMPC(Controller):
     each step) or "nonlinear" (the discrete model F in the kernel), which also judges each candidate's violation of
     the obstacles and state bounds (module docstring: which to choose around obstacles);
     ``stage_cost``/``terminal_cost`` replace the OCP's cost in the fitness (any CasADi Function of (x, u, goal) /
-    (x, goal), goal of ``ocp.ng`` entries, non-smooth allowed; default: :func:`ocpkit.codegen.kernels.rollout.fitness`, the
-    OCP's terms and the exact penalties of its state bounds and a task's obstacles); ``seed`` makes runs repeatable.
+    (x, goal), goal of ``ocp.ng`` entries, non-smooth allowed; default:
+    :func:`ocpkit.codegen.kernels.rollout.fitness`, the OCP's terms and the exact penalties of its state bounds and a
+    task's obstacles); ``seed`` makes runs repeatable.
     ``linearization`` picks the affine model's expansion input as in LinearMPC. ``time_limit`` (s) bounds the whole
     step: each stage — the linearization, the preconditioner, the copies to the device, each generation — starts only
     if its measured time (:class:`ocpkit.status.OperationCosts`) and that of the stages that must follow it fit in
@@ -199,8 +103,8 @@ class SamplingMPC(Controller):
     and says so; where later generations cannot, the step returns the best candidate so far ("limited"), as it does
     when its last generation ends past the budget. A new controller's first step compiles the kernels and is not
     measured (0.5 s for a generation on nlink:13, which as a measurement locked it out of a 100 ms budget), its
-    second measures: neither is bounded, so call :meth:`warm_up` (two steps) first. ``threads`` limits BLAS/OpenMP threads inside a step
-    (see Controller); Taichi's own CPU threads are set at its start (``OCPKIT_CPU_THREADS``).
+    second measures: neither is bounded, so call :meth:`warm_up` (two steps) first. ``threads`` limits BLAS/OpenMP
+    threads inside a step (see Controller); Taichi's own CPU threads are set at its start (``OCPKIT_CPU_THREADS``).
     """
 
     def __init__(self, ocp, *, population: int = SAMPLING["population"].default,

@@ -123,7 +123,8 @@ def test_the_command_lines_choices_are_the_solvers():
 
     assert cli.NLP_METHODS == nlp.METHODS and cli.DYNAMICS == nlp.DYNAMICS
     assert sorted(cli.QP_BACKENDS) == sorted(qp.QP_SOLVERS)
-    assert set(cli.SAMPLING) | {"qp", "rti", "ipopt"} == set(solvers.names())  # a new solver must be placed in the table
+    # a new solver must be placed in the table
+    assert set(cli.SAMPLING) | {"qp", "rti", "ipopt"} == set(solvers.names())
     sampling = pytest.importorskip("ocpkit.solvers.sampling")  # starts Taichi
     assert cli.VARIANTS == sampling.VARIANTS
 

@@ -90,8 +90,9 @@ def bench_nlp(problems=None, knots: int | None = KNOTS, horizon: int | None = 50
     ``knots`` None is traditional MPC (p = T); ``horizon`` None is the problem's own. The cart-pole swing-up
     keeps its own horizon (1 s, 100 steps: half of it cannot see the pole come up) with 10 knots, and runs
     for the problem's duration plus one second. ``samples`` seeded start/goal pairs (seeds ``first_seed``, …) run
-    ``steps`` control steps. ``integrator`` is every controller's prediction (:data:`ocpkit.model.dynamics.INTEGRATORS`);
-    the plant is RK4 whatever it is, so the costs of two runs compare across integrators.
+    ``steps`` control steps. ``integrator`` is every controller's prediction
+    (:data:`ocpkit.model.dynamics.INTEGRATORS`); the plant is RK4 whatever it is, so the costs of two runs compare
+    across integrators.
 
     ``compiled`` evaluates the affine model as compiled C (RTI's and LTV's T per-stage models, LinearMPC's one):
     the one-off compile (cached) is done before any controller runs and printed, never counted in a step.

@@ -9,7 +9,9 @@ import argparse
 import sys
 
 from ocpkit import __version__, solvers, studies
-from ocpkit.cli.commands import BENCHMARKS, COMMANDS, PROBLEM_BENCHMARKS, PROBLEM_STUDIES
+from ocpkit.cli import commands
+from ocpkit.cli.commands import BENCHMARKS, PROBLEM_BENCHMARKS, PROBLEM_STUDIES
+from ocpkit.cli.export import export_command
 from ocpkit.cli.options import (DEFAULT_KNOTS, DYNAMICS, EXPORT_FORMS, EXPORT_QPS, NLP_METHODS, QP_BACKENDS, SAMPLING,
                                 SPEC_HELP, VARIANTS, default)
 from ocpkit.solvers.methods import QP_BY_FORM
@@ -18,6 +20,7 @@ from ocpkit.controller import LINEARIZATIONS, TRAJECTORY
 from ocpkit.model.dynamics import INTEGRATORS
 
 MUJOCO_INTEGRATORS = ("rk4", "implicit", "implicitfast", "euler")  # ocpkit.sim.mujoco_plant.INTEGRATORS
+COMMANDS = {**commands.COMMANDS, "export": export_command}
 
 __all__ = ["main", "DEFAULT_KNOTS", "DYNAMICS", "NLP_METHODS", "QP_BACKENDS", "SAMPLING", "VARIANTS"]
 
@@ -90,7 +93,8 @@ def _add_controller_args(p):
 
 
 def _add_task_args(p):
-    """A task-space target (ocpkit.model.task.reach) instead of the seeded joint-space goal: solve, simulate and export."""
+    """A task-space target (ocpkit.model.task.reach) instead of the seeded joint-space goal: solve, simulate and
+    export."""
     p.add_argument("--target", metavar="X,Y,Z",
                    help="bring the end effector (or --frame) to this point (m, world frame) from the seeded start "
                         "instead of the seeded joint goal (ocpkit.model.task.reach; a robot problem with kinematics)")

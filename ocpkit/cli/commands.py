@@ -1,4 +1,5 @@
-"""The commands of the command line: solve, simulate, demo, study, reproduce, export, build and bench."""
+"""The commands of the command line: solve, simulate, demo, study, reproduce, build and bench (export:
+:mod:`ocpkit.cli.export`)."""
 from __future__ import annotations
 
 import contextlib
@@ -47,18 +48,18 @@ def _controller(args, task: Reach | None = None) -> tuple:
     return problem, ocp, solvers.make(args.solver, ocp, **options)
 
 
-def _start(problem, ocp, seed: int, task: Reach | None) -> tuple:
+def seeded_start(problem, ocp, seed: int, task: Reach | None) -> tuple:
     """The seeded start and goal; with a reach task the goal is its targets, at rest (joint velocities zero)."""
     x0, goal = problem.sample(seed)
     return (x0, goal) if task is None else (x0, task.goal(ocp, x0))
 
 
-# Seconds a phase of work runs before it is said on stderr (_said_if_slow): quick runs stay quiet.
+# Seconds a phase of work runs before it is said on stderr (said_if_slow): quick runs stay quiet.
 SLOW = 1.0
 
 
 @contextlib.contextmanager
-def _said_if_slow(text: str):
+def said_if_slow(text: str):
     """``text…`` on stderr once the block has run ``SLOW`` seconds: what a long wait is spent on (quick work prints
     nothing)."""
     timer = threading.Timer(SLOW, lambda: print(f"ocpkit: {text}…", file=sys.stderr, flush=True))
@@ -96,7 +97,7 @@ def _label(ctrl: Controller) -> str:
 def _solve(args):
     task = reach_task(args)
     problem, ocp, ctrl = _controller(args, task)
-    x0, goal = _start(problem, ocp, args.seed, task)
+    x0, goal = seeded_start(problem, ocp, args.seed, task)
     sol = ctrl.solve(x0, goal)
     extra = {}
     if task is not None:  # the plan: the OCP's model from x0 under the solved knots, x_0 … x_T
@@ -121,7 +122,7 @@ def _run_closed_loop(problem, ctrl: Controller, seed: int, duration: float | Non
 
     x0, goal = problem.sample(seed) if start is None else start
     start = time.perf_counter()
-    with _said_if_slow(f"{_label(ctrl)}: first solve, compiling what it needs (not in the step times)"):
+    with said_if_slow(f"{_label(ctrl)}: first solve, compiling what it needs (not in the step times)"):
         ctrl.solve(x0, goal)  # simulate() resets the controller: this solve only compiles and warms up
     first = time.perf_counter() - start
     if first > SLOW:
@@ -203,8 +204,8 @@ def _simulate(args):
     plant = _plant(problem, args)
     if args.animate is not None:
         animation.Skeleton(problem, None if task is None else task.frame)  # a robot it cannot draw fails before the run
-    traj, cost = _run_closed_loop(problem, ctrl, args.seed, args.duration, start=_start(problem, ocp, args.seed, task),
-                                  plant=plant)
+    traj, cost = _run_closed_loop(problem, ctrl, args.seed, args.duration,
+                                  start=seeded_start(problem, ocp, args.seed, task), plant=plant)
     shown, title = traj, f"{args.problem}, seed {args.seed}" + (", MuJoCo plant" if args.plant == "mujoco" else "")
     if task is not None:
         # the joint angles have no goal in a reach task (x_goal's angles are the start's, weighted zero): none drawn
@@ -445,71 +446,6 @@ def _how(library: Path, start: float) -> str:
     return "built now" if library.stat().st_mtime >= start - 0.05 else "already in the cache"
 
 
-def _export(args):
-    from ocpkit.export import BuildError, build, check_tools, export
-
-    try:
-        check_tools()  # before any work: a missing cc or make is one line
-        task = reach_task(args)
-        problem = problems.make(args.problem)
-        ocp = make_ocp(problem, args) if task is None else reach_ocp(problem, args, task)
-        x0, goal = _start(problem, ocp, args.seed, task)
-        with _said_if_slow(f"generating the C step of {args.problem} (CasADi code generation)"):
-            exported = export(ocp, args.out, form=args.form, qp=args.qp, linearization=args.linearization, x0=x0,
-                              goal=goal, force=args.force, iterations=args.iterations)
-        with _said_if_slow(f"building the C step in {args.out} (make: {_build_estimate(exported.out_dir)})"):
-            build(args.out)
-    except BuildError as exc:
-        print(f"ocpkit: error: {exc}", file=sys.stderr)
-        return 2
-    with _said_if_slow("round trip: the compiled step and the Python step on the same closed loop"):
-        du, steps, failures = _round_trip(problem, ocp, args, exported, (x0, goal))
-    ok = failures == 0 and du <= 1e-6
-    print(f"exported and built {args.problem} ({args.form}, {ocp.parameterization.kind} with {ocp.knots} knots over "
-          f"T = {ocp.horizon}, {args.qp}, linearization {args.linearization}) in {exported.out_dir}; "
-          f"see {Path(args.out) / 'README.md'}\nround trip: the compiled step vs the same step in Python over {steps} "
-          f"closed-loop steps from seed {args.seed}: max |du| = {du:.2e}, {failures} non-successes — "
-          f"{'agree' if ok else 'DISAGREE'}")
-    return 0 if ok else 1
-
-
-def _build_estimate(folder) -> str:
-    """How long ``make`` may take on the generated C in ``folder``: about 1 s per 150 kB on one core (measured on
-    nlink:7's 225 kB: 1.3 s with two jobs, the folder's default)."""
-    size = sum(path.stat().st_size for path in Path(folder).glob("*.c"))
-    return f"{size / 1e3:.0f} kB of C, about {max(1, round(size / 150e3))} s the first time"
-
-
-def _round_trip(problem, ocp, args, exported, start, steps: int = 20):
-    """The compiled step (through ctypes) and LinearMPC in Python on the same closed loop from ``start`` (x0, goal;
-    the discrete model, driven by LinearMPC's input): their largest first-input difference and the steps where either
-    failed."""
-    from ocpkit.export import ExportedMPC
-    from ocpkit.model.problem import check_dynamics
-    from ocpkit.solvers.rti import RealTimeIteration
-    from ocpkit.solvers.qp import LinearMPC
-
-    c = ExportedMPC(ocp, exported.out_dir, name=exported.name)
-    if exported.linearization == "trajectory":
-        py = RealTimeIteration(ocp, iterations=args.iterations, eps=1e-10, native=False)
-    else:
-        py = LinearMPC(ocp, form="condensed", eps=1e-10, linearization=exported.linearization, native=False)
-    F = ocp.discrete()
-    x, goal = start
-    du, failures = 0.0, 0
-    for k in range(steps):
-        a, b = py.solve(x, goal), c.solve(x, goal)
-        failures += (not a.ok) + (not b.ok)
-        du = max(du, float(np.abs(a.u - b.u).max()))
-        x_next = np.asarray(F(x, a.u)).ravel()
-        if not np.isfinite(x_next).all():  # NaN dynamics are named as such (DynamicsError), else the step diverged
-            check_dynamics(ocp.model, x, a.u, dt=ocp.dt, substeps=ocp.substeps,
-                           context=f"the round trip's closed loop, step {k + 1}")
-            raise ValueError(f"the round trip's closed loop diverged at step {k + 1}: the discrete model "
-                             f"from x = {x.tolist()}, u = {a.u.tolist()} is not finite")
-        x = x_next
-    return du, steps, failures
-
-
+# `ocpkit COMMAND` but export (ocpkit.cli.export)
 COMMANDS = {"solve": _solve, "simulate": _simulate, "demo": _demo, "study": _study, "reproduce": _reproduce,
-            "export": _export, "bench": _bench, "build": _prebuild}
+            "bench": _bench, "build": _prebuild}

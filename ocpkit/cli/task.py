@@ -1,5 +1,5 @@
-"""Task-space targets on the command line: --target, --obstacle, --frame and --task (:func:`ocpkit.model.task.reach`), and
-how a run did on them."""
+"""Task-space targets on the command line: --target, --obstacle, --frame and --task
+(:func:`ocpkit.model.task.reach`), and how a run did on them."""
 from __future__ import annotations
 
 import dataclasses
@@ -9,11 +9,12 @@ import numpy as np
 
 from ocpkit.cli.options import knot_count
 
-# --- task-space targets: --target, --obstacle, --frame, --task (ocpkit.model.task.reach) --------------------------------
+# --- task-space targets: --target, --obstacle, --frame, --task (ocpkit.model.task.reach) -----------------------------
 
 # The keys of a --task file beside target, frame, orientation, joint_limits and the [[obstacle]] and [[frame_target]]
 # tables: numbers, reach()'s keyword arguments and the weights of the orientation and joint-limit terms, all positive
-# but margin (the clearance kept, m, of either sign); link_radius and margin are lengths within ocpkit.model.task.MAX_LENGTH.
+# but margin (the clearance kept, m, of either sign); link_radius and margin are lengths within
+# ocpkit.model.task.MAX_LENGTH.
 _TASK_NUMBERS = ("margin", "position_weight", "terminal_weight", "link_radius", "obstacle_weight",
                  "orientation_weight", "joint_limit_weight")
 _REACH_OPTIONS = _TASK_NUMBERS[:5]
@@ -29,9 +30,10 @@ NUMBERS = re.compile(r"^-[0-9.][0-9.eE+-]*(,\s*[-+]?[0-9.][0-9.eE+-]*)*$")
 @dataclasses.dataclass
 class Reach:
     """A reach task from the command line: the target point, the frame (None: the problem's end effector), the
-    obstacles (ocpkit.model.task.Sphere) and reach()'s other options; the frame's orientation target (a rotation, 9 entries
-    row by row, or None) and its term's weight (None: the default), more frames' targets (:class:`FrameTarget`), the
-    joint-limit term's weight (None: no such term); ``source`` names where each came from."""
+    obstacles (ocpkit.model.task.Sphere) and reach()'s other options; the frame's orientation target (a rotation, 9
+    entries row by row, or None) and its term's weight (None: the default), more frames' targets
+    (:class:`FrameTarget`), the joint-limit term's weight (None: no such term); ``source`` names where each came
+    from."""
 
     target: np.ndarray
     frame: str | None
@@ -91,7 +93,8 @@ def _point(text, option: str, form: str = "'x,y,z'") -> np.ndarray:
 
 def _rotation(value, option: str) -> np.ndarray:
     """A rotation target (9 entries row by row) from roll, pitch, yaw (rad; R = Rz(yaw) Ry(pitch) Rx(roll), URDF's
-    rpy) as "r,p,y" or [r, p, y], or from a 3 × 3 matrix [[…], […], […]] (ocpkit.model.task.check_rotation checks it)."""
+    rpy) as "r,p,y" or [r, p, y], or from a 3 × 3 matrix [[…], […], […]] (ocpkit.model.task.check_rotation checks
+    it)."""
     import pinocchio as pin
 
     from ocpkit.model.task import check_rotation
