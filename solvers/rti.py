@@ -50,6 +50,7 @@ class RealTimeIteration(LinearMPC):
     def __repr__(self):
         return f"RealTimeIteration({self.iterations}, {self.form}, {self.qp_name}, {self.path}, {self.ocp!r})"
 
+    # C twin: step.in.c rti(), shifted_plan() and stage_models(); parity: tests/test_twins.py
     def _solve(self, x: np.ndarray, goal: np.ndarray) -> Solution:
         step = self._native_step()
         if step is not None:  # the same iterations as compiled C (ocpkit.export, linearization "trajectory")

@@ -86,6 +86,7 @@ class Parameterization:
             raise ValueError(f"u must have shape ({self.horizon}, m), got {u.shape}")
         return self._fit @ u
 
+    # C twin: step.in.c shifted_knots() (the SHIFT matrix); parity: tests/test_twins.py
     def shift(self, U, steps: int = 1) -> np.ndarray:
         """Knots of the plan advanced by ``steps`` (last input held): the warm start of the next control step."""
         u = self.inputs(U)
