@@ -405,6 +405,7 @@ class Controller:
         ocp = self.ocp
         return np.clip(np.tile(ocp.input_goal(goal), (ocp.knots, 1)), ocp.u_min, ocp.u_max)
 
+    # C twin: step.in.c fallback() and shifted_knots() (the "plan" replay); parity: tests/test_twins.py
     def fallback(self, status: str, raw_status: str, times: dict | None = None, iterations: int = 0, *,
                  replay: bool = True, reason: Reason | None = None) -> Solution:
         """A refused step's safe input, said in ``path``: "fallback (plan)", the previous plan advanced one step, with

@@ -277,6 +277,7 @@ class LinearMPC(Controller):
             return self._fail(sol.status, sol.raw_status, sol.times, reason=sol.reason)
         return sol
 
+    # C twin: step.in.c shifted_plan() and stage_models(); parity: tests/test_twins.py
     def shifted_plan(self, x: np.ndarray, goal: np.ndarray):
         """The linearization trajectory (x̄ (T, n), ū (T, m)) of this step: the last plan advanced one step, x̄_0 = x.
 
