@@ -410,9 +410,9 @@ class Controller:
                  replay: bool = True, reason: Reason | None = None) -> Solution:
         """A refused step's safe input, said in ``path``: "fallback (plan)", the previous plan advanced one step, with
         ``replay``, for at most ``stale_steps`` refused steps in a row and only while its prediction from x is finite
-        and keeps the task (:class:`ocpkit.safety.PlanCheck`); otherwise "fallback (brake)", the input that brings the joint
-        velocities closest to rest within the input bounds (:class:`ocpkit.safety.Brake`), or "fallback (hold)", the
-        input goal, for a model that is not x = [q, q̇]. Replaying a stale plan had spun the Panda to 1,400 rad/s."""
+        and keeps the task (:class:`ocpkit.safety.PlanCheck`); otherwise "fallback (brake)", the input that brings the
+        joint velocities closest to rest within the input bounds (:class:`ocpkit.safety.Brake`), or "fallback (hold)",
+        the input goal, for a model that is not x = [q, q̇]. Replaying a stale plan had spun the Panda to 1,400 rad/s."""
         ocp, par = self.ocp, self.ocp.parameterization
         knots, kind = None, "plan"
         if replay and self._refused < self.stale_steps:

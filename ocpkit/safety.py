@@ -1,7 +1,7 @@
 """What a success certifies about the task, and the safe input when no plan can be trusted.
 
-A QP's KKT certificate (:mod:`ocpkit.qp.certificate`) proves the QP was solved, not that the plan keeps the robot clear of
-obstacles: the QP's rows are linearized, softened where they cannot be met, and a sampling planner's fitness only
+A QP's KKT certificate (:mod:`ocpkit.qp.certificate`) proves the QP was solved, not that the plan keeps the robot clear
+of obstacles: the QP's rows are linearized, softened where they cannot be met, and a sampling planner's fitness only
 penalizes them. :class:`PlanCheck` therefore rolls a plan out on the controller's *nonlinear* discrete model (the
 OCP's F, RK4 or Euler at its substeps) and checks x_1 … x_T against
 
@@ -145,7 +145,8 @@ class Brake:
         if not (np.isfinite(Bv).all() and np.isfinite(rest).all()):
             return None
         H = Bv.T @ Bv
-        H += 1e-9 * max(np.trace(H) / ocp.nu, 1e-12) * np.eye(ocp.nu)  # unique: the nearest to u_hold when Bv is rank-deficient
+        # unique: the nearest to u_hold when Bv is rank-deficient
+        H += 1e-9 * max(np.trace(H) / ocp.nu, 1e-12) * np.eye(ocp.nu)
         res = solve_box_qp(H, Bv.T @ rest, ocp.u_min - u_hold, ocp.u_max - u_hold)
         u = u_hold + res.z
         return np.clip(u, ocp.u_min, ocp.u_max) if np.isfinite(u).all() else None

@@ -131,8 +131,8 @@ class Solution:
     x_pred: np.ndarray | None = None
     times: dict = field(default_factory=lambda: {"model": 0.0, "build": 0.0, "solve": 0.0, "total": 0.0})
     fallback: bool = False  # the input is the fallback's (a refused step), not the solver's
-    certificate: object | None = None  # the KKT certificate of a QP step's answer (an ocpkit.qp.certificate.Certificate;
-    # None: no QP solved)
+    # the KKT certificate of a QP step's answer (an ocpkit.qp.certificate.Certificate; None: no QP solved)
+    certificate: object | None = None
     path: str = ""  # what answered: the controller's ``path`` ("C step", "Python step", …) or "fallback (plan)",
     # "fallback (brake)", "fallback (hold)"
     violation: object | None = None  # a "soft" step's worst broken constraint (an ocpkit.safety.Violation: kind, stage,

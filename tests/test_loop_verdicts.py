@@ -80,7 +80,8 @@ def test_success_while_colliding_counts_successes_the_plant_contradicts():
     ball = Sphere((0.75, 0.0, 0.0), 0.05)  # on the tip when the arm is stretched along x (q = 0)
     ocp = reach(ARM, [ball], knots=3, horizon=5)
     clear, hit = [0.5, 0.5, 0.5, 0, 0, 0], [0.0, 0.0, 0.0, 0, 0, 0]
-    steps = [_step(), _step(SOFT, CLEARANCE, reason=Reason.CLEARANCE), _step(), _step()]  # success into hit, soft into hit, success out, in
+    # success into hit, soft into hit, success out, in
+    steps = [_step(), _step(SOFT, CLEARANCE, reason=Reason.CLEARANCE), _step(), _step()]
     traj = _trajectory([clear, hit, hit, clear, hit], steps, goal=np.zeros(9))
     d = traj.clearances(ocp)
     assert (d[[0, 3]] > 0).all() and (d[[1, 2, 4]] < 0).all()

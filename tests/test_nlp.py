@@ -206,7 +206,8 @@ def test_nan_model_reports_nan():
     ({"time_limit": -1.0}, "time_limit"), ({"method": "fatrop", "time_limit": 1.0}, "time_limit"),
     ({"linearization": "state"}, "linearization"), ({"hessian": "newton"}, "hessian"),
     ({"method": "rti"}, "solvers.make"), ({"method": "fatrop", "dynamics": "affine"}, "dynamics"),
-    ({"options": {"no_such_option": 1}}, "no_such_option"), ({"options": {"qpsol": "nosuch"}, "method": "sqp"}, "options"),
+    ({"options": {"no_such_option": 1}}, "no_such_option"),
+    ({"options": {"qpsol": "nosuch"}, "method": "sqp"}, "options"),
 ])
 def test_bad_options_raise_value_error(kwargs, word):
     ocp = problems.make("pendulum").ocp(knots=3)

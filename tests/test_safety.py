@@ -44,8 +44,8 @@ def test_plan_check_names_the_worst_state_bound_by_hand():
 
 
 def test_plan_check_clearance_matches_numpy():
-    """The clearance the certificate reads equals ocpkit.model.task.clearances (numpy) minus the margin, and it certifies a
-    plan down to margin − CLEARANCE_TOL, never into a collision."""
+    """The clearance the certificate reads equals ocpkit.model.task.clearances (numpy) minus the margin, and it
+    certifies a plan down to margin − CLEARANCE_TOL, never into a collision."""
     arm = make("nlink:3")
     x = np.r_[0.3, 0.4, 0.3, 0.0, 0.0, 0.0]
     tip = np.asarray(arm.kinematics.function(arm.end_effector)(x[:3])[0]).ravel()

@@ -192,7 +192,10 @@ class ExportedMPC(Controller):
         pad = rows - C.shape[0]
         C = np.vstack([C, np.zeros((pad, nz))])
         lo, hi = np.r_[qp.l[k:], np.full(pad, -np.inf)], np.r_[qp.u[k:], np.full(pad, np.inf)]
-        col = (lambda v: np.ascontiguousarray(v, dtype=float))
+
+        def col(v):
+            return np.ascontiguousarray(v, dtype=float)
+
         z, status = np.empty(nz), ctypes.c_int()
         self._solve_qp(self._mem, col(np.asarray(qp.P, dtype=float).T), col(qp.q), col(C.T), col(lo), col(hi),
                        col(lbx), col(ubx), z, ctypes.addressof(status))

@@ -167,7 +167,8 @@ def _zoh(model: Model, dt: float):
     from scipy.linalg import expm
 
     z = ca.vertcat(model.x, model.u)
-    lin = ca.Function("linearization", [z], [ca.jacobian(model.xdot, z), ca.substitute(model.xdot, z, ca.DM.zeros(z.shape))])
+    lin = ca.Function("linearization", [z],
+                      [ca.jacobian(model.xdot, z), ca.substitute(model.xdot, z, ca.DM.zeros(z.shape))])
     J, w = (np.asarray(v, dtype=float) for v in lin(np.zeros(z.shape[0])))
     n, m = model.nx, model.nu
     aug = np.zeros((n + m + 1, n + m + 1))

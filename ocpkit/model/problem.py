@@ -288,8 +288,9 @@ class URDFRobot(Problem):
     * ``position_bounds``: the URDF's joint limits as (soft, in LinearMPC) state bounds.
     * Defaults: Q = diag(``q_weight`` per position, ``qd_weight`` per rate), R = ``r_weight`` I, terminal
       weight Q (a heavier one, 10 Q, made the condensed QP of the Panda's light wrist so ill-conditioned —
-      condition ~1e9 — that ProxQP ran into its iteration limit on most steps of some starts). ``sample(seed)``: at rest, q0 uniform in the middle half of each joint's range (±π/2 for
-      an unlimited joint), the goal q0 plus a uniform step of up to ±``step`` per joint, within the limits.
+      condition ~1e9 — that ProxQP ran into its iteration limit on most steps of some starts). ``sample(seed)``: at
+      rest, q0 uniform in the middle half of each joint's range (±π/2 for an unlimited joint), the goal q0 plus a
+      uniform step of up to ±``step`` per joint, within the limits.
     * ``end_effector``: the frame that task terms aim (``kinematics``, an :class:`ocpkit.model.kinematics.Kinematics`,
       holds every URDF link and joint); None: the deepest link fixed to the last joint of the first serial
       branch (the Panda's ``panda_hand_tcp``). ``link_radius`` (m, an attribute) sizes
@@ -309,7 +310,6 @@ class URDFRobot(Problem):
         self.urdf = str(urdf)
         self.pin_model = load_urdf(urdf, locked_joints=locked_joints, locked_positions=locked_positions)
         self.chain = Chain(self.pin_model)
-        n = self.chain.n
         self.name = name or f"urdf:{Path(self.urdf).stem}"
         self.dt, self.duration = positive(dt, "dt"), positive(duration, "duration")
         if isinstance(horizon, bool) or not isinstance(horizon, (int, np.integer)) or horizon < 1:

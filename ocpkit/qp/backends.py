@@ -382,7 +382,10 @@ class DAQP(QPBackend):
         lo, hi = np.full(n, -self.INF), np.full(n, self.INF)
         if k:
             lo[qp.box], hi[qp.box] = qp.l[:k], qp.u[:k]
-        dense = (lambda M: M.toarray() if sp.issparse(M) else np.asarray(M, dtype=float))
+
+        def dense(M):
+            return M.toarray() if sp.issparse(M) else np.asarray(M, dtype=float)
+
         parts = [dense(qp.C)[k:]] + ([dense(qp.A)] if qp.b.size else [])
         A = np.ascontiguousarray(np.vstack(parts)) if size > n else np.zeros((0, n))
         bu = np.clip(np.concatenate([hi, qp.u[k:], qp.b]), -self.INF, self.INF)

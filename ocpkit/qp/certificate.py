@@ -66,8 +66,8 @@ def _finite_norm(*arrays) -> float:
 
 # C twin: step.in.c certify() and bound_row(); parity: tests/test_twins.py
 def certify(qp, z, y, w) -> Certificate:
-    """The certificate of (z, y, w) for ``qp`` (a :class:`ocpkit.qp.transcription.QP`): y the equality rows' multipliers,
-    w the bound rows' (positive at an active upper bound). Missing multipliers (None) count as zero."""
+    """The certificate of (z, y, w) for ``qp`` (a :class:`ocpkit.qp.transcription.QP`): y the equality rows'
+    multipliers, w the bound rows' (positive at an active upper bound). Missing multipliers (None) count as zero."""
     z = np.asarray(z, dtype=float)
     y = np.zeros(qp.b.size) if y is None else np.asarray(y, dtype=float)
     w = np.zeros(qp.l.size) if w is None else np.asarray(w, dtype=float)

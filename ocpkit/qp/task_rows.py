@@ -19,10 +19,10 @@ class TaskRows:
     d_k + D_k S_k (z − z̄) ≥ 0 for the pairs :meth:`select` picks: a hard row, or with ``soft`` the row
     d_k + D_k S_k (z − z̄) + s_k ≥ 0 with one slack s_k ≥ 0 per such stage costing obstacle_weight·(s_k + ½s_k²) in
     J (an exact penalty, like the sampling planners' fitness). The terms' functions are the OCP's
-    :meth:`~ocpkit.model.ocp.OCP.task_maps`. The clearances and their gradients come from the robot spheres' centres and
-    Jacobians (``spheres`` of :class:`ocpkit.model.task.CompiledTask`, one mapped call over the horizon) and the obstacle
-    table, in numpy: the kinematics once per stage, a pair's gradient only for a row kept (every pair's Jacobian,
-    as ``clearance`` gives it, is 128 MB a step for 1,000 obstacles around the Panda over 50 stages)."""
+    :meth:`~ocpkit.model.ocp.OCP.task_maps`. The clearances and their gradients come from the robot spheres' centres
+    and Jacobians (``spheres`` of :class:`ocpkit.model.task.CompiledTask`, one mapped call over the horizon) and the
+    obstacle table, in numpy: the kinematics once per stage, a pair's gradient only for a row kept (every pair's
+    Jacobian, as ``clearance`` gives it, is 128 MB a step for 1,000 obstacles around the Panda over 50 stages)."""
 
     def __init__(self, ocp: OCP, obstacles: bool, soft: bool = True):
         from ocpkit.model.task import ACTIVATION, ROWS_PER_SPHERE, ROWS_PER_STAGE
