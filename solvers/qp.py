@@ -27,9 +27,11 @@ from ocpkit.model.ocp import OCP
 from ocpkit.qp.backends import QP_SOLVERS, make_backend
 from ocpkit.qp.interface import Result, skipped, time_left
 from ocpkit.safety import spectral_radius
-from ocpkit.qp.transcription import TRANSCRIPTIONS
+from ocpkit.qp.sparse import SparseQP
+from ocpkit.qp.transcription import CondensedQP
 
 DEFAULT_QP = {"condensed": "daqp", "sparse": "proxqp"}  # LinearMPC's qp=None, by form
+TRANSCRIPTIONS = {"sparse": SparseQP, "condensed": CondensedQP}  # the forms, by name
 
 
 class LinearMPC(Controller):

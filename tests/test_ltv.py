@@ -10,7 +10,8 @@ from ocpkit.model.parameterization import Parameterization
 from ocpkit.problems import make
 from ocpkit.sim.simulate import simulate
 from ocpkit.solvers.qp import LinearMPC
-from ocpkit.qp.transcription import CondensedQP, SparseQP
+from ocpkit.qp.sparse import SparseQP
+from ocpkit.qp.transcription import CondensedQP
 
 
 

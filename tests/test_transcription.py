@@ -7,7 +7,8 @@ from ocpkit.model.ocp import OCP
 from ocpkit.model.parameterization import Parameterization
 from ocpkit.problems import make
 from ocpkit.solvers.qp import LinearMPC
-from ocpkit.qp.transcription import CondensedQP, SparseQP
+from ocpkit.qp.sparse import SparseQP
+from ocpkit.qp.transcription import CondensedQP
 
 
 def _ocp(model, T=5, p=3, **kw):

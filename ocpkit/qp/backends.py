@@ -18,7 +18,7 @@ import scipy.sparse as sp
 from ocpkit.status import EXCEPTION, INFEASIBLE, LIMITED, NAN, SUCCESS, OperationCosts, Reason
 from ocpkit.qp.interface import QPBackend, Result, skipped, time_left
 from ocpkit.qp.quadratic_program import QP
-from ocpkit.qp.transcription import SparseQP
+from ocpkit.qp.sparse import SparseQP
 
 QP_SOLVERS = ("proxqp", "osqp", "hpipm", "daqp")
 # DAQP's exit flags (daqp/include/constants.h): their names and ocpkit statuses, for the Python step and the C
