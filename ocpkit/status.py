@@ -45,6 +45,8 @@ class Reason(StrEnum):
     ILL_CONDITIONED = "ill-conditioned"  # the Hessian's rounding swamps its curvature (QP.not_definite)
     NOT_DEFINITE = "not positive definite"  # the Hessian failed its factorization
     QP_INFEASIBLE = "QP infeasible"  # the QP solver found the QP infeasible (or unbounded)
+    NLP_INFEASIBLE = "NLP infeasible"  # the NLP solver found no feasible point (or its restoration failed)
+    NOT_CONVERGED = "not converged"  # the NLP solver stopped short of an optimum (a too-small step, a feasible point)
     SOLVER_ERROR = "solver error"  # the QP solver raised or failed to update
     NON_FINITE_SOLUTION = "non-finite solution"  # the solver's answer is not finite
     CERTIFICATE_FAILED = "certificate failed"  # the answer failed the KKT certificate

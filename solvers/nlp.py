@@ -47,7 +47,7 @@ import numpy as np
 from ocpkit._checks import choice, integer, positive
 from ocpkit.codegen.compiled import SwitchingFunction
 from ocpkit.controller import Controller, check_linearization
-from ocpkit.status import EXCEPTION, INFEASIBLE, LIMITED, NAN, SUCCESS, OperationCosts, Solution
+from ocpkit.status import EXCEPTION, INFEASIBLE, LIMITED, NAN, SUCCESS, OperationCosts, Reason, Solution
 from ocpkit.model.ocp import OCP
 from ocpkit.solvers import methods
 from ocpkit.solvers.methods import DYNAMICS, HESSIANS, NONLINEAR
@@ -77,6 +77,20 @@ _STATUS = {
     "Diverging_Iterates": NAN,
     "User_Requested_Stop": LIMITED,  # sqpmethod stopped by _Deadline at the step's budget
 }
+# Why a return status is not a success (Solution.reason); a status not named here: by its Status (_FAILED).
+_REASON = {
+    "Feasible_Point_Found": Reason.NOT_CONVERGED,
+    "Maximum_Iterations_Exceeded": Reason.ITERATION_LIMIT,
+    "Maximum_CpuTime_Exceeded": Reason.TIME_BUDGET,
+    "Maximum_WallTime_Exceeded": Reason.TIME_BUDGET,
+    "Search_Direction_Becomes_Too_Small": Reason.NOT_CONVERGED,
+    "Infeasible_Problem_Detected": Reason.NLP_INFEASIBLE,
+    "Restoration_Failed": Reason.NLP_INFEASIBLE,
+    "Not_Enough_Degrees_Of_Freedom": Reason.NLP_INFEASIBLE,
+    "User_Requested_Stop": Reason.TIME_BUDGET,
+}
+_FAILED = {LIMITED: Reason.ITERATION_LIMIT, INFEASIBLE: Reason.NLP_INFEASIBLE, NAN: Reason.NON_FINITE_SOLUTION,
+           EXCEPTION: Reason.SOLVER_ERROR}
 
 
 class NonlinearMPC(MultipleShooting, Controller):
@@ -221,7 +235,8 @@ class NonlinearMPC(MultipleShooting, Controller):
             model = self.affine_model(x, goal, self.linearization)
             if model is None:
                 times["model"] = time.perf_counter() - t0
-                return self._fail(NAN, f"non-finite affine model at x = {x.tolist()}", times)
+                return self._fail(NAN, f"non-finite affine model at x = {x.tolist()}", times,
+                                  reason=Reason.NON_FINITE_MODEL)
             Ad, Bd, wd = model
             params += [Ad.ravel(order="F"), Bd.ravel(order="F"), wd]
         t1 = time.perf_counter()
@@ -244,14 +259,14 @@ class NonlinearMPC(MultipleShooting, Controller):
         if not self._costs.fits("iteration", None if left is None else left / 2):
             return self.fallback(LIMITED, f"time budget: {1e3 * max(left, 0.0):.3g} ms left, an IPOPT iteration "
                                           f"measured at {1e3 * self._costs.predict('iteration'):.3g} ms (a solve "
-                                          f"is at least two)", times)
+                                          f"is at least two)", times, reason=Reason.TIME_BUDGET)
         if self.method == "sqp":
             self._deadline.deadline = self.deadline(self.ceiling if self.time_limit is None else self.time_limit)
         try:
             res = self._solver(**args)
         except Exception as exc:  # a solver that throws must not stop the control loop
             times["solve"] = time.perf_counter() - t2
-            return self._fail(EXCEPTION, f"{type(exc).__name__}: {exc}", times)
+            return self._fail(EXCEPTION, f"{type(exc).__name__}: {exc}", times, reason=Reason.SOLVER_ERROR)
         times["solve"] = time.perf_counter() - t2
         try:
             stats = self._solver.stats()
@@ -271,7 +286,8 @@ class NonlinearMPC(MultipleShooting, Controller):
         if status == SUCCESS and not np.isfinite(w).all():
             status = NAN
         if status != SUCCESS:
-            return self._fail(status, raw, times, iterations)
+            reason = Reason.NON_FINITE_SOLUTION if status == NAN else _REASON.get(raw, _FAILED[status])
+            return self._fail(status, raw, times, iterations, reason=reason)
         self._warm = (w, lam_x, np.asarray(res["lam_g"], dtype=float).ravel())
         # IPOPT relaxes bounds by its bound_relax_factor (1e-8 relative); project the knots back.
         knots = np.clip(w[self._nX:].reshape(p, m), ocp.u_min, ocp.u_max)
@@ -298,10 +314,10 @@ class NonlinearMPC(MultipleShooting, Controller):
         return (np.r_[_shift_blocks(w[: self._nX], n), shifted.ravel()],
                 np.r_[_shift_blocks(lam_x[: self._nX], n), lam_u], np.r_[_shift_blocks(lam_gaps, n), lam_clear])
 
-    def _fail(self, status, raw, times, iterations=0) -> Solution:
+    def _fail(self, status, raw, times, iterations=0, *, reason: Reason) -> Solution:
         """Fallback solution and a cold start for the next step (no stale warm start)."""
         self._warm = None
-        return self.fallback(status, raw, times, iterations)
+        return self.fallback(status, raw, times, iterations, reason=reason)
 
 
 def _not_taken(argument: str, method: str) -> str:

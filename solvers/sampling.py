@@ -43,7 +43,7 @@ import taichi as ti
 
 from ocpkit._checks import array, choice, integer, positive
 from ocpkit.controller import Controller, check_linearization
-from ocpkit.status import EXCEPTION, LIMITED, NAN, SUCCESS, OperationCosts, Solution
+from ocpkit.status import EXCEPTION, LIMITED, NAN, SUCCESS, OperationCosts, Reason, Solution
 from ocpkit.codegen.kernels import runtime
 from ocpkit.codegen.kernels.random import normal, seed_key
 from ocpkit.codegen.kernels.rollout import FEASIBILITY_TOLERANCE, Rollout
@@ -198,7 +198,8 @@ class SamplingMPC(Controller):
             times["model"] = self._measured("model", start)
             if model is None:
                 self._warm = False
-                return self.fallback(NAN, f"non-finite affine model at x = {x.tolist()}", times)
+                return self.fallback(NAN, f"non-finite affine model at x = {x.tolist()}", times,
+                                     reason=Reason.NON_FINITE_MODEL)
         start = time.perf_counter()
         stale = False
         try:
@@ -234,12 +235,14 @@ class SamplingMPC(Controller):
         except Exception as exc:  # a failed step must not raise inside the control loop
             self._close_times(start)
             self._warm = False
-            return self.fallback(EXCEPTION, f"{type(exc).__name__}: {exc}", times, self.generations)
+            return self.fallback(EXCEPTION, f"{type(exc).__name__}: {exc}", times, self.generations,
+                                 reason=Reason.SOLVER_ERROR)
         self._close_times(start)
         cost, violation = best
         if not np.isfinite(cost) or not np.isfinite(knots).all():
             self._warm = False
-            return self.fallback(NAN, f"best rollout cost {cost}", times, self.generations)
+            return self.fallback(NAN, f"best rollout cost {cost}", times, self.generations,
+                                 reason=Reason.NON_FINITE_SOLUTION)
         self._warm = True
         knots = np.clip(knots, ocp.u_min, ocp.u_max)
         u = np.clip(ocp.parameterization.u_at(knots, 0), ocp.u_min, ocp.u_max)
@@ -247,11 +250,11 @@ class SamplingMPC(Controller):
         if stale:
             found += "; preconditioner of an earlier step (time budget)"
         if done < self.generations:
-            return Solution(u=u, knots=knots, status=LIMITED, iterations=done, times=times,
+            return Solution(u=u, knots=knots, status=LIMITED, iterations=done, times=times, reason=Reason.TIME_BUDGET,
                             raw_status=f"time limit {self.time_limit:g} s reached after {done} of "
                                        f"{self.generations} generations (best {found})")
         if self._out_of_time():
-            return Solution(u=u, knots=knots, status=LIMITED, iterations=done, times=times,
+            return Solution(u=u, knots=knots, status=LIMITED, iterations=done, times=times, reason=Reason.TIME_BUDGET,
                             raw_status=f"time limit {self.time_limit:g} s exceeded by the last generation "
                                        f"(best {found})")
         return Solution(u=u, knots=knots, status=SUCCESS, raw_status=f"best {found}",
@@ -290,7 +293,7 @@ class SamplingMPC(Controller):
         left = max(0.0, self.remaining(self.time_limit))
         need = sum(map(self._costs.predict, stages))
         return self.fallback(LIMITED, f"time budget: {1e3 * left:.3g} ms left, {' + '.join(stages)} measured at "
-                                      f"{1e3 * need:.3g} ms", times)
+                                      f"{1e3 * need:.3g} ms", times, reason=Reason.TIME_BUDGET)
 
     def _close_times(self, start: float) -> None:
         """Everything after the linearization except the preconditioner's QP build counts as solve."""

@@ -59,3 +59,22 @@ def test_reasons_of_the_controller_and_the_c_step():
     assert _explain_rc("mpc", "daqp", CERT_CODE, (1.0,))[1] is Reason.CERTIFICATE_FAILED
     assert [_explain_rc("mpc", "daqp", rc, ())[1] for rc in (-1, -4, -7, 1)] == [
         Reason.QP_INFEASIBLE, Reason.ITERATION_LIMIT, Reason.TIME_BUDGET, None]
+
+
+def test_the_nonlinear_and_sampling_controllers_say_why():
+    """NonlinearMPC stopped at its iteration limit says so in Solution.reason; a sampling planner whose budget
+    cannot pay for a generation says time budget; an IPOPT return status maps to its reason."""
+    from ocpkit import solvers
+    from ocpkit.solvers.nlp import _FAILED, _REASON
+
+    pendulum = problems.make("pendulum")
+    ocp = pendulum.ocp(knots=3)
+    x, goal = pendulum.sample(0)
+    sol = solvers.make("ipopt", ocp, max_iter=1).solve(x, goal)
+    assert sol.status == "limited" and sol.reason is Reason.ITERATION_LIMIT, (sol.status, sol.reason, sol.raw_status)
+    assert _REASON["Maximum_WallTime_Exceeded"] is Reason.TIME_BUDGET and set(_FAILED) >= {"limited", "nan"}
+    empc = solvers.make("empc", ocp, arch="cpu", population=64)
+    empc.warm_up(x, goal)
+    empc.time_limit = 1e-9
+    sol = empc.solve(x, goal)
+    assert sol.status == "limited" and sol.reason is Reason.TIME_BUDGET, (sol.status, sol.reason, sol.raw_status)
