@@ -182,7 +182,9 @@ def test_no_import_circles():
 def test_the_public_api_is_importable_from_the_package_and_loads_on_first_use():
     code = ("import sys, ocpkit; light = sorted(m for m in sys.modules if m.startswith('ocpkit.')); "
             f"from ocpkit import {', '.join(PUBLIC)}; print(light, sorted(ocpkit.__all__))")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split("\n")[0]
+    # cwd outside the checkout, whose ocpkit/ would shadow the installed package (`python -c` puts the cwd first)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         cwd=Path(__file__).parent).stdout.split("\n")[0]
     assert out == f"[] {sorted(PUBLIC)}"
     from ocpkit import EvolutionaryMPC, LinearMPC, NonlinearMPC, make, simulate
     from ocpkit.problems import make as make_problem

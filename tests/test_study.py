@@ -56,7 +56,9 @@ def kill_study(out, n, pause) -> None:
 def spawn_study(out, n, pause=0.3) -> subprocess.Popen:
     code = f"import test_study; test_study.kill_study({str(out)!r}, {n}, {pause})"
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(Path(__file__).parent), *sys.path])}
-    return subprocess.Popen([sys.executable, "-c", code], env=env)
+    # cwd outside the checkout: `python -c` puts the cwd first on sys.path, and the checkout's ocpkit/ (without
+    # problems/, solvers/, studies/) would shadow the installed package, so this process would hash other files
+    return subprocess.Popen([sys.executable, "-c", code], env=env, cwd=Path(out).parent)
 
 
 def stored_keys(out) -> set:
