@@ -10,7 +10,7 @@
  * Its obstacles ({{ n_obstacles }} spheres, kept {{ margin }} m from {{ robot_spheres }} spheres along the robot) enter as hard rows
  * after the state-bound rows: at each predicted state x_k, k = 1 … HORIZON, the clearances d within
  * {{ activation }} m of the margin (each robot sphere's {{ per_sphere }} closest obstacles, the {{ N }}_NOS closest pairs
- * of a stage) linearized about the plan, d + ∂d/∂x S_k (z − z̄) >= 0 (ocpkit.task_rows.TaskRows).
+ * of a stage) linearized about the plan, d + ∂d/∂x S_k (z − z̄) >= 0 (ocpkit.qp.task_rows.TaskRows).
  * Where they make the QP infeasible (a start already inside the margin) the step returns
  * {{ N }}_INFEASIBLE and the fallback: it has no softened QP (ocpkit's LinearMPC then solves the
  * one with the obstacle rows softened in Python).
@@ -29,7 +29,7 @@
 {% else %}
  * Arrays: x, goal: {{ N }}_NX doubles; u: {{ N }}_NU; knots: {{ N }}_KNOTS x {{ N }}_NU row-major (knot j, input i at
 {% endif %}
- * j*{{ N }}_NU + i). Statuses (the same set as ocpkit.controller.STATUSES) are {{ N }}_SUCCESS ... below. On any
+ * j*{{ N }}_NU + i). Statuses (the same set as ocpkit.status.STATUSES) are {{ N }}_SUCCESS ... below. On any
  * failure the step returns the safe fallback input (previous plan advanced one step, clipped to the input
  * bounds) and the next step starts without warm start. Instances share no mutable state except the QP
  * solver's slot table: init and free are not thread-safe, steps of different instances are.
@@ -52,7 +52,7 @@ extern "C" {
 {% if task %}
 #define {{ N }}_NR1 ({{ N }}_NRS > {{ N }}_NRT ? {{ N }}_NRS : {{ N }}_NRT)  /* residual entries, stage or terminal */
 {% endif %}
-/* A "solved" answer is accepted only if its KKT certificate holds (ocpkit.certificate): stationarity, primal
+/* A "solved" answer is accepted only if its KKT certificate holds (ocpkit.qp.certificate): stationarity, primal
    feasibility, complementarity and dual sign each within CERT_TOL relative to the data. Otherwise the status is
    {{ N }}_LIMITED and {{ name }}_solver_return gives the failed test's code ({{ name }}_certificate the residuals). With
    DAQP a failed solve's return is DAQP's exit flag: -1 infeasible, -3 unbounded ({{ N }}_INFEASIBLE), -5 nonconvex
@@ -141,7 +141,7 @@ void {{ name }}_set_plan({{ name }}_memory* mem, const double* knots);
 int {{ name }}_solver_return(const {{ name }}_memory* mem);
 /* The QP solver's name ("daqp", "qrqp", "osqp"). */
 const char* {{ name }}_qp_solver(void);
-/* A status's name, as ocpkit.controller.STATUSES has it: "success" for {{ N }}_SUCCESS ... "exception";
+/* A status's name, as ocpkit.status.STATUSES has it: "success" for {{ N }}_SUCCESS ... "exception";
    "unknown" for any other value. */
 const char* {{ name }}_status_string(int status);
 /* The OCP this step was exported for, field by field ("knots 5; Q <hash>; ..."): ocpkit.export.ExportedMPC refuses

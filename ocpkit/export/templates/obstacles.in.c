@@ -1,4 +1,4 @@
-/* The task's obstacles as hard rows of the QP (ocpkit.task_rows.TaskRows.add and .select). At each state x̄_k of
+/* The task's obstacles as hard rows of the QP (ocpkit.qp.task_rows.TaskRows.add and .select). At each state x̄_k of
    the plan (k = 1 … HORIZON, as task_terms runs them) the clearances d − margin of the robot spheres (their centres
    and Jacobians generated, {{ name }}_spheres) to the obstacles (OBSTACLES: centre, radius): the pairs within
    ACTIVATION of the margin, each sphere's ROWS_PER_SPHERE closest, and of those the stage's NOS closest, become

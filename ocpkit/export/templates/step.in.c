@@ -1,5 +1,5 @@
 /* {{ name }}.c — one MPC step: the affine model (generated, {{ name }}_casadi.c), the condensed QP built by the
- * loops below (ocpkit.transcription.CondensedQP.build in C), the QP solve (generated) and the first input. */
+ * loops below (ocpkit.qp.transcription.CondensedQP.build in C), the QP solve (generated) and the first input. */
 #if !defined(_WIN32) && !defined(_POSIX_C_SOURCE)
 #define _POSIX_C_SOURCE 199309L /* clock_gettime for {{ name }}_step_timed */
 #endif
@@ -603,7 +603,7 @@ static void bound_row(double v, double l, double u, double lam, double* s) {
   if (lam < 0) { if (isfinite(l)) s[2] = amax(s[2], -lam * fabs(v - l)); else s[3] = amax(s[3], -lam); }
 }
 
-/* The KKT certificate of the QP's answer (z_new, lam_x_new, lam_a_new), as ocpkit.certificate computes it, in
+/* The KKT certificate of the QP's answer (z_new, lam_x_new, lam_a_new), as ocpkit.qp.certificate computes it, in
    CasADi's multiplier convention h z + g + aᵀ lam_a + lam_x = 0: m->cert = the relative residuals of
    stationarity, primal feasibility, complementarity and dual sign; returns the code of the first one above
    CERT_TOL (or NaN), 0 when all hold. A stale or zero answer fails stationarity.
@@ -723,7 +723,7 @@ static double seconds(void) {
 }
 
 #if LIN_TRAJ
-/* The real-time iteration (ocpkit.solvers.nlp.RealTimeIteration, LinearMPC's "trajectory" linearization): the
+/* The real-time iteration (ocpkit.solvers.rti.RealTimeIteration, LinearMPC's "trajectory" linearization): the
    model linearized stage by stage along the shifted plan, the condensed QP of these time-varying models, and
    ITERATIONS Gauss–Newton steps, each linearizing along the last one's solution. */
 

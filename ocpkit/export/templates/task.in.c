@@ -1,4 +1,4 @@
-/* The task's cost terms, Gauss–Newton about the plan (ocpkit.task_rows.TaskRows.add).
+/* The task's cost terms, Gauss–Newton about the plan (ocpkit.qp.task_rows.TaskRows.add).
    The plan: knots z̄, the previous plan shifted a step (at a cold start the input goal at every knot, clipped to
    the input bounds); its states x̄_k = S_k z̄ + v_k from the QP's own [v S] rows (x̄_0 = x) and inputs
    ū_k = Φ_k z̄ (Φ_k = φ_k ⊗ I). Each residual r_k (weights w) enters as r_k + G_k (z − z̄),
