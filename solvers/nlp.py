@@ -286,8 +286,7 @@ class NonlinearMPC(MultipleShooting, Controller):
         if status == SUCCESS and not np.isfinite(w).all():
             status = NAN
         if status != SUCCESS:
-            reason = Reason.NON_FINITE_SOLUTION if status == NAN else _REASON.get(raw, _FAILED[status])
-            return self._fail(status, raw, times, iterations, reason=reason)
+            return self._fail(status, raw, times, iterations, reason=_REASON.get(raw, _FAILED[status]))
         self._warm = (w, lam_x, np.asarray(res["lam_g"], dtype=float).ravel())
         # IPOPT relaxes bounds by its bound_relax_factor (1e-8 relative); project the knots back.
         knots = np.clip(w[self._nX:].reshape(p, m), ocp.u_min, ocp.u_max)
