@@ -58,6 +58,9 @@ class Reason(StrEnum):
     NON_FINITE_PREDICTION = "non-finite"
 
 
+REASONS = tuple(Reason)  # the exported C step's reason codes: 1 + the index here (0: none)
+
+
 class Refusal(str):
     """Why a QP or a step is refused: the words (this str, for people) and their :class:`Reason` (``reason``)."""
 
@@ -140,6 +143,12 @@ class Solution:
     violation: object | None = None  # a "soft" step's worst broken constraint (an ocpkit.safety.Violation: kind, stage,
     # amount, which)
     reason: Reason | None = None  # why the step is not a success, for code (None: a success, or not said)
+    # The first input's feedback gain K = ∂u₀/∂x₀ (nu, nx), for u = u₀ + K (x − x₀) between steps: LinearMPC's and
+    # RealTimeIteration's with gains=True, exact, the derivative of the solved QP's answer at its active set with the
+    # model's linearization held fixed (ocpkit.qp.sensitivity; a row is zero where u₀ is at an input bound). None:
+    # not asked for, a fallback, a task's terms or obstacles in the QP, and every other controller (NonlinearMPC, the
+    # sampling planners, ExportedMPC and LinearMPC's C step: none is computed, no estimate stands in).
+    gains: np.ndarray | None = None
 
     @property
     def ok(self) -> bool:

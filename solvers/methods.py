@@ -57,6 +57,8 @@ LINEAR = {
     "slack_weight": Argument("the soft state bounds' penalty weight", 1e3),
     "native": Argument("run the step as compiled C (None: as the OCP's compiled policy says)"),
     "warm_start": _WARM_START,
+    "gains": Argument("compute Solution.gains, the first input's feedback gain du0/dx0 of the solved QP (runs the "
+                      "Python step)", False),
     **_COMMON,
 }
 

@@ -26,12 +26,14 @@ from ocpkit.numeric import BufferedFunction
 from ocpkit.model.ocp import OCP
 from ocpkit.qp.backends import QP_SOLVERS, make_backend
 from ocpkit.qp.interface import Result, skipped, time_left
+from ocpkit.qp.sensitivity import feedback_gain
 from ocpkit.safety import spectral_radius
 from ocpkit.qp.sparse import SparseQP
 from ocpkit.qp.transcription import CondensedQP
 
 DEFAULT_QP = {"condensed": "daqp", "sparse": "proxqp"}  # LinearMPC's qp=None, by form
 TRANSCRIPTIONS = {"sparse": SparseQP, "condensed": CondensedQP}  # the forms, by name
+SOFTENED_AFTER_C = "Python step (softened QP after the C step)"  # the path of a step the C step handed back
 
 
 class LinearMPC(Controller):
@@ -64,6 +66,11 @@ class LinearMPC(Controller):
     builds it in the background while the Python step runs; True builds it now (a ValueError where this
     configuration has none); False keeps the Python step. Changing ``max_iter`` returns to the Python step. Measured
     step times: README, "Performance".
+
+    ``gains`` (set at construction) has every successful step also compute ``Solution.gains``, the first input's
+    feedback gain K = ∂u₀/∂x₀ of the solved QP (:mod:`ocpkit.qp.sensitivity`), for an inner loop's
+    u = u₀ + K (x − x₀) between steps. It runs the Python step (the C step returns no QP to differentiate) and has
+    none with a task's terms or obstacles.
     """
 
     CEILING_MIN, CEILING_PER_VARIABLE = 10.0, 1e-4  # seconds: the default budget (:attr:`ceiling`)
@@ -71,7 +78,8 @@ class LinearMPC(Controller):
     def __init__(self, ocp: OCP, *, form: str = "condensed", qp: str | None = None, max_iter: int = 10_000,
                  eps: float = 1e-9, time_limit: float | None = None, warm_start: bool = True,
                  raise_on_fail: bool = False, linearization: str = "goal", state_bounds: str | None = None,
-                 slack_weight: float = 1e3, threads: int | None = 1, native: bool | None = None):
+                 slack_weight: float = 1e3, threads: int | None = 1, native: bool | None = None,
+                 gains: bool = False):
         self.linearization = check_linearization(linearization, trajectory=True)
         choice(form, tuple(TRANSCRIPTIONS), "form")
         qp = DEFAULT_QP[form] if qp is None else choice(qp, QP_SOLVERS, "qp")
@@ -83,6 +91,9 @@ class LinearMPC(Controller):
         if qp == "hpipm" and state_bounds == "soft" and ocp.has_state_bounds:
             raise ValueError("qp 'hpipm' supports hard state bounds only: pass state_bounds='hard'")
         self.form, self.qp_name, self.state_bounds = form, qp, state_bounds
+        if not isinstance(gains, bool):
+            raise TypeError(f"gains must be True or False, got {gains!r}")
+        self._gains = gains
         self.warm_start = bool(warm_start)
         self.time_limit = time_limit
         self.slack_weight = positive(slack_weight, "slack_weight")
@@ -156,10 +167,16 @@ class LinearMPC(Controller):
                           "a task with the trajectory linearization (the C step's task terms are linearized about "
                           "one model)"),
                          (self.transcription.soft and len(self._transcriptions) == 1,
-                          "soft state bounds with a backend that solves the soft QP alone")):
+                          "soft state bounds with a backend that solves the soft QP alone"),
+                         (self._gains, "gains (the C step returns no QP to differentiate)")):
             if bad:
                 return why
         return None
+
+    @property
+    def gains(self) -> bool:
+        """Whether each successful step computes ``Solution.gains`` (the constructor's ``gains``)."""
+        return self._gains
 
     @property
     def native(self) -> bool:
@@ -274,7 +291,9 @@ class LinearMPC(Controller):
         if sol.status != SUCCESS and len(self._transcriptions) > 1 and sol.status != NAN:
             # The C step solved the hard QP: the soft one, in Python (state pushed past a bound, say).
             along = self.shifted_plan(x, goal) if self.linearization == "trajectory" else None
-            return self._qp_step(x, goal, along, deadline, dict(sol.times), self._transcriptions[1:])
+            sol = self._qp_step(x, goal, along, deadline, dict(sol.times), self._transcriptions[1:])
+            sol.path = sol.path or SOFTENED_AFTER_C
+            return sol
         if sol.status != SUCCESS:
             return self._fail(sol.status, sol.raw_status, sol.times, reason=sol.reason)
         return sol
@@ -367,8 +386,9 @@ class LinearMPC(Controller):
         x_pred = tr.states(res.z) if self.form == "sparse" else tr.states(res.z, x)
         u = ocp.parameterization.u_at(knots, 0)
         self._x_plan = x_pred
+        gains = feedback_gain(tr, qp, model, res.z, res.w) if self._gains else None
         return Solution(u=u, knots=knots, status=SUCCESS, raw_status=res.raw_status, iterations=res.iterations,
-                        x_pred=x_pred, times=times, certificate=certificate)
+                        x_pred=x_pred, times=times, certificate=certificate, gains=gains)
 
     def _fail(self, status, raw, times, iterations=0, keep: Result | None = None, *,
               reason: Reason | None = None) -> Solution:

@@ -32,7 +32,8 @@ class RealTimeIteration(LinearMPC):
 
     ``options`` are LinearMPC's but ``linearization`` (always along the iterate): ``form``, ``qp``, ``state_bounds``
     (soft by default), ``max_iter`` (each QP's iterations), ``time_limit`` (the whole step's budget, all iterations
-    together), ``eps``, ``slack_weight``, ``native``, ``warm_start``, ``raise_on_fail``, ``threads``."""
+    together), ``eps``, ``slack_weight``, ``native``, ``warm_start``, ``raise_on_fail``, ``threads``, ``gains`` (the
+    last iteration's QP's feedback gain, each iteration computing its own)."""
 
     def __init__(self, ocp: OCP, *, iterations: int = RTI["iterations"].default, tol: float = RTI["tol"].default,
                  state_bounds: str = RTI["state_bounds"].default, **options):

@@ -90,3 +90,21 @@ def certify(qp, z, y, w) -> Certificate:
     sign = np.concatenate([up[np.isposinf(qp.u)], lo[np.isneginf(qp.l)]])
     dual_sign = float(sign.max(initial=0.0)) / s_d
     return Certificate(stationarity, primal, complementarity, dual_sign)
+
+
+# A multiplier at most this, relative to 1 + max |w|, leaves its row out of the active set (weakly active: the answer
+# does not move with its bound); DAQP's inactive multipliers are exactly 0, the iterative backends' near their eps.
+WEAK = 1e-9
+
+
+def active(qp, z, w, tol: float = TOL) -> tuple[np.ndarray, np.ndarray]:
+    """The bound rows of C held at their upper and at their lower bound by the answer (z, w): a multiplier pushing
+    against the bound (w_i > 0 at u_i, w_i < 0 at l_i, beyond WEAK) and the row within ``tol`` of it (relative to s_p
+    of the primal-feasibility test). Two boolean arrays over C's rows."""
+    z = np.asarray(z, dtype=float)
+    w = np.zeros(qp.l.size) if w is None else np.asarray(w, dtype=float)
+    Cz = qp.C @ z if qp.l.size else np.zeros(0)
+    near = tol * (1.0 + max(_norm(Cz), _finite_norm(qp.l, qp.u)))
+    strong = WEAK * (1.0 + _norm(w))
+    with np.errstate(invalid="ignore"):
+        return (w > strong) & (qp.u - Cz <= near), (w < -strong) & (Cz - qp.l <= near)
