@@ -75,10 +75,13 @@ def data_derivative(tr, qp: QP, model):
     if getattr(tr, "task", None) is not None:
         return None
     Ad, _, _, ltv = affine_stages(*model, n, tr.m, tr.T)
-    Phi = np.empty((tr.T, n, n))  # ∂x_{k+1}/∂x₀
+    Phi = np.empty((tr.T, n, n))  # ∂x_{k+1}/∂x₀: A_k ⋯ A_0, or A_d^{k+1} by doubling (A^{j+k} = A^j A^k)
     Phi[0] = Ad[0] if ltv else Ad
-    for k in range(1, tr.T):
-        Phi[k] = (Ad[k] if ltv else Ad) @ Phi[k - 1]
+    k = 1
+    while k < tr.T:
+        h = 1 if ltv else min(k, tr.T - k)
+        Phi[k:k + h] = (Ad[k] if ltv else Phi[:h]) @ Phi[k - 1]
+        k += h
     S = tr._rows()[:, 1:]  # the last build's prediction [v S]
     dq[:tr.nz] = S.T @ np.matmul(tr.Qs, Phi).reshape(-1, n)
     # the state-bound rows are C's last rows (after the knots' and the slacks' simple bounds)
