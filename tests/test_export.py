@@ -157,9 +157,10 @@ def test_the_digest_names_task_fields_and_a_casadi_upgrade():
         _check_digest(types.SimpleNamespace(), "mpc", Path("old/libmpc.so"), moved)
 
 
-def test_status_string_names_every_status(bounded_pendulum, tmp_path):
-    """``mpc_status_string`` (tests/c/status_names.c calls it for -1 … 5) names the statuses as ocpkit does."""
-    from ocpkit.status import SOFT, STATUSES
+def test_status_and_reason_strings_name_every_code(bounded_pendulum, tmp_path):
+    """``mpc_status_string`` and ``mpc_reason_string`` (tests/c/status_names.c calls them for -1 … 5 and -1 …
+    MPC_NREASONS) name the statuses and the reasons as ocpkit does: reason 0 none, then REASONS in order."""
+    from ocpkit.status import REASONS, SOFT, STATUSES, Reason
 
     out = bounded_pendulum[2].out_dir
     program = tmp_path / "status_names"
@@ -168,7 +169,12 @@ def test_status_string_names_every_status(bounded_pendulum, tmp_path):
                     f"-Wl,-rpath,{out.resolve()}"], check=True, capture_output=True, text=True)
     lines = subprocess.run([str(program)], check=True, capture_output=True, text=True).stdout.splitlines()
     c_statuses = STATUSES[:STATUSES.index(SOFT)]  # the C step's codes 0 … 4
-    assert lines == ["-1 unknown"] + [f"{i} {s}" for i, s in enumerate(c_statuses)] + [f"{len(c_statuses)} unknown"]
+    statuses, reasons = lines[:len(c_statuses) + 2], lines[len(c_statuses) + 2:]
+    assert statuses == ["-1 unknown"] + [f"{i} {s}" for i, s in enumerate(c_statuses)] + [f"{len(c_statuses)} unknown"]
+    words = ["none"] + list(REASONS)
+    assert reasons == (["reason -1 unknown"] + [f"reason {i} {w}" for i, w in enumerate(words)]
+                       + [f"reason {len(words)} unknown", f"reason MPC_REASON_ITERATION_LIMIT "
+                                                          f"{1 + REASONS.index(Reason.ITERATION_LIMIT)}"])
 
 
 @pytest.mark.parametrize("name", ["nlink:3", pytest.param("nlink:7", marks=pytest.mark.slow)])

@@ -38,7 +38,9 @@ dimension only through the model):
   (:meth:`ExportedMPC.set_plan`).
 
 The library names its statuses (``<name>_status_string``: "success" … "exception", as
-:data:`ocpkit.status.STATUSES`) and the OCP it was exported for (``<name>_ocp_digest``: sizes and settings, and a
+:data:`ocpkit.status.STATUSES`), why a step is not a success (``<name>_last_reason``, named by
+``<name>_reason_string`` as :class:`ocpkit.status.Reason`: codes 1 … in the order of :data:`ocpkit.status.REASONS`,
+0 none) and the OCP it was exported for (``<name>_ocp_digest``: sizes and settings, and a
 hash of each weight, bound, the model and the task; :mod:`~ocpkit.export.digest`): :class:`ExportedMPC` refuses a
 library exported for another OCP, naming what differs.
 

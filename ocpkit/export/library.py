@@ -12,12 +12,12 @@ from ocpkit.codegen.cache import check_trusted
 from ocpkit.qp.certificate import TESTS, Certificate
 from ocpkit.qp.certificate import TOL as CERT_TOL
 from ocpkit.controller import Controller
-from ocpkit.status import STATUSES, SUCCESS, Reason, Solution
+from ocpkit.status import REASONS, STATUSES, SUCCESS, Reason, Solution
 from ocpkit.export.constants import CERT_CODE, ILL_CONDITIONED
 from ocpkit.export.digest import differences
 from ocpkit.export.generate import general_rows
 from ocpkit.model.ocp import OCP
-from ocpkit.qp.backends import DAQP_EXIT, DAQP_REASON, daqp_exit_name
+from ocpkit.qp.backends import DAQP_EXIT, daqp_exit_name
 from ocpkit.qp.quadratic_program import ROUNDING_MARGIN
 
 
@@ -26,7 +26,8 @@ class ExportedMPC(Controller):
 
     The library must have been exported for ``ocp``: its digest (``<name>_ocp_digest``, :mod:`ocpkit.export.digest`)
     is compared with ``ocp``'s on load, and a library for other sizes, weights, bounds, model or task is refused
-    (ValueError naming what differs). Statuses map one to one onto ocpkit's; on failure the library returns its own
+    (ValueError naming what differs). Statuses map one to one onto ocpkit's, and so do the reasons the library gives
+    (``<name>_last_reason``) onto ``Solution.reason``; on failure the library returns its own
     fallback (the previous plan shifted, which a C caller gets), and this class answers with
     :meth:`Controller.fallback` instead: the shifted plan only while its prediction is safe, else the brake (a
     library with obstacles then follows that plan, :meth:`set_plan`; another keeps its own). Called by another
@@ -59,6 +60,8 @@ class ExportedMPC(Controller):
         self._model = getattr(lib, f"{name}_model_step")
         self._model.argtypes = [ctypes.c_void_p, dbl, dbl, dbl]
         self._rc = getattr(lib, f"{name}_solver_return")
+        self._reason = getattr(lib, f"{name}_last_reason")
+        self._reason.argtypes = [ctypes.c_void_p]
         self._certificate = getattr(lib, f"{name}_certificate")
         self._certificate.argtypes = [ctypes.c_void_p, dbl]
         solver_name = getattr(lib, f"{name}_qp_solver")
@@ -222,7 +225,9 @@ class ExportedMPC(Controller):
         status = STATUSES[self._status.value]
         rc = self._rc(self._mem)
         certificate = self.certificate() if status == SUCCESS or rc >= CERT_CODE else None  # a QP solved
-        raw, reason = _explain_rc(self.name, self.qp, rc, certificate.residuals if certificate else ())
+        reason = c_reason(self._reason(self._mem))
+        raw = (f"{self.name}_step: {reason}" if status != SUCCESS and rc == 0 and reason is not None
+               else _explain_rc(self.name, self.qp, rc, certificate.residuals if certificate else ()))
         model, build_s, solve = (float(t) for t in self._split)
         x_pred = None
         if self._states is not None and status == SUCCESS:
@@ -258,16 +263,20 @@ def _check_digest(lib, name: str, lib_path: Path, ocp: OCP) -> None:
                          "again for this OCP")
 
 
-def _explain_rc(name: str, qp: str, rc: int, residuals) -> tuple[str, Reason | None]:
-    """The raw status of a C step whose solver (``qp``) returned ``rc`` (``residuals``: its certificate), and its
-    reason where ``rc`` says one."""
+def c_reason(code: int) -> Reason | None:
+    """The :class:`Reason` of the library's reason code (``<name>_last_reason``: 1 + its index in REASONS; 0 none)."""
+    return REASONS[code - 1] if 0 < code <= len(REASONS) else None
+
+
+def _explain_rc(name: str, qp: str, rc: int, residuals) -> str:
+    """The raw status of a C step whose solver (``qp``) returned ``rc`` (``residuals``: its certificate)."""
     if CERT_CODE <= rc < CERT_CODE + len(TESTS):
         test = TESTS[rc - CERT_CODE]
         return (f"{name}_qp_solve returned 0 but certificate failed: {test} residual "
-                f"{residuals[rc - CERT_CODE]:.3g} > {CERT_TOL:.0e}"), Reason.CERTIFICATE_FAILED
+                f"{residuals[rc - CERT_CODE]:.3g} > {CERT_TOL:.0e}")
     if rc == ILL_CONDITIONED:
         return (f"{name}: Hessian ill-conditioned (rounding beyond {ROUNDING_MARGIN:g} x the input weight's "
-                f"curvature): the prediction model diverges over the horizon"), Reason.ILL_CONDITIONED
+                f"curvature): the prediction model diverges over the horizon")
     if qp == "daqp" and rc in DAQP_EXIT:
-        return f"{name}_qp_solve returned {rc}: {daqp_exit_name(rc)}", DAQP_REASON.get(rc)
-    return f"{name}_qp_solve returned {rc}", None
+        return f"{name}_qp_solve returned {rc}: {daqp_exit_name(rc)}"
+    return f"{name}_qp_solve returned {rc}"

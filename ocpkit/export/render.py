@@ -10,9 +10,9 @@ import casadi as ca
 import jinja2
 
 from ocpkit.qp.certificate import TOL as CERT_TOL
-from ocpkit.status import INFEASIBLE, LIMITED, SOFT, STATUSES, SUCCESS
+from ocpkit.status import INFEASIBLE, LIMITED, REASONS, SOFT, STATUSES, SUCCESS, Reason
 from ocpkit.export.constants import CERT_CODE, CERT_NAMES, ILL_CONDITIONED, c_array, step_constants
-from ocpkit.qp.backends import DAQP_EXIT
+from ocpkit.qp.backends import DAQP_EXIT, DAQP_REASON
 from ocpkit.model.task import ACTIVATION, ROWS_PER_SPHERE
 from ocpkit.model.ocp import OCP
 from ocpkit.qp.transcription import CondensedQP
@@ -39,14 +39,17 @@ _TEMPLATES = jinja2.Environment(loader=jinja2.PackageLoader("ocpkit.export", "te
 
 
 def _failures(qp: str) -> tuple[dict, str]:
-    """The QP solver's failed returns the C step names, return → (C name, status), and where they come from; any
-    other nonzero return is "limited"."""
+    """The QP solver's failed returns the C step names, return → (C name, status, reason name: NONE where the return
+    says none), and where they come from; any other nonzero return is "limited", for no reason said."""
     if qp == "qrqp":
-        return {4: ("QRQP_NO_SEARCH_DIRECTION", INFEASIBLE)}, "qrqp's 4: an infeasible or degenerate QP"
+        return ({4: ("QRQP_NO_SEARCH_DIRECTION", INFEASIBLE, Reason.QP_INFEASIBLE.name),
+                 -1: ("QRQP_MAX_ITER", LIMITED, Reason.ITERATION_LIMIT.name)},
+                "qrqp's 4: an infeasible or degenerate QP, -1: its iteration limit")
     if qp == "daqp":
-        return ({flag: ("DAQP_" + re.sub(r"\W+", "_", name).upper(), status)
-                 for flag, (name, status) in DAQP_EXIT.items() if status not in (SUCCESS, LIMITED)},
-                "DAQP's exit flags, ocpkit.qp.backends.DAQP_EXIT")
+        return ({flag: ("DAQP_" + re.sub(r"\W+", "_", name).upper(), status,
+                        DAQP_REASON[flag].name if flag in DAQP_REASON else "NONE")
+                 for flag, (name, status) in DAQP_EXIT.items() if status != SUCCESS},
+                "DAQP's exit flags, ocpkit.qp.backends.DAQP_EXIT and DAQP_REASON")
     return {}, ""
 
 
@@ -68,7 +71,7 @@ def header(name: str, sizes: dict, ocp: OCP, form: str, qp: str, linearization: 
     """``<name>.h``: the API, the sizes (``sizes``: macro name → value) and the memory struct."""
     task = ocp.task_functions is not None
     return _render("header.in.h", name=name, N=name.upper(), sizes=sizes, ocp=repr(ocp), form=form, qp=qp,
-                   statuses=C_STATUSES,
+                   statuses=C_STATUSES, reasons=REASONS,
                    ubar=_UBAR[linearization], task=task, obstacles=task and ocp.task_functions.pairs > 0,
                    rti=linearization == "trajectory",
                    cert_tol=repr(CERT_TOL), cert_code=CERT_CODE, cert_names=list(CERT_NAMES.values()),
@@ -83,9 +86,9 @@ def step(name: str, qp: str, linearization: str, tr: CondensedQP, jac, digest: l
     obstacles)."""
     failures, failures_source = _failures(qp)
     return _render("step.in.c", name=name, N=name.upper(), qp=qp, failures=failures, failures_source=failures_source,
-                   task=tf is not None, statuses=C_STATUSES, cert_names=list(CERT_NAMES.values()), digest=digest,
-                   obstacles=bool(obstacle_rows), constants=step_constants(tr, linearization, jac, tf, iterations, tol,
-                                                                           obstacle_rows))
+                   task=tf is not None, statuses=C_STATUSES, reasons=REASONS, cert_names=list(CERT_NAMES.values()),
+                   digest=digest, obstacles=bool(obstacle_rows),
+                   constants=step_constants(tr, linearization, jac, tf, iterations, tol, obstacle_rows))
 
 
 def example(name: str, x0, goal, steps: int, dt: float, task: bool = False) -> str:

@@ -65,6 +65,18 @@ enum { {% for test in cert_names %}{{ N }}_CERT_{{ test }} = {{ cert_code + loop
 #define {{ N }}_ILL_CONDITIONED {{ ill_conditioned }}
 
 enum { {% for status in statuses %}{{ N }}_{{ status | upper }} = {{ loop.index0 }}{{ ", " if not loop.last }}{% endfor %} };
+/* Why the last step (or solve_qp) is not a success ({{ name }}_last_reason), as ocpkit.status.Reason says it, in the
+   order of ocpkit.status.REASONS; {{ N }}_REASON_NONE after a success, and after a QP solver's return that says no
+   reason. The step sets those of its own failures: non-finite model (its model or task terms not finite, or their
+   evaluation failed), QP data, bounds crossed, ill-conditioned, the solver's (QP infeasible, iteration limit, not
+   positive definite, time budget), non-finite solution, certificate failed; the others are ocpkit's. */
+enum {
+  {{ N }}_REASON_NONE = 0,
+{% for reason in reasons %}
+  {{ N }}_REASON_{{ reason.name }} = {{ loop.index }}{{ "," if not loop.last }}
+{% endfor %}
+};
+#define {{ N }}_NREASONS {{ reasons | length + 1 }}  /* reason codes 0 ... {{ N }}_NREASONS - 1 */
 
 /* All memory of one controller instance. Treat as opaque. */
 typedef struct {
@@ -115,7 +127,7 @@ typedef struct {
   int has_xplan;                                             /* xplan holds a plan */
 {% endif %}
   int has_plan, warm;                                        /* plan holds a plan; the next solve is warm-started */
-  int solver_mem, solver_rc;
+  int solver_mem, solver_rc, reason;
 } {{ name }}_memory;
 
 /* Set up one instance (checks out a QP solver memory slot): cold start. Returns 0 on success, 1 when
@@ -139,11 +151,16 @@ void {{ name }}_set_plan({{ name }}_memory* mem, const double* knots);
 {% endif %}
 /* The QP solver's raw return code of the last step (0: solved and certified; see CERT_TOL above). */
 int {{ name }}_solver_return(const {{ name }}_memory* mem);
+/* Why the last step (or solve_qp) is not a success: a {{ N }}_REASON_... code ({{ N }}_REASON_NONE after a success). */
+int {{ name }}_last_reason(const {{ name }}_memory* mem);
 /* The QP solver's name ("daqp", "qrqp", "osqp"). */
 const char* {{ name }}_qp_solver(void);
 /* A status's name, as ocpkit.status.STATUSES has it: "success" for {{ N }}_SUCCESS ... "exception";
    "unknown" for any other value. */
 const char* {{ name }}_status_string(int status);
+/* A reason's words, as ocpkit.status.Reason has them: "none" for {{ N }}_REASON_NONE, "iteration limit" for
+   {{ N }}_REASON_ITERATION_LIMIT ...; "unknown" for any other value. */
+const char* {{ name }}_reason_string(int reason);
 /* The OCP this step was exported for, field by field ("knots 5; Q <hash>; ..."): ocpkit.export.ExportedMPC refuses
    to load the library for an OCP whose digest differs (ocpkit.export.digest). */
 const char* {{ name }}_ocp_digest(void);

@@ -39,6 +39,7 @@ void {{ name }}_reset(mem_t* m) {
   m->has_xplan = 0;
 #endif
   m->solver_rc = 0;
+  m->reason = {{ N }}_REASON_NONE;
 }
 
 /* CasADi's decref frees every slot (even ones still on its free list) once the count reaches zero, so the
@@ -67,6 +68,12 @@ static int any_above(const double* lo, const double* hi, int n) {
 }
 
 static double clip(double v, double lo, double hi) { return v < lo ? lo : (v > hi ? hi : v); }
+
+/* A failure's status, its reason ({{ N }}_REASON_...) kept for {{ name }}_last_reason. */
+static int fail(mem_t* m, int status, int reason) {
+  m->reason = reason;
+  return status;
+}
 
 /* The input goal u_g = u_goal + K goal (+ h(goal)): the input the cost pulls towards. */
 #if HAS_K
@@ -647,14 +654,19 @@ static int ill_conditioned(const mem_t* m) {
 }
 
 {% if failures %}
-/* The status of the QP solver's nonzero return ({{ failures_source }}). */
-static int status_of_return(int rc) {
-  enum { {% for rc, (flag, _) in failures.items() %}{{ flag }} = {{ rc }}{{ ", " if not loop.last }}{% endfor %} };
-  switch (rc) {
-{% for rc, (flag, status) in failures.items() %}
-  case {{ flag }}: return {{ N }}_{{ status | upper }};
+/* The status of the QP solver's nonzero return and its reason
+   ({{ failures_source }}). */
+static int status_of_return(mem_t* m, int rc) {
+  enum {
+{% for rc, (flag, _, _) in failures.items() %}
+    {{ flag }} = {{ rc }}{{ "," if not loop.last }}
 {% endfor %}
-  default: return {{ N }}_LIMITED;
+  };
+  switch (rc) {
+{% for rc, (flag, status, reason) in failures.items() %}
+  case {{ flag }}: return fail(m, {{ N }}_{{ status | upper }}, {{ N }}_REASON_{{ reason }});
+{% endfor %}
+  default: return fail(m, {{ N }}_LIMITED, {{ N }}_REASON_NONE);
   }
 }
 {% endif %}
@@ -665,13 +677,15 @@ static int status_of_return(int rc) {
 static int solve_qp(mem_t* m) {
   int rc;
   m->solver_rc = 0;
+  m->reason = {{ N }}_REASON_NONE;
   if (!all_finite(m->h, NZ * NZ) || !all_finite(m->g, NZ) || !all_finite(m->a, NA * NZ)
       || any_nan(m->lba, NA) || any_nan(m->uba, NA) || any_nan(m->lbx, NZ) || any_nan(m->ubx, NZ))
-    return {{ N }}_NAN;
-  if (any_above(m->lba, m->uba, NA) || any_above(m->lbx, m->ubx, NZ)) return {{ N }}_INFEASIBLE;
+    return fail(m, {{ N }}_NAN, {{ N }}_REASON_QP_DATA);
+  if (any_above(m->lba, m->uba, NA) || any_above(m->lbx, m->ubx, NZ))
+    return fail(m, {{ N }}_INFEASIBLE, {{ N }}_REASON_BOUNDS_CROSSED);
   if (ill_conditioned(m)) {
     m->solver_rc = {{ N }}_ILL_CONDITIONED;
-    return {{ N }}_EXCEPTION;
+    return fail(m, {{ N }}_EXCEPTION, {{ N }}_REASON_ILL_CONDITIONED);
   }
   m->arg[0] = m->h; m->arg[1] = m->g; m->arg[2] = m->a; m->arg[3] = m->lba; m->arg[4] = m->uba;
   m->arg[5] = m->lbx; m->arg[6] = m->ubx;
@@ -680,12 +694,12 @@ static int solve_qp(mem_t* m) {
   m->res[0] = m->z_new; m->res[1] = 0; m->res[2] = m->lam_a_new; m->res[3] = m->lam_x_new;
   rc = {{ name }}_qp_solve(m->arg, m->res, (casadi_int*) m->iw, m->w, m->solver_mem);
   m->solver_rc = rc;
-  if (rc) return {{ "status_of_return(rc)" if failures else N ~ "_LIMITED" }};
-  if (!all_finite(m->z_new, NZ)) return {{ N }}_NAN;
+  if (rc) return {{ "status_of_return(m, rc)" if failures else "fail(m, " ~ N ~ "_LIMITED, " ~ N ~ "_REASON_NONE)" }};
+  if (!all_finite(m->z_new, NZ)) return fail(m, {{ N }}_NAN, {{ N }}_REASON_NON_FINITE_SOLUTION);
   rc = certify(m);
   if (rc) {
     m->solver_rc = rc;
-    return {{ N }}_LIMITED;
+    return fail(m, {{ N }}_LIMITED, {{ N }}_REASON_CERTIFICATE_FAILED);
   }
   return {{ N }}_SUCCESS;
 }
@@ -756,14 +770,17 @@ static void affine_step(const double* L, const double* x, const double* u, doubl
   }
 }
 
-/* Λ_k of every stage about (x̄_k, ū_k); with rollout, x̄_{k+1} = F(x̄_k, ū_k) as it goes. Returns a status. */
+/* Λ_k of every stage about (x̄_k, ū_k); with rollout, x̄_{k+1} = F(x̄_k, ū_k) as it goes. Returns a status (its
+   reason in m->reason). */
 static int stage_models(mem_t* m, int rollout) {
   int k;
   for (k = 0; k < {{ N }}_HORIZON; ++k) {
     double* L = m->LamK + k * NX * NL;
-    if (!all_finite(m->xbar + k * NX, NX) || !all_finite(m->ubark + k * NU, NU)) return {{ N }}_NAN;
-    if (affine_model(m, m->xbar + k * NX, m->ubark + k * NU, L)) return {{ N }}_EXCEPTION;
-    if (!all_finite(L, NX * NL)) return {{ N }}_NAN;
+    if (!all_finite(m->xbar + k * NX, NX) || !all_finite(m->ubark + k * NU, NU))
+      return fail(m, {{ N }}_NAN, {{ N }}_REASON_NON_FINITE_MODEL);
+    if (affine_model(m, m->xbar + k * NX, m->ubark + k * NU, L))
+      return fail(m, {{ N }}_EXCEPTION, {{ N }}_REASON_NON_FINITE_MODEL);
+    if (!all_finite(L, NX * NL)) return fail(m, {{ N }}_NAN, {{ N }}_REASON_NON_FINITE_MODEL);
     if (rollout && k + 1 < {{ N }}_HORIZON) affine_step(L, m->xbar + k * NX, m->ubark + k * NU, m->xbar + (k + 1) * NX);
   }
   return {{ N }}_SUCCESS;
@@ -836,6 +853,7 @@ static int rti(mem_t* m, const double* x, const double* goal, double* u_out, dou
       memcpy(m->plan, m->zgood, sizeof m->zgood);
       memcpy(m->xplan, m->xgood, sizeof m->xgood);
       m->warm = 0;
+      m->reason = {{ N }}_REASON_NONE;  /* a success */
       break;
     }
     commit_plan(m);
@@ -874,12 +892,14 @@ static int step_about_one_model(mem_t* m, const double* x, const double* goal, d
 #if LIN_PLAN
   if (m->has_plan) knot_sum(W0, m->plan, m->ubar);
 #endif
-  if (affine_model(m, x, m->ubar, m->Lam1)) return fallback(m, u_out, {{ N }}_EXCEPTION);
-  if (!all_finite(m->Lam1, NX * NL)) return fallback(m, u_out, {{ N }}_NAN);
+  if (affine_model(m, x, m->ubar, m->Lam1))
+    return fallback(m, u_out, fail(m, {{ N }}_EXCEPTION, {{ N }}_REASON_NON_FINITE_MODEL));
+  if (!all_finite(m->Lam1, NX * NL)) return fallback(m, u_out, fail(m, {{ N }}_NAN, {{ N }}_REASON_NON_FINITE_MODEL));
   if (t) { t1 = seconds(); t[0] = t1 - t0; }
   condense(m, x, goal);
 {% if task %}
-  if (task_terms(m, x, goal)) return fallback(m, u_out, {{ N }}_EXCEPTION);  /* a residual's evaluation failed */
+  if (task_terms(m, x, goal))  /* a residual's evaluation failed */
+    return fallback(m, u_out, fail(m, {{ N }}_EXCEPTION, {{ N }}_REASON_NON_FINITE_MODEL));
 {% endif %}
   if (t) { t2 = seconds(); t[1] = t2 - t1; }
   rc = solve_qp(m);
@@ -899,6 +919,8 @@ int {{ name }}_step_timed(mem_t* m, const double* x, const double* goal, double*
   double t0 = 0;
   int i, failed = 0;
   if (t) { t[0] = t[1] = t[2] = 0; t0 = seconds(); }
+  m->solver_rc = 0;
+  m->reason = {{ N }}_REASON_NONE;
   memcpy(m->ug, U_GOAL, sizeof m->ug);
 #if HAS_K
   add_goal_gain(goal, m->ug);
@@ -908,10 +930,9 @@ int {{ name }}_step_timed(mem_t* m, const double* x, const double* goal, double*
 #endif
   if (failed || !all_finite(m->ug, NU)) {
     for (i = 0; i < NU; ++i) if (!isfinite(m->ug[i])) m->ug[i] = 0;  /* the cold fallback's input, as in Python */
-    *status = fallback(m, u_out, {{ N }}_NAN);
+    *status = fallback(m, u_out, fail(m, {{ N }}_NAN, {{ N }}_REASON_NON_FINITE_MODEL));
     return *status;
   }
-  m->solver_rc = 0;
 #if LIN_TRAJ
   *status = rti(m, x, goal, u_out, t, t0);
 #else
@@ -935,11 +956,23 @@ void {{ name }}_set_plan(mem_t* m, const double* knots) {
 
 int {{ name }}_solver_return(const mem_t* m) { return m->solver_rc; }
 
+int {{ name }}_last_reason(const mem_t* m) { return m->reason; }
+
 const char* {{ name }}_qp_solver(void) { return "{{ qp }}"; }
 
 const char* {{ name }}_status_string(int status) {
   static const char* const names[] = { {% for status in statuses %}"{{ status }}"{{ ", " if not loop.last }}{% endfor %} };
   return status >= 0 && status < (int) (sizeof names / sizeof names[0]) ? names[status] : "unknown";
+}
+
+const char* {{ name }}_reason_string(int reason) {
+  static const char* const names[{{ N }}_NREASONS] = {
+    "none",
+{% for reason in reasons %}
+    "{{ reason }}"{{ "," if not loop.last }}
+{% endfor %}
+  };
+  return reason >= 0 && reason < {{ N }}_NREASONS ? names[reason] : "unknown";
 }
 
 const char* {{ name }}_ocp_digest(void) {
