@@ -158,12 +158,12 @@ def bench_obstacle_steps(counts=(1, 10, 100), *, steps: int = 100, linearization
     ``steps`` steps on the discrete model from the same start, steps interleaved (the machine's load falls alike on
     both), compiled parts ready. Per count and controller: median and largest step time (``Solution.times["total"]``,
     the certificate's rollout on the nonlinear model included), the statuses and the smallest true clearance; for the
-    C step its split (medians over the steps it answered: affine model, condensing with the task's terms and
-    obstacle rows, DAQP; timed in C) and the steps its hard QP could not answer (the QP with the obstacle rows
-    softened answered them, in Python)."""
+    C step its split (medians over the steps it answered, ``path`` "C step": affine model, condensing with the task's
+    terms and obstacle rows, DAQP; timed in C) and the steps its hard QP could not answer that the QP with the
+    obstacle rows softened answered, in Python (``path`` SOFTENED_AFTER_C)."""
     from ocpkit import problems as registry
     from ocpkit.model.kinematics import spheres_along_links
-    from ocpkit.solvers.qp import LinearMPC
+    from ocpkit.solvers.qp import SOFTENED_AFTER_C, LinearMPC
     from ocpkit.model.task import clearances, reach
 
     panda = registry.make("panda")
@@ -197,10 +197,10 @@ def bench_obstacle_steps(counts=(1, 10, 100), *, steps: int = 100, linearization
             q = np.array(states[name])[:, :panda.kinematics.n]
             row[name] = {"median_s": float(np.median(t)), "max_s": float(t.max()), "statuses": statuses,
                          "min_clearance": float(clearances(panda.kinematics, robot, balls, q).min())}
-        answered = [s for s in sols["C"] if "DAQP" not in s.raw_status and not s.fallback]
+        answered = [s for s in sols["C"] if s.path == "C step"]
         row["C"]["split_s"] = ([float(v) for v in np.median([[s.times[k] for k in ("model", "build", "solve")]
                                                              for s in answered], axis=0)] if answered else [])
-        row["C"]["softened_in_python"] = sum("DAQP" in s.raw_status for s in sols["C"])
+        row["C"]["softened_in_python"] = sum(s.path == SOFTENED_AFTER_C for s in sols["C"])
         rows.append(row)
     lines = [f"Panda README reach, LinearMPC {linearization!r}, C step (native=True) and Python step each in its own "
              f"closed loop, {steps} steps; cores {os.cpu_count()}, load {_load()}"]
