@@ -189,6 +189,39 @@ def test_a_closed_loop_trials_manifest_covers_the_solvers_and_problems_it_may_ru
     assert all(len(digest) == 16 for digest in code.values())
 
 
+def test_the_public_api_counts_only_the_names_a_trial_uses(trial_folder):
+    """``ocpkit/__init__.py`` imports its public names on first use (``__getattr__``): a trial that imports only
+    ``ocpkit.model`` does not run the solvers; one that uses ``ocpkit.LinearMPC``, or imports it (inside the trial
+    function: it runs when the trial does), runs ``ocpkit.solvers.qp`` and not the other controllers."""
+    from ocpkit.runs import provenance
+
+    _module(trial_folder, "stale_model_only_f", """
+        import ocpkit.model
+        def trial(x):
+            return {"y": x}
+    """)
+    _module(trial_folder, "stale_attribute_f", """
+        import ocpkit
+        def trial(x):
+            return {"y": ocpkit.LinearMPC.__name__}
+    """)
+    _module(trial_folder, "stale_from_f", """
+        def trial(x):
+            from ocpkit import LinearMPC
+            return {"y": LinearMPC.__name__}
+    """)
+    import stale_attribute_f
+    import stale_from_f
+    import stale_model_only_f
+
+    code = provenance.manifest(stale_model_only_f.trial)["code"]
+    assert "ocpkit.model" in code and not any(name.startswith("ocpkit.solvers") for name in code), sorted(code)
+    for module in (stale_attribute_f, stale_from_f):
+        code = provenance.manifest(module.trial)["code"]
+        assert "ocpkit.solvers.qp" in code, sorted(code)
+        assert not {"ocpkit.solvers.nlp", "ocpkit.solvers.empc", "ocpkit.sim.simulate"} & set(code), sorted(code)
+
+
 def test_hashing_is_cached_per_process(tmp_path, monkeypatch):
     """Each file is read and parsed once per process; again only when its stat changes."""
     from ocpkit.runs import provenance

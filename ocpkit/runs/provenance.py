@@ -8,7 +8,11 @@ versions of :data:`DEPENDENCIES`. Its files are
   the standard library and site-packages) that it imports. A package that imports its submodules by computed name
   (``import_module(f"ocpkit.solvers.{name}")``) counts all of them when it is itself imported by name (``from
   ocpkit import solvers``), not when it is only the folder of a module (``ocpkit.studies`` of
-  ``ocpkit.studies.closed_loop``);
+  ``ocpkit.studies.closed_loop``). A module's lazy attributes (PEP 562: the branches ``if name == "X"`` or ``if name
+  in (…)`` of its ``__getattr__``, as in ``ocpkit/__init__.py``) count only where they are used: ``from ocpkit
+  import LinearMPC``, or ``ocpkit.LinearMPC`` or ``getattr(ocpkit, "LinearMPC")`` after ``import ocpkit``; all of
+  them after ``from ocpkit import *`` and where the module is imported as a name of its package (``from pkg import
+  sub``, then ``sub.X``, is not traced);
 * files named by the trial's parameters: a problem spec ``path/to/file.py:Name`` (and the user modules that file
   imports), ``urdf:robot.urdf``, a ``package.module:Name`` of the user's code.
 
@@ -44,6 +48,7 @@ import hashlib
 import importlib.util
 import json
 import os
+import re
 import site
 import sys
 import sysconfig
@@ -181,6 +186,8 @@ class _Walk:
         self.package = package            # the trial's top-level package: followed even when installed
         self.code: dict[str, str] = {}
         self.seen: dict[str, bool] = {}   # path -> reached as an explicitly imported module
+        self.lazy: dict[str, tuple] = {}  # module -> (a package?, [(attribute names, import reference)])
+        self.used: dict[str, set] = {}    # module -> the names of its attributes used ("*": any)
 
     def module(self, name: str, explicit: bool) -> None:
         """Module ``name`` and its parent packages (importing a.b.c runs a/__init__.py and a/b/__init__.py)."""
@@ -202,21 +209,43 @@ class _Walk:
         if not again:
             self.code[label] = digest
         package = os.path.basename(path) == "__init__.py"
+        lazy = [ref[1:] for ref in refs if ref[0] == "lazy"]
+        if name is not None and lazy and not again:
+            self.lazy[name] = (package, lazy)
+            self.attributes(name, self.used.get(name, set()))  # used before the walk reached it
         for ref in refs:
-            if ref[0] == "import" and not again:
-                self.module(ref[1], explicit=True)
-            elif ref[0] == "from" and not again:
-                base = _absolute(name, package, ref[1], ref[2])
-                base_path = _locate(base) if base is not None else None
-                if base_path is None or not (_followed(base, base_path) or base.partition(".")[0] == self.package):
-                    continue
-                submodules = [f"{base}.{n}" for n in ref[3] if n != "*" and _locate(f"{base}.{n}")]
-                self.module(base, explicit=len(submodules) < len(ref[3]))  # an attribute of base is used
-                for sub in submodules:
-                    self.module(sub, explicit=True)
+            if ref[0] in ("import", "from", "attribute") and not again:
+                self.follow(name, package, ref)
             elif ref[0] == "dynamic" and explicit:  # import_module(f"pkg.{name}"): any submodule of pkg
                 for sub in _submodules(ref[1]):
                     self.module(sub, explicit=True)
+
+    def follow(self, name: str | None, package: bool, ref: tuple) -> None:
+        """An import reference of module ``name`` (``package``: its file is an ``__init__.py``)."""
+        if ref[0] == "import":
+            self.module(ref[1], explicit=True)
+        elif ref[0] == "attribute":  # ("attribute", module, name): module.name where an import binds module
+            self.attributes(ref[1], {ref[2]})
+        else:
+            base = _absolute(name, package, ref[1], ref[2])
+            base_path = _locate(base) if base is not None else None
+            if base_path is None or not (_followed(base, base_path) or base.partition(".")[0] == self.package):
+                return
+            submodules = [f"{base}.{n}" for n in ref[3] if n != "*" and _locate(f"{base}.{n}")]
+            self.module(base, explicit=len(submodules) < len(ref[3]))  # an attribute of base is used
+            self.attributes(base, set(ref[3]))
+            for sub in submodules:
+                self.module(sub, explicit=True)
+                self.attributes(sub, {"*"})  # bound to a name whose attributes are not traced
+
+    def attributes(self, module: str, names: set) -> None:
+        """What ``module``'s lazy attributes ``names`` import ("*": all of them): now if the walk has reached
+        ``module``, else when it does."""
+        self.used.setdefault(module, set()).update(names)
+        package, lazy = self.lazy.get(module, (False, ()))
+        for keys, ref in lazy:
+            if "*" in names or names.intersection(keys):
+                self.follow(module, package, ref)
 
 
 def _read(path: str) -> tuple[str, tuple]:
@@ -241,17 +270,26 @@ def _read(path: str) -> tuple[str, tuple]:
 
 
 def _imports(source: bytes) -> tuple:
-    """("import", name), ("from", level, module, names) and ("dynamic", package) references of a Python source."""
+    """("import", name), ("from", level, module, names), ("dynamic", package), ("lazy", attribute names, one of
+    those imports: the branch of a module's ``__getattr__`` for those names) and ("attribute", module, name)
+    references of a Python source."""
     try:
         tree = ast.parse(source)
     except (SyntaxError, ValueError):
         return ()  # the trial fails on it; its digest still records it
-    refs = []
-    for node in _statements(tree.body):
+    refs, bound = [], {}  # bound: {name: the module an import statement binds it to}
+    for node, names in _statements(tree.body, module=True):
         if isinstance(node, ast.Import):
-            refs.extend(("import", alias.name) for alias in node.names)
+            found = [("import", alias.name) for alias in node.names]
+            for alias in node.names:
+                top = alias.name.partition(".")[0]
+                if top not in sys.stdlib_module_names:  # the standard library's modules have no lazy attributes
+                    bound[alias.asname or top] = alias.name if alias.asname else top
         elif isinstance(node, ast.ImportFrom):
-            refs.append(("from", node.level, node.module or "", tuple(alias.name for alias in node.names)))
+            found = [("from", node.level, node.module or "", tuple(alias.name for alias in node.names))]
+        else:
+            continue
+        refs.extend(found if names is None else (("lazy", names, ref) for ref in found))
     if b"import_module" in source or b"__import__" in source:  # walking every expression is the slow part
         for node in ast.walk(tree):
             if isinstance(node, ast.Call) and node.args and _is_import_call(node.func):
@@ -262,17 +300,66 @@ def _imports(source: bytes) -> tuple:
                     prefix = str(arg.values[0].value)
                     if prefix.endswith(".") and not prefix.startswith("."):
                         refs.append(("dynamic", prefix[:-1]))
-    return tuple(refs)
+    return tuple(refs + _attributes(source, bound))
 
 
-def _statements(body):
-    """Every statement in ``body``, nested ones (in functions, classes, if/try/with/for/match blocks) too."""
+def _statements(body, names: tuple | None = None, module: bool = False, parameter: str | None = None):
+    """(statement, names) for every statement in ``body``, nested ones (in functions, classes, if/try/with/for/match
+    blocks) too. ``names`` is None, or for a statement that runs only for some attributes of the module (PEP 562:
+    the branch ``if name == "X"`` or ``if name in ("X", …)`` of a module-level ``__getattr__``) their names."""
     for node in body:
-        yield node
+        yield node, names
+        if module and isinstance(node, ast.FunctionDef) and node.name == "__getattr__" and node.args.args:
+            yield from _statements(node.body, parameter=node.args.args[0].arg)
+            continue
+        keys = _attribute_test(node.test, parameter) if isinstance(node, ast.If) and names is None else None
+        if keys:
+            yield from _statements(node.body, keys, parameter=parameter)
+            yield from _statements(node.orelse, names, parameter=parameter)
+            continue
         for field in ("body", "orelse", "finalbody", "handlers", "cases"):
             children = getattr(node, field, None)
             if isinstance(children, list):
-                yield from _statements(children)
+                yield from _statements(children, names, parameter=parameter)
+
+
+def _attribute_test(test, parameter: str | None) -> tuple | None:
+    """The names that ``test`` (``parameter == "X"``, ``"X" == parameter`` or ``parameter in ("X", …)``) accepts."""
+    if parameter is None or not isinstance(test, ast.Compare) or len(test.ops) != 1:
+        return None
+    left, op, right = test.left, test.ops[0], test.comparators[0]
+    if isinstance(op, ast.Eq) and isinstance(right, ast.Name):
+        left, right = right, left
+    if not (isinstance(left, ast.Name) and left.id == parameter):
+        return None
+    if isinstance(op, ast.Eq):
+        values = [right]
+    elif isinstance(op, ast.In) and isinstance(right, (ast.Tuple, ast.List, ast.Set)):
+        values = right.elts
+    else:
+        return None
+    if values and all(isinstance(v, ast.Constant) and isinstance(v.value, str) for v in values):
+        return tuple(v.value for v in values)
+    return None
+
+
+def _attributes(source: bytes, bound: dict) -> list:
+    """("attribute", module, name), sorted, for each ``module.name`` and ``getattr(module, "name")`` in ``source``
+    where ``module`` is bound by an import statement (``a.b.c``: a's b and a.b's c). The text is searched, not the
+    syntax tree (ten times faster): a comment or a string that reads so, or ``x.module.name``, counts too."""
+    if not bound:
+        return []
+    text, names = source.decode(errors="replace"), "|".join(map(re.escape, bound))
+    chains = set(re.findall(rf"\b({names})((?:\s*\.\s*\w+)+)", text))
+    chains.update((root, "." + name) for root, name in re.findall(
+        rf"\b(?:getattr|hasattr)\(\s*({names})\s*,\s*['\"](\w+)['\"]", text))
+    found = set()
+    for root, chain in chains:
+        module = bound[root]
+        for name in chain.split(".")[1:]:
+            found.add(("attribute", module, name.strip()))
+            module = f"{module}.{name.strip()}"
+    return sorted(found)
 
 
 def _is_import_call(func) -> bool:
