@@ -58,7 +58,7 @@ class MultipleShooting:
         X = ca.MX.sym("X", n, T)  # columns x_1 … x_T
         U = ca.MX.sym("U", m, p)  # columns U_0 … U_{p−1}: vec(U) is the knots (p, m) row by row
         x0, goal = ca.MX.sym("x0", n), ca.MX.sym("goal", ocp.ng)
-        xg, targets = (goal if ocp.ng == n else goal[:n]), goal[n:]  # without targets the very same graph
+        targets = goal[n:]
         params = [x0, goal]
         # u = φ U, column k is u_k; φ kept sparse so u_k depends structurally on its own knots only.
         inputs = ca.mtimes(U, ca.sparsify(ca.DM(ocp.parameterization.basis.T)))
@@ -71,16 +71,12 @@ class MultipleShooting:
         else:
             predicted = ocp.discrete().map(T)(starts, inputs)
             stages = None
-        # The objective of ocp.py: the x_0 term is a constant and left out, so step 0 costs its input only.
-        J = ocp.stage_cost(xg, inputs[:, 0], xg) + ocp.terminal_cost(X[:, T - 1], xg)
-        if T > 1:
-            J += ca.sum2(ocp.stage_cost.map(T - 1)(X[:, : T - 1], inputs[:, 1:], ca.repmat(xg, 1, T - 1)))
-        quadratic = J
+        # The OCP's cost (every term at (x_k, u_k), k = 0 … T−1, and x_T; x_0's terms that do not depend on u are
+        # constants) and its built-in quadratic terms alone, whose constant Hessian the Gauss–Newton one starts from.
+        J, quadratic = _objective(ocp, starts, inputs, X[:, T - 1], goal)
         rows = [ca.vec(predicted - X)]
         tf = ocp.task_functions
-        if tf is not None:  # the task's terms at (x_k, u_k), k = 0 … T−1, and x_T; clearances ≥ 0 at x_1 … x_T
-            J += ca.sum2(tf.stage_cost.map(T)(starts, inputs, ca.repmat(targets, 1, T))) + tf.terminal_cost(X[:, T - 1],
-                                                                                                     targets)
+        if tf is not None:  # clearances ≥ 0 at x_1 … x_T
             if tf.pairs:
                 rows.append(ca.vec(tf.clearance.map(T)(X)[0]))
                 self._pairs = tf.pairs
@@ -173,7 +169,7 @@ class MultipleShooting:
         C_{k+1} = C_k, so each stage's input u_k = φ_k C_k is a function of that stage's variables only."""
         n, m, T, p = ocp.nx, ocp.nu, ocp.horizon, ocp.knots
         x0, goal = ca.MX.sym("x0", n), ca.MX.sym("goal", ocp.ng)
-        xg, targets, tf = goal if ocp.ng == n else goal[:n], goal[n:], ocp.task_functions
+        targets = goal[n:]
         phi = ocp.parameterization.basis
         traditional = ocp.parameterization.kind == "identity"
         c = m if traditional else p * m  # the controls of stage 0 / the carried block of stages 1 … T−1
@@ -200,17 +196,12 @@ class MultipleShooting:
                   for k in range(T)]
         X, controls = ca.horzcat(*states), ca.horzcat(*inputs)
         starts = ca.horzcat(x0, X[:, :-1])
-        J = ocp.stage_cost(xg, inputs[0], xg) + ocp.terminal_cost(X[:, -1], xg)
-        if T > 1:
-            J += ca.sum2(ocp.stage_cost.map(T - 1)(X[:, :-1], controls[:, 1:], ca.repmat(xg, 1, T - 1)))
+        J, quadratic = _objective(ocp, starts, controls, X[:, -1], goal)
         if self.hessian == "exact":
             predicted = ocp.discrete().map(T)(starts, controls)
-            if tf is not None:
-                J += ca.sum2(tf.stage_cost.map(T)(starts, controls, ca.repmat(targets, 1, T)))
-                J += tf.terminal_cost(X[:, -1], targets)
         else:
             predicted, task = self._frozen_first_order(ocp, starts, controls, X[:, -1], targets)
-            J += task
+            J = quadratic + task
         gaps = []
         for k in range(T):
             gap = states[k] - predicted[:, k]  # fatrop's sign: +I on the next stage's variables
@@ -303,6 +294,15 @@ class MultipleShooting:
                 # every step of an nlink:3 reach (with or without an obstacle); BFGS converged in 12 iterations.
                 opts["hessian_approximation"] = "limited-memory"
         return opts
+
+
+def _objective(ocp: OCP, starts, inputs, last, goal):
+    """(the OCP's cost, its built-in quadratic terms alone) of the stages (``starts``, ``inputs``: columns x_k, u_k,
+    k = 0 … T−1) and the last state x_T: :class:`ocpkit.model.cost.Cost` summed over the horizon."""
+    cost, T = ocp.cost, ocp.horizon
+    goals = ca.repmat(goal, 1, T)
+    return tuple(ca.sum2(stage.map(T)(starts, inputs, goals)) + terminal(last, goal)
+                 for stage, terminal in ((cost.stage, cost.terminal), (cost.quadratic_stage, cost.quadratic_terminal)))
 
 
 def _block(M, k: int, size: int):

@@ -46,8 +46,8 @@ def keepout_penalty(centre) -> ca.Function:
 def penalized_costs(ocp, penalty):
     """The OCP's stage and terminal costs plus the penalty, as the CasADi Functions EMPC's rollout takes."""
     x, u, g = ca.SX.sym("x", ocp.nx), ca.SX.sym("u", ocp.nu), ca.SX.sym("x_goal", ocp.nx)
-    return (ca.Function("l", [x, u, g], [ocp.stage_cost(x, u, g) + penalty(x)]),
-            ca.Function("l_T", [x, g], [ocp.terminal_cost(x, g) + penalty(x)]))
+    return (ca.Function("l", [x, u, g], [ocp.cost.stage(x, u, g) + penalty(x)]),
+            ca.Function("l_T", [x, g], [ocp.cost.terminal(x, g) + penalty(x)]))
 
 
 def trial(controller: str, duration: float, population: int, arch: str, seed: int) -> dict:

@@ -60,8 +60,8 @@ def test_problem_dynamics_and_costs_match_casadi(name):
     x = rng.uniform(-2, 2, size=(8, n, 1))
     u = rng.uniform(ocp.u_min, ocp.u_max, size=(8, m)).reshape(8, m, 1)
     goal = rng.uniform(-2, 2, size=(8, n, 1))
-    assert_matches_casadi(ocp.stage_cost, [x, u, goal])
-    assert_matches_casadi(ocp.terminal_cost, [x, goal])
+    assert_matches_casadi(ocp.cost.stage, [x, u, goal])
+    assert_matches_casadi(ocp.cost.terminal, [x, goal])
     if name == "puma560":
         pytest.skip("Puma 560 discrete dynamics take ~45 s to compile: see the slow test")
     assert_matches_casadi(ocp.discrete(), [x, u])

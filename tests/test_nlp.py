@@ -93,10 +93,10 @@ def test_affine_mode_reproduces_linear_mpc_closed_loop(linearization):
 def predicted_cost(ocp, knots, x0, goal):
     """The OCP objective of a knot plan rolled out on F, computed independently of the NLP."""
     F, u, x = ocp.discrete(), ocp.parameterization.inputs(knots), x0
-    cost = float(ocp.stage_cost(goal, u[0], goal))
+    cost = float(ocp.cost.stage(goal, u[0], goal))
     for k in range(ocp.horizon):
         x = np.asarray(F(x, u[k]), dtype=float).ravel()
-        cost += float(ocp.stage_cost(x, u[k + 1], goal)) if k + 1 < ocp.horizon else float(ocp.terminal_cost(x, goal))
+        cost += float(ocp.cost.stage(x, u[k + 1], goal)) if k + 1 < ocp.horizon else float(ocp.cost.terminal(x, goal))
     return cost
 
 

@@ -94,7 +94,7 @@ def test_gravity_compensation_is_the_input_goal(arm):
     np.testing.assert_allclose(ug, pin.computeGeneralizedGravity(reduced, data, goal[:7]), atol=1e-9)
     np.testing.assert_allclose(np.asarray(arm.plant().f(goal, ug)).ravel(), 0, atol=1e-9)
     # The stage cost (IPOPT's, EMPC's) is zero at the goal with that input.
-    assert float(ocp.stage_cost(goal, ug, goal)) == pytest.approx(0, abs=1e-20)
+    assert float(ocp.cost.stage(goal, ug, goal)) == pytest.approx(0, abs=1e-20)
     off = Problem.from_urdf(PANDA, locked_joints=FINGERS, gravity_compensation=False).ocp(knots=5)
     np.testing.assert_array_equal(off.input_goal(goal), 0)
 

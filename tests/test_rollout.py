@@ -13,8 +13,8 @@ pytestmark = pytest.mark.usefixtures("taichi_arch")
 
 def reference_costs(ocp, knots, x0, goal, step, stage=None, terminal=None):
     """Σ_{k<T} l(x_k, u_k) + l_T(x_T) by a Python loop over candidates and steps (CasADi costs)."""
-    stage = ocp.stage_cost if stage is None else stage
-    terminal = ocp.terminal_cost if terminal is None else terminal
+    stage = ocp.cost.stage if stage is None else stage
+    terminal = ocp.cost.terminal if terminal is None else terminal
     costs = []
     for U in knots:
         x, J = x0.copy(), 0.0

@@ -120,7 +120,7 @@ def rollout(ocp: OCP, x0, inputs) -> np.ndarray:
 
 
 def objective(ocp: OCP, goal, states, inputs) -> float:
-    """ocpkit's cost (``ocp.stage_cost``, ``ocp.terminal_cost``) of states x_0 … x_T and inputs u_0 … u_{T−1}:
+    """ocpkit's cost (``ocp.cost``) of states x_0 … x_T and inputs u_0 … u_{T−1}:
     Σ_{k=1}^{T−1} ℓ(x_k, u_k) + the input term of u_0 + ℓ_T(x_T), the x_0 term left out as ocpkit does."""
     X, U = np.asarray(states, dtype=float), np.asarray(inputs, dtype=float)
     T = U.shape[0]
@@ -128,8 +128,8 @@ def objective(ocp: OCP, goal, states, inputs) -> float:
         raise ValueError(f"states must be ({T + 1}, {ocp.nx}) and inputs ({T}, {ocp.nu}), got {X.shape}, {U.shape}")
     xg = np.asarray(goal, dtype=float)[:ocp.nx]
     starts = np.vstack([xg, X[1:T]])  # x_0's state error counted as zero
-    stage = np.asarray(ocp.stage_cost.map(T)(starts.T, U.T, np.repeat(xg[:, None], T, axis=1)), dtype=float)
-    return float(stage.sum()) + float(ocp.terminal_cost(X[T], xg))
+    stage = np.asarray(ocp.cost.stage.map(T)(starts.T, U.T, np.repeat(xg[:, None], T, axis=1)), dtype=float)
+    return float(stage.sum()) + float(ocp.cost.terminal(X[T], xg))
 
 
 class ShootingOCP:

@@ -11,9 +11,10 @@ with K = ``u_goal_gain`` (zero by default, the paper's u_goal = 0): for a robot 
 (Baxter) the input that holds the goal is the goal position itself. Every solver reads this one description: the QPs
 through its affine model, IPOPT through F, EMPC through the translated kernels.
 
-The two quadratic sums are the cost's built-in terms "state" and "input"; a :class:`ocpkit.model.task.Task` adds named,
-weighted terms (frame position and orientation targets, joint-limit barriers, user residuals) and obstacles. The
-goal is then [x_goal; the terms' targets] (``ng`` entries, :meth:`OCP.goal`); without a task it is x_goal.
+The two quadratic sums are the cost's built-in terms "state" and "input" (:class:`ocpkit.model.cost.Cost`, the cost
+as named terms that every solver reads); a :class:`ocpkit.model.task.Task` adds named, weighted terms (frame
+position and orientation targets, joint-limit barriers, user residuals) and obstacles. The goal is then
+[x_goal; the terms' targets] (``ng`` entries, :meth:`OCP.goal`); without a task it is x_goal.
 """
 from __future__ import annotations
 
@@ -22,6 +23,7 @@ import numpy as np
 
 from ocpkit._checks import array, bounds, choice, integer, positive, weight
 from ocpkit.codegen.compiled import SwitchingFunction, compile_function, compile_in_background
+from ocpkit.model.cost import Cost
 from ocpkit.model.dynamics import INTEGRATORS, Model
 from ocpkit.numeric import BufferedFunction
 from ocpkit.model.parameterization import Parameterization
@@ -74,19 +76,13 @@ class OCP:
         self.parameterization = parameterization
         self._compiled_affine = None  # compiled=True: the compiled model; None: the switching one, once made
         self.knots = parameterization.knots
-        x, u, xg = ca.SX.sym("x", n), ca.SX.sym("u", m), ca.SX.sym("x_goal", n)
-        ex, eu = x - xg, u - ca.DM(self.u_goal) - ca.mtimes(ca.DM(self.u_goal_gain), xg)
-        self.stage_cost = ca.Function("stage_cost", [x, u, xg], [ca.bilin(ca.DM(self.Q), ex, ex)
-                                      + ca.bilin(ca.DM(self.R), eu, eu)], ["x", "u", "x_goal"], ["l"])
-        self.terminal_cost = ca.Function("terminal_cost", [x, xg], [ca.bilin(ca.DM(self.Q_terminal), ex, ex)],
-                                         ["x", "x_goal"], ["l_T"])
         if task is not None and not isinstance(task, Task):
             raise TypeError(f"task must be an ocpkit.model.task.Task or None, got {type(task).__name__}")
         self.task = task
         # The task's Functions (None without a task, or with no active term and no obstacle: nothing changes)
         self.task_functions = None if task is None or not (task.active_terms or task.obstacles) else task.compile(n, m)
         self.ng = n + (0 if task is None else task.target_size)
-        self._full_costs = None
+        self._cost = None
         self._task_maps = None  # task_maps(), once made
 
     def __repr__(self):
@@ -96,8 +92,8 @@ class OCP:
 
     @property
     def terms(self) -> list[str]:
-        """The cost's active terms by name: "state" and "input" (Q, R), then the task's."""
-        return ["state", "input"] + ([t.name for t in self.task.active_terms] if self.task else [])
+        """The cost's active terms by name: "state" and "input" (Q, R), then the task's (:attr:`cost`)."""
+        return self.cost.names
 
     def goal(self, x_goal=None, **targets) -> np.ndarray:
         """The goal vector [x_goal; targets in the task's order] (x_goal zero where not given); every target named."""
@@ -121,20 +117,16 @@ class OCP:
                              f"x_goal and the targets {sorted(self.task.targets)}; build it with ocp.goal(...)")
         return array(goal, name, (self.ng,))
 
-    def full_costs(self) -> tuple[ca.Function, ca.Function]:
-        """(stage (x, u, goal) -> l, terminal (x, goal) -> l_T): every active term of the cost, goal of ``ng``
-        entries. Without a task, ``stage_cost`` and ``terminal_cost`` themselves."""
-        if self.ng == self.nx and self.task_functions is None:
-            return self.stage_cost, self.terminal_cost
-        if self._full_costs is None:
-            n, tf = self.nx, self.task_functions
-            x, u, g = ca.SX.sym("x", n), ca.SX.sym("u", self.nu), ca.SX.sym("goal", self.ng)
-            l, l_T = self.stage_cost(x, u, g[:n]), self.terminal_cost(x, g[:n])
-            if tf is not None:
-                l, l_T = l + tf.stage_cost(x, u, g[n:]), l_T + tf.terminal_cost(x, g[n:])
-            self._full_costs = (ca.Function("stage_cost", [x, u, g], [l], ["x", "u", "goal"], ["l"]),
-                                ca.Function("terminal_cost", [x, g], [l_T], ["x", "goal"], ["l_T"]))
-        return self._full_costs
+    @property
+    def cost(self) -> Cost:
+        """The cost as named terms ("state", "input", then the task's), built once: :class:`ocpkit.model.cost.Cost`."""
+        if self._cost is None:
+            self._cost = Cost(self)
+        return self._cost
+
+    def input_error(self, u, x_goal):
+        """u − u_g(x_goal) as a CasADi expression: the "input" term's residual (u_g as :meth:`input_goal`)."""
+        return u - ca.DM(self.u_goal) - ca.mtimes(ca.DM(self.u_goal_gain), x_goal)
 
     @property
     def has_state_bounds(self) -> bool:

@@ -239,9 +239,9 @@ class Problem:
 class GoalInputOCP(OCP):
     """An OCP whose input goal is u_g(x_goal) = u_goal + K x_goal + h(x_goal) with a CasADi Function h.
 
-    Everything that reads the input goal — the QPs' expansion point and R term, the fallback, IPOPT's and
-    EMPC's stage cost — goes through :meth:`input_goal` and ``stage_cost``, both extended here; the exported C
-    step generates h into its C (``ocpkit.export``).
+    Everything that reads the input goal — the QPs' expansion point and R term, the fallback, the cost's "input"
+    term that IPOPT and EMPC read — goes through :meth:`input_goal` and :meth:`input_error`, both extended here;
+    the exported C step generates h into its C (``ocpkit.export``).
     """
 
     def __init__(self, *args, goal_input: ca.Function, **kwargs):
@@ -254,11 +254,10 @@ class GoalInputOCP(OCP):
                              f"{goal_input.size_in(0) if goal_input.n_in() else None} -> "
                              f"{goal_input.size_out(0) if goal_input.n_out() else None}")
         self.goal_input = goal_input
-        x, u, xg = ca.SX.sym("x", self.nx), ca.SX.sym("u", self.nu), ca.SX.sym("x_goal", self.nx)
-        ex = x - xg
-        eu = u - ca.DM(self.u_goal) - ca.mtimes(ca.DM(self.u_goal_gain), xg) - goal_input(xg)
-        self.stage_cost = ca.Function("stage_cost", [x, u, xg], [ca.bilin(ca.DM(self.Q), ex, ex)
-                                      + ca.bilin(ca.DM(self.R), eu, eu)], ["x", "u", "x_goal"], ["l"])
+
+    def input_error(self, u, x_goal):
+        """u − u_goal − K x_goal − h(x_goal): the "input" term's residual."""
+        return super().input_error(u, x_goal) - self.goal_input(x_goal)
 
     def input_goal(self, x_goal) -> np.ndarray:
         """u_g = u_goal + K x_goal + h(x_goal), the last one kept: a step asks for it two or three times, and h

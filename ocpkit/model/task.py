@@ -69,9 +69,18 @@ def length(value, name: str, *, signed: bool = False) -> float:
     return v
 
 
+class FixedFrameError(ValueError):
+    """A target for ``frame``, a frame fixed to the world; ``reason`` is the message after the frame's name (for a
+    caller that names the frame itself)."""
+
+    def __init__(self, frame: str, reason: str):
+        super().__init__(f"frame {frame!r} {reason}")
+        self.frame, self.reason = frame, reason
+
+
 def check_frame(kinematics, frame: str) -> str:
     """``frame`` if it names a frame that moves with the joints; a frame fixed to the world ("universe", a base
-    link) cannot be brought anywhere, so a target for it is refused."""
+    link) cannot be brought anywhere, so a target for it is refused (:class:`FixedFrameError`)."""
     q = ca.SX.sym("q", kinematics.n)
 
     def moves(name):  # an unknown frame fails here, with its name and the model's frames
@@ -80,8 +89,8 @@ def check_frame(kinematics, frame: str) -> str:
 
     if not moves(frame):
         moving = [f for f in kinematics.frames if moves(f)]
-        raise ValueError(f"frame {frame!r} is fixed to the world (it does not move with the joints); a target needs "
-                         f"one of the robot's moving frames: {', '.join(moving)}")
+        raise FixedFrameError(frame, "is fixed to the world (it does not move with the joints); a target needs one of "
+                                     f"the robot's moving frames: {', '.join(moving)}")
     return frame
 
 
@@ -319,9 +328,9 @@ class CompiledTask:
 
     Goal-target vector g (``size`` entries, the targets in order). Functions:
 
-    * ``stage_cost`` (x, u, g) -> Σ_i r_iᵀW_ir_i and ``terminal_cost`` (x, g) -> the terminal terms' sum;
     * ``stage_residual`` (x, u, g) -> (r, ∂r/∂x, ∂r/∂u) and ``terminal_residual`` (x, g) -> (r, ∂r/∂x) with the
-      weights ``stage_weight``, ``terminal_weight`` (Gauss–Newton, the QPs);
+      weights ``stage_weight``, ``terminal_weight``: the Gauss–Newton model of the QPs, and the task's terms of
+      the OCP's cost (:class:`ocpkit.model.cost.Cost`, :meth:`term_cost`), in the order of ``names``;
     * ``clearance`` (x) -> (d − margin per pair, its Jacobian, pairs × nx; robot spheres outer: pair i·N + j is
       robot sphere i and obstacle j of N) and ``penalty`` (x) -> the sampling planners' exact penalty of one state
       (zero without obstacles);
@@ -341,18 +350,21 @@ class CompiledTask:
         self.size = task.target_size
         x, u, g = ca.SX.sym("x", nx), ca.SX.sym("u", nu), ca.SX.sym("g", self.size)
         stage, terminal, ws, wt, offset = [], [], [], [], 0
+        self.names, self._rows = [], {"stage": {}, "terminal": {}}  # a term's rows in the stacked residuals
         for term in task.terms:
             target = g[offset:offset + term.target_size]
             offset += term.target_size
             if not term.active:
                 continue
+            self.names.append(term.name)
             r, w, wT = term.expression(x, u, target)
-            if term.stage:
-                stage.append(r)
-                ws.append(w)
-            if term.terminal:
-                terminal.append(r)
-                wt.append(wT)
+            for part, rs, weights, weight, on in (("stage", stage, ws, w, term.stage),
+                                                  ("terminal", terminal, wt, wT, term.terminal)):
+                if on:
+                    start = sum(len(v) for v in weights)
+                    self._rows[part][term.name] = slice(start, start + r.numel())
+                    rs.append(r)
+                    weights.append(weight)
         rs, rt = ca.vertcat(*stage) if stage else ca.SX(0, 1), ca.vertcat(*terminal) if terminal else ca.SX(0, 1)
         self.stage_weight = np.concatenate(ws) if ws else np.zeros(0)
         self.terminal_weight = np.concatenate(wt) if wt else np.zeros(0)
@@ -361,10 +373,6 @@ class CompiledTask:
                                           ["r", "r_x", "r_u"])
         self.terminal_residual = ca.Function("task_terminal_residual", [x, g], [rt, ca.jacobian(rt, x)],
                                              ["x", "g"], ["r", "r_x"])
-        self.stage_cost = ca.Function("task_stage_cost", [x, u, g], [ca.dot(rs, ca.DM(self.stage_weight) * rs)],
-                                      ["x", "u", "g"], ["l"])
-        self.terminal_cost = ca.Function("task_terminal_cost", [x, g], [ca.dot(rt, ca.DM(self.terminal_weight) * rt)],
-                                         ["x", "g"], ["l_T"])
         self.pairs = task.pairs
         # The obstacles (4 × N: centre, radius) and each robot sphere's radius plus the margin kept from them (k)
         self.table = np.array([[*o.center, o.radius] for o in task.obstacles], dtype=float).reshape(-1, 4).T
@@ -381,6 +389,15 @@ class CompiledTask:
         h = ca.fmax(0, -ca.mmin(values(xm, ca.DM(self.table))))
         self.penalty = ca.Function("obstacle_penalty", [xm], [task.obstacle_weight * (h + 0.5 * h * h)], ["x"],
                                    ["penalty"])
+
+    def term_cost(self, name: str, r, part: str):
+        """Term ``name``'s r_iᵀW_ir_i from the stacked residuals ``r`` of ``part`` ("stage" or "terminal"); zero
+        where the term has no such part."""
+        rows = self._rows[part].get(name)
+        if rows is None:
+            return ca.SX(0)
+        weight = (self.stage_weight if part == "stage" else self.terminal_weight)[rows]
+        return ca.dot(r[rows], ca.DM(weight) * r[rows])
 
     def pair_clearances(self, C: np.ndarray) -> np.ndarray:
         """d − margin of every pair, (M, k, N), from the robot spheres' centres C (3, M, k) at M states."""

@@ -7,21 +7,28 @@ from ocpkit.model.ocp import OCP
 from ocpkit.sim.simulate import Trajectory
 
 
+def cost_by_term(traj: Trajectory, ocp: OCP) -> dict[str, float]:
+    """The actual cost split by the OCP's cost terms (``ocp.cost.names``: "state", "input", the task's).
+
+    Every term at the recorded states and applied inputs (x_i, u_i), i = 0 … H−1, towards the goal, and the "state"
+    term also at the last state x_H (obstacles are not a cost here)."""
+    cost, H = ocp.cost, traj.u.shape[0]
+    goal = ocp.check_goal(traj.goal, "the trajectory's goal")
+    terms = np.zeros(len(cost.names))
+    if H:
+        stage = cost.stage_terms.map(H)(traj.x[:-1].T, traj.u.T, np.repeat(goal[:, None], H, axis=1))
+        terms += np.asarray(stage, dtype=float).sum(axis=1)
+    terms[0] += float(cost.stage_terms(traj.x[-1], np.zeros(ocp.nu), goal)[0])  # "state" reads no input
+    return dict(zip(cost.names, terms.tolist()))
+
+
 def actual_cost(traj: Trajectory, ocp: OCP) -> float:
     """The MPC objective evaluated on the states and inputs actually applied (paper eq. actual_cost).
 
-    Σ_{i=0}^{H} J(x_i, u_i) with J the OCP's stage cost: every recorded state x_0 … x_H against the
-    goal and every applied input u_0 … u_{H−1} against the input goal. With a task (``ocp.task``) its active
-    stage terms are added at (x_i, u_i), i = 0 … H−1, towards the goal's targets (obstacles are not a cost here).
-    """
-    x_goal = traj.goal[:ocp.nx]
-    ex = traj.x - x_goal
-    eu = traj.u - ocp.input_goal(x_goal)
-    cost = float(np.einsum("ij,jk,ik->", ex, ocp.Q, ex) + np.einsum("ij,jk,ik->", eu, ocp.R, eu))
-    if ocp.task_functions is not None and traj.u.shape[0]:
-        H, targets = traj.u.shape[0], np.repeat(traj.goal[ocp.nx:, None], traj.u.shape[0], axis=1)
-        cost += float(np.asarray(ocp.task_functions.stage_cost.map(H)(traj.x[:-1].T, traj.u.T, targets)).sum())
-    return cost
+    Σ_{i=0}^{H} J(x_i, u_i) with J the OCP's stage cost: every recorded state x_0 … x_H against the goal and every
+    applied input u_0 … u_{H−1} against the input goal; a task's terms at (x_i, u_i), i = 0 … H−1 (the sum of
+    :func:`cost_by_term`)."""
+    return float(sum(cost_by_term(traj, ocp).values()))
 
 
 def actual_cost_ratio(traj: Trajectory, reference: Trajectory, ocp: OCP) -> float:

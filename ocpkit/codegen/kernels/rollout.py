@@ -54,7 +54,7 @@ def fitness(ocp):
     """(stage (x, u, goal), terminal (x, goal)): the OCP's cost over its whole goal vector, plus at every state
     x_0 … x_T the exact penalties of what the QPs hold as constraints: a task's obstacles (ocpkit.model.task) and the
     state bounds, STATE_BOUND_WEIGHT·Σ_i (h_i + ½h_i²) with h_i the violation of component i's bound."""
-    stage, terminal = ocp.full_costs()
+    stage, terminal = ocp.cost.stage, ocp.cost.terminal
     tf = ocp.task_functions
     x, u, g = ca.SX.sym("x", ocp.nx), ca.SX.sym("u", ocp.nu), ca.SX.sym("goal", ocp.ng)
     penalty = tf.penalty(x) if tf is not None and tf.pairs else 0
