@@ -7,11 +7,10 @@ import numpy as np
 import pytest
 
 from ocpkit import problems
-from ocpkit.export.constants import CERT_CODE, ILL_CONDITIONED
-from ocpkit.export.library import _explain_rc
+from ocpkit.export.library import c_reason
 from ocpkit.qp.quadratic_program import QP
 from ocpkit.solvers.qp import LinearMPC
-from ocpkit.status import INFEASIBLE, NAN, SOFT, STATUSES, SUCCESS, Reason, Refusal, Solution, Status
+from ocpkit.status import INFEASIBLE, NAN, REASONS, SOFT, STATUSES, SUCCESS, Reason, Refusal, Solution, Status
 
 PENDULUM = problems.make("pendulum")
 X0, GOAL = PENDULUM.sample(0)
@@ -55,10 +54,7 @@ def test_reasons_of_the_controller_and_the_c_step():
     assert ctrl.solve([1e20, 0.0], GOAL).reason is Reason.STATE_BEYOND_LIMIT
     ok = ctrl.solve(X0, GOAL)
     assert ok.ok and ok.reason is None
-    assert _explain_rc("mpc", "daqp", ILL_CONDITIONED, ())[1] is Reason.ILL_CONDITIONED
-    assert _explain_rc("mpc", "daqp", CERT_CODE, (1.0,))[1] is Reason.CERTIFICATE_FAILED
-    assert [_explain_rc("mpc", "daqp", rc, ())[1] for rc in (-1, -4, -7, 1)] == [
-        Reason.QP_INFEASIBLE, Reason.ITERATION_LIMIT, Reason.TIME_BUDGET, None]
+    assert c_reason(0) is None and [c_reason(1 + REASONS.index(r)) for r in Reason] == list(Reason)  # C's codes
 
 
 def test_the_nonlinear_and_sampling_controllers_say_why():
