@@ -262,8 +262,8 @@ def _joint_limits(problem, where: str) -> tuple[np.ndarray, np.ndarray]:
 def reach_ocp(problem, args, task: Reach, **options):
     """ocpkit.model.task.reach for the command line's task, after the checks that name its options: frames, targets
     within the robot's workspace, and the orientation, other frames and joint-limit terms (ocpkit.model.task)."""
-    from ocpkit.model.task import (FrameOrientation, FramePosition, JointLimitBarrier, check_frame, check_point, reach,
-                             workspace_radius)
+    from ocpkit.model.task import (FixedFrameError, FrameOrientation, FramePosition, JointLimitBarrier, check_frame,
+                                   check_point, reach, workspace_radius)
 
     kinematics = getattr(problem, "kinematics", None)
     if kinematics is None:
@@ -280,8 +280,10 @@ def reach_ocp(problem, args, task: Reach, **options):
                                        *((t.frame, t.target, t.source, t.source) for t in task.frame_targets)]:
         try:
             check_frame(kinematics, frame)
+        except FixedFrameError as exc:  # named already names the frame
+            raise ValueError(f"{named}: {exc.reason}") from None
         except (TypeError, ValueError) as exc:
-            raise ValueError(f"{named}: {str(exc).removeprefix(f'frame {frame!r} ')}") from None
+            raise ValueError(f"{named}: {exc}") from None
         check_point(point, radius, where)
     terms = []
     weight = task.options.get("position_weight", 1e3)  # reach()'s default
