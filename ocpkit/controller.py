@@ -135,6 +135,9 @@ class Controller:
     # A plan whose nonlinear prediction collides (deeper than the start) within this many steps is refused: the
     # sampling planners, judging collisions on the affine model, had applied such plans as "soft" on the Panda.
     COLLISION_AHEAD = 5
+    # What a step takes beyond a held goal (solve's arguments): "goal window" (a goal that moves over the horizon),
+    # "obstacles" (where the task's obstacles are now), "initial guess" (a user's plan)
+    TAKES: frozenset = frozenset()
 
     def __init__(self, ocp: OCP, *, raise_on_fail: bool = False, threads: int | None = 1):
         if not isinstance(ocp, OCP):
@@ -153,6 +156,7 @@ class Controller:
         self._plan_check = PlanCheck(ocp)
         self._check_costs = OperationCosts()  # the certificate's measured time, kept out of the solvers' budgets
         self._brake = Brake(ocp)
+        self._declared = ocp.obstacle_window()  # the task's declared obstacles at every stage (None: it has none)
         nq = ocp.model.second_order
         velocities = np.arange(nq or 0, ocp.nx if nq else 0)
         bound = np.maximum(np.abs(ocp.x_min[velocities]), np.abs(ocp.x_max[velocities]))
@@ -192,23 +196,44 @@ class Controller:
         self._goal = np.zeros(self.ocp.nx)
         self._x = np.zeros(self.ocp.nx)  # the state of the step in flight (the fallback brakes from it)
         self.task_goal = np.zeros(self.ocp.ng)
+        self.goal_window = np.zeros((self.ocp.horizon + 1, self.ocp.ng))
+        self.moving, self.obstacle_window, self.guess = False, self._declared, None
         self._refused = 0  # refused steps in a row
         self._first_step = True  # the divergence warning is due
 
-    def solve(self, x, goal) -> Solution:
+    def solve(self, x, goal, *, obstacles=None, initial_guess=None) -> Solution:
         """Solve the MPC problem from state x towards ``goal``; return the first input and more.
 
         ``goal`` is the goal state, or with a task (``ocp.task``) the goal vector [x_goal; targets] of
-        :meth:`OCP.goal`. Solvers' ``_solve`` receive x_goal; the whole vector is ``self.task_goal``."""
-        x = self.ocp.check_state(x, "x")
-        full = self.ocp.check_goal(goal)
-        goal = full[:self.ocp.nx]
+        :meth:`OCP.goal`, held over the horizon; or the goal at every stage k = 0 … T, (T+1, ng): a reference's
+        window (:mod:`ocpkit.model.reference`). ``obstacles``: where the task's obstacles are now, (N, 4) (centre,
+        radius), or at every stage, (T+1, N, 4); None: where the task declares them. ``initial_guess``: a plan to
+        start from instead of the previous step's, as knots (p, m) or inputs (T, m). A controller takes what its
+        class lists in ``TAKES`` and refuses the rest naming it.
+
+        Solvers' ``_solve`` receive stage 0's x_goal; the whole goal vector of stage 0 is ``self.task_goal``, the
+        window ``self.goal_window`` (``self.moving``: whether it moves), the obstacles ``self.obstacle_window`` and
+        the guess's knots ``self.guess`` (None: none given)."""
+        ocp = self.ocp
+        x = ocp.check_state(x, "x")
+        window = ocp.goal_window(goal)
+        moving = bool((window != window[0]).any())
+        obstacle_window = self._declared if obstacles is None else ocp.obstacle_window(obstacles)
+        guess = None if initial_guess is None else ocp.guess_knots(initial_guess)
+        for given, what in ((moving, "goal window"), (obstacles is not None, "obstacles"),
+                            (guess is not None, "initial guess")):
+            if given and what not in self.TAKES:
+                raise ValueError(f"{type(self).__name__} does not take a moving {what} yet (it takes: "
+                                 f"{', '.join(sorted(self.TAKES)) or 'a held goal only'})")
+        full = window[0]
+        goal = full[:ocp.nx]
         with self._lock, _ThreadLimit(self._threads):
             start = self._step_start = time.perf_counter()
             self._goal = goal  # for the fallback's cold-start input
             self._x = x
-            self.task_goal = full
-            big = max(np.abs(x).max(initial=0.0), np.abs(full).max(initial=0.0))
+            self.task_goal, self.goal_window, self.moving = full, window, moving
+            self.obstacle_window, self.guess = obstacle_window, guess
+            big = max(np.abs(x).max(initial=0.0), np.abs(window).max(initial=0.0))
             if big > self._state_limit:
                 sol = self.fallback(NAN, f"state or goal magnitude {big:.3g} beyond state_limit "
                                          f"{self._state_limit:.3g}: no solver run", reason=Reason.STATE_BEYOND_LIMIT)
@@ -291,7 +316,7 @@ class Controller:
             return sol
         start = time.perf_counter()
         xs = self.rollout(x, self.ocp.parameterization.inputs(sol.knots))
-        violation = self._plan_check.violation(xs, ahead=self.COLLISION_AHEAD)
+        violation = self._plan_check.violation(xs, ahead=self.COLLISION_AHEAD, obstacles=self._moved_obstacles())
         self._check_costs.add("certificate", time.perf_counter() - start)
         if violation is None:
             return sol
@@ -301,6 +326,10 @@ class Controller:
         sol.status, sol.raw_status, sol.violation = SOFT, f"{sol.raw_status}; soft: {violation}", violation
         sol.reason = violation.kind
         return sol
+
+    def _moved_obstacles(self) -> np.ndarray | None:
+        """The step's obstacle window where it is not the declared obstacles' (None: the declared ones)."""
+        return None if self.obstacle_window is self._declared else self.obstacle_window
 
     def _outside_trust_region(self, x: np.ndarray) -> str:
         """Why x is outside the model's trust region (a joint velocity beyond TRUST_REGION times its bound), or ""."""
@@ -418,7 +447,8 @@ class Controller:
         if replay and self._refused < self.stale_steps:
             knots = self.goal_knots(self._goal) if self.plan is None else par.shift(self.plan)
             knots = np.clip(np.nan_to_num(knots), ocp.u_min, ocp.u_max)
-            if self._plan_check.needed and self._plan_check.violation(self.rollout(self._x, par.inputs(knots))):
+            if self._plan_check.needed and self._plan_check.violation(self.rollout(self._x, par.inputs(knots)),
+                                                                      obstacles=self._moved_obstacles()):
                 knots = None
         if knots is None:
             u_hold = np.clip(ocp.input_goal(self._goal), ocp.u_min, ocp.u_max)

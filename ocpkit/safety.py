@@ -77,8 +77,9 @@ class PlanCheck:
         """Whether the OCP has anything to certify beyond finiteness (obstacles or finite state bounds)."""
         return bool(self.pairs or self._bounded.size)
 
-    def violation(self, xs: np.ndarray, ahead: int = 0) -> Violation | None:
-        """The worst violation along x_1 … x_T of ``xs`` (T+1, n), or None if the plan keeps them all. With ``ahead``
+    def violation(self, xs: np.ndarray, ahead: int = 0, obstacles: np.ndarray | None = None) -> Violation | None:
+        """The worst violation along x_1 … x_T of ``xs`` (T+1, n), or None if the plan keeps them all; the obstacles
+        the task's declared ones, or ``obstacles`` (T+1, N, 4), where each is at each stage (moving). With ``ahead``
         a collision within x_1 … x_ahead — true clearance below zero and below x_0's (a start already inside an
         obstacle may move within it, not deeper) — comes first, as kind COLLISION: a plan that drives into an
         obstacle within those steps is refused, not applied as "soft"."""
@@ -97,10 +98,12 @@ class PlanCheck:
         if self.pairs:
             tf = self.ocp.task_functions
             centres = np.asarray(self.ocp.task_maps()["spheres"](X.T)[0]).reshape(3, len(X), -1)
-            d = tf.pair_clearances(centres).reshape(len(X), -1).T  # (pairs, stages): pair robot sphere · N + obstacle
+            moving = (None, None) if obstacles is None else (obstacles[1:len(xs)], obstacles[:1])
+            # (pairs, stages): pair robot sphere · N + obstacle
+            d = tf.pair_clearances(centres, moving[0]).reshape(len(X), -1).T
             if ahead:
                 start = np.asarray(tf.spheres(xs[0])[0]).reshape(3, 1, -1)
-                floor = min(0.0, float(tf.pair_clearances(start).min()) + self.margin)
+                floor = min(0.0, float(tf.pair_clearances(start, moving[1]).min()) + self.margin)
                 near = d[:, :ahead].min(axis=0) + self.margin  # true clearance at x_1 … x_ahead
                 if near.min() < floor - 1e-9:
                     k = int(np.argmax(near < floor - 1e-9))

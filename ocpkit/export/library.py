@@ -161,10 +161,10 @@ class ExportedMPC(Controller):
         knots = np.ascontiguousarray(array(knots, "knots", (self.ocp.knots, self.ocp.nu)))
         self._set_plan(self._mem, knots.ctypes.data)
 
-    def solve(self, x, goal) -> Solution:
+    def solve(self, x, goal, **step) -> Solution:
         """:meth:`Controller.solve`; where the step was refused and the library can take it, the library follows
         the plan this controller answered with (the shifted plan or the brake, :meth:`Controller.fallback`)."""
-        sol = super().solve(x, goal)
+        sol = super().solve(x, goal, **step)
         if sol.fallback and self._set_plan is not None:
             self.set_plan(sol.knots)
         return sol

@@ -128,6 +128,55 @@ class OCP:
         """u − u_g(x_goal) as a CasADi expression: the "input" term's residual (u_g as :meth:`input_goal`)."""
         return u - ca.DM(self.u_goal) - ca.mtimes(ca.DM(self.u_goal_gain), x_goal)
 
+    def goal_names(self) -> list[str]:
+        """The goal vector's entries by name: the model's state names, then each target's entries as
+        "<term>[i]" (a reference file's columns, :meth:`ocpkit.model.reference.Reference.load`)."""
+        sizes = self.task.targets if self.task is not None else {}
+        return list(self.model.state_names) + [f"{name}[{i}]" for name, size in sizes.items() for i in range(size)]
+
+    def goal_window(self, goal, name: str = "goal") -> np.ndarray:
+        """The goal at every stage k = 0 … T, (T+1, ng): a goal vector (``ng`` entries) held, or a window as given
+        (a :class:`ocpkit.model.reference.Reference`'s), finite numbers either way (:meth:`goal` checks targets)."""
+        if np.ndim(goal) == 2:
+            return array(goal, name, (self.horizon + 1, self.ng))
+        return np.broadcast_to(self.check_goal(goal, name), (self.horizon + 1, self.ng))
+
+    def obstacle_window(self, obstacles=None, name: str = "obstacles") -> np.ndarray | None:
+        """The task's obstacles at every stage k = 0 … T, (T+1, N, 4) (centre, radius): None (the declared ones),
+        (N, 4) held, or (T+1, N, 4) as given (an :class:`ocpkit.model.reference.ObstaclePath`'s window). None where
+        the task has no obstacles (then ``obstacles`` must be None)."""
+        from ocpkit.model.task import MAX_LENGTH
+
+        declared = self.task.obstacles if self.task is not None else []
+        if not declared:
+            if obstacles is not None:
+                raise ValueError(f"{name} given, but this OCP's task declares no obstacles to move")
+            return None
+        N, T = len(declared), self.horizon
+        if obstacles is None:
+            table = np.array([[*o.center, o.radius] for o in declared], dtype=float)
+            return np.broadcast_to(table, (T + 1, N, 4))
+        if np.ndim(obstacles) == 2:
+            window = np.broadcast_to(array(obstacles, name, (N, 4)), (T + 1, N, 4))
+        else:
+            window = array(obstacles, name, (T + 1, N, 4))
+        radii = window[..., 3]
+        if (radii <= 0).any() or (radii > MAX_LENGTH).any() or (np.abs(window[..., :3]) > 1e3 * MAX_LENGTH).any():
+            raise ValueError(f"{name}: radii must be > 0 and at most {MAX_LENGTH:g} m, centres within "
+                             f"{1e3 * MAX_LENGTH:g} m, got radii {np.unique(radii).tolist()[:5]}")
+        return window
+
+    def guess_knots(self, initial_guess, name: str = "initial_guess") -> np.ndarray:
+        """A user's plan as knots (p, m): knots as given, or inputs over the horizon (T, m) fitted by least squares
+        (exact when they lie in the parameterization's span)."""
+        guess = np.asarray(initial_guess, dtype=float)
+        p, T, m = self.knots, self.horizon, self.nu
+        if guess.shape == (p, m):
+            return array(guess, name, (p, m))
+        if guess.shape == (T, m):
+            return self.parameterization.fit(array(guess, name, (T, m)))
+        raise ValueError(f"{name} must be knots ({p}, {m}) or inputs over the horizon ({T}, {m}), got {guess.shape}")
+
     @property
     def has_state_bounds(self) -> bool:
         return bool(np.isfinite(self.x_min).any() or np.isfinite(self.x_max).any())

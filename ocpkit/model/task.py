@@ -399,10 +399,13 @@ class CompiledTask:
         weight = (self.stage_weight if part == "stage" else self.terminal_weight)[rows]
         return ca.dot(r[rows], ca.DM(weight) * r[rows])
 
-    def pair_clearances(self, C: np.ndarray) -> np.ndarray:
-        """d − margin of every pair, (M, k, N), from the robot spheres' centres C (3, M, k) at M states."""
-        d = np.sqrt(sum((C[a][:, :, None] - self.table[a]) ** 2 for a in range(3)))
-        d -= self.radii[:, None] + self.table[3]
+    def pair_clearances(self, C: np.ndarray, obstacles: np.ndarray | None = None) -> np.ndarray:
+        """d − margin of every pair, (M, k, N), from the robot spheres' centres C (3, M, k) at M states; the
+        obstacles the declared ones, or ``obstacles`` (M, N, 4) at each state (centre, radius: an obstacle window's
+        rows, :meth:`ocpkit.model.ocp.OCP.obstacle_window`)."""
+        table = self.table if obstacles is None else np.transpose(obstacles, (2, 0, 1))[:, :, None, :]
+        d = np.sqrt(sum((C[a][:, :, None] - table[a]) ** 2 for a in range(3)))
+        d -= self.radii[:, None] + table[3]
         return d
 
     def _spheres(self, x) -> ca.Function:
@@ -438,17 +441,21 @@ class CompiledTask:
 
 
 def clearances(kinematics, robot, obstacles, q_rows) -> np.ndarray:
-    """The true clearance (m, no margin) at each configuration (rows of ``q_rows``, (N, n)): the smallest distance
+    """The true clearance (m, no margin) at each configuration (rows of ``q_rows``, (M, n)): the smallest distance
     between the surfaces of a robot sphere (:class:`ocpkit.model.kinematics.RobotSphere`) and an obstacle; negative:
-    they overlap, a collision."""
+    they overlap, a collision. ``obstacles``: :class:`Sphere` s, or where they are at each configuration, (M, N, 4)
+    (centre, radius; moving obstacles)."""
     from ocpkit.model.kinematics import sphere_centers
 
     q_rows = np.atleast_2d(np.asarray(q_rows, dtype=float))
     radii = np.array([s.radius for s in robot])
     C = np.asarray(sphere_centers(kinematics, robot).map(len(q_rows))(q_rows.T)).reshape(3, len(q_rows), len(robot))
+    if not isinstance(obstacles, np.ndarray):
+        obstacles = np.array([[[*o.center, o.radius] for o in obstacles]] * len(q_rows), dtype=float)
     out = np.full(len(q_rows), np.inf)
-    for o in obstacles:
-        d = np.linalg.norm(C - np.asarray(o.center)[:, None, None], axis=0) - radii[None, :] - o.radius
+    for j in range(obstacles.shape[1]):
+        centre, radius = obstacles[:, j, :3].T[:, :, None], obstacles[:, j, 3][:, None]
+        d = np.linalg.norm(C - centre, axis=0) - radii[None, :] - radius
         out = np.minimum(out, d.min(axis=1))
     return out
 

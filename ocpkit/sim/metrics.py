@@ -10,15 +10,18 @@ from ocpkit.sim.simulate import Trajectory
 def cost_by_term(traj: Trajectory, ocp: OCP) -> dict[str, float]:
     """The actual cost split by the OCP's cost terms (``ocp.cost.names``: "state", "input", the task's).
 
-    Every term at the recorded states and applied inputs (x_i, u_i), i = 0 … H−1, towards the goal, and the "state"
-    term also at the last state x_H (obstacles are not a cost here)."""
+    Every term at the recorded states and applied inputs (x_i, u_i), i = 0 … H−1, towards the goal at that time (a
+    moving reference's, ``traj.reference``), and the "state" term also at the last state x_H (obstacles are not a
+    cost here)."""
     cost, H = ocp.cost, traj.u.shape[0]
-    goal = ocp.check_goal(traj.goal, "the trajectory's goal")
+    goals = traj.goals()
+    if goals.shape != (H + 1, ocp.ng) or not np.isfinite(goals).all():
+        raise ValueError(f"the trajectory's goals must be {ocp.ng} finite entries each, got shape {goals.shape}")
     terms = np.zeros(len(cost.names))
     if H:
-        stage = cost.stage_terms.map(H)(traj.x[:-1].T, traj.u.T, np.repeat(goal[:, None], H, axis=1))
+        stage = cost.stage_terms.map(H)(traj.x[:-1].T, traj.u.T, goals[:-1].T)
         terms += np.asarray(stage, dtype=float).sum(axis=1)
-    terms[0] += float(cost.stage_terms(traj.x[-1], np.zeros(ocp.nu), goal)[0])  # "state" reads no input
+    terms[0] += float(cost.stage_terms(traj.x[-1], np.zeros(ocp.nu), goals[-1])[0])  # "state" reads no input
     return dict(zip(cost.names, terms.tolist()))
 
 

@@ -19,6 +19,7 @@ from ocpkit.controller import Controller
 from ocpkit.status import SOFT, SUCCESS, Solution
 from ocpkit.model.dynamics import Model
 from ocpkit.model.problem import check_dynamics
+from ocpkit.model.reference import ObstaclePath, Reference
 
 # The loop-level verdict (Trajectory.progress) on the task error e(t): the frame's distance to its target point (m),
 # or for a joint goal the state error max_i |x_i − x_goal,i| (the state's units, rad and rad/s for an arm).
@@ -76,13 +77,24 @@ def _tally(labels) -> str:
 
 @dataclass
 class Trajectory:
-    """A closed-loop run: times t (H+1,), states x (H+1, n), applied inputs u (H, m) and every Solution."""
+    """A closed-loop run: times t (H+1,), states x (H+1, n), applied inputs u (H, m) and every Solution.
+
+    ``goal`` is the goal vector (with a moving reference: the reference at the last time); ``reference`` the
+    reference at every recorded time, (H+1, ng), where the goal moved (None: held); ``obstacles`` the task's
+    obstacles at every recorded time, (H+1, N, 4), where they moved (None: where the task declares them)."""
 
     t: np.ndarray
     x: np.ndarray
     u: np.ndarray
     goal: np.ndarray
     solutions: list = field(default_factory=list)
+    reference: np.ndarray | None = None
+    obstacles: np.ndarray | None = None
+
+    def goals(self) -> np.ndarray:
+        """The goal at every recorded time, (H+1, ng): the reference's, or the held goal repeated."""
+        return self.reference if self.reference is not None else np.broadcast_to(self.goal, (len(self.t),
+                                                                                          len(self.goal)))
 
     @property
     def statuses(self) -> list[str]:
@@ -120,7 +132,8 @@ class Trajectory:
         task = getattr(ocp, "task", None)
         if task is None or not task.obstacles:
             return np.full(len(self.x), np.inf)
-        return clearances(task.kinematics, task.robot, task.obstacles, self.x[:, :task.kinematics.n])
+        return clearances(task.kinematics, task.robot, task.obstacles if self.obstacles is None else self.obstacles,
+                          self.x[:, :task.kinematics.n])
 
     def success_while_colliding(self, ocp) -> int:
         """How many steps reported "success" while the plant's next state collides with an obstacle of ``ocp``'s
@@ -142,7 +155,7 @@ class Trajectory:
             raise ValueError(f"progress towards a frame's target needs kinematics, frame and target; {given[0]} is "
                              f"missing (none of them: the joint goal's state error)")
         if given:
-            error = np.abs(self.x - self.goal[:self.x.shape[1]]).max(axis=1)
+            error = np.abs(self.x - self.goals()[:, :self.x.shape[1]]).max(axis=1)
             what, unit = "max |x − x_goal|", ""
         else:
             target = np.asarray(target, dtype=float).ravel()
@@ -168,8 +181,13 @@ class Trajectory:
 
 
 def simulate(plant, controller: Controller, x0, goal, duration: float, *, dt: float | None = None,
-             plant_substeps: int = 10, callback=None) -> Trajectory:
+             plant_substeps: int = 10, callback=None, obstacles=None) -> Trajectory:
     """Run ``controller`` for ``duration`` seconds at its control period ``dt`` (default: its OCP's dt).
+
+    ``goal``: a goal vector held, or a :class:`ocpkit.model.reference.Reference` followed: the step at time t gets
+    its window over the horizon (the controller previews the reference). ``obstacles``: an
+    :class:`ocpkit.model.reference.ObstaclePath` moving the task's obstacles (its window at each step); None: they
+    stay where the task declares them.
 
     The plant, an ocpkit Model, is integrated with RK4 over ``plant_substeps`` sub-steps per control period, input
     held (zero-order hold). Any other plant has ``nx``, ``nu`` and ``stepper(dt, substeps)`` returning its step
@@ -191,14 +209,22 @@ def simulate(plant, controller: Controller, x0, goal, duration: float, *, dt: fl
     substeps = integer(plant_substeps, "plant_substeps", 1)
     step = plant.rk4(dt, substeps) if model else plant.stepper(dt, substeps)
     x0 = ocp.check_state(x0, "x0")
-    goal = ocp.check_goal(goal)
+    reference = goal if isinstance(goal, Reference) else None
+    if reference is not None and reference.ng != ocp.ng:
+        raise ValueError(f"the reference has {reference.ng} entries per goal, the OCP's goal {ocp.ng}")
+    if obstacles is not None and not isinstance(obstacles, ObstaclePath):
+        raise TypeError(f"obstacles must be an ocpkit ObstaclePath or None, got {type(obstacles).__name__}")
+    goal = None if reference is not None else ocp.check_goal(goal)
+    times = np.arange(steps + 1) * dt
     xs = np.empty((steps + 1, ocp.nx))
     us = np.empty((steps, ocp.nu))
     xs[0] = x0
     solutions: list[Solution] = []
     controller.reset()
     for k in range(steps):
-        sol = controller.solve(xs[k], goal)
+        window = goal if reference is None else reference.window(times[k], ocp.dt, ocp.horizon)
+        moved = None if obstacles is None else obstacles.window(times[k], ocp.dt, ocp.horizon)
+        sol = controller.solve(xs[k], window, **({} if moved is None else {"obstacles": moved}))
         solutions.append(sol)
         us[k] = sol.u
         xs[k + 1] = np.asarray(step(xs[k], sol.u), dtype=float).ravel()
@@ -211,4 +237,8 @@ def simulate(plant, controller: Controller, x0, goal, duration: float, *, dt: fl
                                      f"u = {sol.u.tolist()}: {what}; more plant_substeps or a smaller dt may help")
         if callback is not None:
             callback(k, xs[k + 1], sol)
-    return Trajectory(t=np.arange(steps + 1) * dt, x=xs, u=us, goal=goal, solutions=solutions)
+    moved = None if obstacles is None else np.array([obstacles.at(t) for t in times])
+    if reference is None:
+        return Trajectory(t=times, x=xs, u=us, goal=goal, solutions=solutions, obstacles=moved)
+    goals = np.array([ocp.check_goal(reference.at(t), f"the reference at t = {t:g}") for t in times])
+    return Trajectory(t=times, x=xs, u=us, goal=goals[-1], solutions=solutions, reference=goals, obstacles=moved)
