@@ -6,6 +6,7 @@ The package's layers, lowest first: ``status`` and the checks, ``codegen``, ``mo
 ``controller`` and ``safety``, ``export``, then ``sim``, ``runs`` and ``solvers``; ``studies``, ``cli`` and
 ``benchmarks`` on top (``tests/test_layout.py`` holds the order).
 """
+
 import os
 
 # The package version (pyproject.toml reads it from here); bumped by hand with a CHANGELOG.md entry. Study trials
@@ -24,26 +25,34 @@ def __getattr__(name):
     # ocpkit.solvers.make.
     if name == "OCP":
         from ocpkit.model.ocp import OCP
+
         return OCP
     if name == "LinearMPC":
         from ocpkit.solvers.qp import LinearMPC
+
         return LinearMPC
     if name == "NonlinearMPC":
         from ocpkit.solvers.nlp import NonlinearMPC
+
         return NonlinearMPC
     if name == "EvolutionaryMPC":
         from ocpkit.solvers.empc import EvolutionaryMPC
+
         return EvolutionaryMPC
     if name == "simulate":
         from ocpkit.sim.simulate import simulate
+
         return simulate
     if name == "make":
         from ocpkit.problems import make
+
         return make
     if name == "Model":
         from ocpkit.model.dynamics import Model
+
         return Model
     if name in ("Problem", "URDFRobot"):
         from ocpkit.model import problem
+
         return getattr(problem, name)
     raise AttributeError(f"module 'ocpkit' has no attribute {name!r}")

@@ -1,4 +1,5 @@
 """Argument validation shared by the public constructors: precise errors naming the argument."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -66,10 +67,16 @@ def weight(value, name: str, n: int, *, definite: bool) -> np.ndarray:
 
 def bounds(lower, upper, lower_name: str, upper_name: str, n: int):
     """Lower/upper bound vectors (None = unbounded; ±inf allowed) with lower ≤ upper."""
-    lo = np.full(n, -np.inf) if lower is None else array(np.broadcast_to(lower, (n,)) if np.ndim(lower) == 0 else lower,
-                                                         lower_name, (n,), allow_inf=True)
-    hi = np.full(n, np.inf) if upper is None else array(np.broadcast_to(upper, (n,)) if np.ndim(upper) == 0 else upper,
-                                                        upper_name, (n,), allow_inf=True)
+    lo = (
+        np.full(n, -np.inf)
+        if lower is None
+        else array(np.broadcast_to(lower, (n,)) if np.ndim(lower) == 0 else lower, lower_name, (n,), allow_inf=True)
+    )
+    hi = (
+        np.full(n, np.inf)
+        if upper is None
+        else array(np.broadcast_to(upper, (n,)) if np.ndim(upper) == 0 else upper, upper_name, (n,), allow_inf=True)
+    )
     bad = np.flatnonzero(lo > hi)
     if bad.size:
         i = bad[0]

@@ -7,6 +7,7 @@ of obstacles (for at most ``stale_steps`` refused steps in a row), else a brake 
 (:mod:`ocpkit.safety`). A success certifies the task as well as the optimizer: its plan, rolled out on the
 controller's nonlinear model, keeps every obstacle clearance and state bound, or the step is "soft".
 """
+
 from __future__ import annotations
 
 import sys
@@ -73,6 +74,7 @@ class _ThreadLimit:
                 # Rescan the loaded libraries when modules were imported since (a new BLAS may have come in).
                 if cls._controller is None or cls._modules != len(sys.modules):
                     from threadpoolctl import ThreadpoolController
+
                     cls._controller = ThreadpoolController()
                     cls._modules = len(sys.modules)
                 cls._limiter = cls._controller.limit(limits=self.threads)
@@ -220,13 +222,18 @@ class Controller:
         moving = bool((window != window[0]).any())
         obstacle_window = self._declared if obstacles is None else ocp.obstacle_window(obstacles)
         guess = None if initial_guess is None else ocp.guess_knots(initial_guess)
-        for given, what in ((moving, "goal window"), (obstacles is not None, "obstacles"),
-                            (guess is not None, "initial guess")):
+        for given, what in (
+            (moving, "goal window"),
+            (obstacles is not None, "obstacles"),
+            (guess is not None, "initial guess"),
+        ):
             if given and what not in self.TAKES:
-                raise ValueError(f"{type(self).__name__} does not take a moving {what} yet (it takes: "
-                                 f"{', '.join(sorted(self.TAKES)) or 'a held goal only'})")
+                raise ValueError(
+                    f"{type(self).__name__} does not take a moving {what} yet (it takes: "
+                    f"{', '.join(sorted(self.TAKES)) or 'a held goal only'})"
+                )
         full = window[0]
-        goal = full[:ocp.nx]
+        goal = full[: ocp.nx]
         with self._lock, _ThreadLimit(self._threads):
             start = self._step_start = time.perf_counter()
             self._goal = goal  # for the fallback's cold-start input
@@ -235,9 +242,12 @@ class Controller:
             self.obstacle_window, self.guess = obstacle_window, guess
             big = max(np.abs(x).max(initial=0.0), np.abs(window).max(initial=0.0))
             if big > self._state_limit:
-                sol = self.fallback(NAN, f"state or goal magnitude {big:.3g} beyond state_limit "
-                                         f"{self._state_limit:.3g}: no solver run", reason=Reason.STATE_BEYOND_LIMIT)
-            elif (outside := self._outside_trust_region(x)):
+                sol = self.fallback(
+                    NAN,
+                    f"state or goal magnitude {big:.3g} beyond state_limit {self._state_limit:.3g}: no solver run",
+                    reason=Reason.STATE_BEYOND_LIMIT,
+                )
+            elif outside := self._outside_trust_region(x):
                 sol = self.fallback(INFEASIBLE, outside, replay=False, reason=Reason.OUTSIDE_TRUST_REGION)
             else:
                 if self._first_step:
@@ -299,11 +309,16 @@ class Controller:
         u, knots = np.asarray(sol.u, dtype=float), np.asarray(sol.knots, dtype=float)
         if not (np.all(np.isfinite(u)) and np.all(np.isfinite(knots))):
             return self._rejected(NAN, f"{sol.raw_status} with non-finite result", sol, Reason.NON_FINITE_SOLUTION)
-        excess = max(float((ocp.u_min - knots).max(initial=0.0)), float((knots - ocp.u_max).max(initial=0.0)),
-                     float((ocp.u_min - u).max(initial=0.0)), float((u - ocp.u_max).max(initial=0.0)))
+        excess = max(
+            float((ocp.u_min - knots).max(initial=0.0)),
+            float((knots - ocp.u_max).max(initial=0.0)),
+            float((ocp.u_min - u).max(initial=0.0)),
+            float((u - ocp.u_max).max(initial=0.0)),
+        )
         if excess > BOUND_TOL * self._input_scale:
-            return self._rejected(LIMITED, f"{sol.raw_status} but an input bound violated by {excess:.3g}", sol,
-                                  Reason.INPUT_BOUND)
+            return self._rejected(
+                LIMITED, f"{sol.raw_status} but an input bound violated by {excess:.3g}", sol, Reason.INPUT_BOUND
+            )
         sol.u = np.clip(u, ocp.u_min, ocp.u_max)
         sol.knots = np.clip(knots, ocp.u_min, ocp.u_max)
         return sol
@@ -321,8 +336,12 @@ class Controller:
         if violation is None:
             return sol
         if violation.kind in (Reason.NON_FINITE_PREDICTION, Reason.COLLISION):
-            return self._rejected(NAN if violation.kind is Reason.NON_FINITE_PREDICTION else INFEASIBLE,
-                                  f"{sol.raw_status} but its {violation}", sol, violation.kind)
+            return self._rejected(
+                NAN if violation.kind is Reason.NON_FINITE_PREDICTION else INFEASIBLE,
+                f"{sol.raw_status} but its {violation}",
+                sol,
+                violation.kind,
+            )
         sol.status, sol.raw_status, sol.violation = SOFT, f"{sol.raw_status}; soft: {violation}", violation
         sol.reason = violation.kind
         return sol
@@ -338,8 +357,10 @@ class Controller:
         if not index.size or excess.max() <= 0.0:
             return ""
         i = int(np.argmax(excess))
-        return (f"x[{int(index[i])}] = {x[index[i]]:.3g} beyond {self.TRUST_REGION:g} x its bound "
-                f"{limit[i] / self.TRUST_REGION:.3g}: outside the model's trust region, no solver run")
+        return (
+            f"x[{int(index[i])}] = {x[index[i]]:.3g} beyond {self.TRUST_REGION:g} x its bound "
+            f"{limit[i] / self.TRUST_REGION:.3g}: outside the model's trust region, no solver run"
+        )
 
     def _warn_divergence(self, x: np.ndarray, goal: np.ndarray) -> None:
         """Warn where the discrete model about (x, u_g) grows faster than the continuous dynamics do: |eig A_d|
@@ -353,11 +374,14 @@ class Controller:
             return
         expected = max(1.0, float(np.exp(ocp.dt * np.linalg.eigvals(Ac).real.max())))
         if rho > 1.05 * expected:
-            warnings.warn(f"{type(self).__name__}: the controller's discrete model diverges at the start: |eig A_d| = "
-                          f"{rho:.3g} a step where the continuous dynamics grow by {expected:.3g}; its "
-                          f"{ocp.integrator} step of {ocp.dt / ocp.substeps:g} s is too long for the model: more "
-                          f"substeps, e.g. problem.ocp(..., substeps={2 * ocp.substeps}), should help",
-                          RuntimeWarning, stacklevel=3)
+            warnings.warn(
+                f"{type(self).__name__}: the controller's discrete model diverges at the start: |eig A_d| = "
+                f"{rho:.3g} a step where the continuous dynamics grow by {expected:.3g}; its "
+                f"{ocp.integrator} step of {ocp.dt / ocp.substeps:g} s is too long for the model: more "
+                f"substeps, e.g. problem.ocp(..., substeps={2 * ocp.substeps}), should help",
+                RuntimeWarning,
+                stacklevel=3,
+            )
 
     def _rejected(self, status: str, raw: str, sol: Solution, reason: Reason) -> Solution:
         """A "success" that failed verification: the solver's workspace is stale, so reset it (``_discard``)."""
@@ -390,8 +414,11 @@ class Controller:
         expects now (u_g at a cold start). LinearMPC documents why "goal" is the default.
         """
         ocp = self.ocp
-        u_bar = (ocp.input_goal(goal) if self.plan is None or mode == "goal"
-                 else ocp.parameterization.u_at(ocp.parameterization.shift(self.plan), 0))
+        u_bar = (
+            ocp.input_goal(goal)
+            if self.plan is None or mode == "goal"
+            else ocp.parameterization.u_at(ocp.parameterization.shift(self.plan), 0)
+        )
         if self._affine_model is None:
             self._affine_model = BufferedFunction(ocp.affine())
         Ad, Bd, wd = self._affine_model(x, u_bar)
@@ -435,8 +462,16 @@ class Controller:
         return np.clip(np.tile(ocp.input_goal(goal), (ocp.knots, 1)), ocp.u_min, ocp.u_max)
 
     # C twin: step.in.c fallback() and shifted_knots() (the "plan" replay); parity: tests/test_twins.py
-    def fallback(self, status: str, raw_status: str, times: dict | None = None, iterations: int = 0, *,
-                 replay: bool = True, reason: Reason | None = None) -> Solution:
+    def fallback(
+        self,
+        status: str,
+        raw_status: str,
+        times: dict | None = None,
+        iterations: int = 0,
+        *,
+        replay: bool = True,
+        reason: Reason | None = None,
+    ) -> Solution:
         """A refused step's safe input, said in ``path``: "fallback (plan)", the previous plan advanced one step, with
         ``replay``, for at most ``stale_steps`` refused steps in a row and only while its prediction from x is finite
         and keeps the task (:class:`ocpkit.safety.PlanCheck`); otherwise "fallback (brake)", the input that brings the
@@ -447,8 +482,9 @@ class Controller:
         if replay and self._refused < self.stale_steps:
             knots = self.goal_knots(self._goal) if self.plan is None else par.shift(self.plan)
             knots = np.clip(np.nan_to_num(knots), ocp.u_min, ocp.u_max)
-            if self._plan_check.needed and self._plan_check.violation(self.rollout(self._x, par.inputs(knots)),
-                                                                      obstacles=self._moved_obstacles()):
+            if self._plan_check.needed and self._plan_check.violation(
+                self.rollout(self._x, par.inputs(knots)), obstacles=self._moved_obstacles()
+            ):
                 knots = None
         if knots is None:
             u_hold = np.clip(ocp.input_goal(self._goal), ocp.u_min, ocp.u_max)
@@ -457,5 +493,14 @@ class Controller:
             knots = np.tile(u_hold if u is None else u, (ocp.knots, 1))
         u = np.clip(par.u_at(knots, 0), ocp.u_min, ocp.u_max)
         times = dict(times or {"model": 0.0, "build": 0.0, "solve": 0.0, "total": 0.0})
-        return Solution(u=u, knots=knots, status=status, raw_status=raw_status, iterations=iterations,
-                        times=times, fallback=True, path=f"fallback ({kind})", reason=reason)
+        return Solution(
+            u=u,
+            knots=knots,
+            status=status,
+            raw_status=raw_status,
+            iterations=iterations,
+            times=times,
+            fallback=True,
+            path=f"fallback ({kind})",
+            reason=reason,
+        )

@@ -5,6 +5,7 @@ large robot's affine model that conversion alone is a sizeable part of an MPC st
 :class:`BufferedFunction` binds preallocated numpy arrays to the Function's inputs and outputs
 once and evaluates in place.
 """
+
 from __future__ import annotations
 
 import casadi as ca
@@ -43,8 +44,10 @@ class BufferedFunction:
         for i, (slot, value) in enumerate(zip(self._args, args)):
             value = np.asarray(value, dtype=float)
             if value.size != slot.size:
-                raise ValueError(f"argument {self.fn.name_in(i)!r} of {self.fn.name()} must have {slot.size} "
-                                 f"entries, got {value.size}")
+                raise ValueError(
+                    f"argument {self.fn.name_in(i)!r} of {self.fn.name()} must have {slot.size} "
+                    f"entries, got {value.size}"
+                )
             slot[:] = value.ravel(order="F")
         self._evaluate()
         out = []

@@ -17,6 +17,7 @@ when the prediction is not finite.
 velocities one step ahead, ‖v(x⁺)‖² with x⁺ = A_d x + B_d u + w_d the affine model about (x, u_hold), within the
 input bounds (a box QP) — full braking torque while the robot moves, gravity compensation once it rests.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -50,8 +51,10 @@ class Violation:
             return f"prediction not finite from x_{self.stage} on the nonlinear model"
         if self.kind is Reason.COLLISION:
             return f"prediction collides at x_{self.stage} ({self.amount:.3g} m deep) on the nonlinear model"
-        return (f"{self.kind} {self.which} violated by {self.amount:.3g} at x_{self.stage} of the plan on the "
-                f"nonlinear model")
+        return (
+            f"{self.kind} {self.which} violated by {self.amount:.3g} at x_{self.stage} of the plan on the "
+            f"nonlinear model"
+        )
 
 
 class PlanCheck:
@@ -98,7 +101,7 @@ class PlanCheck:
         if self.pairs:
             tf = self.ocp.task_functions
             centres = np.asarray(self.ocp.task_maps()["spheres"](X.T)[0]).reshape(3, len(X), -1)
-            moving = (None, None) if obstacles is None else (obstacles[1:len(xs)], obstacles[:1])
+            moving = (None, None) if obstacles is None else (obstacles[1 : len(xs)], obstacles[:1])
             # (pairs, stages): pair robot sphere · N + obstacle
             d = tf.pair_clearances(centres, moving[0]).reshape(len(X), -1).T
             if ahead:
@@ -112,8 +115,9 @@ class PlanCheck:
             pair = int(np.argmin(d[:, k]))
             if d[pair, k] < -self._clear_tol:
                 robot, obstacle = divmod(pair, len(self.ocp.task.obstacles))
-                worst = Violation(Reason.CLEARANCE, k + 1, float(-d[pair, k]),
-                                  f"(robot sphere {robot}, obstacle {obstacle})")
+                worst = Violation(
+                    Reason.CLEARANCE, k + 1, float(-d[pair, k]), f"(robot sphere {robot}, obstacle {obstacle})"
+                )
         return worst
 
 

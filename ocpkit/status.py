@@ -2,6 +2,7 @@
 measured costs of a backend's operations (:class:`OperationCosts`). The QP backends, the controllers, the exported C
 step's wrapper and the simulator all speak these; :mod:`ocpkit.controller` builds the Controller interface on them.
 """
+
 from __future__ import annotations
 
 import statistics
@@ -73,7 +74,6 @@ class Refusal(str):
 
     def __getnewargs__(self):  # pickled with its reason
         return str(self), self.reason
-
 
 
 class OperationCosts:
@@ -162,6 +162,14 @@ class Solution:
 
     def to_dict(self) -> dict:
         """JSON-ready summary (first input, knots, status, reason, iterations, times)."""
-        return {"u": self.u.tolist(), "knots": self.knots.tolist(), "status": self.status,
-                "raw_status": self.raw_status, "reason": self.reason, "iterations": int(self.iterations),
-                "fallback": self.fallback, "path": self.path, "times": {k: float(v) for k, v in self.times.items()}}
+        return {
+            "u": self.u.tolist(),
+            "knots": self.knots.tolist(),
+            "status": self.status,
+            "raw_status": self.raw_status,
+            "reason": self.reason,
+            "iterations": int(self.iterations),
+            "fallback": self.fallback,
+            "path": self.path,
+            "times": {k: float(v) for k, v in self.times.items()},
+        }

@@ -10,6 +10,7 @@ A spec is one of
 ``Name`` is a :class:`~ocpkit.model.problem.Problem` subclass, a Problem instance or a factory returning one;
 ``"…:Name:arg"`` passes the string ``arg`` to the class or factory, as ``"nlink:7"`` passes ``"7"``.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -83,8 +84,10 @@ def make(spec: str) -> Problem:
         except Exception as exc:  # the user's module raised while it was imported
             raise _failed(spec, f"importing module {family!r}", exc) from exc
         return _build(_attribute(module, name, spec), arg or None, spec)
-    raise ValueError(f"unknown problem {spec!r}; known: {', '.join(names())}, or a Problem of your own as "
-                     "'package.module:Name' or 'path/to/file.py:Name'")
+    raise ValueError(
+        f"unknown problem {spec!r}; known: {', '.join(names())}, or a Problem of your own as "
+        "'package.module:Name' or 'path/to/file.py:Name'"
+    )
 
 
 def _module_exists(name: str) -> bool:
@@ -106,7 +109,7 @@ def _load_file(path: str, spec: str):
     if module_name not in sys.modules:
         loader_spec = importlib.util.spec_from_file_location(module_name, file)
         module = importlib.util.module_from_spec(loader_spec)
-        sys.modules[module_name] = module   # before exec: dataclasses and pickling look the module up
+        sys.modules[module_name] = module  # before exec: dataclasses and pickling look the module up
         try:
             loader_spec.loader.exec_module(module)
         except BaseException as exc:
@@ -119,15 +122,19 @@ def _load_file(path: str, spec: str):
 
 def _attribute(module, name: str, spec: str):
     if not name:
-        raise ValueError(f"problem spec {spec!r} names no problem: add ':Name' (a Problem subclass, instance "
-                         "or factory)")
+        raise ValueError(
+            f"problem spec {spec!r} names no problem: add ':Name' (a Problem subclass, instance or factory)"
+        )
     if not hasattr(module, name):
-        found = sorted(k for k, v in vars(module).items()
-                       if isinstance(v, Problem)
-                       or (isinstance(v, type) and issubclass(v, Problem) and v is not Problem))
-        where = module.__name__ if not hasattr(module, '__file__') else module.__file__
-        raise ValueError(f"problem spec {spec!r}: {where} has no {name!r}; problems there: "
-                         f"{', '.join(found) or 'none'}")
+        found = sorted(
+            k
+            for k, v in vars(module).items()
+            if isinstance(v, Problem) or (isinstance(v, type) and issubclass(v, Problem) and v is not Problem)
+        )
+        where = module.__name__ if not hasattr(module, "__file__") else module.__file__
+        raise ValueError(
+            f"problem spec {spec!r}: {where} has no {name!r}; problems there: {', '.join(found) or 'none'}"
+        )
     return getattr(module, name)
 
 
@@ -148,8 +155,11 @@ def _build(obj, arg, spec: str) -> Problem:
         raise NotAProblemError(f"problem spec {spec!r} names {obj!r}, not a Problem subclass, instance or factory")
     if not isinstance(problem, Problem):
         where = where_defined(obj)
-        raise NotAProblemError(f"problem spec {spec!r}: {call} returned {type(problem).__name__}, not an ocpkit.Problem"
-                               + (f" ({call.split('(')[0]} is defined at {where})" if where else ""), where)
+        raise NotAProblemError(
+            f"problem spec {spec!r}: {call} returned {type(problem).__name__}, not an ocpkit.Problem"
+            + (f" ({call.split('(')[0]} is defined at {where})" if where else ""),
+            where,
+        )
     return problem
 
 

@@ -8,6 +8,7 @@ continuous servo above; the plant (:class:`SampledServo`) holds each servo torqu
 servo does. Kinematics and inertias are the manufacturer's URDF (Rethink Robotics' baxter_description,
 BSD licence), trimmed to the right arm and its gripper in ``problems/data/baxter/``.
 """
+
 from __future__ import annotations
 
 import math
@@ -26,9 +27,9 @@ from ocpkit.model.rigid_body import Chain
 JOINTS = ("right_s0", "right_s1", "right_e0", "right_e1", "right_w0", "right_w1", "right_w2")
 # Low servo gains: natural frequencies sqrt(K_p / M_ii(0)) of 0.5–1.5 Hz and damping ratios
 # K_d / (2 sqrt(K_p M_ii(0))) of about 0.15, so every joint is clearly underdamped.
-KP = (40.0, 40.0, 10.0, 10.0, 2.0, 2.0, 1.0)        # N·m/rad
-KD = (4.0, 3.5, 0.3, 0.85, 0.1, 0.13, 0.06)         # N·m·s/rad
-SERVO_RATE = 500.0                                  # Hz
+KP = (40.0, 40.0, 10.0, 10.0, 2.0, 2.0, 1.0)  # N·m/rad
+KD = (4.0, 3.5, 0.3, 0.85, 0.1, 0.13, 0.06)  # N·m·s/rad
+SERVO_RATE = 500.0  # Hz
 
 
 def urdf_path() -> str:
@@ -120,8 +121,10 @@ class Baxter(Problem):
         q, qd = x[:7], x[7:]
         tau = ca.DM(self.kp) * (u - q) - ca.DM(self.kd) * qd
         qdd = self.chain.forward_dynamics(q, qd, tau, inertia_scale=error, gravity=False)
-        names = {"state_names": [f"q_{j[6:]}" for j in JOINTS] + [f"qd_{j[6:]}" for j in JOINTS],
-                 "input_names": [f"qdes_{j[6:]}" for j in JOINTS]}
+        names = {
+            "state_names": [f"q_{j[6:]}" for j in JOINTS] + [f"qd_{j[6:]}" for j in JOINTS],
+            "input_names": [f"qdes_{j[6:]}" for j in JOINTS],
+        }
         return x, u, ca.vertcat(qd, qdd), names
 
     def dynamics(self, error: float) -> Model:
@@ -135,16 +138,23 @@ class Baxter(Problem):
             xs, tau = ca.SX.sym("x", 14), ca.SX.sym("tau", 7)
             qdd = self.chain.forward_dynamics(xs[:7], xs[7:], tau, gravity=False)
             arm_f = ca.Function("arm", [xs, tau], [ca.vertcat(xs[7:], qdd)])
-            self._plant = SampledServo(self.name, x, u, xdot, arm_f=arm_f, kp=self.kp, kd=self.kd,
-                                       rate=SERVO_RATE, **names)
+            self._plant = SampledServo(
+                self.name, x, u, xdot, arm_f=arm_f, kp=self.kp, kd=self.kd, rate=SERVO_RATE, **names
+            )
         return self._plant
 
     def defaults(self) -> dict:
         Q = np.diag(np.r_[10.0 * np.ones(7), 0.1 * np.ones(7)])
         # The input that holds a goal at rest is the set point q_des = q_goal: R pulls the set points there.
         hold = np.hstack([np.eye(7), np.zeros((7, 7))])
-        return {"Q": Q, "R": 1e-3 * np.eye(7), "Q_terminal": 10 * Q, "u_goal_gain": hold,
-                "u_min": self.q_min, "u_max": self.q_max}
+        return {
+            "Q": Q,
+            "R": 1e-3 * np.eye(7),
+            "Q_terminal": 10 * Q,
+            "u_goal_gain": hold,
+            "u_min": self.q_min,
+            "u_max": self.q_max,
+        }
 
     def sample(self, seed: int):
         rng = np.random.default_rng(seed)

@@ -3,6 +3,7 @@
 M(q) q̈ + C(q, q̇) q̇ + b q̇ = τ  (eq. threelink): the workspace lies in the plane perpendicular to gravity,
 so g(q) = 0. State x = [q, q̇] (relative joint angles), input τ (joint torques).
 """
+
 from __future__ import annotations
 
 from functools import cached_property
@@ -39,8 +40,9 @@ def planar_chain(links: int, mass: float = 1.0, length: float = 0.25):
         parent = model.addJoint(parent, pin.JointModelRZ(), offset, f"joint{i + 1}")
         model.appendBodyToJoint(parent, rod, pin.SE3.Identity())
         frame = model.addJointFrame(parent, frame)
-    model.addFrame(pin.Frame("tip", parent, frame, pin.SE3(np.eye(3), np.array([length, 0.0, 0.0])),
-                             pin.FrameType.OP_FRAME))
+    model.addFrame(
+        pin.Frame("tip", parent, frame, pin.SE3(np.eye(3), np.array([length, 0.0, 0.0])), pin.FrameType.OP_FRAME)
+    )
     return model
 
 
@@ -60,8 +62,7 @@ class NLink(Problem):
     end_effector = "tip"
     link_radius = 0.05
 
-    def __init__(self, links: int = 2, *, damping: float = 0.01, tau_max: float = 2.0,
-                 sample_range: float = np.pi / 2):
+    def __init__(self, links: int = 2, *, damping: float = 0.01, tau_max: float = 2.0, sample_range: float = np.pi / 2):
         self.links = integer(links, "links", 1)
         self.name = f"nlink:{self.links}"
         self.damping = float(damping)
@@ -81,15 +82,25 @@ class NLink(Problem):
         x, u = ca.SX.sym("x", 2 * n), ca.SX.sym("u", n)
         q, qd = x[:n], x[n:]
         qdd = self.chain.forward_dynamics(q, qd, u, damping=self.damping, inertia_scale=error)
-        return Model(self.name, x, u, ca.vertcat(qd, qdd),
-                     state_names=[f"q{i + 1}" for i in range(n)] + [f"qd{i + 1}" for i in range(n)],
-                     input_names=[f"tau{i + 1}" for i in range(n)])
+        return Model(
+            self.name,
+            x,
+            u,
+            ca.vertcat(qd, qdd),
+            state_names=[f"q{i + 1}" for i in range(n)] + [f"qd{i + 1}" for i in range(n)],
+            input_names=[f"tau{i + 1}" for i in range(n)],
+        )
 
     def defaults(self) -> dict:
         n = self.links
         Q = np.eye(2 * n)
-        return {"Q": Q, "R": 0.01 * np.eye(n), "Q_terminal": 100 * Q,
-                "u_min": np.full(n, -self.tau_max), "u_max": np.full(n, self.tau_max)}
+        return {
+            "Q": Q,
+            "R": 0.01 * np.eye(n),
+            "Q_terminal": 100 * Q,
+            "u_min": np.full(n, -self.tau_max),
+            "u_max": np.full(n, self.tau_max),
+        }
 
     def sample(self, seed: int):
         rng = np.random.default_rng(seed)
@@ -109,8 +120,10 @@ def _make(arg=None) -> NLink:
     except ValueError:
         raise ValueError(f"nlink: number of links must be an integer from 1 to 13, got {arg!r}") from None
     if links not in LINKS:
-        raise ValueError(f"nlink: number of links must be 1 to 13 (the paper's robots), got {links}; "
-                         "NLink(links) builds any size in Python")
+        raise ValueError(
+            f"nlink: number of links must be 1 to 13 (the paper's robots), got {links}; "
+            "NLink(links) builds any size in Python"
+        )
     return NLink(links)
 
 

@@ -5,6 +5,7 @@ The URDF is example-robot-data's ``panda_description`` (upstream franka_ros), me
 and effort limits, gravity compensation of the goal, Q = diag(100 per angle, 1 per rate), R = 1e-3 I, and its
 kinematics with the end effector ``panda_hand_tcp`` for task-space targets (:func:`ocpkit.model.task.reach`).
 """
+
 from __future__ import annotations
 
 from importlib import resources

@@ -3,6 +3,7 @@
 With g = 0 it is linear ("pendulum:linear"), with gravity nonlinear ("pendulum"). State x = [q, q̇],
 input τ. The error multiplier scales m and l in the controller's model only.
 """
+
 from __future__ import annotations
 
 import casadi as ca
@@ -20,8 +21,15 @@ class Pendulum(Problem):
     Q = diag(10, 0.1), R = 0.01. Start and goal angles are uniform in [−π, π] at rest.
     """
 
-    def __init__(self, gravity: bool = True, m: float = 1.0, l: float = 0.5, b: float = 0.1,
-                 g: float = 9.81, tau_max: float = 5.0):
+    def __init__(
+        self,
+        gravity: bool = True,
+        m: float = 1.0,
+        l: float = 0.5,
+        b: float = 0.1,
+        g: float = 9.81,
+        tau_max: float = 5.0,
+    ):
         self.gravity = bool(gravity)
         self.name = "pendulum" if self.gravity else "pendulum:linear"
         self.m, self.l, self.b, self.g, self.tau_max = m, l, b, (g if self.gravity else 0.0), tau_max
@@ -33,8 +41,7 @@ class Pendulum(Problem):
         return Model(self.name, x, u, ca.vertcat(x[1], qdd), state_names=["q", "qd"], input_names=["tau"])
 
     def defaults(self) -> dict:
-        return {"Q": np.diag([10.0, 0.1]), "R": np.array([[0.01]]), "u_min": [-self.tau_max],
-                "u_max": [self.tau_max]}
+        return {"Q": np.diag([10.0, 0.1]), "R": np.array([[0.01]]), "u_min": [-self.tau_max], "u_max": [self.tau_max]}
 
     def sample(self, seed: int):
         rng = np.random.default_rng(seed)

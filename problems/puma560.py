@@ -7,6 +7,7 @@ B. Armstrong, O. Khatib and J. Burdick, "The explicit dynamic model and inertial
 PUMA 560 arm", Proc. IEEE ICRA 1986. Torque limits are the maximum joint torques of Armstrong et al.
 1986 (Table 7). State x = [q, q̇], input τ (joint torques).
 """
+
 from __future__ import annotations
 
 from functools import cached_property
@@ -20,17 +21,35 @@ from ocpkit.model.problem import Problem
 from ocpkit.model.rigid_body import Chain
 
 # Standard DH per link: d (m), a (m), alpha (rad).
-DH = ((0.0, 0.0, np.pi / 2), (0.0, 0.4318, 0.0), (0.15005, 0.0203, -np.pi / 2),
-      (0.4318, 0.0, np.pi / 2), (0.0, 0.0, -np.pi / 2), (0.0, 0.0, 0.0))
-MASS = (0.0, 17.4, 4.8, 0.82, 0.34, 0.09)                       # kg (m1 unidentified: 0, as in RTB)
-COM = ((0.0, 0.0, 0.0), (-0.3638, 0.006, 0.2275), (-0.0203, -0.0141, 0.070),
-       (0.0, 0.019, 0.0), (0.0, 0.0, 0.0), (0.0, 0.0, 0.032))   # m, in DH link frame i
-INERTIA = ((0.0, 0.35, 0.0), (0.13, 0.524, 0.539), (0.066, 0.086, 0.0125),
-           (1.8e-3, 1.3e-3, 1.8e-3), (0.3e-3, 0.4e-3, 0.3e-3), (0.15e-3, 0.15e-3, 0.04e-3))  # Ixx Iyy Izz, kg m²
-MOTOR_INERTIA = (200e-6, 200e-6, 200e-6, 33e-6, 33e-6, 33e-6)   # Jm, kg m² (motor side)
-GEAR = (-62.6111, 107.815, -53.7063, 76.0364, 71.923, 76.686)   # G
+DH = (
+    (0.0, 0.0, np.pi / 2),
+    (0.0, 0.4318, 0.0),
+    (0.15005, 0.0203, -np.pi / 2),
+    (0.4318, 0.0, np.pi / 2),
+    (0.0, 0.0, -np.pi / 2),
+    (0.0, 0.0, 0.0),
+)
+MASS = (0.0, 17.4, 4.8, 0.82, 0.34, 0.09)  # kg (m1 unidentified: 0, as in RTB)
+COM = (
+    (0.0, 0.0, 0.0),
+    (-0.3638, 0.006, 0.2275),
+    (-0.0203, -0.0141, 0.070),
+    (0.0, 0.019, 0.0),
+    (0.0, 0.0, 0.0),
+    (0.0, 0.0, 0.032),
+)  # m, in DH link frame i
+INERTIA = (
+    (0.0, 0.35, 0.0),
+    (0.13, 0.524, 0.539),
+    (0.066, 0.086, 0.0125),
+    (1.8e-3, 1.3e-3, 1.8e-3),
+    (0.3e-3, 0.4e-3, 0.3e-3),
+    (0.15e-3, 0.15e-3, 0.04e-3),
+)  # Ixx Iyy Izz, kg m²
+MOTOR_INERTIA = (200e-6, 200e-6, 200e-6, 33e-6, 33e-6, 33e-6)  # Jm, kg m² (motor side)
+GEAR = (-62.6111, 107.815, -53.7063, 76.0364, 71.923, 76.686)  # G
 MOTOR_VISCOUS = (1.48e-3, 0.817e-3, 1.38e-3, 71.2e-6, 82.6e-6, 36.7e-6)  # B, N m s/rad (motor side)
-TAU_MAX = (97.6, 186.4, 89.4, 24.2, 20.1, 21.3)                 # N m
+TAU_MAX = (97.6, 186.4, 89.4, 24.2, 20.1, 21.3)  # N m
 Q_LIMITS_DEG = ((-160, 160), (-45, 225), (-225, 45), (-110, 170), (-100, 100), (-266, 266))
 
 
@@ -96,14 +115,18 @@ class Puma560(Problem):
     def dynamics(self, error: float) -> Model:
         x, u = ca.SX.sym("x", 12), ca.SX.sym("u", 6)
         qdd = self.chain.forward_dynamics(x[:6], x[6:], u, damping=self.damping, inertia_scale=error)
-        return Model(self.name, x, u, ca.vertcat(x[6:], qdd),
-                     state_names=[f"q{i}" for i in range(1, 7)] + [f"qd{i}" for i in range(1, 7)],
-                     input_names=[f"tau{i}" for i in range(1, 7)])
+        return Model(
+            self.name,
+            x,
+            u,
+            ca.vertcat(x[6:], qdd),
+            state_names=[f"q{i}" for i in range(1, 7)] + [f"qd{i}" for i in range(1, 7)],
+            input_names=[f"tau{i}" for i in range(1, 7)],
+        )
 
     def defaults(self) -> dict:
         Q = np.diag(np.r_[100.0 * np.ones(6), np.ones(6)])
-        return {"Q": Q, "R": 1e-3 * np.eye(6), "Q_terminal": 10 * Q, "u_min": -self.tau_max,
-                "u_max": self.tau_max}
+        return {"Q": Q, "R": 1e-3 * np.eye(6), "Q_terminal": 10 * Q, "u_min": -self.tau_max, "u_max": self.tau_max}
 
     def sample(self, seed: int):
         rng = np.random.default_rng(seed)

@@ -1,5 +1,6 @@
 """MPC solvers by name: "qp" (LinearMPC), "rti" (RealTimeIteration), "ipopt" (NonlinearMPC: methods ipopt, sqp,
 fatrop), "empc", "cem", "mppi" (sampling on Taichi)."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -58,8 +59,10 @@ CONTROLLERS = {
 
 # The benchmarks' default controllers (`ocpkit bench nlp` columns, `startup` rows), names of CONTROLLERS; "exported"
 # is startup's ExportedMPC (export + build).
-BENCHMARKED = {"nlp": ("ipopt", "fatrop", "rti", "rti3", "qp", "ltv"),
-               "startup": ("qp", "qp-python", "rti", "ipopt", "fatrop", "empc", "cem", "mppi", "exported")}
+BENCHMARKED = {
+    "nlp": ("ipopt", "fatrop", "rti", "rti3", "qp", "ltv"),
+    "startup": ("qp", "qp-python", "rti", "ipopt", "fatrop", "empc", "cem", "mppi", "exported"),
+}
 
 
 def controller(name: str, ocp: OCP) -> Controller:
@@ -70,14 +73,26 @@ def controller(name: str, ocp: OCP) -> Controller:
 
 
 def _qp_configurations():
-    backends = [("condensed", "daqp"), ("condensed", "proxqp"), ("condensed", "osqp"), ("sparse", "proxqp"),
-                ("sparse", "osqp")]
-    out = [Configuration("qp", {"form": form, "qp": qp, "linearization": lin, "native": False},
-                         optimum="convex" if lin != "trajectory" else None)
-           for form, qp in backends for lin in ("goal", "plan", "trajectory")]
+    backends = [
+        ("condensed", "daqp"),
+        ("condensed", "proxqp"),
+        ("condensed", "osqp"),
+        ("sparse", "proxqp"),
+        ("sparse", "osqp"),
+    ]
+    out = [
+        Configuration(
+            "qp",
+            {"form": form, "qp": qp, "linearization": lin, "native": False},
+            optimum="convex" if lin != "trajectory" else None,
+        )
+        for form, qp in backends
+        for lin in ("goal", "plan", "trajectory")
+    ]
     out.append(Configuration("qp", {"form": "condensed", "qp": "daqp", "native": True}, optimum="convex"))
-    out.append(Configuration("qp", {"form": "sparse", "qp": "hpipm", "native": False}, knots="horizon",
-                             optimum="convex"))
+    out.append(
+        Configuration("qp", {"form": "sparse", "qp": "hpipm", "native": False}, knots="horizon", optimum="convex")
+    )
     return out
 
 
@@ -85,14 +100,21 @@ def _qp_configurations():
 # problems, so a solver or variant joins the contract by being listed here.
 CONFIGURATIONS = {
     "qp": _qp_configurations(),
-    "ipopt": [Configuration("ipopt", {"method": "ipopt"}, optimum="nlp"),
-              Configuration("ipopt", {"method": "ipopt", "dynamics": "affine"}, optimum="convex"),
-              Configuration("ipopt", {"method": "sqp"}, optimum="nlp"),
-              Configuration("ipopt", {"method": "fatrop"}, optimum="nlp")],
-    "rti": [Configuration("rti"), Configuration("rti", {"form": "sparse"}),
-            Configuration("rti", {"iterations": 30, "tol": 1e-10, "state_bounds": "hard"}, optimum="nlp")],
-    **{name: [Configuration(name, {"variant": variant, "population": 64}) for variant in ("preconditioned", "paper")]
-       for name in ("empc", "cem", "mppi")},
+    "ipopt": [
+        Configuration("ipopt", {"method": "ipopt"}, optimum="nlp"),
+        Configuration("ipopt", {"method": "ipopt", "dynamics": "affine"}, optimum="convex"),
+        Configuration("ipopt", {"method": "sqp"}, optimum="nlp"),
+        Configuration("ipopt", {"method": "fatrop"}, optimum="nlp"),
+    ],
+    "rti": [
+        Configuration("rti"),
+        Configuration("rti", {"form": "sparse"}),
+        Configuration("rti", {"iterations": 30, "tol": 1e-10, "state_bounds": "hard"}, optimum="nlp"),
+    ],
+    **{
+        name: [Configuration(name, {"variant": variant, "population": 64}) for variant in ("preconditioned", "paper")]
+        for name in ("empc", "cem", "mppi")
+    },
 }
 
 

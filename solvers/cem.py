@@ -11,6 +11,7 @@ whichever of it and the seeds rolls out cheapest (the refit alone moves the mean
 generation). The std restarts at σ each step. u is the mean's input at t = 0, unless with obstacles or state
 bounds the best elite dominates the mean (:meth:`GaussianSampling._final`).
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -25,9 +26,18 @@ class CrossEntropyMPC(GaussianSampling):
     :class:`GaussianSampling`), floor ``sigma_min`` (default σ/100) and ``smoothing`` α ∈ [0, 1):
     mean ← α·mean + (1−α)·elite mean (same for the std)."""
 
-    def __init__(self, ocp, *, population: int = CEM["population"].default, num_elites: int = CEM["num_elites"].default,
-                 sigma=None, generations: int = CEM["generations"].default, sigma_min=None,
-                 smoothing: float = CEM["smoothing"].default, **options):
+    def __init__(
+        self,
+        ocp,
+        *,
+        population: int = CEM["population"].default,
+        num_elites: int = CEM["num_elites"].default,
+        sigma=None,
+        generations: int = CEM["generations"].default,
+        sigma_min=None,
+        smoothing: float = CEM["smoothing"].default,
+        **options,
+    ):
         population = integer(population, "population", 2)
         self.num_elites = integer(num_elites, "num_elites", 2)
         if self.num_elites > population:
@@ -36,10 +46,14 @@ class CrossEntropyMPC(GaussianSampling):
         if not 0.0 <= smoothing < 1.0:
             raise ValueError(f"smoothing must be in [0, 1), got {smoothing}")
         self.smoothing = smoothing
-        super().__init__(ocp, population=population, generations=generations,
-                         num_picked=self.num_elites, sigma=sigma, **options)
-        self.sigma_min = np.asarray(self.sigma, dtype=float) / 100 if sigma_min is None else np.broadcast_to(
-            np.asarray(sigma_min, dtype=float), np.shape(self.sigma)).copy()
+        super().__init__(
+            ocp, population=population, generations=generations, num_picked=self.num_elites, sigma=sigma, **options
+        )
+        self.sigma_min = (
+            np.asarray(self.sigma, dtype=float) / 100
+            if sigma_min is None
+            else np.broadcast_to(np.asarray(sigma_min, dtype=float), np.shape(self.sigma)).copy()
+        )
         if not (np.isfinite(self.sigma_min).all() and (self.sigma_min >= 0).all()):
             raise ValueError(f"sigma_min must be finite and >= 0, got {np.ravel(self.sigma_min).tolist()}")
 
@@ -52,8 +66,11 @@ class CrossEntropyMPC(GaussianSampling):
         self._best_index = int(idx[0])
         elites = self._pick(idx)
         elite_mean = elites.mean(axis=0)
-        spread = (self.preconditioner.whitened(elites, elite_mean) if self.preconditioned
-                  else elites.reshape(len(elites), -1) - elite_mean.ravel()).std(axis=0)
+        spread = (
+            self.preconditioner.whitened(elites, elite_mean)
+            if self.preconditioned
+            else elites.reshape(len(elites), -1) - elite_mean.ravel()
+        ).std(axis=0)
         floor = np.broadcast_to(self.sigma_min, self.mean.shape).ravel()
         a = self.smoothing
         self.mean = a * self.mean + (1 - a) * elite_mean

@@ -18,6 +18,7 @@ takes the holding input as every parent. Each child is mutated by s·L⁻ᵀε, 
 drawn log-uniformly from ``scales`` in whitened units, so its expected extra cost, s²·p·m on the QP's
 quadratic model, spans small refinements to bold jumps whatever the conditioning.
 """
+
 # No "from __future__ import annotations": Taichi reads kernel annotations as types.
 import math
 
@@ -43,48 +44,66 @@ class EvolutionaryMPC(SamplingMPC):
     ``stage_cost``/``terminal_cost``, ``precision``, ``arch`` and ``seed``.
     """
 
-    def __init__(self, ocp, *, population: int = EMPC["population"].default,
-                 num_parents: int = EMPC["num_parents"].default, generations: int = EMPC["generations"].default,
-                 scales=None, sigma=None, shrink_distance: float | None = None, sigma_min=None,
-                 variant: str = EMPC["variant"].default, **options):
+    def __init__(
+        self,
+        ocp,
+        *,
+        population: int = EMPC["population"].default,
+        num_parents: int = EMPC["num_parents"].default,
+        generations: int = EMPC["generations"].default,
+        scales=None,
+        sigma=None,
+        shrink_distance: float | None = None,
+        sigma_min=None,
+        variant: str = EMPC["variant"].default,
+        **options,
+    ):
         population = integer(population, "population", 2)
         self.num_parents = integer(num_parents, "num_parents", 1)
         if self.num_parents >= population:
             raise ValueError(f"num_parents must be < population ({population}), got {num_parents}")
-        super().__init__(ocp, population=population, generations=generations,
-                         num_picked=self.num_parents, variant=variant, **options)
+        super().__init__(
+            ocp, population=population, generations=generations, num_picked=self.num_parents, variant=variant, **options
+        )
         # Candidates below this index are carried over (the parents, then the seeds); the rest are bred.
         self._first_child = self.num_parents + (SEEDS if self.preconditioned else 0)
         paper_only = {"sigma": sigma, "shrink_distance": shrink_distance, "sigma_min": sigma_min}
         given = [name for name, value in paper_only.items() if value is not None]
         if self.preconditioned:
             if given:
-                raise ValueError(f"{', '.join(given)} apply to variant='paper' only; the preconditioned "
-                                 f"variant draws its mutation scale from scales")
+                raise ValueError(
+                    f"{', '.join(given)} apply to variant='paper' only; the preconditioned "
+                    f"variant draws its mutation scale from scales"
+                )
             self.scales = _scales(scales)
             self._generation_kernel = self._preconditioned_kernel()
         else:
             if scales is not None:
-                raise ValueError("scales applies to variant='preconditioned' only; the paper's variant "
-                                 "mutates with sigma")
+                raise ValueError(
+                    "scales applies to variant='preconditioned' only; the paper's variant mutates with sigma"
+                )
             self._paper_settings(sigma, shrink_distance, sigma_min)
             self._generation_kernel = self._paper_kernel()
 
     def _paper_settings(self, sigma, shrink_distance, sigma_min):
         ocp = self.ocp
         span = ocp.u_max - ocp.u_min
-        self.sigma = 0.1 * span if sigma is None else np.broadcast_to(
-            np.asarray(sigma, dtype=float), span.shape).copy()
+        self.sigma = 0.1 * span if sigma is None else np.broadcast_to(np.asarray(sigma, dtype=float), span.shape).copy()
         if not (np.isfinite(self.sigma).all() and (self.sigma >= 0).all()):
             raise ValueError(f"sigma must be finite and >= 0, got {self.sigma.tolist()}")
-        self.shrink_distance = None if shrink_distance is None else positive(shrink_distance,
-                                                                              "shrink_distance")
-        self.sigma_min = self.sigma / 10 if sigma_min is None else np.broadcast_to(
-            np.asarray(sigma_min, dtype=float), self.sigma.shape).copy()
-        if not (np.isfinite(self.sigma_min).all() and (self.sigma_min >= 0).all()
-                and (self.sigma_min <= self.sigma).all()):
-            raise ValueError(f"sigma_min must be finite with 0 <= sigma_min <= sigma "
-                             f"({self.sigma.tolist()}), got {self.sigma_min.tolist()}")
+        self.shrink_distance = None if shrink_distance is None else positive(shrink_distance, "shrink_distance")
+        self.sigma_min = (
+            self.sigma / 10
+            if sigma_min is None
+            else np.broadcast_to(np.asarray(sigma_min, dtype=float), self.sigma.shape).copy()
+        )
+        if not (
+            np.isfinite(self.sigma_min).all() and (self.sigma_min >= 0).all() and (self.sigma_min <= self.sigma).all()
+        ):
+            raise ValueError(
+                f"sigma_min must be finite with 0 <= sigma_min <= sigma "
+                f"({self.sigma.tolist()}), got {self.sigma_min.tolist()}"
+            )
         self._sigma = ti.field(self.engine.ftype, shape=(2, ocp.nu))  # σ and σ_min
         runtime.stage(self._sigma, np.stack([self.sigma, self.sigma_min]))
 
@@ -124,8 +143,7 @@ class EvolutionaryMPC(SamplingMPC):
         MUTATE, CROSS, NOISE = 2, 2 + m, 2 + m + p * m
 
         @ti.kernel
-        def generation(key: ti.u32, counter: ti.u32, cold: ti.i32, shift: ti.i32, scale: F,
-                       out: ti.types.ndarray()):
+        def generation(key: ti.u32, counter: ti.u32, cold: ti.i32, shift: ti.i32, scale: F, out: ti.types.ndarray()):
             for i in range(N):
                 if cold:
                     for j in range(p):

@@ -18,6 +18,7 @@ Where one name has different defaults it means a different thing, said here once
   the API is asked for, unchanged); the command line and the benchmarks take :data:`KNOTS` knots (capped at the
   horizon), the README's examples and the size the C step and the Taichi kernels compile quickly for.
 """
+
 from __future__ import annotations
 
 from typing import NamedTuple
@@ -36,8 +37,10 @@ class Argument(NamedTuple):
     default: object = None
 
 
-_LINEARIZATION = Argument("the affine model's expansion input: goal (the goal's input) or plan (the input the "
-                          "previous plan expects now)", "goal")
+_LINEARIZATION = Argument(
+    "the affine model's expansion input: goal (the goal's input) or plan (the input the previous plan expects now)",
+    "goal",
+)
 _TIME_LIMIT = Argument("seconds a control step may take (None: no budget)")
 _RAISE = Argument("raise on a failed step instead of returning the fallback", False)
 _THREADS = Argument("BLAS/OpenMP threads inside a step (None: no limit)", 1)
@@ -50,15 +53,18 @@ LINEAR = {
     "qp": Argument(f"the QP backend: proxqp, osqp, daqp or hpipm (None: by form, {QP_BY_FORM})"),
     "max_iter": Argument("the QP backend's iterations per solve", 10_000),
     "eps": Argument("the QP backend's tolerance", 1e-9),
-    "linearization": Argument(f"{_LINEARIZATION.meaning}, or trajectory (stage by stage along the shifted plan)",
-                              "goal"),
-    "state_bounds": Argument("soft (an exact penalty of weight slack_weight) or hard (None: hard for hpipm, else "
-                             "soft)"),
+    "linearization": Argument(
+        f"{_LINEARIZATION.meaning}, or trajectory (stage by stage along the shifted plan)", "goal"
+    ),
+    "state_bounds": Argument(
+        "soft (an exact penalty of weight slack_weight) or hard (None: hard for hpipm, else soft)"
+    ),
     "slack_weight": Argument("the soft state bounds' penalty weight", 1e3),
     "native": Argument("run the step as compiled C (None: as the OCP's compiled policy says)"),
     "warm_start": _WARM_START,
-    "gains": Argument("compute Solution.gains, the first input's feedback gain du0/dx0 of the solved QP (runs the "
-                      "Python step)", False),
+    "gains": Argument(
+        "compute Solution.gains, the first input's feedback gain du0/dx0 of the solved QP (runs the Python step)", False
+    ),
     **_COMMON,
 }
 
@@ -70,26 +76,38 @@ RTI = {
     "state_bounds": Argument("soft or hard", "soft"),
 }
 
-_GAUSS_NEWTON = Argument("gauss-newton (derivatives from the per-stage affine model) or exact (CasADi's AD of the "
-                         "whole NLP)", "gauss-newton")
-_AFFINE = {"dynamics": Argument("the prediction model: nonlinear (the discrete model F) or affine (about (x, ū))",
-                                "nonlinear"),
-           "linearization": Argument(f"{_LINEARIZATION.meaning}, with dynamics 'affine'", "goal")}
+_GAUSS_NEWTON = Argument(
+    "gauss-newton (derivatives from the per-stage affine model) or exact (CasADi's AD of the whole NLP)", "gauss-newton"
+)
+_AFFINE = {
+    "dynamics": Argument(
+        "the prediction model: nonlinear (the discrete model F) or affine (about (x, ū))", "nonlinear"
+    ),
+    "linearization": Argument(f"{_LINEARIZATION.meaning}, with dynamics 'affine'", "goal"),
+}
 
 # NonlinearMPC's methods -> the arguments each takes besides those of NONLINEAR; an argument given that its method
 # does not take is refused, naming the methods that do.
 METHODS = {
-    "ipopt": {**_AFFINE, "hessian": _GAUSS_NEWTON,
-              "max_iter": Argument("IPOPT's iterations", 200),
-              "time_limit": Argument("IPOPT's max_wall_time in seconds (NonlinearMPC.ceiling, 10 s, without one)"),
-              "options": Argument("IPOPT's options, e.g. {'tol': 1e-10}")},
-    "sqp": {**_AFFINE, "hessian": _GAUSS_NEWTON,
-            "max_iter": Argument("sqpmethod's SQP iterations", 200),
-            "time_limit": Argument("seconds, checked after each SQP iteration (NonlinearMPC.ceiling without one)"),
-            "options": Argument("CasADi sqpmethod's options, e.g. {'qpsol': 'osqp'} (default qrqp)")},
-    "fatrop": {"hessian": _GAUSS_NEWTON,
-               "max_iter": Argument("fatrop's iterations", 200),
-               "options": Argument("fatrop's options, e.g. {'tol': 1e-10}")},
+    "ipopt": {
+        **_AFFINE,
+        "hessian": _GAUSS_NEWTON,
+        "max_iter": Argument("IPOPT's iterations", 200),
+        "time_limit": Argument("IPOPT's max_wall_time in seconds (NonlinearMPC.ceiling, 10 s, without one)"),
+        "options": Argument("IPOPT's options, e.g. {'tol': 1e-10}"),
+    },
+    "sqp": {
+        **_AFFINE,
+        "hessian": _GAUSS_NEWTON,
+        "max_iter": Argument("sqpmethod's SQP iterations", 200),
+        "time_limit": Argument("seconds, checked after each SQP iteration (NonlinearMPC.ceiling without one)"),
+        "options": Argument("CasADi sqpmethod's options, e.g. {'qpsol': 'osqp'} (default qrqp)"),
+    },
+    "fatrop": {
+        "hessian": _GAUSS_NEWTON,
+        "max_iter": Argument("fatrop's iterations", 200),
+        "options": Argument("fatrop's options, e.g. {'tol': 1e-10}"),
+    },
 }
 
 # NonlinearMPC: the arguments of every method (the rest by method, METHODS; None in its signature: the method's).
@@ -104,8 +122,9 @@ SAMPLING = {
     "population": Argument("rollouts per generation", 1024),
     "generations": Argument("generations per control step", 1),
     "variant": Argument("preconditioned (by the knot QP) or paper (the plain algorithm)", "preconditioned"),
-    "dynamics": Argument("the rollout model: affine (re-linearized every step) or nonlinear (the discrete model F)",
-                         "affine"),
+    "dynamics": Argument(
+        "the rollout model: affine (re-linearized every step) or nonlinear (the discrete model F)", "affine"
+    ),
     "stage_cost": Argument("a CasADi Function (x, u, goal) replacing the OCP's stage cost in the fitness"),
     "terminal_cost": Argument("a CasADi Function (x, goal) replacing the OCP's terminal cost in the fitness"),
     "precision": Argument("the kernels' float type: float64 or float32", "float64"),
@@ -114,22 +133,29 @@ SAMPLING = {
     "linearization": _LINEARIZATION,
     **_COMMON,
 }
-_SIGMA = Argument("paper: the std in input units (None: 10 % of each input's range); preconditioned: in whitened "
-                  "units (None: 1)")
-EMPC = {**SAMPLING,
-        "num_parents": Argument("the best candidates kept as parents", 16),
-        "scales": Argument("preconditioned: the whitened mutation scale's log-uniform range (None: (1e-2, 1e2))"),
-        "sigma": Argument("paper: the mutation std in input units (None: 10 % of each input's range)"),
-        "shrink_distance": Argument("paper: the distance to the goal below which the std shrinks (None: never)"),
-        "sigma_min": Argument("paper: the shrunk std (None: sigma / 10)")}
-CEM = {**SAMPLING,
-       "num_elites": Argument("the best candidates the Gaussian is refitted to", 32),
-       "sigma": _SIGMA,
-       "sigma_min": Argument("the std's floor (None: sigma / 100)"),
-       "smoothing": Argument("α in mean ← α·mean + (1−α)·elite mean (and so the std)", 0.0)}
-MPPI = {**SAMPLING,
-        "sigma": _SIGMA,
-        "temperature": Argument("λ of the weights exp(−(J − min J)/λ), in the cost's units", 1.0)}
+_SIGMA = Argument(
+    "paper: the std in input units (None: 10 % of each input's range); preconditioned: in whitened units (None: 1)"
+)
+EMPC = {
+    **SAMPLING,
+    "num_parents": Argument("the best candidates kept as parents", 16),
+    "scales": Argument("preconditioned: the whitened mutation scale's log-uniform range (None: (1e-2, 1e2))"),
+    "sigma": Argument("paper: the mutation std in input units (None: 10 % of each input's range)"),
+    "shrink_distance": Argument("paper: the distance to the goal below which the std shrinks (None: never)"),
+    "sigma_min": Argument("paper: the shrunk std (None: sigma / 10)"),
+}
+CEM = {
+    **SAMPLING,
+    "num_elites": Argument("the best candidates the Gaussian is refitted to", 32),
+    "sigma": _SIGMA,
+    "sigma_min": Argument("the std's floor (None: sigma / 100)"),
+    "smoothing": Argument("α in mean ← α·mean + (1−α)·elite mean (and so the std)", 0.0),
+}
+MPPI = {
+    **SAMPLING,
+    "sigma": _SIGMA,
+    "temperature": Argument("λ of the weights exp(−(J − min J)/λ), in the cost's units", 1.0),
+}
 
 # Registered solver name (ocpkit.solvers.names()) -> its arguments besides the OCP.
 ARGUMENTS = {"qp": LINEAR, "rti": RTI, "ipopt": NONLINEAR, "empc": EMPC, "cem": CEM, "mppi": MPPI}

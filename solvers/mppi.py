@@ -14,6 +14,7 @@ are, by their penalized cost. The plan returned is the nominal unless the best c
 (:func:`ocpkit.solvers.sampling.best_first`) dominates it (:meth:`GaussianSampling._final`): an average of plans
 that pass a ball on either side can hit it.
 """
+
 # No "from __future__ import annotations": Taichi reads kernel annotations as types.
 import numpy as np
 import taichi as ti
@@ -27,11 +28,17 @@ class MPPI(GaussianSampling):
     """MPPI with ``population`` samples, noise ``sigma`` (see :class:`GaussianSampling`) and temperature
     ``temperature`` λ (in the cost's units)."""
 
-    def __init__(self, ocp, *, population: int = MPPI["population"].default, sigma=None,
-                 temperature: float = MPPI["temperature"].default, generations: int = MPPI["generations"].default,
-                 **options):
-        super().__init__(ocp, population=population, generations=generations, sigma=sigma,
-                         **options)
+    def __init__(
+        self,
+        ocp,
+        *,
+        population: int = MPPI["population"].default,
+        sigma=None,
+        temperature: float = MPPI["temperature"].default,
+        generations: int = MPPI["generations"].default,
+        **options,
+    ):
+        super().__init__(ocp, population=population, generations=generations, sigma=sigma, **options)
         self.temperature = positive(temperature, "temperature")
         eng = self.engine
         N, p, m = eng.num_sims, eng.num_knots, eng.nu

@@ -36,6 +36,7 @@ One more method solves the same NLP (real-time iteration, a QP step per control 
 Which arguments each method takes, with their meaning and default there: :data:`ocpkit.solvers.methods.METHODS`. The
 NLP itself, in either order, and its Gauss–Newton derivatives: :class:`ocpkit.solvers.shooting.MultipleShooting`.
 """
+
 from __future__ import annotations
 
 import re
@@ -56,8 +57,12 @@ from ocpkit.solvers.shooting import MultipleShooting
 METHODS = tuple(methods.METHODS)
 SOLVER_NAMES = {"ipopt": "IPOPT", "sqp": "sqpmethod", "fatrop": "fatrop"}
 # Solver options NonlinearMPC sets from its own arguments: refused in ``options``, naming the argument.
-SET_BY_ARGUMENT = {"max_iter": "max_iter", "max_wall_time": "time_limit", "time_limit": "time_limit",
-                   "iteration_callback": "time_limit"}
+SET_BY_ARGUMENT = {
+    "max_iter": "max_iter",
+    "max_wall_time": "time_limit",
+    "time_limit": "time_limit",
+    "iteration_callback": "time_limit",
+}
 # How CasADi names an option its solver does not know.
 _UNKNOWN = re.compile(r"(?:No such IPOPT option|Unknown option|Fatrop option not supported): (\w+)")
 
@@ -89,8 +94,12 @@ _REASON = {
     "Not_Enough_Degrees_Of_Freedom": Reason.NLP_INFEASIBLE,
     "User_Requested_Stop": Reason.TIME_BUDGET,
 }
-_FAILED = {LIMITED: Reason.ITERATION_LIMIT, INFEASIBLE: Reason.NLP_INFEASIBLE, NAN: Reason.NON_FINITE_SOLUTION,
-           EXCEPTION: Reason.SOLVER_ERROR}
+_FAILED = {
+    LIMITED: Reason.ITERATION_LIMIT,
+    INFEASIBLE: Reason.NLP_INFEASIBLE,
+    NAN: Reason.NON_FINITE_SOLUTION,
+    EXCEPTION: Reason.SOLVER_ERROR,
+}
 
 
 class NonlinearMPC(MultipleShooting, Controller):
@@ -117,25 +126,43 @@ class NonlinearMPC(MultipleShooting, Controller):
     ``linearization`` ("goal" or "plan") is the affine model's expansion input, as in LinearMPC.
     """
 
-    def __init__(self, ocp: OCP, *, method: str = NONLINEAR["method"].default, dynamics: str | None = None,
-                 linearization: str | None = None, hessian: str | None = None, max_iter: int | None = None,
-                 time_limit: float | None = None, options: dict | None = None,
-                 warm_start: bool = NONLINEAR["warm_start"].default,
-                 raise_on_fail: bool = NONLINEAR["raise_on_fail"].default):
+    def __init__(
+        self,
+        ocp: OCP,
+        *,
+        method: str = NONLINEAR["method"].default,
+        dynamics: str | None = None,
+        linearization: str | None = None,
+        hessian: str | None = None,
+        max_iter: int | None = None,
+        time_limit: float | None = None,
+        options: dict | None = None,
+        warm_start: bool = NONLINEAR["warm_start"].default,
+        raise_on_fail: bool = NONLINEAR["raise_on_fail"].default,
+    ):
         if not isinstance(ocp, OCP):
             raise TypeError(f"ocp must be an ocpkit OCP, got {type(ocp).__name__}")
         if method == "rti":
-            raise ValueError("method 'rti' is its own controller now: solvers.make('rti', ocp, iterations=…) or "
-                             "ocpkit.solvers.rti.RealTimeIteration(ocp, …)")
+            raise ValueError(
+                "method 'rti' is its own controller now: solvers.make('rti', ocp, iterations=…) or "
+                "ocpkit.solvers.rti.RealTimeIteration(ocp, …)"
+            )
         choice(method, METHODS, "method")
-        given = {"dynamics": dynamics, "linearization": linearization, "hessian": hessian, "max_iter": max_iter,
-                 "time_limit": time_limit, "options": options}
+        given = {
+            "dynamics": dynamics,
+            "linearization": linearization,
+            "hessian": hessian,
+            "max_iter": max_iter,
+            "time_limit": time_limit,
+            "options": options,
+        }
         takes = methods.METHODS[method]
         for name, value in given.items():
             if value is not None and name not in takes:
                 raise ValueError(_not_taken(name, method))
-        setting = {name: takes[name].default if value is None and name in takes else value
-                   for name, value in given.items()}
+        setting = {
+            name: takes[name].default if value is None and name in takes else value for name, value in given.items()
+        }
         if options is not None and not isinstance(options, dict):
             raise TypeError(f"options must be a dict or None, got {type(options).__name__}")
         _check_options(method, options or {})
@@ -143,8 +170,10 @@ class NonlinearMPC(MultipleShooting, Controller):
             # Declared as fatrop's stage path constraints (ng per stage after each stage's gap rows) they were
             # solved while inactive, but with a clearance active fatrop stalled at dual infeasibility 2.5e-3 for 200
             # iterations (nlink:3, T = 20), where IPOPT converged in 20.
-            raise ValueError("method 'fatrop' takes a task's cost terms but not its obstacles (it stalls on an active "
-                             "clearance constraint): use method 'ipopt' or solver 'rti'")
+            raise ValueError(
+                "method 'fatrop' takes a task's cost terms but not its obstacles (it stalls on an active "
+                "clearance constraint): use method 'ipopt' or solver 'rti'"
+            )
         self.method = method
         # fatrop takes no dynamics (it predicts with the nonlinear model) nor linearization
         self.dynamics = choice(setting["dynamics"] or DYNAMICS[0], DYNAMICS, "dynamics")
@@ -235,8 +264,9 @@ class NonlinearMPC(MultipleShooting, Controller):
             model = self.affine_model(x, goal, self.linearization)
             if model is None:
                 times["model"] = time.perf_counter() - t0
-                return self._fail(NAN, f"non-finite affine model at x = {x.tolist()}", times,
-                                  reason=Reason.NON_FINITE_MODEL)
+                return self._fail(
+                    NAN, f"non-finite affine model at x = {x.tolist()}", times, reason=Reason.NON_FINITE_MODEL
+                )
             Ad, Bd, wd = model
             params += [Ad.ravel(order="F"), Bd.ravel(order="F"), wd]
         t1 = time.perf_counter()
@@ -246,10 +276,16 @@ class NonlinearMPC(MultipleShooting, Controller):
             w, (lam_x0, lam_g0) = np.empty(self._lbx.size), (None, None)
             w[self._order] = w0
             for start in self._copies:
-                w[start:start + p * m] = w0[self._nX:]
+                w[start : start + p * m] = w0[self._nX :]
             w0 = w
-        args = {"x0": w0, "p": np.concatenate(params), "lbx": self._lbx, "ubx": self._ubx, "lbg": self._lbg,
-                "ubg": self._ubg}
+        args = {
+            "x0": w0,
+            "p": np.concatenate(params),
+            "lbx": self._lbx,
+            "ubx": self._ubx,
+            "lbg": self._lbg,
+            "ubg": self._ubg,
+        }
         if lam_x0 is not None:
             args.update(lam_x0=lam_x0, lam_g0=lam_g0)
         t2 = time.perf_counter()
@@ -257,9 +293,14 @@ class NonlinearMPC(MultipleShooting, Controller):
         left = self.remaining(self.time_limit)
         # A solve costs at least its set-up and one iteration (max_wall_time is checked after an iteration): two.
         if not self._costs.fits("iteration", None if left is None else left / 2):
-            return self.fallback(LIMITED, f"time budget: {1e3 * max(left, 0.0):.3g} ms left, an IPOPT iteration "
-                                          f"measured at {1e3 * self._costs.predict('iteration'):.3g} ms (a solve "
-                                          f"is at least two)", times, reason=Reason.TIME_BUDGET)
+            return self.fallback(
+                LIMITED,
+                f"time budget: {1e3 * max(left, 0.0):.3g} ms left, an IPOPT iteration "
+                f"measured at {1e3 * self._costs.predict('iteration'):.3g} ms (a solve "
+                f"is at least two)",
+                times,
+                reason=Reason.TIME_BUDGET,
+            )
         if self.method == "sqp":
             self._deadline.deadline = self.deadline(self.ceiling if self.time_limit is None else self.time_limit)
         try:
@@ -289,10 +330,17 @@ class NonlinearMPC(MultipleShooting, Controller):
             return self._fail(status, raw, times, iterations, reason=_REASON.get(raw, _FAILED[status]))
         self._warm = (w, lam_x, np.asarray(res["lam_g"], dtype=float).ravel())
         # IPOPT relaxes bounds by its bound_relax_factor (1e-8 relative); project the knots back.
-        knots = np.clip(w[self._nX:].reshape(p, m), ocp.u_min, ocp.u_max)
+        knots = np.clip(w[self._nX :].reshape(p, m), ocp.u_min, ocp.u_max)
         x_pred = np.vstack([x, w[: self._nX].reshape(T, n)])
-        return Solution(u=ocp.parameterization.u_at(knots, 0), knots=knots, status=SUCCESS, raw_status=raw,
-                        iterations=iterations, x_pred=x_pred, times=times)
+        return Solution(
+            u=ocp.parameterization.u_at(knots, 0),
+            knots=knots,
+            status=SUCCESS,
+            raw_status=raw,
+            iterations=iterations,
+            x_pred=x_pred,
+            times=times,
+        )
 
     def _initial_guess(self, x: np.ndarray, goal: np.ndarray):
         """Cold: states held at x_0 and knots at the input goal u_g (clipped). Warm: the previous solution shifted
@@ -302,16 +350,19 @@ class NonlinearMPC(MultipleShooting, Controller):
             knots = self.goal_knots(goal)
             return np.r_[np.tile(x, T), knots.ravel()], None, None
         w, lam_x, lam_g = self._warm
-        shifted = ocp.parameterization.shift(w[self._nX:].reshape(ocp.knots, ocp.nu))
-        lam_u = lam_x[self._nX:]
+        shifted = ocp.parameterization.shift(w[self._nX :].reshape(ocp.knots, ocp.nu))
+        lam_u = lam_x[self._nX :]
         if ocp.parameterization.kind == "identity":
             lam_u = _shift_blocks(lam_u, ocp.nu)
         # Knot bound multipliers stay put otherwise: knots sit at fixed fractions of the horizon.
-        lam_gaps, lam_clear = lam_g[:self._gaps], lam_g[self._gaps:]
+        lam_gaps, lam_clear = lam_g[: self._gaps], lam_g[self._gaps :]
         if self._pairs:
             lam_clear = _shift_blocks(lam_clear, self._pairs)
-        return (np.r_[_shift_blocks(w[: self._nX], n), shifted.ravel()],
-                np.r_[_shift_blocks(lam_x[: self._nX], n), lam_u], np.r_[_shift_blocks(lam_gaps, n), lam_clear])
+        return (
+            np.r_[_shift_blocks(w[: self._nX], n), shifted.ravel()],
+            np.r_[_shift_blocks(lam_x[: self._nX], n), lam_u],
+            np.r_[_shift_blocks(lam_gaps, n), lam_clear],
+        )
 
     def _fail(self, status, raw, times, iterations=0, *, reason: Reason) -> Solution:
         """Fallback solution and a cold start for the next step (no stale warm start)."""
@@ -322,8 +373,9 @@ class NonlinearMPC(MultipleShooting, Controller):
 def _not_taken(argument: str, method: str) -> str:
     """Why ``argument`` is refused for ``method``: the methods that take it
     (:data:`ocpkit.solvers.methods.METHODS`)."""
-    return (f"{argument} does not apply to method {method!r}: it applies to methods "
-            f"{', '.join(methods.taking(argument))}")
+    return (
+        f"{argument} does not apply to method {method!r}: it applies to methods {', '.join(methods.taking(argument))}"
+    )
 
 
 def _check_options(method: str, options: dict) -> None:
@@ -334,8 +386,10 @@ def _check_options(method: str, options: dict) -> None:
         if argument is not None and argument not in methods.METHODS[method]:
             raise ValueError(f"option {name!r} does not apply to method {method!r}: it takes no {argument}")
         if argument is not None:
-            raise ValueError(f"option {name!r} does not apply to method {method!r}: NonlinearMPC sets it from its "
-                             f"argument; use {argument}=")
+            raise ValueError(
+                f"option {name!r} does not apply to method {method!r}: NonlinearMPC sets it from its "
+                f"argument; use {argument}="
+            )
     if method == "fatrop" and options:
         _check_fatrop_options(options)
 
@@ -345,8 +399,10 @@ def _refused(method: str, exc: RuntimeError) -> ValueError:
     says which."""
     unknown = _UNKNOWN.search(str(exc))
     if unknown:
-        return ValueError(f"option {unknown.group(1)!r} does not apply to method {method!r} (not one of "
-                          f"{SOLVER_NAMES[method]}'s options)")
+        return ValueError(
+            f"option {unknown.group(1)!r} does not apply to method {method!r} (not one of "
+            f"{SOLVER_NAMES[method]}'s options)"
+        )
     return ValueError(f"options rejected by {method}: {' '.join(str(exc).split())}")
 
 
@@ -354,8 +410,16 @@ def _check_fatrop_options(options: dict) -> None:
     """fatrop reads its options at the first solve (an unknown one made every step an "exception"): try them on a
     one-stage NLP, a few milliseconds, and refuse what it rejects (:func:`_refused`)."""
     w = ca.MX.sym("w", 2)
-    opts = {"structure_detection": "manual", "N": 1, "nx": [0, 1], "nu": [1, 0], "ng": [0, 0], "print_time": False,
-            "error_on_fail": False, "fatrop": {"print_level": 0, **options}}
+    opts = {
+        "structure_detection": "manual",
+        "N": 1,
+        "nx": [0, 1],
+        "nu": [1, 0],
+        "ng": [0, 0],
+        "print_time": False,
+        "error_on_fail": False,
+        "fatrop": {"print_level": 0, **options},
+    }
     try:
         ca.nlpsol("fatrop_options", "fatrop", {"x": w, "f": ca.sumsqr(w), "g": w[1] - w[0]}, opts)(x0=0, lbg=0, ubg=0)
     except RuntimeError as exc:

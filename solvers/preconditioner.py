@@ -1,6 +1,7 @@
 """The sampling planners' preconditioner: the knot QP at this step's linearization, its Cholesky factor P = LLᵀ
 (perturbations L⁻ᵀε, covariance ∝ P⁻¹, cost alike in every direction) and the seeds every population evaluates (the
 QP's optimum within the bounds and the input that holds the goal); :mod:`ocpkit.solvers.sampling` says why."""
+
 from __future__ import annotations
 
 import time
@@ -60,8 +61,9 @@ class Preconditioner:
             self._hold_goal = goal.copy()
         return self._hold
 
-    def update(self, model, x, goal, warm: np.ndarray | None, times: dict, targets=None,
-               deadline: float | None = None) -> None:
+    def update(
+        self, model, x, goal, warm: np.ndarray | None, times: dict, targets=None, deadline: float | None = None
+    ) -> None:
         """Build, factor and seed for the affine ``model`` = (A_d, B_d, w_d) at state x; ``warm`` (p, m)
         starts the Newton candidate (the holding input if None) and, with a task, is where its terms and obstacles
         are linearized towards ``targets``. DAQP stops at ``deadline`` (a perf_counter value; None: none). Adds its

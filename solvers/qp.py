@@ -7,6 +7,7 @@ form), OSQP (the paper's own solver) or HPIPM. Input bounds are imposed on the k
 piecewise-linear (or zero-order-hold) input trajectory within bounds because every u_k is a convex combination of
 knots. In the default configuration a robot's step runs as compiled C once it is built (:mod:`ocpkit.export.native`).
 """
+
 from __future__ import annotations
 
 import threading
@@ -75,11 +76,24 @@ class LinearMPC(Controller):
 
     CEILING_MIN, CEILING_PER_VARIABLE = 10.0, 1e-4  # seconds: the default budget (:attr:`ceiling`)
 
-    def __init__(self, ocp: OCP, *, form: str = "condensed", qp: str | None = None, max_iter: int = 10_000,
-                 eps: float = 1e-9, time_limit: float | None = None, warm_start: bool = True,
-                 raise_on_fail: bool = False, linearization: str = "goal", state_bounds: str | None = None,
-                 slack_weight: float = 1e3, threads: int | None = 1, native: bool | None = None,
-                 gains: bool = False):
+    def __init__(
+        self,
+        ocp: OCP,
+        *,
+        form: str = "condensed",
+        qp: str | None = None,
+        max_iter: int = 10_000,
+        eps: float = 1e-9,
+        time_limit: float | None = None,
+        warm_start: bool = True,
+        raise_on_fail: bool = False,
+        linearization: str = "goal",
+        state_bounds: str | None = None,
+        slack_weight: float = 1e3,
+        threads: int | None = 1,
+        native: bool | None = None,
+        gains: bool = False,
+    ):
         self.linearization = check_linearization(linearization, trajectory=True)
         choice(form, tuple(TRANSCRIPTIONS), "form")
         qp = DEFAULT_QP[form] if qp is None else choice(qp, QP_SOLVERS, "qp")
@@ -114,11 +128,15 @@ class LinearMPC(Controller):
             chain.append(self.transcription)
         self._transcriptions = tuple(chain) if qp == "daqp" and len(chain) > 1 else (self.transcription,)
         if qp == "hpipm" and not (form == "sparse" and ocp.knots == ocp.horizon):
-            raise ValueError(f"qp 'hpipm' needs form 'sparse' and the identity parameterization (knots = horizon, "
-                             f"traditional MPC), got form {form!r} with {ocp.knots} knots over {ocp.horizon} steps")
+            raise ValueError(
+                f"qp 'hpipm' needs form 'sparse' and the identity parameterization (knots = horizon, "
+                f"traditional MPC), got form {form!r} with {ocp.knots} knots over {ocp.horizon} steps"
+            )
         if ocp.task_functions is not None and form != "condensed":
-            raise ValueError(f"a task's terms and obstacles enter the condensed QP (Gauss-Newton about the plan): "
-                             f"pass form='condensed', got form {form!r}")
+            raise ValueError(
+                f"a task's terms and obstacles enter the condensed QP (Gauss-Newton about the plan): "
+                f"pass form='condensed', got form {form!r}"
+            )
         if qp == "daqp" and form != "condensed":
             raise ValueError(f"qp 'daqp' is a dense solver: it needs form 'condensed', got form {form!r}")
         eps = positive(eps, "eps")
@@ -135,8 +153,14 @@ class LinearMPC(Controller):
         if native and why:
             raise ValueError(f"native=True: this LinearMPC has no C step: {why}")
         if native or (native is None and not why and _native.wanted(ocp)):
-            build = _native.start(ocp, eps=self._backend.tolerance, max_iter=self.max_iter, wait=bool(native),
-                                  linearization=self.linearization, **self._native_options())
+            build = _native.start(
+                ocp,
+                eps=self._backend.tolerance,
+                max_iter=self.max_iter,
+                wait=bool(native),
+                linearization=self.linearization,
+                **self._native_options(),
+            )
             if build is not None:
                 self._native_build, self._native_iter = build, self.max_iter
                 if not build.done():
@@ -161,14 +185,19 @@ class LinearMPC(Controller):
 
     def _no_native_step(self) -> str | None:
         """Why this configuration has no exported C step (None: it has one)."""
-        for bad, why in ((self.form != "condensed", f"form {self.form!r} (the C step is the condensed QP)"),
-                         (self.qp_name != "daqp", f"qp {self.qp_name!r} (the C step solves with DAQP)"),
-                         (self.linearization == "trajectory" and self.ocp.task_functions is not None,
-                          "a task with the trajectory linearization (the C step's task terms are linearized about "
-                          "one model)"),
-                         (self.transcription.soft and len(self._transcriptions) == 1,
-                          "soft state bounds with a backend that solves the soft QP alone"),
-                         (self._gains, "gains (the C step returns no QP to differentiate)")):
+        for bad, why in (
+            (self.form != "condensed", f"form {self.form!r} (the C step is the condensed QP)"),
+            (self.qp_name != "daqp", f"qp {self.qp_name!r} (the C step solves with DAQP)"),
+            (
+                self.linearization == "trajectory" and self.ocp.task_functions is not None,
+                "a task with the trajectory linearization (the C step's task terms are linearized about one model)",
+            ),
+            (
+                self.transcription.soft and len(self._transcriptions) == 1,
+                "soft state bounds with a backend that solves the soft QP alone",
+            ),
+            (self._gains, "gains (the C step returns no QP to differentiate)"),
+        ):
             if bad:
                 return why
         return None
@@ -210,8 +239,9 @@ class LinearMPC(Controller):
 
     @time_limit.setter
     def time_limit(self, value: float | None) -> None:
-        self._time_limit = (None if value is None else float("inf") if value == float("inf")
-                            else positive(value, "time_limit"))
+        self._time_limit = (
+            None if value is None else float("inf") if value == float("inf") else positive(value, "time_limit")
+        )
 
     @property
     def max_iter(self) -> int:
@@ -225,7 +255,7 @@ class LinearMPC(Controller):
 
     @property
     def path(self) -> str:
-        """"C step" (compiled C, loaded), "Python step, C step building" (until the background build lands) or
+        """ "C step" (compiled C, loaded), "Python step, C step building" (until the background build lands) or
         "Python step"."""
         if getattr(self, "_native", None) is not None and self._native_iter == self.max_iter:
             return "C step"
@@ -251,9 +281,13 @@ class LinearMPC(Controller):
         """Why a QP is ill-conditioned, said once per controller (an eigenvalue problem: not on every failed step)."""
         if self._diagnosed is None:
             rho = spectral_radius(self.ocp, self._goal, self.ocp.input_goal(self._goal))
-            self._diagnosed = (f" (|eig A_d| = {rho:.3g} a step: the model's RK4 step of {self.ocp.dt:g} s "
-                               f"diverges; more substeps, e.g. problem.ocp(..., substeps={2 * self.ocp.substeps}), "
-                               f"may help)" if rho > 2 else f" (|eig A_d| = {rho:.3g} a step)")
+            self._diagnosed = (
+                f" (|eig A_d| = {rho:.3g} a step: the model's RK4 step of {self.ocp.dt:g} s "
+                f"diverges; more substeps, e.g. problem.ocp(..., substeps={2 * self.ocp.substeps}), "
+                f"may help)"
+                if rho > 2
+                else f" (|eig A_d| = {rho:.3g} a step)"
+            )
         return self._diagnosed
 
     @property
@@ -278,8 +312,9 @@ class LinearMPC(Controller):
     def _c_step(self, step, x: np.ndarray, goal: np.ndarray, deadline: float | None) -> Solution:
         """The whole step (model, build, DAQP) as compiled C; a failure gives the Python step's fallback."""
         if not self._costs.fits("C step", time_left(deadline)):
-            return self.fallback(LIMITED, skipped("C step", self._costs, deadline, 0).raw_status,
-                                 reason=Reason.TIME_BUDGET)
+            return self.fallback(
+                LIMITED, skipped("C step", self._costs, deadline, 0).raw_status, reason=Reason.TIME_BUDGET
+            )
         if step.sets_plan and self.plan is not None:  # the plan Python answered last (a softened QP, the brake)
             step.set_plan(self.plan)
         sol = step._solve(x, self.task_goal)
@@ -306,7 +341,7 @@ class LinearMPC(Controller):
         rollout of the model from x under the shifted inputs (the input goal at a cold start)."""
         ocp = self.ocp
         par = ocp.parameterization
-        knots = (np.tile(ocp.input_goal(goal), (ocp.knots, 1)) if self.plan is None else par.shift(self.plan))
+        knots = np.tile(ocp.input_goal(goal), (ocp.knots, 1)) if self.plan is None else par.shift(self.plan)
         us = par.inputs(knots)
         if self._x_plan is not None:
             xs = np.vstack([x, self._x_plan[2:]])
@@ -314,8 +349,16 @@ class LinearMPC(Controller):
             xs = self.rollout(x, us)[:-1]
         return xs, us
 
-    def _qp_step(self, x: np.ndarray, goal: np.ndarray, along, deadline: float | None,
-                 times: dict | None = None, transcriptions: tuple | None = None, knots=None) -> Solution:
+    def _qp_step(
+        self,
+        x: np.ndarray,
+        goal: np.ndarray,
+        along,
+        deadline: float | None,
+        times: dict | None = None,
+        transcriptions: tuple | None = None,
+        knots=None,
+    ) -> Solution:
         """One QP step: the affine model (about x, or per stage along ``along`` = (x̄, ū)), the build, the solve
         of each of ``transcriptions`` (default: this controller's) until one is not infeasible. A task's terms are
         linearized about ``knots`` (default: the last plan shifted a step, or the input goal at a cold start)."""
@@ -334,14 +377,15 @@ class LinearMPC(Controller):
         t1 = time.perf_counter()
         times["model"] += t1 - t0
         if model is None:
-            return self._fail(NAN, f"non-finite affine model at x = {x.tolist()}", times,
-                              reason=Reason.NON_FINITE_MODEL)
+            return self._fail(
+                NAN, f"non-finite affine model at x = {x.tolist()}", times, reason=Reason.NON_FINITE_MODEL
+            )
         transcriptions = transcriptions or self._transcriptions
         task = {}
         if ocp.task_functions is not None:
             if knots is None:
                 knots = self.goal_knots(goal) if self.plan is None else ocp.parameterization.shift(self.plan)
-            task = {"targets": self.task_goal[ocp.nx:], "knots": knots}
+            task = {"targets": self.task_goal[ocp.nx :], "knots": knots}
         for tr in transcriptions:
             # a softer QP after an infeasible harder one: its own build time
             retry = None if tr is self._transcriptions[0] else f"QP {self._transcriptions.index(tr) + 1} build"
@@ -377,8 +421,13 @@ class LinearMPC(Controller):
                 certificate = certify(qp, res.z, res.y, res.w)
                 why = certificate.failed()
                 if why is not None:  # not a solution (or an inaccurate one): no warm start from it
-                    return self._fail(LIMITED, f"{res.raw_status} but certificate failed: {why}", times,
-                                      res.iterations, reason=Reason.CERTIFICATE_FAILED)
+                    return self._fail(
+                        LIMITED,
+                        f"{res.raw_status} but certificate failed: {why}",
+                        times,
+                        res.iterations,
+                        reason=Reason.CERTIFICATE_FAILED,
+                    )
         if res.status != SUCCESS:
             return self._fail(res.status, res.raw_status, times, res.iterations, keep=res, reason=res.reason)
         self._warm = res.duals
@@ -387,11 +436,21 @@ class LinearMPC(Controller):
         u = ocp.parameterization.u_at(knots, 0)
         self._x_plan = x_pred
         gains = feedback_gain(tr, qp, model, res.z, res.w) if self._gains else None
-        return Solution(u=u, knots=knots, status=SUCCESS, raw_status=res.raw_status, iterations=res.iterations,
-                        x_pred=x_pred, times=times, certificate=certificate, gains=gains)
+        return Solution(
+            u=u,
+            knots=knots,
+            status=SUCCESS,
+            raw_status=res.raw_status,
+            iterations=res.iterations,
+            x_pred=x_pred,
+            times=times,
+            certificate=certificate,
+            gains=gains,
+        )
 
-    def _fail(self, status, raw, times, iterations=0, keep: Result | None = None, *,
-              reason: Reason | None = None) -> Solution:
+    def _fail(
+        self, status, raw, times, iterations=0, keep: Result | None = None, *, reason: Reason | None = None
+    ) -> Solution:
         """Fallback solution. After "limited" the backend's workspace stays and its (finite) iterate is the next
         warm start: resetting it made every later step start cold, so a budget between the warm and the cold
         solve time never succeeded again. Any other failure leaves a clean workspace (no stale warm start).

@@ -6,6 +6,7 @@ reuses the sparse and condensed knot QPs, their backends and LinearMPC's C step.
 Gauss–Newton Hessian is exact in the cost and a fixed point of the iteration is a KKT point of the NLP: iterated, it
 reaches the optimum of NonlinearMPC (:mod:`ocpkit.solvers.nlp`).
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -35,8 +36,15 @@ class RealTimeIteration(LinearMPC):
     together), ``eps``, ``slack_weight``, ``native``, ``warm_start``, ``raise_on_fail``, ``threads``, ``gains`` (the
     last iteration's QP's feedback gain, each iteration computing its own)."""
 
-    def __init__(self, ocp: OCP, *, iterations: int = RTI["iterations"].default, tol: float = RTI["tol"].default,
-                 state_bounds: str = RTI["state_bounds"].default, **options):
+    def __init__(
+        self,
+        ocp: OCP,
+        *,
+        iterations: int = RTI["iterations"].default,
+        tol: float = RTI["tol"].default,
+        state_bounds: str = RTI["state_bounds"].default,
+        **options,
+    ):
         if "linearization" in options:
             raise ValueError("RealTimeIteration takes no linearization: it always linearizes along its iterate")
         self.iterations = integer(iterations, "iterations", 1)
@@ -68,16 +76,22 @@ class RealTimeIteration(LinearMPC):
                 self._x_plan = sol.x_pred  # the last good iterate stays the plan
                 sol.raw_status = f"{sol.raw_status}; iteration {i + 1} {new.status}: {new.raw_status}"
                 break
-            moved = (np.inf if sol is None else
-                     max(np.abs(new.knots - sol.knots).max(), np.abs(new.x_pred - sol.x_pred).max()))
+            moved = (
+                np.inf
+                if sol is None
+                else max(np.abs(new.knots - sol.knots).max(), np.abs(new.x_pred - sol.x_pred).max())
+            )
             sol, done = new, i + 1
             if moved <= self.tol:
                 break
             along = (np.vstack([x, sol.x_pred[1:-1]]), par.inputs(sol.knots))
         # Each iteration's QP is certified; the NLP's KKT point only where the iteration converged.
-        converged = (f"converged (last iteration moved the plan {moved:.2g} <= tol {self.tol:g})"
-                     if moved <= self.tol else "not iterated to convergence"
-                     + (f" (last iteration moved the plan {moved:.2g})" if np.isfinite(moved) else ""))
+        converged = (
+            f"converged (last iteration moved the plan {moved:.2g} <= tol {self.tol:g})"
+            if moved <= self.tol
+            else "not iterated to convergence"
+            + (f" (last iteration moved the plan {moved:.2g})" if np.isfinite(moved) else "")
+        )
         sol.raw_status = f"RTI {done} of {self.iterations} iterations, {converged}; QP: {sol.raw_status}"
         sol.iterations, sol.times = qp_iterations, times
         return sol

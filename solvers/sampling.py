@@ -35,6 +35,7 @@ Timings: ``model`` is the linearization; ``build`` the preconditioner's QP; ``so
 (``factor``, ``seed`` — the Newton (or DAQP) and holding candidates —, ``copies`` between host and device and
 ``generations``, each also reported on its own), as the paper counts EMPC's solve time.
 """
+
 # No "from __future__ import annotations": Taichi reads kernel annotations as types.
 import time
 
@@ -107,14 +108,25 @@ class SamplingMPC(Controller):
     threads inside a step (see Controller); Taichi's own CPU threads are set at its start (``OCPKIT_CPU_THREADS``).
     """
 
-    def __init__(self, ocp, *, population: int = SAMPLING["population"].default,
-                 generations: int = SAMPLING["generations"].default, num_picked: int = 1,
-                 variant: str = SAMPLING["variant"].default, dynamics: str = SAMPLING["dynamics"].default,
-                 stage_cost=None, terminal_cost=None, precision: str = SAMPLING["precision"].default,
-                 arch: str = SAMPLING["arch"].default, seed: int = SAMPLING["seed"].default,
-                 linearization: str = SAMPLING["linearization"].default, time_limit: float | None = None,
-                 raise_on_fail: bool = SAMPLING["raise_on_fail"].default,
-                 threads: int | None = SAMPLING["threads"].default):
+    def __init__(
+        self,
+        ocp,
+        *,
+        population: int = SAMPLING["population"].default,
+        generations: int = SAMPLING["generations"].default,
+        num_picked: int = 1,
+        variant: str = SAMPLING["variant"].default,
+        dynamics: str = SAMPLING["dynamics"].default,
+        stage_cost=None,
+        terminal_cost=None,
+        precision: str = SAMPLING["precision"].default,
+        arch: str = SAMPLING["arch"].default,
+        seed: int = SAMPLING["seed"].default,
+        linearization: str = SAMPLING["linearization"].default,
+        time_limit: float | None = None,
+        raise_on_fail: bool = SAMPLING["raise_on_fail"].default,
+        threads: int | None = SAMPLING["threads"].default,
+    ):
         super().__init__(ocp, raise_on_fail=raise_on_fail, threads=threads)
         self.variant = choice(variant, VARIANTS, "variant")
         self.preconditioned = variant == "preconditioned"
@@ -123,16 +135,27 @@ class SamplingMPC(Controller):
         self.population = integer(population, "population", 1)
         self.generations = integer(generations, "generations", 1)
         if not (np.isfinite(ocp.u_min).all() and np.isfinite(ocp.u_max).all()):
-            raise ValueError(f"{type(self).__name__} samples within the input bounds, which must be "
-                             f"finite; got u_min={ocp.u_min.tolist()}, u_max={ocp.u_max.tolist()}")
+            raise ValueError(
+                f"{type(self).__name__} samples within the input bounds, which must be "
+                f"finite; got u_min={ocp.u_min.tolist()}, u_max={ocp.u_max.tolist()}"
+            )
         if (stage_cost is not None or terminal_cost is not None) and (ocp.has_state_bounds or ocp.task_functions):
-            raise ValueError(f"{type(self).__name__}: stage_cost/terminal_cost replace the whole fitness, which "
-                             "carries the OCP's state bounds and task as penalties: build yours on "
-                             "ocpkit.codegen.kernels.rollout.fitness(ocp), or leave them out of the OCP")
+            raise ValueError(
+                f"{type(self).__name__}: stage_cost/terminal_cost replace the whole fitness, which "
+                "carries the OCP's state bounds and task as penalties: build yours on "
+                "ocpkit.codegen.kernels.rollout.fitness(ocp), or leave them out of the OCP"
+            )
         self.key = seed_key(seed)
-        self.engine = Rollout(ocp, self.population, num_picked=num_picked, dynamics=dynamics,
-                              stage_cost=stage_cost, terminal_cost=terminal_cost,
-                              precision=precision, arch=arch)
+        self.engine = Rollout(
+            ocp,
+            self.population,
+            num_picked=num_picked,
+            dynamics=dynamics,
+            stage_cost=stage_cost,
+            terminal_cost=terminal_cost,
+            precision=precision,
+            arch=arch,
+        )
         F = self.engine.ftype
         p, m = ocp.knots, ocp.nu
         self._u_min = ti.field(F, shape=m)
@@ -170,8 +193,10 @@ class SamplingMPC(Controller):
         return f"Taichi kernel ({self.engine.arch})"
 
     def __repr__(self):
-        return (f"{type(self).__name__}({self.variant}, population={self.population}, "
-                f"generations={self.generations}, {self.ocp!r})")
+        return (
+            f"{type(self).__name__}({self.variant}, population={self.population}, "
+            f"generations={self.generations}, {self.ocp!r})"
+        )
 
     def reset(self) -> None:
         """Cold start: forget the plan and restart the random stream."""
@@ -198,8 +223,9 @@ class SamplingMPC(Controller):
             times["model"] = self._measured("model", start)
             if model is None:
                 self._warm = False
-                return self.fallback(NAN, f"non-finite affine model at x = {x.tolist()}", times,
-                                     reason=Reason.NON_FINITE_MODEL)
+                return self.fallback(
+                    NAN, f"non-finite affine model at x = {x.tolist()}", times, reason=Reason.NON_FINITE_MODEL
+                )
         start = time.perf_counter()
         stale = False
         try:
@@ -235,14 +261,16 @@ class SamplingMPC(Controller):
         except Exception as exc:  # a failed step must not raise inside the control loop
             self._close_times(start)
             self._warm = False
-            return self.fallback(EXCEPTION, f"{type(exc).__name__}: {exc}", times, self.generations,
-                                 reason=Reason.SOLVER_ERROR)
+            return self.fallback(
+                EXCEPTION, f"{type(exc).__name__}: {exc}", times, self.generations, reason=Reason.SOLVER_ERROR
+            )
         self._close_times(start)
         cost, violation = best
         if not np.isfinite(cost) or not np.isfinite(knots).all():
             self._warm = False
-            return self.fallback(NAN, f"best rollout cost {cost}", times, self.generations,
-                                 reason=Reason.NON_FINITE_SOLUTION)
+            return self.fallback(
+                NAN, f"best rollout cost {cost}", times, self.generations, reason=Reason.NON_FINITE_SOLUTION
+            )
         self._warm = True
         knots = np.clip(knots, ocp.u_min, ocp.u_max)
         u = np.clip(ocp.parameterization.u_at(knots, 0), ocp.u_min, ocp.u_max)
@@ -250,25 +278,47 @@ class SamplingMPC(Controller):
         if stale:
             found += "; preconditioner of an earlier step (time budget)"
         if done < self.generations:
-            return Solution(u=u, knots=knots, status=LIMITED, iterations=done, times=times, reason=Reason.TIME_BUDGET,
-                            raw_status=f"time limit {self.time_limit:g} s reached after {done} of "
-                                       f"{self.generations} generations (best {found})")
+            return Solution(
+                u=u,
+                knots=knots,
+                status=LIMITED,
+                iterations=done,
+                times=times,
+                reason=Reason.TIME_BUDGET,
+                raw_status=f"time limit {self.time_limit:g} s reached after {done} of "
+                f"{self.generations} generations (best {found})",
+            )
         if self._out_of_time():
-            return Solution(u=u, knots=knots, status=LIMITED, iterations=done, times=times, reason=Reason.TIME_BUDGET,
-                            raw_status=f"time limit {self.time_limit:g} s exceeded by the last generation "
-                                       f"(best {found})")
-        return Solution(u=u, knots=knots, status=SUCCESS, raw_status=f"best {found}",
-                        iterations=self.generations, times=times)
+            return Solution(
+                u=u,
+                knots=knots,
+                status=LIMITED,
+                iterations=done,
+                times=times,
+                reason=Reason.TIME_BUDGET,
+                raw_status=f"time limit {self.time_limit:g} s exceeded by the last generation (best {found})",
+            )
+        return Solution(
+            u=u, knots=knots, status=SUCCESS, raw_status=f"best {found}", iterations=self.generations, times=times
+        )
 
     def _precondition(self, model, x: np.ndarray, goal: np.ndarray, times: dict) -> None:
         """Update the preconditioner at this step's linearization and copy its whitening and seeds to the device."""
         t = time.perf_counter()
         pre, ocp = self.preconditioner, self.ocp
-        pre.update(model, x, goal, None if self.plan is None else self._shifted(self.plan), times,
-                   self.task_goal[ocp.nx:], self.deadline(self.time_limit))
+        pre.update(
+            model,
+            x,
+            goal,
+            None if self.plan is None else self._shifted(self.plan),
+            times,
+            self.task_goal[ocp.nx :],
+            self.deadline(self.time_limit),
+        )
         t_copy = time.perf_counter()
-        np.concatenate([pre.whiten.ravel(), pre.newton.ravel(), pre.hold.ravel()],
-                       out=self._upload_buffer, casting="same_kind")
+        np.concatenate(
+            [pre.whiten.ravel(), pre.newton.ravel(), pre.hold.ravel()], out=self._upload_buffer, casting="same_kind"
+        )
         self._upload_preconditioner(self._upload_buffer)
         times["copies"] += time.perf_counter() - t_copy
         self._measured("preconditioner", t)
@@ -292,8 +342,12 @@ class SamplingMPC(Controller):
         self._missed += 1
         left = max(0.0, self.remaining(self.time_limit))
         need = sum(map(self._costs.predict, stages))
-        return self.fallback(LIMITED, f"time budget: {1e3 * left:.3g} ms left, {' + '.join(stages)} measured at "
-                                      f"{1e3 * need:.3g} ms", times, reason=Reason.TIME_BUDGET)
+        return self.fallback(
+            LIMITED,
+            f"time budget: {1e3 * left:.3g} ms left, {' + '.join(stages)} measured at {1e3 * need:.3g} ms",
+            times,
+            reason=Reason.TIME_BUDGET,
+        )
 
     def _close_times(self, start: float) -> None:
         """Everything after the linearization except the preconditioner's QP build counts as solve."""
@@ -375,8 +429,7 @@ class GaussianSampling(SamplingMPC):
             self.sigma = 1.0 if sigma is None else positive(sigma, "sigma")
         else:
             span = ocp.u_max - ocp.u_min
-            self.sigma = 0.1 * span if sigma is None else array(np.broadcast_to(sigma, span.shape), "sigma",
-                                                                 span.shape)
+            self.sigma = 0.1 * span if sigma is None else array(np.broadcast_to(sigma, span.shape), "sigma", span.shape)
             if (self.sigma < 0).any():
                 raise ValueError(f"sigma must be >= 0, got {self.sigma.tolist()}")
         knots, record, lo, hi = eng.knots, eng.record, self._u_min, self._u_max
@@ -458,7 +511,7 @@ class GaussianSampling(SamplingMPC):
         self.std = np.full(d, self.sigma) if self.preconditioned else np.tile(self.sigma, ocp.knots)
         if self.preconditioned:
             pre = self.preconditioner
-            centers = (start, pre.newton, pre.hold)[:self._centers]
+            centers = (start, pre.newton, pre.hold)[: self._centers]
             start = centers[int(best_first(self._evaluate(centers), 1)[0])]
         return start
 

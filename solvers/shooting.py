@@ -1,5 +1,6 @@
 """The multiple-shooting NLP of NonlinearMPC (:mod:`ocpkit.solvers.nlp`): its transcription in IPOPT's and
 sqpmethod's variable order [x_1 … x_T, U] and in fatrop's stage order, with the Gauss–Newton derivatives."""
+
 from __future__ import annotations
 
 import time
@@ -91,8 +92,7 @@ class MultipleShooting:
         self._ubx = np.r_[np.tile(ocp.x_max, T), np.tile(ocp.u_max, p)]
         if self.method == "sqp":
             nw, ng, npar = nlp["x"].numel(), nlp["g"].numel(), nlp["p"].numel()
-            self._deadline = _Deadline({"f": 1, "x": nw, "g": ng, "lam_x": nw, "lam_g": ng, "p": npar,
-                                        "lam_p": npar})
+            self._deadline = _Deadline({"f": 1, "x": nw, "g": ng, "lam_x": nw, "lam_g": ng, "p": npar, "lam_p": npar})
             opts["iteration_callback"] = self._deadline
         self._nlp = ("ipopt" if self.method == "ipopt" else "sqpmethod", nlp, opts)
         self._apply_limits()
@@ -118,8 +118,16 @@ class MultipleShooting:
             stages = self._stage(ocp).map(T)(starts, inputs)
         A, B = ca.MX.sym("A", n, n * T), ca.MX.sym("B", n, m * T)
         symbols, values = [A, B], list(stages[:2])
-        linear = [ca.vec(ca.horzcat(*[ca.mtimes(_block(A, k, n), starts[:, k])
-                                      + ca.mtimes(_block(B, k, m), inputs[:, k]) - X[:, k] for k in range(T)]))]
+        linear = [
+            ca.vec(
+                ca.horzcat(
+                    *[
+                        ca.mtimes(_block(A, k, n), starts[:, k]) + ca.mtimes(_block(B, k, m), inputs[:, k]) - X[:, k]
+                        for k in range(T)
+                    ]
+                )
+            )
+        ]
         residuals, weights, clearance = [], [], []
         if tf is not None:
             if tf.pairs:
@@ -133,8 +141,10 @@ class MultipleShooting:
                 Rx, Ru = (ca.MX.sym(name, tf.stage_weight.size, size * T) for name, size in (("Rx", n), ("Ru", m)))
                 symbols += [Rx, Ru]
                 values += tf.stage_residual.map(T)(starts, inputs, ca.repmat(targets, 1, T))[1:]
-                residuals += [ca.mtimes(_block(Rx, k, n), starts[:, k]) + ca.mtimes(_block(Ru, k, m), inputs[:, k])
-                              for k in range(T)]
+                residuals += [
+                    ca.mtimes(_block(Rx, k, n), starts[:, k]) + ca.mtimes(_block(Ru, k, m), inputs[:, k])
+                    for k in range(T)
+                ]
                 weights += [tf.stage_weight] * T
             if tf.terminal_weight.size:
                 RT = ca.MX.sym("RT", tf.terminal_weight.size, n)
@@ -149,17 +159,21 @@ class MultipleShooting:
             outputs.append(2 * ca.mtimes(E.T, ca.mtimes(ca.diag(ca.DM(np.concatenate(weights))), E)))
         model = ca.Function("gauss_newton_model", [w, p] + symbols, outputs)
         rows, jac, *task = model(w, p, *values)
-        g = ca.vertcat(rows[:n * T] + ca.vec(stages[2]), *clearance)
+        g = ca.vertcat(rows[: n * T] + ca.vec(stages[2]), *clearance)
         # The quadratic cost's Hessian (Q, R through φ) does not depend on w or the parameters: a number.
         hess = ca.Function("cost_hessian", [w, p], [ca.hessian(quadratic, w)[0]])(0, 0)
         if task:
             hess = hess + task[0]
         lam_f, lam_g = ca.MX.sym("lam_f"), ca.MX.sym("lam_g", nlp["g"].numel())
         if self.method == "ipopt":
-            return {"jac_g": ca.Function("nlp_jac_g", [w, p], [g, jac]),
-                    "hess_lag": ca.Function("nlp_hess_l", [w, p, lam_f, lam_g], [lam_f * ca.triu(hess)])}
-        return {"jac_fg": ca.Function("nlp_jac_fg", [w, p], [nlp["f"], ca.gradient(nlp["f"], w), g, jac]),
-                "hess_lag": ca.Function("nlp_hess_l", [w, p, lam_f, lam_g], [lam_f * hess])}
+            return {
+                "jac_g": ca.Function("nlp_jac_g", [w, p], [g, jac]),
+                "hess_lag": ca.Function("nlp_hess_l", [w, p, lam_f, lam_g], [lam_f * ca.triu(hess)]),
+            }
+        return {
+            "jac_fg": ca.Function("nlp_jac_fg", [w, p], [nlp["f"], ca.gradient(nlp["f"], w), g, jac]),
+            "hess_lag": ca.Function("nlp_hess_l", [w, p, lam_f, lam_g], [lam_f * hess]),
+        }
 
     def _build_fatrop(self, ocp: OCP) -> None:
         """The same NLP in fatrop's stage order, with ``_order`` mapping it to [x_1 … x_T, U].
@@ -192,8 +206,10 @@ class MultipleShooting:
                 if not traditional:
                     self._copies.append(pos)
                 pos += c
-        inputs = [carried[k] if traditional else ca.mtimes(ca.kron(ca.DM(phi[k:k + 1]), ca.DM.eye(m)), carried[k])
-                  for k in range(T)]
+        inputs = [
+            carried[k] if traditional else ca.mtimes(ca.kron(ca.DM(phi[k : k + 1]), ca.DM.eye(m)), carried[k])
+            for k in range(T)
+        ]
         X, controls = ca.horzcat(*states), ca.horzcat(*inputs)
         starts = ca.horzcat(x0, X[:, :-1])
         J, quadratic = _objective(ocp, starts, controls, X[:, -1], goal)
@@ -225,9 +241,17 @@ class MultipleShooting:
         nu = [c] + [m if traditional else 0] * (T - 1) + [0]
         # Not expanded to SX: the expanded exact Hessian of the Puma 560's 50 inlined RK4 steps is one SX graph of
         # 30 M instructions (25 s to build; the Panda's 40 s); over MX its derivatives are generated per Function.
-        opts = {"structure_detection": "manual", "N": T, "nx": nx, "nu": nu, "ng": [0] * (T + 1),
-                "expand": False, "fatrop": {"print_level": 0, "tol": 1e-8}, "print_time": False,
-                "error_on_fail": False}
+        opts = {
+            "structure_detection": "manual",
+            "N": T,
+            "nx": nx,
+            "nu": nu,
+            "ng": [0] * (T + 1),
+            "expand": False,
+            "fatrop": {"print_level": 0, "tol": 1e-8},
+            "print_time": False,
+            "error_on_fail": False,
+        }
         self._nlp = ("fatrop", nlp, opts)
         self._apply_limits()
 
@@ -239,17 +263,19 @@ class MultipleShooting:
         solver that takes none (fatrop)."""
         T, tf = ocp.horizon, ocp.task_functions
         A, B, w = (ca.stop_diff(v, 1) for v in self._stage(ocp, differentiable=True).map(T)(starts, inputs))
-        predicted = ca.horzcat(*[ca.mtimes(_block(A, k, ocp.nx), starts[:, k])
-                                 + ca.mtimes(_block(B, k, ocp.nu), inputs[:, k]) + w[:, k]
-                                 for k in range(T)])
+        predicted = ca.horzcat(
+            *[
+                ca.mtimes(_block(A, k, ocp.nx), starts[:, k]) + ca.mtimes(_block(B, k, ocp.nu), inputs[:, k]) + w[:, k]
+                for k in range(T)
+            ]
+        )
         cost = 0
         if tf is not None and tf.stage_weight.size:
             r, Rx, Ru = (ca.stop_diff(v, 1) for v in tf.stage_residual.map(T)(starts, inputs, ca.repmat(targets, 1, T)))
             dx, du = starts - ca.stop_diff(starts, 1), inputs - ca.stop_diff(inputs, 1)  # zero, with derivative I
             W = ca.DM(tf.stage_weight)
             for k in range(T):
-                e = (r[:, k] + ca.mtimes(_block(Rx, k, ocp.nx), dx[:, k])
-                     + ca.mtimes(_block(Ru, k, ocp.nu), du[:, k]))
+                e = r[:, k] + ca.mtimes(_block(Rx, k, ocp.nx), dx[:, k]) + ca.mtimes(_block(Ru, k, ocp.nu), du[:, k])
                 cost += ca.dot(e, W * e)
         if tf is not None and tf.terminal_weight.size:
             r, Rx = (ca.stop_diff(v, 1) for v in tf.terminal_residual(last, targets))
@@ -274,16 +300,28 @@ class MultipleShooting:
 
     def _solver_options(self, ocp: OCP) -> dict:
         if self.method == "ipopt":
-            ipopt = {"print_level": 0, "sb": "yes",
-                     # Start from the supplied primal and dual point (the shifted previous solution).
-                     "warm_start_init_point": "yes", "mu_strategy": "adaptive"}
+            ipopt = {
+                "print_level": 0,
+                "sb": "yes",
+                # Start from the supplied primal and dual point (the shifted previous solution).
+                "warm_start_init_point": "yes",
+                "mu_strategy": "adaptive",
+            }
             return {"ipopt": ipopt, "print_time": False, "error_on_fail": False}
         qpsol = self.options.get("qpsol", "qrqp")
-        quiet = {"qrqp": {"print_iter": False, "print_header": False, "print_info": False},
-                 "osqp": {"osqp": {"verbose": False}}}.get(qpsol, {})
-        opts = {"qpsol": qpsol, "qpsol_options": {**quiet, "error_on_fail": False},
-                "print_header": False, "print_iteration": False, "print_status": False, "print_time": False,
-                "error_on_fail": False}
+        quiet = {
+            "qrqp": {"print_iter": False, "print_header": False, "print_info": False},
+            "osqp": {"osqp": {"verbose": False}},
+        }.get(qpsol, {})
+        opts = {
+            "qpsol": qpsol,
+            "qpsol_options": {**quiet, "error_on_fail": False},
+            "print_header": False,
+            "print_iteration": False,
+            "print_status": False,
+            "print_time": False,
+            "error_on_fail": False,
+        }
         if self.hessian == "exact":
             # Exact Hessians of a nonlinear OCP can be indefinite; qrqp needs a convex QP. The Gauss–Newton one is
             # positive semidefinite: regularizing it (a Gershgorin bound, far above its smallest eigenvalue) cut
@@ -301,10 +339,12 @@ def _objective(ocp: OCP, starts, inputs, last, goal):
     k = 0 … T−1) and the last state x_T: :class:`ocpkit.model.cost.Cost` summed over the horizon."""
     cost, T = ocp.cost, ocp.horizon
     goals = ca.repmat(goal, 1, T)
-    return tuple(ca.sum2(stage.map(T)(starts, inputs, goals)) + terminal(last, goal)
-                 for stage, terminal in ((cost.stage, cost.terminal), (cost.quadratic_stage, cost.quadratic_terminal)))
+    return tuple(
+        ca.sum2(stage.map(T)(starts, inputs, goals)) + terminal(last, goal)
+        for stage, terminal in ((cost.stage, cost.terminal), (cost.quadratic_stage, cost.quadratic_terminal))
+    )
 
 
 def _block(M, k: int, size: int):
     """Stage k's block of ``size`` columns of a mapped Function's horizontally stacked output."""
-    return M[:, k * size:(k + 1) * size]
+    return M[:, k * size : (k + 1) * size]

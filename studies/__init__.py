@@ -1,4 +1,5 @@
 """The paper's experiments as studies, by name; `reproduce` runs them all and writes a report."""
+
 from __future__ import annotations
 
 from importlib import import_module

@@ -12,6 +12,7 @@ three step commands that move all seven joints at once, each from rest to rest:
 condensed QP with 3 knot points on OSQP, and EMPC with 3 knot points. ITAE is taken per joint and
 command (21 values per controller and seed); Table III reports their mean and median.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -51,8 +52,10 @@ CONTROLLERS = {
     EMPC_PAPER: ("empc", {"generations": 1, "sigma": 0.1, "linearization": "plan", "variant": "paper"}),
 }
 KNOTS = 3
-SIZES = {"quick": {"seeds": 1, "duration": 4.0, "population": 512, "arch": "cpu"},
-         "full": {"seeds": 5, "duration": 4.0, "population": 1024, "arch": "auto"}}
+SIZES = {
+    "quick": {"seeds": 1, "duration": 4.0, "population": 512, "arch": "cpu"},
+    "full": {"seeds": 5, "duration": 4.0, "population": 1024, "arch": "auto"},
+}
 
 
 class ServoSetPoint(Controller):
@@ -83,25 +86,45 @@ def trial(command: int, controller: str, duration: float, population: int, arch:
     ctrl.solve(start, goal)  # compiles kernels and functions outside the timed run; simulate() resets ctrl
     traj = simulate(pb.plant(), ctrl, start, goal, duration)
     solve, total = traj.times("solve"), traj.times("total")
-    return {**{f"itae_{j}": itae(traj, [i]) for i, j in enumerate(SHORT)}, **quartiles("solve", solve),
-            **quartiles("total", total), **run_record(traj, ctrl),
-            "final_error": float(np.abs(traj.x[-1, :ocp.nu] - goal[:ocp.nu]).max()),
-            "device": current_arch() if controller in (EMPC, EMPC_PAPER) else "cpu",
-            "t": traj.t, "x": traj.x, "u": traj.u, "goal": goal, "solve_times": solve, "total_times": total}
+    return {
+        **{f"itae_{j}": itae(traj, [i]) for i, j in enumerate(SHORT)},
+        **quartiles("solve", solve),
+        **quartiles("total", total),
+        **run_record(traj, ctrl),
+        "final_error": float(np.abs(traj.x[-1, : ocp.nu] - goal[: ocp.nu]).max()),
+        "device": current_arch() if controller in (EMPC, EMPC_PAPER) else "cpu",
+        "t": traj.t,
+        "x": traj.x,
+        "u": traj.u,
+        "goal": goal,
+        "solve_times": solve,
+        "total_times": total,
+    }
 
 
 def study(size: str) -> Study:
     choice(size, tuple(SIZES), "size")
     s = SIZES[size]
-    return Study(NAME, trial, grid(command=list(range(len(COMMANDS))), controller=[SERVO, *CONTROLLERS],
-                                   duration=s["duration"], population=s["population"], arch=s["arch"],
-                                   seeds=s["seeds"]))
+    return Study(
+        NAME,
+        trial,
+        grid(
+            command=list(range(len(COMMANDS))),
+            controller=[SERVO, *CONTROLLERS],
+            duration=s["duration"],
+            population=s["population"],
+            arch=s["arch"],
+            seeds=s["seeds"],
+        ),
+    )
 
 
 def report(df, out_dir) -> str:
     ok = df[df["status"] == "ok"]
-    trials = trials_line(df, {"commands": df["command"].nunique(), "controllers": df["controller"].nunique(),
-                              "seeds": df["seed"].nunique()})
+    trials = trials_line(
+        df,
+        {"commands": df["command"].nunique(), "controllers": df["controller"].nunique(), "seeds": df["seed"].nunique()},
+    )
     if ok.empty:
         return section(TITLE, [], {}, trials=trials, claims=[], notes=["No trial succeeded."])
     order = [c for c in (SERVO, *CONTROLLERS) if c in set(ok["controller"])]
@@ -115,28 +138,49 @@ def report(df, out_dir) -> str:
         for row in first.index[first["command"] == command]:
             a = row_arrays(df, row, out_dir)
             trajs[df.at[row, "controller"]] = Trajectory(t=a["t"], x=a["x"], u=a["u"], goal=a["goal"])
-        figs.append(responses({c: trajs[c] for c in order if c in trajs}, out_dir / f"baxter_command{command}",
-                              title=f"Baxter step command {command}: joint angles (dotted: goals)",
-                              joint_names=SHORT))
+        figs.append(
+            responses(
+                {c: trajs[c] for c in order if c in trajs},
+                out_dir / f"baxter_command{command}",
+                title=f"Baxter step command {command}: joint angles (dotted: goals)",
+                joint_names=SHORT,
+            )
+        )
     solve = ok[ok["controller"] != SERVO].groupby("controller")[["solve_median", "total_median"]].median() * 1e3
-    times = {c: np.concatenate([row_arrays(df, r, out_dir)["total_times"] for r in ok.index[ok["controller"] == c]])
-             for c in order if c != SERVO}
+    times = {
+        c: np.concatenate([row_arrays(df, r, out_dir)["total_times"] for r in ok.index[ok["controller"] == c]])
+        for c in order
+        if c != SERVO
+    }
     if times:
         figs.append(_histogram(times, solve["total_median"], out_dir / "baxter_solve_times"))
     solve.columns = ["optimization solve time", "MPC solve time"]
     caption = f"ITAE over {len(COMMANDS)} commands × {len(SHORT)} joints × {ok['seed'].nunique()} seed(s) (Table III)"
-    tables = {caption: table, "Median over runs of the per-step median solve times [ms]": markdown_table(solve),
-              ANSWERED: answered(ok)}
-    notes = [f"Fallback steps (solver failures): {int(ok['fallbacks'].sum())} in {len(ok)} runs; EMPC ran on "
-             + ", ".join(sorted(set(ok.loc[ok['controller'].isin([EMPC, EMPC_PAPER]), 'device']))) + "."]
-    return section(TITLE, figs, tables, trials=trials + " " + timing_context(ok), notes=notes,
-                   claims=claims(ok, values))
+    tables = {
+        caption: table,
+        "Median over runs of the per-step median solve times [ms]": markdown_table(solve),
+        ANSWERED: answered(ok),
+    }
+    notes = [
+        f"Fallback steps (solver failures): {int(ok['fallbacks'].sum())} in {len(ok)} runs; EMPC ran on "
+        + ", ".join(sorted(set(ok.loc[ok["controller"].isin([EMPC, EMPC_PAPER]), "device"])))
+        + "."
+    ]
+    return section(
+        TITLE, figs, tables, trials=trials + " " + timing_context(ok), notes=notes, claims=claims(ok, values)
+    )
 
 
 def _table(values: dict) -> str:
     servo = np.median(values[SERVO]) if SERVO in values else np.nan
-    rows = {c: {"mean ITAE": v.mean(), "median ITAE": np.median(v),
-                "median change vs servo [%]": 100 * (np.median(v) / servo - 1)} for c, v in values.items()}
+    rows = {
+        c: {
+            "mean ITAE": v.mean(),
+            "median ITAE": np.median(v),
+            "median change vs servo [%]": 100 * (np.median(v) / servo - 1),
+        }
+        for c, v in values.items()
+    }
     df = pd.DataFrame.from_dict(rows, orient="index")
     df.index.name = "controller"
     return markdown_table(df)
@@ -151,8 +195,15 @@ def _histogram(times: dict, medians, path):
     bins = np.geomspace(max(lo, 1e-3), hi, 40)
     for label, t in ms.items():  # outlines, not translucent bars: overlaps would show colours no legend entry has
         look = plots.style(label)
-        ax.hist(t, bins=bins, histtype="step", lw=1.5, color=look["color"], ls=look["linestyle"],
-                label=f"{label} (median {number(medians[label], 3)} ms)")
+        ax.hist(
+            t,
+            bins=bins,
+            histtype="step",
+            lw=1.5,
+            color=look["color"],
+            ls=look["linestyle"],
+            label=f"{label} (median {number(medians[label], 3)} ms)",
+        )
     ax.set_xscale("log")
     plots.log_axis(ax, "x")
     ax.set_xlabel("MPC solve time per step [ms]")
@@ -176,15 +227,24 @@ def claims(ok, values) -> list:
         if c in values and SERVO in values:
             change = 100 * (np.median(values[c]) / np.median(values[SERVO]) - 1)
             v, e = median_claim(paired(itae(c), itae(SERVO)), 1.0, "<")
-            out.append(Claim(f"{c} reduces the median ITAE vs the bare servo", f"per command and joint, ITAE / the "
-                             f"servo's < 1 (medians: {number(change, 3)} %; simulation, exact model)",
-                             v, e, paper=f"hardware: by {paper} %"))
+            out.append(
+                Claim(
+                    f"{c} reduces the median ITAE vs the bare servo",
+                    f"per command and joint, ITAE / the "
+                    f"servo's < 1 (medians: {number(change, 3)} %; simulation, exact model)",
+                    v,
+                    e,
+                    paper=f"hardware: by {paper} %",
+                )
+            )
     if {QP, EMPC} <= set(ok["controller"]):
         empc = ok[ok["controller"] == EMPC]
         med = ok.groupby("controller")["total_median"].median()
         devices = ", ".join(sorted(set(empc["device"])))
-        ours = (f"median MPC solve time {number(1e3 * med[EMPC], 3)} ms for EMPC ({devices}) "
-                f"vs {number(1e3 * med[QP], 3)} ms for the QP")
+        ours = (
+            f"median MPC solve time {number(1e3 * med[EMPC], 3)} ms for EMPC ({devices}) "
+            f"vs {number(1e3 * med[QP], 3)} ms for the QP"
+        )
         if not on_gpu(empc["device"]):
             out.append(Claim("EMPC solves faster than the QP (GPU)", ours, NOT_TESTED, "needs a GPU"))
         else:

@@ -3,6 +3,7 @@
 ``problem`` is any problem spec (``ocpkit.problems.make``): a registered name, ``package.module:Name`` or
 ``path/to/file.py:Name``; worker processes resolve it themselves (a relative path from the study's folder).
 """
+
 from __future__ import annotations
 
 import os
@@ -14,9 +15,18 @@ from ocpkit.sim.metrics import actual_cost, itae, step_metrics
 from ocpkit.sim.simulate import simulate
 
 
-def trial(problem: str, seed: int, solver: str = "qp", knots: int | None = None, horizon: int | None = None,
-          error_multiplier: float = 1.0, form: str = "condensed", qp: str | None = None, duration: float | None = None,
-          options: dict | None = None) -> dict:
+def trial(
+    problem: str,
+    seed: int,
+    solver: str = "qp",
+    knots: int | None = None,
+    horizon: int | None = None,
+    error_multiplier: float = 1.0,
+    form: str = "condensed",
+    qp: str | None = None,
+    duration: float | None = None,
+    options: dict | None = None,
+) -> dict:
     """Run MPC on ``problem`` from the seeded start to goal and measure it (paper Sections III–IV, VII).
 
     The controller's model carries the error multiplier; the plant is the true model. ``options`` go to
@@ -49,8 +59,12 @@ def run_record(traj, ctrl) -> dict:
     """What every closed-loop trial stores about how its steps were answered: the fallback steps and their causes
     (statuses), EMPC's child win rate (NaN for other controllers: see ``EvolutionaryMPC.child_win_rate``) and the
     1-min load average at the end of the run (timing verdicts are withheld when it exceeds the CPUs)."""
-    return {"fallbacks": traj.fallbacks, "fallback_causes": traj.fallback_causes(),
-            "child_win_rate": float(getattr(ctrl, "child_win_rate", float("nan"))), "load": os.getloadavg()[0]}
+    return {
+        "fallbacks": traj.fallbacks,
+        "fallback_causes": traj.fallback_causes(),
+        "child_win_rate": float(getattr(ctrl, "child_win_rate", float("nan"))),
+        "load": os.getloadavg()[0],
+    }
 
 
 def _mean(values) -> float:

@@ -13,6 +13,7 @@ goal): the median of the per-seed ratios (or differences). The verdict is
 With few seeds the interval cannot reach 95 %: it is then the whole range [min, max], and its coverage (75 % at
 n = 3, 87.5 % at n = 4) is printed beside it, so a reader sees how weak the evidence is.
 """
+
 from __future__ import annotations
 
 import math
@@ -41,8 +42,10 @@ class Interval:
         """The interval as the report prints it, e.g. 1.02 [0.98, 1.1] (95 %, n = 8); "– (n = 0)" for no data."""
         if self.n == 0:
             return "– (n = 0)"
-        return (f"{number(self.value, digits)} [{number(self.low, digits)}, {number(self.high, digits)}] "
-                f"({number(100 * self.coverage, 3)} %, n = {self.n})")
+        return (
+            f"{number(self.value, digits)} [{number(self.low, digits)}, {number(self.high, digits)}] "
+            f"({number(100 * self.coverage, 3)} %, n = {self.n})"
+        )
 
 
 def quartiles(name: str, values) -> dict:
@@ -67,7 +70,7 @@ def median_interval(values, level: float = LEVEL) -> Interval:
 
 def _coverage(n: int, k: int) -> float:
     """P(x_(k) ≤ median ≤ x_(n+1−k)) = 1 − 2·P(Binomial(n, ½) ≤ k − 1)."""
-    tail = sum(math.comb(n, i) for i in range(k)) / 2 ** n
+    tail = sum(math.comb(n, i) for i in range(k)) / 2**n
     return max(0.0, 1.0 - 2.0 * tail)
 
 
@@ -103,8 +106,12 @@ def decide(interval: Interval, threshold: float, claimed: str) -> str:
         if band_lo <= lo and hi <= band_hi:
             return HELD
         return NOT_HELD if hi < band_lo or lo > band_hi else INCONCLUSIVE
-    tests = {"<": (hi < threshold, lo >= threshold), "<=": (hi <= threshold, lo > threshold),
-             ">": (lo > threshold, hi <= threshold), ">=": (lo >= threshold, hi < threshold)}
+    tests = {
+        "<": (hi < threshold, lo >= threshold),
+        "<=": (hi <= threshold, lo > threshold),
+        ">": (lo > threshold, hi <= threshold),
+        ">=": (lo >= threshold, hi < threshold),
+    }
     if claimed not in tests:
         raise ValueError(f"claimed must be one of <, <=, >, >=, ==, got {claimed!r}")
     holds, fails = tests[claimed]
@@ -160,8 +167,9 @@ def timing(verdict: str, loads, cores: int | None = None) -> str:
     if verdict == NOT_TESTED or load.size == 0:
         return verdict
     median = float(np.median(load))
-    return f"unreliable (load {number(median, 3)} on {cores} cores; {verdict} as measured)" if median > cores \
-        else verdict
+    return (
+        f"unreliable (load {number(median, 3)} on {cores} cores; {verdict} as measured)" if median > cores else verdict
+    )
 
 
 def on_gpu(devices) -> bool:

@@ -4,6 +4,7 @@ The context for Fig. 3: shortening the horizon, the usual way to make MPC fast e
 than parameterizing the inputs. Normalized by traditional MPC with a horizon spanning the simulation.
 ``problems`` (specs) replace the paper's problems, as in the knots study.
 """
+
 from __future__ import annotations
 
 from ocpkit.sim import plots
@@ -17,8 +18,10 @@ from ocpkit.studies.report import Claim, markdown_table, section, timing_context
 
 NAME = "horizon"
 TITLE = "Traditional MPC: actual cost ratio vs horizon (Fig. 4)"
-SIZES = {"quick": {"horizons": [5, 10, 20, 30, 50, 75, 100], "seeds": 8},
-         "full": {"horizons": [5, 10, 15, 20, 25, 30, 40, 50, 60, 70, 80, 90, 100], "seeds": 30}}
+SIZES = {
+    "quick": {"horizons": [5, 10, 20, 30, 50, 75, 100], "seeds": 8},
+    "full": {"horizons": [5, 10, 15, 20, 25, 30, 40, 50, 60, 70, 80, 90, 100], "seeds": 30},
+}
 USER_QUICK = {"horizons": [10, 25, 50], "seeds": 3}
 
 
@@ -36,18 +39,30 @@ def report(df, out_dir) -> str:
     figs = []
     for problem, g in ok.groupby("problem", sort=False):
         labels = sorted(g["horizon"].unique())
-        figs.append(plots.boxes(labels, [g.loc[g["horizon"] == h, "ratio"].values for h in labels],
-                                out_dir / f"horizon_{filename(problem)}", xlabel="horizon T [steps]",
-                                ylabel="actual cost / reference's (ratio)",
-                                references=[(1.0, f"1: T = {REFERENCE_HORIZON}")],
-                                title=f"{problem}: traditional MPC vs horizon ({g['seed'].nunique()} seeds; "
-                                      f"reference: T = {REFERENCE_HORIZON})"))
+        figs.append(
+            plots.boxes(
+                labels,
+                [g.loc[g["horizon"] == h, "ratio"].values for h in labels],
+                out_dir / f"horizon_{filename(problem)}",
+                xlabel="horizon T [steps]",
+                ylabel="actual cost / reference's (ratio)",
+                references=[(1.0, f"1: T = {REFERENCE_HORIZON}")],
+                title=f"{problem}: traditional MPC vs horizon ({g['seed'].nunique()} seeds; "
+                f"reference: T = {REFERENCE_HORIZON})",
+            )
+        )
     table = ok.pivot_table(index="horizon", columns="problem", values="ratio", aggfunc="median")
-    trials = trials_line(df, {"problems": ok["problem"].nunique(), "horizons": ok["horizon"].nunique(),
-                              "seeds": ok["seed"].nunique()})
+    trials = trials_line(
+        df, {"problems": ok["problem"].nunique(), "horizons": ok["horizon"].nunique(), "seeds": ok["seed"].nunique()}
+    )
     caption = f"Median actual cost ratio to traditional MPC with T = {REFERENCE_HORIZON} (rows: horizon)"
-    return section(TITLE, figs, {caption: markdown_table(table)}, trials=trials + " " + timing_context(ok),
-                   claims=claims(ok, _knots_rows(out_dir)))
+    return section(
+        TITLE,
+        figs,
+        {caption: markdown_table(table)},
+        trials=trials + " " + timing_context(ok),
+        claims=claims(ok, _knots_rows(out_dir)),
+    )
 
 
 def _knots_rows(out_dir):
@@ -70,17 +85,37 @@ def claims(ok, knots_rows) -> list:
     problems = list(dict.fromkeys(ok["problem"]))
 
     parts = {p: median_claim(series(ok, "ratio", problem=p, horizon=shortest), 1.0, ">") for p in problems}
-    out = [Claim("A shorter horizon costs more", f"per-seed ratio at T = {shortest} to T = {REFERENCE_HORIZON} > 1",
-                 combine(v for v, _ in parts.values()), "; ".join(f"{p} {e}" for p, (_, e) in parts.items()))]
+    out = [
+        Claim(
+            "A shorter horizon costs more",
+            f"per-seed ratio at T = {shortest} to T = {REFERENCE_HORIZON} > 1",
+            combine(v for v, _ in parts.values()),
+            "; ".join(f"{p} {e}" for p, (_, e) in parts.items()),
+        )
+    ]
     claim = "Shortening the horizon costs far more than cutting knots"
     common = [] if knots_rows is None else [p for p in problems if p in set(knots_rows["problem"])]
     if not common:
         out.append(Claim(claim, "the knots study is not in this results folder", NOT_TESTED))
     else:
         fewest = knots_rows["knots"].min()
-        parts = {p: median_claim(paired(series(ok, "ratio", problem=p, horizon=shortest),
-                                        series(knots_rows, "ratio", problem=p, knots=fewest)), 1.0, ">")
-                 for p in common}
-        out.append(Claim(claim, f"per seed: ratio at T = {shortest} / ratio at {int(fewest)} knot(s) > 1",
-                         combine(v for v, _ in parts.values()), "; ".join(f"{p} {e}" for p, (_, e) in parts.items())))
+        parts = {
+            p: median_claim(
+                paired(
+                    series(ok, "ratio", problem=p, horizon=shortest),
+                    series(knots_rows, "ratio", problem=p, knots=fewest),
+                ),
+                1.0,
+                ">",
+            )
+            for p in common
+        }
+        out.append(
+            Claim(
+                claim,
+                f"per seed: ratio at T = {shortest} / ratio at {int(fewest)} knot(s) > 1",
+                combine(v for v, _ in parts.values()),
+                "; ".join(f"{p} {e}" for p, (_, e) in parts.items()),
+            )
+        )
     return out

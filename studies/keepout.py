@@ -9,6 +9,7 @@ quadratic fitness, separates the effect of the fitness from that of the search. 
 penalized cost (quadratic cost plus the penalty on every recorded state), the steps inside the zone and
 the final error.
 """
+
 from __future__ import annotations
 
 import casadi as ca
@@ -32,8 +33,10 @@ WEIGHT, RADIUS = 100.0, 0.3  # w [cost per rad inside, per step] and r [rad]
 QP, EMPC_PENALTY, EMPC_PLAIN = "knots 3 (QP)", "EMPC, penalized fitness", "EMPC, quadratic fitness"
 # label -> (solver, penalized fitness)
 CONTROLLERS = {QP: ("qp", False), EMPC_PENALTY: ("empc", True), EMPC_PLAIN: ("empc", False)}
-SIZES = {"quick": {"seeds": 5, "duration": 5.0, "population": 1024, "arch": "cpu"},
-         "full": {"seeds": 20, "duration": 5.0, "population": 1024, "arch": "auto"}}
+SIZES = {
+    "quick": {"seeds": 5, "duration": 5.0, "population": 1024, "arch": "cpu"},
+    "full": {"seeds": 20, "duration": 5.0, "population": 1024, "arch": "auto"},
+}
 
 
 def keepout_penalty(centre) -> ca.Function:
@@ -46,8 +49,10 @@ def keepout_penalty(centre) -> ca.Function:
 def penalized_costs(ocp, penalty):
     """The OCP's stage and terminal costs plus the penalty, as the CasADi Functions EMPC's rollout takes."""
     x, u, g = ca.SX.sym("x", ocp.nx), ca.SX.sym("u", ocp.nu), ca.SX.sym("x_goal", ocp.nx)
-    return (ca.Function("l", [x, u, g], [ocp.cost.stage(x, u, g) + penalty(x)]),
-            ca.Function("l_T", [x, g], [ocp.cost.terminal(x, g) + penalty(x)]))
+    return (
+        ca.Function("l", [x, u, g], [ocp.cost.stage(x, u, g) + penalty(x)]),
+        ca.Function("l_T", [x, g], [ocp.cost.terminal(x, g) + penalty(x)]),
+    )
 
 
 def trial(controller: str, duration: float, population: int, arch: str, seed: int) -> dict:
@@ -66,19 +71,32 @@ def trial(controller: str, duration: float, population: int, arch: str, seed: in
     traj = simulate(pb.plant(), ctrl, x0, goal, duration)
     penalties = np.asarray(penalty.map(traj.x.shape[0])(traj.x.T)).ravel()
     quadratic = actual_cost(traj, ocp)
-    return {"actual_cost": quadratic + float(penalties.sum()), "quadratic_cost": quadratic,
-            "penalty": float(penalties.sum()),
-            "steps_inside": int((np.linalg.norm(traj.x[:, :LINKS] - centre, axis=1) < RADIUS).sum()),
-            "final_error": float(np.abs(traj.x[-1] - goal).max()), **run_record(traj, ctrl),
-            "solve_median": float(np.median(traj.times("solve"))),
-            "device": current_arch() if solver == "empc" else "cpu"}
+    return {
+        "actual_cost": quadratic + float(penalties.sum()),
+        "quadratic_cost": quadratic,
+        "penalty": float(penalties.sum()),
+        "steps_inside": int((np.linalg.norm(traj.x[:, :LINKS] - centre, axis=1) < RADIUS).sum()),
+        "final_error": float(np.abs(traj.x[-1] - goal).max()),
+        **run_record(traj, ctrl),
+        "solve_median": float(np.median(traj.times("solve"))),
+        "device": current_arch() if solver == "empc" else "cpu",
+    }
 
 
 def study(size: str) -> Study:
     choice(size, tuple(SIZES), "size")
     s = SIZES[size]
-    return Study(NAME, trial, grid(controller=list(CONTROLLERS), duration=s["duration"],
-                                   population=s["population"], arch=s["arch"], seeds=s["seeds"]))
+    return Study(
+        NAME,
+        trial,
+        grid(
+            controller=list(CONTROLLERS),
+            duration=s["duration"],
+            population=s["population"],
+            arch=s["arch"],
+            seeds=s["seeds"],
+        ),
+    )
 
 
 def report(df, out_dir) -> str:
@@ -88,29 +106,45 @@ def report(df, out_dir) -> str:
         return section(TITLE, [], {}, trials=trials, claims=[], notes=["No trial succeeded."])
     order = [c for c in CONTROLLERS if c in set(ok["controller"])]
     table = ok.pivot_table(index="seed", columns="controller", values="actual_cost")[order]
-    figs = [plots.boxes(order, [table[c].dropna().values for c in order], out_dir / "keepout_cost",
-                        xlabel="controller", ylabel="actual penalized cost (dimensionless)",
-                        colours=[plots.style(c)["color"] for c in order],
-                        title=f"{LINKS}-link robot, keep-out ball r = {number(RADIUS)} rad, w = {number(WEIGHT)}, "
-                              f"{ok['seed'].nunique()} seeds")]
+    figs = [
+        plots.boxes(
+            order,
+            [table[c].dropna().values for c in order],
+            out_dir / "keepout_cost",
+            xlabel="controller",
+            ylabel="actual penalized cost (dimensionless)",
+            colours=[plots.style(c)["color"] for c in order],
+            title=f"{LINKS}-link robot, keep-out ball r = {number(RADIUS)} rad, w = {number(WEIGHT)}, "
+            f"{ok['seed'].nunique()} seeds",
+        )
+    ]
     summary = ok.groupby("controller")[["actual_cost", "penalty", "steps_inside", "final_error", "solve_median"]]
     summary = summary.median().reindex(order)
     summary["solve_median"] *= 1e3
-    tables = {"Actual penalized cost per start/goal seed": markdown_table(table),
-              "Medians over the seeds (penalty part of the cost, steps inside the zone, final error max |x − x_goal|,"
-              " per-step optimization time in ms)": markdown_table(summary), ANSWERED: answered(ok)}
-    notes = [f"Runs: {number(ok['duration'].iloc[0])} s at 100 Hz, horizon {HORIZON}, {KNOTS} knots; EMPC "
-             f"population {ok['population'].iloc[0]} on " + ", ".join(sorted(set(ok.loc[ok['controller'] != QP,
-                                                                                           'device'])))
-             + f"; fallback steps: {int(ok['fallbacks'].sum())}."]
+    tables = {
+        "Actual penalized cost per start/goal seed": markdown_table(table),
+        "Medians over the seeds (penalty part of the cost, steps inside the zone, final error max |x − x_goal|,"
+        " per-step optimization time in ms)": markdown_table(summary),
+        ANSWERED: answered(ok),
+    }
+    notes = [
+        f"Runs: {number(ok['duration'].iloc[0])} s at 100 Hz, horizon {HORIZON}, {KNOTS} knots; EMPC "
+        f"population {ok['population'].iloc[0]} on "
+        + ", ".join(sorted(set(ok.loc[ok["controller"] != QP, "device"])))
+        + f"; fallback steps: {int(ok['fallbacks'].sum())}."
+    ]
     if {QP, EMPC_PENALTY} <= set(table.columns):
         both = table[[QP, EMPC_PENALTY]].dropna()
         wins = int((both[EMPC_PENALTY] < both[QP]).sum())
-        notes.append(f"EMPC with the penalized fitness costs less than the QP on {wins} of {len(both)} seeds "
-                     f"(median ratio {number(np.median(both[EMPC_PENALTY] / both[QP]), 3)}).")
-    notes.append("What it shows: a sampling planner optimizes whatever its rollout evaluates, here a non-convex, "
-                 "non-smooth penalty a QP cannot hold, and steers around the zone. What it does not show: that "
-                 "EMPC beats a nonlinear solver given the same cost (IPOPT could take a smoothed penalty), or "
-                 "that it finds the best detour: it searches locally around its seeds and elites, one generation "
-                 "per step.")
+        notes.append(
+            f"EMPC with the penalized fitness costs less than the QP on {wins} of {len(both)} seeds "
+            f"(median ratio {number(np.median(both[EMPC_PENALTY] / both[QP]), 3)})."
+        )
+    notes.append(
+        "What it shows: a sampling planner optimizes whatever its rollout evaluates, here a non-convex, "
+        "non-smooth penalty a QP cannot hold, and steers around the zone. What it does not show: that "
+        "EMPC beats a nonlinear solver given the same cost (IPOPT could take a smoothed penalty), or "
+        "that it finds the best detour: it searches locally around its seeds and elites, one generation "
+        "per step."
+    )
     return section(TITLE, figs, tables, trials=trials + " " + timing_context(ok), notes=notes, claims=[])

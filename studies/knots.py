@@ -5,14 +5,14 @@ horizon spans the whole simulation (100 steps), for the linear and nonlinear pen
 for any problem specs given as ``problems`` (``ocpkit study knots --problem ./cartpole.py:CartPole``), each
 over its own closed-loop duration.
 """
+
 from __future__ import annotations
 
 from ocpkit.sim import plots
 from ocpkit.problems import filename
 from ocpkit.runs.study import Study, grid
 from ocpkit.studies.closed_loop import grid_size, trial
-from ocpkit.studies.evidence import (NOT_TESTED, combine, decide, every, median_claim, median_interval, paired,
-                                     series)
+from ocpkit.studies.evidence import NOT_TESTED, combine, decide, every, median_claim, median_interval, paired, series
 from ocpkit.studies.report import Claim, markdown_table, section, timing_context, trials_line
 from ocpkit.sim.plots import number
 
@@ -20,8 +20,10 @@ NAME = "knots"
 TITLE = "Actual cost ratio vs number of knot points (Fig. 3)"
 PROBLEMS = ("pendulum:linear", "pendulum", "puma560")
 HORIZON, REFERENCE_HORIZON = 50, 100
-SIZES = {"quick": {"knots": [1, 2, 3, 4, 6, 10, 25, 50], "seeds": 8, "problems": PROBLEMS},
-         "full": {"knots": list(range(1, 51)), "seeds": 30, "problems": PROBLEMS}}
+SIZES = {
+    "quick": {"knots": [1, 2, 3, 4, 6, 10, 25, 50], "seeds": 8, "problems": PROBLEMS},
+    "full": {"knots": list(range(1, 51)), "seeds": 30, "problems": PROBLEMS},
+}
 # The quick grid for problems given on the command line: small enough for a test of a user's problem.
 USER_QUICK = {"knots": [1, 2, 3, 5, 10], "seeds": 3}
 HARDLY = 1.05  # "hardly changes": the cost ratio to traditional MPC at most this
@@ -30,8 +32,9 @@ HARDLY = 1.05  # "hardly changes": the cost ratio to traditional MPC at most thi
 def study(size: str, problems=None) -> Study:
     """The study at ``size``; ``problems`` (specs) replace the paper's problems (quick: :data:`USER_QUICK`)."""
     s = grid_size(SIZES, size, problems, USER_QUICK)
-    trials = (grid(problem=list(s["problems"]), horizon=HORIZON, knots=s["knots"], seeds=s["seeds"])
-              + grid(problem=list(s["problems"]), horizon=REFERENCE_HORIZON, knots=[None], seeds=s["seeds"]))
+    trials = grid(problem=list(s["problems"]), horizon=HORIZON, knots=s["knots"], seeds=s["seeds"]) + grid(
+        problem=list(s["problems"]), horizon=REFERENCE_HORIZON, knots=[None], seeds=s["seeds"]
+    )
     return Study(NAME, trial, trials)
 
 
@@ -50,21 +53,40 @@ def report(df, out_dir) -> str:
     for problem, g in rows.groupby("problem", sort=False):
         labels = sorted(g["knots"].dropna().unique())
         data = [g.loc[g["knots"] == k, "ratio"].values for k in labels]
-        figs.append(plots.boxes([int(k) for k in labels], data, out_dir / f"knots_{filename(problem)}",
-                                xlabel=f"number of knot points p (horizon {HORIZON})",
-                                ylabel="actual cost / reference's (ratio)",
-                                references=[(1.0, f"1: traditional MPC, T = {REFERENCE_HORIZON}")],
-                                title=f"{problem}: cost vs knots ({g['seed'].nunique()} seeds; reference: "
-                                      f"traditional MPC, T = {REFERENCE_HORIZON})"))
+        figs.append(
+            plots.boxes(
+                [int(k) for k in labels],
+                data,
+                out_dir / f"knots_{filename(problem)}",
+                xlabel=f"number of knot points p (horizon {HORIZON})",
+                ylabel="actual cost / reference's (ratio)",
+                references=[(1.0, f"1: traditional MPC, T = {REFERENCE_HORIZON}")],
+                title=f"{problem}: cost vs knots ({g['seed'].nunique()} seeds; reference: "
+                f"traditional MPC, T = {REFERENCE_HORIZON})",
+            )
+        )
     table = rows.pivot_table(index="knots", columns="problem", values="ratio", aggfunc="median")
     table.index = table.index.astype(int)
     ok = df[df["status"] == "ok"]
-    trials = trials_line(df, {"problems": ok["problem"].nunique(), "knot counts + reference": ok["knots"].nunique(
-        dropna=False), "seeds": ok["seed"].nunique()})
-    caption = (f"Median actual cost ratio to traditional MPC with T = {REFERENCE_HORIZON} over the seeds "
-               f"(rows: knots, horizon {HORIZON})")
-    return section(TITLE, figs, {caption: markdown_table(table)}, trials=trials + " " + timing_context(ok),
-                   claims=claims(rows, table))
+    trials = trials_line(
+        df,
+        {
+            "problems": ok["problem"].nunique(),
+            "knot counts + reference": ok["knots"].nunique(dropna=False),
+            "seeds": ok["seed"].nunique(),
+        },
+    )
+    caption = (
+        f"Median actual cost ratio to traditional MPC with T = {REFERENCE_HORIZON} over the seeds "
+        f"(rows: knots, horizon {HORIZON})"
+    )
+    return section(
+        TITLE,
+        figs,
+        {caption: markdown_table(table)},
+        trials=trials + " " + timing_context(ok),
+        claims=claims(rows, table),
+    )
 
 
 def claims(rows, table) -> list:
@@ -78,9 +100,14 @@ def claims(rows, table) -> list:
     claim = "The cost hardly changes down to 3–4 knots"
     if 4 in table.index:
         parts = {p: median_interval(ratio(p, 4)) for p in problems}
-        out.append(Claim(claim, f"per-seed ratio at 4 knots ≤ {number(HARDLY)}",
-                         combine(decide(i, HARDLY, "<=") for i in parts.values()),
-                         "; ".join(f"{p} {i.text()}" for p, i in parts.items())))
+        out.append(
+            Claim(
+                claim,
+                f"per-seed ratio at 4 knots ≤ {number(HARDLY)}",
+                combine(decide(i, HARDLY, "<=") for i in parts.values()),
+                "; ".join(f"{p} {i.text()}" for p, i in parts.items()),
+            )
+        )
     else:
         out.append(Claim(claim, "4 knots not in this grid", NOT_TESTED))
     claim = "The cost is highest with one knot"
@@ -91,31 +118,54 @@ def claims(rows, table) -> list:
             v, e = median_claim(paired(ratio(p, 1), ratio(p, runner_up)), 1.0, ">")
             verdicts.append(v)
             evidence.append(f"{p}: 1 / {int(runner_up)} knots {e}")
-        out.append(Claim(claim, "per seed: cost with 1 knot / with the knot count of the next-highest median",
-                         combine(verdicts), "; ".join(evidence)))
+        out.append(
+            Claim(
+                claim,
+                "per seed: cost with 1 knot / with the knot count of the next-highest median",
+                combine(verdicts),
+                "; ".join(evidence),
+            )
+        )
     else:
         out.append(Claim(claim, "1 knot not in this grid", NOT_TESTED))
     linear = rows[rows["problem"] == "pendulum:linear"]
     if len(linear):
         v, e = every(linear["ratio"], lambda r: r >= 1 - 1e-6, "below 1 − 1e-6")
-        out.append(Claim("The linear pendulum's ratio never goes below 1",
-                         f"smallest ratio {number(linear['ratio'].min(), 6)}", v, e))
+        out.append(
+            Claim(
+                "The linear pendulum's ratio never goes below 1",
+                f"smallest ratio {number(linear['ratio'].min(), 6)}",
+                v,
+                e,
+            )
+        )
         most = linear["knots"].max()
         v, e = median_claim(ratio("pendulum:linear", most), (1 - 1e-3, 1 + 1e-3), "==")
-        out.append(Claim("With more knots the linear pendulum converges to traditional MPC",
-                         f"per-seed ratio at {int(most)} knots within 1 ± 1e-3", v, e))
+        out.append(
+            Claim(
+                "With more knots the linear pendulum converges to traditional MPC",
+                f"per-seed ratio at {int(most)} knots within 1 ± 1e-3",
+                v,
+                e,
+            )
+        )
     else:
-        out.append(Claim("The linear pendulum's ratio never goes below 1", "pendulum:linear not in this run",
-                         NOT_TESTED))
+        out.append(
+            Claim("The linear pendulum's ratio never goes below 1", "pendulum:linear not in this run", NOT_TESTED)
+        )
     if {"pendulum", "pendulum:linear"} <= set(problems):
         few = [k for k in table.index if k <= 2]
         below = [median_claim(paired(ratio("pendulum", k), ratio("pendulum:linear", k)), 1.0, "<") for k in few]
         lowest = table["pendulum"].idxmin()
         dips = median_claim(ratio("pendulum", lowest), 1.0, "<")
-        out.append(Claim("The nonlinear pendulum's median ratio is below the linear one's at few knots and "
-                         "dips below 1", f"per seed, nonlinear / linear ratio at {', '.join(map(str, few))} "
-                         f"knot(s) < 1; nonlinear ratio at {int(lowest)} knots (lowest median) < 1",
-                         combine([v for v, _ in below] + [dips[0]]),
-                         "; ".join(f"{k} knot(s): {e}" for k, (_, e) in zip(few, below))
-                         + f"; at {int(lowest)} knots: {dips[1]}"))
+        out.append(
+            Claim(
+                "The nonlinear pendulum's median ratio is below the linear one's at few knots and dips below 1",
+                f"per seed, nonlinear / linear ratio at {', '.join(map(str, few))} "
+                f"knot(s) < 1; nonlinear ratio at {int(lowest)} knots (lowest median) < 1",
+                combine([v for v, _ in below] + [dips[0]]),
+                "; ".join(f"{k} knot(s): {e}" for k, (_, e) in zip(few, below))
+                + f"; at {int(lowest)} knots: {dips[1]}",
+            )
+        )
     return out

@@ -4,6 +4,7 @@ Not a study (nothing is stored or resumed): three seeded LinearMPC runs (5 knots
 pendulum to its joint goal, the planar 3-link arm and the Panda reaching a point past a sphere (the README's
 examples) — each written as a GIF beside the report and embedded in it with what the run reached.
 """
+
 from __future__ import annotations
 
 import time
@@ -18,8 +19,8 @@ from ocpkit.sim.plots import number
 from ocpkit.sim.simulate import simulate
 from ocpkit.model.task import Sphere, clearances, reach
 
-FOLDER = "motion"   # beside report.md
-KNOTS = 5           # the command line's default
+FOLDER = "motion"  # beside report.md
+KNOTS = 5  # the command line's default
 
 
 @dataclass(frozen=True)
@@ -37,10 +38,20 @@ class Scene:
 
 SCENES = (
     Scene("pendulum", "pendulum, to its joint goal (the dashed pose)", 2.0),
-    Scene("nlink:3", "planar 3-link chain, the tip to a point past a sphere", 2.0, target=(0.3, 0.5, 0.0),
-          obstacles=(Sphere((0.55, 0.2, 0.0), 0.08),)),
-    Scene("panda", "Panda (3-D arm), the hand to a point past a sphere", 2.0, target=(0.4, 0.0, 0.3),
-          obstacles=(Sphere((0.4, -0.25, 0.35), 0.08),)),
+    Scene(
+        "nlink:3",
+        "planar 3-link chain, the tip to a point past a sphere",
+        2.0,
+        target=(0.3, 0.5, 0.0),
+        obstacles=(Sphere((0.55, 0.2, 0.0), 0.08),),
+    ),
+    Scene(
+        "panda",
+        "Panda (3-D arm), the hand to a point past a sphere",
+        2.0,
+        target=(0.4, 0.0, 0.3),
+        obstacles=(Sphere((0.4, -0.25, 0.35), 0.08),),
+    ),
 )
 
 
@@ -62,23 +73,36 @@ def picture(scene: Scene, out_dir) -> tuple[Path, str]:
         kin = pb.kinematics
         distance = np.linalg.norm(kin.positions(pb.end_effector, traj.x[-1:, :n])[0] - np.asarray(scene.target))
         closest = clearances(kin, ocp.task.robot, ocp.task.obstacles, traj.x[:, :n]).min()
-        reached = (f"{pb.end_effector} {number(distance, 3)} m from the target, smallest clearance "
-                   f"{number(closest, 3)} m")
+        reached = (
+            f"{pb.end_effector} {number(distance, 3)} m from the target, smallest clearance {number(closest, 3)} m"
+        )
     start = time.perf_counter()
-    path = animation.animate(traj, Path(out_dir) / FOLDER / f"{scene.problem.replace(':', '')}.gif", pb,
-                             target=scene.target, obstacles=scene.obstacles, title=f"{scene.problem}, LinearMPC")
+    path = animation.animate(
+        traj,
+        Path(out_dir) / FOLDER / f"{scene.problem.replace(':', '')}.gif",
+        pb,
+        target=scene.target,
+        obstacles=scene.obstacles,
+        title=f"{scene.problem}, LinearMPC",
+    )
     drawn = time.perf_counter() - start
-    line = (f"{scene.caption}: LinearMPC ({KNOTS} knots), {scene.duration:g} s from seed {scene.seed}; {reached}; "
-            f"{path.stat().st_size / 1e3:.0f} kB, drawn in {drawn:.1f} s")
+    line = (
+        f"{scene.caption}: LinearMPC ({KNOTS} knots), {scene.duration:g} s from seed {scene.seed}; {reached}; "
+        f"{path.stat().st_size / 1e3:.0f} kB, drawn in {drawn:.1f} s"
+    )
     return path, line
 
 
 def section(out_dir) -> str:
     """The report's "Pictures of motion" part: every scene's GIF (paths relative to the report) and its line."""
-    parts = ["### Pictures of motion", "",
-             "The robot's motion in short seeded closed loops (ocpkit's plant), drawn from its forward kinematics as a "
-             "stick figure with the end effector's path; the time is in each frame. `ocpkit simulate … --animate "
-             "FILE.gif` draws any run this way.", ""]
+    parts = [
+        "### Pictures of motion",
+        "",
+        "The robot's motion in short seeded closed loops (ocpkit's plant), drawn from its forward kinematics as a "
+        "stick figure with the end effector's path; the time is in each frame. `ocpkit simulate … --animate "
+        "FILE.gif` draws any run this way.",
+        "",
+    ]
     for scene in SCENES:
         path, line = picture(scene, out_dir)
         parts += [f"![{scene.caption}]({path.relative_to(Path(out_dir)).as_posix()})", "", line, ""]

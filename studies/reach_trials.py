@@ -1,6 +1,7 @@
 """The reach study's scenarios and trials (:mod:`ocpkit.studies.reach`): a seeded end-effector target behind a sphere,
 reached by every controller on the same task OCP, and the keep-out ball of :mod:`ocpkit.studies.keepout` with a fair
 nonlinear baseline."""
+
 from __future__ import annotations
 
 import casadi as ca
@@ -19,24 +20,42 @@ from ocpkit.studies.closed_loop import run_record
 
 ROBOTS = ("nlink:3", "baxter", "panda")
 KEEPOUT = "keepout"
-MARGIN, TOLERANCE = 0.01, 0.01            # obstacle margin [m] in the OCP; success: final distance [m]
+MARGIN, TOLERANCE = 0.01, 0.01  # obstacle margin [m] in the OCP; success: final distance [m]
 OBSTACLE_RADIUS = {"nlink:3": 0.06, "baxter": 0.08, "panda": 0.08}
-MIN_DISTANCE = 0.25                       # start-to-target end-effector distance [m] at least
+MIN_DISTANCE = 0.25  # start-to-target end-effector distance [m] at least
 KNOTS = {"nlink:3": 5, "baxter": 3, "panda": 5}
 ATTEMPTS = 200
-HINGE_WEIGHT = 1e3                        # the squared hinge's weight in the keep-out UserTerm
-IPOPT, RTI, QP, QP_TRAJ, EMPC, CEM, MPPI = ("IPOPT", "RTI", "LinearMPC", "LinearMPC (trajectory)", "EMPC", "CEM",
-                                            "MPPI")
-SAMPLING = {"linearization": "plan"}      # sampling planners: affine model re-linearized about the plan each step
-CONTROLLERS = {IPOPT: ("ipopt", {}), RTI: ("rti", {}), QP: ("qp", {}),
-               QP_TRAJ: ("qp", {"linearization": "trajectory"}), EMPC: ("empc", SAMPLING), CEM: ("cem", SAMPLING),
-               MPPI: ("mppi", SAMPLING)}
-K_IPOPT, K_RTI, K_EMPC_HINGE, K_EMPC_SQUARED = ("IPOPT, squared hinge term", "RTI, squared hinge term",
-                                                "EMPC, hinge fitness", "EMPC, squared hinge term")
+HINGE_WEIGHT = 1e3  # the squared hinge's weight in the keep-out UserTerm
+IPOPT, RTI, QP, QP_TRAJ, EMPC, CEM, MPPI = (
+    "IPOPT",
+    "RTI",
+    "LinearMPC",
+    "LinearMPC (trajectory)",
+    "EMPC",
+    "CEM",
+    "MPPI",
+)
+SAMPLING = {"linearization": "plan"}  # sampling planners: affine model re-linearized about the plan each step
+CONTROLLERS = {
+    IPOPT: ("ipopt", {}),
+    RTI: ("rti", {}),
+    QP: ("qp", {}),
+    QP_TRAJ: ("qp", {"linearization": "trajectory"}),
+    EMPC: ("empc", SAMPLING),
+    CEM: ("cem", SAMPLING),
+    MPPI: ("mppi", SAMPLING),
+}
+K_IPOPT, K_RTI, K_EMPC_HINGE, K_EMPC_SQUARED = (
+    "IPOPT, squared hinge term",
+    "RTI, squared hinge term",
+    "EMPC, hinge fitness",
+    "EMPC, squared hinge term",
+)
 KEEPOUT_CONTROLLERS = (K_IPOPT, K_RTI, K_EMPC_HINGE, K_EMPC_SQUARED)
 
 
 # --- scenarios ------------------------------------------------------------------------------------------------
+
 
 def clearances(pb, obstacles, q_rows) -> np.ndarray:
     """True clearance d (m, no margin) per configuration (rows of ``q_rows``) of the robot's spheres as
@@ -69,8 +88,8 @@ def scenario(robot: str, seed: int) -> dict:
 
 # --- trials ---------------------------------------------------------------------------------------------------
 
-def trial(scenario: str, controller: str, horizon: int, duration: float, population: int, arch: str,
-          seed: int) -> dict:
+
+def trial(scenario: str, controller: str, horizon: int, duration: float, population: int, arch: str, seed: int) -> dict:
     """One closed-loop run: a reach ``scenario`` ("nlink:3", "baxter") or the keep-out ball ("keepout")."""
     choice(scenario, (*ROBOTS, KEEPOUT), "scenario")
     if scenario == KEEPOUT:
@@ -86,12 +105,17 @@ def _controller(solver, options, ocp, population, arch, seed, **extra):
 
 def _times(traj, ctrl) -> dict:
     total = traj.times("total")
-    return {"step_median": float(np.median(total)), "step_max": float(total.max()),
-            "solve_median": float(np.median(traj.times("solve"))), **run_record(traj, ctrl)}
+    return {
+        "step_median": float(np.median(total)),
+        "step_max": float(total.max()),
+        "solve_median": float(np.median(traj.times("solve"))),
+        **run_record(traj, ctrl),
+    }
 
 
-def reach_trial(robot: str, controller: str, horizon: int, duration: float, population: int, arch: str,
-                seed: int) -> dict:
+def reach_trial(
+    robot: str, controller: str, horizon: int, duration: float, population: int, arch: str, seed: int
+) -> dict:
     choice(controller, tuple(CONTROLLERS), "controller")
     s = scenario(robot, seed)
     pb = problems.make(robot)
@@ -106,15 +130,29 @@ def reach_trial(robot: str, controller: str, horizon: int, duration: float, popu
     ee = pb.kinematics.positions(pb.end_effector, traj.x[:, :n])
     progress = traj.progress(pb.kinematics, pb.end_effector, s["target"], tolerance=TOLERANCE)
     collisions = int((d < 0).sum())
-    return {"success": bool(progress.verdict == REACHED and collisions == 0), "reached": progress.verdict == REACHED,
-            "verdict": progress.verdict, "final_change": progress.change, "collision_steps": collisions,
-            "success_while_colliding": traj.success_while_colliding(ocp), "successes": traj.successes,
-            "soft_steps": traj.soft_steps, "soft_causes": traj.soft_causes(), "steps": len(traj.solutions),
-            "min_clearance": float(d.min()), "final_distance": progress.final,
-            "start_distance": float(progress.error[0]), "actual_cost": actual_cost(traj, ocp),
-            **_times(traj, ctrl), "rejected": s["rejected"], "knots": KNOTS[robot],
-            "device": current_arch() if solver in ("empc", "cem", "mppi") else "cpu",
-            "ee": ee, "target": s["target"], "obstacles": np.array([[*o.center, o.radius] for o in s["obstacles"]])}
+    return {
+        "success": bool(progress.verdict == REACHED and collisions == 0),
+        "reached": progress.verdict == REACHED,
+        "verdict": progress.verdict,
+        "final_change": progress.change,
+        "collision_steps": collisions,
+        "success_while_colliding": traj.success_while_colliding(ocp),
+        "successes": traj.successes,
+        "soft_steps": traj.soft_steps,
+        "soft_causes": traj.soft_causes(),
+        "steps": len(traj.solutions),
+        "min_clearance": float(d.min()),
+        "final_distance": progress.final,
+        "start_distance": float(progress.error[0]),
+        "actual_cost": actual_cost(traj, ocp),
+        **_times(traj, ctrl),
+        "rejected": s["rejected"],
+        "knots": KNOTS[robot],
+        "device": current_arch() if solver in ("empc", "cem", "mppi") else "cpu",
+        "ee": ee,
+        "target": s["target"],
+        "obstacles": np.array([[*o.center, o.radius] for o in s["obstacles"]]),
+    }
 
 
 def squared_hinge_term(centre) -> UserTerm:
@@ -122,7 +160,7 @@ def squared_hinge_term(centre) -> UserTerm:
     c = ca.DM(np.asarray(centre, dtype=float))
 
     def residual(x, u, target):
-        e = x[:keepout.LINKS] - c
+        e = x[: keepout.LINKS] - c
         return ca.fmax(0, keepout.RADIUS + 0.01 - ca.sqrt(ca.dot(e, e) + 1e-12))
 
     return UserTerm("keepout", residual, HINGE_WEIGHT, stage=True, terminal=True)
@@ -133,23 +171,25 @@ def keepout_trial(controller: str, horizon: int, duration: float, population: in
     pb = problems.make(f"nlink:{keepout.LINKS}")
     plain = pb.ocp(knots=keepout.KNOTS, horizon=horizon)
     x0, goal = pb.sample(seed)
-    centre = (x0[:keepout.LINKS] + goal[:keepout.LINKS]) / 2
+    centre = (x0[: keepout.LINKS] + goal[: keepout.LINKS]) / 2
     penalty = keepout.keepout_penalty(centre)
     if controller == K_EMPC_HINGE:
         stage, terminal = keepout.penalized_costs(plain, penalty)
         ctrl = _controller("empc", SAMPLING, plain, population, arch, seed, stage_cost=stage, terminal_cost=terminal)
     else:
         ocp = pb.ocp(knots=keepout.KNOTS, horizon=horizon, task=Task([squared_hinge_term(centre)]))
-        solver, options = {K_IPOPT: ("ipopt", {}), K_RTI: ("rti", {}),
-                           K_EMPC_SQUARED: ("empc", SAMPLING)}[controller]
+        solver, options = {K_IPOPT: ("ipopt", {}), K_RTI: ("rti", {}), K_EMPC_SQUARED: ("empc", SAMPLING)}[controller]
         ctrl = _controller(solver, options, ocp, population, arch, seed)
     ctrl.solve(x0, goal)
     traj = simulate(pb.plant(), ctrl, x0, goal, duration)
     penalties = np.asarray(penalty.map(traj.x.shape[0])(traj.x.T)).ravel()
     quadratic = actual_cost(traj, plain)
-    return {"actual_cost": quadratic + float(penalties.sum()), "quadratic_cost": quadratic,
-            "penalty": float(penalties.sum()),
-            "steps_inside": int((np.linalg.norm(traj.x[:, :keepout.LINKS] - centre, axis=1) < keepout.RADIUS).sum()),
-            "final_error": float(np.abs(traj.x[-1] - goal).max()), **_times(traj, ctrl),
-            "device": current_arch() if "EMPC" in controller else "cpu"}
-
+    return {
+        "actual_cost": quadratic + float(penalties.sum()),
+        "quadratic_cost": quadratic,
+        "penalty": float(penalties.sum()),
+        "steps_inside": int((np.linalg.norm(traj.x[:, : keepout.LINKS] - centre, axis=1) < keepout.RADIUS).sum()),
+        "final_error": float(np.abs(traj.x[-1] - goal).max()),
+        **_times(traj, ctrl),
+        "device": current_arch() if "EMPC" in controller else "cpu",
+    }

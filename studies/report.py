@@ -1,5 +1,6 @@
 """Markdown pieces of a study report: sections with figures, tables, how the data were taken, and the
 paper's claims checked against them."""
+
 from __future__ import annotations
 
 import numbers
@@ -12,6 +13,7 @@ from ocpkit.sim.plots import number
 def markdown_table(df) -> str:
     """A pandas DataFrame as a Markdown table (index as the first column), numbers as :func:`ocpkit.sim.plots.number`
     prints them."""
+
     def cell(v):
         return number(v) if isinstance(v, numbers.Number) and not isinstance(v, bool) else str(v)
 
@@ -51,11 +53,16 @@ def answered(ok, by: str = "controller") -> str:
                 status, n = part.rsplit(" ", 1)
                 causes[status] = causes.get(status, 0) + int(n)
         wins = g["child_win_rate"].dropna() if "child_win_rate" in g else pd.Series(dtype=float)
-        rows[name] = {"runs": len(g), "fallback steps": int(g["fallbacks"].sum()),
-                      "causes": ", ".join(f"{k} {v}" for k, v in sorted(causes.items(), key=lambda kv: -kv[1]))
-                      or "–",
-                      "child win rate [%]": (f"{number(100 * wins.median(), 3)} ({number(100 * wins.min(), 3)}–"
-                                             f"{number(100 * wins.max(), 3)})") if len(wins) else "–"}
+        rows[name] = {
+            "runs": len(g),
+            "fallback steps": int(g["fallbacks"].sum()),
+            "causes": ", ".join(f"{k} {v}" for k, v in sorted(causes.items(), key=lambda kv: -kv[1])) or "–",
+            "child win rate [%]": (
+                f"{number(100 * wins.median(), 3)} ({number(100 * wins.min(), 3)}–{number(100 * wins.max(), 3)})"
+            )
+            if len(wins)
+            else "–",
+        }
     table = pd.DataFrame.from_dict(rows, orient="index")
     table.index.name = by
     return markdown_table(table)
@@ -73,9 +80,11 @@ def timing_context(df) -> str:
     if "load" not in df or df["load"].isna().all():
         return "Machine load while timing: not recorded."
     load = df["load"].dropna()
-    return (f"Machine load while timing: 1-min load average at the end of each trial median "
-            f"{number(load.median(), 2)}, max {number(load.max(), 2)} on {os.cpu_count()} CPUs; BLAS/OpenMP threads "
-            "limited to 1 inside each controller step; timings are medians of per-step wall times.")
+    return (
+        f"Machine load while timing: 1-min load average at the end of each trial median "
+        f"{number(load.median(), 2)}, max {number(load.max(), 2)} on {os.cpu_count()} CPUs; BLAS/OpenMP threads "
+        "limited to 1 inside each controller step; timings are medians of per-step wall times."
+    )
 
 
 def section(title: str, figures, tables: dict, *, trials: str, claims: list, notes=()) -> str:
@@ -87,8 +96,8 @@ def section(title: str, figures, tables: dict, *, trials: str, claims: list, not
         parts += ["", f"{caption}:", "", table]
     if notes:
         parts += [""] + [f"- {n}" for n in notes]
-    parts += ["", "Claim checks:", "",
-              "| paper's claim | paper | here | evidence | verdict |", "|---|---|---|---|---|"]
-    parts += [f"| {c.claim} | {c.paper or '–'} | {c.ours} | {c.evidence or '–'} | {c.verdict} |" for c in claims] \
-        or ["| – | – | no claim of the paper applies | – | – |"]
+    parts += ["", "Claim checks:", "", "| paper's claim | paper | here | evidence | verdict |", "|---|---|---|---|---|"]
+    parts += [f"| {c.claim} | {c.paper or '–'} | {c.ours} | {c.evidence or '–'} | {c.verdict} |" for c in claims] or [
+        "| – | – | no claim of the paper applies | – | – |"
+    ]
     return "\n".join(parts) + "\n"

@@ -1,4 +1,5 @@
 """`ocpkit reproduce`: run every study and write one Markdown report with figures, tables and provenance."""
+
 from __future__ import annotations
 
 import importlib.util
@@ -20,28 +21,41 @@ PACKAGES = ("ocpkit", "casadi", "numpy", "proxsuite", "osqp", "pin", "taichi", "
 # Seconds per trial and worker of each study's quick grid, measured on the idle 2-core development machine
 # (`reproduce --quick`, 2 workers, 2026-12-03: 1,427 s in all): what the start-up estimate scales.
 # robustness_mujoco: 36 trials in 17 s on 2 workers (`ocpkit study robustness --plant mujoco`, load 0.5–1.0).
-SECONDS_PER_TRIAL = {"knots": 0.5, "horizon": 0.61, "robustness": 0.52, "solve_times": 6.0, "comparison": 10.3,
-                     "keepout": 1.8, "baxter": 2.4, "reach": 16.7, "robustness_mujoco": 0.94}
+SECONDS_PER_TRIAL = {
+    "knots": 0.5,
+    "horizon": 0.61,
+    "robustness": 0.52,
+    "solve_times": 6.0,
+    "comparison": 10.3,
+    "keepout": 1.8,
+    "baxter": 2.4,
+    "reach": 16.7,
+    "robustness_mujoco": 0.94,
+}
 # Studies whose claims are about time: run one trial at a time (locally), so two trials never share the 2 cores.
 TIMING_STUDIES = ("solve_times",)
-VERDICTS = ("How verdicts are decided: each claim is tested on per-seed data (paired by start and goal where it "
-            "compares two controllers). The evidence column gives the median, its distribution-free interval "
-            "(order statistics; with few seeds the whole range, with its coverage: 75 % at n = 3) and n. Held: the "
-            "whole interval is on the claimed side of the threshold; not held: it is on the other side; inconclusive: "
-            "it straddles it; not tested: this run lacks the data or the hardware (GPU claims on a CPU run). Timing "
-            "verdicts are marked unreliable where the median load exceeded the CPUs.")
+VERDICTS = (
+    "How verdicts are decided: each claim is tested on per-seed data (paired by start and goal where it "
+    "compares two controllers). The evidence column gives the median, its distribution-free interval "
+    "(order statistics; with few seeds the whole range, with its coverage: 75 % at n = 3) and n. Held: the "
+    "whole interval is on the claimed side of the threshold; not held: it is on the other side; inconclusive: "
+    "it straddles it; not tested: this run lacks the data or the hardware (GPU claims on a CPU run). Timing "
+    "verdicts are marked unreliable where the median load exceeded the CPUs."
+)
 
 
-def run_study(name: str, size: str, out_dir, *, workers=None, scheduler=None, progress=True, plant: str = "ocpkit",
-              **options) -> str:
+def run_study(
+    name: str, size: str, out_dir, *, workers=None, scheduler=None, progress=True, plant: str = "ocpkit", **options
+) -> str:
     """Run one study (resuming from its store in ``out_dir``), write its table as <the study's name>.csv and return
     its report section. ``plant="mujoco"``: the robustness study's MuJoCo variant. ``options`` go to
     :func:`ocpkit.runs.study.run` (trial_timeout, retry_failed, stale, lease)."""
     if plant != "ocpkit" and name != "robustness":
         raise ValueError(f"plant {plant!r} applies to the robustness study only, not {name!r}")
     study_options = {} if plant == "ocpkit" else {"plant": plant}
-    return _run_study(name, size, out_dir, study_options, workers=workers, scheduler=scheduler, progress=progress,
-                      **options)[0]
+    return _run_study(
+        name, size, out_dir, study_options, workers=workers, scheduler=scheduler, progress=progress, **options
+    )[0]
 
 
 def _run_study(name, size, out_dir, study_options=None, **options):
@@ -93,8 +107,11 @@ def per_seed(name: str, df) -> str:
     if metric not in ok or "seed" not in ok or ok.empty:
         return ""
     axes = [p for p in df.attrs.get("params", []) if p != "seed" and ok[p].nunique(dropna=False) > 1]
-    table = ok.pivot_table(index=axes or None, columns="seed", values=metric, aggfunc="first", dropna=False) \
-        if axes else ok.set_index("seed")[[metric]].T
+    table = (
+        ok.pivot_table(index=axes or None, columns="seed", values=metric, aggfunc="first", dropna=False)
+        if axes
+        else ok.set_index("seed")[[metric]].T
+    )
     table.index = [" / ".join(map(str, i)) if isinstance(i, tuple) else str(i) for i in table.index]
     table.index.name = " / ".join(axes) or "metric"
     table.columns = [f"seed {c}" for c in table.columns]
@@ -102,8 +119,17 @@ def per_seed(name: str, df) -> str:
     return f"### {heading}: {metric} per seed\n\n" + markdown_table(table) + "\n"
 
 
-def reproduce(size: str = "quick", out_dir="results/reproduce", *, names=NAMES, workers=None, scheduler=None,
-              progress=True, pictures=True, **options) -> Path:
+def reproduce(
+    size: str = "quick",
+    out_dir="results/reproduce",
+    *,
+    names=NAMES,
+    workers=None,
+    scheduler=None,
+    progress=True,
+    pictures=True,
+    **options,
+) -> Path:
     """Run the studies ``names`` at ``size`` ("quick" or "full") and write ``out_dir``/report.md.
 
     The report gives this run's wall time and the compute time summed over every run that stored trials in
@@ -114,20 +140,31 @@ def reproduce(size: str = "quick", out_dir="results/reproduce", *, names=NAMES, 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     if progress and scheduler is None:
-        print(f"reproduce --{size}: about {estimate(names, size, out_dir, workers) / 60:.0f} min of trials to run on "
-              f"{workers or os.cpu_count()} worker(s) (the quick size's per-trial times on an idle 2-core machine; "
-              "a busy machine, or the full size's longer trials, take longer)", flush=True)
+        print(
+            f"reproduce --{size}: about {estimate(names, size, out_dir, workers) / 60:.0f} min of trials to run on "
+            f"{workers or os.cpu_count()} worker(s) (the quick size's per-trial times on an idle 2-core machine; "
+            "a busy machine, or the full size's longer trials, take longer)",
+            flush=True,
+        )
     start, load_start = time.perf_counter(), os.getloadavg()[0]
     sections, appendix, timings = [], [], {}
     parts = _parts(names)
     for name, module, study_options in parts:
         if module is None:
-            sections.append(f"## {name}\n\nNot run: MuJoCo is not installed (pip install \"ocpkit[mujoco]\").\n")
+            sections.append(f'## {name}\n\nNot run: MuJoCo is not installed (pip install "ocpkit[mujoco]").\n')
             continue
         t0 = time.perf_counter()
         serial = name in TIMING_STUDIES and scheduler is None  # timed trials must not compete for the cores
-        section, df = _run_study(module, size, out_dir, study_options, workers=1 if serial else workers,
-                                 scheduler=scheduler, progress=progress, **options)
+        section, df = _run_study(
+            module,
+            size,
+            out_dir,
+            study_options,
+            workers=1 if serial else workers,
+            scheduler=scheduler,
+            progress=progress,
+            **options,
+        )
         sections.append(section)
         appendix.append(per_seed(module, df))
         timings[name] = time.perf_counter() - t0
@@ -143,9 +180,15 @@ def reproduce(size: str = "quick", out_dir="results/reproduce", *, names=NAMES, 
     compute = {name: float(runs.loc[runs["study"] == name, "wall"].sum()) for name in ran}
     report = out_dir / "report.md"
     loads = (load_start, os.getloadavg()[0])
-    report.write_text(_header(size, scheduler, workers, timings, wall, compute, len(runs), loads) + "\n" + VERDICTS
-                      + "\n\n" + "\n".join(sections) + "\n## Appendix: per-seed values\n\n"
-                      + "\n".join(filter(None, appendix)))
+    report.write_text(
+        _header(size, scheduler, workers, timings, wall, compute, len(runs), loads)
+        + "\n"
+        + VERDICTS
+        + "\n\n"
+        + "\n".join(sections)
+        + "\n## Appendix: per-seed values\n\n"
+        + "\n".join(filter(None, appendix))
+    )
     return report
 
 
@@ -163,7 +206,8 @@ def _header(size, scheduler, workers, timings, wall, compute, n_runs, loads) -> 
         "- seeds: trial seeds 0 … n−1 per configuration (see each study's size); every start/goal is drawn from"
         " its seed",
         f"- compute time: {sum(compute.values()):.1f} s summed over the {n_runs} study runs that stored trials here ("
-        + ", ".join(f"{k} {v:.1f} s" for k, v in compute.items()) + ")",
+        + ", ".join(f"{k} {v:.1f} s" for k, v in compute.items())
+        + ")",
         f"- wall time of this run: {wall:.1f} s (" + ", ".join(f"{k} {v:.1f} s" for k, v in timings.items()) + ")"
         f"; 1-min load average {loads[0]:.1f} at its start, {loads[1]:.1f} at its end on {os.cpu_count()} CPUs",
         "- results are resumable: each finished trial is in results.sqlite; rerunning skips them",

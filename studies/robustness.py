@@ -11,6 +11,7 @@ controller's model cannot express: MuJoCo as the plant (:class:`ocpkit.sim.mujoc
 friction or added rotor inertia (armature), LinearMPC, RTI and EMPC side by side. Normalized cost there = actual cost
 on the mismatched plant / actual cost of the same controller, start and goal on ocpkit's plant.
 """
+
 from __future__ import annotations
 
 import casadi as ca
@@ -25,30 +26,58 @@ from ocpkit.sim.simulate import simulate
 from ocpkit.runs.study import Study, grid
 from ocpkit.studies.closed_loop import grid_size, run_record, trial
 from ocpkit.sim.plots import number
-from ocpkit.studies.evidence import (HELD, NOT_HELD, combine, decide, every, median_claim, median_interval,
-                                     paired, series)
-from ocpkit.studies.report import (ANSWERED, Claim, answered, markdown_table, section, timing_context,
-                                   trials_line)
+from ocpkit.studies.evidence import (
+    HELD,
+    NOT_HELD,
+    combine,
+    decide,
+    every,
+    median_claim,
+    median_interval,
+    paired,
+    series,
+)
+from ocpkit.studies.report import ANSWERED, Claim, answered, markdown_table, section, timing_context, trials_line
 
 NAME = "robustness"
 TITLE = "Robustness to model error (Figs. 5–6, Tables I–II)"
 CONTROLLERS = [2, 4, 8, None]  # knot points; None = traditional MPC
-SIZES = {"quick": {"errors": [0.5, 0.7, 0.9, 1.0, 1.1, 1.3, 1.5], "seeds": 8, "problems": ["pendulum", "puma560"]},
-         "full": {"errors": [round(0.5 + 0.1 * i, 1) for i in range(11)], "seeds": 30,
-                  "problems": ["pendulum", "puma560"]}}
+SIZES = {
+    "quick": {"errors": [0.5, 0.7, 0.9, 1.0, 1.1, 1.3, 1.5], "seeds": 8, "problems": ["pendulum", "puma560"]},
+    "full": {"errors": [round(0.5 + 0.1 * i, 1) for i in range(11)], "seeds": 30, "problems": ["pendulum", "puma560"]},
+}
 USER_QUICK = {"errors": [0.7, 1.0, 1.3], "seeds": 2}
 # The paper's Tables I–II (inverted pendulum): percent overshoot and rise time [s] per error multiplier, for
 # 2, 4 and 8 knots and traditional MPC, printed beside ours.
 PAPER_COLUMNS = ("2 knots", "4 knots", "8 knots", "traditional")
 PAPER_TABLES = {
-    "overshoot": {0.5: (37.7, 40.2, 40.3, 43.5), 0.6: (26.5, 29.3, 29.3, 31.1), 0.7: (18.6, 19.8, 20.8, 22),
-                  0.8: (12.1, 12.3, 13.8, 14.6), 0.9: (6.88, 6.78, 8.13, 8.64), 1.0: (3.05, 2.96, 3.89, 4.17),
-                  1.1: (0.772, 0.732, 1.18, 1.3), 1.2: (0.0252, 0.0171, 0.0729, 0.0919), 1.3: (0, 0, 0, 0),
-                  1.4: (0, 0, 0, 0), 1.5: (0, 0, 0, 0)},
-    "rise_time": {0.5: (0.85, 0.41, 0.3, 0.28), 0.6: (0.65, 0.36, 0.3, 0.29), 0.7: (0.56, 0.35, 0.31, 0.3),
-                  0.8: (0.54, 0.36, 0.32, 0.31), 0.9: (0.54, 0.38, 0.35, 0.34), 1.0: (0.59, 0.43, 0.39, 0.38),
-                  1.1: (0.67, 0.5, 0.45, 0.44), 1.2: (0.78, 0.6, 0.55, 0.54), 1.3: (0.89, 0.71, 0.67, 0.66),
-                  1.4: (0.96, 0.81, 0.77, 0.76), 1.5: (1.02, 0.88, 0.85, 0.84)}}
+    "overshoot": {
+        0.5: (37.7, 40.2, 40.3, 43.5),
+        0.6: (26.5, 29.3, 29.3, 31.1),
+        0.7: (18.6, 19.8, 20.8, 22),
+        0.8: (12.1, 12.3, 13.8, 14.6),
+        0.9: (6.88, 6.78, 8.13, 8.64),
+        1.0: (3.05, 2.96, 3.89, 4.17),
+        1.1: (0.772, 0.732, 1.18, 1.3),
+        1.2: (0.0252, 0.0171, 0.0729, 0.0919),
+        1.3: (0, 0, 0, 0),
+        1.4: (0, 0, 0, 0),
+        1.5: (0, 0, 0, 0),
+    },
+    "rise_time": {
+        0.5: (0.85, 0.41, 0.3, 0.28),
+        0.6: (0.65, 0.36, 0.3, 0.29),
+        0.7: (0.56, 0.35, 0.31, 0.3),
+        0.8: (0.54, 0.36, 0.32, 0.31),
+        0.9: (0.54, 0.38, 0.35, 0.34),
+        1.0: (0.59, 0.43, 0.39, 0.38),
+        1.1: (0.67, 0.5, 0.45, 0.44),
+        1.2: (0.78, 0.6, 0.55, 0.54),
+        1.3: (0.89, 0.71, 0.67, 0.66),
+        1.4: (0.96, 0.81, 0.77, 0.76),
+        1.5: (1.02, 0.88, 0.85, 0.84),
+    },
+}
 PAPER_PROBLEM = "pendulum"
 SIMILAR = 1.25  # "like traditional MPC's": per-seed normalized costs within this factor of each other
 
@@ -62,8 +91,9 @@ def study(size: str, problems=None, plant: str = "ocpkit") -> Study:
     if choice(plant, PLANTS, "plant") == "mujoco":
         return mujoco_study(size, problems)
     s = grid_size(SIZES, size, problems, USER_QUICK)
-    return Study(NAME, trial, grid(problem=s["problems"], knots=CONTROLLERS, error_multiplier=s["errors"],
-                                   seeds=s["seeds"]))
+    return Study(
+        NAME, trial, grid(problem=s["problems"], knots=CONTROLLERS, error_multiplier=s["errors"], seeds=s["seeds"])
+    )
 
 
 def _label(knots) -> str:
@@ -82,14 +112,23 @@ def report(df, out_dir) -> str:
     seeds = ok["seed"].nunique()
     for problem, g in ok.groupby("problem", sort=False):
         med = g.pivot_table(index="error_multiplier", columns="controller", values="normalized", aggfunc="median")
-        per_seed = {c: [g.loc[(g["controller"] == c) & (g["error_multiplier"] == e), "normalized"].values
-                        for e in med.index] for c in med.columns}
-        figs.append(plots.lines(med.index, per_seed, out_dir / f"robustness_{filename(problem)}",
-                                xlabel="error multiplier (model inertia / true inertia)",
-                                ylabel="normalized cost (ratio; line: median)", log=True,
-                                spread_label=f"shaded: quartiles over {seeds} seeds",
-                                references=[(1.0, "1: the same controller without error")],
-                                title=f"{problem}: sensitivity to model error ({seeds} seeds)"))
+        per_seed = {
+            c: [g.loc[(g["controller"] == c) & (g["error_multiplier"] == e), "normalized"].values for e in med.index]
+            for c in med.columns
+        }
+        figs.append(
+            plots.lines(
+                med.index,
+                per_seed,
+                out_dir / f"robustness_{filename(problem)}",
+                xlabel="error multiplier (model inertia / true inertia)",
+                ylabel="normalized cost (ratio; line: median)",
+                log=True,
+                spread_label=f"shaded: quartiles over {seeds} seeds",
+                references=[(1.0, "1: the same controller without error")],
+                title=f"{problem}: sensitivity to model error ({seeds} seeds)",
+            )
+        )
         tables[f"{problem}: median normalized cost over {seeds} seeds"] = markdown_table(med)
         for metric, caption in (("overshoot", "median percent overshoot"), ("rise_time", "median rise time [s]")):
             t = g.pivot_table(index="error_multiplier", columns="controller", values=metric, aggfunc="median")
@@ -100,11 +139,20 @@ def report(df, out_dir) -> str:
         excluded = int(g["overshoot"].isna().sum())
         q1, q3 = g["overshoot"].quantile([0.25, 0.75])
         outliers = int((g["overshoot"] > q3 + 1.5 * (q3 - q1)).sum())
-        notes.append(f"{problem}: {excluded} of {len(g)} runs have no step of at least 0.1 rad (no overshoot or "
-                     f"rise time); {outliers} overshoots lie beyond 1.5 IQR above the quartiles (medians resist them).")
+        notes.append(
+            f"{problem}: {excluded} of {len(g)} runs have no step of at least 0.1 rad (no overshoot or "
+            f"rise time); {outliers} overshoots lie beyond 1.5 IQR above the quartiles (medians resist them)."
+        )
         out += claims(problem, g)
-    trials = trials_line(df, {"problems": ok["problem"].nunique(), "controllers": ok["controller"].nunique(),
-                              "error multipliers": ok["error_multiplier"].nunique(), "seeds": seeds})
+    trials = trials_line(
+        df,
+        {
+            "problems": ok["problem"].nunique(),
+            "controllers": ok["controller"].nunique(),
+            "error multipliers": ok["error_multiplier"].nunique(),
+            "seeds": seeds,
+        },
+    )
     return section(TITLE, figs, tables, trials=trials + " " + timing_context(ok), claims=out, notes=notes)
 
 
@@ -113,8 +161,11 @@ def with_paper(table, paper: dict):
     out = table.copy()
     for j, c in enumerate(PAPER_COLUMNS):
         if c in out:
-            out.insert(out.columns.get_loc(c) + 1, f"{c} (paper)", [paper.get(round(float(e), 1), (None,) * 4)[j]
-                                                                    for e in out.index])
+            out.insert(
+                out.columns.get_loc(c) + 1,
+                f"{c} (paper)",
+                [paper.get(round(float(e), 1), (None,) * 4)[j] for e in out.index],
+            )
     return out
 
 
@@ -131,8 +182,14 @@ def claims(problem, g) -> list:
     if "traditional" in controllers and lo < 1 < hi:
         ratio = paired(at("traditional", lo, "normalized"), at("traditional", hi, "normalized"))
         v, e = median_claim(ratio, 1.0, ">")
-        out.append(Claim(f"{problem}: underestimated inertia degrades the cost faster than overestimated",
-                         f"traditional, per seed: normalized cost at error {number(lo)} / at {number(hi)}", v, e))
+        out.append(
+            Claim(
+                f"{problem}: underestimated inertia degrades the cost faster than overestimated",
+                f"traditional, per seed: normalized cost at error {number(lo)} / at {number(hi)}",
+                v,
+                e,
+            )
+        )
         similar = sorted(c for c in controllers if c not in ("traditional", "2 knots"))
         if similar:
             verdicts, worst = [], (None, 1.0)
@@ -146,25 +203,41 @@ def claims(problem, g) -> list:
                     far = max(abs(np.log(interval.low)), abs(np.log(interval.high)))
                     if far > abs(np.log(worst[1])):
                         worst = (f"{c} at error {number(error)}: {interval.text()}", np.exp(far))
-            out.append(Claim(f"{problem}: with more than 2 knots the sensitivity is like traditional MPC's",
-                             f"per-seed normalized cost of {', '.join(similar)} / traditional's, at every error: "
-                             f"within {number(1 / SIMILAR, 2)}–{number(SIMILAR, 3)}×", combine(verdicts),
-                             f"widest: {worst[0]}" if worst[0] else ""))
+            out.append(
+                Claim(
+                    f"{problem}: with more than 2 knots the sensitivity is like traditional MPC's",
+                    f"per-seed normalized cost of {', '.join(similar)} / traditional's, at every error: "
+                    f"within {number(1 / SIMILAR, 2)}–{number(SIMILAR, 3)}×",
+                    combine(verdicts),
+                    f"widest: {worst[0]}" if worst[0] else "",
+                )
+            )
     if {"2 knots", "traditional"} <= controllers and 1.0 in errors:
         over = paired(at("2 knots", 1.0, "overshoot"), at("traditional", 1.0, "overshoot"), "difference")
         rise = paired(at("2 knots", 1.0, "rise_time"), at("traditional", 1.0, "rise_time"), "difference")
         v_over, e_over = median_claim(over, 0.0, "<=")
         v_rise, e_rise = median_claim(rise, 0.0, ">=")
-        out.append(Claim(f"{problem}: fewer knots are more conservative (less overshoot, longer rise time)",
-                         "at error 1, per seed, 2 knots − traditional: overshoot [%] ≤ 0 and rise time [s] ≥ 0",
-                         combine([v_over, v_rise]), f"overshoot {e_over}; rise time {e_rise}",
-                         paper="overshoot 3.05 vs 4.17 %, rise 0.59 vs 0.38 s" if problem == PAPER_PROBLEM else ""))
+        out.append(
+            Claim(
+                f"{problem}: fewer knots are more conservative (less overshoot, longer rise time)",
+                "at error 1, per seed, 2 knots − traditional: overshoot [%] ≤ 0 and rise time [s] ≥ 0",
+                combine([v_over, v_rise]),
+                f"overshoot {e_over}; rise time {e_rise}",
+                paper="overshoot 3.05 vs 4.17 %, rise 0.59 vs 0.38 s" if problem == PAPER_PROBLEM else "",
+            )
+        )
     if "traditional" in controllers and hi > 1 and 1.0 in errors:
         change = paired(at("traditional", hi, "overshoot"), at("traditional", 1.0, "overshoot"), "difference")
         v, e = median_claim(change, 0.0, "<")
-        out.append(Claim(f"{problem}: overestimated inertia reduces overshoot",
-                         f"traditional, per seed: overshoot at error {number(hi)} − at 1 [% points]", v, e,
-                         paper="traditional: 4.17 % at 1, 0 % from 1.3" if problem == PAPER_PROBLEM else ""))
+        out.append(
+            Claim(
+                f"{problem}: overestimated inertia reduces overshoot",
+                f"traditional, per seed: overshoot at error {number(hi)} − at 1 [% points]",
+                v,
+                e,
+                paper="traditional: 4.17 % at 1, 0 % from 1.3" if problem == PAPER_PROBLEM else "",
+            )
+        )
     return out
 
 
@@ -179,10 +252,24 @@ MUJOCO_CONTROLLERS = {"LinearMPC": ("qp", {}), "RTI": ("rti", {}), "EMPC": ("emp
 # inertia added to each joint as a share of its diagonal entry of M(q = 0). "none" on both plants: the baseline
 # (ocpkit) and MuJoCo's copy of it (the two agree to round-off: any difference there is the simulator's).
 MISMATCHES = ("friction", "armature")
-MUJOCO_SIZES = {"quick": {"problems": ["nlink:3"], "friction": [0.1], "armature": [0.5], "seeds": 3, "duration": 3.0,
-                          "arch": "cpu"},
-                "full": {"problems": ["nlink:3", "puma560"], "friction": [0.05, 0.1, 0.2], "armature": [0.25, 0.5, 1.0],
-                         "seeds": 10, "duration": 3.0, "arch": "auto"}}
+MUJOCO_SIZES = {
+    "quick": {
+        "problems": ["nlink:3"],
+        "friction": [0.1],
+        "armature": [0.5],
+        "seeds": 3,
+        "duration": 3.0,
+        "arch": "cpu",
+    },
+    "full": {
+        "problems": ["nlink:3", "puma560"],
+        "friction": [0.05, 0.1, 0.2],
+        "armature": [0.25, 0.5, 1.0],
+        "seeds": 10,
+        "duration": 3.0,
+        "arch": "auto",
+    },
+}
 MUJOCO_USER_QUICK = {"seeds": 2}
 SAME_PLANT = 1e-6  # MuJoCo without mismatch: per-run cost within this relative difference of ocpkit's plant's
 TIE = 0.001  # two controllers whose per-seed normalized costs differ by less than this share lead together
@@ -196,10 +283,22 @@ def mujoco_study(size: str, problems=None) -> Study:
             mujoco_plant(make_problem(spec), "none", 0.0)
     conditions = [("ocpkit", "none", 0.0), ("mujoco", "none", 0.0)]
     conditions += [("mujoco", mismatch, level) for mismatch in MISMATCHES for level in s[mismatch]]
-    trials = [{"problem": problem, "controller": controller, "plant": plant, "mismatch": mismatch, "level": level,
-               "duration": s["duration"], "arch": s["arch"], "seed": seed}
-              for problem in s["problems"] for controller in MUJOCO_CONTROLLERS
-              for plant, mismatch, level in conditions for seed in range(s["seeds"])]
+    trials = [
+        {
+            "problem": problem,
+            "controller": controller,
+            "plant": plant,
+            "mismatch": mismatch,
+            "level": level,
+            "duration": s["duration"],
+            "arch": s["arch"],
+            "seed": seed,
+        }
+        for problem in s["problems"]
+        for controller in MUJOCO_CONTROLLERS
+        for plant, mismatch, level in conditions
+        for seed in range(s["seeds"])
+    ]
     return Study(MUJOCO_NAME, mujoco_trial, trials)
 
 
@@ -219,8 +318,9 @@ def mujoco_plant(problem, mismatch: str, level: float):
     return MuJoCoPlant(problem)
 
 
-def mujoco_trial(problem: str, controller: str, plant: str, mismatch: str, level: float, duration: float, arch: str,
-                 seed: int) -> dict:
+def mujoco_trial(
+    problem: str, controller: str, plant: str, mismatch: str, level: float, duration: float, arch: str, seed: int
+) -> dict:
     """One closed loop of ``controller`` from the seeded start to goal on ``plant`` ("ocpkit": the problem's own,
     "mujoco": :func:`mujoco_plant`); the result names the plant simulated (``plant_model``)."""
     solver, options = MUJOCO_CONTROLLERS[choice(controller, tuple(MUJOCO_CONTROLLERS), "controller")]
@@ -235,8 +335,12 @@ def mujoco_trial(problem: str, controller: str, plant: str, mismatch: str, level
     ctrl.solve(x0, goal)  # compiles kernels and functions outside the run; simulate() resets ctrl
     simulated = pb.plant() if plant == "ocpkit" else mujoco_plant(pb, mismatch, level)
     traj = simulate(simulated, ctrl, x0, goal, duration)
-    return {"actual_cost": actual_cost(traj, ocp), "final_error": float(np.abs(traj.x[-1] - goal).max()),
-            "plant_model": repr(simulated), **run_record(traj, ctrl)}
+    return {
+        "actual_cost": actual_cost(traj, ocp),
+        "final_error": float(np.abs(traj.x[-1] - goal).max()),
+        "plant_model": repr(simulated),
+        **run_record(traj, ctrl),
+    }
 
 
 def _condition(row) -> str:
@@ -260,25 +364,42 @@ def mujoco_report(df, out_dir) -> str:
         conditions = list(dict.fromkeys(mismatched["condition"]))
         groups = [(c, k) for k in conditions for c in controllers]
         if groups:
-            figs.append(plots.boxes([f"{c}\n{k.removeprefix('MuJoCo, ')}" for c, k in groups],
-                                    [mismatched.loc[(mismatched["controller"] == c) & (mismatched["condition"] == k),
-                                                    "normalized"] for c, k in groups],
-                                    out_dir / f"robustness_mujoco_{filename(problem)}",
-                                    xlabel="controller and MuJoCo mismatch", log=True,
-                                    ylabel="normalized cost (mismatched / ocpkit's plant)",
-                                    references=[(1.0, "1: no degradation")], colours=[colours[c] for c, _ in groups],
-                                    title=f"{problem}: cost under unmodelled friction and armature ({seeds} seeds)"))
+            figs.append(
+                plots.boxes(
+                    [f"{c}\n{k.removeprefix('MuJoCo, ')}" for c, k in groups],
+                    [
+                        mismatched.loc[(mismatched["controller"] == c) & (mismatched["condition"] == k), "normalized"]
+                        for c, k in groups
+                    ],
+                    out_dir / f"robustness_mujoco_{filename(problem)}",
+                    xlabel="controller and MuJoCo mismatch",
+                    log=True,
+                    ylabel="normalized cost (mismatched / ocpkit's plant)",
+                    references=[(1.0, "1: no degradation")],
+                    colours=[colours[c] for c, _ in groups],
+                    title=f"{problem}: cost under unmodelled friction and armature ({seeds} seeds)",
+                )
+            )
         for metric, caption in (("normalized", "median normalized cost"), ("final_error", "median final error")):
             t = g.pivot_table(index="condition", columns="controller", values=metric, aggfunc="median")
             tables[f"{problem}: {caption} over {seeds} seeds"] = markdown_table(t[[c for c in controllers if c in t]])
         out += mujoco_claims(problem, g, controllers)
     tables[ANSWERED] = answered(ok)
-    notes = ["Mismatch: friction, MuJoCo's dry joint friction (frictionloss) as a share of each joint's torque limit; "
-             "armature, rotor inertia added to each joint as a share of its diagonal entry of M(q = 0). Every "
-             f"controller plans with {KNOTS} knots on the problem's own model, which has neither; MuJoCo integrates "
-             "with RK4 at ocpkit's sub-step (1 ms)."]
-    trials = trials_line(df, {"problems": ok["problem"].nunique(), "controllers": len(controllers),
-                              "plant conditions": ok["condition"].nunique(), "seeds": seeds})
+    notes = [
+        "Mismatch: friction, MuJoCo's dry joint friction (frictionloss) as a share of each joint's torque limit; "
+        "armature, rotor inertia added to each joint as a share of its diagonal entry of M(q = 0). Every "
+        f"controller plans with {KNOTS} knots on the problem's own model, which has neither; MuJoCo integrates "
+        "with RK4 at ocpkit's sub-step (1 ms)."
+    ]
+    trials = trials_line(
+        df,
+        {
+            "problems": ok["problem"].nunique(),
+            "controllers": len(controllers),
+            "plant conditions": ok["condition"].nunique(),
+            "seeds": seeds,
+        },
+    )
     return section(MUJOCO_TITLE, figs, tables, trials=trials + " " + timing_context(ok), claims=out, notes=notes)
 
 
@@ -289,26 +410,39 @@ def mujoco_claims(problem, g, controllers) -> list:
     same as LinearMPC's)."""
     same = g[(g["plant"] == "mujoco") & (g["mismatch"] == "none")]["normalized"]
     verdict, evidence = every(np.abs(same - 1.0), lambda d: d < SAME_PLANT, f"differ by {number(SAME_PLANT)} or more")
-    out = [Claim(f"{problem}: MuJoCo without mismatch reproduces ocpkit's plant (issue 34)",
-                 f"per run: cost on MuJoCo / cost on ocpkit's plant within 1 ± {number(SAME_PLANT)}", verdict,
-                 evidence)]
+    out = [
+        Claim(
+            f"{problem}: MuJoCo without mismatch reproduces ocpkit's plant (issue 34)",
+            f"per run: cost on MuJoCo / cost on ocpkit's plant within 1 ± {number(SAME_PLANT)}",
+            verdict,
+            evidence,
+        )
+    ]
     for condition, h in g[g["mismatch"] != "none"].groupby("condition", sort=False):
         medians = {c: float(h.loc[h["controller"] == c, "normalized"].median()) for c in controllers}
         medians = {c: m for c, m in medians.items() if m == m}
         if len(medians) < 2:
             continue
         best = min(medians, key=medians.get)
-        ratios = {c: median_interval(paired(series(h, "normalized", controller=best),
-                                            series(h, "normalized", controller=c)))
-                  for c in medians if c != best}
+        ratios = {
+            c: median_interval(paired(series(h, "normalized", controller=best), series(h, "normalized", controller=c)))
+            for c in medians
+            if c != best
+        }
         tied = [c for c, i in ratios.items() if decide(i, (1 / (1 + TIE), 1 + TIE), "==") == HELD]
         rivals = [c for c in ratios if c not in tied]
         leaders = " and ".join(c for c in medians if c == best or c in tied)
         verdict = combine([decide(ratios[c], 1.0, "<") for c in rivals]) if rivals else NOT_HELD
         parts = [f"{best} / {c}: {ratios[c].text()}" + (" (tied)" if c in tied else "") for c in ratios]
         degraded = ", ".join(f"{c} {number(m, 3)}" for c, m in sorted(medians.items(), key=lambda kv: kv[1]))
-        out.append(Claim(f"{problem}, {condition}: {leaders} degrade{'s' if not tied else ''} least of "
-                         f"{', '.join(medians)} (issue 34)",
-                         f"median normalized cost {degraded}; per seed, the leader's / each other's < 1 (within "
-                         f"{number(100 * TIE)} %: tied)", verdict, "; ".join(parts)))
+        out.append(
+            Claim(
+                f"{problem}, {condition}: {leaders} degrade{'s' if not tied else ''} least of "
+                f"{', '.join(medians)} (issue 34)",
+                f"median normalized cost {degraded}; per seed, the leader's / each other's < 1 (within "
+                f"{number(100 * TIE)} %: tied)",
+                verdict,
+                "; ".join(parts),
+            )
+        )
     return out

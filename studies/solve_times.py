@@ -7,6 +7,7 @@ solve each (nothing is applied to a plant), timing the optimizer ("optimization 
 ``Solution.times["solve"]``) and the whole MPC step ("MPC solve time", ``times["total"]``: linearization,
 building P, q, A, l, u, and the optimization).
 """
+
 from __future__ import annotations
 
 import os
@@ -30,8 +31,10 @@ NOT_REDUCED = 0.1  # "does not reduce": faster by less than this fraction
 HARDLY = 1.5  # "hardly depends on the horizon": twice the horizon, at most this factor in time
 # "max_dense_vars": the traditional small matrix QP has links × T dense variables and its OSQP solve grows
 # steeply with them; quick skips it above this size. None: no skip.
-SIZES = {"quick": {"links": [1, 3, 7, 13], "states": 20, "qp": "osqp", "max_dense_vars": 700},
-         "full": {"links": list(range(1, 14)), "states": 100, "qp": "osqp", "max_dense_vars": None}}
+SIZES = {
+    "quick": {"links": [1, 3, 7, 13], "states": 20, "qp": "osqp", "max_dense_vars": 700},
+    "full": {"links": list(range(1, 14)), "states": 100, "qp": "osqp", "max_dense_vars": None},
+}
 
 
 def trial(links: int, horizon: int, form: str, knots: int | None, qp: str, states: int, seed: int) -> dict:
@@ -52,24 +55,40 @@ def trial(links: int, horizon: int, form: str, knots: int | None, qp: str, state
         sols.append(ctrl.solve(x0, goal))
     solve = np.array([s.times["solve"] for s in sols])
     total = np.array([s.times["total"] for s in sols])
-    return {**quartiles("solve", solve), **quartiles("total", total),
-            "model_median": float(np.median([s.times["model"] for s in sols])),
-            "build_median": float(np.median([s.times["build"] for s in sols])),
-            "failures": sum(not s.ok for s in sols), "solve_times": solve, "total_times": total,
-            "load": os.getloadavg()[0]}
+    return {
+        **quartiles("solve", solve),
+        **quartiles("total", total),
+        "model_median": float(np.median([s.times["model"] for s in sols])),
+        "build_median": float(np.median([s.times["build"] for s in sols])),
+        "failures": sum(not s.ok for s in sols),
+        "solve_times": solve,
+        "total_times": total,
+        "load": os.getloadavg()[0],
+    }
 
 
 def study(size: str) -> Study:
     choice(size, tuple(SIZES), "size")
     s = SIZES[size]
-    trials = grid(links=s["links"], horizon=list(HORIZONS), form=list(FORMS), knots=[None, KNOTS], qp=s["qp"],
-                  states=s["states"], seeds=1)
+    trials = grid(
+        links=s["links"],
+        horizon=list(HORIZONS),
+        form=list(FORMS),
+        knots=[None, KNOTS],
+        qp=s["qp"],
+        states=s["states"],
+        seeds=1,
+    )
     return Study(NAME, trial, [t for t in trials if not _skipped(t, s["max_dense_vars"])])
 
 
 def _skipped(t: dict, max_dense_vars: int | None) -> bool:
-    return (max_dense_vars is not None and t["form"] == "condensed" and t["knots"] is None
-            and t["links"] * t["horizon"] > max_dense_vars)
+    return (
+        max_dense_vars is not None
+        and t["form"] == "condensed"
+        and t["knots"] is None
+        and t["links"] * t["horizon"] > max_dense_vars
+    )
 
 
 def label(form: str, knots) -> str:
@@ -80,29 +99,50 @@ def label(form: str, knots) -> str:
 
 def report(df, out_dir) -> str:
     ok = df[df["status"] == "ok"].copy()
-    trials = trials_line(df, {"robots": df["links"].nunique(), "horizons": df["horizon"].nunique(),
-                              "formulations": len(FORMS) * 2})
+    trials = trials_line(
+        df, {"robots": df["links"].nunique(), "horizons": df["horizon"].nunique(), "formulations": len(FORMS) * 2}
+    )
     if ok.empty:
         return section(TITLE, [], {}, trials=trials, claims=[], notes=["No trial succeeded."])
     ok["formulation"] = [label(f, k) for f, k in zip(ok["form"], ok["knots"])]
     states = int(ok["states"].iloc[0])
     figs, tables = [], {}
     for horizon, g in ok.groupby("horizon"):
-        for metric, what, fig in (("solve_median", "optimization solve time", "solve"),
-                                  ("total_median", "MPC solve time", "total")):
+        for metric, what, fig in (
+            ("solve_median", "optimization solve time", "solve"),
+            ("total_median", "MPC solve time", "total"),
+        ):
             med = g.pivot_table(index="links", columns="formulation", values=metric, aggfunc="median") * 1e3
-            q1, q3 = (g.pivot_table(index="links", columns="formulation", values=metric.replace("median", q),
-                                    aggfunc="median").reindex(index=med.index, columns=med.columns) * 1e3
-                      for q in ("q1", "q3"))
-            figs.append(plots.lines(med.index, {c: med[c].values for c in med.columns},
-                                    out_dir / f"solve_times_{fig}_T{horizon}", xlabel="number of links",
-                                    ylabel=f"median {what} [ms]", log=True, counts=True,
-                                    spread={c: (q1[c].values, q3[c].values) for c in med.columns},
-                                    spread_label=f"shaded: quartiles over the {states} states",
-                                    title=f"Median {what}, horizon {horizon} ({states} cold solves each)"))
+            q1, q3 = (
+                g.pivot_table(
+                    index="links", columns="formulation", values=metric.replace("median", q), aggfunc="median"
+                ).reindex(index=med.index, columns=med.columns)
+                * 1e3
+                for q in ("q1", "q3")
+            )
+            figs.append(
+                plots.lines(
+                    med.index,
+                    {c: med[c].values for c in med.columns},
+                    out_dir / f"solve_times_{fig}_T{horizon}",
+                    xlabel="number of links",
+                    ylabel=f"median {what} [ms]",
+                    log=True,
+                    counts=True,
+                    spread={c: (q1[c].values, q3[c].values) for c in med.columns},
+                    spread_label=f"shaded: quartiles over the {states} states",
+                    title=f"Median {what}, horizon {horizon} ({states} cold solves each)",
+                )
+            )
             tables[f"Median {what} over {states} cold solves [ms], horizon {horizon}"] = markdown_table(med)
-    return section(TITLE, figs, tables, trials=trials + " " + timing_context(ok), notes=_notes(ok, df),
-                   claims=claims(ok, df, out_dir))
+    return section(
+        TITLE,
+        figs,
+        tables,
+        trials=trials + " " + timing_context(ok),
+        notes=_notes(ok, df),
+        claims=claims(ok, df, out_dir),
+    )
 
 
 def _notes(ok, df) -> list:
@@ -111,13 +151,20 @@ def _notes(ok, df) -> list:
     have = {(r.links, r.horizon) for r in df[(df["form"] == "condensed") & df["knots"].isna()].itertuples()}
     missing = sorted({(r.links, r.horizon) for r in df.itertuples()} - have)
     if missing:
-        notes.append("Not run (too slow for this size): small matrix traditional at "
-                     + ", ".join(f"{l} links, T = {h}" for l, h in missing) + ".")
+        notes.append(
+            "Not run (too slow for this size): small matrix traditional at "
+            + ", ".join(f"{l} links, T = {h}" for l, h in missing)
+            + "."
+        )
     model = ok.groupby("links")["model_median"].median() * 1e3
-    notes.append(f"The MPC solve time includes the linearization (median {number(model.min(), 2)}–"
-                 f"{number(model.max(), 2)} ms from the fewest to the most links), the same for every formulation.")
-    notes.append(f"{int(ok['failures'].sum())} of {int(ok['states'].sum())} solves did not return success "
-                 "(their times are included).")
+    notes.append(
+        f"The MPC solve time includes the linearization (median {number(model.min(), 2)}–"
+        f"{number(model.max(), 2)} ms from the fewest to the most links), the same for every formulation."
+    )
+    notes.append(
+        f"{int(ok['failures'].sum())} of {int(ok['states'].sum())} solves did not return success "
+        "(their times are included)."
+    )
     return notes
 
 
@@ -150,36 +197,61 @@ def claims(ok, df, out_dir) -> list:
     for other in others:
         for case, result in compare(small, other, "solve").items():
             lowest.setdefault(case, []).append(result)
-    out.append(Claim("The parameterized small matrix formulation has the lowest optimization solve time",
-                     f"per state, its time / each other formulation's < 1, in every (links, T) case "
-                     f"({len(lowest)} cases)", timing(combine(v for r in lowest.values() for v, _ in r), loads),
-                     "closest rival per case: "
-                     + "; ".join(f"{l}/{T} {closest(r)}" for (l, T), r in sorted(lowest.items()))))
+    out.append(
+        Claim(
+            "The parameterized small matrix formulation has the lowest optimization solve time",
+            f"per state, its time / each other formulation's < 1, in every (links, T) case ({len(lowest)} cases)",
+            timing(combine(v for r in lowest.values() for v, _ in r), loads),
+            "closest rival per case: " + "; ".join(f"{l}/{T} {closest(r)}" for (l, T), r in sorted(lowest.items())),
+        )
+    )
     result = compare(label("condensed", None), label("sparse", None), "solve")
-    out.append(Claim("The traditional small matrix formulation beats the large one on small problems only",
-                     "per state, small / large matrix time (traditional) < 1 at the fewest links and not at the most",
-                     timing(_small_only(result), loads), text(result)))
+    out.append(
+        Claim(
+            "The traditional small matrix formulation beats the large one on small problems only",
+            "per state, small / large matrix time (traditional) < 1 at the fewest links and not at the most",
+            timing(_small_only(result), loads),
+            text(result),
+        )
+    )
     result = compare(large, label("sparse", None), "solve", threshold=1 - NOT_REDUCED, claimed=">=")
-    out.append(Claim("Parameterizing the large matrix formulation does not reduce its optimization solve time",
-                     f"per state, parameterized / traditional time ≥ {number(1 - NOT_REDUCED)} (less than "
-                     f"{number(100 * NOT_REDUCED)} % faster)", timing(combine(v for v, _ in result.values()), loads),
-                     text(result)))
+    out.append(
+        Claim(
+            "Parameterizing the large matrix formulation does not reduce its optimization solve time",
+            f"per state, parameterized / traditional time ≥ {number(1 - NOT_REDUCED)} (less than "
+            f"{number(100 * NOT_REDUCED)} % faster)",
+            timing(combine(v for v, _ in result.values()), loads),
+            text(result),
+        )
+    )
     for form in FORMS:
         result = compare(label(form, KNOTS), label(form, None), "total")
-        out.append(Claim(f"Parameterization reduces the MPC solve time of the {form} formulation",
-                         "per state, parameterized / traditional MPC solve time < 1",
-                         timing(combine(v for v, _ in result.values()), loads), text(result)))
+        out.append(
+            Claim(
+                f"Parameterization reduces the MPC solve time of the {form} formulation",
+                "per state, parameterized / traditional MPC solve time < 1",
+                timing(combine(v for v, _ in result.values()), loads),
+                text(result),
+            )
+        )
     by_links = {}
     for (links, T), by_form in times["solve"].items():
         if small in by_form:
             by_links.setdefault(links, {})[T] = by_form[small]
-    result = {links: median_interval(t[HORIZONS[1]] / t[HORIZONS[0]]) for links, t in sorted(by_links.items())
-              if set(HORIZONS) <= set(t)}
+    result = {
+        links: median_interval(t[HORIZONS[1]] / t[HORIZONS[0]])
+        for links, t in sorted(by_links.items())
+        if set(HORIZONS) <= set(t)
+    }
     if result:
-        out.append(Claim("The parameterized small matrix optimization time hardly depends on the horizon",
-                         f"per state, time at T = {HORIZONS[1]} / at T = {HORIZONS[0]} ≤ {number(HARDLY)}",
-                         timing(combine(decide(i, HARDLY, "<=") for i in result.values()), loads),
-                         "; ".join(f"{links} links: {i.text(3)}" for links, i in result.items())))
+        out.append(
+            Claim(
+                "The parameterized small matrix optimization time hardly depends on the horizon",
+                f"per state, time at T = {HORIZONS[1]} / at T = {HORIZONS[0]} ≤ {number(HARDLY)}",
+                timing(combine(decide(i, HARDLY, "<=") for i in result.values()), loads),
+                "; ".join(f"{links} links: {i.text(3)}" for links, i in result.items()),
+            )
+        )
     return out
 
 
@@ -204,6 +276,11 @@ def _small_only(result) -> str:
         if len(cases) < 2:
             continue
         first, last = result[cases[0]][0], result[cases[-1]][0]
-        verdicts.append(HELD if first == HELD and last == NOT_HELD else
-                        NOT_HELD if first == NOT_HELD or last == HELD else INCONCLUSIVE)
+        verdicts.append(
+            HELD
+            if first == HELD and last == NOT_HELD
+            else NOT_HELD
+            if first == NOT_HELD or last == HELD
+            else INCONCLUSIVE
+        )
     return combine(verdicts)

@@ -1,4 +1,5 @@
 """Shared fixtures: seeded random stable LTI systems as ocpkit Models; the README's user-declared cart-pole."""
+
 import re
 from pathlib import Path
 
@@ -26,14 +27,19 @@ def lti():
 
 
 def pytest_addoption(parser):
-    parser.addoption("--arch", default="cpu", choices=("cpu", "cuda"),
-                     help="Taichi arch of the rollout, translation and EMPC tests (default cpu)")
+    parser.addoption(
+        "--arch",
+        default="cpu",
+        choices=("cpu", "cuda"),
+        help="Taichi arch of the rollout, translation and EMPC tests (default cpu)",
+    )
 
 
 @pytest.fixture(scope="session")
 def taichi_arch(request):
     """Start Taichi on the arch given by `pytest --arch` (the process keeps it)."""
     from ocpkit.codegen.kernels import runtime
+
     return runtime.init(request.config.getoption("arch"))
 
 
@@ -43,7 +49,7 @@ README = Path(__file__).resolve().parents[1] / "README.md"
 def readme_block(heading: str) -> str:
     """The first Python code block of the README section ``heading``, as written there."""
     text = README.read_text()
-    return re.search(r"```python\n(.*?)```", text[text.index(f"## {heading}"):], re.S).group(1)
+    return re.search(r"```python\n(.*?)```", text[text.index(f"## {heading}") :], re.S).group(1)
 
 
 @pytest.fixture

@@ -3,6 +3,7 @@
 
 What a frame shows is checked on the artists' data against forward kinematics computed another way (the planar
 chain's closed form, pinocchio's frame placements), and the written GIF by its frames and size."""
+
 import json
 
 import numpy as np
@@ -68,7 +69,7 @@ def test_planar_reach_gif_shows_the_tip_arriving_at_the_target(planar_reach, tmp
         np.testing.assert_allclose(np.linalg.norm(np.diff(arm, axis=0), axis=1), 0.25, atol=1e-9)
         np.testing.assert_allclose(arm[-1], final, atol=1e-9)
         np.testing.assert_allclose(tip, final, atol=1e-9)
-        assert np.linalg.norm(tip - TARGET) < 0.01                       # it reached the target
+        assert np.linalg.norm(tip - TARGET) < 0.01  # it reached the target
         np.testing.assert_allclose(picture.drawn(picture.target_artist)[0], TARGET)
         np.testing.assert_allclose(picture.drawn(picture.trail)[-1], final, atol=1e-9)
         circle = picture.axes.patches[0]
@@ -99,13 +100,13 @@ def test_arm_in_3d_reaches_its_joint_goal_pose():
             return data.oMf[tool].translation.copy()
 
         ghost = picture.drawn(picture.ghost)
-        np.testing.assert_allclose(ghost[-1], pinocchio_tool(goal[:6]), atol=1e-9)   # the goal pose, drawn faint
+        np.testing.assert_allclose(ghost[-1], pinocchio_tool(goal[:6]), atol=1e-9)  # the goal pose, drawn faint
         end = picture.drawn(picture.tip)[0]
         np.testing.assert_allclose(end, pinocchio_tool(traj.x[-1, :6]), atol=1e-9)
-        assert np.linalg.norm(end - ghost[-1]) < 0.01                      # the arm arrived at its goal pose
+        assert np.linalg.norm(end - ghost[-1]) < 0.01  # the arm arrived at its goal pose
         shadow = picture.drawn(picture.shadow)
         robot = picture.drawn(picture.robot)
-        np.testing.assert_allclose(shadow[:, :2], robot[:, :2])              # straight below the arm, on the floor
+        np.testing.assert_allclose(shadow[:, :2], robot[:, :2])  # straight below the arm, on the floor
         assert (shadow[:, 2] == picture.axes.get_zlim()[0]).all()
     finally:
         picture.close()
@@ -130,7 +131,7 @@ def test_3d_arm_with_target_and_obstacle(tmp_path):
         assert picture.ghost is None
         assert np.linalg.norm(picture.drawn(picture.tip)[0] - target) < 0.01
         np.testing.assert_allclose(picture.drawn(picture.robot)[0], 0)  # the base segment starts at the world origin
-        assert len(picture.axes.collections) == 1                           # the ball's wireframe
+        assert len(picture.axes.collections) == 1  # the ball's wireframe
     finally:
         picture.close()
 
@@ -154,8 +155,12 @@ def test_pendulum_is_drawn_as_its_rod():
 def test_long_run_keeps_real_time_with_fewer_frames():
     pb = problems.make("pendulum")
     t = np.arange(1001) * 0.01  # 10 s
-    traj = Trajectory(t=t, x=np.column_stack([np.linspace(0, 3, 1001), np.zeros(1001)]), u=np.zeros((1000, 1)),
-                      goal=np.array([3.0, 0.0]))
+    traj = Trajectory(
+        t=t,
+        x=np.column_stack([np.linspace(0, 3, 1001), np.zeros(1001)]),
+        u=np.zeros((1000, 1)),
+        goal=np.array([3.0, 0.0]),
+    )
     picture = MotionPicture(traj, pb, max_frames=50)
     try:
         assert len(picture.indices) == 50 and picture.indices[-1] == 1000
@@ -201,7 +206,7 @@ def test_report_section_embeds_one_animation_per_robot_family(tmp_path):
     embedded = [line for line in text.splitlines() if line.startswith("![")]
     assert len(embedded) == len(motion.SCENES) == 3
     for line in embedded:
-        gif = tmp_path / line[line.index("](") + 2:-1]
+        gif = tmp_path / line[line.index("](") + 2 : -1]
         assert gif.parent == tmp_path / motion.FOLDER and len(_frames(gif)) >= 10
         assert gif.stat().st_size <= MAX_BYTES
     # what each run reached is said under its picture: the pendulum settled, the reaches arrived clear of the ball

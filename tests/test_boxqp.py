@@ -1,4 +1,5 @@
 """The box-constrained QP of the sampling planners' Newton candidate against ProxQP, an independent solver."""
+
 import numpy as np
 import proxsuite
 import pytest
@@ -41,7 +42,7 @@ def test_newton_candidate_is_the_knot_qp_optimum(links):
 
     Ad, Bd, wd = (np.asarray(v, dtype=float) for v in ocp.affine()(x0, np.zeros(links)))
     qp = CondensedQP(ocp).build(Ad, Bd, wd.ravel(), x0, goal)
-    lo, hi = qp.l[:qp.n], qp.u[:qp.n]
+    lo, hi = qp.l[: qp.n], qp.u[: qp.n]
     reference = proxqp_box(qp.P, qp.q, lo, hi)
     assert np.sum(np.isclose(reference, lo) | np.isclose(reference, hi)) > 0
     cold = solve_box_qp(qp.P, qp.q, lo, hi)

@@ -1,4 +1,5 @@
 """The cache of generated code: damaged entries rebuilt, unsafe folders refused, nothing left by failed builds."""
+
 import os
 
 import casadi as ca
@@ -71,10 +72,18 @@ def test_an_entry_lock_waits_for_its_holder_and_not_for_a_dead_one(tmp_path):
     from ocpkit.codegen.cache import entry_lock
 
     entry = tmp_path / "native" / "0123abcd"
-    holder = subprocess.Popen([sys.executable, "-c", "import sys, time; from pathlib import Path; "
-                               "from ocpkit.codegen.cache import entry_lock\n"
-                               "with entry_lock(Path(sys.argv[1])):\n print('locked', flush=True); time.sleep(300)",
-                               str(entry)], stdout=subprocess.PIPE, text=True)
+    holder = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "import sys, time; from pathlib import Path; "
+            "from ocpkit.codegen.cache import entry_lock\n"
+            "with entry_lock(Path(sys.argv[1])):\n print('locked', flush=True); time.sleep(300)",
+            str(entry),
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
     try:
         assert holder.stdout.readline().strip() == "locked"
         with pytest.raises(TimeoutError, match=f"pid {holder.pid}.*building cache entry"):

@@ -7,6 +7,7 @@ In process, the full file system is simulated: creating a file or folder below t
 as on a file system out of room or inodes. As root with mount namespaces, the subprocess tests run on a real full
 tmpfs (:func:`ocpkit.benchmarks.readonly.run_full`), where the writes themselves fail.
 """
+
 import errno
 import json
 import os
@@ -114,8 +115,9 @@ def test_taichi_kernels_on_a_full_cache_are_kept_in_memory_with_one_warning(full
 
 # --- A real full file system (root with mount namespaces): the writes themselves fail with ENOSPC.
 
-needs_full = pytest.mark.skipif(readonly.method() != readonly.BIND_MOUNT,
-                                reason="a full file system needs root with mount namespaces")
+needs_full = pytest.mark.skipif(
+    readonly.method() != readonly.BIND_MOUNT, reason="a full file system needs root with mount namespaces"
+)
 # A default LinearMPC and EMPC as a script writes them: statuses, whether in C, the warnings, as JSON.
 SCRIPT = f"""
 import json, warnings
@@ -139,14 +141,22 @@ def test_a_real_full_file_system(tmp_path):
     root = tmp_path / "cache"
     root.mkdir(mode=0o700)
     env = {**os.environ, "OCPKIT_CACHE_DIR": str(root)}
-    run = readonly.run_full(root, [sys.executable, "-c", SCRIPT], env=env, capture_output=True, text=True,
-                            timeout=600, cwd=tmp_path)
+    run = readonly.run_full(
+        root, [sys.executable, "-c", SCRIPT], env=env, capture_output=True, text=True, timeout=600, cwd=tmp_path
+    )
     assert run.returncode == 0, run.stderr
     result = json.loads(run.stdout.splitlines()[-1])
     assert result["statuses"] == ["success", "success"] and not result["native"] and not result["compiled"]
     (warning,) = result["warnings"]
     assert f"{root}/native is full (No space left on device)" in warning and "Python step" in warning
-    build = readonly.run_full(root, [sys.executable, "-m", "ocpkit.cli", "build", SPEC, "--knots", str(KNOTS)],
-                              env=env, capture_output=True, text=True, timeout=600, cwd=tmp_path)
+    build = readonly.run_full(
+        root,
+        [sys.executable, "-m", "ocpkit.cli", "build", SPEC, "--knots", str(KNOTS)],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+        cwd=tmp_path,
+    )
     assert build.returncode == 2 and "Traceback" not in build.stderr, build.stderr
     assert build.stderr.strip().splitlines()[-1].startswith("ocpkit: error: ") and "is full" in build.stderr

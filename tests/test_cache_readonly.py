@@ -9,6 +9,7 @@ for other users the folder's write permissions removed (EACCES); they are skippe
 in-process tests simulate the read-only file system instead (``os.mkdir`` and ``os.open`` for writing raise EROFS
 below the cache folder), so they run everywhere.
 """
+
 import errno
 import json
 import os
@@ -52,8 +53,9 @@ print(json.dumps({{"native": at_once, "statuses": [first, second], "compiled": c
                   "warnings": [str(w.message) for w in caught if issubclass(w.category, RuntimeWarning)]}}))
 """
 
-needs_read_only = pytest.mark.skipif(readonly.method() is None,
-                                     reason="cannot make a folder read-only here (root without mount namespaces)")
+needs_read_only = pytest.mark.skipif(
+    readonly.method() is None, reason="cannot make a folder read-only here (root without mount namespaces)"
+)
 
 
 def _env(root: Path) -> dict:
@@ -65,15 +67,17 @@ def _listing(root: Path) -> list:
 
 
 def _run_read_only(folder: Path, root: Path, command: list[str], timeout: float = 300) -> subprocess.CompletedProcess:
-    return readonly.run(folder, command, env=_env(root), cwd=folder.parent, capture_output=True, text=True,
-                        timeout=timeout)
+    return readonly.run(
+        folder, command, env=_env(root), cwd=folder.parent, capture_output=True, text=True, timeout=timeout
+    )
 
 
 @needs_read_only
 def test_a_read_only_cache_with_a_sound_entry_is_used_as_it_is(tmp_path):
     root = tmp_path / "cache"
-    filled = subprocess.run([sys.executable, "-c", SCRIPT], env=_env(root), capture_output=True, text=True,
-                            timeout=600, cwd=tmp_path)  # not the checkout: it would shadow the installed ocpkit
+    filled = subprocess.run(
+        [sys.executable, "-c", SCRIPT], env=_env(root), capture_output=True, text=True, timeout=600, cwd=tmp_path
+    )  # not the checkout: it would shadow the installed ocpkit
     # the C step built in the background by a first run, as it is today
     assert filled.returncode == 0 and json.loads(filled.stdout.splitlines()[-1])["compiled"], filled.stderr
     before = _listing(root)
@@ -82,8 +86,9 @@ def test_a_read_only_cache_with_a_sound_entry_is_used_as_it_is(tmp_path):
     assert run.returncode == 0, run.stderr
     result = json.loads(run.stdout.splitlines()[-1])
     assert result == {"native": True, "statuses": ["success", "success"], "compiled": True, "warnings": []}
-    cli = _run_read_only(root, root, [*OCPKIT, "solve", SPEC, "--knots", str(KNOTS), "--horizon", str(HORIZON),
-                                      "--json"])
+    cli = _run_read_only(
+        root, root, [*OCPKIT, "solve", SPEC, "--knots", str(KNOTS), "--horizon", str(HORIZON), "--json"]
+    )
     assert cli.returncode == 0, cli.stderr
     assert "C step" in json.loads(cli.stdout)["controller"] and "Warning" not in cli.stderr
     assert _listing(root) == before  # nothing written
@@ -95,8 +100,9 @@ def test_ocpkit_build_fills_a_cache_for_a_read_only_deployment(tmp_path):
     C step is loaded at once and so is the compiled model (the Python step's, here with native=False)."""
     root = tmp_path / "cache"
     args = [SPEC, "--knots", str(KNOTS), "--horizon", str(HORIZON)]
-    built = subprocess.run([*OCPKIT, "build", *args], env=_env(root), capture_output=True, text=True, timeout=600,
-                           cwd=tmp_path)
+    built = subprocess.run(
+        [*OCPKIT, "build", *args], env=_env(root), capture_output=True, text=True, timeout=600, cwd=tmp_path
+    )
     assert built.returncode == 0, built.stderr
     lines = built.stdout.splitlines()
     (step,) = [line for line in lines if line.startswith("C step")]
@@ -141,6 +147,7 @@ def test_a_read_only_cache_without_the_entry_runs_the_python_step_with_one_warni
 
 
 # --- In process, the read-only file system simulated (EROFS below the cache folder): runs as any user.
+
 
 @pytest.fixture
 def read_only(tmp_path, monkeypatch):

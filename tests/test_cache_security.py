@@ -1,6 +1,7 @@
 """Code another user could have planted in the cache is never loaded: every folder from the cache root down to a
 library (or kernel module), and the file itself, must be this user's or root's and writable by no one else, checked
 before anything is loaded (a planted library's constructor runs at ``dlopen``, before any symbol is looked up)."""
+
 import os
 import shutil
 import subprocess
@@ -33,8 +34,10 @@ def plant(library: Path, marker: Path) -> None:
     """A library whose constructor writes ``marker`` the moment it is loaded, as the cache entry ``library`` with a
     matching content hash (what another user who could write the entry's folder would leave)."""
     source = library.parent.parent / "planted.c"
-    source.write_text('#include <stdio.h>\n__attribute__((constructor)) static void planted(void) '
-                      f'{{ FILE *f = fopen("{marker}", "w"); if (f) fclose(f); }}\n')
+    source.write_text(
+        "#include <stdio.h>\n__attribute__((constructor)) static void planted(void) "
+        f'{{ FILE *f = fopen("{marker}", "w"); if (f) fclose(f); }}\n'
+    )
     built = library.parent.parent / "planted.so"
     subprocess.run([os.environ.get("CC", "cc"), "-shared", "-fPIC", str(source), "-o", str(built)], check=True)
     write_entry(library, built.read_bytes())
@@ -111,8 +114,14 @@ def test_a_planted_c_step_is_not_loaded_by_a_default_linear_mpc(cache, tmp_path,
     marker = tmp_path / "constructor-ran"
     plant(library, marker)
     unsafe = make_unsafe(library, how)
-    run = subprocess.run([sys.executable, "-c", SCRIPT], env={**os.environ, "OCPKIT_CACHE_DIR": str(cache)},
-                         capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    run = subprocess.run(
+        [sys.executable, "-c", SCRIPT],
+        env={**os.environ, "OCPKIT_CACHE_DIR": str(cache)},
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=tmp_path,
+    )
     assert run.returncode == 1 and not marker.exists(), run.stdout + run.stderr
     last = run.stderr.strip().splitlines()[-1]
     assert last.startswith("ocpkit.codegen.cache.UnsafeCacheError: ") and f"{unsafe} " in last, run.stderr
@@ -135,8 +144,11 @@ def test_a_generated_kernel_module_others_can_write_is_not_imported(cache, taich
     x = ca.SX.sym("x", 2)
     fn = ca.Function("trusted_kernel", [x], [x[0] * x[1] + 2.5])
     path = tr.translate(fn).path
-    name = next(m for m in list(sys.modules)
-                if m.startswith("ocpkit_kernel_") and sys.modules[m].__file__ == str(path.resolve()))
+    name = next(
+        m
+        for m in list(sys.modules)
+        if m.startswith("ocpkit_kernel_") and sys.modules[m].__file__ == str(path.resolve())
+    )
     del sys.modules[name]
     path.chmod(0o666)
     with pytest.raises(UnsafeCacheError, match=f"cache file {path} is writable by other users"):

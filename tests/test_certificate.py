@@ -4,6 +4,7 @@ Crafted QPs — indefinite, rank-deficient and unbounded, infeasible — are fed
 and to the generated C step's QP solve: none may come back a success. A 7-DoF arm whose controller model diverges
 (the QP's Hessian numerically indefinite) once made the C step report success with u = 0 in some processes.
 """
+
 from __future__ import annotations
 
 import shutil
@@ -22,8 +23,13 @@ from ocpkit.solvers.qp import LinearMPC
 from ocpkit.qp.quadratic_program import QP
 from ocpkit.problems.panda import urdf_path as panda_urdf
 
-BACKENDS = [("condensed", "daqp"), ("condensed", "proxqp"), ("condensed", "osqp"), ("sparse", "proxqp"),
-            ("sparse", "osqp")]
+BACKENDS = [
+    ("condensed", "daqp"),
+    ("condensed", "proxqp"),
+    ("condensed", "osqp"),
+    ("sparse", "proxqp"),
+    ("sparse", "osqp"),
+]
 needs_cc = pytest.mark.skipif(shutil.which("cc") is None or shutil.which("make") is None, reason="needs cc and make")
 
 
@@ -32,9 +38,16 @@ def _box_qp(P, q, lo, hi, rows=None, rows_lo=None, rows_hi=None):
     n = len(q)
     rows = np.zeros((0, n)) if rows is None else np.asarray(rows, dtype=float)
     C = np.vstack([np.eye(n), rows])
-    return QP(np.asarray(P, dtype=float), np.asarray(q, dtype=float), np.zeros((0, n)), np.zeros(0), C,
-              np.r_[lo, [] if rows_lo is None else rows_lo], np.r_[hi, [] if rows_hi is None else rows_hi],
-              box=np.arange(n))
+    return QP(
+        np.asarray(P, dtype=float),
+        np.asarray(q, dtype=float),
+        np.zeros((0, n)),
+        np.zeros(0),
+        C,
+        np.r_[lo, [] if rows_lo is None else rows_lo],
+        np.r_[hi, [] if rows_hi is None else rows_hi],
+        box=np.arange(n),
+    )
 
 
 def test_certificate_accepts_the_solution_and_names_each_failed_test():
@@ -42,13 +55,13 @@ def test_certificate_accepts_the_solution_and_names_each_failed_test():
     qp = _box_qp([[2.0, 0.5], [0.5, 1.0]], [-4.0, 3.0], [-10.0, 0.0], [1.0, 10.0])
     z, w = np.array([1.0, 0.0]), np.array([2.0, -3.5])
     assert certify(qp, z, None, w).failed() is None
-    assert "stationarity" in certify(qp, np.zeros(2), None, w).failed()      # a zero answer
-    assert "stationarity" in certify(qp, z, None, np.zeros(2)).failed()      # multipliers missing
+    assert "stationarity" in certify(qp, np.zeros(2), None, w).failed()  # a zero answer
+    assert "stationarity" in certify(qp, z, None, np.zeros(2)).failed()  # multipliers missing
     assert "primal" in certify(qp, np.array([1.1, 0.0]), None, w + [-0.2, -0.05]).failed()
     assert "complementarity" in certify(qp, np.array([0.5, 0.0]), None, [3.0, -3.25]).failed()
-    free = _box_qp([[1.0]], [-1.0], [-np.inf], [np.inf])                     # unconstrained: z = 1
+    free = _box_qp([[1.0]], [-1.0], [-np.inf], [np.inf])  # unconstrained: z = 1
     assert certify(free, [1.0], None, [0.0]).holds
-    assert "dual sign" in certify(free, [2.0], None, [-1.0]).failed()        # pushes against an absent bound
+    assert "dual sign" in certify(free, [2.0], None, [-1.0]).failed()  # pushes against an absent bound
     assert certify(qp, [np.nan, 0.0], None, w).failed() is not None
 
 
@@ -86,7 +99,7 @@ def _feed(controller, build_qp):
     """Replace every transcription's build of ``controller`` by ``build_qp(qp)`` of the QP it would have built."""
     for tr in controller._transcriptions:
         real = tr.build
-        tr.build = (lambda *a, _real=real: build_qp(_real(*a)))
+        tr.build = lambda *a, _real=real: build_qp(_real(*a))
 
 
 def _indefinite(qp):
@@ -107,8 +120,16 @@ def _rank_deficient(qp):
     C = qp.C.toarray() if hasattr(qp.C, "toarray") else np.asarray(qp.C)
     keep = np.abs(C[:, k]) == 0
     box = None if qp.box is None else qp.box[keep[: len(qp.box)]]
-    return QP(type(qp.P)(P) if hasattr(qp.P, "toarray") else P, q, qp.A, qp.b, type(qp.C)(C[keep])
-              if hasattr(qp.C, "toarray") else C[keep], qp.l[keep], qp.u[keep], box=box)
+    return QP(
+        type(qp.P)(P) if hasattr(qp.P, "toarray") else P,
+        q,
+        qp.A,
+        qp.b,
+        type(qp.C)(C[keep]) if hasattr(qp.C, "toarray") else C[keep],
+        qp.l[keep],
+        qp.u[keep],
+        box=box,
+    )
 
 
 def _infeasible(qp):
@@ -118,8 +139,16 @@ def _infeasible(qp):
     e = np.zeros((2, qp.n))
     e[:, j] = 1.0
     C2 = np.vstack([C, e])
-    return QP(qp.P, qp.q, qp.A, qp.b, type(qp.C)(C2) if hasattr(qp.C, "toarray") else C2,
-              np.r_[qp.l, 1.0, -np.inf], np.r_[qp.u, np.inf, -1.0], box=qp.box)
+    return QP(
+        qp.P,
+        qp.q,
+        qp.A,
+        qp.b,
+        type(qp.C)(C2) if hasattr(qp.C, "toarray") else C2,
+        np.r_[qp.l, 1.0, -np.inf],
+        np.r_[qp.u, np.inf, -1.0],
+        box=qp.box,
+    )
 
 
 def _ill_conditioned(qp):
@@ -129,8 +158,12 @@ def _ill_conditioned(qp):
 
 # A QP of the built one's size: with a direction of negative curvature; with a singular P and a linear cost along
 # its null space, unbounded; with two bound rows that contradict each other; with rounding beyond its curvature.
-CRAFTED = {"indefinite": _indefinite, "rank-deficient": _rank_deficient, "infeasible": _infeasible,
-           "ill-conditioned": _ill_conditioned}
+CRAFTED = {
+    "indefinite": _indefinite,
+    "rank-deficient": _rank_deficient,
+    "infeasible": _infeasible,
+    "ill-conditioned": _ill_conditioned,
+}
 
 
 @pytest.mark.parametrize("kind", CRAFTED)
@@ -143,8 +176,9 @@ def test_python_step_never_succeeds_on_a_bad_qp(form, qp, kind):
     assert not sol.ok and sol.fallback, (kind, sol.raw_status)
     assert sol.raw_status  # the reason, named
     if kind != "infeasible" and form == "condensed":
-        assert any(why in sol.raw_status for why in ("positive definite", "nonconvex", "unbounded", "conditioned")), \
+        assert any(why in sol.raw_status for why in ("positive definite", "nonconvex", "unbounded", "conditioned")), (
             sol.raw_status
+        )
 
 
 @pytest.fixture(scope="module")
@@ -183,13 +217,20 @@ def test_c_step_never_succeeds_on_a_bad_qp(c_step, kind):
     qp = c.transcription.build(*c.affine_model(x0, goal, "goal"), x0, goal)
     bad = CRAFTED[kind](qp)
     if kind == "rank-deficient":  # the C step's box covers every knot: keep the QP's size, free the last knot
-        bad = _box_qp(bad.P, bad.q, np.r_[qp.l[: qp.n - 1], -np.inf], np.r_[qp.u[: qp.n - 1], np.inf],
-                      np.asarray(qp.C)[qp.n:], qp.l[qp.n:], qp.u[qp.n:])
+        bad = _box_qp(
+            bad.P,
+            bad.q,
+            np.r_[qp.l[: qp.n - 1], -np.inf],
+            np.r_[qp.u[: qp.n - 1], np.inf],
+            np.asarray(qp.C)[qp.n :],
+            qp.l[qp.n :],
+            qp.u[qp.n :],
+        )
     elif kind == "infeasible":  # two contradicting rows in place of the first two state-bound rows
-        C = np.asarray(qp.C)[qp.n:].copy()
+        C = np.asarray(qp.C)[qp.n :].copy()
         C[:2] = 0.0
         C[:2, 0] = 1.0
-        lo, hi = qp.l[qp.n:].copy(), qp.u[qp.n:].copy()
+        lo, hi = qp.l[qp.n :].copy(), qp.u[qp.n :].copy()
         lo[:2], hi[:2] = (1.0, -np.inf), (np.inf, -1.0)
         bad = _box_qp(qp.P, qp.q, qp.l[: qp.n], qp.u[: qp.n], C, lo, hi)
     status, _ = step.solve_qp(bad)
@@ -214,7 +255,7 @@ def test_c_step_refuses_a_stale_answer_by_its_certificate(c_step):
     assert "stationarity" in certify(shifted, res.z, res.y, res.w).failed()
 
 
-DIVERGING_ARM = textwrap.dedent('''
+DIVERGING_ARM = textwrap.dedent("""
     import sys, numpy as np
     from ocpkit.model.problem import URDFRobot
     from ocpkit.solvers.qp import LinearMPC
@@ -231,7 +272,7 @@ DIVERGING_ARM = textwrap.dedent('''
     x0, goal = arm.sample(0)
     sols = [c.solve(x0, goal) for _ in range(5)]
     print(sorted({(s.status, s.raw_status) for s in sols}))
-''')
+""")
 
 
 @needs_cc
@@ -242,6 +283,12 @@ def test_diverging_arm_c_step_never_succeeds_in_fresh_processes(tmp_path):
     (DAQP nonconvex, or its Hessian refused as ill-conditioned before), never success."""
     for _ in range(3):
         urdf = panda_urdf()
-        out = subprocess.run([sys.executable, "-c", DIVERGING_ARM, str(urdf)], capture_output=True, text=True,
-                             timeout=600, check=True, cwd=tmp_path).stdout  # not the checkout: it shadows ocpkit
+        out = subprocess.run(
+            [sys.executable, "-c", DIVERGING_ARM, str(urdf)],
+            capture_output=True,
+            text=True,
+            timeout=600,
+            check=True,
+            cwd=tmp_path,
+        ).stdout  # not the checkout: it shadows ocpkit
         assert "success" not in out and ("DAQP nonconvex" in out or "ill-conditioned" in out), out

@@ -12,8 +12,9 @@ from ocpkit.cli import main
 
 def run(*args, cwd):
     # Outside the checkout, so the installed package (with ocpkit.problems, ocpkit.solvers) is imported.
-    return subprocess.run([sys.executable, "-m", "ocpkit.cli", *args], capture_output=True, text=True, timeout=120,
-                          cwd=cwd)
+    return subprocess.run(
+        [sys.executable, "-m", "ocpkit.cli", *args], capture_output=True, text=True, timeout=120, cwd=cwd
+    )
 
 
 def test_solve_json(capsys):
@@ -26,14 +27,17 @@ def test_solve_json(capsys):
     assert abs(compiled["u"][0] - out["u"][0]) < 1e-6
 
 
-@pytest.mark.parametrize("args,message", [
-    (["solve", "pendulm"], "unknown problem 'pendulm'"),
-    (["solve", "pendulum", "--solver", "foo"], "unknown solver 'foo'"),
-    (["solve", "pendulum", "--knots", "0"], "knots must be >= 1"),
-    (["solve", "pendulum", "--horizon", "-3"], "horizon must be >= 1"),
-    (["solve", "pendulum", "--form", "dense"], "invalid choice"),
-    (["bench", "qp", "--arch", "cpu"], "--arch applies to `ocpkit bench empc` only"),
-])
+@pytest.mark.parametrize(
+    "args,message",
+    [
+        (["solve", "pendulm"], "unknown problem 'pendulm'"),
+        (["solve", "pendulum", "--solver", "foo"], "unknown solver 'foo'"),
+        (["solve", "pendulum", "--knots", "0"], "knots must be >= 1"),
+        (["solve", "pendulum", "--horizon", "-3"], "horizon must be >= 1"),
+        (["solve", "pendulum", "--form", "dense"], "invalid choice"),
+        (["bench", "qp", "--arch", "cpu"], "--arch applies to `ocpkit bench empc` only"),
+    ],
+)
 def test_bad_names_exit_2_one_line(args, message, tmp_path):
     res = run(*args, cwd=tmp_path)
     assert res.returncode == 2
@@ -59,18 +63,28 @@ def _no_cuda_driver() -> bool:
     return False
 
 
-@pytest.mark.parametrize("args,message", [
-    (["simulate", "pendulum", "--out", "/proc/fig.png"], "--out /proc/fig.png: not writable"),
-    (["study", "knots", "--out", "/proc/x"], "--out /proc/x: not writable"),
-    (["study", "knots", "--out", "o", "--export", "."], "--export .: is a folder"),
-    (["study", "knots", "--out", "o", "--scheduler", "tcp://127.0.0.1:1"],
-     "cannot reach the Dask scheduler at tcp://127.0.0.1:1"),
-    (["study", "knots", "--out", "o", "--trial-timeout", "-1"], "--trial-timeout must be a positive number"),
-    (["solve", "pendulum", "--horizon", "100000", "--parameterization", "identity"],
-     "needs about 298.0 GiB for its dense matrices"),
-    pytest.param(["solve", "pendulum", "--solver", "empc", "--arch", "cuda"], "this machine has none",
-                 marks=pytest.mark.skipif(not _no_cuda_driver(), reason="a CUDA driver is present")),
-])
+@pytest.mark.parametrize(
+    "args,message",
+    [
+        (["simulate", "pendulum", "--out", "/proc/fig.png"], "--out /proc/fig.png: not writable"),
+        (["study", "knots", "--out", "/proc/x"], "--out /proc/x: not writable"),
+        (["study", "knots", "--out", "o", "--export", "."], "--export .: is a folder"),
+        (
+            ["study", "knots", "--out", "o", "--scheduler", "tcp://127.0.0.1:1"],
+            "cannot reach the Dask scheduler at tcp://127.0.0.1:1",
+        ),
+        (["study", "knots", "--out", "o", "--trial-timeout", "-1"], "--trial-timeout must be a positive number"),
+        (
+            ["solve", "pendulum", "--horizon", "100000", "--parameterization", "identity"],
+            "needs about 298.0 GiB for its dense matrices",
+        ),
+        pytest.param(
+            ["solve", "pendulum", "--solver", "empc", "--arch", "cuda"],
+            "this machine has none",
+            marks=pytest.mark.skipif(not _no_cuda_driver(), reason="a CUDA driver is present"),
+        ),
+    ],
+)
 def test_checked_before_any_work_one_line(args, message, tmp_path):
     res = run(*args, cwd=tmp_path)
     assert res.returncode == 2, res.stderr
@@ -114,6 +128,7 @@ def made(monkeypatch):
     def make(name, ocp, **options):
         calls.append((name, ocp, options))
         return real(name, ocp, **options)
+
     monkeypatch.setattr(solvers, "make", make)
     return calls
 
@@ -138,20 +153,27 @@ def test_real_time_iteration_is_a_solver_not_a_method(tmp_path):
     assert res.returncode == 2 and "invalid choice: 'rti'" in res.stderr
 
 
-@pytest.mark.parametrize("args,options", [
-    (["--solver", "ipopt"], {}),
-    (["--solver", "ipopt", "--method", "ipopt"], {"method": "ipopt"}),
-    (["--solver", "ipopt", "--method", "sqp"], {"method": "sqp"}),
-    (["--solver", "ipopt", "--method", "fatrop"], {"method": "fatrop"}),
-    (["--solver", "rti"], {}),
-    (["--solver", "rti", "--iterations", "3", "--form", "sparse", "--qp", "osqp"],
-     {"iterations": 3, "form": "sparse", "qp": "osqp"}),
-    (["--solver", "ipopt", "--method", "sqp", "--dynamics", "affine", "--linearization", "plan"],
-     {"method": "sqp", "dynamics": "affine", "linearization": "plan"}),
-    (["--linearization", "goal"], {"linearization": "goal"}),
-    (["--linearization", "plan"], {"linearization": "plan"}),
-    (["--linearization", "trajectory", "--form", "sparse"], {"linearization": "trajectory", "form": "sparse"}),
-])
+@pytest.mark.parametrize(
+    "args,options",
+    [
+        (["--solver", "ipopt"], {}),
+        (["--solver", "ipopt", "--method", "ipopt"], {"method": "ipopt"}),
+        (["--solver", "ipopt", "--method", "sqp"], {"method": "sqp"}),
+        (["--solver", "ipopt", "--method", "fatrop"], {"method": "fatrop"}),
+        (["--solver", "rti"], {}),
+        (
+            ["--solver", "rti", "--iterations", "3", "--form", "sparse", "--qp", "osqp"],
+            {"iterations": 3, "form": "sparse", "qp": "osqp"},
+        ),
+        (
+            ["--solver", "ipopt", "--method", "sqp", "--dynamics", "affine", "--linearization", "plan"],
+            {"method": "sqp", "dynamics": "affine", "linearization": "plan"},
+        ),
+        (["--linearization", "goal"], {"linearization": "goal"}),
+        (["--linearization", "plan"], {"linearization": "plan"}),
+        (["--linearization", "trajectory", "--form", "sparse"], {"linearization": "trajectory", "form": "sparse"}),
+    ],
+)
 def test_solve_takes_every_method_and_linearization(args, options, made, capsys):
     assert main(["solve", "pendulum", "--horizon", "20", "--seed", "1", "--json", *args]) == 0
     out = json.loads(capsys.readouterr().out)
@@ -169,8 +191,12 @@ def test_solve_takes_every_method_and_linearization(args, options, made, capsys)
 
 def test_rti_iterations_reach_the_iteration(made, capsys):
     """--iterations K is RealTimeIteration's: K SQP steps per control step (here until its tolerance 0 stops)."""
-    rc = [main(["solve", "pendulum", "--horizon", "20", "--seed", "1", "--json", "--solver", "rti",
-                "--iterations", str(k)]) for k in (1, 4)]
+    rc = [
+        main(
+            ["solve", "pendulum", "--horizon", "20", "--seed", "1", "--json", "--solver", "rti", "--iterations", str(k)]
+        )
+        for k in (1, 4)
+    ]
     one, four = (json.loads(line) for line in capsys.readouterr().out.splitlines())
     assert rc == [0, 0] and [opts["iterations"] for _, _, opts in made] == [1, 4]
     assert four["iterations"] > one["iterations"]  # QP iterations summed over the SQP steps
@@ -193,8 +219,25 @@ def test_export_defaults_to_the_same_knots_and_takes_the_linearization(tmp_path,
     assert main(["export", "pendulum", "--horizon", "10", "--out", str(tmp_path / "a")]) == 0
     out = capsys.readouterr().out
     assert "linear with 5 knots over T = 10" in out and "linearization goal" in out and "agree" in out
-    assert main(["export", "pendulum", "--horizon", "10", "--parameterization", "zoh", "--knots", "3",
-                 "--linearization", "plan", "--out", str(tmp_path / "b")]) == 0
+    assert (
+        main(
+            [
+                "export",
+                "pendulum",
+                "--horizon",
+                "10",
+                "--parameterization",
+                "zoh",
+                "--knots",
+                "3",
+                "--linearization",
+                "plan",
+                "--out",
+                str(tmp_path / "b"),
+            ]
+        )
+        == 0
+    )
     out = capsys.readouterr().out
     assert "zoh with 3 knots over T = 10" in out and "linearization plan" in out and "agree" in out
 
@@ -205,40 +248,63 @@ def test_help_says_the_default_knots(command, capsys):
         main([command, "--help"])
     text = " ".join(capsys.readouterr().out.split())
     assert exit_.value.code == 0
-    assert "knot points p (default 5, or T when the horizon is shorter; the Python API's Problem.ocp(knots=None) is " \
-           "traditional MPC instead)" in text
+    assert (
+        "knot points p (default 5, or T when the horizon is shorter; the Python API's Problem.ocp(knots=None) is "
+        "traditional MPC instead)" in text
+    )
     assert "traditional MPC (one knot per step, p = T) is --parameterization identity" in text
 
 
-@pytest.mark.parametrize("args,message", [
-    (["--iterations", "3"], "--iterations does not apply to solver 'qp': it applies to solver rti"),
-    (["--solver", "ipopt", "--iterations", "3"], "--iterations does not apply to solver 'ipopt' with --method ipopt:"),
-    (["--solver", "ipopt", "--method", "sqp", "--iterations", "3"],
-     "--iterations does not apply to solver 'ipopt' with --method sqp:"),
-    (["--solver", "cem", "--iterations", "2"], "--iterations does not apply to solver 'cem':"),
-    (["--method", "sqp"], "--method does not apply to solver 'qp': it applies to solver ipopt"),
-    (["--solver", "ipopt", "--method", "fatrop", "--form", "sparse"],
-     "--form does not apply to solver 'ipopt' with --method fatrop: it applies to solvers qp, rti"),
-    (["--solver", "ipopt", "--qp", "osqp"], "--qp does not apply to solver 'ipopt' with --method ipopt:"),
-    (["--solver", "ipopt", "--linearization", "plan"],
-     "--linearization does not apply to solver 'ipopt' with --method ipopt --dynamics nonlinear:"),
-    (["--solver", "rti", "--linearization", "trajectory"],
-     "--linearization does not apply to solver 'rti' (it always linearizes along its iterate)"),
-    (["--solver", "ipopt", "--method", "sqp", "--dynamics", "affine", "--linearization", "trajectory"],
-     "--linearization trajectory applies to solver qp only; solver 'ipopt' with --method sqp takes goal or plan"),
-    (["--solver", "empc", "--linearization", "trajectory"],
-     "--linearization trajectory applies to solver qp only; solver 'empc' takes goal or plan"),
-    (["--solver", "mppi", "--dynamics", "nonlinear", "--variant", "paper", "--linearization", "plan"],
-     "--linearization does not apply to solver 'mppi' with --dynamics nonlinear --variant paper:"),
-    (["--solver", "rti", "--dynamics", "affine"], "--dynamics does not apply to solver 'rti':"),
-    (["--solver", "ipopt", "--method", "fatrop", "--dynamics", "nonlinear"],
-     "--dynamics does not apply to solver 'ipopt' with --method fatrop: it applies to solver ipopt with --method "
-     "ipopt or sqp, and solvers empc, cem, mppi"),
-    (["--dynamics", "affine"], "--dynamics does not apply to solver 'qp':"),
-    (["--population", "8"], "--population does not apply to solver 'qp': it applies to solvers empc, cem, mppi"),
-    (["--knots", "3", "--parameterization", "identity"],
-     "--knots 3 does not apply to --parameterization identity"),
-])
+@pytest.mark.parametrize(
+    "args,message",
+    [
+        (["--iterations", "3"], "--iterations does not apply to solver 'qp': it applies to solver rti"),
+        (
+            ["--solver", "ipopt", "--iterations", "3"],
+            "--iterations does not apply to solver 'ipopt' with --method ipopt:",
+        ),
+        (
+            ["--solver", "ipopt", "--method", "sqp", "--iterations", "3"],
+            "--iterations does not apply to solver 'ipopt' with --method sqp:",
+        ),
+        (["--solver", "cem", "--iterations", "2"], "--iterations does not apply to solver 'cem':"),
+        (["--method", "sqp"], "--method does not apply to solver 'qp': it applies to solver ipopt"),
+        (
+            ["--solver", "ipopt", "--method", "fatrop", "--form", "sparse"],
+            "--form does not apply to solver 'ipopt' with --method fatrop: it applies to solvers qp, rti",
+        ),
+        (["--solver", "ipopt", "--qp", "osqp"], "--qp does not apply to solver 'ipopt' with --method ipopt:"),
+        (
+            ["--solver", "ipopt", "--linearization", "plan"],
+            "--linearization does not apply to solver 'ipopt' with --method ipopt --dynamics nonlinear:",
+        ),
+        (
+            ["--solver", "rti", "--linearization", "trajectory"],
+            "--linearization does not apply to solver 'rti' (it always linearizes along its iterate)",
+        ),
+        (
+            ["--solver", "ipopt", "--method", "sqp", "--dynamics", "affine", "--linearization", "trajectory"],
+            "--linearization trajectory applies to solver qp only; solver 'ipopt' with --method sqp takes goal or plan",
+        ),
+        (
+            ["--solver", "empc", "--linearization", "trajectory"],
+            "--linearization trajectory applies to solver qp only; solver 'empc' takes goal or plan",
+        ),
+        (
+            ["--solver", "mppi", "--dynamics", "nonlinear", "--variant", "paper", "--linearization", "plan"],
+            "--linearization does not apply to solver 'mppi' with --dynamics nonlinear --variant paper:",
+        ),
+        (["--solver", "rti", "--dynamics", "affine"], "--dynamics does not apply to solver 'rti':"),
+        (
+            ["--solver", "ipopt", "--method", "fatrop", "--dynamics", "nonlinear"],
+            "--dynamics does not apply to solver 'ipopt' with --method fatrop: it applies to solver ipopt with "
+            "--method ipopt or sqp, and solvers empc, cem, mppi",
+        ),
+        (["--dynamics", "affine"], "--dynamics does not apply to solver 'qp':"),
+        (["--population", "8"], "--population does not apply to solver 'qp': it applies to solvers empc, cem, mppi"),
+        (["--knots", "3", "--parameterization", "identity"], "--knots 3 does not apply to --parameterization identity"),
+    ],
+)
 @pytest.mark.parametrize("command", ["solve", "simulate"])
 def test_an_option_that_does_not_apply_is_refused(command, args, message, made, tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
@@ -249,8 +315,10 @@ def test_an_option_that_does_not_apply_is_refused(command, args, message, made, 
 
 
 def test_export_refuses_knots_with_traditional_mpc(tmp_path, capsys):
-    assert main(["export", "pendulum", "--knots", "3", "--parameterization", "identity", "--out",
-                 str(tmp_path / "e")]) == 2
+    assert (
+        main(["export", "pendulum", "--knots", "3", "--parameterization", "identity", "--out", str(tmp_path / "e")])
+        == 2
+    )
     assert "--knots 3 does not apply to --parameterization identity" in capsys.readouterr().err
     assert not (tmp_path / "e").exists()
 
@@ -299,8 +367,7 @@ def test_version(capsys):
 
 
 def test_integrator_option_reaches_the_controllers_ocp(tmp_path, capsys):
-    args = ["simulate", "nlink:2", "--solver", "rti", "--duration", "0.1", "--json",
-            "--out", str(tmp_path / "sim.png")]
+    args = ["simulate", "nlink:2", "--solver", "rti", "--duration", "0.1", "--json", "--out", str(tmp_path / "sim.png")]
     assert main(args + ["--integrator", "euler"]) == 0
     assert "integrator='euler'" in json.loads(capsys.readouterr().out)["controller"]
     res = run("solve", "nlink:2", "--integrator", "rk2", cwd=tmp_path)
@@ -312,18 +379,32 @@ def test_build_fills_the_taichi_kernels_a_later_run_loads(tmp_path):
     process loads every one of them (no kernel compiled there), and its solve says which path answered."""
     import os
 
-    env = {**{k: v for k, v in os.environ.items() if k != "TI_OFFLINE_CACHE_FILE_PATH"},
-           "OCPKIT_CACHE_DIR": str(tmp_path / "cache")}
+    env = {
+        **{k: v for k, v in os.environ.items() if k != "TI_OFFLINE_CACHE_FILE_PATH"},
+        "OCPKIT_CACHE_DIR": str(tmp_path / "cache"),
+    }
     args = ["pendulum", "--solver", "empc", "--population", "32", "--knots", "3"]
-    built = subprocess.run([sys.executable, "-m", "ocpkit.cli", "build", *args], capture_output=True, text=True,
-                           timeout=600, cwd=tmp_path, env=env)
+    built = subprocess.run(
+        [sys.executable, "-m", "ocpkit.cli", "build", *args],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        cwd=tmp_path,
+        env=env,
+    )
     assert built.returncode == 0, built.stderr
     assert "answering by Taichi kernel (cpu)" in built.stdout
     kernels = tmp_path / "cache" / "taichi-kernels"
     before = sorted(p.name for p in kernels.glob("*.tic"))
     assert before
-    solved = subprocess.run([sys.executable, "-m", "ocpkit.cli", "solve", *args, "--json"], capture_output=True,
-                            text=True, timeout=600, cwd=tmp_path, env=env)
+    solved = subprocess.run(
+        [sys.executable, "-m", "ocpkit.cli", "solve", *args, "--json"],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        cwd=tmp_path,
+        env=env,
+    )
     assert solved.returncode == 0, solved.stderr
     assert json.loads(solved.stdout)["path"] == "Taichi kernel (cpu)"
     assert sorted(p.name for p in kernels.glob("*.tic")) == before
@@ -380,8 +461,7 @@ def test_long_runs_say_what_they_do_on_stderr(tmp_path, monkeypatch, capsys):
     assert "ocpkit: simulating 5 steps: 1/5" in err and "ocpkit: simulating 5 steps: 4/5" in err, err
     assert main(["export", "pendulum", "--horizon", "10", "--out", str(tmp_path / "c")]) == 0
     err = capsys.readouterr().err
-    assert re.search(r"ocpkit: building the C step in \S+ \(make: \d+ kB of C, about \d+ s the first time\)…",
-                     err), err
+    assert re.search(r"ocpkit: building the C step in \S+ \(make: \d+ kB of C, about \d+ s the first time\)…", err), err
 
 
 def test_study_help_says_its_defaults(capsys):

@@ -1,4 +1,5 @@
 """Closed-loop behaviour: the paper's Section III result and failures that never stop the loop."""
+
 import numpy as np
 import pytest
 

@@ -1,5 +1,6 @@
 """The default affine model: CasADi's VM until a background compile finishes, then the compiled C
 (ocpkit.codegen.compiled)."""
+
 import threading
 import warnings
 import weakref
@@ -116,16 +117,19 @@ def test_exit_during_a_background_compile_leaves_no_compiler_nor_scratch(tmp_pat
     import subprocess
     import sys
 
-    script = ("import time, ocpkit.model.ocp as o\nfrom ocpkit.problems import make\n"
-              "o.BACKGROUND_MIN_INSTRUCTIONS = 0\n"
-              "fn = make('nlink:3').ocp(knots=3).affine()\nimport ocpkit.codegen.compiled as c\n"
-              "for _ in range(600):\n    time.sleep(0.05)\n    if c._compiling: break\n"
-              "print(len(c._compiling))\n")
+    script = (
+        "import time, ocpkit.model.ocp as o\nfrom ocpkit.problems import make\n"
+        "o.BACKGROUND_MIN_INSTRUCTIONS = 0\n"
+        "fn = make('nlink:3').ocp(knots=3).affine()\nimport ocpkit.codegen.compiled as c\n"
+        "for _ in range(600):\n    time.sleep(0.05)\n    if c._compiling: break\n"
+        "print(len(c._compiling))\n"
+    )
     env = {**os.environ, "OCPKIT_CACHE_DIR": str(tmp_path)}
     # cwd away from the checkout: `python -c` puts the cwd first on sys.path, and the checkout's ocpkit/ has no
     # problems/ (that only exists as ocpkit.problems once installed).
-    out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=300,
-                         cwd=tmp_path)
+    out = subprocess.run(
+        [sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=300, cwd=tmp_path
+    )
     assert out.returncode == 0, out.stderr
     if out.stdout.strip() == "1":  # it exited while the compiler ran
         assert not list((tmp_path / "compiled").glob("*/.build-*"))

@@ -1,4 +1,5 @@
 """CondensedQP.build against a straightforward reference: S and v by stepping the model, P = SᵀQ̄S + φᵀφ⊗R."""
+
 import numpy as np
 import pytest
 
@@ -26,7 +27,7 @@ def _reference(ocp, Ad, Bd, wd, x0, goal):
     S = np.column_stack([rollout(np.zeros(n), np.eye(p * m)[i].reshape(p, m), False) for i in range(p * m)])
     Qbar = np.zeros((T * n, T * n))
     for k in range(T):
-        Qbar[k * n:(k + 1) * n, k * n:(k + 1) * n] = ocp.Q if k < T - 1 else ocp.Q_terminal
+        Qbar[k * n : (k + 1) * n, k * n : (k + 1) * n] = ocp.Q if k < T - 1 else ocp.Q_terminal
     R_knots = np.kron(phi.T @ phi, ocp.R)
     ug = ocp.input_goal(goal)
     P = S.T @ Qbar @ S + R_knots
@@ -36,8 +37,16 @@ def _reference(ocp, Ad, Bd, wd, x0, goal):
 
 def _case(n, m, T, kind, p, Q, QT, seed, **kw):
     rng = np.random.default_rng(seed)
-    ocp = OCP(random_lti(seed, n, m), 0.01, T, Q, 0.1 * np.eye(m), Q_terminal=QT,
-              parameterization=Parameterization.make(kind, T, p), **kw)
+    ocp = OCP(
+        random_lti(seed, n, m),
+        0.01,
+        T,
+        Q,
+        0.1 * np.eye(m),
+        Q_terminal=QT,
+        parameterization=Parameterization.make(kind, T, p),
+        **kw,
+    )
     scale = 1.0 / np.sqrt(n)  # a stable-ish A_d so long horizons stay finite
     Ad = np.eye(n) + scale * 0.3 * rng.normal(size=(n, n))
     return ocp, Ad, rng.normal(size=(n, m)), rng.normal(size=n), rng.normal(size=n), rng.normal(size=n)
@@ -55,8 +64,18 @@ def _weights(kind, n, rng):
 
 
 @pytest.mark.parametrize("weights", ["diagonal", "zeros", "full"])
-@pytest.mark.parametrize("T,kind,p", [(20, "linear", 5), (23, "linear", 4), (17, "zoh", 5), (12, "identity", None),
-                                      (30, "linear", 1), (9, "linear", 9), (40, "linear", 2)])
+@pytest.mark.parametrize(
+    "T,kind,p",
+    [
+        (20, "linear", 5),
+        (23, "linear", 4),
+        (17, "zoh", 5),
+        (12, "identity", None),
+        (30, "linear", 1),
+        (9, "linear", 9),
+        (40, "linear", 2),
+    ],
+)
 def test_build_equals_reference(T, kind, p, weights):
     n, m = 5, 2
     rng = np.random.default_rng(T)
@@ -127,8 +146,12 @@ def test_qp_check_names_the_problem_and_passes_large_finite_data():
     ocp, Ad, Bd, wd, x0, goal = _case(5, 2, 20, "linear", 5, Q, Q, seed=2, u_min=-1.0, u_max=1.0)
     qp = CondensedQP(ocp).build(Ad, Bd, wd, x0, goal)
     assert qp.check() is None
-    for field, value, message in [("P", np.inf, "non-finite entries in P"), ("q", np.nan, "non-finite entries in q"),
-                                  ("C", -np.inf, "non-finite entries in C"), ("l", np.nan, "NaN in the bounds")]:
+    for field, value, message in [
+        ("P", np.inf, "non-finite entries in P"),
+        ("q", np.nan, "non-finite entries in q"),
+        ("C", -np.inf, "non-finite entries in C"),
+        ("l", np.nan, "NaN in the bounds"),
+    ]:
         bad = copy.deepcopy(qp)
         getattr(bad, field).flat[1] = value
         assert message in bad.check()

@@ -13,6 +13,7 @@ A solver or variant joins by being listed in ``ocpkit.solvers.CONFIGURATIONS``; 
 and built once a module (``exported_builds``). The default run takes every configuration on the pendulum (closed
 loop) and on one other problem each (a few steps); ``pytest -m slow`` the whole grid.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -32,7 +33,6 @@ from ocpkit.solvers.qp import LinearMPC
 from ocpkit.problems.panda import urdf_path as panda_urdf
 
 from conftest import readme_block
-
 
 
 class _Exports:
@@ -68,8 +68,10 @@ class ExportedConfiguration(solvers.Configuration):
 
 
 # The C step about the input goal (the condensed knot QP LinearMPC solves) and the real-time iteration
-EXPORTED = [ExportedConfiguration("export", {"linearization": "goal"}, optimum="convex"),
-            ExportedConfiguration("export", {"linearization": "trajectory"})]
+EXPORTED = [
+    ExportedConfiguration("export", {"linearization": "goal"}, optimum="convex"),
+    ExportedConfiguration("export", {"linearization": "trajectory"}),
+]
 CONFIGS = solvers.configurations() + EXPORTED
 OTHERS = ("nlink:3", "cartpole", "arm")
 HORIZON, KNOTS = 20, 3
@@ -98,9 +100,11 @@ def problems(tmp_path_factory):
 
     def get(name):
         if name not in cache:
-            cache[name] = (make(f"{cartpole}:CartPole") if name == "cartpole" else _arm() if name == "arm"
-                           else make(name))
+            cache[name] = (
+                make(f"{cartpole}:CartPole") if name == "cartpole" else _arm() if name == "arm" else make(name)
+            )
         return cache[name]
+
     return get
 
 
@@ -212,8 +216,12 @@ def test_contract_with_a_task(config, problems):
     tip = problem.kinematics.function(problem.end_effector)
     target = np.asarray(tip([1.7, 0.3, 0.2])[0]).ravel()
     start = np.asarray(tip(x0[:3])[0]).ravel()
-    ocp = reach(problem, [Sphere(tuple(0.5 * (start + target)), 0.04)], knots=HORIZON if config.knots == "horizon"
-                else KNOTS, horizon=HORIZON)
+    ocp = reach(
+        problem,
+        [Sphere(tuple(0.5 * (start + target)), 0.04)],
+        knots=HORIZON if config.knots == "horizon" else KNOTS,
+        horizon=HORIZON,
+    )
     try:
         controller = config.make(ocp)
     except ValueError as exc:
@@ -237,8 +245,11 @@ def _reference(problem, config, optimum):
     return ref.knots
 
 
-@pytest.mark.parametrize("name, optimum", [(name, "convex") for name in ("pendulum", "nlink:3", "cartpole", "arm")]
-                         + [(name, "nlp") for name in ("pendulum", "nlink:3", "cartpole", "arm")])
+@pytest.mark.parametrize(
+    "name, optimum",
+    [(name, "convex") for name in ("pendulum", "nlink:3", "cartpole", "arm")]
+    + [(name, "nlp") for name in ("pendulum", "nlink:3", "cartpole", "arm")],
+)
 def test_contract_configurations_agree_on_their_optimum(name, optimum, problems):
     """From a cold start, every configuration that claims an optimum finds the same knots as the reference
     (the condensed knot QP solved by DAQP to 1e-12; IPOPT to 1e-10 on the NLP)."""
@@ -256,8 +267,14 @@ def test_contract_configurations_agree_on_their_optimum(name, optimum, problems)
         # HPIPM stops at residuals of 1e-6 (solvers/qp.py), the NLP solvers at their own tolerances: 1e-3
         tol = (1e-5 if config.optimum == "convex" and config.options.get("qp") != "hpipm" else 1e-3) * scale
         if not sol.ok or np.abs(sol.knots - refs[key]).max() > tol:
-            bad.append((config.label, sol.status, sol.raw_status[:80],
-                        float(np.abs(sol.knots - refs[key]).max()) if sol.ok else None))
+            bad.append(
+                (
+                    config.label,
+                    sol.status,
+                    sol.raw_status[:80],
+                    float(np.abs(sol.knots - refs[key]).max()) if sol.ok else None,
+                )
+            )
     assert not bad, bad
 
 
@@ -274,8 +291,9 @@ def test_contract_against_mujoco(config, problems):
     controller = config.make(ocp)
     controller.wait_compiled()
     x, goal = problem.sample(0)
-    ours, theirs = (simulate(plant, controller, x, goal, duration=3 * ocp.dt)
-                    for plant in (problem.plant(), MuJoCoPlant(problem)))
+    ours, theirs = (
+        simulate(plant, controller, x, goal, duration=3 * ocp.dt) for plant in (problem.plant(), MuJoCoPlant(problem))
+    )
     for sol in theirs.solutions:
         _check_step(controller, sol)
     np.testing.assert_allclose(theirs.x, ours.x, rtol=0, atol=1e-6)

@@ -1,5 +1,6 @@
 """The cost as named terms (ocpkit.model.cost), built once: each term against its definition computed another way,
 and the same cost read by the NLP and the closed-loop measures."""
+
 import casadi as ca
 import numpy as np
 import pinocchio as pin
@@ -16,8 +17,10 @@ from ocpkit.solvers.nlp import NonlinearMPC
 def panda_reach():
     panda = problems.make("panda")
     nq = panda.kinematics.n
-    terms = [FrameOrientation(panda.kinematics, panda.end_effector, 3.0, terminal=False),
-             JointLimitBarrier(-np.ones(nq), np.ones(nq), 50.0)]
+    terms = [
+        FrameOrientation(panda.kinematics, panda.end_effector, 3.0, terminal=False),
+        JointLimitBarrier(-np.ones(nq), np.ones(nq), 50.0),
+    ]
     return panda, reach(panda, ["0.5,0,0.4,0.05"], knots=5, horizon=10, terms=terms)
 
 
@@ -52,9 +55,12 @@ def test_each_term_equals_its_definition_computed_with_pinocchio(panda_reach):
     position_weight = 1e3  # reach()'s default
     R_err = R_target.T @ placement.rotation
     orientation = 0.5 * np.array([R_err[2, 1] - R_err[1, 2], R_err[0, 2] - R_err[2, 0], R_err[1, 0] - R_err[0, 1]])
-    expected = {"state": (x - xg) @ ocp.Q @ (x - xg), "input": (u - ug) @ ocp.R @ (u - ug),
-                "position": position_weight * np.sum((placement.translation - p_target) ** 2),
-                "orientation": 3.0 * orientation @ orientation}
+    expected = {
+        "state": (x - xg) @ ocp.Q @ (x - xg),
+        "input": (u - ug) @ ocp.R @ (u - ug),
+        "position": position_weight * np.sum((placement.translation - p_target) ** 2),
+        "orientation": 3.0 * orientation @ orientation,
+    }
     terms = dict(zip(ocp.cost.names, np.asarray(ocp.cost.stage_terms(x, u, goal)).ravel()))
     for name, value in expected.items():
         assert terms[name] == pytest.approx(value, rel=1e-9, abs=1e-12), name
@@ -89,8 +95,12 @@ def test_the_actual_cost_by_term_equals_the_papers_sum():
     ocp = pb.ocp(knots=5)
     rng = np.random.default_rng(3)
     H = 7
-    traj = Trajectory(t=np.arange(H + 1) * ocp.dt, x=rng.normal(size=(H + 1, ocp.nx)), u=rng.normal(size=(H, ocp.nu)),
-                      goal=rng.normal(size=ocp.nx))
+    traj = Trajectory(
+        t=np.arange(H + 1) * ocp.dt,
+        x=rng.normal(size=(H + 1, ocp.nx)),
+        u=rng.normal(size=(H, ocp.nu)),
+        goal=rng.normal(size=ocp.nx),
+    )
     ex, eu = traj.x - traj.goal, traj.u - ocp.input_goal(traj.goal)
     terms = cost_by_term(traj, ocp)
     assert terms["state"] == pytest.approx(np.einsum("ij,jk,ik->", ex, ocp.Q, ex), rel=1e-13)

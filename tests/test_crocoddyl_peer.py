@@ -1,4 +1,5 @@
 """The Crocoddyl peer: the same OCP as ocpkit's (dynamics, RK4 step, cost), FDDP at IPOPT's optimum, bench nlp."""
+
 import sys
 
 import numpy as np
@@ -45,8 +46,10 @@ def test_same_dynamics_and_step(spec):
 
     prob, ocp, _, _ = setup(spec)
     shooting = peer.ShootingOCP(prob, ocp)  # its construction checks ẋ against ocp.model.f
-    nodes = {"rk4": crocoddyl.IntegratedActionModelRK(shooting.differential(), crocoddyl.RKType.four, ocp.dt),
-             "euler": crocoddyl.IntegratedActionModelEuler(shooting.differential(), ocp.dt)}
+    nodes = {
+        "rk4": crocoddyl.IntegratedActionModelRK(shooting.differential(), crocoddyl.RKType.four, ocp.dt),
+        "euler": crocoddyl.IntegratedActionModelEuler(shooting.differential(), ocp.dt),
+    }
     rng = np.random.default_rng(1)
     for _ in range(3):
         x, u = rng.uniform(-1, 1, ocp.nx), rng.uniform(-1, 1, ocp.nu)

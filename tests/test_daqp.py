@@ -1,4 +1,5 @@
 """LinearMPC(qp="daqp"): DAQP's dense active-set solve of the condensed knot QP against ProxQP's."""
+
 import numpy as np
 import pytest
 
@@ -77,11 +78,19 @@ def test_daqp_needs_the_condensed_form():
 def _many_active_rows(n=40, rows=400, seed=0):
     """A dense QP whose solution has many active rows: DAQP needs dozens of iterations from a cold start."""
     from ocpkit.qp.quadratic_program import QP
+
     rng = np.random.default_rng(seed)
     M = rng.normal(size=(n, n))
     C = rng.normal(size=(rows, n))
-    return QP(M @ M.T + n * np.eye(n), 100 * rng.normal(size=n), np.zeros((0, n)), np.zeros(0), C,
-              -np.ones(rows), np.ones(rows))
+    return QP(
+        M @ M.T + n * np.eye(n),
+        100 * rng.normal(size=n),
+        np.zeros((0, n)),
+        np.zeros(0),
+        C,
+        -np.ones(rows),
+        np.ones(rows),
+    )
 
 
 def test_daqp_deadline_becomes_an_iteration_limit():

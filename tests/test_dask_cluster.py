@@ -1,6 +1,7 @@
 """Studies on a real Dask cluster: `dask scheduler` and `dask worker` processes on 127.0.0.1, `ocpkit study`
 against them, and a cluster's faults (a worker killed, the scheduler killed, a worker with other code, a trial
 past its timeout). Each trial must be stored exactly once and equal to what local worker processes store."""
+
 import http.server
 import json
 import math
@@ -26,8 +27,9 @@ from ocpkit.runs.store import Store  # noqa: E402
 from ocpkit.runs.study import Study, grid, run  # noqa: E402
 
 # The scheduler and the workers unpickle trials: this module's trial functions by name, as pytest imported it.
-IMPORTABLE = {"PYTHONPATH": os.pathsep.join(filter(None, [str(Path(__file__).resolve().parent),
-                                                          os.environ.get("PYTHONPATH")]))}
+IMPORTABLE = {
+    "PYTHONPATH": os.pathsep.join(filter(None, [str(Path(__file__).resolve().parent), os.environ.get("PYTHONPATH")]))
+}
 # One BLAS/OpenMP/Taichi thread per trial, as `--workers 2` gives each local worker on 2 cores.
 THREADS = {name: "1" for name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "OCPKIT_CPU_THREADS")}
 # The smallest robustness grid the CLI runs: a user's problem gets 3 error multipliers × 4 controllers × 2 seeds.
@@ -36,8 +38,17 @@ TRIALS = 24
 PARAMS = ["error_multiplier", "knots", "problem", "seed"]
 # Columns that differ between two runs of the same trial: when and how long it ran, the load, measured times, and
 # the code hash (which changes when the checkout is edited between the module's local run and a test's).
-MEASURED = ["wall_time", "started", "finished", "traceback", "load", "solve_median", "total_median", "total_p90",
-            "code_hash"]
+MEASURED = [
+    "wall_time",
+    "started",
+    "finished",
+    "traceback",
+    "load",
+    "solve_median",
+    "total_median",
+    "total_p90",
+    "code_hash",
+]
 
 
 def spin(x, seed, seconds=0.0, in_c=False):
@@ -61,9 +72,14 @@ class Cluster:
 
     def _start(self, command: str, name: str, *args):
         log = open(self.folder / f"{name}.log", "w")
-        process = subprocess.Popen([sys.executable, "-m", f"distributed.cli.dask_{command}", *map(str, args)],
-                                   cwd=self.folder, stdout=log, stderr=subprocess.STDOUT, start_new_session=True,
-                                   env={**os.environ, **THREADS, **IMPORTABLE})
+        process = subprocess.Popen(
+            [sys.executable, "-m", f"distributed.cli.dask_{command}", *map(str, args)],
+            cwd=self.folder,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+            env={**os.environ, **THREADS, **IMPORTABLE},
+        )
         log.close()
         self.processes.append(process)
         return process
@@ -72,8 +88,19 @@ class Cluster:
         """Start a scheduler on a free port (it writes its address to a file); its address."""
         name = f"scheduler{len(self.processes)}"
         file = self.folder / f"{name}.json"
-        process = self._start("scheduler", name, "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
-                              "--scheduler-file", file, "--idle-timeout", "600")
+        process = self._start(
+            "scheduler",
+            name,
+            "--host",
+            "127.0.0.1",
+            "--port",
+            "0",
+            "--no-dashboard",
+            "--scheduler-file",
+            file,
+            "--idle-timeout",
+            "600",
+        )
         self.address = _wait_for(lambda: _read_json(file).get("address"), process, "scheduler")
         self.scheduler_process = process
         return self.address
@@ -84,10 +111,25 @@ class Cluster:
         started = []
         for _ in range(n):
             name = f"worker{len(self.processes)}"
-            started.append(self._start("worker", name, self.address, "--host", "127.0.0.1", "--nthreads", "1",
-                                       "--name", name, "--no-dashboard", "--death-timeout", "60",
-                                       "--local-directory", self.folder,
-                                       *(["--preload", preload] if preload else [])))
+            started.append(
+                self._start(
+                    "worker",
+                    name,
+                    self.address,
+                    "--host",
+                    "127.0.0.1",
+                    "--nthreads",
+                    "1",
+                    "--name",
+                    name,
+                    "--no-dashboard",
+                    "--death-timeout",
+                    "60",
+                    "--local-directory",
+                    self.folder,
+                    *(["--preload", preload] if preload else []),
+                )
+            )
             started[-1].name = name
         self._until(lambda names: {p.name for p in started} <= names, started[-1], "workers")
         return started
@@ -108,8 +150,9 @@ class Cluster:
         from distributed import Client
 
         with Client(self.address, timeout="30s") as client:
-            _wait_for(lambda: condition({w["name"] for w in client.scheduler_info()["workers"].values()}), process,
-                      what)
+            _wait_for(
+                lambda: condition({w["name"] for w in client.scheduler_info()["workers"].values()}), process, what
+            )
 
     def close(self) -> None:
         for process in self.processes:
@@ -144,9 +187,14 @@ def cluster(tmp_path):
 def ocpkit(*args, cwd: Path) -> subprocess.Popen:
     """The `ocpkit` command line as a process (in ``cwd``: a checkout as the working directory would shadow the
     installed package)."""
-    return subprocess.Popen([sys.executable, "-c", "import sys; from ocpkit.cli import main; sys.exit(main())",
-                             *map(str, args)], cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            env={**os.environ, **THREADS})
+    return subprocess.Popen(
+        [sys.executable, "-c", "import sys; from ocpkit.cli import main; sys.exit(main())", *map(str, args)],
+        cwd=cwd,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env={**os.environ, **THREADS},
+    )
 
 
 def finish(process: subprocess.Popen, timeout: float = 300) -> tuple[int, str, str]:
@@ -186,8 +234,9 @@ def writes(folder: Path) -> int:
 
 def errors(stderr: str) -> list[str]:
     """The lines of stderr other than the progress bar's."""
-    return [line for line in stderr.replace("\r", "\n").splitlines() if line.strip()
-            and not line.startswith("robustness:")]
+    return [
+        line for line in stderr.replace("\r", "\n").splitlines() if line.strip() and not line.startswith("robustness:")
+    ]
 
 
 @pytest.fixture(scope="module")
@@ -239,8 +288,9 @@ def test_a_lost_scheduler_is_one_line_and_a_new_one_resumes(cluster, local, tmp_
     code, out, err = finish(study)
     assert code == 2 and "Traceback" not in err, err
     lines = errors(err)
-    assert len(lines) == 1 and lines[0].startswith(f"ocpkit: error: lost the connection to the Dask scheduler at "
-                                                   f"{first} mid-study"), err
+    assert len(lines) == 1 and lines[0].startswith(
+        f"ocpkit: error: lost the connection to the Dask scheduler at {first} mid-study"
+    ), err
     kept = table(out_dir)
     assert 4 <= len(kept) < TRIALS and (kept["status"] == "ok").all()
     # (the dtype of knots is int64 until a traditional MPC trial, knots None, is stored)
@@ -262,9 +312,11 @@ def test_a_worker_without_ocpkit_or_with_another_version_or_other_code_is_refuse
     preloads = {  # a worker's preload module: what it does to the worker's ocpkit, what the refusal must say
         "lacks": ("import sys\nsys.modules['ocpkit'] = None  # import ocpkit fails\n", "cannot import ocpkit ("),
         "version": ("import ocpkit\nocpkit.__version__ = '0.0.1'\n", "runs ocpkit 0.0.1, this process ocpkit "),
-        "numpy": ("from ocpkit.runs import provenance\n\n\ndef versions(real=provenance.dependency_versions):\n"
-                  "    return {**real(), 'numpy': '1.0.0'}\n\n\nprovenance.dependency_versions = versions\n",
-                  "runs other code than this process (here → there: numpy "),
+        "numpy": (
+            "from ocpkit.runs import provenance\n\n\ndef versions(real=provenance.dependency_versions):\n"
+            "    return {**real(), 'numpy': '1.0.0'}\n\n\nprovenance.dependency_versions = versions\n",
+            "runs other code than this process (here → there: numpy ",
+        ),
     }
     for name, (source, message) in preloads.items():
         preload = tmp_path / f"preload_{name}.py"
@@ -291,14 +343,22 @@ def test_the_trial_timeout_holds_on_remote_workers(cluster, tmp_path):
     timeout = float(math.ceil(3 * (time.monotonic() - t0)))
     # x = 10 runs long in Python: its worker raises the timeout inside it and goes on with the next trial;
     # x = 11 runs long in C: the client abandons it after a grace period. The rest are quick.
-    study = Study("spin", spin, grid(x=range(6), seeds=1, seconds=0.0) + [
-        {"x": 10, "seed": 0, "seconds": 20 * timeout}, {"x": 11, "seed": 0, "seconds": 20 * timeout, "in_c": True}])
+    study = Study(
+        "spin",
+        spin,
+        grid(x=range(6), seeds=1, seconds=0.0)
+        + [{"x": 10, "seed": 0, "seconds": 20 * timeout}, {"x": 11, "seed": 0, "seconds": 20 * timeout, "in_c": True}],
+    )
     df = run(study, tmp_path / "dask", scheduler=address, trial_timeout=timeout, progress=False).set_index("x")
-    assert df.loc[10, "status"] == "failed" and df.loc[10, "error"] == \
-        f"TrialTimeout: the trial ran longer than the trial timeout of {timeout:g} s and was stopped"
+    assert (
+        df.loc[10, "status"] == "failed"
+        and df.loc[10, "error"]
+        == f"TrialTimeout: the trial ran longer than the trial timeout of {timeout:g} s and was stopped"
+    )
     assert df.loc[11, "status"] == "failed" and df.loc[11, "error"].endswith("(abandoned on the Dask cluster)")
     assert (df.loc[range(6), "status"] == "ok").all() and df.loc[range(6), "y"].tolist() == list(range(6))
     assert writes(tmp_path / "dask") == len(study.trials)
+
 
 class _QuietHandler(http.server.SimpleHTTPRequestHandler):
     def log_message(self, *args):  # off the stderr the test reads
@@ -333,8 +393,9 @@ def _closed_port() -> str:
         return f"tcp://127.0.0.1:{probe.getsockname()[1]}"
 
 
-def test_a_server_that_is_not_a_dask_scheduler_is_refused_in_time_leaving_nothing(not_dask, tmp_path, monkeypatch,
-                                                                                  capsys):
+def test_a_server_that_is_not_a_dask_scheduler_is_refused_in_time_leaving_nothing(
+    not_dask, tmp_path, monkeypatch, capsys
+):
     monkeypatch.setattr(ocpkit_cluster, "HANDSHAKE_S", 2.0)
 
     def refused(address: str, folder: Path) -> float:
@@ -342,8 +403,10 @@ def test_a_server_that_is_not_a_dask_scheduler_is_refused_in_time_leaving_nothin
         t0 = time.monotonic()
         with pytest.raises(ConnectionError, match=re.escape(f" at {address} ")):
             run(Study("spin", spin, grid(x=range(2), seeds=1)), folder / "api", scheduler=address, progress=False)
-        assert main(["study", "robustness", "--problem", "pendulum", "--scheduler", address, "--out",
-                     str(folder / "cli")]) == 2
+        assert (
+            main(["study", "robustness", "--problem", "pendulum", "--scheduler", address, "--out", str(folder / "cli")])
+            == 2
+        )
         assert not (folder / "api").exists() and not (folder / "cli").exists()
         return time.monotonic() - t0
 
@@ -357,15 +420,21 @@ def test_a_server_that_is_not_a_dask_scheduler_is_refused_in_time_leaving_nothin
 @pytest.mark.slow
 def test_the_command_line_refuses_a_web_server_as_scheduler_within_its_timeout(tmp_path):
     port = int(_closed_port().rpartition(":")[2])  # free for `python -m http.server`, as a user would start it
-    server = subprocess.Popen([sys.executable, "-m", "http.server", str(port), "--bind", "127.0.0.1"], cwd=tmp_path,
-                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    server = subprocess.Popen(
+        [sys.executable, "-m", "http.server", str(port), "--bind", "127.0.0.1"],
+        cwd=tmp_path,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
 
     def refused(address: str) -> tuple[float, int, str]:
         t0 = time.monotonic()
-        code, out, err = finish(ocpkit(*STUDY, "--scheduler", address, "--out", tmp_path / "out", cwd=tmp_path),
-                                timeout=300)
+        code, out, err = finish(
+            ocpkit(*STUDY, "--scheduler", address, "--out", tmp_path / "out", cwd=tmp_path), timeout=300
+        )
         assert not (tmp_path / "out").exists()
         return time.monotonic() - t0, code, err
+
     try:
         baseline, code, err = refused(_closed_port())  # the command's start and refusal without a handshake
         assert code == 2 and "cannot reach the Dask scheduler" in err, err
@@ -374,7 +443,9 @@ def test_the_command_line_refuses_a_web_server_as_scheduler_within_its_timeout(t
     finally:
         server.kill()
         server.wait()
-    assert code == 2 and errors(err) == [f"ocpkit: error: the server at tcp://127.0.0.1:{port} is not a Dask "
-                                         "scheduler (no answer to the Dask handshake within 10 s): start one "
-                                         "(`dask scheduler`) or check the address"], err
+    assert code == 2 and errors(err) == [
+        f"ocpkit: error: the server at tcp://127.0.0.1:{port} is not a Dask "
+        "scheduler (no answer to the Dask handshake within 10 s): start one "
+        "(`dask scheduler`) or check the address"
+    ], err
     assert elapsed < ocpkit_cluster.HANDSHAKE_S + 2 * baseline + 1, (elapsed, baseline)

@@ -1,5 +1,6 @@
 """EvolutionaryMPC (Algorithm 1, preconditioned and as printed) and its siblings CEM and MPPI in closed loop, on
 the arch of `pytest --arch` (default cpu)."""
+
 import casadi as ca
 import numpy as np
 import pytest
@@ -91,8 +92,9 @@ def test_paper_variant_nlink2_reaches_goal_and_generations_help():
     ocp = problem.ocp(knots=3)
     costs = {}
     for generations in (1, 3):
-        ctrl = EvolutionaryMPC(ocp, population=256, generations=generations, shrink_distance=1.0,
-                               sigma_min=0.01, seed=0, variant="paper")
+        ctrl = EvolutionaryMPC(
+            ocp, population=256, generations=generations, shrink_distance=1.0, sigma_min=0.01, seed=0, variant="paper"
+        )
         costs[generations] = []
         for trial in range(3):
             x0, goal = problem.sample(trial)
@@ -135,12 +137,16 @@ def test_non_smooth_cost_dead_zone_and_speed_penalty():
     x, u, g = ca.SX.sym("x", 2), ca.SX.sym("u"), ca.SX.sym("x_goal", 2)
     angle = 10 * ca.fmax(ca.fabs(x[0] - g[0]) - 0.02, 0)
     too_fast = ca.if_else(ca.fabs(x[1]) > 2.0, 1e3, 0.0)
-    stage = ca.Function("l", [x, u, g], [angle + too_fast + 0.01 * u ** 2])
+    stage = ca.Function("l", [x, u, g], [angle + too_fast + 0.01 * u**2])
     terminal = ca.Function("l_T", [x, g], [angle + too_fast])
-    plain = simulate(problem.plant(), EvolutionaryMPC(ocp, population=256, generations=2),
-                     x0, goal, 2.0)
-    shaped = simulate(problem.plant(), EvolutionaryMPC(ocp, population=256, generations=2, stage_cost=stage,
-                                                       terminal_cost=terminal), x0, goal, 2.0)
+    plain = simulate(problem.plant(), EvolutionaryMPC(ocp, population=256, generations=2), x0, goal, 2.0)
+    shaped = simulate(
+        problem.plant(),
+        EvolutionaryMPC(ocp, population=256, generations=2, stage_cost=stage, terminal_cost=terminal),
+        x0,
+        goal,
+        2.0,
+    )
     assert np.abs(plain.x[:, 1]).max() > 3.0  # the quadratic cost alone moves faster
     assert np.abs(shaped.x[:, 1]).max() <= 2.0
     assert abs(shaped.x[-1, 0] - goal[0]) < 0.05
@@ -158,8 +164,9 @@ def test_nonlinear_dynamics_mode(variant):
     assert (traj.solutions[0].times["model"] > 0) == (variant == "preconditioned")
 
 
-@pytest.mark.parametrize("cls, options", [(CrossEntropyMPC, {"generations": 3}),
-                                          (MPPI, {"generations": 3, "temperature": 1.0})])
+@pytest.mark.parametrize(
+    "cls, options", [(CrossEntropyMPC, {"generations": 3}), (MPPI, {"generations": 3, "temperature": 1.0})]
+)
 def test_cem_and_mppi_reach_goal(cls, options):
     problem = problems.make("pendulum:linear")
     ocp = problem.ocp(knots=3)

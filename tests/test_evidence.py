@@ -1,14 +1,29 @@
 """Verdicts with uncertainty (issue 32): the median's distribution-free interval has the coverage it states, and the
 verdict follows the interval's position against the threshold."""
+
 import numpy as np
 import pandas as pd
 import pytest
 
-from ocpkit.studies.evidence import (HELD, INCONCLUSIVE, NOT_HELD, NOT_TESTED, Interval, combine, decide, every,
-                                     median_claim, median_interval, paired, proportion, series, timing)
+from ocpkit.studies.evidence import (
+    HELD,
+    INCONCLUSIVE,
+    NOT_HELD,
+    NOT_TESTED,
+    Interval,
+    combine,
+    decide,
+    every,
+    median_claim,
+    median_interval,
+    paired,
+    proportion,
+    series,
+    timing,
+)
 
 
-@pytest.mark.parametrize("n, coverage", [(3, 0.75), (4, 0.875), (8, 1 - 2 / 256), (15, 1 - 2 * 576 / 2 ** 15)])
+@pytest.mark.parametrize("n, coverage", [(3, 0.75), (4, 0.875), (8, 1 - 2 / 256), (15, 1 - 2 * 576 / 2**15)])
 def test_stated_coverage_is_the_binomial_one(n, coverage):
     interval = median_interval(np.arange(n, dtype=float))
     assert interval.n == n and interval.coverage == pytest.approx(coverage)
@@ -58,8 +73,14 @@ def test_paired_aligns_by_seed_and_every_counts_counterexamples():
     b = pd.Series([1.0, 2.0], index=[1, 0])
     np.testing.assert_allclose(paired(a, b), [1.0, 4.0])  # seed 0: 2 / 2, seed 1: 4 / 1; seed 2 unpaired
     np.testing.assert_allclose(paired(a, b, "difference"), [0.0, 3.0])
-    rows = pd.DataFrame({"controller": ["QP", "EMPC", "QP", "EMPC"], "links": [3, 3, 3, 6], "seed": [0, 0, 1, 0],
-                         "cost": [1.0, 2.0, 3.0, 4.0]})
+    rows = pd.DataFrame(
+        {
+            "controller": ["QP", "EMPC", "QP", "EMPC"],
+            "links": [3, 3, 3, 6],
+            "seed": [0, 0, 1, 0],
+            "cost": [1.0, 2.0, 3.0, 4.0],
+        }
+    )
     assert series(rows, "cost", controller="QP").to_dict() == {0: 1.0, 1: 3.0}
     assert series(rows, "cost", ["links", "seed"], controller="EMPC").to_dict() == {(3, 0): 2.0, (6, 0): 4.0}
     assert every([1.0, 1.2, 0.99], lambda x: x >= 1, "below 1") == (NOT_HELD, "1 of 3 runs below 1")

@@ -1,4 +1,5 @@
 """The exported C step (built with cc here) against LinearMPC in Python, its fallback, and a clean build."""
+
 from __future__ import annotations
 
 import os
@@ -16,8 +17,7 @@ from ocpkit.export import ExportedMPC, build, export
 from ocpkit.problems import make
 from ocpkit.solvers.qp import LinearMPC
 
-pytestmark = pytest.mark.skipif(shutil.which("cc") is None or shutil.which("make") is None,
-                                reason="needs cc and make")
+pytestmark = pytest.mark.skipif(shutil.which("cc") is None or shutil.which("make") is None, reason="needs cc and make")
 
 
 def _problem(name):
@@ -32,8 +32,13 @@ def _compare(problem, ocp, exported, linearization, seeds, steps, tol=1e-6):
     F = ocp.discrete()
     for seed in seeds:
         x, goal = problem.sample(seed)
-        ref = LinearMPC(ocp, form="condensed", eps=1e-12 if problem.name.startswith("pendulum") else 1e-10,
-                        linearization=linearization, native=False)  # the Python step: an independent path
+        ref = LinearMPC(
+            ocp,
+            form="condensed",
+            eps=1e-12 if problem.name.startswith("pendulum") else 1e-10,
+            linearization=linearization,
+            native=False,
+        )  # the Python step: an independent path
         exported.reset()
         for k in range(steps):
             a, b = ref.solve(x, goal), exported.solve(x, goal)
@@ -103,10 +108,12 @@ def test_a_library_exported_for_another_ocp_is_refused_naming_what_differs(bound
     bounds = {"x_min": [-np.inf, -6.0], "x_max": [np.inf, 6.0]}
     same = problem.ocp(knots=5, horizon=50, **bounds)
     ExportedMPC(same, c.out_dir).close()  # an equal OCP built anew loads
-    cases = {"Q differs": problem.ocp(knots=5, horizon=50, Q=np.diag([100.0, 0.1]), **bounds),
-             "model differs": problem.ocp(knots=5, horizon=50, error=1.2, **bounds),
-             "x_max differs": problem.ocp(knots=5, horizon=50, x_min=[-np.inf, -6.0], x_max=[np.inf, 7.0]),
-             "knots 5 vs 4": problem.ocp(knots=4, horizon=50, **bounds)}
+    cases = {
+        "Q differs": problem.ocp(knots=5, horizon=50, Q=np.diag([100.0, 0.1]), **bounds),
+        "model differs": problem.ocp(knots=5, horizon=50, error=1.2, **bounds),
+        "x_max differs": problem.ocp(knots=5, horizon=50, x_min=[-np.inf, -6.0], x_max=[np.inf, 7.0]),
+        "knots 5 vs 4": problem.ocp(knots=4, horizon=50, **bounds),
+    }
     for what, other in cases.items():
         with pytest.raises(ValueError, match=f"exported for another OCP: {what}") as info:
             ExportedMPC(other, c.out_dir)
@@ -151,8 +158,10 @@ def test_the_digest_names_task_fields_and_a_casadi_upgrade():
     assert differences(stored, reach(problem, [ball], margin=0.02, knots=3, horizon=20)) == "margin 0.01 vs 0.02"
     assert "targets 3 vs 0, task_terms differs" in differences(stored, problem.ocp(knots=3, horizon=20))
     old = "; ".join(e if not e.startswith(("casadi", "model")) else e.split()[0] + " 0.0.1" for e in stored.split("; "))
-    assert differences(old, reach(problem, [ball], knots=3, horizon=20)) == \
-        f"model differs (exported with CasADi 0.0.1, running {ca.__version__}: its serialization may differ too)"
+    assert (
+        differences(old, reach(problem, [ball], knots=3, horizon=20))
+        == f"model differs (exported with CasADi 0.0.1, running {ca.__version__}: its serialization may differ too)"
+    )
     with pytest.raises(ValueError, match="has no mpc_ocp_digest \\(exported by an older ocpkit\\)"):
         _check_digest(types.SimpleNamespace(), "mpc", Path("old/libmpc.so"), moved)
 
@@ -164,17 +173,39 @@ def test_status_and_reason_strings_name_every_code(bounded_pendulum, tmp_path):
 
     out = bounded_pendulum[2].out_dir
     program = tmp_path / "status_names"
-    subprocess.run(["cc", "-std=c99", "-Wall", "-Werror", "-I", str(out), "-o", str(program),
-                    str(Path(__file__).parent / "c" / "status_names.c"), "-L", str(out), "-lmpc",
-                    f"-Wl,-rpath,{out.resolve()}"], check=True, capture_output=True, text=True)
+    subprocess.run(
+        [
+            "cc",
+            "-std=c99",
+            "-Wall",
+            "-Werror",
+            "-I",
+            str(out),
+            "-o",
+            str(program),
+            str(Path(__file__).parent / "c" / "status_names.c"),
+            "-L",
+            str(out),
+            "-lmpc",
+            f"-Wl,-rpath,{out.resolve()}",
+        ],
+        check=True,
+        capture_output=True,
+        text=True,
+    )
     lines = subprocess.run([str(program)], check=True, capture_output=True, text=True).stdout.splitlines()
-    c_statuses = STATUSES[:STATUSES.index(SOFT)]  # the C step's codes 0 … 4
-    statuses, reasons = lines[:len(c_statuses) + 2], lines[len(c_statuses) + 2:]
+    c_statuses = STATUSES[: STATUSES.index(SOFT)]  # the C step's codes 0 … 4
+    statuses, reasons = lines[: len(c_statuses) + 2], lines[len(c_statuses) + 2 :]
     assert statuses == ["-1 unknown"] + [f"{i} {s}" for i, s in enumerate(c_statuses)] + [f"{len(c_statuses)} unknown"]
     words = ["none"] + list(REASONS)
-    assert reasons == (["reason -1 unknown"] + [f"reason {i} {w}" for i, w in enumerate(words)]
-                       + [f"reason {len(words)} unknown", f"reason MPC_REASON_ITERATION_LIMIT "
-                                                          f"{1 + REASONS.index(Reason.ITERATION_LIMIT)}"])
+    assert reasons == (
+        ["reason -1 unknown"]
+        + [f"reason {i} {w}" for i, w in enumerate(words)]
+        + [
+            f"reason {len(words)} unknown",
+            f"reason MPC_REASON_ITERATION_LIMIT {1 + REASONS.index(Reason.ITERATION_LIMIT)}",
+        ]
+    )
 
 
 @pytest.mark.parametrize("name", ["nlink:3", pytest.param("nlink:7", marks=pytest.mark.slow)])
@@ -248,8 +279,14 @@ def test_condensing_variants_match_linear_mpc(variant, tmp_path):
     elif variant == "identity":
         ocp = problem.ocp(knots=None, horizon=12)
     else:
-        ocp = problem.ocp(knots=5, horizon=40, Q=[[10.0, 1.0], [1.0, 1.0]], Q_terminal=[[30.0, 2.0], [2.0, 3.0]],
-                          u_goal=[0.2], u_goal_gain=[[0.5, 0.0]])
+        ocp = problem.ocp(
+            knots=5,
+            horizon=40,
+            Q=[[10.0, 1.0], [1.0, 1.0]],
+            Q_terminal=[[30.0, 2.0], [2.0, 3.0]],
+            u_goal=[0.2],
+            u_goal_gain=[[0.5, 0.0]],
+        )
     info = export(ocp, tmp_path / variant, linearization="plan")
     build(info.out_dir)
     with ExportedMPC(ocp, info.out_dir) as c:
@@ -258,8 +295,9 @@ def test_condensing_variants_match_linear_mpc(variant, tmp_path):
 
 def test_two_instances_step_alternately(tmp_path):
     """Two instances of one library, stepping in turn from different states, each equal to its own LinearMPC."""
-    problem = make("nlink:2") if "nlink" in __import__("ocpkit.problems", fromlist=["names"]).names() \
-        else make("pendulum")
+    problem = (
+        make("nlink:2") if "nlink" in __import__("ocpkit.problems", fromlist=["names"]).names() else make("pendulum")
+    )
     ocp = problem.ocp(knots=5, horizon=40)
     info = export(ocp, tmp_path / "two", linearization="plan")
     build(info.out_dir)
@@ -287,8 +325,9 @@ def test_two_instances_step_alternately(tmp_path):
 def test_instances_beyond_the_slots_fail_cleanly_and_slots_are_reused(tmp_path):
     ocp = make("pendulum").ocp(knots=3, horizon=20)
     info = export(ocp, tmp_path / "slots", qp="osqp")
-    (info.out_dir / "Makefile").write_text((info.out_dir / "Makefile").read_text()
-                                           .replace("MAX_INSTANCES ?= 16", "MAX_INSTANCES ?= 2"))
+    (info.out_dir / "Makefile").write_text(
+        (info.out_dir / "Makefile").read_text().replace("MAX_INSTANCES ?= 16", "MAX_INSTANCES ?= 2")
+    )
     build(info.out_dir)
     a, b = ExportedMPC(ocp, info.out_dir), ExportedMPC(ocp, info.out_dir)
     with pytest.raises(RuntimeError, match="memory slots"):
@@ -451,8 +490,9 @@ def test_missing_tool_is_one_line(missing, tmp_path, monkeypatch, capsys):
 def test_each_source_is_compiled_once(bounded_pendulum):
     """`make lib` compiled the step and the generated code; the example only adds main.c and links."""
     _, _, c = bounded_pendulum
-    plan = subprocess.run(["make", "-n", "-C", str(c.out_dir), "example"], capture_output=True, text=True,
-                          check=True).stdout
+    plan = subprocess.run(
+        ["make", "-n", "-C", str(c.out_dir), "example"], capture_output=True, text=True, check=True
+    ).stdout
     compiles = [line for line in plan.splitlines() if " -c " in line]
     assert len(compiles) == 1 and "main.c" in compiles[0], plan
     makefile = (c.out_dir / "Makefile").read_text()
@@ -488,8 +528,10 @@ def test_linear_model_uses_its_constant_discrete_model(tmp_path):
 def test_vector_code_paths_match_linear_mpc(simd, tmp_path):
     """`make SIMD=sse2` (no AVX2 path) and `SIMD=none` (plain C) give LinearMPC's step too: nlink:3 fills whole
     register tiles, the bounded pendulum only remainders; the split times add up to about the step."""
-    for name, kw, lin in (("nlink:3", {}, "goal"),
-                          ("pendulum", {"x_min": [-np.inf, -6.0], "x_max": [np.inf, 6.0]}, "plan")):
+    for name, kw, lin in (
+        ("nlink:3", {}, "goal"),
+        ("pendulum", {"x_min": [-np.inf, -6.0], "x_max": [np.inf, 6.0]}, "plan"),
+    ):
         problem = _problem(name)
         ocp = problem.ocp(knots=5, horizon=50, **kw)
         info = export(ocp, tmp_path / f"{simd}-{name.replace(':', '')}", linearization=lin)

@@ -10,6 +10,7 @@
   every step, allocates (16 blocks a step at nlink:3, about 1 µs of a 10 µs step measured here): its count is
   checked so that a change in CasADi's code shows up here and in the README's note.
 """
+
 import os
 import re
 import shutil
@@ -22,22 +23,30 @@ from ocpkit.export import export
 from ocpkit.problems import make
 from ocpkit.model.task import reach
 
-pytestmark = pytest.mark.skipif(shutil.which("cc") is None or shutil.which("make") is None,
-                                reason="needs a C compiler and make")
+pytestmark = pytest.mark.skipif(
+    shutil.which("cc") is None or shutil.which("make") is None, reason="needs a C compiler and make"
+)
 
 STRICT = ["-std=c99", "-Wall", "-Wextra", "-Wpedantic", "-Werror", "-fsyntax-only"]
 # (problem, task: None or reach's obstacles, export options); the obstacle case starts 1.2 cm from its ball, whose
 # rows are in the example's QPs from its first step
-CASES = {"nlink:3 LTI, DAQP": ("nlink:3", None, {}),
-         "puma560 RTI, 2 iterations": ("puma560", None, {"linearization": "trajectory", "iterations": 2}),
-         "nlink:3 qrqp": ("nlink:3", None, {"qp": "qrqp"}),
-         "nlink:3 osqp": ("nlink:3", None, {"qp": "osqp"}),
-         "panda reach terms": ("panda", (), {}),
-         "nlink:3 reach past a ball": ("nlink:3", ("0.58,-0.02,0,0.06",), {"linearization": "plan"})}
+CASES = {
+    "nlink:3 LTI, DAQP": ("nlink:3", None, {}),
+    "puma560 RTI, 2 iterations": ("puma560", None, {"linearization": "trajectory", "iterations": 2}),
+    "nlink:3 qrqp": ("nlink:3", None, {"qp": "qrqp"}),
+    "nlink:3 osqp": ("nlink:3", None, {"qp": "osqp"}),
+    "panda reach terms": ("panda", (), {}),
+    "nlink:3 reach past a ball": ("nlink:3", ("0.58,-0.02,0,0.06",), {"linearization": "plan"}),
+}
 SLOW = pytest.mark.slow
-SANITIZED = ["nlink:3 LTI, DAQP", pytest.param("nlink:3 qrqp", marks=SLOW), pytest.param("nlink:3 osqp", marks=SLOW),
-             pytest.param("puma560 RTI, 2 iterations", marks=SLOW), pytest.param("panda reach terms", marks=SLOW),
-             "nlink:3 reach past a ball"]
+SANITIZED = [
+    "nlink:3 LTI, DAQP",
+    pytest.param("nlink:3 qrqp", marks=SLOW),
+    pytest.param("nlink:3 osqp", marks=SLOW),
+    pytest.param("puma560 RTI, 2 iterations", marks=SLOW),
+    pytest.param("panda reach terms", marks=SLOW),
+    "nlink:3 reach past a ball",
+]
 SANITIZERS = "-fsanitize=address,undefined -fno-sanitize-recover=all -fno-omit-frame-pointer -g"
 WRAPPED = ("malloc", "calloc", "realloc", "free", "mpc_step")
 
@@ -80,8 +89,12 @@ def test_example_runs_clean_under_valgrind(case, tmp_path):
     """Also no use of uninitialized memory: DAQP leaves the unused obstacle rows (zero) out of its work."""
     out = _export(case, tmp_path / "export")
     _make(out, "CFLAGS=-fPIC -g")
-    result = subprocess.run(["valgrind", "--error-exitcode=99", "--leak-check=full", "--errors-for-leak-kinds=all",
-                             str(out / "example")], capture_output=True, text=True, cwd=out)
+    result = subprocess.run(
+        ["valgrind", "--error-exitcode=99", "--leak-check=full", "--errors-for-leak-kinds=all", str(out / "example")],
+        capture_output=True,
+        text=True,
+        cwd=out,
+    )
     assert result.returncode == 0, result.stderr[-3000:]
     assert "ERROR SUMMARY: 0 errors" in result.stderr
 

@@ -8,6 +8,7 @@ version there; tests/test_export.py checks what the digest tells apart.
 
 After an intended change, ``OCPKIT_UPDATE_GOLDEN=1 pytest tests/test_export_golden.py`` rewrites the stored files;
 review their diff before committing it. The stored files are named ``<file>.golden`` (data, not sources)."""
+
 import os
 import re
 from pathlib import Path
@@ -21,12 +22,14 @@ from ocpkit.model.task import reach
 
 GOLDEN = Path(__file__).parent / "golden" / "export"
 RENDERED = ("mpc.c", "mpc.h", "main.c", "Makefile", "README.md")
-CASES = {"nlink3": ("nlink:3", False, {}),
-         "nlink13": ("nlink:13", False, {}),
-         "puma560": ("puma560", False, {}),
-         "puma560_rti": ("puma560", False, {"linearization": "trajectory", "iterations": 2, "tol": 1e-6}),
-         "panda": ("panda", False, {}),
-         "panda_reach": ("panda", True, {})}
+CASES = {
+    "nlink3": ("nlink:3", False, {}),
+    "nlink13": ("nlink:13", False, {}),
+    "puma560": ("puma560", False, {}),
+    "puma560_rti": ("puma560", False, {"linearization": "trajectory", "iterations": 2, "tol": 1e-6}),
+    "panda": ("panda", False, {}),
+    "panda_reach": ("panda", True, {}),
+}
 NUMBER = re.compile(r"(?<![\w.])-?\d+\.\d*(?:e[-+]?\d+)?|(?<![\w.])-?\d+e[-+]?\d+")
 CASADI_DIR = re.compile(r"^CASADI_DIR \?= .*$", re.M)
 DIGEST = re.compile(r'^(\s+"\w+ (?:\w+:)?)[0-9a-f]{16}(?=(?:; )?";?$)', re.M)

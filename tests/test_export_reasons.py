@@ -1,6 +1,7 @@
 """Why an exported C step is not a success (issue 45, items 3 and 5): the reason codes the C step sets
 (``mpc_last_reason``, named by ``mpc_reason_string``) reach ``Solution.reason`` through ExportedMPC, equal to the
 Python step's reason for the same step; a step LinearMPC's C step hands to Python says so in its ``path``."""
+
 from __future__ import annotations
 
 import ctypes
@@ -15,8 +16,7 @@ from ocpkit.problems import make
 from ocpkit.solvers.qp import LinearMPC
 from ocpkit.status import SUCCESS, Reason
 
-pytestmark = pytest.mark.skipif(shutil.which("cc") is None or shutil.which("make") is None,
-                                reason="needs cc and make")
+pytestmark = pytest.mark.skipif(shutil.which("cc") is None or shutil.which("make") is None, reason="needs cc and make")
 
 
 @pytest.fixture(scope="module")
@@ -75,9 +75,11 @@ def _crossed(qp):
 
 
 # A QP the C step and the Python step refuse before a solve, by the reason each should give.
-REFUSED = {Reason.BOUNDS_CROSSED: _crossed,
-           Reason.QP_DATA: lambda qp: replace(qp, q=np.r_[np.nan, qp.q[1:]]),
-           Reason.ILL_CONDITIONED: lambda qp: replace(qp, P=qp.P * 1e20)}  # its curvature unchanged
+REFUSED = {
+    Reason.BOUNDS_CROSSED: _crossed,
+    Reason.QP_DATA: lambda qp: replace(qp, q=np.r_[np.nan, qp.q[1:]]),
+    Reason.ILL_CONDITIONED: lambda qp: replace(qp, P=qp.P * 1e20),
+}  # its curvature unchanged
 
 
 @pytest.mark.parametrize("reason", REFUSED, ids=str)

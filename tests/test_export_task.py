@@ -1,6 +1,7 @@
 """The exported C step with a task's cost terms (issue 29): the frame-position term of ocpkit.model.task.reach in C,
 equal to LinearMPC's Python step (Gauss–Newton about the plan, ocpkit.qp.task_rows.TaskRows) along closed loops; with
 obstacles, their linearized clearance rows built in C as the Python step builds them (issue 43)."""
+
 from __future__ import annotations
 
 import shutil
@@ -18,8 +19,7 @@ from ocpkit.solvers.qp import LinearMPC
 from ocpkit.model.task import reach
 from ocpkit.problems.panda import urdf_path as panda_urdf
 
-pytestmark = pytest.mark.skipif(shutil.which("cc") is None or shutil.which("make") is None,
-                                reason="needs cc and make")
+pytestmark = pytest.mark.skipif(shutil.which("cc") is None or shutil.which("make") is None, reason="needs cc and make")
 
 PANDA = panda_urdf()
 
@@ -28,7 +28,7 @@ def _target(problem, seed):
     """The end effector's position at a sampled configuration: a reachable target."""
     _, q = problem.sample(seed)
     fk = problem.kinematics.function(problem.end_effector)
-    return np.asarray(fk(q[:problem.kinematics.n])[0]).ravel()
+    return np.asarray(fk(q[: problem.kinematics.n])[0]).ravel()
 
 
 def _same_closed_loop(problem, ocp, out_dir, seed, duration, tol=1e-8):
@@ -68,7 +68,7 @@ def test_reach_c_step_equals_python_step_nlink3(nlink3):
     problem, ocp, out = nlink3
     loop, target = _same_closed_loop(problem, ocp, out.out_dir, seed=0, duration=1.2)
     fk = problem.kinematics.function(problem.end_effector)
-    assert np.linalg.norm(np.asarray(fk(loop.x[-1][:problem.kinematics.n])[0]).ravel() - target) < 0.05
+    assert np.linalg.norm(np.asarray(fk(loop.x[-1][: problem.kinematics.n])[0]).ravel() - target) < 0.05
 
 
 def test_generated_goal_is_the_whole_goal_vector(nlink3):
@@ -88,7 +88,7 @@ def test_a_direct_call_needs_the_whole_goal(nlink3):
     goal = ocp.goal(x0, position=_target(problem, 1))
     with ExportedMPC(ocp, out.out_dir) as c:
         with pytest.raises(ValueError, match=f"whole goal vector of {ocp.ng} entries"):
-            c._solve(x0, goal[:ocp.nx].copy())
+            c._solve(x0, goal[: ocp.nx].copy())
         direct = c._solve(x0, goal)  # as LinearMPC's C step calls it: the whole vector
         c.reset()
         assert direct.status == SUCCESS

@@ -1,4 +1,5 @@
 """Reliability: the adversarial matrix over every solver, recovery, and same seed → same run."""
+
 import numpy as np
 import pytest
 
@@ -24,7 +25,8 @@ def test_same_seed_same_closed_loop(label):
     problem = problems.make("pendulum")
     x0, goal = problem.sample(4)
     name, options = SOLVERS[label]
-    runs = [simulate(problem.plant(), solvers.make(name, problem.ocp(knots=3), **options), x0, goal, 0.1)
-            for _ in range(2)]
+    runs = [
+        simulate(problem.plant(), solvers.make(name, problem.ocp(knots=3), **options), x0, goal, 0.1) for _ in range(2)
+    ]
     np.testing.assert_array_equal(runs[0].u, runs[1].u)
     np.testing.assert_array_equal(runs[0].x, runs[1].x)

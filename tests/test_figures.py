@@ -3,6 +3,7 @@ the saved image or over another title, label or legend; no legend entry whose se
 (same look, same pixels) and no blended histogram colours the legend does not have; integer ticks on count
 axes (links, knots); every seed drawn where a group has few. Each figure kind is rendered through
 ``ocpkit.sim.plots`` and through the studies' reports on small synthetic tables."""
+
 from itertools import combinations
 
 import matplotlib as mpl
@@ -30,8 +31,12 @@ class Saved:
         canvas = _canvas(fig, kwargs, renderer)
         for name, text in _texts(fig):
             box = text.get_window_extent(renderer)
-            if (box.x0 < canvas.x0 - TOLERANCE_PX or box.x1 > canvas.x1 + TOLERANCE_PX
-                    or box.y0 < canvas.y0 - TOLERANCE_PX or box.y1 > canvas.y1 + TOLERANCE_PX):
+            if (
+                box.x0 < canvas.x0 - TOLERANCE_PX
+                or box.x1 > canvas.x1 + TOLERANCE_PX
+                or box.y0 < canvas.y0 - TOLERANCE_PX
+                or box.y1 > canvas.y1 + TOLERANCE_PX
+            ):
                 self.problems.append(f"{name} {text.get_text()!r} outside the saved canvas")
         self.problems += _overlapping(fig, renderer)
         for ax in fig.axes:
@@ -74,8 +79,11 @@ def _canvas(fig, kwargs, renderer):
 def _ticks_in_view(axis):
     lo, hi = sorted(axis.get_view_interval())
     eps = 1e-9 * max(abs(lo), abs(hi), 1.0)
-    return [t for t in axis.get_major_ticks() + axis.get_minor_ticks()
-            if lo - eps <= t.get_loc() <= hi + eps and t.label1.get_visible() and t.label1.get_text()]
+    return [
+        t
+        for t in axis.get_major_ticks() + axis.get_minor_ticks()
+        if lo - eps <= t.get_loc() <= hi + eps and t.label1.get_visible() and t.label1.get_text()
+    ]
 
 
 def _texts(fig):
@@ -97,16 +105,22 @@ def _texts(fig):
 
 def _overlapping(fig, renderer) -> list:
     """Titles, axis labels, suptitle and legends drawn over each other; tick labels of one axis over each other."""
-    boxes = [(f"{name} {t.get_text()!r}", t.get_window_extent(renderer)) for name, t in _texts(fig)
-             if name in ("suptitle", "title", "axis label")]
+    boxes = [
+        (f"{name} {t.get_text()!r}", t.get_window_extent(renderer))
+        for name, t in _texts(fig)
+        if name in ("suptitle", "title", "axis label")
+    ]
     legends = list(fig.legends) + [ax.get_legend() for ax in fig.axes if ax.get_legend() is not None]
     boxes += [(f"legend {[t.get_text() for t in g.get_texts()][:2]}", g.get_window_extent(renderer)) for g in legends]
     out = [f"{a} over {b}" for (a, p), (b, q) in combinations(boxes, 2) if _intersection(p, q) > 4]
     for ax in fig.axes:
         for axis in (ax.xaxis, ax.yaxis):
             labels = [t.label1 for t in _ticks_in_view(axis)]
-            out += [f"tick labels {a.get_text()!r} and {b.get_text()!r} overlap" for a, b in combinations(labels, 2)
-                    if _intersection(a.get_window_extent(renderer), b.get_window_extent(renderer)) > 4]
+            out += [
+                f"tick labels {a.get_text()!r} and {b.get_text()!r} overlap"
+                for a, b in combinations(labels, 2)
+                if _intersection(a.get_window_extent(renderer), b.get_window_extent(renderer)) > 4
+            ]
     return out
 
 
@@ -115,8 +129,11 @@ def _intersection(p, q) -> float:
 
 
 def _look(line):
-    return line.get_marker() if line.get_marker() not in ("None", "", " ", None) else None, line.get_linestyle(), \
-        str(line.get_markevery())
+    return (
+        line.get_marker() if line.get_marker() not in ("None", "", " ", None) else None,
+        line.get_linestyle(),
+        str(line.get_markevery()),
+    )
 
 
 def _hidden_series(ax) -> list:
@@ -140,8 +157,12 @@ def _blended(ax) -> list:
         for p in a.patches:
             for q in b.patches:
                 translucent = min(p.get_facecolor()[3], q.get_facecolor()[3]) < 1
-                if translucent and p.get_height() > 0 and q.get_height() > 0 and _intersection(
-                        p.get_bbox(), q.get_bbox()) > 0:
+                if (
+                    translucent
+                    and p.get_height() > 0
+                    and q.get_height() > 0
+                    and _intersection(p.get_bbox(), q.get_bbox()) > 0
+                ):
                     out.append(f"bars of {a.get_label()!r} and {b.get_label()!r} blend")
                     break
             else:
@@ -167,8 +188,15 @@ FORMULATIONS = [solve_times.label(f, k) for f in solve_times.FORMS for k in (5, 
 def test_lines_with_long_labels_on_counts(saved, tmp_path):
     links = np.array([1, 3, 7, 13])
     series = {label: np.geomspace(1, 10 ** (i + 1), 4) for i, label in enumerate(FORMULATIONS)}
-    plots.lines(links, series, tmp_path / "t", xlabel="number of links", ylabel="median solve time [ms]", log=True,
-                title="Median optimization solve time, horizon 50 (20 cold solves each)")
+    plots.lines(
+        links,
+        series,
+        tmp_path / "t",
+        xlabel="number of links",
+        ylabel="median solve time [ms]",
+        log=True,
+        title="Median optimization solve time, horizon 50 (20 cold solves each)",
+    )
     _assert_clean(saved)
     _integer_ticks(next(iter(saved.values())).xticks[0])
 
@@ -176,18 +204,31 @@ def test_lines_with_long_labels_on_counts(saved, tmp_path):
 def test_lines_near_equal_series_are_all_visible(saved, tmp_path):
     links = np.array([1, 3, 6, 9, 13])
     near = np.array([1.10, 1.11, 1.09, 1.10, 1.11])
-    series = {"knots 3 (QP)": near, "EMPC 1 gen": near, "EMPC 3 gen": near * 1.001, "CEM": near * 1.01,
-              "MPPI": near * 0.99, "EMPC 1 gen (paper)": np.array([1.2, 12, 66, 210, 500]),
-              "EMPC 3 gen (paper)": np.array([1.2, 14, 21, 320, 230])}
-    plots.lines(links, series, tmp_path / "r", xlabel="number of links", ylabel="actual cost / traditional MPC",
-                log=True, title="Actual cost relative to traditional MPC (3 start/goal pairs per robot)")
+    series = {
+        "knots 3 (QP)": near,
+        "EMPC 1 gen": near,
+        "EMPC 3 gen": near * 1.001,
+        "CEM": near * 1.01,
+        "MPPI": near * 0.99,
+        "EMPC 1 gen (paper)": np.array([1.2, 12, 66, 210, 500]),
+        "EMPC 3 gen (paper)": np.array([1.2, 14, 21, 320, 230]),
+    }
+    plots.lines(
+        links,
+        series,
+        tmp_path / "r",
+        xlabel="number of links",
+        ylabel="actual cost / traditional MPC",
+        log=True,
+        title="Actual cost relative to traditional MPC (3 start/goal pairs per robot)",
+    )
     _assert_clean(saved)
 
 
 def test_closed_loop_with_sixteen_controllers(saved, tmp_path):
     """The demo's figure: 16 controllers on one pendulum, the QP configurations on the same trajectory."""
     t = np.linspace(0, 2, 201)
-    qp = Trajectory(t=t, x=np.column_stack([np.sin(t), np.cos(t)]), u=np.cos(t[:-1])[:, None], goal=np.array([1, 0.]))
+    qp = Trajectory(t=t, x=np.column_stack([np.sin(t), np.cos(t)]), u=np.cos(t[:-1])[:, None], goal=np.array([1, 0.0]))
     trajs = {}
     for knots_label in ("traditional", "knots=5"):
         for form in ("sparse", "condensed"):
@@ -196,19 +237,33 @@ def test_closed_loop_with_sixteen_controllers(saved, tmp_path):
         for k, name in enumerate(("cem", "empc", "ipopt", "mppi")):
             shift = 0.02 * (k + 1) * (knots_label == "knots=5")
             trajs[f"{name} {knots_label}"] = Trajectory(t=t, x=qp.x + shift, u=qp.u + shift, goal=qp.goal)
-    plots.closed_loop(trajs, tmp_path / "demo.png", title="pendulum: closed loop, seed 0",
-                      state_names=["q [rad]", "qd [rad/s]"], input_names=["tau [N·m]"])
+    plots.closed_loop(
+        trajs,
+        tmp_path / "demo.png",
+        title="pendulum: closed loop, seed 0",
+        state_names=["q [rad]", "qd [rad/s]"],
+        input_names=["tau [N·m]"],
+    )
     _assert_clean(saved)
 
 
 def test_small_groups_show_every_seed(saved, tmp_path):
     values = [np.array([900.0, 1200, 1500, 8000, 15000]), np.array([700.0, 800, 1000, 1100, 1300])]
-    plots.boxes(["knots 3 (QP)", "EMPC, penalized fitness"], values, tmp_path / "k", xlabel="controller",
-                ylabel="actual penalized cost", title="keep-out")
+    plots.boxes(
+        ["knots 3 (QP)", "EMPC, penalized fitness"],
+        values,
+        tmp_path / "k",
+        xlabel="controller",
+        ylabel="actual penalized cost",
+        title="keep-out",
+    )
     _assert_clean(saved)
     ax = next(iter(saved.values())).axes[0]
-    points = np.vstack([l.get_xydata() for l in ax.get_lines() if l.get_marker() not in ("None", "", None)]
-                       + [c.get_offsets() for c in ax.collections if len(c.get_offsets())] + [np.empty((0, 2))])
+    points = np.vstack(
+        [l.get_xydata() for l in ax.get_lines() if l.get_marker() not in ("None", "", None)]
+        + [c.get_offsets() for c in ax.collections if len(c.get_offsets())]
+        + [np.empty((0, 2))]
+    )
     for i, group in enumerate(values, start=1):
         for v in group:
             assert np.any((np.abs(points[:, 0] - i) < 0.5) & np.isclose(points[:, 1], v)), f"group {i}: {v} not drawn"
@@ -216,10 +271,22 @@ def test_small_groups_show_every_seed(saved, tmp_path):
 
 def _robustness_table():
     rng = np.random.default_rng(0)
-    rows = [{"status": "ok", "problem": p, "knots": k, "error_multiplier": e, "seed": s,
-             "actual_cost": (1 + abs(e - 1) * (2 if k == 2 else 1)) * (1 + 0.05 * rng.random()) * (10 + s),
-             "overshoot": 5 * rng.random(), "rise_time": 0.3 + 0.1 * rng.random()}
-            for p in ("pendulum", "puma560") for k in (2, 4, 8, np.nan) for e in (0.5, 1.0, 1.5) for s in range(3)]
+    rows = [
+        {
+            "status": "ok",
+            "problem": p,
+            "knots": k,
+            "error_multiplier": e,
+            "seed": s,
+            "actual_cost": (1 + abs(e - 1) * (2 if k == 2 else 1)) * (1 + 0.05 * rng.random()) * (10 + s),
+            "overshoot": 5 * rng.random(),
+            "rise_time": 0.3 + 0.1 * rng.random(),
+        }
+        for p in ("pendulum", "puma560")
+        for k in (2, 4, 8, np.nan)
+        for e in (0.5, 1.0, 1.5)
+        for s in range(3)
+    ]
     return pd.DataFrame(rows)
 
 
@@ -235,10 +302,28 @@ def _solve_times_table():
             for form in solve_times.FORMS:
                 for k in (5, np.nan):
                     m = 1e-3 * links * (3 if form == "condensed" and k != k else 1) * h / 50
-                    rows.append({"status": "ok", "links": links, "horizon": h, "form": form, "knots": k, "qp": "osqp",
-                                 "states": 20, "seed": 0, "solve_median": m, "solve_q1": 0.8 * m, "solve_q3": 1.3 * m,
-                                 "total_median": 2 * m, "total_q1": 1.6 * m, "total_q3": 2.6 * m,
-                                 "model_median": 1e-4 * links, "build_median": 1e-4, "failures": 0, "load": 1.0})
+                    rows.append(
+                        {
+                            "status": "ok",
+                            "links": links,
+                            "horizon": h,
+                            "form": form,
+                            "knots": k,
+                            "qp": "osqp",
+                            "states": 20,
+                            "seed": 0,
+                            "solve_median": m,
+                            "solve_q1": 0.8 * m,
+                            "solve_q3": 1.3 * m,
+                            "total_median": 2 * m,
+                            "total_q1": 1.6 * m,
+                            "total_q3": 2.6 * m,
+                            "model_median": 1e-4 * links,
+                            "build_median": 1e-4,
+                            "failures": 0,
+                            "load": 1.0,
+                        }
+                    )
     return pd.DataFrame(rows)
 
 
@@ -250,17 +335,24 @@ def test_solve_times_report(saved, figures_only, tmp_path):
 
 
 def _closed_loop_rows(key, values, seeds, cost):
-    return pd.DataFrame([{"status": "ok", key: v, "seed": s, "actual_cost": cost(v, s)} for v in values
-                         for s in range(seeds)])
+    return pd.DataFrame(
+        [{"status": "ok", key: v, "seed": s, "actual_cost": cost(v, s)} for v in values for s in range(seeds)]
+    )
 
 
 def test_knots_and_horizon_reports(saved, figures_only, tmp_path):
-    knots_df = pd.concat([_closed_loop_rows("knots", [1, 2, 4, 10], 5, lambda k, s: 1 + 1 / k + 0.01 * s).assign(
-        horizon=knots.HORIZON), _closed_loop_rows("knots", [np.nan], 5, lambda k, s: 1.0).assign(
-        horizon=knots.REFERENCE_HORIZON)]).assign(problem="pendulum")
+    knots_df = pd.concat(
+        [
+            _closed_loop_rows("knots", [1, 2, 4, 10], 5, lambda k, s: 1 + 1 / k + 0.01 * s).assign(
+                horizon=knots.HORIZON
+            ),
+            _closed_loop_rows("knots", [np.nan], 5, lambda k, s: 1.0).assign(horizon=knots.REFERENCE_HORIZON),
+        ]
+    ).assign(problem="pendulum")
     knots.report(knots_df.reset_index(drop=True), tmp_path)
-    horizon_df = _closed_loop_rows("horizon", [5, 10, 50, 100], 5,
-                                   lambda h, s: 1 + 20 * (s == 4) / h + 1 / h).assign(problem="pendulum", knots=np.nan)
+    horizon_df = _closed_loop_rows("horizon", [5, 10, 50, 100], 5, lambda h, s: 1 + 20 * (s == 4) / h + 1 / h).assign(
+        problem="pendulum", knots=np.nan
+    )
     horizon.report(horizon_df, tmp_path)
     _assert_clean(saved)
 
@@ -271,12 +363,28 @@ def _comparison_table():
         for c in comparison.CONTROLLERS:
             for s in range(3):
                 paper = "paper" in c
-                rows.append({"status": "ok", "links": links, "controller": c, "seed": s, "record": False,
-                             "actual_cost": 10 * (1 + (50 * links if paper else 0.1 * (c != comparison.REFERENCE))),
-                             "final_error": 0.01, "solve_median": 1e-3 * links, "total_median": 2e-3 * links,
-                             "model_median": 1e-4, "hessian_condition": 1e3, "duration": 10.0, "population": 1024,
-                             "device": "cpu", "fallbacks": 0, "load": 1.0, "fallback_causes": "",
-                             "child_win_rate": np.nan})
+                rows.append(
+                    {
+                        "status": "ok",
+                        "links": links,
+                        "controller": c,
+                        "seed": s,
+                        "record": False,
+                        "actual_cost": 10 * (1 + (50 * links if paper else 0.1 * (c != comparison.REFERENCE))),
+                        "final_error": 0.01,
+                        "solve_median": 1e-3 * links,
+                        "total_median": 2e-3 * links,
+                        "model_median": 1e-4,
+                        "hessian_condition": 1e3,
+                        "duration": 10.0,
+                        "population": 1024,
+                        "device": "cpu",
+                        "fallbacks": 0,
+                        "load": 1.0,
+                        "fallback_causes": "",
+                        "child_win_rate": np.nan,
+                    }
+                )
     return pd.DataFrame(rows)
 
 
@@ -287,24 +395,48 @@ def test_comparison_report(saved, figures_only, tmp_path):
 
 def test_comparison_sample_response(saved, tmp_path):
     t = np.linspace(0, 10, 101)
-    trajs = {c: Trajectory(t=t, x=np.column_stack([np.sin(t + k) * (k + 1) for k in range(12)]),
-                           u=np.zeros((100, 6)), goal=np.ones(12)) for c in list(comparison.CONTROLLERS)[:3]}
-    comparison.responses(trajs, tmp_path / "sample",
-                         title="6-link robot, start/goal seed 0: joint angles (dotted: goals)")
+    trajs = {
+        c: Trajectory(
+            t=t, x=np.column_stack([np.sin(t + k) * (k + 1) for k in range(12)]), u=np.zeros((100, 6)), goal=np.ones(12)
+        )
+        for c in list(comparison.CONTROLLERS)[:3]
+    }
+    comparison.responses(
+        trajs, tmp_path / "sample", title="6-link robot, start/goal seed 0: joint angles (dotted: goals)"
+    )
     _assert_clean(saved)
 
 
 def test_keepout_report(saved, figures_only, tmp_path):
-    rows = [{"status": "ok", "controller": c, "seed": s, "actual_cost": 1000 * (1 + k + s), "penalty": 10.0,
-             "steps_inside": 3, "final_error": 0.01, "solve_median": 1e-3, "duration": 5.0, "population": 1024,
-             "device": "cpu", "fallbacks": 0, "load": 1.0} for k, c in enumerate(keepout.CONTROLLERS) for s in range(5)]
+    rows = [
+        {
+            "status": "ok",
+            "controller": c,
+            "seed": s,
+            "actual_cost": 1000 * (1 + k + s),
+            "penalty": 10.0,
+            "steps_inside": 3,
+            "final_error": 0.01,
+            "solve_median": 1e-3,
+            "duration": 5.0,
+            "population": 1024,
+            "device": "cpu",
+            "fallbacks": 0,
+            "load": 1.0,
+        }
+        for k, c in enumerate(keepout.CONTROLLERS)
+        for s in range(5)
+    ]
     keepout.report(pd.DataFrame(rows), tmp_path)
     _assert_clean(saved)
 
 
 def test_baxter_solve_time_histograms(saved, tmp_path):
     rng = np.random.default_rng(1)
-    times = {baxter.QP: rng.lognormal(-6, 0.3, 400), baxter.EMPC: rng.lognormal(-5.8, 0.3, 400),
-             baxter.EMPC_PAPER: rng.lognormal(-5.9, 0.3, 400)}
+    times = {
+        baxter.QP: rng.lognormal(-6, 0.3, 400),
+        baxter.EMPC: rng.lognormal(-5.8, 0.3, 400),
+        baxter.EMPC_PAPER: rng.lognormal(-5.9, 0.3, 400),
+    }
     baxter._histogram(times, pd.Series({c: 1e3 * np.median(t) for c, t in times.items()}), tmp_path / "h")
     _assert_clean(saved)

@@ -1,5 +1,6 @@
 """Issue 46, item 3: Solution.gains, the first input's feedback gain K = ∂u₀/∂x₀ of the solved QP, against central
 finite differences of u₀ over x₀ (the same QP re-solved cold from x₀ ± h e_i, its affine model held fixed)."""
+
 import numpy as np
 import pytest
 
@@ -15,10 +16,12 @@ def _spied(ctrl):
     """Record each QP build of ``ctrl`` (the transcription, its arguments, the QP) in ``ctrl.builds``."""
     ctrl.builds = []
     for tr in {id(t): t for t in (*ctrl._transcriptions, ctrl.transcription)}.values():
+
         def build(*args, _tr=tr, _build=tr.build, **kwargs):
             qp = _build(*args, **kwargs)
             ctrl.builds.append((_tr, _build, args, qp))
             return qp
+
         tr.build = build
     return ctrl
 
@@ -77,7 +80,7 @@ def test_gains_with_an_active_state_bound(form):
     res = ctrl._backend.solve(qp, None, None)
     upper, lower = active(qp, res.z, res.w)
     boxes = 0 if qp.box is None else len(qp.box)
-    state_rows = (upper | lower)[boxes:] if form == "condensed" else (upper | lower)[tr.u_rows.size:][:tr.x_rows.size]
+    state_rows = (upper | lower)[boxes:] if form == "condensed" else (upper | lower)[tr.u_rows.size :][: tr.x_rows.size]
     assert state_rows.any()
 
 

@@ -1,6 +1,7 @@
 """The population kernels loop over knots at run time (issue 31): the basis enters by its nonzeros per row, which
 must give the Parameterization's inputs, and traditional MPC's p = T = 100 knots build and step, on the arch of
 `pytest --arch`."""
+
 import numpy as np
 import pytest
 import taichi as ti
@@ -33,9 +34,7 @@ def test_staged_constants_upload_in_one_quiet_launch(capfd):
 
 
 def test_sparse_rows_hold_each_rows_nonzeros_in_column_order():
-    M = np.array([[0.0, 2.0, 0.0, -1.0],
-                  [0.0, 0.0, 0.0, 0.0],
-                  [3.0, 4.0, 5.0, 1e-300]])
+    M = np.array([[0.0, 2.0, 0.0, -1.0], [0.0, 0.0, 0.0, 0.0], [3.0, 4.0, 5.0, 1e-300]])
     rows = SparseRows(M)
     runtime.upload()
     columns, weights = rows.columns.to_numpy(), rows.weights.to_numpy()
@@ -107,7 +106,7 @@ def test_traditional_mpc_with_100_knots_builds_and_steps(cls):
         assert sol.knots.shape == (100, 3) and np.all(sol.knots >= ocp.u_min) and np.all(sol.knots <= ocp.u_max)
     population = ctrl.engine.knots.to_numpy()
     if cls is EvolutionaryMPC:  # the elites: the last step's parents shifted by the kernel's sparse S, as numpy does
-        np.testing.assert_array_equal(population[:ctrl.num_parents], ctrl._shifted(parents[:ctrl.num_parents]))
+        np.testing.assert_array_equal(population[: ctrl.num_parents], ctrl._shifted(parents[: ctrl.num_parents]))
     else:  # candidates 1 and 2: the seeds, clipped
         pre = ctrl.preconditioner
         np.testing.assert_array_equal(population[1:3], np.clip([pre.newton, pre.hold], ocp.u_min, ocp.u_max))

@@ -1,4 +1,5 @@
 """CasADi -> Taichi translation: the generated kernels evaluate exactly what CasADi evaluates."""
+
 import casadi as ca
 import numpy as np
 import pytest
@@ -30,15 +31,54 @@ def test_every_supported_operation_matches_casadi():
     x, y = ca.SX.sym("x"), ca.SX.sym("y")
     a = ca.fabs(x) + 0.5  # a positive argument for log, sqrt and pow
     c = ca.tanh(y) * 0.9  # in (-1, 1) for asin and acos
-    exprs = [x + y, x - y, x * y, x / (a + 1), -x, 2 * x, x ** 2, 1 / a, a ** y, ca.constpow(a, 2.5),
-             ca.sqrt(a), ca.exp(x), ca.log(a), ca.sin(x), ca.cos(x), ca.tan(c), ca.asin(c), ca.acos(c),
-             ca.atan(x), ca.atan2(x, y), ca.sinh(x), ca.cosh(x), ca.tanh(x), ca.hypot(x, y), ca.fabs(x),
-             ca.floor(3 * x), ca.ceil(3 * x), ca.fmin(x, y), ca.fmax(x, y), ca.sign(x), ca.copysign(x, y),
-             x < y, x <= y, x == ca.floor(x), x != y, ca.logic_not(x > 0), ca.logic_and(x > 0, y > 0),
-             ca.logic_or(x > 0, y > 0), ca.if_else(x > y, x * y, x - y), ca.if_else(x > 0, 1.5, -2.0)]
+    exprs = [
+        x + y,
+        x - y,
+        x * y,
+        x / (a + 1),
+        -x,
+        2 * x,
+        x**2,
+        1 / a,
+        a**y,
+        ca.constpow(a, 2.5),
+        ca.sqrt(a),
+        ca.exp(x),
+        ca.log(a),
+        ca.sin(x),
+        ca.cos(x),
+        ca.tan(c),
+        ca.asin(c),
+        ca.acos(c),
+        ca.atan(x),
+        ca.atan2(x, y),
+        ca.sinh(x),
+        ca.cosh(x),
+        ca.tanh(x),
+        ca.hypot(x, y),
+        ca.fabs(x),
+        ca.floor(3 * x),
+        ca.ceil(3 * x),
+        ca.fmin(x, y),
+        ca.fmax(x, y),
+        ca.sign(x),
+        ca.copysign(x, y),
+        x < y,
+        x <= y,
+        x == ca.floor(x),
+        x != y,
+        ca.logic_not(x > 0),
+        ca.logic_and(x > 0, y > 0),
+        ca.logic_or(x > 0, y > 0),
+        ca.if_else(x > y, x * y, x - y),
+        ca.if_else(x > 0, 1.5, -2.0),
+    ]
     f = ca.Function("ops", [x, y], [ca.vertcat(*exprs)])
-    ops = {name for name in dir(ca) if name.startswith("OP_")
-           and any(f.instruction_id(k) == getattr(ca, name) for k in range(f.n_instructions()))}
+    ops = {
+        name
+        for name in dir(ca)
+        if name.startswith("OP_") and any(f.instruction_id(k) == getattr(ca, name) for k in range(f.n_instructions()))
+    }
     assert ops <= set(SUPPORTED_OPERATIONS)
     inputs = _random_inputs(f, seed=0, batch=64, scale=2.0)
     inputs[0][:4] = np.array([0.0, 1.0, -2.0, 3.0]).reshape(4, 1, 1)  # exact ties for ==, floor, sign
@@ -89,7 +129,7 @@ def test_non_smooth_cost_matches_casadi():
 
 def test_float32_translation_is_close():
     x = ca.SX.sym("x", 2)
-    f = ca.Function("f", [x], [ca.sin(x[0]) * x[1] + ca.exp(-x[1] ** 2)])
+    f = ca.Function("f", [x], [ca.sin(x[0]) * x[1] + ca.exp(-(x[1] ** 2))])
     (got,) = translate(f, precision="float32")(np.array([[[0.3], [1.2]]]))
     np.testing.assert_allclose(got[0], np.array(f([0.3, 1.2])), rtol=1e-6)
 

@@ -1,4 +1,5 @@
 """Forward kinematics of named frames against pinocchio, and the spheres that approximate a robot."""
+
 from __future__ import annotations
 
 from functools import lru_cache
@@ -9,15 +10,19 @@ import pinocchio as pin
 import pytest
 
 from ocpkit import Problem
-from ocpkit.model.kinematics import (Kinematics, RobotSphere, collision_spheres, sphere_centers,
-                               spheres_along_links)
+from ocpkit.model.kinematics import Kinematics, RobotSphere, collision_spheres, sphere_centers, spheres_along_links
 from ocpkit.problems import make
 from ocpkit.problems.panda import urdf_path as panda_urdf
 
 PANDA = panda_urdf()
 TOL = 1e-9
-ROBOTS = {"panda": lambda: Problem.from_urdf(PANDA), "puma560": lambda: make("puma560"),
-          "baxter": lambda: make("baxter"), "nlink3": lambda: make("nlink:3"), "nlink7": lambda: make("nlink:7")}
+ROBOTS = {
+    "panda": lambda: Problem.from_urdf(PANDA),
+    "puma560": lambda: make("puma560"),
+    "baxter": lambda: make("baxter"),
+    "nlink3": lambda: make("nlink:3"),
+    "nlink7": lambda: make("nlink:7"),
+}
 
 
 @lru_cache(maxsize=None)
@@ -95,8 +100,12 @@ def test_a_model_without_frames_gets_one_per_joint_and_a_tree_with_prismatic_una
     """Joints built with addJoint alone (no frames), unaligned revolute and prismatic axes, a branch."""
     rng = np.random.default_rng(3)
     model = pin.Model()
-    joints = [pin.JointModelRevoluteUnaligned(np.array([1.0, 2.0, 2.0]) / 3), pin.JointModelPX(),
-              pin.JointModelPrismaticUnaligned(np.array([0.0, 0.6, 0.8])), pin.JointModelRY()]
+    joints = [
+        pin.JointModelRevoluteUnaligned(np.array([1.0, 2.0, 2.0]) / 3),
+        pin.JointModelPX(),
+        pin.JointModelPrismaticUnaligned(np.array([0.0, 0.6, 0.8])),
+        pin.JointModelRY(),
+    ]
     for i, (joint, parent) in enumerate(zip(joints, (0, 1, 2, 1))):
         placement = pin.SE3(pin.rpy.rpyToMatrix(*rng.uniform(-np.pi, np.pi, 3)), rng.uniform(-0.3, 0.3, 3))
         model.addJoint(parent, joint, placement, f"j{i}")
@@ -173,7 +182,7 @@ def test_spheres_along_links_options():
     assert not any(s.frame in ("joint5", "joint6") for s in spheres)
     only = spheres_along_links(kin, 0.1, frames=["joint2"])
     assert only and {s.frame for s in only} == {"joint2"}
-    np.testing.assert_allclose(only[-1].offset, [0.4318, 0.0, 0.0], atol=TOL)    # the end stays: joint3 is left out
+    np.testing.assert_allclose(only[-1].offset, [0.4318, 0.0, 0.0], atol=TOL)  # the end stays: joint3 is left out
     with pytest.raises(ValueError, match="spacing must be <= 2"):
         spheres_along_links(kin, 0.1, spacing=0.25)
     with pytest.raises(ValueError, match="'joint6' starts no segment"):
@@ -186,8 +195,11 @@ def test_spheres_along_links_options():
 
 def test_sphere_centers_match_placements():
     kin = _robot("baxter").kinematics
-    spheres = [RobotSphere("right_gripper", (0.0, 0.0, 0.0), 0.05), RobotSphere("right_e1", (0.1, -0.2, 0.3), 0.1),
-               RobotSphere("base", (1.0, 2.0, 3.0), 0.2)]
+    spheres = [
+        RobotSphere("right_gripper", (0.0, 0.0, 0.0), 0.05),
+        RobotSphere("right_e1", (0.1, -0.2, 0.3), 0.1),
+        RobotSphere("base", (1.0, 2.0, 3.0), 0.2),
+    ]
     f = sphere_centers(kin, spheres)
     assert f.name() == "sphere_centers" and f.size_out(0) == (3, 3)
     q = np.random.default_rng(5).uniform(-1, 1, kin.n)
@@ -233,11 +245,11 @@ def _samples(shape, rng, count=400):
     kind, dims = shape
     u = rng.uniform(-1, 1, (count, 3))
     if kind == "box":
-        u[: count // 2] = np.sign(u[: count // 2])            # corners and edges too
+        u[: count // 2] = np.sign(u[: count // 2])  # corners and edges too
         return u * np.asarray(dims) / 2
     r, length = dims
     angle = rng.uniform(0, 2 * np.pi, count)
-    rho = np.where(np.arange(count) % 2, r, r * np.sqrt(rng.uniform(0, 1, count)))   # rim and interior
+    rho = np.where(np.arange(count) % 2, r, r * np.sqrt(rng.uniform(0, 1, count)))  # rim and interior
     z = np.where(np.arange(count) % 3 == 0, np.sign(u[:, 2]) * length / 2, u[:, 2] * length / 2)
     return np.c_[rho * np.cos(angle), rho * np.sin(angle), z]
 
@@ -249,15 +261,16 @@ def test_collision_spheres_cover_cylinders_boxes_and_spheres(tmp_path, radius):
     kin = Kinematics(pin.buildModelFromUrdf(str(path)))
     spheres = collision_spheres(path, kin, radius=radius)
     assert {s.frame for s in spheres} == {"upper", "fore"}
-    assert RobotSphere("fore", (0.25, 0.0, 0.0), 0.06) in spheres          # a <sphere> is itself
-    if radius is None:                                                     # √2·r, spaced 2r along the axis
+    assert RobotSphere("fore", (0.25, 0.0, 0.0), 0.06) in spheres  # a <sphere> is itself
+    if radius is None:  # √2·r, spaced 2r along the axis
         upper = [s for s in spheres if s.frame == "upper"]
-        np.testing.assert_allclose([s.offset for s in upper], [[0, 0, z] for z in (0.05, 0.15, 0.25, 0.35)],
-                                   atol=TOL)
+        np.testing.assert_allclose([s.offset for s in upper], [[0, 0, z] for z in (0.05, 0.15, 0.25, 0.35)], atol=TOL)
         np.testing.assert_allclose([s.radius for s in upper], np.hypot(0.05, 0.05))
-    primitives = [("upper", ("cylinder", (0.05, 0.4)), np.eye(3), [0, 0, 0.2]),
-                  ("fore", ("cylinder", (0.04, 0.2)), _rpy(0, np.pi / 2, 0), [0.1, 0, 0]),
-                  ("fore", ("box", (0.1, 0.05, 0.3)), _rpy(0.3, 0.2, 0.1), [0.1, 0.05, 0])]
+    primitives = [
+        ("upper", ("cylinder", (0.05, 0.4)), np.eye(3), [0, 0, 0.2]),
+        ("fore", ("cylinder", (0.04, 0.2)), _rpy(0, np.pi / 2, 0), [0.1, 0, 0]),
+        ("fore", ("box", (0.1, 0.05, 0.3)), _rpy(0.3, 0.2, 0.1), [0.1, 0.05, 0]),
+    ]
     rng = np.random.default_rng(0)
     for link, shape, R, t in primitives:
         points = _samples(shape, rng) @ R.T + np.asarray(t)
@@ -301,17 +314,21 @@ def test_end_effectors_where_expected():
     assert _robot("panda").end_effector == "panda_hand_tcp"
     assert _robot("baxter").end_effector == "right_gripper"
     nlink = _robot("nlink3")
-    np.testing.assert_allclose(np.asarray(nlink.kinematics.position(np.zeros(3), "tip")).ravel(), [0.75, 0, 0],
-                               atol=TOL)
-    puma = _robot("puma560").kinematics           # a spherical wrist: the tool's origin ignores q4 … q6
+    np.testing.assert_allclose(
+        np.asarray(nlink.kinematics.position(np.zeros(3), "tip")).ravel(), [0.75, 0, 0], atol=TOL
+    )
+    puma = _robot("puma560").kinematics  # a spherical wrist: the tool's origin ignores q4 … q6
     q = np.random.default_rng(4).uniform(-1, 1, 6)
     q2 = q.copy()
     q2[3:] += 0.5
     np.testing.assert_allclose(np.asarray(puma.position(q, "tool")), np.asarray(puma.position(q2, "tool")), atol=TOL)
-    arm = Problem.from_urdf(PANDA, end_effector="panda_link8", locked_joints=["panda_finger_joint1",
-                                                                              "panda_finger_joint2"])
+    arm = Problem.from_urdf(
+        PANDA, end_effector="panda_link8", locked_joints=["panda_finger_joint1", "panda_finger_joint2"]
+    )
     assert arm.end_effector == "panda_link8"
-    assert Problem.from_urdf(PANDA, locked_joints=["panda_finger_joint1", "panda_finger_joint2"]).end_effector \
+    assert (
+        Problem.from_urdf(PANDA, locked_joints=["panda_finger_joint1", "panda_finger_joint2"]).end_effector
         == "panda_hand_tcp"
+    )
     with pytest.raises(ValueError, match="end_effector 'hand' is not a frame"):
         Problem.from_urdf(PANDA, end_effector="hand")

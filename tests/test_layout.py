@@ -21,6 +21,7 @@ A module may import modules of its own unit and of units in lower layers, at mod
 alike (``if TYPE_CHECKING:`` imports count too). The one exception is ``ocpkit/__init__.py``'s ``__getattr__``: the
 public API (``from ocpkit import OCP, LinearMPC, …``), imported on first use, is the facade over every layer.
 """
+
 import ast
 import subprocess
 import sys
@@ -45,8 +46,12 @@ LAYERS = (
     {"cli": ("ocpkit.cli",)},
     {"benchmarks": ("ocpkit.benchmarks",)},
 )
-PACKAGES = {"ocpkit": ocpkit, "ocpkit.problems": ocpkit.problems, "ocpkit.solvers": ocpkit.solvers,
-            "ocpkit.studies": ocpkit.studies}
+PACKAGES = {
+    "ocpkit": ocpkit,
+    "ocpkit.problems": ocpkit.problems,
+    "ocpkit.solvers": ocpkit.solvers,
+    "ocpkit.studies": ocpkit.studies,
+}
 PUBLIC = ("OCP", "LinearMPC", "NonlinearMPC", "EvolutionaryMPC", "simulate", "make", "Model", "Problem", "URDFRobot")
 
 
@@ -73,7 +78,8 @@ def _unit(name: str) -> tuple[int, str]:
         for unit, prefixes in units.items():
             for prefix in prefixes:
                 if (name == prefix or (prefix != "ocpkit" and name.startswith(prefix + "."))) and (
-                        best is None or len(prefix) > best[2]):
+                    best is None or len(prefix) > best[2]
+                ):
                     best = (layer, unit, len(prefix))
     assert best is not None, f"{name} is in no layer: add it to LAYERS in {__file__}"
     return best[:2]
@@ -84,8 +90,9 @@ def _imports(name: str, path: Path):
     tree = ast.parse(path.read_text())
     facade = set()
     if name == "ocpkit":
-        facade = {id(n) for f in tree.body if isinstance(f, ast.FunctionDef) and f.name == "__getattr__"
-                  for n in ast.walk(f)}
+        facade = {
+            id(n) for f in tree.body if isinstance(f, ast.FunctionDef) and f.name == "__getattr__" for n in ast.walk(f)
+        }
     package = path.name == "__init__.py"
     for node in ast.walk(tree):
         if id(node) in facade:
@@ -96,7 +103,7 @@ def _imports(name: str, path: Path):
             base = node.module or ""
             if node.level:
                 parts = name.split(".") if package else name.split(".")[:-1]
-                base = ".".join(parts[:len(parts) - node.level + 1] + ([base] if base else []))
+                base = ".".join(parts[: len(parts) - node.level + 1] + ([base] if base else []))
             if base.split(".")[0] != "ocpkit":
                 continue
             for alias in node.names:
@@ -130,8 +137,10 @@ def test_imports_flow_downward():
         for target, line in edges.items():
             their_layer, their_unit = _unit(target)
             if their_unit != unit and their_layer >= layer:
-                wrong.append(f"{MODULES[name].name} ({name}, {unit}):{line} imports {target} ({their_unit}, "
-                             f"layer {their_layer} >= {layer})")
+                wrong.append(
+                    f"{MODULES[name].name} ({name}, {unit}):{line} imports {target} ({their_unit}, "
+                    f"layer {their_layer} >= {layer})"
+                )
     assert not wrong, "\n".join(wrong)
 
 
@@ -180,11 +189,14 @@ def test_no_import_circles():
 
 
 def test_the_public_api_is_importable_from_the_package_and_loads_on_first_use():
-    code = ("import sys, ocpkit; light = sorted(m for m in sys.modules if m.startswith('ocpkit.')); "
-            f"from ocpkit import {', '.join(PUBLIC)}; print(light, sorted(ocpkit.__all__))")
+    code = (
+        "import sys, ocpkit; light = sorted(m for m in sys.modules if m.startswith('ocpkit.')); "
+        f"from ocpkit import {', '.join(PUBLIC)}; print(light, sorted(ocpkit.__all__))"
+    )
     # cwd outside the checkout, whose ocpkit/ would shadow the installed package (`python -c` puts the cwd first)
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
-                         cwd=Path(__file__).parent).stdout.split("\n")[0]
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=Path(__file__).parent
+    ).stdout.split("\n")[0]
     assert out == f"[] {sorted(PUBLIC)}"
     from ocpkit import EvolutionaryMPC, LinearMPC, NonlinearMPC, make, simulate
     from ocpkit.problems import make as make_problem
@@ -192,6 +204,7 @@ def test_the_public_api_is_importable_from_the_package_and_loads_on_first_use():
     from ocpkit.solvers.empc import EvolutionaryMPC as EMPC
     from ocpkit.solvers.nlp import NonlinearMPC as NMPC
     from ocpkit.solvers.qp import LinearMPC as LMPC
+
     assert (make, simulate, LinearMPC, NonlinearMPC, EvolutionaryMPC) == (make_problem, simulate_loop, LMPC, NMPC, EMPC)
     with pytest.raises(AttributeError, match="no attribute 'nope'"):
         ocpkit.nope  # noqa: B018

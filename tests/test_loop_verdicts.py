@@ -1,4 +1,5 @@
 """Loop-level verdicts (issue 43): reached, stalled or moving; soft steps and successes the plant contradicts."""
+
 import numpy as np
 import pytest
 
@@ -9,22 +10,30 @@ from ocpkit.solvers.qp import LinearMPC
 from ocpkit.model.task import Sphere, reach
 
 ARM = problems.make("nlink:3")  # planar, three 0.25 m links: the tip reaches 0.75 m from the base
-CLEARANCE = "DAQP optimal; soft: clearance (robot sphere 2, obstacle 0) violated by 0.012 at x_3 of the plan on the " \
-            "nonlinear model"
+CLEARANCE = (
+    "DAQP optimal; soft: clearance (robot sphere 2, obstacle 0) violated by 0.012 at x_3 of the plan on the "
+    "nonlinear model"
+)
 BOUND = "DAQP optimal; soft: state bound x[4] violated by 0.2 at x_1 of the plan on the nonlinear model"
 
 
 def _step(status=SUCCESS, raw="", fallback=False, reason=None) -> Solution:
-    return Solution(u=np.zeros(1), knots=np.zeros((1, 1)), status=status, raw_status=raw, fallback=fallback,
-                    reason=reason)
+    return Solution(
+        u=np.zeros(1), knots=np.zeros((1, 1)), status=status, raw_status=raw, fallback=fallback, reason=reason
+    )
 
 
 def _trajectory(x, steps=None, goal=None) -> Trajectory:
     x = np.asarray(x, dtype=float)
     x = x[:, None] if x.ndim == 1 else x
     steps = steps or [_step() for _ in range(len(x) - 1)]
-    return Trajectory(t=0.01 * np.arange(len(x)), x=x, u=np.zeros((len(x) - 1, 1)),
-                      goal=np.zeros(x.shape[1]) if goal is None else goal, solutions=steps)
+    return Trajectory(
+        t=0.01 * np.arange(len(x)),
+        x=x,
+        u=np.zeros((len(x) - 1, 1)),
+        goal=np.zeros(x.shape[1]) if goal is None else goal,
+        solutions=steps,
+    )
 
 
 def test_verdicts_on_a_joint_goal():
@@ -66,8 +75,13 @@ def test_progress_names_what_is_missing():
 
 
 def test_soft_steps_are_counted_apart_from_successes_and_fallbacks():
-    steps = [_step(), _step(SOFT, CLEARANCE, reason=Reason.CLEARANCE), _step(SOFT, CLEARANCE, reason=Reason.CLEARANCE),
-             _step(SOFT, BOUND, reason=Reason.STATE_BOUND), _step(LIMITED, "iteration limit", fallback=True)]
+    steps = [
+        _step(),
+        _step(SOFT, CLEARANCE, reason=Reason.CLEARANCE),
+        _step(SOFT, CLEARANCE, reason=Reason.CLEARANCE),
+        _step(SOFT, BOUND, reason=Reason.STATE_BOUND),
+        _step(LIMITED, "iteration limit", fallback=True),
+    ]
     traj = _trajectory(np.zeros(6), steps)
     assert (traj.successes, traj.soft_steps, traj.fallbacks) == (1, 3, 1)
     assert traj.soft_causes() == "clearance 2, state bound 1" and traj.fallback_causes() == "limited 1"

@@ -14,7 +14,6 @@ from ocpkit.qp.sparse import SparseQP
 from ocpkit.qp.transcription import CondensedQP
 
 
-
 def _ocp(model, T=7, p=3, kind="linear", dense_Q=False, bounds=True):
     n, m = model.nx, model.nu
     Q = np.eye(n)
@@ -22,8 +21,18 @@ def _ocp(model, T=7, p=3, kind="linear", dense_Q=False, bounds=True):
         M = np.random.default_rng(3).normal(size=(n, n))
         Q = M @ M.T + np.eye(n)
     kw = dict(x_min=-np.r_[2.0, np.full(n - 1, np.inf)], x_max=np.r_[2.0, np.full(n - 1, np.inf)]) if bounds else {}
-    return OCP(model, 0.01, T, Q, 0.1 * np.eye(m), Q_terminal=3 * Q, u_min=-np.ones(m), u_max=np.ones(m),
-               parameterization=Parameterization.make(kind, T, p), **kw)
+    return OCP(
+        model,
+        0.01,
+        T,
+        Q,
+        0.1 * np.eye(m),
+        Q_terminal=3 * Q,
+        u_min=-np.ones(m),
+        u_max=np.ones(m),
+        parameterization=Parameterization.make(kind, T, p),
+        **kw,
+    )
 
 
 def _stages(n, m, T, seed):
@@ -81,8 +90,7 @@ def test_sparse_and_condensed_ltv_reach_the_same_optimum():
     knots = []
     for tr in (SparseQP(ocp), CondensedQP(ocp)):
         qp = tr.build(Ad, Bd, wd, x0, goal)
-        H, g, A, b, C, l, u = (M.toarray() if sp.issparse(M) else M for M in
-                                (qp.P, qp.q, qp.A, qp.b, qp.C, qp.l, qp.u))
+        H, g, A, b, C, l, u = (M.toarray() if sp.issparse(M) else M for M in (qp.P, qp.q, qp.A, qp.b, qp.C, qp.l, qp.u))
         solver = proxsuite.proxqp.dense.QP(qp.n, b.size, l.size)
         solver.settings.eps_abs, solver.settings.verbose = 1e-11, False
         solver.init(H, g, A if b.size else None, b if b.size else None, C, l, u)
@@ -144,8 +152,9 @@ def test_compiled_and_threaded_per_stage_models_equal_the_sx_ones(tmp_path, monk
         for a, b in zip(fast.affine_models(xs, us), ref):
             np.testing.assert_allclose(a, b, rtol=0, atol=1e-10)
     x0, goal = prob.sample(0)
-    trajs = [simulate(prob.plant(), LinearMPC(ocp, linearization="trajectory"), x0, goal, 0.1)
-             for ocp in (plain, compiled)]
+    trajs = [
+        simulate(prob.plant(), LinearMPC(ocp, linearization="trajectory"), x0, goal, 0.1) for ocp in (plain, compiled)
+    ]
     np.testing.assert_allclose(trajs[1].u, trajs[0].u, rtol=0, atol=1e-10)
 
 
@@ -174,11 +183,12 @@ def test_sparse_and_condensed_ltv_controllers_agree_in_closed_loop():
     prob = make("nlink:2")
     ocp = prob.ocp(knots=4)
     x0, goal = prob.sample(1)
-    trajs = [simulate(prob.plant(), LinearMPC(ocp, form=form, linearization="trajectory"), x0, goal, 0.2)
-             for form in ("condensed", "sparse")]
+    trajs = [
+        simulate(prob.plant(), LinearMPC(ocp, form=form, linearization="trajectory"), x0, goal, 0.2)
+        for form in ("condensed", "sparse")
+    ]
     assert all(t.fallbacks == 0 for t in trajs)
     np.testing.assert_allclose(trajs[0].u, trajs[1].u, atol=1e-5)
-
 
 
 def test_cartpole_swing_up_needs_the_trajectory_linearization(cartpole):

@@ -11,8 +11,12 @@ from ocpkit.problems import make
 def test_linear_model_uses_exact_zoh_matching_python_control():
     model = random_lti(3, 4, 2)
     assert model.linear
-    A, B = (np.asarray(M) for M in ca.Function("j", [model.x, model.u], [ca.jacobian(model.xdot, model.x),
-                                                                         ca.jacobian(model.xdot, model.u)])(0, 0))
+    A, B = (
+        np.asarray(M)
+        for M in ca.Function(
+            "j", [model.x, model.u], [ca.jacobian(model.xdot, model.x), ca.jacobian(model.xdot, model.u)]
+        )(0, 0)
+    )
     sysd = control.c2d(control.ss(A, B, np.eye(4), 0), 0.05, method="zoh")
     Ad, Bd, wd = (np.asarray(M) for M in model.affine(0.05)(np.zeros(4), np.zeros(2)))
     np.testing.assert_allclose(Ad, sysd.A, atol=1e-12)
@@ -86,10 +90,10 @@ def test_second_order_state_is_read_from_the_expression():
     x, u = ca.SX.sym("x", 4), ca.SX.sym("u", 2)
     assert make("puma560").model().second_order == 6 and make("pendulum").plant().second_order == 1
     assert Model("m", x, u, ca.vertcat(x[2:], u - x[:2])).second_order == 2
-    assert Model("m", x, u, ca.vertcat(2 * x[2:], u)).second_order is None      # ẋ[:2] is not q̇ itself
-    assert Model("m", x, u, ca.vertcat(x[3], x[2], u)).second_order is None      # … nor in its order
+    assert Model("m", x, u, ca.vertcat(2 * x[2:], u)).second_order is None  # ẋ[:2] is not q̇ itself
+    assert Model("m", x, u, ca.vertcat(x[3], x[2], u)).second_order is None  # … nor in its order
     y = ca.SX.sym("y", 3)
-    assert Model("m", y, u[:1], ca.vertcat(y[1:], u[0])).second_order is None    # odd state size
+    assert Model("m", y, u[:1], ca.vertcat(y[1:], u[0])).second_order is None  # odd state size
 
 
 def test_euler_steps_by_hand():
@@ -102,19 +106,25 @@ def test_euler_steps_by_hand():
     z, v = ca.SX.sym("z", 3), ca.SX.sym("v", 1)
     model = Model("m", z, v, ca.vertcat(ca.sin(z[1]), z[2] * z[0], v - z[0] ** 2))
     x, u = np.array([0.3, -1.0, 2.0]), np.array([0.5])
-    np.testing.assert_array_equal(np.asarray(model.discrete(h, 1, "euler")(x, u)).ravel(),
-                                  x + h * np.asarray(model.f(x, u)).ravel())
+    np.testing.assert_array_equal(
+        np.asarray(model.discrete(h, 1, "euler")(x, u)).ravel(), x + h * np.asarray(model.f(x, u)).ravel()
+    )
     half = x + h / 2 * np.asarray(model.f(x, u)).ravel()  # two sub-steps of h/2
-    np.testing.assert_allclose(np.asarray(model.discrete(h, 2, "euler")(x, u)).ravel(),
-                               half + h / 2 * np.asarray(model.f(half, u)).ravel(), rtol=1e-15)
+    np.testing.assert_allclose(
+        np.asarray(model.discrete(h, 2, "euler")(x, u)).ravel(),
+        half + h / 2 * np.asarray(model.f(half, u)).ravel(),
+        rtol=1e-15,
+    )
 
 
 def test_euler_is_first_order_and_rk4_fourth():
     model = make("nlink:3").plant()
     x, u, dt = np.array([0.5, -1.0, 0.8, 2.0, -1.0, 0.5]), np.array([1.0, -0.5, 0.2]), 0.02
     exact = np.asarray(model.rk4(dt, 64)(x, u)).ravel()
-    err = {i: [np.abs(np.asarray(model.discrete(dt, s, i)(x, u)).ravel() - exact).max() for s in (2, 4)]
-           for i in ("euler", "rk4")}
+    err = {
+        i: [np.abs(np.asarray(model.discrete(dt, s, i)(x, u)).ravel() - exact).max() for s in (2, 4)]
+        for i in ("euler", "rk4")
+    }
     # over the step dt, s sub-steps of local error O(h²) (Euler) or O(h⁵) (RK4): ÷2 and ÷16 per halving of h
     assert 1.8 < err["euler"][0] / err["euler"][1] < 2.2
     assert 14 < err["rk4"][0] / err["rk4"][1] < 18
@@ -125,8 +135,9 @@ def test_linear_model_keeps_exact_zoh_whatever_the_integrator():
     x, u = np.array([0.2, -1.0, 0.4]), np.array([0.7])
     for a, b in zip(model.affine(0.05, 1, "euler")(x, u), model.affine(0.05)(x, u)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
-    np.testing.assert_array_equal(np.asarray(model.discrete(0.05, 3, "euler")(x, u)),
-                                  np.asarray(model.discrete(0.05)(x, u)))
+    np.testing.assert_array_equal(
+        np.asarray(model.discrete(0.05, 3, "euler")(x, u)), np.asarray(model.discrete(0.05)(x, u))
+    )
 
 
 def test_integrator_option_of_model_ocp_and_problem():

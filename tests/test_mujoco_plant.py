@@ -1,4 +1,5 @@
 """MuJoCo as the plant: the same closed loops as ocpkit's own plant, MuJoCo's extra effects, clear errors."""
+
 import json
 import re
 import sys
@@ -101,8 +102,10 @@ def test_pendulum_with_an_mjcf(tmp_path):
     """The pendulum is an ODE, not a Chain: with an MJCF of it (a point mass 0.5 m below a hinge about y, so that
     gravity pulls it towards q = 0, as m g l sin q does) MuJoCo follows its plant under a varying input."""
     path = tmp_path / "pendulum.xml"
-    path.write_text('<mujoco><worldbody><body><joint name="swing" type="hinge" axis="0 1 0" damping="0.1"/>'
-                    '<inertial pos="0 0 -0.5" mass="1" diaginertia="1e-12 1e-12 1e-12"/></body></worldbody></mujoco>')
+    path.write_text(
+        '<mujoco><worldbody><body><joint name="swing" type="hinge" axis="0 1 0" damping="0.1"/>'
+        '<inertial pos="0 0 -0.5" mass="1" diaginertia="1e-12 1e-12 1e-12"/></body></worldbody></mujoco>'
+    )
     problem = make("pendulum")
     ours, theirs = problem.plant().rk4(0.01, 10), MuJoCoPlant(problem, mjcf=path, joint_map=["swing"]).stepper(0.01, 10)
     x = y = np.array([1.0, 0.0])
@@ -154,17 +157,20 @@ def test_generated_robot_must_match_the_problems_dynamics():
         MuJoCoPlant(Heavier(2))
 
 
-@pytest.mark.parametrize("kwargs,error,message", [
-    ({"integrator": "verlet"}, ValueError, "integrator must be one of"),
-    ({"frictionloss": -1.0}, ValueError, "frictionloss must be a finite scalar or 2 values >= 0"),
-    ({"armature": [1.0, 2.0, 3.0]}, ValueError, "armature must be a finite scalar or 2 values >= 0"),
-    ({"ctrlrange": (1.0, -1.0)}, ValueError, "ctrlrange must have low < high"),
-    ({"ctrlrange": 2.0}, ValueError, "ctrlrange must be \\(low, high\\)"),
-    ({"floor": "low"}, TypeError, "floor must be a height in m"),
-    ({"limits": "yes"}, TypeError, "limits must be True, False or None"),
-    ({"joint_map": ["a", "b"]}, ValueError, "joint_map names the joints of an MJCF file: give mjcf= too"),
-    ({"mjcf": "no_such.xml"}, ValueError, "mjcf: no such file 'no_such.xml'"),
-])
+@pytest.mark.parametrize(
+    "kwargs,error,message",
+    [
+        ({"integrator": "verlet"}, ValueError, "integrator must be one of"),
+        ({"frictionloss": -1.0}, ValueError, "frictionloss must be a finite scalar or 2 values >= 0"),
+        ({"armature": [1.0, 2.0, 3.0]}, ValueError, "armature must be a finite scalar or 2 values >= 0"),
+        ({"ctrlrange": (1.0, -1.0)}, ValueError, "ctrlrange must have low < high"),
+        ({"ctrlrange": 2.0}, ValueError, "ctrlrange must be \\(low, high\\)"),
+        ({"floor": "low"}, TypeError, "floor must be a height in m"),
+        ({"limits": "yes"}, TypeError, "limits must be True, False or None"),
+        ({"joint_map": ["a", "b"]}, ValueError, "joint_map names the joints of an MJCF file: give mjcf= too"),
+        ({"mjcf": "no_such.xml"}, ValueError, "mjcf: no such file 'no_such.xml'"),
+    ],
+)
 def test_bad_options(kwargs, error, message):
     with pytest.raises(error, match=message):
         MuJoCoPlant("nlink:2", **kwargs)
@@ -173,11 +179,13 @@ def test_bad_options(kwargs, error, message):
 def test_bad_joint_maps(tmp_path):
     path = tmp_path / "two_links.xml"
     path.write_text(NLINK2)
-    for joint_map, message in ((None, "the MJCF has no joint 'joint1'; its joints: shoulder, elbow"),
-                               (["shoulder"], "joint_map must be 2 MJCF joint names"),
-                               ({"joint1": "shoulder", "wrist": "elbow"}, "joint_map names 'wrist'"),
-                               ({"joint1": "shoulder"}, "no MJCF joint for the problem's joint 'joint2'"),
-                               (["shoulder", "shoulder"], "names an MJCF joint twice")):
+    for joint_map, message in (
+        (None, "the MJCF has no joint 'joint1'; its joints: shoulder, elbow"),
+        (["shoulder"], "joint_map must be 2 MJCF joint names"),
+        ({"joint1": "shoulder", "wrist": "elbow"}, "joint_map names 'wrist'"),
+        ({"joint1": "shoulder"}, "no MJCF joint for the problem's joint 'joint2'"),
+        (["shoulder", "shoulder"], "names an MJCF joint twice"),
+    ):
         with pytest.raises(ValueError, match=message):
             MuJoCoPlant("nlink:2", mjcf=path, joint_map=joint_map)
     path.write_text("<mujoco><worldbody><body></mujoco>")
@@ -216,15 +224,18 @@ def test_cli_simulate_on_mujoco(tmp_path, capsys):
     assert abs(mapped["actual_cost"] - ours["actual_cost"]) < 1e-8 * ours["actual_cost"]
 
 
-@pytest.mark.parametrize("extra,message", [
-    (["--mjcf", "x.xml"], "--mjcf applies to --plant mujoco only"),
-    (["--frictionloss", "0.5"], "--frictionloss applies to --plant mujoco only"),
-    (["--mujoco-integrator", "implicit"], "--mujoco-integrator applies to --plant mujoco only"),
-    (["--plant", "mujoco", "--armature", "-1"], "armature must be a finite scalar"),
-    (["--plant", "mujoco", "--joint-map", "a,b"], "--joint-map names the joints of an MJCF file: give --mjcf too"),
-    (["--plant", "mujoco", "--mjcf", "x.xml", "--joint-map", "joint1=a,b"], "--joint-map must be MJCF joint names"),
-    (["--plant", "mujoco"], "'pendulum' has no rigid-body description"),
-])
+@pytest.mark.parametrize(
+    "extra,message",
+    [
+        (["--mjcf", "x.xml"], "--mjcf applies to --plant mujoco only"),
+        (["--frictionloss", "0.5"], "--frictionloss applies to --plant mujoco only"),
+        (["--mujoco-integrator", "implicit"], "--mujoco-integrator applies to --plant mujoco only"),
+        (["--plant", "mujoco", "--armature", "-1"], "armature must be a finite scalar"),
+        (["--plant", "mujoco", "--joint-map", "a,b"], "--joint-map names the joints of an MJCF file: give --mjcf too"),
+        (["--plant", "mujoco", "--mjcf", "x.xml", "--joint-map", "joint1=a,b"], "--joint-map must be MJCF joint names"),
+        (["--plant", "mujoco"], "'pendulum' has no rigid-body description"),
+    ],
+)
 def test_cli_plant_errors_are_one_line(extra, message, tmp_path, capsys):
     problem = "pendulum" if extra == ["--plant", "mujoco"] else "nlink:2"
     assert main(["simulate", problem, "--duration", "0.1", "--out", str(tmp_path / "f.png"), *extra]) == 2
@@ -243,9 +254,30 @@ def test_cli_mujoco_options_reach_the_plant(tmp_path, capsys):
 
     assert cli.MUJOCO_INTEGRATORS == INTEGRATORS
     options = {"frictionloss": 0.5, "armature": 0.01, "floor": -1.0, "integrator": "implicit"}
-    assert main(["simulate", "nlink:2", "--duration", "0.2", "--out", str(tmp_path / "f.png"), "--json", "--plant",
-                 "mujoco", "--frictionloss", "0.5", "--armature", "0.01", "--floor", "-1", "--mujoco-integrator",
-                 "implicit"]) == 0
+    assert (
+        main(
+            [
+                "simulate",
+                "nlink:2",
+                "--duration",
+                "0.2",
+                "--out",
+                str(tmp_path / "f.png"),
+                "--json",
+                "--plant",
+                "mujoco",
+                "--frictionloss",
+                "0.5",
+                "--armature",
+                "0.01",
+                "--floor",
+                "-1",
+                "--mujoco-integrator",
+                "implicit",
+            ]
+        )
+        == 0
+    )
     run = json.loads(capsys.readouterr().out)
     problem = make("nlink:2")
     plant = MuJoCoPlant(problem, **options)
@@ -257,6 +289,7 @@ def test_cli_mujoco_options_reach_the_plant(tmp_path, capsys):
 
 
 # --- the robustness study's MuJoCo variant (studies/robustness.py) and its place in reproduce ---------------------
+
 
 def test_mujoco_trial_records_its_plant():
     from ocpkit.studies.robustness import mujoco_trial
@@ -297,10 +330,24 @@ def _mujoco_table(costs):
     rows = []
     for controller, by_condition in costs.items():
         for (plant, mismatch, level), values in by_condition.items():
-            rows += [{"status": "ok", "problem": "nlink:2", "controller": controller, "plant": plant,
-                      "mismatch": mismatch, "level": level, "seed": s, "actual_cost": v, "final_error": 0.1,
-                      "fallbacks": 0, "fallback_causes": "", "child_win_rate": float("nan"), "load": 1.0}
-                     for s, v in enumerate(values)]
+            rows += [
+                {
+                    "status": "ok",
+                    "problem": "nlink:2",
+                    "controller": controller,
+                    "plant": plant,
+                    "mismatch": mismatch,
+                    "level": level,
+                    "seed": s,
+                    "actual_cost": v,
+                    "final_error": 0.1,
+                    "fallbacks": 0,
+                    "fallback_causes": "",
+                    "child_win_rate": float("nan"),
+                    "load": 1.0,
+                }
+                for s, v in enumerate(values)
+            ]
     return pd.DataFrame(rows)
 
 
@@ -308,19 +355,28 @@ def test_mujoco_report_names_the_controller_that_degrades_least(tmp_path):
     from ocpkit.studies.robustness import mujoco_report
 
     base = [10.0, 11.0, 12.0]
-    costs = {c: {("ocpkit", "none", 0.0): base, ("mujoco", "none", 0.0): base,
-                 ("mujoco", "friction", 0.1): [b * f for b in base]}
-             for c, f in (("LinearMPC", 1.5), ("RTI", 1.2), ("EMPC", 1.5))}
+    costs = {
+        c: {
+            ("ocpkit", "none", 0.0): base,
+            ("mujoco", "none", 0.0): base,
+            ("mujoco", "friction", 0.1): [b * f for b in base],
+        }
+        for c, f in (("LinearMPC", 1.5), ("RTI", 1.2), ("EMPC", 1.5))
+    }
     costs["EMPC"][("mujoco", "armature", 0.5)] = [b * 1.3 for b in base]
     costs["LinearMPC"][("mujoco", "armature", 0.5)] = [b * 1.3 * (1 + 1e-12) for b in base]  # a tie: round-off
     costs["RTI"][("mujoco", "armature", 0.5)] = [b * 1.4 for b in base]
     text = mujoco_report(_mujoco_table(costs), tmp_path)
-    rows = {row.split(" | ")[0].lstrip("| "): row.rsplit("|", 2)[-2].strip()
-            for row in text.split("Claim checks:")[1].splitlines() if row.startswith("| nlink")}
-    assert rows == {"nlink:2: MuJoCo without mismatch reproduces ocpkit's plant (issue 34)": "held",
-                    "nlink:2, MuJoCo, friction 0.1: RTI degrades least of LinearMPC, RTI, EMPC (issue 34)": "held",
-                    "nlink:2, MuJoCo, armature 0.5: LinearMPC and EMPC degrade least of LinearMPC, RTI, EMPC "
-                    "(issue 34)": "held"}
+    rows = {
+        row.split(" | ")[0].lstrip("| "): row.rsplit("|", 2)[-2].strip()
+        for row in text.split("Claim checks:")[1].splitlines()
+        if row.startswith("| nlink")
+    }
+    assert rows == {
+        "nlink:2: MuJoCo without mismatch reproduces ocpkit's plant (issue 34)": "held",
+        "nlink:2, MuJoCo, friction 0.1: RTI degrades least of LinearMPC, RTI, EMPC (issue 34)": "held",
+        "nlink:2, MuJoCo, armature 0.5: LinearMPC and EMPC degrade least of LinearMPC, RTI, EMPC (issue 34)": "held",
+    }
     assert (tmp_path / "robustness_mujoco_nlink_2.png").stat().st_size > 5000
 
 
@@ -330,8 +386,10 @@ def test_reproduce_adds_the_mujoco_section_after_robustness(monkeypatch):
     from ocpkit.studies import reproduce
 
     assert reproduce._parts(("knots", "robustness")) == [
-        ("knots", "knots", {}), ("robustness", "robustness", {}),
-        ("robustness_mujoco", "robustness", {"plant": "mujoco"})]
+        ("knots", "knots", {}),
+        ("robustness", "robustness", {}),
+        ("robustness_mujoco", "robustness", {"plant": "mujoco"}),
+    ]
     real = importlib.util.find_spec
     monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "mujoco" else real(name, *a))
     assert reproduce._parts(("robustness",))[-1] == ("robustness_mujoco", None, {"plant": "mujoco"})
@@ -376,7 +434,7 @@ def test_joint_limits_and_divergence(tmp_path, monkeypatch):
 
 # --- continuous joints, meshes, a user's MJCF checked against the problem's dynamics (issue 44) -----------------
 
-WHEEL_ARM = Path(__file__).parent / "data" / "wheel_arm.urdf"   # continuous "shoulder" (z) and "spin" (tilted)
+WHEEL_ARM = Path(__file__).parent / "data" / "wheel_arm.urdf"  # continuous "shoulder" (z) and "spin" (tilted)
 
 
 @pytest.mark.parametrize("generated", [False, True])
@@ -403,12 +461,17 @@ def test_continuous_joints_are_hinges_without_range(generated):
 def _urdf_with_meshes(tmp_path, mesh_file="package://nowhere/upper.stl"):
     """The wheel arm with the meshes of a real robot's URDF that are not shipped: a visual mesh on the base, a visual
     and a collision mesh on the upper arm (beside a collision cylinder)."""
-    text = WHEEL_ARM.read_text().replace('<link name="base"/>', '<link name="base"><visual><geometry><mesh '
-                                         'filename="package://nowhere/base.stl"/></geometry></visual></link>')
-    text = text.replace('<link name="upper">', f'''<link name="upper">
+    text = WHEEL_ARM.read_text().replace(
+        '<link name="base"/>',
+        '<link name="base"><visual><geometry><mesh filename="package://nowhere/base.stl"/></geometry></visual></link>',
+    )
+    text = text.replace(
+        '<link name="upper">',
+        f'''<link name="upper">
     <visual><geometry><mesh filename="package://nowhere/upper.dae"/></geometry></visual>
     <collision><geometry><mesh filename="{mesh_file}" scale="0.001 0.001 0.001"/></geometry></collision>
-    <collision><origin xyz="0 0 0.2"/><geometry><cylinder radius="0.04" length="0.3"/></geometry></collision>''')
+    <collision><origin xyz="0 0 0.2"/><geometry><cylinder radius="0.04" length="0.3"/></geometry></collision>''',
+    )
     path = tmp_path / "meshes.urdf"
     path.write_text(text)
     return path
@@ -453,13 +516,21 @@ def _last(text, old, new):
     return head + new + tail
 
 
-@pytest.mark.parametrize("edit,names", [
-    (lambda t: _last(t, 'mass="1"', 'mass="10"'), "'elbow', body 'fore'"),                # 10× the forearm's mass
-    (lambda t: t.replace('mass="1"', 'mass="10"', 1), "'shoulder', body 'upper'"),         # 10× the upper arm's
-    (lambda t: t.replace('name="elbow" type="hinge" axis="0 0 1"', 'name="elbow" type="hinge" axis="0 0.4 1"'),
-     "'elbow', body 'fore'"),                                                               # a tilted axis
-    (lambda t: t.replace('name="elbow" type="hinge"', 'name="elbow" type="slide"'), "'elbow', body 'fore'"),  # slide
-])
+@pytest.mark.parametrize(
+    "edit,names",
+    [
+        (lambda t: _last(t, 'mass="1"', 'mass="10"'), "'elbow', body 'fore'"),  # 10× the forearm's mass
+        (lambda t: t.replace('mass="1"', 'mass="10"', 1), "'shoulder', body 'upper'"),  # 10× the upper arm's
+        (
+            lambda t: t.replace('name="elbow" type="hinge" axis="0 0 1"', 'name="elbow" type="hinge" axis="0 0.4 1"'),
+            "'elbow', body 'fore'",
+        ),  # a tilted axis
+        (
+            lambda t: t.replace('name="elbow" type="hinge"', 'name="elbow" type="slide"'),
+            "'elbow', body 'fore'",
+        ),  # slide
+    ],
+)
 def test_users_mjcf_must_match_the_problems_dynamics(tmp_path, edit, names):
     """An MJCF that is not the problem's robot is refused in one line saying by how much q̈ differs and naming the
     deepest joint (and its body) whose torque differs; a looser check_tolerance accepts it, None skips the check."""

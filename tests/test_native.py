@@ -1,5 +1,6 @@
 """LinearMPC's compiled C step (ocpkit.export.native): the same step as the Python one, its fallbacks, budget and
 cache."""
+
 import os
 from pathlib import Path
 
@@ -157,8 +158,17 @@ def test_goal_input_is_generated_into_the_c_step(ocp):
 
     xg = ca.SX.sym("x_goal", ocp.nx)
     h = ca.Function("h", [xg], [ca.vertcat(3 * ca.sin(xg[0]), ca.cos(xg[1]) * xg[0])])
-    gocp = GoalInputOCP(ocp.model, ocp.dt, ocp.horizon, ocp.Q, ocp.R, u_min=ocp.u_min, u_max=ocp.u_max,
-                        parameterization=ocp.parameterization, goal_input=h)
+    gocp = GoalInputOCP(
+        ocp.model,
+        ocp.dt,
+        ocp.horizon,
+        ocp.Q,
+        ocp.R,
+        u_min=ocp.u_min,
+        u_max=ocp.u_max,
+        parameterization=ocp.parameterization,
+        goal_input=h,
+    )
     goal = _same_closed_loop(gocp, seed=4, steps=30)
     assert np.abs(gocp.input_goal(goal) - ocp.input_goal(goal)).max() > 0.1  # h changed the problem
 
@@ -171,18 +181,22 @@ def test_background_build_fills_the_cache_even_after_the_process_exits(tmp_path)
     import time
 
     env = {**os.environ, "OCPKIT_CACHE_DIR": str(tmp_path)}
-    script = ("from ocpkit import problems; from ocpkit.solvers.qp import LinearMPC; "
-              "p = problems.make('nlink:2'); c = LinearMPC(p.ocp(knots=3, horizon=20, compiled=True)); "
-              "print(c.native, c.path)")
-    out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, check=True,
-                         cwd=tmp_path)
+    script = (
+        "from ocpkit import problems; from ocpkit.solvers.qp import LinearMPC; "
+        "p = problems.make('nlink:2'); c = LinearMPC(p.ocp(knots=3, horizon=20, compiled=True)); "
+        "print(c.native, c.path)"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", script], env=env, capture_output=True, text=True, check=True, cwd=tmp_path
+    )
     assert out.stdout.strip() == "False Python step, C step building"  # it exited before the build finished
     deadline = time.monotonic() + 120
     while not list(tmp_path.glob(f"native/*/lib{native.NAME}.so.sha256")) and time.monotonic() < deadline:
         time.sleep(0.2)
     script = script.replace("print(c.native, c.path)", "print(c.wait_compiled(60))")
-    out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, check=True,
-                         cwd=tmp_path)
+    out = subprocess.run(
+        [sys.executable, "-c", script], env=env, capture_output=True, text=True, check=True, cwd=tmp_path
+    )
     assert out.stdout.strip() == "True"
     # The first run's build child (niced) removes its scratch folder just after it installs the library: on a busy
     # machine that can come after the second run (a fresh-clone CI run saw it), so the check waits for it.
@@ -195,6 +209,7 @@ def test_background_build_fills_the_cache_even_after_the_process_exits(tmp_path)
 # --- Cache entries: one that does not load is evicted and rebuilt once; one build per entry machine-wide; a killed
 # build says so. `make` is replaced on PATH by a script that logs each build (and can be killed) before the real one.
 
+
 def _make_wrapper(folder, monkeypatch, body: str) -> Path:
     """A `make` first on PATH that runs ``body`` (sh; $LOG is a file in ``folder``) and then the real make."""
     import shutil
@@ -204,7 +219,7 @@ def _make_wrapper(folder, monkeypatch, body: str) -> Path:
     bin_dir.mkdir(parents=True)
     wrapper = bin_dir / "make"
     log = folder / "make.log"
-    wrapper.write_text(f"#!/bin/sh\nLOG={log}\n{body}\nexec {real} \"$@\"\n")
+    wrapper.write_text(f'#!/bin/sh\nLOG={log}\n{body}\nexec {real} "$@"\n')
     wrapper.chmod(0o755)
     monkeypatch.setenv("PATH", f"{bin_dir}{os.pathsep}{os.environ['PATH']}")
     return log
@@ -225,10 +240,15 @@ def test_a_cached_library_that_does_not_load_is_evicted_and_rebuilt_once(tmp_pat
     monkeypatch.setenv("OCPKIT_CACHE_DIR", str(tmp_path / "cache"))
     # LinearMPC's entry (its eps and max_iter), built by another process: this one must not have loaded the
     # library path before (dlopen keeps a library by its name).
-    script = ("from ocpkit import problems; from ocpkit.export import native; p = problems.make('nlink:2'); "
-              "print(native.start(p.ocp(knots=4, horizon=30), eps=1e-9, max_iter=10_000, wait=True).result())")
-    folder = Path(subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True,
-                                 env=os.environ, cwd=tmp_path).stdout.split()[-1])
+    script = (
+        "from ocpkit import problems; from ocpkit.export import native; p = problems.make('nlink:2'); "
+        "print(native.start(p.ocp(knots=4, horizon=30), eps=1e-9, max_iter=10_000, wait=True).result())"
+    )
+    folder = Path(
+        subprocess.run(
+            [sys.executable, "-c", script], capture_output=True, text=True, check=True, env=os.environ, cwd=tmp_path
+        ).stdout.split()[-1]
+    )
     library = folder / f"lib{native.NAME}.so"
     write_entry(library, ELF32)  # garbage with a matching hash
     log = _make_wrapper(tmp_path, monkeypatch, 'echo build >> "$LOG"')
@@ -251,11 +271,22 @@ def test_concurrent_scripts_build_one_entry_once(tmp_path, monkeypatch):
 
     monkeypatch.setenv("OCPKIT_CACHE_DIR", str(tmp_path / "cache"))
     log = _make_wrapper(tmp_path, monkeypatch, 'echo build >> "$LOG"; sleep 1')  # widen the window
-    script = ("from ocpkit import problems; from ocpkit.solvers.qp import LinearMPC; "
-              "p = problems.make('nlink:2'); c = LinearMPC(p.ocp(knots=3, horizon=25, compiled=True)); "
-              "print(c.wait_compiled(180))")
-    procs = [subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                              text=True, env=os.environ, cwd=tmp_path) for _ in range(4)]
+    script = (
+        "from ocpkit import problems; from ocpkit.solvers.qp import LinearMPC; "
+        "p = problems.make('nlink:2'); c = LinearMPC(p.ocp(knots=3, horizon=25, compiled=True)); "
+        "print(c.wait_compiled(180))"
+    )
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-c", script],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env=os.environ,
+            cwd=tmp_path,
+        )
+        for _ in range(4)
+    ]
     outs = [p.communicate(timeout=300) for p in procs]
     assert [out.strip() for out, _ in outs] == ["True"] * 4, [err[-500:] for _, err in outs]
     assert log.read_text().count("build") == 1
@@ -273,14 +304,18 @@ def test_a_killed_build_says_it_was_killed(tmp_path, monkeypatch):
     with pytest.raises(BuildError, match="make was killed by SIGKILL"):
         native.start(PROBLEM.ocp(knots=3, horizon=31), eps=1e-9, max_iter=1000, wait=True)
     # The background build's own process (make's parent, the child that runs it) killed.
-    _make_wrapper(tmp_path / "b", monkeypatch, 'if grep -q "ocpkit.export.native import _child" /proc/$PPID/cmdline; '
-                                               'then kill -KILL $PPID; exit 1; fi')
+    _make_wrapper(
+        tmp_path / "b",
+        monkeypatch,
+        'if grep -q "ocpkit.export.native import _child" /proc/$PPID/cmdline; then kill -KILL $PPID; exit 1; fi',
+    )
     future = native.start(PROBLEM.ocp(knots=3, horizon=32), eps=1e-9, max_iter=1000)
     with pytest.raises(BuildError, match=r"its build process \(pid \d+\) was killed by SIGKILL"):
         future.result(120)
 
 
 # --- Obstacles (issue 43): the C step appends the linearized clearance rows as the Python step does.
+
 
 def _same_steps_with_obstacles(problem, ocp, x, goal, steps, tol, **options):
     """LinearMPC's C step and its Python step from the same states: the same statuses, knots to ``tol``; the
@@ -295,13 +330,13 @@ def _same_steps_with_obstacles(problem, ocp, x, goal, steps, tol, **options):
         assert a.status == b.status, (a.raw_status, b.raw_status)
         np.testing.assert_allclose(a.knots, b.knots, atol=tol, rtol=0)
         x = np.asarray(F(x, a.u)).ravel()
-        xs.append(x[:problem.kinematics.n])
+        xs.append(x[: problem.kinematics.n])
     return clearances(problem.kinematics, ocp.task.robot, ocp.task.obstacles, np.array(xs))
 
 
 def _ee_target(problem, seed):
     fk = problem.kinematics.function(problem.end_effector)
-    return np.asarray(fk(problem.sample(seed)[1][:problem.kinematics.n])[0]).ravel()
+    return np.asarray(fk(problem.sample(seed)[1][: problem.kinematics.n])[0]).ravel()
 
 
 def test_c_step_with_obstacles_equals_python_step_past_a_ball():

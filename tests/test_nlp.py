@@ -1,4 +1,5 @@
 """NonlinearMPC (IPOPT / SQP) against LinearMPC on shared OCPs, closed-loop cost and failure handling."""
+
 import casadi as ca
 import numpy as np
 import pytest
@@ -26,8 +27,16 @@ def lti_ocp(seed: int, knots):
     par = Parameterization.make("linear", T, knots)
     free = OCP(model, 0.05, T, np.eye(model.nx), 0.1 * np.eye(model.nu), parameterization=par)
     peak = np.abs(LinearMPC(free).solve(x0, goal).knots).max()
-    ocp = OCP(model, 0.05, T, np.eye(model.nx), 0.1 * np.eye(model.nu), parameterization=par,
-              u_min=-0.6 * peak, u_max=0.6 * peak)
+    ocp = OCP(
+        model,
+        0.05,
+        T,
+        np.eye(model.nx),
+        0.1 * np.eye(model.nu),
+        parameterization=par,
+        u_min=-0.6 * peak,
+        u_max=0.6 * peak,
+    )
     return ocp, x0, goal
 
 
@@ -124,8 +133,10 @@ def closed_loop_ratios(name, knots_list, seeds, duration):
             assert a.fallbacks == 0 and b.fallbacks == 0
             ratios.setdefault(knots, []).append(actual_cost(a, ocp) / actual_cost(b, ocp))
     for knots, r in ratios.items():
-        print(f"{name} knots={knots}: actual-cost ratio NonlinearMPC/LinearMPC mean {np.mean(r):.4f} "
-              f"(min {min(r):.4f}, max {max(r):.4f}, {len(r)} trials)")
+        print(
+            f"{name} knots={knots}: actual-cost ratio NonlinearMPC/LinearMPC mean {np.mean(r):.4f} "
+            f"(min {min(r):.4f}, max {max(r):.4f}, {len(r)} trials)"
+        )
     pooled = float(np.mean(sum(ratios.values(), [])))
     print(f"{name} pooled mean ratio {pooled:.4f}")
     return pooled
@@ -201,14 +212,22 @@ def test_nan_model_reports_nan():
     assert sol.status == NAN and sol.fallback and np.isfinite(sol.u).all(), sol.raw_status
 
 
-@pytest.mark.parametrize("kwargs, word", [
-    ({"dynamics": "linear"}, "dynamics"), ({"method": "fmincon"}, "method"), ({"max_iter": 0}, "max_iter"),
-    ({"time_limit": -1.0}, "time_limit"), ({"method": "fatrop", "time_limit": 1.0}, "time_limit"),
-    ({"linearization": "state"}, "linearization"), ({"hessian": "newton"}, "hessian"),
-    ({"method": "rti"}, "solvers.make"), ({"method": "fatrop", "dynamics": "affine"}, "dynamics"),
-    ({"options": {"no_such_option": 1}}, "no_such_option"),
-    ({"options": {"qpsol": "nosuch"}, "method": "sqp"}, "options"),
-])
+@pytest.mark.parametrize(
+    "kwargs, word",
+    [
+        ({"dynamics": "linear"}, "dynamics"),
+        ({"method": "fmincon"}, "method"),
+        ({"max_iter": 0}, "max_iter"),
+        ({"time_limit": -1.0}, "time_limit"),
+        ({"method": "fatrop", "time_limit": 1.0}, "time_limit"),
+        ({"linearization": "state"}, "linearization"),
+        ({"hessian": "newton"}, "hessian"),
+        ({"method": "rti"}, "solvers.make"),
+        ({"method": "fatrop", "dynamics": "affine"}, "dynamics"),
+        ({"options": {"no_such_option": 1}}, "no_such_option"),
+        ({"options": {"qpsol": "nosuch"}, "method": "sqp"}, "options"),
+    ],
+)
 def test_bad_options_raise_value_error(kwargs, word):
     ocp = problems.make("pendulum").ocp(knots=3)
     with pytest.raises(ValueError, match=word):
@@ -257,10 +276,17 @@ def test_an_option_of_each_method_applies(method):
 
 
 @pytest.mark.parametrize("method", NLP_METHODS)
-@pytest.mark.parametrize("option, hint", [
-    ("max_wall_time", "time_limit"), ("max_iter", "max_iter"), ("time_limit", "time_limit"), ("no_such_option", ""),
-    ("qpsol", ""), ("tol", "tol"),
-])
+@pytest.mark.parametrize(
+    "option, hint",
+    [
+        ("max_wall_time", "time_limit"),
+        ("max_iter", "max_iter"),
+        ("time_limit", "time_limit"),
+        ("no_such_option", ""),
+        ("qpsol", ""),
+        ("tol", "tol"),
+    ],
+)
 def test_an_option_that_does_not_apply_is_refused_naming_it_and_the_method(method, option, hint):
     """Refused at construction with one line naming the option and the method (and the argument that sets it):
     fatrop's unknown options failed every step as "exception"."""

@@ -4,6 +4,7 @@ Independent paths compared: IPOPT with the exact Hessian and CasADi's AD of the 
 IPOPT, SQP and fatrop with the Gauss–Newton Hessian and the constraint Jacobian assembled from the per-stage affine
 model; the virtual machine's affine model against the compiled one, including the switch to it mid-loop.
 """
+
 from __future__ import annotations
 
 from concurrent.futures import Future
@@ -18,8 +19,11 @@ from ocpkit.solvers.nlp import NonlinearMPC
 from ocpkit.model.task import Sphere, reach
 
 # Every solver converged far below the 1e-6 the optima are compared at.
-TIGHT = {"ipopt": {"tol": 1e-10}, "sqp": {"tol_pr": 1e-9, "tol_du": 1e-9, "min_step_size": 1e-16},
-         "fatrop": {"tol": 1e-10}}
+TIGHT = {
+    "ipopt": {"tol": 1e-10},
+    "sqp": {"tol_pr": 1e-9, "tol_du": 1e-9, "min_step_size": 1e-16},
+    "fatrop": {"tol": 1e-10},
+}
 
 
 def _solve(ocp, x0, goal, method="ipopt", **kwargs):
@@ -33,8 +37,9 @@ def _same_optimum(sol, ref, tol=1e-6):
     np.testing.assert_allclose(sol.x_pred, ref.x_pred, atol=tol * max(1.0, np.abs(ref.x_pred).max()))
 
 
-@pytest.mark.parametrize("name, horizon, methods", [("nlink:3", 20, ("ipopt", "sqp", "fatrop")),
-                                                    ("puma560", 50, ("ipopt", "fatrop"))])
+@pytest.mark.parametrize(
+    "name, horizon, methods", [("nlink:3", 20, ("ipopt", "sqp", "fatrop")), ("puma560", 50, ("ipopt", "fatrop"))]
+)
 def test_gauss_newton_reaches_the_exact_hessians_optimum(name, horizon, methods):
     prob = problems.make(name)
     ocp = prob.ocp(knots=5, horizon=horizon)
@@ -50,8 +55,10 @@ def test_warm_started_closed_loop_follows_the_exact_path_in_fewer_iterations():
     prob = problems.make("nlink:3")
     ocp = prob.ocp(knots=5, horizon=20)
     x0, goal = prob.sample(1)
-    runs = {key: simulate(prob.plant(), NonlinearMPC(ocp, options=TIGHT["ipopt"], **kwargs), x0, goal, 8 * ocp.dt)
-            for key, kwargs in (("exact", {"hessian": "exact"}), ("warm", {}), ("cold", {"warm_start": False}))}
+    runs = {
+        key: simulate(prob.plant(), NonlinearMPC(ocp, options=TIGHT["ipopt"], **kwargs), x0, goal, 8 * ocp.dt)
+        for key, kwargs in (("exact", {"hessian": "exact"}), ("warm", {}), ("cold", {"warm_start": False}))
+    }
     assert all(traj.fallbacks == 0 for traj in runs.values())
     np.testing.assert_allclose(runs["warm"].u, runs["exact"].u, atol=1e-6)
     iterations = {key: [sol.iterations for sol in traj.solutions[1:]] for key, traj in runs.items()}
@@ -90,8 +97,10 @@ def test_compiled_affine_model_gives_the_virtual_machines_optimum(method, integr
     machine's, for each of the OCP's integrators."""
     prob = problems.make("nlink:3")
     x0, goal = prob.sample(0)
-    vm, compiled = (_solve(prob.ocp(knots=5, horizon=20, integrator=integrator, compiled=policy), x0, goal, method)
-                    for policy in (False, True))
+    vm, compiled = (
+        _solve(prob.ocp(knots=5, horizon=20, integrator=integrator, compiled=policy), x0, goal, method)
+        for policy in (False, True)
+    )
     _same_optimum(compiled, vm, 1e-9)
 
 

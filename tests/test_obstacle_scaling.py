@@ -1,6 +1,7 @@
 """Many obstacles (issue 43 §4): clearances as one pair's Function mapped over a table of obstacles, so that 1,000
 spheres build and step on the Panda; the QP's obstacle rows bounded. Checked against independent numpy geometry
 (ocpkit.model.task.clearances, and per pair here) and against CasADi's own derivative of the mapped clearances."""
+
 from __future__ import annotations
 
 import casadi as ca
@@ -21,8 +22,10 @@ def panda():
 
 def _balls(count: int, seed: int, centre=(0.3, 0.0, 0.5), spread=0.4):
     rng = np.random.default_rng(seed)
-    return [Sphere(tuple(np.asarray(centre) + rng.uniform(-spread, spread, 3)), float(rng.uniform(0.01, 0.08)))
-            for _ in range(count)]
+    return [
+        Sphere(tuple(np.asarray(centre) + rng.uniform(-spread, spread, 3)), float(rng.uniform(0.01, 0.08)))
+        for _ in range(count)
+    ]
 
 
 def _task(problem, obstacles, margin=0.01):
@@ -57,8 +60,16 @@ def test_mapped_clearances_equal_numpy_pair_by_pair(panda):
     d, D = (np.asarray(a) for a in tf.clearance.map(6)(X.T))
     # numpy, pair by pair: robot spheres outer
     C = np.asarray(sphere_centers(kin, task.robot).map(6)(Q.T)).reshape(3, 6, -1)
-    want = np.array([[np.linalg.norm(C[:, t, i] - o.center) - s.radius - o.radius - task.margin
-                      for i, s in enumerate(task.robot) for o in obstacles] for t in range(6)])
+    want = np.array(
+        [
+            [
+                np.linalg.norm(C[:, t, i] - o.center) - s.radius - o.radius - task.margin
+                for i, s in enumerate(task.robot)
+                for o in obstacles
+            ]
+            for t in range(6)
+        ]
+    )
     np.testing.assert_allclose(d.T, want, atol=1e-14)
     np.testing.assert_allclose(tf.pair_clearances(C).reshape(6, -1), want, atol=1e-14)
     np.testing.assert_allclose(d.min(axis=0) + task.margin, clearances(kin, task.robot, obstacles, Q), atol=1e-14)
@@ -66,7 +77,7 @@ def test_mapped_clearances_equal_numpy_pair_by_pair(panda):
     x = ca.SX.sym("x", 14)
     exact = ca.Function("exact", [x], [ca.jacobian(tf.clearance(x)[0], x)])
     for t in range(6):
-        np.testing.assert_allclose(D[:, 14 * t:14 * (t + 1)], np.asarray(exact(X[t])), atol=1e-13)
+        np.testing.assert_allclose(D[:, 14 * t : 14 * (t + 1)], np.asarray(exact(X[t])), atol=1e-13)
     assert not D[:, 7:14].any()  # no velocity dependence
     # the penalty of the sampling planners: w (h + h²/2), h the deepest violation of the margin
     h = np.maximum(0.0, -want.min(axis=1))
@@ -75,8 +86,9 @@ def test_mapped_clearances_equal_numpy_pair_by_pair(panda):
     moved = [Sphere(tuple(np.asarray(o.center) + 0.1), o.radius) for o in obstacles]
     table = np.array([[*o.center, o.radius] for o in moved]).T
     again = _task(panda, moved, margin=0.02).compile(14, 7)
-    np.testing.assert_allclose(np.asarray(tf.clearance_at(X[0], table)[0]), np.asarray(again.clearance(X[0])[0]),
-                               atol=1e-15)
+    np.testing.assert_allclose(
+        np.asarray(tf.clearance_at(X[0], table)[0]), np.asarray(again.clearance(X[0])[0]), atol=1e-15
+    )
 
 
 def test_row_selection_keeps_each_spheres_closest_and_bounds_a_stage():
@@ -130,8 +142,11 @@ def test_thousand_spheres_build_and_step(panda, monkeypatch):
     robot = spheres_along_links(panda.kinematics, panda.link_radius)
     centres = np.asarray(sphere_centers(panda.kinematics, robot)(x0[:7]))
     radii = np.array([s.radius for s in robot])
-    balls = [b for b in _balls(3000, 6, spread=0.6)
-             if (np.linalg.norm(centres.T - b.center, axis=1) - radii - b.radius).min() > 0.02]
+    balls = [
+        b
+        for b in _balls(3000, 6, spread=0.6)
+        if (np.linalg.norm(centres.T - b.center, axis=1) - radii - b.radius).min() > 0.02
+    ]
     assert len(balls) >= 1000
     ocp = reach(panda, balls[:1000], compiled=False)
     assert ocp.task_functions.pairs == 1000 * len(robot)

@@ -51,8 +51,15 @@ def test_u_at_inputs_fit_and_shift():
     np.testing.assert_array_equal(ident.shift(Ui), np.r_[Ui[1:], Ui[-1:]])
 
 
-@pytest.mark.parametrize("args,match", [((5, 6), "knots must be <= horizon"), ((5, 0), "knots must be >= 1"),
-                                        ((0, 1), "horizon must be >= 1"), ((5, 2.5), "knots must be an integer")])
+@pytest.mark.parametrize(
+    "args,match",
+    [
+        ((5, 6), "knots must be <= horizon"),
+        ((5, 0), "knots must be >= 1"),
+        ((0, 1), "horizon must be >= 1"),
+        ((5, 2.5), "knots must be an integer"),
+    ],
+)
 def test_bad_sizes(args, match):
     with pytest.raises((ValueError, TypeError), match=match):
         Parameterization.linear_interp(*args)

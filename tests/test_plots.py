@@ -1,4 +1,5 @@
 """The one number style of reports and figures."""
+
 import numpy as np
 
 from ocpkit.sim import plots
@@ -16,8 +17,9 @@ def test_number_formatter():
 
 def test_ratio_axis_is_labelled_in_plain_decimals(tmp_path):
     """A log ratio axis over 0.98–1.4 gets several plain ticks, not one "10⁰"."""
-    path = plots.boxes([1, 2], [np.array([0.98, 1.0, 1.02]), np.array([1.2, 1.3, 1.4])], tmp_path / "b",
-                       xlabel="knots", ylabel="ratio")
+    path = plots.boxes(
+        [1, 2], [np.array([0.98, 1.0, 1.02]), np.array([1.2, 1.3, 1.4])], tmp_path / "b", xlabel="knots", ylabel="ratio"
+    )
     fig = plots.plt.figure()
     ax = fig.add_subplot()
     ax.set_yscale("log")
@@ -45,6 +47,9 @@ def test_a_long_label_does_not_squeeze_the_closed_loop_panels(tmp_path, monkeypa
         return path
 
     monkeypatch.setattr(plots, "save", measure)
-    plots.closed_loop({"LinearMPC(condensed, daqp, Python step, OCP('nlink:2', dt=0.01, horizon=50, linear "
-                       "knots=5))": traj}, tmp_path / "f.png", title="nlink:2, seed 0")
+    plots.closed_loop(
+        {"LinearMPC(condensed, daqp, Python step, OCP('nlink:2', dt=0.01, horizon=50, linear knots=5))": traj},
+        tmp_path / "f.png",
+        title="nlink:2, seed 0",
+    )
     assert len(widths) == 4 and min(widths) > 0.8, widths

@@ -1,4 +1,5 @@
 """Robots from a URDF (Problem.from_urdf): the Franka Panda with its prismatic fingers, against pinocchio."""
+
 from __future__ import annotations
 
 import re
@@ -16,7 +17,7 @@ from ocpkit.solvers.qp import LinearMPC
 from ocpkit.problems.panda import urdf_path as panda_urdf
 
 PANDA = panda_urdf()
-WHEEL_ARM = Path(__file__).parent / "data" / "wheel_arm.urdf"   # continuous joints "shoulder" (z) and "spin" (tilted)
+WHEEL_ARM = Path(__file__).parent / "data" / "wheel_arm.urdf"  # continuous joints "shoulder" (z) and "spin" (tilted)
 FINGERS = ["panda_finger_joint1", "panda_finger_joint2"]
 TOL = 1e-9
 
@@ -40,7 +41,7 @@ def _states(problem, rng, count=5):
 def test_urdf_is_read_with_prismatic_fingers_damping_and_limits(panda):
     assert isinstance(panda, URDFRobot) and panda.chain.n == 9 and not panda.chain.serial
     assert panda.chain.revolute == [True] * 7 + [False, False]
-    np.testing.assert_array_equal(panda.damping, [0.003] * 7 + [0.3, 0.3])           # <dynamics damping>
+    np.testing.assert_array_equal(panda.damping, [0.003] * 7 + [0.3, 0.3])  # <dynamics damping>
     ocp = panda.ocp(knots=3)
     np.testing.assert_array_equal(ocp.u_max, [87, 87, 87, 87, 12, 12, 12, 100, 100])  # <limit effort>
     np.testing.assert_array_equal(ocp.u_min, -ocp.u_max)
@@ -71,8 +72,9 @@ def test_locked_fingers_equal_pinocchios_reduced_model(arm):
     f = arm.plant().f
     for q, qd, tau in _states(arm, np.random.default_rng(2)):
         ref = pin.aba(reduced, data, q, qd, tau - reduced.damping * qd)
-        np.testing.assert_allclose(np.asarray(f(np.r_[q, qd], tau)).ravel()[7:], ref, rtol=0,
-                                   atol=TOL * max(1.0, np.abs(ref).max()))
+        np.testing.assert_allclose(
+            np.asarray(f(np.r_[q, qd], tau)).ravel()[7:], ref, rtol=0, atol=TOL * max(1.0, np.abs(ref).max())
+        )
 
 
 def test_locked_position_moves_the_fingers_mass(arm):
@@ -115,8 +117,8 @@ def test_arm_with_fingers_reaches_its_goal(panda):
     x0, goal = panda.sample(1)
     traj = simulate(panda.plant(), ctrl, x0, goal, panda.duration)
     assert traj.fallbacks == 0
-    assert np.abs(traj.x[-1, :7] - goal[:7]).max() <= 0.02           # rad
-    assert np.abs(traj.x[-1, 7:9] - goal[7:9]).max() <= 1e-3          # m
+    assert np.abs(traj.x[-1, :7] - goal[:7]).max() <= 0.02  # rad
+    assert np.abs(traj.x[-1, 7:9] - goal[7:9]).max() <= 1e-3  # m
 
 
 def test_model_error_half_still_solves(panda):
@@ -155,14 +157,17 @@ def test_continuous_joints_equal_pinocchio():
         qp = _pin_configuration(model, angles)
         pin.framesForwardKinematics(model, data, qp)
         placement = data.oMf[tool]
-        pairs = ((M(angles), np.triu(pin.crba(model, data, qp)) + np.triu(data.M, 1).T),
-                 (h(angles, v), pin.nonLinearEffects(model, data, qp, v)),
-                 (np.asarray(f(np.r_[angles, v], tau))[4:], pin.aba(model, data, qp, v, tau - model.damping * v)),
-                 (robot.kinematics.position(angles, "tool"), placement.translation),
-                 (robot.kinematics.placement(angles, "tool")[0], placement.rotation))
+        pairs = (
+            (M(angles), np.triu(pin.crba(model, data, qp)) + np.triu(data.M, 1).T),
+            (h(angles, v), pin.nonLinearEffects(model, data, qp, v)),
+            (np.asarray(f(np.r_[angles, v], tau))[4:], pin.aba(model, data, qp, v, tau - model.damping * v)),
+            (robot.kinematics.position(angles, "tool"), placement.translation),
+            (robot.kinematics.placement(angles, "tool")[0], placement.rotation),
+        )
         for ours, ref in pairs:
-            np.testing.assert_allclose(np.asarray(ours).reshape(np.shape(ref)), ref, rtol=0,
-                                       atol=TOL * max(1.0, np.abs(ref).max()))
+            np.testing.assert_allclose(
+                np.asarray(ours).reshape(np.shape(ref)), ref, rtol=0, atol=TOL * max(1.0, np.abs(ref).max())
+            )
     bounded = Problem.from_urdf(WHEEL_ARM, position_bounds=True)
     np.testing.assert_array_equal(bounded.defaults()["x_min"][:4], [-np.inf, -2, 0, -np.inf])
     x0, goal = robot.sample(0)
@@ -173,16 +178,16 @@ def test_locked_continuous_joint_equals_pinocchios_reduced_model():
     """A continuous joint locked at 0.7 rad: pinocchio's reduced model at (cos 0.7, sin 0.7)."""
     robot = Problem.from_urdf(WHEEL_ARM, locked_joints=["spin"], locked_positions={"spin": 0.7})
     full = pin.buildModelFromUrdf(str(WHEEL_ARM))
-    reduced = pin.buildReducedModel(full, [full.getJointId("spin")],
-                                    _pin_configuration(full, [0.0, 0.0, 0.0, 0.7]))
+    reduced = pin.buildReducedModel(full, [full.getJointId("spin")], _pin_configuration(full, [0.0, 0.0, 0.0, 0.7]))
     data = reduced.createData()
     f = robot.plant().f
     rng = np.random.default_rng(3)
     states = rng.uniform([-7, -2, 0], [7, 2, 0.1], (5, 3)), rng.normal(size=(5, 3)), rng.normal(size=(5, 3))
     for q, qd, tau in zip(*states):
         ref = pin.aba(reduced, data, _pin_configuration(reduced, q), qd, tau - reduced.damping * qd)
-        np.testing.assert_allclose(np.asarray(f(np.r_[q, qd], tau)).ravel()[3:], ref, rtol=0,
-                                   atol=TOL * max(1.0, np.abs(ref).max()))
+        np.testing.assert_allclose(
+            np.asarray(f(np.r_[q, qd], tau)).ravel()[3:], ref, rtol=0, atol=TOL * max(1.0, np.abs(ref).max())
+        )
 
 
 def test_bad_urdf_options_name_the_argument(tmp_path):
@@ -205,8 +210,10 @@ def test_urdf_spec_and_export_with_gravity_compensation(tmp_path):
     from ocpkit.export import export_problem
 
     spec = tmp_path / "arm.py"
-    spec.write_text(f"from ocpkit import Problem\n\ndef Arm():\n    return Problem.from_urdf({PANDA!r}, "
-                    f"locked_joints={FINGERS!r})\n")
+    spec.write_text(
+        f"from ocpkit import Problem\n\ndef Arm():\n    return Problem.from_urdf({PANDA!r}, "
+        f"locked_joints={FINGERS!r})\n"
+    )
     arm = make(f"{spec}:Arm")
     assert arm.chain.n == 7
     info = export_problem(f"{spec}:Arm", out_dir=tmp_path / "out", horizon=30, steps=5)
@@ -216,7 +223,7 @@ def test_urdf_spec_and_export_with_gravity_compensation(tmp_path):
 def test_readme_urdf_section_runs_as_written(monkeypatch, capsys):
     readme = Path(__file__).resolve().parents[1] / "README.md"
     text = readme.read_text()
-    code = re.search(r"```python\n(.*?)```", text[text.index("## Robot from a URDF"):], re.S).group(1)
+    code = re.search(r"```python\n(.*?)```", text[text.index("## Robot from a URDF") :], re.S).group(1)
     monkeypatch.chdir(readme.parent)
     exec(compile(code, "README: Robot from a URDF", "exec"), {})
     assert float(capsys.readouterr().out) <= 0.02

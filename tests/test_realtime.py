@@ -1,4 +1,5 @@
 """Real-time behaviour: bounded steps, verified successes, absurd states, threads, soft state bounds."""
+
 import time
 
 import numpy as np

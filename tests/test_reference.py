@@ -1,5 +1,6 @@
 """References over the horizon (ocpkit.model.reference) and how a step takes them: goal windows, moving obstacles and
 a user's plan, checked and refused by name."""
+
 import numpy as np
 import pytest
 
@@ -36,8 +37,7 @@ def test_a_reference_file_names_its_columns_as_the_goal(tmp_path, suffix):
     columns = {"t": t, names[0]: np.array([0.0, 1.0]), "position[1]": np.array([0.2, 0.4])}
     path = tmp_path / f"ref{suffix}"
     if suffix == ".csv":
-        np.savetxt(path, np.column_stack(list(columns.values())), delimiter=",", header=",".join(columns),
-                   comments="")
+        np.savetxt(path, np.column_stack(list(columns.values())), delimiter=",", header=",".join(columns), comments="")
     else:
         np.savez(path, **columns)
     ref = Reference.load(path, ocp)

@@ -1,4 +1,5 @@
 """`reproduce` reports compute time summed over runs: a resume does not overwrite it with its own seconds."""
+
 import re
 
 from ocpkit.runs.store import Store

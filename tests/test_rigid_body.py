@@ -1,4 +1,5 @@
 """CasADi rigid-body dynamics against pinocchio, energy conservation, the error multiplier, robot problems."""
+
 from __future__ import annotations
 
 
@@ -25,11 +26,15 @@ def _random_chain(n=5, seed=3):
     for i in range(n):
         axis = rng.normal(size=3)
         placement = pin.SE3(pin.rpy.rpyToMatrix(*rng.uniform(-np.pi, np.pi, 3)), rng.uniform(-0.3, 0.3, 3))
-        parent = model.addJoint(parent, pin.JointModelRevoluteUnaligned(axis / np.linalg.norm(axis)), placement,
-                                f"j{i}")
+        parent = model.addJoint(
+            parent, pin.JointModelRevoluteUnaligned(axis / np.linalg.norm(axis)), placement, f"j{i}"
+        )
         L = rng.normal(size=(3, 3))
-        model.appendBodyToJoint(parent, pin.Inertia(rng.uniform(0.5, 3), rng.uniform(-0.2, 0.2, 3),
-                                                    L @ L.T * 0.05 + 0.01 * np.eye(3)), pin.SE3.Identity())
+        model.appendBodyToJoint(
+            parent,
+            pin.Inertia(rng.uniform(0.5, 3), rng.uniform(-0.2, 0.2, 3), L @ L.T * 0.05 + 0.01 * np.eye(3)),
+            pin.SE3.Identity(),
+        )
     model.armature = rng.uniform(0, 0.2, n)
     return model
 
@@ -41,7 +46,7 @@ def _random_tree(n=7, seed=4):
     rng = np.random.default_rng(seed)
     model = pin.Model()
     kinds = [pin.JointModelRZ, pin.JointModelPX, pin.JointModelPY, pin.JointModelRY, pin.JointModelPZ]
-    path = [0]                                              # the base, then the last joint's ancestors
+    path = [0]  # the base, then the last joint's ancestors
     for i in range(n):
         parent = path[int(rng.integers(0, len(path)))]
         path = path[: path.index(parent) + 1]
@@ -55,8 +60,11 @@ def _random_tree(n=7, seed=4):
         jid = model.addJoint(parent, joint, placement, f"j{i}")
         path.append(jid)
         L = rng.normal(size=(3, 3))
-        model.appendBodyToJoint(jid, pin.Inertia(rng.uniform(0.5, 3), rng.uniform(-0.2, 0.2, 3),
-                                                 L @ L.T * 0.05 + 0.01 * np.eye(3)), pin.SE3.Identity())
+        model.appendBodyToJoint(
+            jid,
+            pin.Inertia(rng.uniform(0.5, 3), rng.uniform(-0.2, 0.2, 3), L @ L.T * 0.05 + 0.01 * np.eye(3)),
+            pin.SE3.Identity(),
+        )
     model.armature = rng.uniform(0, 0.2, n)
     model.gravity = pin.Motion(rng.normal(size=3) * 5, np.zeros(3))
     return model
@@ -68,16 +76,28 @@ def _panda():
     return pin.buildModelFromUrdf(PANDA_URDF)
 
 
-MODELS = {"nlink1": lambda: planar_chain(1), "nlink2": lambda: planar_chain(2), "nlink7": lambda: planar_chain(7),
-          "nlink13": lambda: planar_chain(13), "puma560": puma560_model, "baxter": baxter_arm_model,
-          "unaligned": _random_chain, "tree_prismatic": _random_tree, "panda_fingers": _panda}
+MODELS = {
+    "nlink1": lambda: planar_chain(1),
+    "nlink2": lambda: planar_chain(2),
+    "nlink7": lambda: planar_chain(7),
+    "nlink13": lambda: planar_chain(13),
+    "puma560": puma560_model,
+    "baxter": baxter_arm_model,
+    "unaligned": _random_chain,
+    "tree_prismatic": _random_tree,
+    "panda_fingers": _panda,
+}
 
 
 def _sym_functions(chain):
     n = chain.n
     q, qd, tau, qdd = (ca.SX.sym(s, n) for s in ("q", "qd", "tau", "qdd"))
-    return (ca.Function("aba", [q, qd, tau], [chain.aba(q, qd, tau)]), ca.Function("M", [q], [chain.crba(q)]),
-            ca.Function("h", [q, qd], [chain.bias(q, qd)]), ca.Function("rnea", [q, qd, qdd], [chain.rnea(q, qd, qdd)]))
+    return (
+        ca.Function("aba", [q, qd, tau], [chain.aba(q, qd, tau)]),
+        ca.Function("M", [q], [chain.crba(q)]),
+        ca.Function("h", [q, qd], [chain.bias(q, qd)]),
+        ca.Function("rnea", [q, qd, qdd], [chain.rnea(q, qd, qdd)]),
+    )
 
 
 def _full(M):
@@ -95,9 +115,12 @@ def test_matches_pinocchio(name):
     for _ in range(5):
         q, qd = rng.uniform(-np.pi, np.pi, n), rng.normal(size=n) * 2
         tau, qdd = rng.normal(size=n) * 5, rng.normal(size=n)
-        pairs = ((aba(q, qd, tau), pin.aba(model, data, q, qd, tau)), (crba(q), _full(pin.crba(model, data, q))),
-                 (bias(q, qd), pin.nonLinearEffects(model, data, q, qd)),
-                 (rnea(q, qd, qdd), pin.rnea(model, data, q, qd, qdd)))
+        pairs = (
+            (aba(q, qd, tau), pin.aba(model, data, q, qd, tau)),
+            (crba(q), _full(pin.crba(model, data, q))),
+            (bias(q, qd), pin.nonLinearEffects(model, data, q, qd)),
+            (rnea(q, qd, qdd), pin.rnea(model, data, q, qd, qdd)),
+        )
         for ours, ref in pairs:
             ours = np.array(ours).reshape(np.shape(ref))
             # 1e-9 relative to the magnitude (Baxter's light wrist reaches q̈ ~ 1e2 rad/s²; its URDF angles
@@ -113,17 +136,21 @@ def test_puma560_matches_published_values():
     g = ca.Function("g", [q], [chain.bias(q, ca.SX.zeros(6))])
     M = ca.Function("M", [q], [chain.crba(q)])
     np.testing.assert_allclose(np.array(g([0, 0, 0, 0, 0, 0])).ravel(), [0, 37.4837, 0.2489, 0, 0, 0], atol=1e-4)
-    np.testing.assert_allclose(np.array(g([0, 0, -np.pi / 2, 0, 0, 0])).ravel(), [0, 46.0069, 8.7722, 0, 0.0283, 0],
-                               atol=1e-4)
+    np.testing.assert_allclose(
+        np.array(g([0, 0, -np.pi / 2, 0, 0, 0])).ravel(), [0, 46.0069, 8.7722, 0, 0.0283, 0], atol=1e-4
+    )
     Mqn = np.array(M([0, np.pi / 4, np.pi, 0, np.pi / 4, 0]))
     np.testing.assert_allclose(np.diag(Mqn), [3.6594, 4.4137, 0.9378, 0.1925, 0.1713, 0.1941], atol=1e-4)
     np.testing.assert_allclose(Mqn[0, 1:3], [-0.4044, 0.1006], atol=1e-4)
 
 
-@pytest.mark.parametrize("problem, tau_of", [
-    (NLink(7), lambda p, q, qd, u: u - p.damping * qd),
-    (Puma560(), lambda p, q, qd, u: u - p.damping * qd),
-])
+@pytest.mark.parametrize(
+    "problem, tau_of",
+    [
+        (NLink(7), lambda p, q, qd, u: u - p.damping * qd),
+        (Puma560(), lambda p, q, qd, u: u - p.damping * qd),
+    ],
+)
 def test_problem_model_is_forward_dynamics_with_damping(problem, tau_of):
     model = problem.pin_model if hasattr(problem, "pin_model") else planar_chain(problem.links)
     data = model.createData()
@@ -212,6 +239,7 @@ def test_baxter_plant_samples_its_servo():
     assert 0 < np.abs(sampled - continuous).max() < 1e-2 * np.abs(continuous - x0).max()
     # A faster servo tends to the continuous one.
     from ocpkit.problems.baxter import SampledServo
+
     plant = p.plant()
     fast = SampledServo("fast", plant.x, plant.u, plant.xdot, arm_f=plant.arm_f, kp=p.kp, kd=p.kd, rate=20000)
     fast_x = np.array(fast.rk4(0.01, 10)(x0, qdes)).ravel()

@@ -1,4 +1,5 @@
 """Closed-loop LinearMPC on the robot problems (issue 3): N-link robots to a goal, Baxter overshoot."""
+
 from __future__ import annotations
 
 import control
@@ -18,8 +19,8 @@ def _reaches_goal(problem, knots, form, duration, tol=0.02, seed=0):
     assert traj.fallbacks == 0
     assert np.all(traj.u <= ocp.u_max + 1e-9) and np.all(traj.u >= ocp.u_min - 1e-9)
     err = np.abs(traj.x - goal).max(axis=1)
-    assert err[0] > 0.5                              # a real move, from rest …
-    assert err[-1] < tol                             # … to the goal at rest (angles and rates)
+    assert err[0] > 0.5  # a real move, from rest …
+    assert err[-1] < tol  # … to the goal at rest (angles and rates)
     assert np.abs(traj.u).max() > 0.9 * problem.tau_max  # the torque limit is active on the way
 
 
@@ -39,8 +40,10 @@ def test_nlink7_reaches_goal_traditional():
 
 def _overshoot(traj_q, t, q0, q_goal):
     """Largest percent overshoot over the joints (python-control's step_info on each normalized step)."""
-    return max(control.step_info((traj_q[:, j] - q0[j]) / (q_goal[j] - q0[j]), T=t, yfinal=1.0)["Overshoot"]
-               for j in range(len(q0)))
+    return max(
+        control.step_info((traj_q[:, j] - q0[j]) / (q_goal[j] - q0[j]), T=t, yfinal=1.0)["Overshoot"]
+        for j in range(len(q0))
+    )
 
 
 def test_baxter_mpc_overshoots_less_than_the_bare_servo():
@@ -59,6 +62,6 @@ def test_baxter_mpc_overshoots_less_than_the_bare_servo():
     traj = simulate(p.plant(), mpc, x0, goal, duration)
     assert traj.fallbacks == 0
     servo, controlled = _overshoot(xs[:, :7], t, q0, qg), _overshoot(traj.x[:, :7], traj.t, q0, qg)
-    assert servo > 30.0                         # clearly underdamped
+    assert servo > 30.0  # clearly underdamped
     assert controlled < 0.5 * servo
     assert np.abs(traj.x[-1, :7] - qg).max() < 0.01

@@ -1,4 +1,5 @@
 """Population rollouts: the kernel's costs (and violations) equal a plain numpy/CasADi rollout of the same knots."""
+
 import casadi as ca
 import numpy as np
 import pytest
@@ -68,8 +69,11 @@ def test_nonlinear_rollout_matches_casadi_loop(name, parameterization):
 def test_non_smooth_cost_rollout():
     ocp, x0, goal, U = _setup("pendulum:linear", 24, seed=2)
     x, u, g = ca.SX.sym("x", 2), ca.SX.sym("u"), ca.SX.sym("x_goal", 2)
-    stage = ca.Function("l", [x, u, g], [10 * ca.fmax(ca.fabs(x[0] - g[0]) - 0.1, 0)
-                                         + ca.if_else(ca.fabs(x[1]) > 1.0, 100.0, 0.0) + 0.01 * u ** 2])
+    stage = ca.Function(
+        "l",
+        [x, u, g],
+        [10 * ca.fmax(ca.fabs(x[0] - g[0]) - 0.1, 0) + ca.if_else(ca.fabs(x[1]) > 1.0, 100.0, 0.0) + 0.01 * u**2],
+    )
     terminal = ca.Function("lT", [x, g], [ca.norm_1(x - g)])
     F = ocp.discrete()
     engine = Rollout(ocp, 24, dynamics="nonlinear", stage_cost=stage, terminal_cost=terminal)

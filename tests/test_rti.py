@@ -12,7 +12,6 @@ from ocpkit.solvers.qp import LinearMPC
 from ocpkit.solvers.rti import RealTimeIteration
 
 
-
 def _ipopt(ocp, x0, goal):
     sol = NonlinearMPC(ocp, options={"tol": 1e-11}).solve(x0, goal)
     assert sol.ok
@@ -63,8 +62,10 @@ def test_rti_on_the_compiled_model_is_the_rti_on_the_sx_model(tmp_path, monkeypa
     monkeypatch.setenv("OCPKIT_CACHE_DIR", str(tmp_path))
     prob = make("nlink:2")
     x0, goal = prob.sample(1)
-    trajs = [simulate(prob.plant(), RealTimeIteration(prob.ocp(knots=4, compiled=compiled), iterations=2),
-                      x0, goal, 0.1) for compiled in (False, True)]
+    trajs = [
+        simulate(prob.plant(), RealTimeIteration(prob.ocp(knots=4, compiled=compiled), iterations=2), x0, goal, 0.1)
+        for compiled in (False, True)
+    ]
     assert all(t.fallbacks == 0 for t in trajs)
     np.testing.assert_allclose(trajs[1].u, trajs[0].u, rtol=0, atol=1e-10)
 
@@ -138,7 +139,6 @@ def test_fatrop_reaches_ipopts_optimum_on_the_puma():
     sol = NonlinearMPC(ocp, method="fatrop", options={"tol": 1e-10}).solve(x0, goal)
     assert sol.ok, sol.raw_status
     np.testing.assert_allclose(sol.knots, ref.knots, atol=1e-6 * max(1.0, np.abs(ref.knots).max()))
-
 
 
 def test_rti_swings_the_cartpole_up(cartpole):

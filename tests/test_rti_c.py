@@ -1,5 +1,6 @@
 """The real-time iteration as compiled C (ocpkit.export with linearization "trajectory", LinearMPC's C step)
 against the Python RealTimeIteration: the same closed loops, predicted states and iterations, to rounding."""
+
 import numpy as np
 import pytest
 
@@ -11,9 +12,17 @@ from ocpkit.solvers.qp import LinearMPC
 from ocpkit.model.task import FramePosition, Task
 
 
-@pytest.mark.parametrize("name, horizon, iterations, tol, integrator", [
-    ("nlink:3", 40, 1, 0.0, "rk4"), ("puma560", 50, 1, 0.0, "rk4"), ("panda", 30, 1, 0.0, "rk4"),
-    ("nlink:3", 40, 3, 1e-6, "rk4"), ("puma560", 50, 1, 0.0, "euler"), ("panda", 30, 2, 0.0, "euler")])
+@pytest.mark.parametrize(
+    "name, horizon, iterations, tol, integrator",
+    [
+        ("nlink:3", 40, 1, 0.0, "rk4"),
+        ("puma560", 50, 1, 0.0, "rk4"),
+        ("panda", 30, 1, 0.0, "rk4"),
+        ("nlink:3", 40, 3, 1e-6, "rk4"),
+        ("puma560", 50, 1, 0.0, "euler"),
+        ("panda", 30, 2, 0.0, "euler"),
+    ],
+)
 def test_c_step_equals_python_rti_in_closed_loop(name, horizon, iterations, tol, integrator):
     prob = problems.make(name)
     ocp = prob.ocp(knots=5, horizon=horizon, integrator=integrator)
@@ -61,7 +70,19 @@ def test_trajectory_export_refuses_what_it_cannot_do(tmp_path):
 def test_cli_exports_the_real_time_iteration(tmp_path, capsys):
     from ocpkit.cli import main
 
-    rc = main(["export", "nlink:3", "--horizon", "30", "--linearization", "trajectory", "--iterations", "2",
-               "--out", str(tmp_path / "rti")])
+    rc = main(
+        [
+            "export",
+            "nlink:3",
+            "--horizon",
+            "30",
+            "--linearization",
+            "trajectory",
+            "--iterations",
+            "2",
+            "--out",
+            str(tmp_path / "rti"),
+        ]
+    )
     out = capsys.readouterr().out
     assert rc == 0 and "linearization trajectory" in out and "agree" in out

@@ -1,5 +1,6 @@
 """ocpkit.safety and the controller's use of it: the task certificate of a plan, the brake, the safe fallback and the
 divergence warning, each against a computation by hand."""
+
 from __future__ import annotations
 
 import warnings
@@ -52,8 +53,11 @@ def test_plan_check_clearance_matches_numpy():
     ocp = reach(arm, [Sphere((tip[0] + 0.2, tip[1], 0.0), 0.05)], knots=3, horizon=10)
     check = PlanCheck(ocp)
     true = clearances(ocp.task.kinematics, ocp.task.robot, ocp.task.obstacles, x[None, :3])[0]
-    for radius in (0.05, 0.05 + true - ocp.task.margin + 0.5 * CLEARANCE_TOL,
-                   0.05 + true - ocp.task.margin + 2 * CLEARANCE_TOL):
+    for radius in (
+        0.05,
+        0.05 + true - ocp.task.margin + 0.5 * CLEARANCE_TOL,
+        0.05 + true - ocp.task.margin + 2 * CLEARANCE_TOL,
+    ):
         ocp_r = reach(arm, [Sphere((tip[0] + 0.2, tip[1], 0.0), radius)], knots=3, horizon=10)
         v = PlanCheck(ocp_r).violation(np.tile(x, (11, 1)))
         gap = true - (radius - 0.05) - ocp.task.margin  # d − margin with this radius

@@ -17,6 +17,7 @@ obstacles says so at construction (test_contract.TASK_REFUSALS). The default run
 cases by rotation (the sampling planners not on the 100 spheres) and the README's Panda example for the QP and RTI
 configurations; ``pytest -m slow`` the whole grid, the Panda for every configuration included.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -126,9 +127,14 @@ def test_no_success_inside_an_obstacle_that_contains_the_arm(nlink3):
     assert soft and all("clearance" in sol.raw_status for sol in soft), [s.raw_status for s in traj.solutions]
 
 
-PANDA_CONFIGS = [c for c in CONFIGS if c.solver == "qp" and c.options.get("form") == "condensed"
-                 and c.options.get("qp") == "daqp" and not c.options.get("native")] + \
-                [c for c in CONFIGS if c.solver == "rti" and "iterations" not in c.options]
+PANDA_CONFIGS = [
+    c
+    for c in CONFIGS
+    if c.solver == "qp"
+    and c.options.get("form") == "condensed"
+    and c.options.get("qp") == "daqp"
+    and not c.options.get("native")
+] + [c for c in CONFIGS if c.solver == "rti" and "iterations" not in c.options]
 
 
 def _panda_readme_case():

@@ -4,6 +4,7 @@ The set-up: nlink:3 reaching for a point past a ball that sits on the path the p
 (0.0, 0.45) about 0.4 s into the unobstructed reach), with obstacle_weight 10 — a penalty so light that, ranked by
 penalized cost alone, every planner drove the arm through the ball (down to −0.09 m, 57–64 of 101 states inside).
 """
+
 import numpy as np
 import pytest
 
@@ -36,14 +37,14 @@ def case():
 
 def _affine(ocp, x, goal):
     """The sampling planners' affine model at x (about the input goal, their default linearization)."""
-    Ad, Bd, wd = (np.asarray(M, dtype=float) for M in ocp.affine()(x, ocp.input_goal(goal[:ocp.nx])))
+    Ad, Bd, wd = (np.asarray(M, dtype=float) for M in ocp.affine()(x, ocp.input_goal(goal[: ocp.nx])))
     return Ad, Bd, wd.ravel()
 
 
 def _reference_violation(ocp, xs):
     """Σ_{k≥1} max(0, margin − clearance(x_k)) + the state bounds' excess, by ocpkit.model.task.clearances and numpy."""
     task = ocp.task
-    c = clearances(task.kinematics, task.robot, task.obstacles, xs[1:, :task.kinematics.n])
+    c = clearances(task.kinematics, task.robot, task.obstacles, xs[1:, : task.kinematics.n])
     bounds = np.maximum(0.0, xs[1:] - ocp.x_max) + np.maximum(0.0, ocp.x_min - xs[1:])
     return float(np.maximum(0.0, task.margin - c).sum() + bounds.sum())
 
@@ -55,8 +56,15 @@ def test_kernel_violation_equals_an_independent_rollout(case, dynamics):
     not."""
     problem, _, goal, target, x = case
     vmax = np.full(3, 6.0)
-    ocp = reach(problem, [BALL], knots=3, horizon=20, obstacle_weight=10, x_min=np.r_[np.full(3, -np.inf), -vmax],
-                x_max=np.r_[np.full(3, np.inf), vmax])
+    ocp = reach(
+        problem,
+        [BALL],
+        knots=3,
+        horizon=20,
+        obstacle_weight=10,
+        x_min=np.r_[np.full(3, -np.inf), -vmax],
+        x_max=np.r_[np.full(3, np.inf), vmax],
+    )
     scale = np.linspace(0.0, 1.0, 12)[:, None, None]  # from coasting to torques anywhere within the bounds
     U = scale * np.random.default_rng(0).uniform(ocp.u_min, ocp.u_max, size=(12, ocp.knots, ocp.nu))
     engine = Rollout(ocp, len(U), dynamics=dynamics)

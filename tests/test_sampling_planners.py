@@ -1,5 +1,6 @@
 """Regressions of the sampling planners (issue 27): the paper variant of CEM and MPPI runs, and the preconditioned
 CEM brings an open-loop unstable system (the README's cart-pole) to its goal, on the arch of `pytest --arch`."""
+
 import time
 
 import casadi as ca
@@ -22,6 +23,7 @@ pytestmark = pytest.mark.usefixtures("taichi_arch")
 class CartPole(Problem):
     """The README's user-declared cart-pole ("Declare your own problem"), copied so that these tests do not
     depend on the README's wording: x = [p, θ, ṗ, θ̇], θ = 0 upright (open-loop unstable at the goal)."""
+
     name, dt, horizon, duration = "cartpole", 0.01, 100, 2.0
 
     def dynamics(self, error):

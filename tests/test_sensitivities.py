@@ -1,6 +1,7 @@
 """The affine model's derivatives against independent references: pinocchio's analytical ABA derivatives
 (computeABADerivatives, C++) for the continuous Jacobians of :attr:`Model.jacobian`, and CasADi's own Jacobian of the
 discrete step for the sensitivities that :meth:`Model.affine` propagates (RK4 and Euler)."""
+
 from __future__ import annotations
 
 import inspect
@@ -70,8 +71,12 @@ def test_continuous_jacobians_equal_pinocchio_aba_derivatives(spec):
 def _first_order_model() -> Model:
     """A nonlinear model that is not x = [q, q̇]: explicit Euler applies."""
     x, u = ca.SX.sym("x", 3), ca.SX.sym("u", 2)
-    return Model("tank", x, u, ca.vertcat(-ca.sqrt(1 + x[0] ** 2) + u[0], x[0] * x[2] - ca.sin(x[1]),
-                                           u[1] * ca.cos(x[0]) - 0.3 * x[2]))
+    return Model(
+        "tank",
+        x,
+        u,
+        ca.vertcat(-ca.sqrt(1 + x[0] ** 2) + u[0], x[0] * x[2] - ca.sin(x[1]), u[1] * ca.cos(x[0]) - 0.3 * x[2]),
+    )
 
 
 @pytest.mark.parametrize("integrator", INTEGRATORS)

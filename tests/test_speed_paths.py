@@ -1,4 +1,5 @@
 """The fast condensed build and the QP backends against a straightforward reference computation."""
+
 import numpy as np
 import pytest
 
@@ -24,15 +25,36 @@ def _reference(tr, Ad, Bd, wd, x0, x_goal):
     return S.T @ QS + tr.R_knots, QS.T @ (v.ravel() - np.tile(x_goal, T)) + tr.q_knots(x_goal), S, v.ravel()
 
 
-@pytest.mark.parametrize("kind,T,p", [("linear", 100, 5), ("linear", 50, 5), ("linear", 37, 4), ("zoh", 30, 7),
-                                      ("identity", 12, None), ("linear", 1, 1), ("linear", 9, 9)])
+@pytest.mark.parametrize(
+    "kind,T,p",
+    [
+        ("linear", 100, 5),
+        ("linear", 50, 5),
+        ("linear", 37, 4),
+        ("zoh", 30, 7),
+        ("identity", 12, None),
+        ("linear", 1, 1),
+        ("linear", 9, 9),
+    ],
+)
 @pytest.mark.parametrize("seed", range(3))
 def test_condensed_build_equals_reference(kind, T, p, seed):
     rng = np.random.default_rng(seed)
     n, m = 5, 3
     Q = np.diag(rng.uniform(0.5, 2, n)) if seed != 2 else (lambda M: M @ M.T)(rng.normal(size=(n, n)))
-    ocp = OCP(random_lti(seed, n, m), 0.05, T, Q, 0.1 * np.eye(m), Q_terminal=10 * Q, u_min=-1, u_max=1,
-              x_min=-5 * np.ones(n), x_max=5 * np.ones(n), parameterization=Parameterization.make(kind, T, p))
+    ocp = OCP(
+        random_lti(seed, n, m),
+        0.05,
+        T,
+        Q,
+        0.1 * np.eye(m),
+        Q_terminal=10 * Q,
+        u_min=-1,
+        u_max=1,
+        x_min=-5 * np.ones(n),
+        x_max=5 * np.ones(n),
+        parameterization=Parameterization.make(kind, T, p),
+    )
     Ad, Bd = rng.normal(size=(n, n)) * 0.4 + np.eye(n), rng.normal(size=(n, m))
     wd, x0, xg = rng.normal(size=(3, n))
     tr = CondensedQP(ocp)
@@ -41,8 +63,8 @@ def test_condensed_build_equals_reference(kind, T, p, seed):
     scale = np.abs(P).max()
     np.testing.assert_allclose(qp.P, P, atol=1e-12 * scale, rtol=0)
     np.testing.assert_allclose(qp.q, q, atol=1e-12 * max(scale, np.abs(q).max()), rtol=0)
-    np.testing.assert_allclose(qp.C[len(qp.box):], S[tr.x_rows], atol=1e-12 * np.abs(S).max(), rtol=0)
-    np.testing.assert_allclose(qp.l[len(qp.box):], tr.x_lo - v[tr.x_rows], atol=1e-12 * np.abs(v).max(), rtol=0)
+    np.testing.assert_allclose(qp.C[len(qp.box) :], S[tr.x_rows], atol=1e-12 * np.abs(S).max(), rtol=0)
+    np.testing.assert_allclose(qp.l[len(qp.box) :], tr.x_lo - v[tr.x_rows], atol=1e-12 * np.abs(v).max(), rtol=0)
     z = rng.normal(size=tr.nz)
     np.testing.assert_allclose(tr.states(z, x0)[1:].ravel(), S @ z + v, atol=1e-12 * np.abs(S @ z + v).max())
 
@@ -104,10 +126,17 @@ def test_bench_step_runs_every_solver_in_rounds():
     from ocpkit.benchmarks.step import BASE, PROXQP, PYTHON, VM, bench_step
 
     lines = []
-    rows = bench_step(links=(1,), horizons=(10, 20), knots=3, steps=3, rounds=2, peers=False, busy=0, fresh=0,
-                      out=lines.append)
-    assert {r["solver"] for r in rows} >= {BASE, PYTHON, PROXQP, VM, "ocpkit sparse traditional hpipm",
-                                           "ocpkit sparse traditional osqp"}
+    rows = bench_step(
+        links=(1,), horizons=(10, 20), knots=3, steps=3, rounds=2, peers=False, busy=0, fresh=0, out=lines.append
+    )
+    assert {r["solver"] for r in rows} >= {
+        BASE,
+        PYTHON,
+        PROXQP,
+        VM,
+        "ocpkit sparse traditional hpipm",
+        "ocpkit sparse traditional osqp",
+    }
     assert all(r["status"] == "success" and r["p25"] <= r["median"] <= r["p75"] for r in rows)
     assert [r["ratio"] for r in rows if r["solver"] == BASE] == [1.0, 1.0]
     parts = [r for r in rows if "flops" in r]  # the four condensed variants report their parts

@@ -1,6 +1,7 @@
 """Stale study results: a trial's stored values are refused on resume when the code it runs changed anywhere
 (its own module, a module it imports, ocpkit, a user's problem file) or a numerical dependency's version did;
 the refusal names what changed, and --reuse-stale / --rerun-stale decide."""
+
 import os
 import re
 import textwrap
@@ -102,8 +103,7 @@ def test_a_dependency_version_change_is_refused_naming_it(trial_folder, tmp_path
     assert set(recorded) == {"casadi", "numpy", "scipy", "proxsuite", "osqp", "daqp", "pin", "taichi", "control"}
     assert recorded["numpy"] is not None
     before = code_hash(stale_trial_c.trial)
-    monkeypatch.setattr(provenance, "dependency_versions",
-                        lambda: {**recorded, "numpy": "99.0.0", "casadi": None})
+    monkeypatch.setattr(provenance, "dependency_versions", lambda: {**recorded, "numpy": "99.0.0", "casadi": None})
     assert code_hash(stale_trial_c.trial) != before
     with pytest.raises(StaleTrialsError, match=r"2 of the 2 stored trials") as refused:
         run(study, tmp_path / "out", workers=1, progress=False)
@@ -135,8 +135,11 @@ def test_a_changed_thread_count_or_taichi_setting_is_refused_naming_it(trial_fol
     assert _executions() == 2
     monkeypatch.setenv("OMP_NUM_THREADS", "2")
     monkeypatch.setenv("TI_ARCH", "cpu")
-    with pytest.raises(StaleTrialsError, match=r"2 of the 2 stored trials of study 's'.* were computed by other code "
-                                               r"or settings \(OMP_NUM_THREADS 1 → 2; TI_ARCH unset → cpu\)"):
+    with pytest.raises(
+        StaleTrialsError,
+        match=r"2 of the 2 stored trials of study 's'.* were computed by other code "
+        r"or settings \(OMP_NUM_THREADS 1 → 2; TI_ARCH unset → cpu\)",
+    ):
         run(study, out, workers=1, progress=False)
     assert run(study, out, workers=1, progress=False, stale="rerun").y.tolist() == [0, 2] and _executions() == 4
     monkeypatch.delenv("OMP_NUM_THREADS")
@@ -149,13 +152,17 @@ def test_a_change_in_an_ocpkit_module_the_trial_runs_is_refused_naming_it(trial_
     from ocpkit.runs import provenance
     from ocpkit.sim import metrics
 
-    _module(trial_folder, "stale_trial_d", """
+    _module(
+        trial_folder,
+        "stale_trial_d",
+        """
         import os, pathlib, time
         def trial(x):
             from ocpkit.sim.metrics import itae
             pathlib.Path(os.environ["STALE_TEST_LOG"], f"{x}-{time.time_ns()}").touch()
             return {"y": x}
-    """)
+    """,
+    )
     import stale_trial_d
 
     study = Study("s", stale_trial_d.trial, grid(x=range(2)))
@@ -165,6 +172,7 @@ def test_a_change_in_an_ocpkit_module_the_trial_runs_is_refused_naming_it(trial_
     def edited(path):
         digest, refs = read(path)
         return (digest[::-1], refs) if Path(path) == Path(metrics.__file__) else (digest, refs)
+
     monkeypatch.setattr(provenance, "_read", edited)
     # (other ocpkit modules may be named too where someone edits them meanwhile)
     with pytest.raises(StaleTrialsError, match=r"\(changed [^;)]*\bocpkit\.sim\.metrics\b"):
@@ -178,12 +186,27 @@ def test_a_closed_loop_trials_manifest_covers_the_solvers_and_problems_it_may_ru
     from ocpkit.studies import closed_loop
 
     code = provenance.manifest(closed_loop.trial)["code"]
-    for name in ("ocpkit.studies.closed_loop", "ocpkit.solvers.qp", "ocpkit.solvers.nlp", "ocpkit.solvers.mppi",
-                 "ocpkit.problems.nlink", "ocpkit.problems.baxter", "ocpkit.sim.simulate", "ocpkit.sim.metrics",
-                 "ocpkit", "ocpkit.studies"):
+    for name in (
+        "ocpkit.studies.closed_loop",
+        "ocpkit.solvers.qp",
+        "ocpkit.solvers.nlp",
+        "ocpkit.solvers.mppi",
+        "ocpkit.problems.nlink",
+        "ocpkit.problems.baxter",
+        "ocpkit.sim.simulate",
+        "ocpkit.sim.metrics",
+        "ocpkit",
+        "ocpkit.studies",
+    ):
         assert name in code, name
-    for name in ("ocpkit.cli", "ocpkit.runs.store", "ocpkit.runs.study", "ocpkit.studies.knots",
-                 "ocpkit.studies.report", "ocpkit.benchmarks.faults"):
+    for name in (
+        "ocpkit.cli",
+        "ocpkit.runs.store",
+        "ocpkit.runs.study",
+        "ocpkit.studies.knots",
+        "ocpkit.studies.report",
+        "ocpkit.benchmarks.faults",
+    ):
         assert name not in code, name
     assert not any(name.startswith(("numpy", "casadi", "scipy")) for name in code)  # versions, not files
     assert all(len(digest) == 16 for digest in code.values())
@@ -195,21 +218,33 @@ def test_the_public_api_counts_only_the_names_a_trial_uses(trial_folder):
     function: it runs when the trial does), runs ``ocpkit.solvers.qp`` and not the other controllers."""
     from ocpkit.runs import provenance
 
-    _module(trial_folder, "stale_model_only_f", """
+    _module(
+        trial_folder,
+        "stale_model_only_f",
+        """
         import ocpkit.model
         def trial(x):
             return {"y": x}
-    """)
-    _module(trial_folder, "stale_attribute_f", """
+    """,
+    )
+    _module(
+        trial_folder,
+        "stale_attribute_f",
+        """
         import ocpkit
         def trial(x):
             return {"y": ocpkit.LinearMPC.__name__}
-    """)
-    _module(trial_folder, "stale_from_f", """
+    """,
+    )
+    _module(
+        trial_folder,
+        "stale_from_f",
+        """
         def trial(x):
             from ocpkit import LinearMPC
             return {"y": LinearMPC.__name__}
-    """)
+    """,
+    )
     import stale_attribute_f
     import stale_from_f
     import stale_model_only_f
@@ -234,6 +269,7 @@ def test_hashing_is_cached_per_process(tmp_path, monkeypatch):
 
     def parse(source):
         raise AssertionError("a file was parsed again although it did not change")
+
     monkeypatch.setattr(provenance, "_imports", parse)
     t0 = time.perf_counter()
     for _ in range(5):
@@ -258,8 +294,7 @@ def test_a_change_in_the_users_problem_file_is_refused_naming_it(cartpole_dir):
     assert (first.status == "ok").all(), first.error.tolist()
     source = cartpole_dir / "cartpole.py"
     _touch_later(source, source.read_text().replace("M, m, l, g = 1.0 * error", "M, m, l, g = 2.0 * error"))
-    with pytest.raises(StaleTrialsError,
-                       match=r"1 of the 1 stored trials of study 'cp'.*\(changed \./cartpole\.py\b"):
+    with pytest.raises(StaleTrialsError, match=r"1 of the 1 stored trials of study 'cp'.*\(changed \./cartpole\.py\b"):
         run(study, "out", workers=1, progress=False)
     kept = run(study, "out", workers=1, progress=False, stale="reuse")
     assert kept.actual_cost.tolist() == first.actual_cost.tolist()
@@ -280,8 +315,11 @@ def test_trials_stored_by_0_1_0_are_refused_saying_what_is_known(trial_folder, t
         store.write("s", {"x": 1}, {"y": 2}, version="0.1.0", code="0123456789abcdef")
     study = Study("s", stale_trial_e.trial, grid(x=range(2)))
     now = re.escape(package_version())
-    with pytest.raises(StaleTrialsError, match=rf"1 of the 1 stored trials .*\(ocpkit 0\.1\.0 → {now}; code recorded "
-                                               r"before ocpkit 0\.2\.0 .* unknown\)"):
+    with pytest.raises(
+        StaleTrialsError,
+        match=rf"1 of the 1 stored trials .*\(ocpkit 0\.1\.0 → {now}; code recorded "
+        r"before ocpkit 0\.2\.0 .* unknown\)",
+    ):
         run(study, tmp_path / "out", workers=1, progress=False)
     assert run(study, tmp_path / "out", workers=1, progress=False, stale="reuse").y.tolist() == [0, 2]
     assert _executions() == 1

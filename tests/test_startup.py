@@ -1,4 +1,5 @@
 """`ocpkit bench startup`: each run a fresh process in its own cache folder, empty then warm."""
+
 import pytest
 
 from ocpkit.benchmarks.startup import bench_startup

@@ -1,5 +1,6 @@
 """Statuses and failure reasons (issue 45, item 3): an enum whose members are the old strings, and decisions that
 read a step's ``reason``, never the words of its raw status."""
+
 import json
 import pickle
 

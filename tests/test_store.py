@@ -1,4 +1,5 @@
 """The results store under what users do to it: copies, damage, full disks, read-only folders, old stores."""
+
 import os
 import shutil
 import sqlite3
@@ -98,11 +99,15 @@ def test_a_finished_study_in_a_read_only_folder_reads_back(tmp_path, monkeypatch
 
 def test_a_store_from_before_provenance_gains_its_columns(tmp_path):
     with sqlite3.connect(tmp_path / FILENAME) as con:  # the schema of the first release, one trial in it
-        con.execute("CREATE TABLE trials (study TEXT NOT NULL, key TEXT NOT NULL, status TEXT NOT NULL, "
-                    "metrics TEXT NOT NULL, arrays BLOB, error TEXT, traceback TEXT, wall_time REAL, started TEXT, "
-                    "finished TEXT, PRIMARY KEY (study, key))")
-        con.execute("INSERT INTO trials VALUES ('q', '{\"x\":0}', 'ok', '{\"y\":0}', NULL, NULL, NULL, 1.0, "
-                    "'2024-01-01T00:00:00+00:00', '2024-01-01T00:00:00+00:00')")
+        con.execute(
+            "CREATE TABLE trials (study TEXT NOT NULL, key TEXT NOT NULL, status TEXT NOT NULL, "
+            "metrics TEXT NOT NULL, arrays BLOB, error TEXT, traceback TEXT, wall_time REAL, started TEXT, "
+            "finished TEXT, PRIMARY KEY (study, key))"
+        )
+        con.execute(
+            "INSERT INTO trials VALUES ('q', '{\"x\":0}', 'ok', '{\"y\":0}', NULL, NULL, NULL, 1.0, "
+            "'2024-01-01T00:00:00+00:00', '2024-01-01T00:00:00+00:00')"
+        )
     with Store(tmp_path) as store:
         df = store.load("q")
     assert df.ocpkit_version.isna().all() and df.code_hash.isna().all()

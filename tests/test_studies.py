@@ -1,4 +1,5 @@
 """The paper's studies end to end on tiny grids: trials stored, ratios computed, figures and tables written."""
+
 import pytest
 
 from ocpkit.runs.store import Store
@@ -18,29 +19,48 @@ def tiny(monkeypatch):
     monkeypatch.setitem(get("knots").SIZES, "quick", {"knots": [2, 50], "seeds": 2, "problems": ["pendulum:linear"]})
     monkeypatch.setitem(get("horizon").SIZES, "quick", {"horizons": [10], "seeds": 2})
     monkeypatch.setattr(get("horizon"), "PROBLEMS", ("pendulum:linear",))
-    monkeypatch.setitem(get("robustness").SIZES, "quick", {"errors": [0.8, 1.0], "seeds": 1,
-                                                           "problems": ["pendulum"]})
-    monkeypatch.setitem(get("robustness").MUJOCO_SIZES, "quick", {"problems": ["nlink:2"], "friction": [0.1],
-                                                                  "armature": [0.5], "seeds": 1, "duration": 0.2,
-                                                                  "arch": "cpu"})
-    monkeypatch.setitem(get("solve_times").SIZES, "quick", {"links": [1], "states": 2, "qp": "osqp",
-                                                            "max_dense_vars": None})
-    monkeypatch.setitem(get("comparison").SIZES, "quick", {"links": [1], "seeds": 1, "duration": 0.2,
-                                                           "population": 32, "arch": "cpu"})
+    monkeypatch.setitem(get("robustness").SIZES, "quick", {"errors": [0.8, 1.0], "seeds": 1, "problems": ["pendulum"]})
+    monkeypatch.setitem(
+        get("robustness").MUJOCO_SIZES,
+        "quick",
+        {"problems": ["nlink:2"], "friction": [0.1], "armature": [0.5], "seeds": 1, "duration": 0.2, "arch": "cpu"},
+    )
+    monkeypatch.setitem(
+        get("solve_times").SIZES, "quick", {"links": [1], "states": 2, "qp": "osqp", "max_dense_vars": None}
+    )
+    monkeypatch.setitem(
+        get("comparison").SIZES, "quick", {"links": [1], "seeds": 1, "duration": 0.2, "population": 32, "arch": "cpu"}
+    )
     monkeypatch.setattr(get("comparison"), "SAMPLE_LINKS", 1)
     monkeypatch.setitem(get("keepout").SIZES, "quick", {"seeds": 1, "duration": 0.2, "population": 32, "arch": "cpu"})
     monkeypatch.setitem(get("baxter").SIZES, "quick", {"seeds": 1, "duration": 0.2, "population": 32, "arch": "cpu"})
-    monkeypatch.setitem(get("reach").SIZES, "quick", {"seeds": {"nlink:3": 1, "baxter": 0, "keepout": 1},
-                                                      "duration": {"nlink:3": 0.1, "baxter": 0.1, "keepout": 0.1},
-                                                      "horizon": {"nlink:3": 20, "baxter": 20, "keepout": 20},
-                                                      "population": 32, "arch": "cpu"})
+    monkeypatch.setitem(
+        get("reach").SIZES,
+        "quick",
+        {
+            "seeds": {"nlink:3": 1, "baxter": 0, "keepout": 1},
+            "duration": {"nlink:3": 0.1, "baxter": 0.1, "keepout": 0.1},
+            "horizon": {"nlink:3": 20, "baxter": 20, "keepout": 20},
+            "population": 32,
+            "arch": "cpu",
+        },
+    )
 
 
 def test_reproduce_quick_on_tiny_grids(tiny, tmp_path):
     report = reproduce("quick", tmp_path, workers=1, progress=False)
     text = report.read_text()
-    for title in ("Fig. 3", "Fig. 4", "Tables I–II", "Figs. 7–10", "Figs. 11–13", "keep-out zone", "Table III",
-                  "Reaching past spherical obstacles", "MuJoCo as the plant"):
+    for title in (
+        "Fig. 3",
+        "Fig. 4",
+        "Tables I–II",
+        "Figs. 7–10",
+        "Figs. 11–13",
+        "keep-out zone",
+        "Table III",
+        "Reaching past spherical obstacles",
+        "MuJoCo as the plant",
+    ):
         assert title in text
     assert "wall time" in text and "casadi" in text and "failed" not in text
     # Every study section says how many trials stand behind it and ends with its claim checks.
@@ -56,8 +76,10 @@ def test_reproduce_quick_on_tiny_grids(tiny, tmp_path):
         assert "| paper's claim | paper | here | evidence | verdict |" in claims, title
         rows = [row for row in claims.strip().splitlines()[2:] if row.startswith("|")]
         verdicts = [row.rsplit("|", 2)[-2].strip().split(" (")[0] for row in rows]
-        assert verdicts and set(verdicts) <= {"held", "not held", "inconclusive", "not tested", "unreliable", "–"}, \
-            (title, verdicts)
+        assert verdicts and set(verdicts) <= {"held", "not held", "inconclusive", "not tested", "unreliable", "–"}, (
+            title,
+            verdicts,
+        )
         # Every decided verdict shows its evidence: n, and an interval where it rests on a median.
         for row in rows:
             if row.rsplit("|", 2)[-2].strip() in ("held", "not held", "inconclusive"):

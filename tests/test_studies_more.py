@@ -1,4 +1,5 @@
 """The solve-time, comparison and Baxter studies on tiny grids: trials stored, figures and tables written."""
+
 import numpy as np
 import pytest
 
@@ -28,8 +29,9 @@ def test_solve_times_tiny(monkeypatch, tmp_path):
     assert (df["solve_median"] < df["total_median"]).all()
     assert "Not run (too slow for this size): small matrix traditional at 1 links, T = 100, 2 links, T = 50" in text
     assert "| links | large matrix (sparse), 5 knots |" in text
-    _figures(tmp_path, "solve_times_solve_T50", "solve_times_total_T50", "solve_times_solve_T100",
-             "solve_times_total_T100")
+    _figures(
+        tmp_path, "solve_times_solve_T50", "solve_times_total_T50", "solve_times_solve_T100", "solve_times_total_T100"
+    )
     with Store(tmp_path) as store:
         assert store.arrays("solve_times", solve_times.study("quick").trials[0])["solve_times"].shape == (2,)
 
@@ -45,14 +47,20 @@ def test_solve_times_states_are_shared_and_checked():
 
 
 def test_comparison_tiny(monkeypatch, tmp_path):
-    monkeypatch.setitem(comparison.SIZES, "quick", {"links": [2], "seeds": 1, "duration": 0.3, "population": 64,
-                                                    "arch": "cpu"})
+    monkeypatch.setitem(
+        comparison.SIZES, "quick", {"links": [2], "seeds": 1, "duration": 0.3, "population": 64, "arch": "cpu"}
+    )
     monkeypatch.setattr(comparison, "SAMPLE_LINKS", 2)
     df, text = _run(comparison, tmp_path)
     assert len(df) == len(comparison.CONTROLLERS) and df["record"].all() and (df["fallbacks"] == 0).all()
     assert "| 2 | 1 |" in text  # traditional MPC is its own reference
-    _figures(tmp_path, "comparison_sample_response", "comparison_cost_ratio", "comparison_solve_median",
-             "comparison_total_median")
+    _figures(
+        tmp_path,
+        "comparison_sample_response",
+        "comparison_cost_ratio",
+        "comparison_solve_median",
+        "comparison_total_median",
+    )
     row = df.index[df["controller"] == "EMPC 1 gen"][0]
     arrays = comparison.row_arrays(df, row, tmp_path)
     assert arrays["x"].shape == (31, 4) and arrays["u"].shape == (30, 2)

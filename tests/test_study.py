@@ -1,4 +1,5 @@
 """The study runner and its store: resume after SIGKILL, failures, parallel = serial, exports."""
+
 import contextlib
 import json
 import os
@@ -115,6 +116,7 @@ def test_canonical_key_is_stable():
 def nested_factory():
     def inner(x):
         return {}
+
     return inner
 
 
@@ -289,8 +291,7 @@ def test_dask_local_cluster_matches_local_processes(tmp_path, monkeypatch):
         monkeypatch.setenv(name, "1")
     study = Study("sq", square, grid(x=range(4), seeds=2, fail=3))
     local = run(study, tmp_path / "local", workers=2, progress=False)
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                                  dashboard_address=None) as cluster:
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
         remote = run(study, tmp_path / "dask", scheduler=cluster.scheduler_address, progress=False)
         workers = set(cluster.scheduler_info["workers"])
     columns = TIMING + ["traceback"]  # tracebacks name the worker's frames
@@ -300,6 +301,7 @@ def test_dask_local_cluster_matches_local_processes(tmp_path, monkeypatch):
     # Where they ran: each of the cluster's workers, their counts summing to the grid; said in the report.
     where = remote.attrs["cluster"]["workers"]
     assert set(where) <= workers and sum(where.values()) == len(study.trials)
-    assert f"on the Dask cluster at {cluster.scheduler_address}: {len(study.trials)} trials on " in \
-        cluster_summary(remote)
+    assert f"on the Dask cluster at {cluster.scheduler_address}: {len(study.trials)} trials on " in cluster_summary(
+        remote
+    )
     assert cluster_summary(local) == ""

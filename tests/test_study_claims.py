@@ -3,6 +3,7 @@
 No test here waits on a clock: trials block on a gate file that the test creates once the state it needs is
 reached (both processes hold claims, say); timeouts only guard against hangs.
 """
+
 import contextlib
 import json
 import os
@@ -139,8 +140,13 @@ def test_a_killed_claimants_trials_are_taken_over(folders):
 
 
 def test_a_trial_that_never_returns_is_stopped_by_the_timeout(tmp_path):
-    df = run(Study("t", sleeper, [{"seconds": 0.0}, {"seconds": 1e6}]), tmp_path, workers=2, progress=False,
-             trial_timeout=1.0)
+    df = run(
+        Study("t", sleeper, [{"seconds": 0.0}, {"seconds": 1e6}]),
+        tmp_path,
+        workers=2,
+        progress=False,
+        trial_timeout=1.0,
+    )
     assert df.status.tolist() == ["ok", "failed"]
     assert df.error.iloc[1].startswith("TrialTimeout: the trial ran longer than the trial timeout of 1 s")
     # stuck where Python cannot interrupt it: its worker is ended, the trial stored as timed out
@@ -153,10 +159,12 @@ def test_a_trial_that_never_returns_is_stopped_by_the_timeout(tmp_path):
 def test_resume_refuses_trials_of_other_code_unless_told(tmp_path, monkeypatch):
     module = tmp_path / "mod" / "stale_trial.py"
     module.parent.mkdir()
-    module.write_text("import os, pathlib, time\n"
-                      "def trial(x):\n"
-                      "    pathlib.Path(os.environ['LOG'], f'{x}-{time.time_ns()}').touch()\n"
-                      "    return {'y': 2 * x}\n")
+    module.write_text(
+        "import os, pathlib, time\n"
+        "def trial(x):\n"
+        "    pathlib.Path(os.environ['LOG'], f'{x}-{time.time_ns()}').touch()\n"
+        "    return {'y': 2 * x}\n"
+    )
     monkeypatch.syspath_prepend(str(module.parent))
     log = tmp_path / "log"
     log.mkdir()

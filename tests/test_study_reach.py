@@ -1,4 +1,5 @@
 """The reach study on a tiny grid (3-link arm and keep-out ball), its scenarios and its keep-out term."""
+
 import numpy as np
 import pytest
 
@@ -7,9 +8,13 @@ from ocpkit.runs import study as runner
 from ocpkit.sim.simulate import MOVING, STALLED
 from ocpkit.studies import NAMES, get, reach, reach_trials
 
-TINY = {"seeds": {"nlink:3": 1, "baxter": 0, "panda": 0, reach.KEEPOUT: 1},
-        "duration": {"nlink:3": 0.1, "baxter": 0.1, reach.KEEPOUT: 0.1},
-        "horizon": {"nlink:3": 20, "baxter": 20, reach.KEEPOUT: 20}, "population": 32, "arch": "cpu"}
+TINY = {
+    "seeds": {"nlink:3": 1, "baxter": 0, "panda": 0, reach.KEEPOUT: 1},
+    "duration": {"nlink:3": 0.1, "baxter": 0.1, reach.KEEPOUT: 0.1},
+    "horizon": {"nlink:3": 20, "baxter": 20, reach.KEEPOUT: 20},
+    "population": 32,
+    "arch": "cpu",
+}
 
 
 def test_reach_tiny(monkeypatch, tmp_path):
@@ -30,9 +35,15 @@ def test_reach_tiny(monkeypatch, tmp_path):
     keep = df[df["scenario"] == reach.KEEPOUT]
     assert (keep["actual_cost"] >= keep["quadratic_cost"]).all()
     text = reach.report(df, tmp_path)
-    for piece in ("Reach: per robot and controller", "EMPC vs the gradient methods", "Keep-out verdict, as measured",
-                  "IPOPT and RTI reach ≥ 90 %", "within 1.2× of IPOPT", "were not tuned on",
-                  "No controller reports success on a step whose actual next state collides"):
+    for piece in (
+        "Reach: per robot and controller",
+        "EMPC vs the gradient methods",
+        "Keep-out verdict, as measured",
+        "IPOPT and RTI reach ≥ 90 %",
+        "within 1.2× of IPOPT",
+        "were not tuned on",
+        "No controller reports success on a step whose actual next state collides",
+    ):
         assert piece in text, piece
     claims = text.split("Claim checks:")[1].strip().splitlines()[2:]
     verdicts = [row.rsplit("|", 2)[-2].strip() for row in claims]
@@ -84,24 +95,63 @@ def test_report_counts_stalls_soft_steps_and_successes_while_colliding(tmp_path)
     import pandas as pd
 
     def row(controller, seed, **values):
-        base = {"status": "ok", "scenario": "panda", "controller": controller, "seed": seed, "success": True,
-                "verdict": "reached", "collision_steps": 0, "success_while_colliding": 0, "successes": 200,
-                "soft_steps": 0, "soft_causes": "", "fallbacks": 0, "fallback_causes": "", "steps": 200,
-                "min_clearance": 0.01, "final_distance": 0.001, "actual_cost": 100.0 + seed, "step_median": 0.01,
-                "step_max": 0.02, "rejected": 0, "duration": 2.0, "horizon": 50, "population": 256,
-                "device": "cpu", "child_win_rate": float("nan"), "load": 1.0}
+        base = {
+            "status": "ok",
+            "scenario": "panda",
+            "controller": controller,
+            "seed": seed,
+            "success": True,
+            "verdict": "reached",
+            "collision_steps": 0,
+            "success_while_colliding": 0,
+            "successes": 200,
+            "soft_steps": 0,
+            "soft_causes": "",
+            "fallbacks": 0,
+            "fallback_causes": "",
+            "steps": 200,
+            "min_clearance": 0.01,
+            "final_distance": 0.001,
+            "actual_cost": 100.0 + seed,
+            "step_median": 0.01,
+            "step_max": 0.02,
+            "rejected": 0,
+            "duration": 2.0,
+            "horizon": 50,
+            "population": 256,
+            "device": "cpu",
+            "child_win_rate": float("nan"),
+            "load": 1.0,
+        }
         return {**base, **values}
 
     rows = [row(reach.IPOPT, s) for s in range(3)]
-    rows += [row(reach.RTI, 0), row(reach.RTI, 1, success=False, verdict=STALLED, final_distance=0.05),
-             row(reach.RTI, 2, success=False, verdict=MOVING, collision_steps=11, success_while_colliding=10,
-                 successes=187, soft_steps=3, soft_causes="clearance 2, state bound 1", fallbacks=10,
-                 fallback_causes="nan 10", min_clearance=-0.07, final_distance=0.18)]
+    rows += [
+        row(reach.RTI, 0),
+        row(reach.RTI, 1, success=False, verdict=STALLED, final_distance=0.05),
+        row(
+            reach.RTI,
+            2,
+            success=False,
+            verdict=MOVING,
+            collision_steps=11,
+            success_while_colliding=10,
+            successes=187,
+            soft_steps=3,
+            soft_causes="clearance 2, state bound 1",
+            fallbacks=10,
+            fallback_causes="nan 10",
+            min_clearance=-0.07,
+            final_distance=0.18,
+        ),
+    ]
     text = reach.report(pd.DataFrame(rows), tmp_path)
     table = text.split("Reach: per robot and controller")[1]
     header = [c.strip() for c in table.splitlines()[2].strip("|").split("|")]
-    lines = {cells[0]: dict(zip(header, cells)) for cells in
-             ([c.strip() for c in line.strip("|").split("|")] for line in table.splitlines()[4:6])}
+    lines = {
+        cells[0]: dict(zip(header, cells))
+        for cells in ([c.strip() for c in line.strip("|").split("|")] for line in table.splitlines()[4:6])
+    }
     rti = lines[f"panda · {reach.RTI}"]
     assert rti["success"] == "1/3" and rti["collided"] == "1" and rti["stalled (no collision)"] == "1"
     assert rti["colliding states"] == "11" and rti["success while colliding"] == "10" and rti["soft steps"] == "3"

@@ -4,6 +4,7 @@ controller.
 Independent paths compared: the Gauss–Newton QP iterated by real-time iteration against IPOPT on the same NLP
 (terms and an active obstacle); an inactive task against no task, bit for bit, for every registered configuration.
 """
+
 from __future__ import annotations
 
 import casadi as ca
@@ -115,16 +116,27 @@ def test_iterated_rti_reaches_ipopts_optimum_with_an_active_obstacle(nlink3):
     assert np.abs(rti.knots - ref.knots).max() < 1e-5 * max(1.0, np.abs(ref.knots).max()), (rti.knots, ref.knots)
 
 
-@pytest.mark.parametrize("solver, options", [("qp", {}), ("qp", {"linearization": "trajectory"}),
-                                             ("rti", {}),
-                                             pytest.param("ipopt", {}, marks=pytest.mark.slow),  # 1.5 s of IPOPT
-                                             ("empc", {"population": 128, "arch": "cpu", "dynamics": "nonlinear"})])
+@pytest.mark.parametrize(
+    "solver, options",
+    [
+        ("qp", {}),
+        ("qp", {"linearization": "trajectory"}),
+        ("rti", {}),
+        pytest.param("ipopt", {}, marks=pytest.mark.slow),  # 1.5 s of IPOPT
+        ("empc", {"population": 128, "arch": "cpu", "dynamics": "nonlinear"}),
+    ],
+)
 def test_reach_around_an_obstacle_in_closed_loop(nlink3, solver, options):
     """Every kind of controller brings the tip to the target without the true clearance going negative."""
     x0, target, sphere = _blocked(nlink3)
     ocp = reach(nlink3, [sphere], knots=KNOTS, horizon=HORIZON)
-    traj = simulate(nlink3.plant(), solvers.make(solver, ocp, **options), x0, ocp.goal(x0, position=target),
-                    duration=3.0 if solver != "ipopt" or options else 1.5)
+    traj = simulate(
+        nlink3.plant(),
+        solvers.make(solver, ocp, **options),
+        x0,
+        ocp.goal(x0, position=target),
+        duration=3.0 if solver != "ipopt" or options else 1.5,
+    )
     clear = np.asarray(ocp.task_functions.clearance.map(traj.x.shape[0])(traj.x.T)[0]) + ocp.task.margin
     assert clear.min() >= 0.0, clear.min()
     if solver == "ipopt" and not options:
@@ -141,6 +153,7 @@ def test_inactive_terms_give_todays_results_bit_for_bit(nlink3):
     assert tasked.task_functions is None and tasked.ng == plain.nx + 3
     x0, goal = nlink3.sample(0)
     full = tasked.goal(goal, position=[0.1, 0.2, 0.3])
+
     def run(config, ocp, g):
         ctrl = config.make(ocp)
         ctrl.wait_compiled()
@@ -156,8 +169,9 @@ def test_inactive_terms_give_todays_results_bit_for_bit(nlink3):
 
     bad = []
     for config in solvers.configurations():
-        if config.knots == "horizon" or (config.solver in ("empc", "cem", "mppi")
-                                         and config.options.get("variant") != "preconditioned"):
+        if config.knots == "horizon" or (
+            config.solver in ("empc", "cem", "mppi") and config.options.get("variant") != "preconditioned"
+        ):
             continue
         a, b = run(config, plain, goal), run(config, tasked, full)
         if all(same(s, t) for s, t in zip(a, b)):
@@ -182,6 +196,7 @@ def test_user_term_as_a_function_and_metrics(nlink3):
     x0, goal = nlink3.sample(1)
     traj = simulate(nlink3.plant(), solvers.make("qp", ocp), x0, goal, duration=0.2)
     from ocpkit.sim.metrics import actual_cost
+
     plain = nlink3.ocp(knots=KNOTS, horizon=HORIZON)
     extra = sum(2.0 * float(np.sum((traj.u[i] * traj.x[i, 3:]) ** 2)) for i in range(traj.u.shape[0]))
     assert actual_cost(traj, ocp) == pytest.approx(actual_cost(traj, plain) + extra, rel=1e-12)
@@ -196,8 +211,15 @@ def test_daqp_softens_the_obstacle_rows_before_the_state_bounds(nlink3, monkeypa
     x0, target, _ = _blocked(nlink3)
     tip = _tip(nlink3, x0[:3])
     limits = np.r_[np.full(3, np.inf), np.full(3, 5.0)]  # joint velocities within 5 rad/s
-    ocp = reach(nlink3, [Sphere(tuple(tip + [0.0, 0.0, 0.065]), 0.01)], knots=KNOTS, horizon=HORIZON,
-                compiled=False, x_min=-limits, x_max=limits)  # 5 mm into the margin of the tip's sphere
+    ocp = reach(
+        nlink3,
+        [Sphere(tuple(tip + [0.0, 0.0, 0.065]), 0.01)],
+        knots=KNOTS,
+        horizon=HORIZON,
+        compiled=False,
+        x_min=-limits,
+        x_max=limits,
+    )  # 5 mm into the margin of the tip's sphere
     assert ocp.has_state_bounds and np.asarray(ocp.task_functions.clearance(x0)[0]).min() < 0
     sizes = []
     solve = DAQP.solve
@@ -215,8 +237,11 @@ def test_targets_and_lengths_beyond_a_robots_scale_are_refused(nlink3):
     """Issue 44, item 10: a target at 1e300 m made every step a NaN fallback; a 1e6 m link radius or margin and the
     world frame were taken. Each is refused where it is given, naming it and the plausible range."""
     ocp = reach(nlink3, knots=KNOTS, horizon=HORIZON)
-    with pytest.raises(ValueError, match=r"position \[1e\+300, 0.0, 0.0\] is 1e\+300 m from the world origin, beyond "
-                                         r"the robot's plausible workspace \(75 m"):
+    with pytest.raises(
+        ValueError,
+        match=r"position \[1e\+300, 0.0, 0.0\] is 1e\+300 m from the world origin, beyond "
+        r"the robot's plausible workspace \(75 m",
+    ):
         ocp.goal(np.zeros(6), position=[1e300, 0, 0])
     assert ocp.goal(np.zeros(6), position=[0.8, 0.6, 0])[-3:].tolist() == [0.8, 0.6, 0]  # beyond reach, but a reach
     with pytest.raises(ValueError, match=r"link_radius must be > 0 and at most 10 m"):
@@ -233,8 +258,16 @@ def test_targets_and_lengths_beyond_a_robots_scale_are_refused(nlink3):
 def test_reach_takes_more_terms(nlink3):
     """reach(terms=...): an orientation, another frame's position and the joint-limit barrier beside the position."""
     kin = nlink3.kinematics
-    ocp = reach(nlink3, terms=[FrameOrientation(kin, "tip", 10.0), FramePosition(kin, "joint3", name="elbow"),
-                               JointLimitBarrier([-2.0] * 3, [2.0] * 3)], knots=KNOTS, horizon=HORIZON)
+    ocp = reach(
+        nlink3,
+        terms=[
+            FrameOrientation(kin, "tip", 10.0),
+            FramePosition(kin, "joint3", name="elbow"),
+            JointLimitBarrier([-2.0] * 3, [2.0] * 3),
+        ],
+        knots=KNOTS,
+        horizon=HORIZON,
+    )
     assert ocp.terms == ["state", "input", "position", "orientation", "elbow", "joint_limits"]
     g = ocp.goal(np.zeros(6), position=[0.3, 0.5, 0], orientation=np.eye(3), elbow=[0.2, 0.2, 0])
     assert g.size == 6 + 3 + 9 + 3

@@ -1,4 +1,5 @@
 """The two transcriptions against the paper's examples and against each other."""
+
 import numpy as np
 import pytest
 
@@ -12,8 +13,15 @@ from ocpkit.qp.transcription import CondensedQP
 
 
 def _ocp(model, T=5, p=3, **kw):
-    return OCP(model, 0.01, T, np.eye(model.nx), 0.1 * np.eye(model.nu),
-               parameterization=Parameterization.make("linear", T, p), **kw)
+    return OCP(
+        model,
+        0.01,
+        T,
+        np.eye(model.nx),
+        0.1 * np.eye(model.nu),
+        parameterization=Parameterization.make("linear", T, p),
+        **kw,
+    )
 
 
 def _random_affine(n, m, seed=0):
@@ -29,13 +37,16 @@ def test_sparse_matches_paper_T5_p3_A():
     I, Z, B, h = np.eye(n), np.zeros((n, n)), Bd, 0.5 * Bd
     zb = np.zeros((n, m))
     # The paper's A for T=5, p=3 without its last (w_d) column, which moves to the right-hand side.
-    paper = np.block([
-        [-I, Z, Z, Z, Z, Z, zb, zb, zb],
-        [Ad, -I, Z, Z, Z, Z, B, zb, zb],
-        [Z, Ad, -I, Z, Z, Z, h, h, zb],
-        [Z, Z, Ad, -I, Z, Z, zb, B, zb],
-        [Z, Z, Z, Ad, -I, Z, zb, h, h],
-        [Z, Z, Z, Z, Ad, -I, zb, zb, B]])
+    paper = np.block(
+        [
+            [-I, Z, Z, Z, Z, Z, zb, zb, zb],
+            [Ad, -I, Z, Z, Z, Z, B, zb, zb],
+            [Z, Ad, -I, Z, Z, Z, h, h, zb],
+            [Z, Z, Ad, -I, Z, Z, zb, B, zb],
+            [Z, Z, Z, Ad, -I, Z, zb, h, h],
+            [Z, Z, Z, Z, Ad, -I, zb, zb, B],
+        ]
+    )
     np.testing.assert_array_equal(qp.A.toarray(), paper)
     np.testing.assert_array_equal(qp.b, np.r_[-x0, np.tile(-wd, 5)])
 
@@ -47,12 +58,15 @@ def test_condensed_matches_paper_T5_p3_S():
     S, v = CondensedQP(ocp).prediction(Ad, Bd, wd, x0)
     A2, A3, A4, I = Ad @ Ad, Ad @ Ad @ Ad, np.linalg.matrix_power(Ad, 4), np.eye(n)
     Zb = np.zeros((n, m))
-    paper = np.block([
-        [Bd, Zb, Zb],
-        [(Ad + I / 2) @ Bd, Bd / 2, Zb],
-        [(A2 + Ad / 2) @ Bd, (Ad / 2 + I) @ Bd, Zb],
-        [(A3 + A2 / 2) @ Bd, (A2 / 2 + Ad + I / 2) @ Bd, Bd / 2],
-        [(A4 + A3 / 2) @ Bd, (A3 / 2 + A2 + Ad / 2) @ Bd, (Ad / 2 + I) @ Bd]])
+    paper = np.block(
+        [
+            [Bd, Zb, Zb],
+            [(Ad + I / 2) @ Bd, Bd / 2, Zb],
+            [(A2 + Ad / 2) @ Bd, (Ad / 2 + I) @ Bd, Zb],
+            [(A3 + A2 / 2) @ Bd, (A2 / 2 + Ad + I / 2) @ Bd, Bd / 2],
+            [(A4 + A3 / 2) @ Bd, (A3 / 2 + A2 + Ad / 2) @ Bd, (Ad / 2 + I) @ Bd],
+        ]
+    )
     np.testing.assert_allclose(S, paper, rtol=1e-13, atol=1e-13)
     # v does not depend on the parameterization: A_d^k x0 + Σ A_d^i w_d.
     xs, x = [], x0
@@ -88,8 +102,16 @@ def test_sparse_equals_condensed_pendulum(name, seed, knots):
 def test_sparse_equals_condensed_random_lti_active_bounds(seed, knots):
     model = random_lti(seed, 4, 2)
     T = 20
-    ocp = OCP(model, 0.05, T, np.eye(4) * 10, 0.01 * np.eye(2), u_min=-0.5, u_max=0.5,
-              parameterization=Parameterization.make("linear", T, knots))
+    ocp = OCP(
+        model,
+        0.05,
+        T,
+        np.eye(4) * 10,
+        0.01 * np.eye(2),
+        u_min=-0.5,
+        u_max=0.5,
+        parameterization=Parameterization.make("linear", T, knots),
+    )
     rng = np.random.default_rng(100 + seed)
     x0, goal = rng.normal(size=4) * 3, rng.normal(size=4) * 3
     for qp in ("proxqp", "osqp"):

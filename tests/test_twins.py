@@ -18,6 +18,7 @@ fallback and shift     Controller.fallback ("plan"), .shift       fallback, shif
 RTI iterations         RealTimeIteration._solve, shifted_plan     rti, shifted_plan, stage_models
 =====================  =========================================  =================================================
 """
+
 from __future__ import annotations
 
 import ctypes
@@ -36,8 +37,7 @@ from ocpkit.qp.transcription import CondensedQP
 from ocpkit.solvers.qp import LinearMPC
 from ocpkit.solvers.rti import RealTimeIteration
 
-pytestmark = pytest.mark.skipif(shutil.which("cc") is None or shutil.which("make") is None,
-                                reason="needs cc and make")
+pytestmark = pytest.mark.skipif(shutil.which("cc") is None or shutil.which("make") is None, reason="needs cc and make")
 
 TOL = 1e-12  # relative to the data's scale (max |entry| of the Python side)
 ITERATIONS = 3  # the exported real-time iteration's Gauss–Newton steps
@@ -54,8 +54,16 @@ def _ocp(case: str):
     rng = np.random.default_rng(0)
     M = rng.normal(size=(6, 6))
     big = np.r_[np.full(3, np.inf), np.full(3, 10.0)]  # |q̇_i| <= 10
-    return problem, problem.ocp(knots=4, horizon=30, parameterization="zoh", Q=np.eye(6) + 0.1 * M @ M.T,
-                                Q_terminal=100 * np.eye(6), x_min=-big, x_max=big, compiled=False)
+    return problem, problem.ocp(
+        knots=4,
+        horizon=30,
+        parameterization="zoh",
+        Q=np.eye(6) + 0.1 * M @ M.T,
+        Q_terminal=100 * np.eye(6),
+        x_min=-big,
+        x_max=big,
+        compiled=False,
+    )
 
 
 class Twins:
@@ -95,8 +103,9 @@ class Twins:
 @pytest.fixture(scope="module", params=["pendulum", "nlink:3"])
 def twins(request, tmp_path_factory):
     problem, ocp = _ocp(request.param)
-    out = export(ocp, tmp_path_factory.mktemp("twins") / "exp", linearization="trajectory",
-                 iterations=ITERATIONS).out_dir
+    out = export(
+        ocp, tmp_path_factory.mktemp("twins") / "exp", linearization="trajectory", iterations=ITERATIONS
+    ).out_dir
     c = Twins(out, ocp)
     yield problem, ocp, c
     c.close()
@@ -130,7 +139,7 @@ def _points(problem, ocp, count: int = 3):
 def _python_qp(ocp, L, x, goal) -> QP:
     """CondensedQP.build about one model Λ (n x NL) or stage models (T x n x NL), hard state bounds."""
     n, m = ocp.nx, ocp.nu
-    return CondensedQP(ocp).build(L[..., :n], L[..., n:n + m], L[..., -1], x, goal)
+    return CondensedQP(ocp).build(L[..., :n], L[..., n : n + m], L[..., -1], x, goal)
 
 
 def _check_qp(c: Twins, qp: QP):
@@ -213,8 +222,16 @@ def test_ill_conditioning(twins):
     edge = ROUNDING_MARGIN * tr.curvature / (c.nz * np.finfo(float).eps)
     for f in (0.5, 1 - TOL, 1.0, 1 + TOL, 2.0):
         Pf = P * (edge * f / np.abs(np.diag(P)).max())
-        py = QP(Pf, np.zeros(c.nz), np.zeros((0, c.nz)), np.zeros(0), np.zeros((0, c.nz)), np.zeros(0), np.zeros(0),
-                curvature=tr.curvature).not_definite(factorize=False)
+        py = QP(
+            Pf,
+            np.zeros(c.nz),
+            np.zeros((0, c.nz)),
+            np.zeros(0),
+            np.zeros((0, c.nz)),
+            np.zeros(0),
+            np.zeros(0),
+            curvature=tr.curvature,
+        ).not_definite(factorize=False)
         assert bool(c("ill_conditioned", Pf)) == (py is not None), f
     assert c("ill_conditioned", P) == 0
 

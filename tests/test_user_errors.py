@@ -1,6 +1,7 @@
 """A user's own problem code that fails (issue 28, item 5): one line naming the user's file, line and exception —
 in Python a ProblemError chained to the original, on the command line one line on stderr and exit 2 (the full
 traceback with --debug) — and dynamics that return NaN named as such in simulate and export."""
+
 from __future__ import annotations
 
 import re
@@ -15,19 +16,19 @@ from ocpkit.cli import main
 from ocpkit.problems import make
 
 BROKEN = {
-    "import_raises.py": '''
+    "import_raises.py": """
         import numpy as np
 
         ROBOT = None
         raise RuntimeError("no robot connected")
-    ''',
-    "syntax.py": '''
+    """,
+    "syntax.py": """
         from ocpkit.problems.pendulum import Pendulum
 
         def factory(:
             return Pendulum()
-    ''',
-    "makers.py": '''
+    """,
+    "makers.py": """
         from ocpkit.problems.pendulum import Pendulum
 
 
@@ -43,8 +44,8 @@ BROKEN = {
 
         def not_a_problem():
             return 42
-    ''',
-    "nan_everywhere.py": '''
+    """,
+    "nan_everywhere.py": """
         import casadi as ca
         import numpy as np
         from ocpkit import Model, Problem
@@ -62,9 +63,9 @@ BROKEN = {
 
             def sample(self, seed):
                 return np.r_[0.1, 0.0], np.r_[0.0, 0.0]
-    ''',
+    """,
     # finite at the start; NaN once p passes 1 (the drift carries it there in about 0.2 s)
-    "nan_later.py": '''
+    "nan_later.py": """
         import casadi as ca
         import numpy as np
         from ocpkit import Model, Problem
@@ -82,11 +83,18 @@ BROKEN = {
 
             def sample(self, seed):
                 return np.r_[0.0, 0.0], np.r_[0.0, 0.0]
-    ''',
+    """,
 }
 # the line each message must name: the raising line, the bad syntax, a factory's `def`, a `dynamics` hook's `def`
-LINE = {"import_raises.py": 4, "syntax.py": 3, "Raises": 7, "factory": 11, "not_a_problem": 14,
-        "NaNPole.dynamics": 9, "Drift.dynamics": 9}
+LINE = {
+    "import_raises.py": 4,
+    "syntax.py": 3,
+    "Raises": 7,
+    "factory": 11,
+    "not_a_problem": 14,
+    "NaNPole.dynamics": 9,
+    "Drift.dynamics": 9,
+}
 
 
 @pytest.fixture
@@ -107,8 +115,7 @@ def user_dir(tmp_path, monkeypatch):
 def _one_line(capsys) -> str:
     """The one error line on stderr; progress lines of a slow phase ("ocpkit: building ……", said after a second on
     a busy machine) are not errors."""
-    err = "".join(line for line in capsys.readouterr().err.splitlines(keepends=True)
-                  if not line.rstrip().endswith("…"))
+    err = "".join(line for line in capsys.readouterr().err.splitlines(keepends=True) if not line.rstrip().endswith("…"))
     assert err.count("\n") == 1 and "Traceback" not in err, err
     return err
 
@@ -201,4 +208,3 @@ def test_export_names_nan_dynamics(user_dir, capsys):
     assert re.search(r"Drift.dynamics\(error\) returned NaN in xdot\[1\] at x = \[1\.\d+, \S+\], u = \[", err), err
     assert "round trip's closed loop, step" in err
     assert f"nan_later.py:{LINE['Drift.dynamics']}" in err
-

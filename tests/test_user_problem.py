@@ -1,4 +1,5 @@
 """A user's own problem, declared as in the README, everywhere a problem is named: specs, CLI, export, studies."""
+
 from __future__ import annotations
 
 import json
@@ -77,8 +78,23 @@ def test_cli_export_builds_and_round_trips(cartpole_dir, capsys):
 
 def test_study_robustness_on_the_users_problem(cartpole_dir, capsys):
     """Table, figure and report section for the user's problem, trials in a spawned worker process."""
-    assert main(["study", "robustness", "--problem", "./cartpole.py:CartPole", "--size", "quick", "--out", "res",
-                 "--workers", "1"]) == 0
+    assert (
+        main(
+            [
+                "study",
+                "robustness",
+                "--problem",
+                "./cartpole.py:CartPole",
+                "--size",
+                "quick",
+                "--out",
+                "res",
+                "--workers",
+                "1",
+            ]
+        )
+        == 0
+    )
     res = cartpole_dir / "res"
     section = (res / "robustness.md").read_text()
     assert "./cartpole.py:CartPole: median normalized cost" in section and "failed" not in section
@@ -107,7 +123,7 @@ def test_study_specs_are_checked_before_any_trial(cartpole_dir, capsys):
 
 # --- specs ------------------------------------------------------------------------------------------------
 
-_SPEC_MODULE = textwrap.dedent('''
+_SPEC_MODULE = textwrap.dedent("""
     from ocpkit.problems.pendulum import Pendulum
 
     HEAVY = Pendulum(m=2.0)
@@ -121,7 +137,7 @@ _SPEC_MODULE = textwrap.dedent('''
 
     def not_a_problem():
         return 42
-''')
+""")
 
 
 @pytest.fixture
@@ -138,7 +154,7 @@ def spec_module(tmp_path, monkeypatch):
 
 def _mass(problem):
     """The pendulum's mass as its dynamics see it: q̈ at rest with τ = 1 is 1 / (m l²)."""
-    return 1.0 / (float(problem.plant().f([0.0, 0.0], [1.0])[1]) * 0.5 ** 2)
+    return 1.0 / (float(problem.plant().f([0.0, 0.0], [1.0])[1]) * 0.5**2)
 
 
 def test_module_and_file_specs_with_arguments(spec_module):
@@ -178,15 +194,18 @@ def test_register_makes_a_name_work_everywhere(capsys):
         register("x", 3)
 
 
-@pytest.mark.parametrize("spec, message", [
-    ("pendulum:linaer", "unknown pendulum variant 'linaer'; valid: pendulum, pendulum:linear"),
-    ("nlink:20", "must be 1 to 13"),
-    ("nlink:0", "must be 1 to 13"),
-    ("puma560:2", "takes no argument"),
-    ("pendulm", "unknown problem 'pendulm'; known: baxter, nlink, panda, pendulum, puma560, urdf"),
-    ("./nowhere.py:X", "no such file"),
-    ("urdf:", "urdf needs a file"),
-])
+@pytest.mark.parametrize(
+    "spec, message",
+    [
+        ("pendulum:linaer", "unknown pendulum variant 'linaer'; valid: pendulum, pendulum:linear"),
+        ("nlink:20", "must be 1 to 13"),
+        ("nlink:0", "must be 1 to 13"),
+        ("puma560:2", "takes no argument"),
+        ("pendulm", "unknown problem 'pendulm'; known: baxter, nlink, panda, pendulum, puma560, urdf"),
+        ("./nowhere.py:X", "no such file"),
+        ("urdf:", "urdf needs a file"),
+    ],
+)
 def test_unknown_names_and_variants_list_the_valid_ones(spec, message):
     with pytest.raises(ValueError, match=re.escape(message)):
         make(spec)

@@ -1,5 +1,6 @@
 """Issue 45, item 4: one vocabulary. Every controller's arguments, their meaning and default, are one table
 (ocpkit.solvers.methods.ARGUMENTS) that the constructors, the command line and the benchmarks read."""
+
 import inspect
 from importlib import import_module
 
@@ -53,8 +54,12 @@ def test_nonlinear_mpc_takes_each_methods_defaults_from_the_table():
     ocp = make("pendulum").ocp(horizon=10, knots=3)
     for method, table in METHODS.items():
         ctrl = NonlinearMPC(ocp, method=method)
-        resolved = {"hessian": ctrl.hessian, "max_iter": ctrl.max_iter, "dynamics": ctrl.dynamics,
-                    "linearization": ctrl.linearization}
+        resolved = {
+            "hessian": ctrl.hessian,
+            "max_iter": ctrl.max_iter,
+            "dynamics": ctrl.dynamics,
+            "linearization": ctrl.linearization,
+        }
         for argument, value in resolved.items():
             if argument in table:
                 assert value == table[argument].default, (method, argument)
@@ -134,6 +139,7 @@ def test_the_benchmarks_default_controllers_are_one_list():
 
     assert nlp.CONTROLLERS == solvers.BENCHMARKED["nlp"] and startup.CONTROLLERS == solvers.BENCHMARKED["startup"]
     assert set(solvers.BENCHMARKED["nlp"]) | set(solvers.BENCHMARKED["startup"]) - {"exported"} <= set(
-        solvers.CONTROLLERS)
+        solvers.CONTROLLERS
+    )
     text = " ".join(_actions(_parser(), "bench")["controller"].help.split())
     assert all(" ".join(solvers.BENCHMARKED[what]) in text for what in ("nlp", "startup"))

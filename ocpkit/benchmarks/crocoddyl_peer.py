@@ -28,6 +28,7 @@ C++ models, ``solve`` called from Python, one thread per problem (``nthreads`` 1
 per core, makes ``calc`` + ``calcDiff`` hostage to the machine's other processes). Passing the node lists from Python
 is a small part of a solve.
 """
+
 from __future__ import annotations
 
 import time
@@ -75,17 +76,20 @@ def _mismatch() -> str | None:
     joint = model.addJoint(0, pin.JointModelRY(), pin.SE3.Identity(), "joint")
     model.appendBodyToJoint(joint, pin.Inertia(1.0, np.array([0.0, 0.0, 0.5]), 0.01 * np.eye(3)), pin.SE3.Identity())
     state = crocoddyl.StateMultibody(model)
-    dynamics = crocoddyl.DifferentialActionModelFreeFwdDynamics(state, crocoddyl.ActuationModelFull(state),
-                                                                crocoddyl.CostModelSum(state, 1))
+    dynamics = crocoddyl.DifferentialActionModelFreeFwdDynamics(
+        state, crocoddyl.ActuationModelFull(state), crocoddyl.CostModelSum(state, 1)
+    )
     data, x = dynamics.createData(), np.array([0.3, 0.0])
     dynamics.calc(data, x, np.zeros(1))
     reference = pin.aba(model, model.createData(), x[:1], x[1:], np.zeros(1))
     if np.allclose(data.xout, reference, rtol=1e-9, atol=1e-12):
         return None
-    return (f"crocoddyl {crocoddyl.__version__} and pinocchio {pin.__version__} disagree on a pendulum's "
-            f"acceleration ({float(data.xout[0]):.6g} against pinocchio.aba's {float(reference[0]):.6g} rad/s²): "
-            f"libcrocoddyl was built for another libpinocchio (crocoddyl 3.2.1 for pin 4.0.0): {INSTALL} installs "
-            "a matching pair")
+    return (
+        f"crocoddyl {crocoddyl.__version__} and pinocchio {pin.__version__} disagree on a pendulum's "
+        f"acceleration ({float(data.xout[0]):.6g} against pinocchio.aba's {float(reference[0]):.6g} rad/s²): "
+        f"libcrocoddyl was built for another libpinocchio (crocoddyl 3.2.1 for pin 4.0.0): {INSTALL} installs "
+        "a matching pair"
+    )
 
 
 def available() -> bool:
@@ -126,7 +130,7 @@ def objective(ocp: OCP, goal, states, inputs) -> float:
     T = U.shape[0]
     if X.shape != (T + 1, ocp.nx) or U.shape != (T, ocp.nu):
         raise ValueError(f"states must be ({T + 1}, {ocp.nx}) and inputs ({T}, {ocp.nu}), got {X.shape}, {U.shape}")
-    xg = np.asarray(goal, dtype=float)[:ocp.nx]
+    xg = np.asarray(goal, dtype=float)[: ocp.nx]
     starts = np.vstack([xg, X[1:T]])  # x_0's state error counted as zero
     stage = np.asarray(ocp.cost.stage.map(T)(starts.T, U.T, np.repeat(xg[:, None], T, axis=1)), dtype=float)
     return float(stage.sum()) + float(ocp.cost.terminal(X[T], xg))
@@ -149,8 +153,10 @@ class ShootingOCP:
             raise TypeError(f"ocp must be an ocpkit OCP, got {type(ocp).__name__}")
         self.integrator = ocp.integrator
         if ocp.parameterization.kind != "identity":
-            raise ValueError(f"ocp has {ocp.knots} knots over a horizon of {ocp.horizon}: Crocoddyl solves "
-                             "traditional MPC only, build it with problem.ocp(knots=None)")
+            raise ValueError(
+                f"ocp has {ocp.knots} knots over a horizon of {ocp.horizon}: Crocoddyl solves "
+                "traditional MPC only, build it with problem.ocp(knots=None)"
+            )
         if ocp.task is not None:
             raise ValueError("ocp has a task: the Crocoddyl peer builds the state and input terms only")
         if ocp.has_state_bounds:
@@ -160,16 +166,23 @@ class ShootingOCP:
             if np.any(W != np.diag(np.diag(W))):
                 raise ValueError(f"ocp.{name} is not diagonal: Crocoddyl's weighted quadratic activation is")
         if ocp.model.linear or ocp.substeps != 1:
-            how = ("the exact discretization of a linear model" if ocp.model.linear
-                   else f"{ocp.substeps} {ocp.integrator} substeps")
+            how = (
+                "the exact discretization of a linear model"
+                if ocp.model.linear
+                else f"{ocp.substeps} {ocp.integrator} substeps"
+            )
             raise ValueError(f"ocp predicts with {how}, a Crocoddyl node with one {ocp.integrator} step a dt")
         pin_model = getattr(problem, "pin_model", None)
         if pin_model is None:
-            raise ValueError(f"problem {getattr(problem, 'name', problem)!r} has no pinocchio model (pin_model) "
-                             "for Crocoddyl's multibody dynamics")
+            raise ValueError(
+                f"problem {getattr(problem, 'name', problem)!r} has no pinocchio model (pin_model) "
+                "for Crocoddyl's multibody dynamics"
+            )
         if (2 * pin_model.nv, pin_model.nv) != (ocp.nx, ocp.nu) or pin_model.nq != pin_model.nv:
-            raise ValueError(f"problem {problem.name!r}: its pinocchio model (nq {pin_model.nq}, nv {pin_model.nv}) "
-                             f"is not the torque-controlled x = [q, q̇] of ocp (nx {ocp.nx}, nu {ocp.nu})")
+            raise ValueError(
+                f"problem {problem.name!r}: its pinocchio model (nq {pin_model.nq}, nv {pin_model.nv}) "
+                f"is not the torque-controlled x = [q, q̇] of ocp (nx {ocp.nx}, nu {ocp.nu})"
+            )
         self.ocp, self.name = ocp, problem.name
         croc = self.croc
         self.state = croc.StateMultibody(pin_model)
@@ -182,11 +195,21 @@ class ShootingOCP:
         croc, state, m = self.croc, self.state, self.ocp.nu
         costs = croc.CostModelSum(state, m)
         if state_weights is not None:
-            costs.addCost("state", croc.CostModelResidual(state, croc.ActivationModelWeightedQuad(state_weights),
-                                                          croc.ResidualModelState(state, goal, m)), 1.0)
+            costs.addCost(
+                "state",
+                croc.CostModelResidual(
+                    state, croc.ActivationModelWeightedQuad(state_weights), croc.ResidualModelState(state, goal, m)
+                ),
+                1.0,
+            )
         if input_weights is not None:
-            costs.addCost("input", croc.CostModelResidual(state, croc.ActivationModelWeightedQuad(input_weights),
-                                                          croc.ResidualModelControl(state, input_goal)), 1.0)
+            costs.addCost(
+                "input",
+                croc.CostModelResidual(
+                    state, croc.ActivationModelWeightedQuad(input_weights), croc.ResidualModelControl(state, input_goal)
+                ),
+                1.0,
+            )
         return croc.DifferentialActionModelFreeFwdDynamics(state, self.actuation, costs)
 
     def check_dynamics(self, samples: int = 3) -> None:
@@ -206,7 +229,8 @@ class ShootingOCP:
                     f"problem {self.name!r}: Crocoddyl's free forward dynamics differ from ocp.model by {gap:.3g} "
                     f"(relative) at x = {np.round(x, 3).tolist()}: the model has terms Crocoddyl lacks (joint damping "
                     "or friction: use ocpkit.benchmarks.crocoddyl_peer.undamped; a model error multiplier; servo "
-                    "inputs)")
+                    "inputs)"
+                )
 
     def set(self, x0, goal) -> bool:
         """Point the problem at x0 and ``goal``; True when the node models were (re)built for a new goal."""
@@ -225,16 +249,26 @@ class ShootingOCP:
         wq, wr, wt = (2.0 * np.diag(W) for W in (ocp.Q, ocp.R, ocp.Q_terminal))
         terminal = croc.IntegratedActionModelEuler(self.differential(wt, goal=goal), 0.0)
         if self.integrator == "euler":
-            first = self._bounded(croc.IntegratedActionModelEuler(
-                self.differential(input_weights=wr / dt, input_goal=ug), dt))
+            first = self._bounded(
+                croc.IntegratedActionModelEuler(self.differential(input_weights=wr / dt, input_goal=ug), dt)
+            )
             step = self._bounded(croc.IntegratedActionModelEuler(self.differential(wq / dt, wr / dt, goal, ug), dt))
             self.offset = 0.0
             return croc.ShootingProblem(x0, [first] + [step] * (T - 1), terminal)
-        step = self._bounded(croc.IntegratedActionModelRK(
-            self.differential(input_weights=wr / dt, input_goal=ug), croc.RKType.four, dt))
+        step = self._bounded(
+            croc.IntegratedActionModelRK(self.differential(input_weights=wr / dt, input_goal=ug), croc.RKType.four, dt)
+        )
         n = ocp.nx  # x_k's state term (k = 1 … T−1) on a node of its own before node k's dynamics
-        hold = croc.ActionModelLQR(np.eye(n), np.zeros((n, 0)), 2.0 * ocp.Q, np.zeros((0, 0)), np.zeros((n, 0)),
-                                   np.zeros(n), -2.0 * ocp.Q @ goal, np.zeros(0))
+        hold = croc.ActionModelLQR(
+            np.eye(n),
+            np.zeros((n, 0)),
+            2.0 * ocp.Q,
+            np.zeros((0, 0)),
+            np.zeros((n, 0)),
+            np.zeros(n),
+            -2.0 * ocp.Q @ goal,
+            np.zeros(0),
+        )
         self.offset = (T - 1) * float(goal @ ocp.Q @ goal)
         return croc.ShootingProblem(x0, [step] + [hold, step] * (T - 1), terminal)
 
@@ -289,8 +323,16 @@ class CrocoddylMPC(Controller):
     the fallback, status "limited".
     """
 
-    def __init__(self, problem, ocp: OCP, *, max_iter: int = 100, th_stop: float = 1e-9, warm_start: bool = True,
-                 raise_on_fail: bool = False):
+    def __init__(
+        self,
+        problem,
+        ocp: OCP,
+        *,
+        max_iter: int = 100,
+        th_stop: float = 1e-9,
+        warm_start: bool = True,
+        raise_on_fail: bool = False,
+    ):
         self.shooting = ShootingOCP(problem, ocp)
         self.max_iter = integer(max_iter, "max_iter", 1)
         self.th_stop = positive(th_stop, "th_stop")
@@ -342,18 +384,37 @@ class CrocoddylMPC(Controller):
             return self.fallback(NAN, "FDDP returned non-finite states or inputs", times, iterations)
         if not converged:
             self._warm = None
-            return self.fallback(LIMITED, f"FDDP not converged in {iterations} iterations (expected decrease "
-                                          f"{solver.stop:.3g}, th_stop {self.th_stop:g})", times, iterations)
+            return self.fallback(
+                LIMITED,
+                f"FDDP not converged in {iterations} iterations (expected decrease "
+                f"{solver.stop:.3g}, th_stop {self.th_stop:g})",
+                times,
+                iterations,
+            )
         self._warm = U
-        return Solution(u=U[0].copy(), knots=U, status=SUCCESS, iterations=iterations, x_pred=X, times=times,
-                        raw_status=f"FDDP converged in {iterations} iterations (expected decrease {solver.stop:.3g})")
+        return Solution(
+            u=U[0].copy(),
+            knots=U,
+            status=SUCCESS,
+            iterations=iterations,
+            x_pred=X,
+            times=times,
+            raw_status=f"FDDP converged in {iterations} iterations (expected decrease {solver.stop:.3g})",
+        )
 
 
 PROBLEMS = ("puma560", "panda", "nlink:7")
 
 
-def compare(problems=PROBLEMS, horizon: int | None = 50, knots: int | None = 5, seeds: int = 3, steps: int = 10,
-            repeats: int = 10, echo: bool = True) -> list[dict]:
+def compare(
+    problems=PROBLEMS,
+    horizon: int | None = 50,
+    knots: int | None = 5,
+    seeds: int = 3,
+    steps: int = 10,
+    repeats: int = 10,
+    echo: bool = True,
+) -> list[dict]:
     """Per-solve figures of FDDP against ocpkit on the same OCPs (p = T, the problems :func:`undamped`).
 
     For each problem and seeded start/goal every solver runs ``steps`` MPC steps on ocpkit's own discrete model
@@ -379,17 +440,22 @@ def compare(problems=PROBLEMS, horizon: int | None = 50, knots: int | None = 5, 
         raise TypeError(f"problems must be a list of problem specs, got the string {problems!r}")
     # name -> (controller of (problem, its OCP), whether that OCP has the knots)
     # name -> (controller of (problem, its OCP), its OCP: "T" (p = T, RK4), "euler" (p = T) or "knots")
-    solvers = {"fddp rk4": (CrocoddylMPC, "T"), "fddp euler": (CrocoddylMPC, "euler"),
-               "ipopt": (lambda prob, ocp: NonlinearMPC(ocp), "T"),
-               "rti": (lambda prob, ocp: RealTimeIteration(ocp), "T")}
+    solvers = {
+        "fddp rk4": (CrocoddylMPC, "T"),
+        "fddp euler": (CrocoddylMPC, "euler"),
+        "ipopt": (lambda prob, ocp: NonlinearMPC(ocp), "T"),
+        "rti": (lambda prob, ocp: RealTimeIteration(ocp), "T"),
+    }
     if knots is not None:
         solvers[f"ipopt p={knots}"] = (lambda prob, ocp: NonlinearMPC(ocp), "knots")
         solvers[f"rti p={knots}"] = (lambda prob, ocp: RealTimeIteration(ocp), "knots")
     rows = []
     for spec in problems:
         prob = undamped(spec)
-        ocps = {"T": prob.ocp(knots=None, horizon=horizon),
-                "euler": prob.ocp(knots=None, horizon=horizon, integrator="euler")}
+        ocps = {
+            "T": prob.ocp(knots=None, horizon=horizon),
+            "euler": prob.ocp(knots=None, horizon=horizon, integrator="euler"),
+        }
         if knots is not None:
             ocps["knots"] = prob.ocp(knots=knots, horizon=horizon)
         ocp = ocps["T"]
@@ -405,13 +471,19 @@ def compare(problems=PROBLEMS, horizon: int | None = 50, knots: int | None = 5, 
         reference = [run["cost"] for run in runs["ipopt"]]
         for name, seen in runs.items():
             ratio = [run["cost"] / ref for run, ref in zip(seen, reference)]
-            row = {"problem": spec, "solver": name, "knots": knots if solvers[name][1] == "knots" else "T",
-                   "horizon": ocp.horizon, "seeds": seeds, "cost_ratio": ratio}
+            row = {
+                "problem": spec,
+                "solver": name,
+                "knots": knots if solvers[name][1] == "knots" else "T",
+                "horizon": ocp.horizon,
+                "seeds": seeds,
+                "cost_ratio": ratio,
+            }
             for key in ("iteration_ms", "cold_ms", "cold_iterations", "warm_ms", "warm_iterations", "failures"):
                 row[key] = [run[key] for run in seen]
             rows.append(row)
         if echo:
-            _print(spec, ocp, rows[-len(solvers):], np.median(calc, axis=0), knots)
+            _print(spec, ocp, rows[-len(solvers) :], np.median(calc, axis=0), knots)
     return rows
 
 
@@ -431,12 +503,15 @@ def _run(ctrl, ocp: OCP, x0, goal, steps: int, repeats: int) -> dict:
     cold, warm = sols[0], sols[1:]
     inputs = ctrl.ocp.parameterization.inputs(cold.knots)
     rti = isinstance(ctrl, RealTimeIteration)
-    out = {"cold_ms": 1e3 * cold.times["total"], "warm_ms": 1e3 * float(np.median([s.times["total"] for s in warm])),
-           "cold_iterations": np.nan if rti else cold.iterations,
-           "warm_iterations": np.nan if rti else float(np.median([s.iterations for s in warm])),
-           "failures": sum(not s.ok for s in sols),
-           "cost": objective(ocp, goal, rollout(ocp, x0, inputs), inputs) if cold.ok and not rti else np.nan,
-           "iteration_ms": np.nan if rti else 1e3 * cold.times["solve"] / max(cold.iterations, 1)}
+    out = {
+        "cold_ms": 1e3 * cold.times["total"],
+        "warm_ms": 1e3 * float(np.median([s.times["total"] for s in warm])),
+        "cold_iterations": np.nan if rti else cold.iterations,
+        "warm_iterations": np.nan if rti else float(np.median([s.iterations for s in warm])),
+        "failures": sum(not s.ok for s in sols),
+        "cost": objective(ocp, goal, rollout(ocp, x0, inputs), inputs) if cold.ok and not rti else np.nan,
+        "iteration_ms": np.nan if rti else 1e3 * cold.times["solve"] / max(cold.iterations, 1),
+    }
     if croc:
         out["iteration_ms"] = 1e3 * float(np.median([ctrl.one_iteration(x0, goal) for _ in range(repeats)]))
     return out
@@ -465,25 +540,38 @@ def _cell(values, fmt: str, worst=max) -> str:
 
 def _print(spec: str, ocp: OCP, rows: list[dict], calc, knots: int) -> None:
     seeds = rows[0]["seeds"]
-    print(f"\n{spec}: p = T = {ocp.horizon}, dt = {ocp.dt}, without damping; median [worst] over {seeds} "
-          f"seed{'s' if seeds > 1 else ''}; "
-          f"Crocoddyl problem.calc {calc[0]:.2f} ms, calcDiff {calc[1]:.2f} ms (nthreads 1)", flush=True)
-    print(f"{'solver':<12}{'knots':>6}{'iter ms':>16}{'cold ms':>18}{'cold it':>12}{'warm ms':>18}{'warm it':>12}"
-          f"{'cost/ipopt':>24}{'fail':>5}")
+    print(
+        f"\n{spec}: p = T = {ocp.horizon}, dt = {ocp.dt}, without damping; median [worst] over {seeds} "
+        f"seed{'s' if seeds > 1 else ''}; "
+        f"Crocoddyl problem.calc {calc[0]:.2f} ms, calcDiff {calc[1]:.2f} ms (nthreads 1)",
+        flush=True,
+    )
+    print(
+        f"{'solver':<12}{'knots':>6}{'iter ms':>16}{'cold ms':>18}{'cold it':>12}{'warm ms':>18}{'warm it':>12}"
+        f"{'cost/ipopt':>24}{'fail':>5}"
+    )
     worst_ratio = lambda v: max(v, key=lambda r: abs(r - 1.0))  # noqa: E731  the ratio farthest from 1
     for row in rows:
-        print(f"{row['solver']:<12}{row['knots']!s:>6}{_cell(row['iteration_ms'], '.2f'):>16}"
-              f"{_cell(row['cold_ms'], '.1f'):>18}{_cell(row['cold_iterations'], '.0f'):>12}"
-              f"{_cell(row['warm_ms'], '.1f'):>18}{_cell(row['warm_iterations'], '.0f'):>12}"
-              f"{_cell(row['cost_ratio'], '.8f', worst_ratio):>24}{sum(row['failures']):>5d}")
+        print(
+            f"{row['solver']:<12}{row['knots']!s:>6}{_cell(row['iteration_ms'], '.2f'):>16}"
+            f"{_cell(row['cold_ms'], '.1f'):>18}{_cell(row['cold_iterations'], '.0f'):>12}"
+            f"{_cell(row['warm_ms'], '.1f'):>18}{_cell(row['warm_iterations'], '.0f'):>12}"
+            f"{_cell(row['cost_ratio'], '.8f', worst_ratio):>24}{sum(row['failures']):>5d}"
+        )
     by = {row["solver"]: row for row in rows}
     fddp, ipopt, rti = by["fddp rk4"], by["ipopt"], by["rti"]
 
     def ratio(a, b, key):
         return float(np.median(np.divide(a[key], b[key])))
 
-    knot_rti = "" if knots is None else (f"; FDDP warm / ocpkit's {knots}-knot RTI step "
-                                         f"{ratio(fddp, by[f'rti p={knots}'], 'warm_ms'):.2f}")
-    print(f"ratios (median over seeds): FDDP / IPOPT at p = T: cold {ratio(fddp, ipopt, 'cold_ms'):.3f}, warm "
-          f"{ratio(fddp, ipopt, 'warm_ms'):.3f}; FDDP warm / RTI step {ratio(fddp, rti, 'warm_ms'):.2f}{knot_rti}; "
-          f"FDDP cost / IPOPT cost − 1: {float(np.median(fddp['cost_ratio'])) - 1.0:.2e}", flush=True)
+    knot_rti = (
+        ""
+        if knots is None
+        else (f"; FDDP warm / ocpkit's {knots}-knot RTI step {ratio(fddp, by[f'rti p={knots}'], 'warm_ms'):.2f}")
+    )
+    print(
+        f"ratios (median over seeds): FDDP / IPOPT at p = T: cold {ratio(fddp, ipopt, 'cold_ms'):.3f}, warm "
+        f"{ratio(fddp, ipopt, 'warm_ms'):.3f}; FDDP warm / RTI step {ratio(fddp, rti, 'warm_ms'):.2f}{knot_rti}; "
+        f"FDDP cost / IPOPT cost − 1: {float(np.median(fddp['cost_ratio'])) - 1.0:.2e}",
+        flush=True,
+    )

@@ -1,5 +1,6 @@
 """`ocpkit bench faults`: the adversarial matrix (:mod:`ocpkit.benchmarks.faults_matrix`), then the real-time rows
 (:mod:`ocpkit.benchmarks.faults_realtime`) and the cache rows (:mod:`ocpkit.benchmarks.faults_cache`)."""
+
 from __future__ import annotations
 
 from ocpkit.benchmarks.faults_cache import cache_rows

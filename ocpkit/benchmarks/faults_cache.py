@@ -1,5 +1,6 @@
 """The cache rows of `ocpkit bench faults`: a read-only cache with and without the C step, four scripts that want
 one entry at once, another user's planted entry, and a cache on a full file system."""
+
 from __future__ import annotations
 
 from ocpkit.benchmarks.faults_realtime import RealTimeRow, _counts
@@ -59,35 +60,72 @@ def cache_rows(out=print) -> list[RealTimeRow]:
     with tempfile.TemporaryDirectory(prefix="ocpkit-bench-cache-") as tmp:
         tmp = Path(tmp)
         if readonly.method() is None:
-            out("cache rows: the read-only ones skipped (this machine cannot make a folder read-only: root without "
-                "mount namespaces)")
+            out(
+                "cache rows: the read-only ones skipped (this machine cannot make a folder read-only: root without "
+                "mount namespaces)"
+            )
         else:
             filled, empty = tmp / "filled", tmp / "empty"
             empty.mkdir(mode=0o700)
-            subprocess.run([sys.executable, "-m", "ocpkit.cli", "build", "nlink:13", "--knots", "5"], check=True,
-                           env={**os.environ, "OCPKIT_CACHE_DIR": str(filled)}, capture_output=True, timeout=900,
-                           cwd=tmp)  # the scripts run outside any checkout, which would shadow the installed ocpkit
+            subprocess.run(
+                [sys.executable, "-m", "ocpkit.cli", "build", "nlink:13", "--knots", "5"],
+                check=True,
+                env={**os.environ, "OCPKIT_CACHE_DIR": str(filled)},
+                capture_output=True,
+                timeout=900,
+                cwd=tmp,
+            )  # the scripts run outside any checkout, which would shadow the installed ocpkit
             for label, root in (("sound entry", filled), ("no entry", empty)):
                 before = sorted(p.name for p in root.rglob("*"))
-                run = readonly.run(root, _cache_script(0), env={**os.environ, "OCPKIT_CACHE_DIR": str(root)},
-                                   capture_output=True, text=True, timeout=600, cwd=tmp)
+                run = readonly.run(
+                    root,
+                    _cache_script(0),
+                    env={**os.environ, "OCPKIT_CACHE_DIR": str(root)},
+                    capture_output=True,
+                    text=True,
+                    timeout=600,
+                    cwd=tmp,
+                )
                 r = _script_result(run)
                 written = sorted(p.name for p in root.rglob("*")) != before
                 if "error" in r:
-                    rows.append(RealTimeRow("read-only cache", label, f"raised: {r['error'][:100]}", float("nan"),
-                                            "exception", False, "nothing raised"))
+                    rows.append(
+                        RealTimeRow(
+                            "read-only cache",
+                            label,
+                            f"raised: {r['error'][:100]}",
+                            float("nan"),
+                            "exception",
+                            False,
+                            "nothing raised",
+                        )
+                    )
                     continue
                 if label == "sound entry":
                     ok = r["native"] and r["status"] == SUCCESS and not r["warnings"] and not written
                     criterion = "first step in C, success, no warning, nothing written"
                 else:
-                    ok = (not r["native"] and r["status"] == SUCCESS and len(r["warnings"]) == 1
-                          and "read-only" in r["warnings"][0] and not written)
+                    ok = (
+                        not r["native"]
+                        and r["status"] == SUCCESS
+                        and len(r["warnings"]) == 1
+                        and "read-only" in r["warnings"][0]
+                        and not written
+                    )
                     criterion = "Python step, success, one warning, nothing raised or written"
-                rows.append(RealTimeRow("read-only cache", label, f"nlink:13 p=5 ({readonly.method()}): "
-                                        f"{'C step' if r['native'] else 'Python step'}, {len(r['warnings'])} warnings"
-                                        f"{': ' + _gist(r['warnings'][0]) if r['warnings'] else ''}", r["wall"],
-                                        r["status"], bool(ok), criterion))
+                rows.append(
+                    RealTimeRow(
+                        "read-only cache",
+                        label,
+                        f"nlink:13 p=5 ({readonly.method()}): "
+                        f"{'C step' if r['native'] else 'Python step'}, {len(r['warnings'])} warnings"
+                        f"{': ' + _gist(r['warnings'][0]) if r['warnings'] else ''}",
+                        r["wall"],
+                        r["status"],
+                        bool(ok),
+                        criterion,
+                    )
+                )
         rows.append(_concurrent_row(tmp))
     return rows + [planted_entry_row()] + full_disk_rows(out)
 
@@ -112,9 +150,12 @@ def _concurrent_row(tmp, scripts: int = 4) -> RealTimeRow:
     (bin_dir / "make").chmod(0o755)
     env = {**os.environ, "OCPKIT_CACHE_DIR": str(root), "PATH": f"{bin_dir}{os.pathsep}{os.environ['PATH']}"}
     t0 = time.perf_counter()
-    procs = [subprocess.Popen(_cache_script(300), env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                              cwd=tmp)
-             for _ in range(scripts)]
+    procs = [
+        subprocess.Popen(
+            _cache_script(300), env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp
+        )
+        for _ in range(scripts)
+    ]
     results = []
     for proc in procs:
         stdout, stderr = proc.communicate(timeout=900)
@@ -123,10 +164,15 @@ def _concurrent_row(tmp, scripts: int = 4) -> RealTimeRow:
     builds = log.read_text().count("build") if log.exists() else 0
     in_c = sum(bool(r.get("now_native")) for r in results)
     errors = sum("error" in r for r in results)
-    return RealTimeRow("concurrent builds", f"{scripts} scripts, one entry", f"nlink:13 p=5: {builds} build(s), "
-                       f"{in_c}/{scripts} scripts then in C, {errors} raised", wall,
-                       _counts(r.get("status", "exception") for r in results), builds == 1 and in_c == scripts,
-                       "one build machine-wide, every script then in C")
+    return RealTimeRow(
+        "concurrent builds",
+        f"{scripts} scripts, one entry",
+        f"nlink:13 p=5: {builds} build(s), {in_c}/{scripts} scripts then in C, {errors} raised",
+        wall,
+        _counts(r.get("status", "exception") for r in results),
+        builds == 1 and in_c == scripts,
+        "one build machine-wide, every script then in C",
+    )
 
 
 def planted_entry_row() -> RealTimeRow:
@@ -158,10 +204,14 @@ def planted_entry_row() -> RealTimeRow:
         entry = root / "native" / key
         entry.mkdir(mode=0o777)
         entry.chmod(0o777)
-        (tmp / "planted.c").write_text('#include <stdio.h>\n__attribute__((constructor)) static void planted(void) '
-                                       f'{{ FILE *f = fopen("{marker}", "w"); if (f) fclose(f); }}\n')
-        subprocess.run([os.environ.get("CC", "cc"), "-shared", "-fPIC", str(tmp / "planted.c"), "-o",
-                        str(tmp / "planted.so")], check=True)
+        (tmp / "planted.c").write_text(
+            "#include <stdio.h>\n__attribute__((constructor)) static void planted(void) "
+            f'{{ FILE *f = fopen("{marker}", "w"); if (f) fclose(f); }}\n'
+        )
+        subprocess.run(
+            [os.environ.get("CC", "cc"), "-shared", "-fPIC", str(tmp / "planted.c"), "-o", str(tmp / "planted.so")],
+            check=True,
+        )
         write_entry(entry / f"lib{native.NAME}.so", (tmp / "planted.so").read_bytes())
         t0 = time.perf_counter()
         run = subprocess.run(_cache_script(0), env=env, capture_output=True, text=True, timeout=600, cwd=tmp)
@@ -169,11 +219,16 @@ def planted_entry_row() -> RealTimeRow:
         r = _script_result(run)
         refused = r.get("error", "").startswith("ocpkit.codegen.cache.UnsafeCacheError: ")
         planted_ran = marker.exists()
-    return RealTimeRow("planted cache entry", "qp condensed daqp (default)",
-                       f"nlink:13 p=5, entry folder 777: {'not loaded' if not planted_ran else 'LOADED'}, "
-                       f"{_gist(r['error']) if refused else 'not refused'}", wall,
-                       "refused" if refused else r.get("status", "exception"), refused and not planted_ran,
-                       "the planted library never loaded; one-line refusal")
+    return RealTimeRow(
+        "planted cache entry",
+        "qp condensed daqp (default)",
+        f"nlink:13 p=5, entry folder 777: {'not loaded' if not planted_ran else 'LOADED'}, "
+        f"{_gist(r['error']) if refused else 'not refused'}",
+        wall,
+        "refused" if refused else r.get("status", "exception"),
+        refused and not planted_ran,
+        "the planted library never loaded; one-line refusal",
+    )
 
 
 def full_disk_rows(out=print) -> list[RealTimeRow]:
@@ -192,16 +247,44 @@ def full_disk_rows(out=print) -> list[RealTimeRow]:
     with tempfile.TemporaryDirectory(prefix="ocpkit-bench-full-") as tmp:
         root = Path(tmp) / "cache"
         root.mkdir(mode=0o700)
-        run = readonly.run_full(root, _cache_script(0), env={**os.environ, "OCPKIT_CACHE_DIR": str(root)},
-                                capture_output=True, text=True, timeout=600, cwd=tmp)
+        run = readonly.run_full(
+            root,
+            _cache_script(0),
+            env={**os.environ, "OCPKIT_CACHE_DIR": str(root)},
+            capture_output=True,
+            text=True,
+            timeout=600,
+            cwd=tmp,
+        )
     r = _script_result(run)
     if "error" in r:
-        return [RealTimeRow("full disk", "qp condensed daqp (default)", f"raised: {r['error'][:100]}",
-                            float("nan"), "exception", False, "nothing raised")]
-    ok = (not r["native"] and r["status"] == SUCCESS and len(r["warnings"]) == 1
-          and f"{root}/native is full" in r["warnings"][0])
-    return [RealTimeRow("full disk", "qp condensed daqp (default)", f"nlink:13 p=5 (filled tmpfs): "
-                        f"{'C step' if r['native'] else 'Python step'}, {len(r['warnings'])} warnings"
-                        f"{': ' + _gist(r['warnings'][0]) if r['warnings'] else ''}", r["wall"], r["status"],
-                        bool(ok), "Python step, success, one warning naming the folder as full, nothing raised")]
-
+        return [
+            RealTimeRow(
+                "full disk",
+                "qp condensed daqp (default)",
+                f"raised: {r['error'][:100]}",
+                float("nan"),
+                "exception",
+                False,
+                "nothing raised",
+            )
+        ]
+    ok = (
+        not r["native"]
+        and r["status"] == SUCCESS
+        and len(r["warnings"]) == 1
+        and f"{root}/native is full" in r["warnings"][0]
+    )
+    return [
+        RealTimeRow(
+            "full disk",
+            "qp condensed daqp (default)",
+            f"nlink:13 p=5 (filled tmpfs): "
+            f"{'C step' if r['native'] else 'Python step'}, {len(r['warnings'])} warnings"
+            f"{': ' + _gist(r['warnings'][0]) if r['warnings'] else ''}",
+            r["wall"],
+            r["status"],
+            bool(ok),
+            "Python step, success, one warning naming the folder as full, nothing raised",
+        )
+    ]

@@ -5,6 +5,7 @@ finite input inside the bounds, within its time budget plus a small overhead —
 NaN or a wrong answer. Recovery: after a runtime failure the same controller must solve a good problem
 exactly as a fresh controller does.
 """
+
 from __future__ import annotations
 
 import time
@@ -34,8 +35,13 @@ class Outcome:
     def acceptable(self) -> bool:
         if self.result.startswith("error"):
             return True
-        return (self.result != SUCCESS and self.finite and self.within_bounds and self.recovered is not False
-                and self.seconds < SOLVE_CAP)
+        return (
+            self.result != SUCCESS
+            and self.finite
+            and self.within_bounds
+            and self.recovered is not False
+            and self.seconds < SOLVE_CAP
+        )
 
 
 # label -> (registry name, constructor options, the option names for the limits it supports)
@@ -88,11 +94,13 @@ def _runtime_cases():
     return {
         "NaN model parameter": (lambda lbl: _controller(lbl, nan_model.ocp(knots=3)), X0, None),
         # Hard state bounds (the QPs' default is soft, under which this start is no fault: see the soft rows).
-        "infeasible state bounds": (lambda lbl: _controller(lbl, PENDULUM.ocp(knots=3, **BOUNDED), **_hard(lbl)),
-                                    BAD_START, "good start"),
+        "infeasible state bounds": (
+            lambda lbl: _controller(lbl, PENDULUM.ocp(knots=3, **BOUNDED), **_hard(lbl)),
+            BAD_START,
+            "good start",
+        ),
         "max_iter = 1": (lambda lbl: _controller(lbl, PENDULUM.ocp(knots=3), max_iter=1), X0, "max_iter"),
-        "time budget 1 µs": (lambda lbl: _controller(lbl, PENDULUM.ocp(knots=3), time_limit=1e-6), X0,
-                             "time_limit"),
+        "time budget 1 µs": (lambda lbl: _controller(lbl, PENDULUM.ocp(knots=3), time_limit=1e-6), X0, "time_limit"),
     }
 
 
@@ -129,8 +137,14 @@ def run_case(case: str, label: str) -> Outcome | None:
     sol = ctrl.solve(x0, GOAL)
     seconds = time.perf_counter() - start
     ocp = ctrl.ocp
-    outcome = Outcome(case, label, sol.status, seconds, finite=bool(np.isfinite(sol.u).all()),
-                      within_bounds=bool(np.all(sol.u >= ocp.u_min - 1e-9) and np.all(sol.u <= ocp.u_max + 1e-9)))
+    outcome = Outcome(
+        case,
+        label,
+        sol.status,
+        seconds,
+        finite=bool(np.isfinite(sol.u).all()),
+        within_bounds=bool(np.all(sol.u >= ocp.u_min - 1e-9) and np.all(sol.u <= ocp.u_max + 1e-9)),
+    )
     if lift is not None:
         outcome.recovered = _recovers(ctrl, lift, label)
     return outcome
@@ -171,10 +185,11 @@ def format_matrix(outcomes: list[Outcome]) -> str:
             elif o.result.startswith("error"):
                 text = "ValueError"
             else:
-                text = f"{o.result} {1e3 * o.seconds:.1f}ms" + ("" if o.recovered is None else
-                                                              (" rec" if o.recovered else " NOREC"))
+                text = f"{o.result} {1e3 * o.seconds:.1f}ms" + (
+                    "" if o.recovered is None else (" rec" if o.recovered else " NOREC")
+                )
             if o is not None and not o.acceptable:
                 text = "BAD " + text
-            row += f"{text[:width - 1]:<{width}}"
+            row += f"{text[: width - 1]:<{width}}"
         lines.append(row)
     return "\n".join(lines)

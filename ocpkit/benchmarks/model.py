@@ -9,6 +9,7 @@ seeded starts) with ocpkit's plant (the problem's ``plant().rk4``, CasADi from P
 (:class:`ocpkit.sim.mujoco_plant.MuJoCoPlant`, its RK4 at the same sub-step; "–" for the Baxter arm, whose plant is a
 sampled servo, or without MuJoCo installed).
 """
+
 from __future__ import annotations
 
 import time
@@ -62,11 +63,17 @@ def bench_model(links=range(1, 14), *, states: int = 20, repeats: int = 5, seed:
         affine(*args[0])  # first call allocates work vectors
         t_affine = _median_time(affine, args, repeats)
         data = pin_model.createData()
-        pin_args = [(pin_model, data, x0[: pin_model.nq], x0[pin_model.nq:], np.zeros(pin_model.nv))
-                    for x0, _ in samples]
+        pin_args = [
+            (pin_model, data, x0[: pin_model.nq], x0[pin_model.nq :], np.zeros(pin_model.nv)) for x0, _ in samples
+        ]
         t_pin = _median_time(pin.computeABADerivatives, pin_args, repeats)
-        row = {"robot": problem.name, "nx": model.nx, "affine_s": t_affine, "pinocchio_s": t_pin,
-               "ratio": t_affine / t_pin}
+        row = {
+            "robot": problem.name,
+            "nx": model.nx,
+            "affine_s": t_affine,
+            "pinocchio_s": t_pin,
+            "ratio": t_affine / t_pin,
+        }
         rows.append(row)
         out(f"{problem.name:<10} {model.nx:>3} {t_affine * 1e6:>12.1f} {t_pin * 1e6:>26.1f} {row['ratio']:>7.0f}")
     out(f"\n{'robot':<10} {'plant: 1 s simulated [ms]':>26} {'MuJoCo: 1 s simulated [ms]':>27} {'ratio':>7}")

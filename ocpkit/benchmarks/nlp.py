@@ -20,6 +20,7 @@ have no joint damping or friction, so with it every problem of the run, for ever
 made without them; problems it cannot model (no pinocchio model, servo inputs) run without its row. After the
 closed-loop table it prints its per-solve comparison (:func:`ocpkit.benchmarks.crocoddyl_peer.compare`).
 """
+
 from __future__ import annotations
 
 import os
@@ -54,7 +55,7 @@ def readme_cartpole() -> str | None:
     text = readme.read_text()
     if "## Declare your own problem" not in text:
         return None
-    match = re.search(r"```python\n(.*?)```", text[text.index("## Declare your own problem"):], re.S)
+    match = re.search(r"```python\n(.*?)```", text[text.index("## Declare your own problem") :], re.S)
     if match is None:
         return None
     path = cache_dir("bench_nlp") / "cartpole.py"
@@ -75,14 +76,25 @@ def controller(kind: str, ocp, problem=None):
     """A controller of :data:`ocpkit.solvers.CONTROLLERS` or PEERS for ``ocp`` (the peer "crocoddyl": on
     ``problem``'s p = T OCP of that horizon)."""
     if kind == "crocoddyl":
-        return crocoddyl_peer.CrocoddylMPC(problem, problem.ocp(knots=None, horizon=ocp.horizon,
-                                                                integrator=ocp.integrator))
+        return crocoddyl_peer.CrocoddylMPC(
+            problem, problem.ocp(knots=None, horizon=ocp.horizon, integrator=ocp.integrator)
+        )
     return solvers.controller(kind, ocp)
 
 
-def bench_nlp(problems=None, knots: int | None = KNOTS, horizon: int | None = 50, samples: int = 3, steps: int = 50,
-              *, controllers=CONTROLLERS, compiled: bool = False, integrator: str = "rk4", first_seed: int = 0,
-              echo: bool = True) -> list[dict]:
+def bench_nlp(
+    problems=None,
+    knots: int | None = KNOTS,
+    horizon: int | None = 50,
+    samples: int = 3,
+    steps: int = 50,
+    *,
+    controllers=CONTROLLERS,
+    compiled: bool = False,
+    integrator: str = "rk4",
+    first_seed: int = 0,
+    echo: bool = True,
+) -> list[dict]:
     """Median step time (ms), closed-loop actual-cost ratio to IPOPT, fallbacks and final error of every
     controller in ``controllers`` (names of :data:`ocpkit.solvers.CONTROLLERS`; default CONTROLLERS), one row per
     problem × controller.
@@ -115,13 +127,19 @@ def bench_nlp(problems=None, knots: int | None = KNOTS, horizon: int | None = 50
     if peer:
         crocoddyl_peer.require()
         if echo:
-            print("crocoddyl: every problem runs without joint damping and friction (Crocoddyl's free dynamics have "
-                  "none); its rows are traditional MPC (knots T)", flush=True)
+            print(
+                "crocoddyl: every problem runs without joint damping and friction (Crocoddyl's free dynamics have "
+                "none); its rows are traditional MPC (knots T)",
+                flush=True,
+            )
     rows, compared = [], []
     if echo:
         print(f"integrator {integrator}; {samples} seeds from {first_seed}; machine load {_load()}", flush=True)
-        print(f"{'problem':<22}{'knots':>6}{'T':>5} {'controller':<10}{'ready s':>8}{'step ms':>9}{'p90 ms':>8}"
-              f"{'model':>8}{'build':>8}{'QP':>9}{'cost/ipopt':>11}{'fallbk':>7}{'final err':>10}", flush=True)
+        print(
+            f"{'problem':<22}{'knots':>6}{'T':>5} {'controller':<10}{'ready s':>8}{'step ms':>9}{'p90 ms':>8}"
+            f"{'model':>8}{'build':>8}{'QP':>9}{'cost/ipopt':>11}{'fallbk':>7}{'final err':>10}",
+            flush=True,
+        )
     for name in names:
         prob = crocoddyl_peer.undamped(name) if peer else registry.make(name)
         swing = prob.name == "cartpole"
@@ -164,12 +182,22 @@ def bench_nlp(problems=None, knots: int | None = KNOTS, horizon: int | None = 50
                 fallbacks += traj.fallbacks
                 errors.append(float(np.abs(traj.x[-1] - goal).max()))
             own = ctrl.ocp
-            results[kind] = {"problem": prob.name if swing else name, "knots": "T" if own.knots == own.horizon
-                             else own.knots, "horizon": own.horizon, "controller": kind, "build_s": build,
-                             "step_ms": 1e3 * float(np.median(times)), "p90_ms": 1e3 * float(np.percentile(times, 90)),
-                             "cost": cost, "fallbacks": fallbacks, "final_error": float(np.median(errors)),
-                             "swing_up": swing, "steps": len(times), "integrator": own.integrator,
-                             **{f"{part}_ms": 1e3 * float(np.median(v)) for part, v in split.items()}}
+            results[kind] = {
+                "problem": prob.name if swing else name,
+                "knots": "T" if own.knots == own.horizon else own.knots,
+                "horizon": own.horizon,
+                "controller": kind,
+                "build_s": build,
+                "step_ms": 1e3 * float(np.median(times)),
+                "p90_ms": 1e3 * float(np.percentile(times, 90)),
+                "cost": cost,
+                "fallbacks": fallbacks,
+                "final_error": float(np.median(errors)),
+                "swing_up": swing,
+                "steps": len(times),
+                "integrator": own.integrator,
+                **{f"{part}_ms": 1e3 * float(np.median(v)) for part, v in split.items()},
+            }
         if peer and "crocoddyl" in results:
             compared.append(name)
         for kind in results:
@@ -178,15 +206,19 @@ def bench_nlp(problems=None, knots: int | None = KNOTS, horizon: int | None = 50
             rows.append(row)
             if echo:
                 label = "cartpole swing-up" if swing else name
-                print(f"{label:<22}{row['knots']!s:>6}{row['horizon']:>5} {kind:<10}{row['build_s']:>8.2f}"
-                      f"{row['step_ms']:>9.3f}{row['p90_ms']:>8.3f}{row['model_ms']:>8.3f}{row['build_ms']:>8.3f}"
-                      f"{row['solve_ms']:>9.3f}{row['cost_ratio']:>11.4f}{row['fallbacks']:>7d}"
-                      f"{row['final_error']:>10.4f}", flush=True)
+                print(
+                    f"{label:<22}{row['knots']!s:>6}{row['horizon']:>5} {kind:<10}{row['build_s']:>8.2f}"
+                    f"{row['step_ms']:>9.3f}{row['p90_ms']:>8.3f}{row['model_ms']:>8.3f}{row['build_ms']:>8.3f}"
+                    f"{row['solve_ms']:>9.3f}{row['cost_ratio']:>11.4f}{row['fallbacks']:>7d}"
+                    f"{row['final_error']:>10.4f}",
+                    flush=True,
+                )
     if echo:
         print(f"machine load {_load()}", flush=True)
     if compared and echo:  # a printed table: without echo nobody would see it
-        crocoddyl_peer.compare(compared, horizon=horizon, knots=knots, seeds=samples,
-                               steps=max(2, min(steps, PER_SOLVE_STEPS)), echo=echo)
+        crocoddyl_peer.compare(
+            compared, horizon=horizon, knots=knots, seeds=samples, steps=max(2, min(steps, PER_SOLVE_STEPS)), echo=echo
+        )
     return rows
 
 

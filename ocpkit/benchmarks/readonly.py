@@ -7,6 +7,7 @@ nothing outside changes. Other users get the folder's write permissions removed 
 restored. :func:`method` says which one this machine allows (None: neither, e.g. root in a container without
 CAP_SYS_ADMIN).
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -22,8 +23,9 @@ BIND_MOUNT, PERMISSIONS = "read-only bind mount", "write permission removed"
 # $0 is the folder, "$@" the command: the mount exists in the new namespace only, and goes with it.
 _MOUNT = 'mount --bind "$0" "$0" && mount -o remount,bind,ro "$0" "$0" && exec "$@"'
 # A 1 MiB tmpfs on the folder, filled up (dd stops at "No space left on device").
-_FULL = ('mount -t tmpfs -o size=1m,mode=700 tmpfs "$0" && '
-         '{ dd if=/dev/zero of="$0/.fill" bs=4k 2>/dev/null; exec "$@"; }')
+_FULL = (
+    'mount -t tmpfs -o size=1m,mode=700 tmpfs "$0" && { dd if=/dev/zero of="$0/.fill" bs=4k 2>/dev/null; exec "$@"; }'
+)
 
 
 @functools.lru_cache(maxsize=None)
@@ -34,9 +36,24 @@ def method() -> str | None:
     if shutil.which("unshare") is None or shutil.which("mount") is None:
         return None
     with tempfile.TemporaryDirectory(prefix="ocpkit-ro-probe-") as folder:
-        probe = subprocess.run(["unshare", "-m", "--propagation", "private", "sh", "-c", _MOUNT, folder,
-                                "sh", "-c", 'touch "$0/x" 2>/dev/null && echo writable || echo read-only', folder],
-                               capture_output=True, text=True)
+        probe = subprocess.run(
+            [
+                "unshare",
+                "-m",
+                "--propagation",
+                "private",
+                "sh",
+                "-c",
+                _MOUNT,
+                folder,
+                "sh",
+                "-c",
+                'touch "$0/x" 2>/dev/null && echo writable || echo read-only',
+                folder,
+            ],
+            capture_output=True,
+            text=True,
+        )
         return BIND_MOUNT if probe.returncode == 0 and probe.stdout.strip() == "read-only" else None
 
 
@@ -45,8 +62,9 @@ def run(folder, command: list[str], **kwargs) -> subprocess.CompletedProcess:
     how = method()
     folder = str(Path(folder).resolve())
     if how == BIND_MOUNT:
-        return subprocess.run(["unshare", "-m", "--propagation", "private", "sh", "-c", _MOUNT, folder, *command],
-                              **kwargs)
+        return subprocess.run(
+            ["unshare", "-m", "--propagation", "private", "sh", "-c", _MOUNT, folder, *command], **kwargs
+        )
     if how == PERMISSIONS:
         with _without_write_permission(Path(folder)):
             return subprocess.run(command, **kwargs)
@@ -59,8 +77,10 @@ def run_full(folder, command: list[str], **kwargs) -> subprocess.CompletedProces
     root only: where :func:`method` is BIND_MOUNT); the folder itself is left as it was."""
     if method() != BIND_MOUNT:
         raise RuntimeError("only root with mount namespaces can give a command a full file system")
-    return subprocess.run(["unshare", "-m", "--propagation", "private", "sh", "-c", _FULL,
-                           str(Path(folder).resolve()), *command], **kwargs)
+    return subprocess.run(
+        ["unshare", "-m", "--propagation", "private", "sh", "-c", _FULL, str(Path(folder).resolve()), *command],
+        **kwargs,
+    )
 
 
 @contextlib.contextmanager

@@ -15,6 +15,7 @@ of max |F(x, u) − x⁺| with x⁺ from RK4 over 100 sub-steps.
 
 ``python -m ocpkit.benchmarks.sensitivities`` prints both tables.
 """
+
 from __future__ import annotations
 
 import time
@@ -50,15 +51,26 @@ def _per_call(fn, args, repeats: int) -> float:
     return float(np.median(times))
 
 
-def bench_sensitivities(problems=("puma560", "baxter", "nlink:13", "panda"), *, stages: int = 50,
-                        repeats: int = 200, seed: int = 0, out=print) -> list[dict]:
+def bench_sensitivities(
+    problems=("puma560", "baxter", "nlink:13", "panda"),
+    *,
+    stages: int = 50,
+    repeats: int = 200,
+    seed: int = 0,
+    out=print,
+) -> list[dict]:
     """µs per stage of f, its Jacobian and the affine model per integrator (compiled at the default -O1, mapped over
     ``stages``), and of pinocchio's computeABADerivatives per call; one row per problem."""
     import pinocchio as pin
 
     rows = []
-    out(f"{'problem':<10}{'nx':>4}{'f':>7}{'jacobian':>10}" + "".join(f"{'affine ' + i:>14}" for i in INTEGRATORS)
-        + f"{'pinocchio':>11}" + "".join(f"{'error ' + i:>13}" for i in INTEGRATORS) + "   (µs per stage; compile s)")
+    out(
+        f"{'problem':<10}{'nx':>4}{'f':>7}{'jacobian':>10}"
+        + "".join(f"{'affine ' + i:>14}" for i in INTEGRATORS)
+        + f"{'pinocchio':>11}"
+        + "".join(f"{'error ' + i:>13}" for i in INTEGRATORS)
+        + "   (µs per stage; compile s)"
+    )
     for name in problems:
         problem = registry.make(name)
         model = problem.model()
@@ -74,22 +86,34 @@ def bench_sensitivities(problems=("puma560", "baxter", "nlink:13", "panda"), *, 
             row[key] = _per_call(mapped, (X, U), repeats) / stages * 1e6
         pin_model = problem.pin_model
         data, n = pin_model.createData(), pin_model.nv
-        row["pinocchio"] = _per_call(pin.computeABADerivatives, (pin_model, data, X[:n, 0], X[n:, 0], U[:, 0]),
-                                     20 * repeats) * 1e6
+        row["pinocchio"] = (
+            _per_call(pin.computeABADerivatives, (pin_model, data, X[:n, 0], X[n:, 0], U[:, 0]), 20 * repeats) * 1e6
+        )
         fine = np.asarray(model.rk4(problem.dt, 100).map(stages)(X, U))
         for i in INTEGRATORS:
             step = np.asarray(model.discrete(problem.dt, 1, i).map(stages)(X, U))
             row["error " + i] = float(np.median(np.abs(step - fine).max(axis=0)))
         rows.append(row)
-        out(f"{name:<10}{model.nx:>4}{row['f']:>7.1f}{row['jacobian']:>10.1f}"
-            + "".join(f"{row[i]:>14.1f}" for i in INTEGRATORS) + f"{row['pinocchio']:>11.1f}"
+        out(
+            f"{name:<10}{model.nx:>4}{row['f']:>7.1f}{row['jacobian']:>10.1f}"
+            + "".join(f"{row[i]:>14.1f}" for i in INTEGRATORS)
+            + f"{row['pinocchio']:>11.1f}"
             + "".join(f"{row['error ' + i]:>13.1e}" for i in INTEGRATORS)
-            + f"   ({', '.join(f'{t:.0f}' for t in built)})")
+            + f"   ({', '.join(f'{t:.0f}' for t in built)})"
+        )
     return rows
 
 
-def bench_integrators(problems=("puma560", "baxter", "nlink:13", "cartpole"), *, seeds=(0, 1, 2), steps: int = 50,
-                      knots: int = 5, horizon: int = 50, methods=("rti", "ipopt"), out=print) -> list[dict]:
+def bench_integrators(
+    problems=("puma560", "baxter", "nlink:13", "cartpole"),
+    *,
+    seeds=(0, 1, 2),
+    steps: int = 50,
+    knots: int = 5,
+    horizon: int = 50,
+    methods=("rti", "ipopt"),
+    out=print,
+) -> list[dict]:
     """Closed-loop actual cost, median step (ms) and final error max |x_H − x_goal| of ``methods`` (the solvers
     "rti", one iteration, and "ipopt", converged: what the integrator costs without RTI's inexactness) with each
     integrator, over ``steps`` control steps from ``problem.sample(seed)``, and the cost ratios euler/rk4 per method
@@ -103,9 +127,13 @@ def bench_integrators(problems=("puma560", "baxter", "nlink:13", "cartpole"), *,
     ratios = {f"{m} e/r": (f"{m} euler", f"{m} rk4") for m in methods}
     if "rti" in methods and "ipopt" in methods:
         ratios.update({f"rti {i}/ipopt": (f"rti {i}", "ipopt rk4") for i in INTEGRATORS})
-    out(f"{'problem':<18}{'seed':>5}{'steps':>6}" + "".join(f"{k + ' cost':>17}" for k in kinds)
-        + "".join(f"{k + ' ms':>15}" for k in kinds) + "".join(f"{k + ' err':>16}" for k in kinds)
-        + "".join(f"{r:>16}" for r in ratios))
+    out(
+        f"{'problem':<18}{'seed':>5}{'steps':>6}"
+        + "".join(f"{k + ' cost':>17}" for k in kinds)
+        + "".join(f"{k + ' ms':>15}" for k in kinds)
+        + "".join(f"{k + ' err':>16}" for k in kinds)
+        + "".join(f"{r:>16}" for r in ratios)
+    )
     rows = []
     for name in problems:
         swing = name == "cartpole"
@@ -117,8 +145,11 @@ def bench_integrators(problems=("puma560", "baxter", "nlink:13", "cartpole"), *,
         duration = problem.duration + 1.0 if swing else steps * ocps["rk4"].dt
         # RTI's Python step: where LinearMPC would build its C step (ocpkit.export.native), that one has its own
         # integrator
-        controllers = {f"{m} {i}": solvers.make(m, ocps[i], **({"native": False} if m == "rti" else {}))
-                       for m in methods for i in INTEGRATORS}
+        controllers = {
+            f"{m} {i}": solvers.make(m, ocps[i], **({"native": False} if m == "rti" else {}))
+            for m in methods
+            for i in INTEGRATORS
+        }
         for seed in seeds:
             x0, goal = problem.sample(seed)
             if swing:  # from hanging, θ = π
@@ -133,9 +164,13 @@ def bench_integrators(problems=("puma560", "baxter", "nlink:13", "cartpole"), *,
                 row["steps"] = len(traj.solutions)
             row.update({r: row[a] / row[b] for r, (a, b) in ratios.items()})
             rows.append(row)
-            out(f"{row['problem']:<18}{seed:>5}{row['steps']:>6}" + "".join(f"{row[k]:>17.6g}" for k in kinds)
+            out(
+                f"{row['problem']:<18}{seed:>5}{row['steps']:>6}"
+                + "".join(f"{row[k]:>17.6g}" for k in kinds)
                 + "".join(f"{row[k + ' ms']:>15.2f}" for k in kinds)
-                + "".join(f"{row[k + ' err']:>16.4f}" for k in kinds) + "".join(f"{row[r]:>16.4f}" for r in ratios))
+                + "".join(f"{row[k + ' err']:>16.4f}" for k in kinds)
+                + "".join(f"{row[r]:>16.4f}" for r in ratios)
+            )
     return rows
 
 

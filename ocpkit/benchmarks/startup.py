@@ -15,6 +15,7 @@ less the parts below), ``codegen`` (C code generation of the C step), ``translat
 loop waited for), and ``first step`` (the rest of the steps before the first success). Background builds (the C
 step, the compiled model) do not hold the loop up: they show in the steady-state column.
 """
+
 from __future__ import annotations
 
 import functools
@@ -38,8 +39,9 @@ MAX_STEPS = 200  # steps tried for a first success
 STEADY_STEPS = 20
 
 
-def bench_startup(problems=PROBLEMS, controllers=CONTROLLERS, timeout: float = 900.0, seed: int = 0,
-                  out=print) -> list[dict]:
+def bench_startup(
+    problems=PROBLEMS, controllers=CONTROLLERS, timeout: float = 900.0, seed: int = 0, out=print
+) -> list[dict]:
     """Every controller on every problem, empty cache then warm, each in a fresh process; prints a table per
     problem and returns its rows."""
     from ocpkit import solvers
@@ -53,13 +55,20 @@ def bench_startup(problems=PROBLEMS, controllers=CONTROLLERS, timeout: float = 9
     rows = []
     for problem in problems:
         out(f"\n{problem}: seconds from the constructor call (import before it); steady step in ms", flush=True)
-        out(f"  {'controller':14} {'cache':5} {'import':>6} {'first':>7} {'success':>7} {'at step':>7} "
-            f"{'steady':>7} {'step ms':>8}  {'path at first success':28} split (s)", flush=True)
+        out(
+            f"  {'controller':14} {'cache':5} {'import':>6} {'first':>7} {'success':>7} {'at step':>7} "
+            f"{'steady':>7} {'step ms':>8}  {'path at first success':28} split (s)",
+            flush=True,
+        )
         for name in controllers:
             with tempfile.TemporaryDirectory(prefix="ocpkit-startup-") as cache:
                 for state in ("empty", "warm"):
-                    row = {"problem": problem, "controller": name, "cache": state,
-                           **_run(problem, name, cache, timeout, seed)}
+                    row = {
+                        "problem": problem,
+                        "controller": name,
+                        "cache": state,
+                        **_run(problem, name, cache, timeout, seed),
+                    }
                     rows.append(row)
                     out(_format(row), flush=True)
     out(f"\nmachine load {_load()}")
@@ -70,13 +79,21 @@ def _run(problem: str, controller: str, cache: str, timeout: float, seed: int) -
     """One fresh process: its measurements, or what stopped it."""
     env = {k: v for k, v in os.environ.items() if k != "TI_OFFLINE_CACHE_FILE_PATH"}
     env["OCPKIT_CACHE_DIR"] = cache
-    code = ("import time; t = time.perf_counter(); import ocpkit; from ocpkit.benchmarks.startup import _worker; "
-            "import sys; _worker(t, *sys.argv[1:])")
+    code = (
+        "import time; t = time.perf_counter(); import ocpkit; from ocpkit.benchmarks.startup import _worker; "
+        "import sys; _worker(t, *sys.argv[1:])"
+    )
     try:
         # cwd away from any checkout: `python -c` puts the cwd first on sys.path, and a checkout's ocpkit/ has no
         # problems/ (that only exists as ocpkit.problems once installed).
-        proc = subprocess.run([sys.executable, "-c", code, problem, controller, str(seed)], env=env, cwd=cache,
-                              capture_output=True, text=True, timeout=timeout)
+        proc = subprocess.run(
+            [sys.executable, "-c", code, problem, controller, str(seed)],
+            env=env,
+            cwd=cache,
+            capture_output=True,
+            text=True,
+            timeout=timeout,
+        )
     except subprocess.TimeoutExpired:
         return {"error": f"no first success within {timeout:g} s"}
     lines = [line for line in proc.stdout.splitlines() if line.startswith("{")]
@@ -92,8 +109,10 @@ def _format(row: dict) -> str:
         return f"{head} {row['error']}"
     split = " ".join(f"{k} {v:.2f}" for k, v in row["split"].items() if v >= 0.005)
     success = row["success"]
-    return (f"{head} {row['import']:6.2f} {row['first']:7.2f} {_s(success):>7} {row['success_step']!s:>7} "
-            f"{_s(row['steady']):>7} {_ms(row['step']):>8}  {row['path']:28} {split}")
+    return (
+        f"{head} {row['import']:6.2f} {row['first']:7.2f} {_s(success):>7} {row['success_step']!s:>7} "
+        f"{_s(row['steady']):>7} {_ms(row['step']):>8}  {row['path']:28} {split}"
+    )
 
 
 def _s(value) -> str:
@@ -197,6 +216,19 @@ def _worker(t_import: float, problem: str, controller: str, seed: str) -> None:
         sol = ctrl.solve(x, goal)
         times.append(sol.times["total"])
         x = np.asarray(F(x, sol.u), dtype=float).ravel()
-    print(json.dumps({"import": split.pop("import"), "first": first, "success": success, "success_step": step,
-                      "path": path or "none", "steady": steady, "steady_path": sol.path,
-                      "step": float(np.median(times)), "split": split}), flush=True)
+    print(
+        json.dumps(
+            {
+                "import": split.pop("import"),
+                "first": first,
+                "success": success,
+                "success_step": step,
+                "path": path or "none",
+                "steady": steady,
+                "steady_path": sol.path,
+                "step": float(np.median(times)),
+                "split": split,
+            }
+        ),
+        flush=True,
+    )

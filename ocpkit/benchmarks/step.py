@@ -13,6 +13,7 @@ row keeps the Python step (``native=False``) with the default affine model (CasA
 ``ocpkit.codegen.compiled`` finishes, then compiled C); the "VM model" row the Python step on the VM throughout
 (``compiled=False``). The floor estimate is build FLOPs / GEMM rate + the fastest QP solve + the compiled model.
 """
+
 from __future__ import annotations
 
 import json
@@ -35,8 +36,18 @@ PROXQP = "ocpkit condensed knots proxqp"
 VM = "ocpkit condensed knots daqp, VM model"
 
 
-def bench_step(links=(1, 2, 4, 7, 10, 13), horizons=(50, 100), knots=5, steps=20, rounds=5, seed=0, peers=True,
-               busy=2, fresh=10.0, out=print) -> list[dict]:
+def bench_step(
+    links=(1, 2, 4, 7, 10, 13),
+    horizons=(50, 100),
+    knots=5,
+    steps=20,
+    rounds=5,
+    seed=0,
+    peers=True,
+    busy=2,
+    fresh=10.0,
+    out=print,
+) -> list[dict]:
     """Medians and spread (ms) of a whole step per configuration; ratios to ocpkit's condensed knots step.
     With ``busy`` > 0, then the nlink:13 T=100 step quiet and beside ``busy`` busy processes (:func:`bench_load`);
     with ``fresh`` > 0, the first ``fresh`` seconds of a closed loop after a fresh install (:func:`bench_fresh`)."""
@@ -61,14 +72,23 @@ def bench_fresh(problem="nlink:13", horizon=100, knots=5, seconds=10.0, seed=0, 
     runs = {}
     for label, compiled in (("default", None), ("VM (compiled=False)", False)):
         with tempfile.TemporaryDirectory(prefix="ocpkit-fresh-") as cache:
-            code = ("import json, sys; from ocpkit.benchmarks.step import _closed_loop; "
-                    "print(json.dumps(_closed_loop(*json.loads(sys.argv[1]))))")
+            code = (
+                "import json, sys; from ocpkit.benchmarks.step import _closed_loop; "
+                "print(json.dumps(_closed_loop(*json.loads(sys.argv[1]))))"
+            )
             args = json.dumps([problem, horizon, knots, seconds, seed, compiled])
-            proc = subprocess.run([sys.executable, "-c", code, args], capture_output=True, text=True,
-                                  env={**os.environ, "OCPKIT_CACHE_DIR": cache}, check=True)
+            proc = subprocess.run(
+                [sys.executable, "-c", code, args],
+                capture_output=True,
+                text=True,
+                env={**os.environ, "OCPKIT_CACHE_DIR": cache},
+                check=True,
+            )
             runs[label] = json.loads(proc.stdout.strip().splitlines()[-1])
-    out(f"{problem} T={horizon} condensed knots({knots}), the first {seconds:g} s of a closed loop after a fresh "
-        f"install (empty cache), step time median / max per second, ms:")
+    out(
+        f"{problem} T={horizon} condensed knots({knots}), the first {seconds:g} s of a closed loop after a fresh "
+        f"install (empty cache), step time median / max per second, ms:"
+    )
     out(f"  {'second':>6}  " + "  ".join(f"{label:>24}" for label in runs) + "  default/VM (medians)")
     for k in range(int(np.ceil(seconds))):
         cells, medians = [], []
@@ -153,8 +173,10 @@ def load_medians(problem="nlink:13", horizon=100, knots=5, steps=30, busy=2, see
 def bench_load(problem="nlink:13", horizon=100, knots=5, steps=30, busy=2, out=print) -> dict:
     """Print the step's median quiet and under load (:func:`load_medians`) and the loaded/quiet ratio."""
     med = load_medians(problem, horizon, knots, steps, busy)
-    out(f"{problem} T={horizon} condensed knots({knots}) {DEFAULT_QP['condensed']} (the default), median whole step, "
-        f"quiet vs {busy} busy processes:")
+    out(
+        f"{problem} T={horizon} condensed knots({knots}) {DEFAULT_QP['condensed']} (the default), median whole step, "
+        f"quiet vs {busy} busy processes:"
+    )
     for threads in (1, None):
         q, l = med[(threads, "quiet")], med[(threads, "loaded")]
         name = "BLAS threads 1 (default)" if threads == 1 else "BLAS threads unlimited"
@@ -173,12 +195,14 @@ def _one(problem, T, p, steps, seed, peers, rounds):
         x = np.asarray(F(x, ref.solve(x, goal).u)).ravel()
     models = [ref.affine_model(x, goal, "goal") for x in xs]  # what affine_mpc is given at each step
     ocp_vm = problem.ocp(horizon=T, knots=p, compiled=False)  # CasADi's SX virtual machine throughout
-    ctrls = {BASE: LinearMPC(ocp_k),
-             PYTHON: LinearMPC(ocp_k, native=False),
-             PROXQP: LinearMPC(ocp_k, form="condensed", qp="proxqp"),
-             VM: LinearMPC(ocp_vm, form="condensed", qp="daqp"),
-             "ocpkit sparse traditional hpipm": LinearMPC(ocp_t, form="sparse", qp="hpipm"),
-             "ocpkit sparse traditional osqp": LinearMPC(ocp_t, form="sparse", qp="osqp")}
+    ctrls = {
+        BASE: LinearMPC(ocp_k),
+        PYTHON: LinearMPC(ocp_k, native=False),
+        PROXQP: LinearMPC(ocp_k, form="condensed", qp="proxqp"),
+        VM: LinearMPC(ocp_vm, form="condensed", qp="daqp"),
+        "ocpkit sparse traditional hpipm": LinearMPC(ocp_t, form="sparse", qp="hpipm"),
+        "ocpkit sparse traditional osqp": LinearMPC(ocp_t, form="sparse", qp="osqp"),
+    }
     for name in (BASE, PYTHON):  # the default step once built (cached: once per OCP); the Python step's model
         ctrls[name].wait_compiled()  # after its background compile (cached by hash: once per model)
     peer = _peers(ocp_k, goal, models[0]) if peers else {}
@@ -216,14 +240,24 @@ def _one(problem, T, p, steps, seed, peers, rounds):
     out = []
     for name, t in times.items():
         t = np.asarray(t)
-        row = {"problem": problem.name, "horizon": T, "solver": name, "median": float(np.median(t)),
-               "p25": float(np.percentile(t, 25)), "p75": float(np.percentile(t, 75)),
-               "ratio": float(np.median(t)) / base, "status": ",".join(sorted(status[name])),
-               "u0_diff": agree.get(name),
-               "iterations": float(np.median(iterations[name])) if name in iterations else None}
+        row = {
+            "problem": problem.name,
+            "horizon": T,
+            "solver": name,
+            "median": float(np.median(t)),
+            "p25": float(np.percentile(t, 25)),
+            "p75": float(np.percentile(t, 75)),
+            "ratio": float(np.median(t)) / base,
+            "status": ",".join(sorted(status[name])),
+            "u0_diff": agree.get(name),
+            "iterations": float(np.median(iterations[name])) if name in iterations else None,
+        }
         if name in parts:
-            row.update({part: float(np.median(v)) for part, v in parts[name].items()}, flops=flops,
-                       step="C" if ctrls[name].native else "Python")
+            row.update(
+                {part: float(np.median(v)) for part, v in parts[name].items()},
+                flops=flops,
+                step="C" if ctrls[name].native else "Python",
+            )
         out.append(row)
     return out
 
@@ -231,7 +265,7 @@ def _one(problem, T, p, steps, seed, peers, rounds):
 def _rotated(items: dict, r: int) -> list:
     """The (name, item) pairs starting at the r-th: each round times the controllers in another order."""
     pairs = list(items.items())
-    return pairs[r % len(pairs):] + pairs[:r % len(pairs)] if pairs else []
+    return pairs[r % len(pairs) :] + pairs[: r % len(pairs)] if pairs else []
 
 
 def _peers(ocp, goal, model) -> dict:
@@ -276,7 +310,7 @@ def _gemm_rate(size=1000, repeats=5) -> float:
     a, b = np.random.default_rng(0).normal(size=(2, size, size))
     with threadpool_limits(1):
         best = min(_timed(lambda: a @ b) for _ in range(repeats))
-    return 2 * size ** 3 / best / 1e9
+    return 2 * size**3 / best / 1e9
 
 
 def _timed(f) -> float:
@@ -286,40 +320,65 @@ def _timed(f) -> float:
 
 
 def _print(rows, gemm, knots, out):
-    out(f"Whole MPC step (affine model + build + solve), ms: median [p25, p75]; ratio = median / ocpkit condensed "
+    out(
+        f"Whole MPC step (affine model + build + solve), ms: median [p25, p75]; ratio = median / ocpkit condensed "
         f"knots({knots}); u0 = max |u0 − ocpkit's u0| over the replayed steps; it = median QP iterations. affine_mpc "
         f"rows time its setModelDiscrete() + solve(), given ocpkit's affine model (its linearization is not "
-        f"counted).")
+        f"counted)."
+    )
     out(f"Dense GEMM (1000³, numpy BLAS) in this run: {gemm:.1f} GFLOP/s")
-    out(f"{'problem':10} {'T':>4} {'solver':46} {'median':>9} {'p25':>9} {'p75':>9} {'ratio':>8} {'u0':>9} "
-        f"{'it':>6}  status")
+    out(
+        f"{'problem':10} {'T':>4} {'solver':46} {'median':>9} {'p25':>9} {'p75':>9} {'ratio':>8} {'u0':>9} "
+        f"{'it':>6}  status"
+    )
     for r in rows:
         u0 = "" if r["u0_diff"] is None else f"{r['u0_diff']:9.1e}"
         it = "" if r["iterations"] is None else f"{r['iterations']:6.0f}"
-        out(f"{r['problem']:10} {r['horizon']:>4} {r['solver']:46} {1e3 * r['median']:9.3f} {1e3 * r['p25']:9.3f} "
-            f"{1e3 * r['p75']:9.3f} {r['ratio']:8.2f} {u0:>9} {it:>6}  {r['status']}")
-    out("ocpkit condensed knots, medians (ms) of the parts and the build's rate (C: the compiled C step, timed in C; "
-        "Python: the Python step, its model compiled after its background compile; vm: compiled=False):")
+        out(
+            f"{r['problem']:10} {r['horizon']:>4} {r['solver']:46} {1e3 * r['median']:9.3f} {1e3 * r['p25']:9.3f} "
+            f"{1e3 * r['p75']:9.3f} {r['ratio']:8.2f} {u0:>9} {it:>6}  {r['status']}"
+        )
+    out(
+        "ocpkit condensed knots, medians (ms) of the parts and the build's rate (C: the compiled C step, timed in C; "
+        "Python: the Python step, its model compiled after its background compile; vm: compiled=False):"
+    )
     parts = {(r["problem"], r["horizon"], r["solver"]): r for r in rows if "flops" in r}
     for (name, T, solver), r in parts.items():
         gf = r["flops"] / r["build"] / 1e9
         shortest = min(t for (nm, t, sv) in parts if nm == name and sv == solver)
-        ratio = "" if T == shortest else \
-            f"  solve(T={T})/solve(T={shortest}) = {r['solve'] / parts[(name, shortest, solver)]['solve']:.2f}"
-        tag = (solver.removeprefix("ocpkit condensed knots ").replace(", VM model", " vm")
-               .replace(", Python step", "").replace(" (default)", "")) + f" {r['step']}"
-        rate = ("by doubling, fewer FLOPs" if r["step"] == "C" else
-                f"{r['flops'] / 1e6:.2f} MFLOP, {gf:.1f} GFLOP/s = {100 * gf / gemm:.0f}% of GEMM")
-        out(f"  {name:10} T={T:<4} {tag:13} model {1e3 * r['model']:.3f}  build {1e3 * r['build']:.3f} ({rate})  "
-            f"solve {1e3 * r['solve']:.3f}{ratio}")
+        ratio = (
+            ""
+            if T == shortest
+            else f"  solve(T={T})/solve(T={shortest}) = {r['solve'] / parts[(name, shortest, solver)]['solve']:.2f}"
+        )
+        tag = (
+            solver.removeprefix("ocpkit condensed knots ")
+            .replace(", VM model", " vm")
+            .replace(", Python step", "")
+            .replace(" (default)", "")
+        ) + f" {r['step']}"
+        rate = (
+            "by doubling, fewer FLOPs"
+            if r["step"] == "C"
+            else f"{r['flops'] / 1e6:.2f} MFLOP, {gf:.1f} GFLOP/s = {100 * gf / gemm:.0f}% of GEMM"
+        )
+        out(
+            f"  {name:10} T={T:<4} {tag:13} model {1e3 * r['model']:.3f}  build {1e3 * r['build']:.3f} ({rate})  "
+            f"solve {1e3 * r['solve']:.3f}{ratio}"
+        )
     out("Floor estimate = build FLOPs / GEMM rate + fastest QP solve + compiled model; fraction = floor / best step:")
     for name, T in dict.fromkeys((nm, t) for nm, t, _ in parts):
         mine = [r for (nm, t, _), r in parts.items() if (nm, t) == (name, T)]
         compiled = [r for r in mine if r["solver"] != VM] or mine
-        build, solve, model = (mine[0]["flops"] / (gemm * 1e9), min(r["solve"] for r in mine),
-                               min(r["model"] for r in compiled))
+        build, solve, model = (
+            mine[0]["flops"] / (gemm * 1e9),
+            min(r["solve"] for r in mine),
+            min(r["model"] for r in compiled),
+        )
         floor = build + solve + model
         best = min(mine, key=lambda r: r["median"])
-        out(f"  {name:10} T={T:<4} floor {1e3 * floor:.3f} ms (build {1e3 * build:.3f} + QP {1e3 * solve:.3f} + "
+        out(
+            f"  {name:10} T={T:<4} floor {1e3 * floor:.3f} ms (build {1e3 * build:.3f} + QP {1e3 * solve:.3f} + "
             f"model {1e3 * model:.3f}); best step {1e3 * best['median']:.3f} ms "
-            f"({best['solver'].removeprefix('ocpkit condensed knots ')}): floor = {100 * floor / best['median']:.0f}%")
+            f"({best['solver'].removeprefix('ocpkit condensed knots ')}): floor = {100 * floor / best['median']:.0f}%"
+        )

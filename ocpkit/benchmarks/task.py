@@ -10,6 +10,7 @@ effector's final distance to its target (the worst over the seeds).
 :func:`bench_obstacles` times LinearMPC's obstacle steps as the obstacles multiply (issue 43): the Panda reaching past
 1, 10, 100 balls scattered about the straight path of its hand, and the construction of a controller for 1,000.
 """
+
 from __future__ import annotations
 
 import time
@@ -28,7 +29,7 @@ def _scene(problem, seed: int):
     robot = spheres_along_links(kin, problem.link_radius)
     for draw in range(1000):
         x0, goal = problem.sample(seed * 1000 + draw)
-        ends = np.vstack([x0[:kin.n], goal[:kin.n]])
+        ends = np.vstack([x0[: kin.n], goal[: kin.n]])
         start, target = kin.positions(problem.end_effector, ends)
         ball = Sphere(tuple(0.5 * (start + target)), min(0.08, max(0.02, 0.15 * float(np.linalg.norm(target - start)))))
         if clearances(kin, robot, [ball], ends).min() > 0.03:
@@ -46,7 +47,7 @@ def _scattered(problem, seed: int, count: int):
     kin = problem.kinematics
     robot = spheres_along_links(kin, problem.link_radius)
     x0, goal = problem.sample(seed)
-    ends = np.vstack([x0[:kin.n], goal[:kin.n]])
+    ends = np.vstack([x0[: kin.n], goal[: kin.n]])
     start, target = kin.positions(problem.end_effector, ends)
     rng, balls = np.random.default_rng(seed), []
     while len(balls) < count:
@@ -57,8 +58,9 @@ def _scattered(problem, seed: int, count: int):
     return x0, target, balls
 
 
-def bench_obstacles(counts=(1, 10, 100), *, seeds=(11, 12, 13), duration: float = 1.0, build: int = 1000,
-                    out=print) -> list[dict]:
+def bench_obstacles(
+    counts=(1, 10, 100), *, seeds=(11, 12, 13), duration: float = 1.0, build: int = 1000, out=print
+) -> list[dict]:
     """Per obstacle count: LinearMPC (trajectory linearization, its defaults) on the Panda's reach past that many balls
     (:func:`_scattered`), a ``duration`` closed loop per seed: median and largest step time, the statuses, the
     smallest true clearance; then the seconds to build a controller for ``build`` balls and take its first step."""
@@ -76,18 +78,26 @@ def bench_obstacles(counts=(1, 10, 100), *, seeds=(11, 12, 13), duration: float 
         for seed in seeds:
             x0, target, balls = _scattered(panda, seed, count)
             ocp = reach(panda, balls)
-            traj = simulate(panda.plant(), LinearMPC(ocp, linearization="trajectory"), x0,
-                            ocp.goal(x0, position=target), duration)
+            traj = simulate(
+                panda.plant(), LinearMPC(ocp, linearization="trajectory"), x0, ocp.goal(x0, position=target), duration
+            )
             t = np.array([s.times["total"] for s in traj.solutions])
             statuses = {}
             for sol in traj.solutions:
                 statuses[sol.status] = statuses.get(sol.status, 0) + 1
-            row = {"obstacles": count, "seed": seed, "median_s": float(np.median(t)), "max_s": float(t.max()),
-                   "statuses": statuses,
-                   "min_clearance": float(clearances(panda.kinematics, robot, balls, traj.x[:, :7]).min())}
+            row = {
+                "obstacles": count,
+                "seed": seed,
+                "median_s": float(np.median(t)),
+                "max_s": float(t.max()),
+                "statuses": statuses,
+                "min_clearance": float(clearances(panda.kinematics, robot, balls, traj.x[:, :7]).min()),
+            }
             rows.append(row)
-            out(f"{count:>9} {seed:>4} {1e3 * row['median_s']:>11.1f} {1e3 * row['max_s']:>9.1f} "
-                f"{row['min_clearance']:>17.4f}  {statuses}")
+            out(
+                f"{count:>9} {seed:>4} {1e3 * row['median_s']:>11.1f} {1e3 * row['max_s']:>9.1f} "
+                f"{row['min_clearance']:>17.4f}  {statuses}"
+            )
     if build:
         x0, target, balls = _scattered(panda, seeds[0], build)
         start = time.perf_counter()
@@ -97,24 +107,34 @@ def bench_obstacles(counts=(1, 10, 100), *, seeds=(11, 12, 13), duration: float 
         built = time.perf_counter()
         sol = ctrl.solve(x0, ocp.goal(x0, position=target))
         done = time.perf_counter()
-        row = {"obstacles": build, "reach_s": made - start, "controller_s": built - made, "first_step_s": done - built,
-               "status": sol.status}
+        row = {
+            "obstacles": build,
+            "reach_s": made - start,
+            "controller_s": built - made,
+            "first_step_s": done - built,
+            "status": sol.status,
+        }
         rows.append(row)
-        out(f"{build} obstacles: reach {row['reach_s']:.2f} s, LinearMPC {row['controller_s']:.2f} s, first step "
-            f"{row['first_step_s']:.2f} s ({sol.status})")
+        out(
+            f"{build} obstacles: reach {row['reach_s']:.2f} s, LinearMPC {row['controller_s']:.2f} s, first step "
+            f"{row['first_step_s']:.2f} s ({sol.status})"
+        )
     return rows
 
 
-def bench_task(problems=("panda", "nlink:3"), *, steps: int = 200, seeds: int = 2, knots: int = 5,
-               out=print) -> list[dict]:
+def bench_task(
+    problems=("panda", "nlink:3"), *, steps: int = 200, seeds: int = 2, knots: int = 5, out=print
+) -> list[dict]:
     """Per robot and variant: step-time median and p95 (ms), ratio to the joint-space default, successes."""
     from ocpkit import problems as registry
     from ocpkit.solvers.qp import LinearMPC
     from ocpkit.model.task import reach
 
     rows = []
-    out(f"{'robot':<10} {'variant':<24} {'median [ms]':>11} {'p95 [ms]':>9} {'ratio':>6} {'success':>9} "
-        f"{'worst final dist [m]':>20}")
+    out(
+        f"{'robot':<10} {'variant':<24} {'median [ms]':>11} {'p95 [ms]':>9} {'ratio':>6} {'success':>9} "
+        f"{'worst final dist [m]':>20}"
+    )
     for spec in problems:
         problem = registry.make(spec)
         kin = problem.kinematics
@@ -124,10 +144,12 @@ def bench_task(problems=("panda", "nlink:3"), *, steps: int = 200, seeds: int = 
             x0, goal, target, ball = _scene(problem, seed)
             joint = problem.ocp(knots=knots)
             task, blocked = reach(problem, knots=knots), reach(problem, [ball], knots=knots)
-            variants = {"joint space (default)": (LinearMPC(joint), goal),
-                        "joint space (Python)": (LinearMPC(joint, native=False), goal),
-                        "reach": (LinearMPC(task), task.goal(x0, position=target)),
-                        "reach + ball": (LinearMPC(blocked), blocked.goal(x0, position=target))}
+            variants = {
+                "joint space (default)": (LinearMPC(joint), goal),
+                "joint space (Python)": (LinearMPC(joint, native=False), goal),
+                "reach": (LinearMPC(task), task.goal(x0, position=target)),
+                "reach + ball": (LinearMPC(blocked), blocked.goal(x0, position=target)),
+            }
             states, plant = {}, problem.plant().rk4(problem.dt, 10)
             for name, (ctrl, _) in variants.items():
                 ctrl.wait_compiled()
@@ -144,18 +166,26 @@ def bench_task(problems=("panda", "nlink:3"), *, steps: int = 200, seeds: int = 
                     s["steps"] += 1
             for name in variants:
                 if name.startswith("reach"):
-                    end = kin.positions(problem.end_effector, states[name][:kin.n])[0]
+                    end = kin.positions(problem.end_effector, states[name][: kin.n])[0]
                     stats[name]["dist"].append(float(np.linalg.norm(end - target)))
         base = float(np.median(times["joint space (default)"]))
         for name, t in times.items():
             s, med = stats[name], float(np.median(t))
-            row = {"robot": problem.name, "variant": name, "median_s": med, "p95_s": float(np.percentile(t, 95)),
-                   "ratio": med / base, "success": s["ok"] / s["steps"],
-                   "final_distance": max(s["dist"]) if s["dist"] else float("nan")}
+            row = {
+                "robot": problem.name,
+                "variant": name,
+                "median_s": med,
+                "p95_s": float(np.percentile(t, 95)),
+                "ratio": med / base,
+                "success": s["ok"] / s["steps"],
+                "final_distance": max(s["dist"]) if s["dist"] else float("nan"),
+            }
             rows.append(row)
             dist = f"{row['final_distance']:.4f}" if s["dist"] else "-"
-            out(f"{problem.name:<10} {name:<24} {1e3 * med:>11.3f} {1e3 * row['p95_s']:>9.3f} {row['ratio']:>6.2f} "
-                f"{s['ok']:>4}/{s['steps']:<4} {dist:>20}")
+            out(
+                f"{problem.name:<10} {name:<24} {1e3 * med:>11.3f} {1e3 * row['p95_s']:>9.3f} {row['ratio']:>6.2f} "
+                f"{s['ok']:>4}/{s['steps']:<4} {dist:>20}"
+            )
     return rows
 
 

@@ -3,6 +3,7 @@
 Wherever a problem is named, a problem spec is accepted: a registered name (``pendulum``, ``nlink:7``, …),
 ``package.module:Name`` or ``path/to/file.py:Name`` (see :mod:`ocpkit.problems`).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -12,8 +13,18 @@ from ocpkit import __version__, solvers, studies
 from ocpkit.cli import commands
 from ocpkit.cli.commands import BENCHMARKS, PROBLEM_BENCHMARKS, PROBLEM_STUDIES
 from ocpkit.cli.export import export_command
-from ocpkit.cli.options import (DEFAULT_KNOTS, DYNAMICS, EXPORT_FORMS, EXPORT_QPS, NLP_METHODS, QP_BACKENDS, SAMPLING,
-                                SPEC_HELP, VARIANTS, default)
+from ocpkit.cli.options import (
+    DEFAULT_KNOTS,
+    DYNAMICS,
+    EXPORT_FORMS,
+    EXPORT_QPS,
+    NLP_METHODS,
+    QP_BACKENDS,
+    SAMPLING,
+    SPEC_HELP,
+    VARIANTS,
+    default,
+)
 from ocpkit.solvers.methods import QP_BY_FORM
 from ocpkit.cli.task import NUMBERS
 from ocpkit.controller import LINEARIZATIONS, TRAJECTORY
@@ -35,18 +46,30 @@ class _Parser(argparse.ArgumentParser):
 def _add_problem_args(p):
     """The problem and its OCP, the same in solve, simulate and export."""
     p.add_argument("problem", help=SPEC_HELP)
-    p.add_argument("--knots", type=int, default=None,
-                   help=f"knot points p (default {DEFAULT_KNOTS}, or T when the horizon is shorter; the Python API's "
-                        f"Problem.ocp(knots=None) is traditional MPC instead); traditional MPC (one knot per step, "
-                        f"p = T) is --parameterization identity")
-    p.add_argument("--parameterization", default="linear", choices=("linear", "zoh", "identity"),
-                   help="input between the knots: linear (default, the paper's piecewise-linear), zoh (move blocking) "
-                        "or identity (traditional MPC, p = T; takes no --knots)")
+    p.add_argument(
+        "--knots",
+        type=int,
+        default=None,
+        help=f"knot points p (default {DEFAULT_KNOTS}, or T when the horizon is shorter; the Python API's "
+        f"Problem.ocp(knots=None) is traditional MPC instead); traditional MPC (one knot per step, "
+        f"p = T) is --parameterization identity",
+    )
+    p.add_argument(
+        "--parameterization",
+        default="linear",
+        choices=("linear", "zoh", "identity"),
+        help="input between the knots: linear (default, the paper's piecewise-linear), zoh (move blocking) "
+        "or identity (traditional MPC, p = T; takes no --knots)",
+    )
     p.add_argument("--horizon", type=int, default=None, help="horizon T in steps (default: the problem's)")
-    p.add_argument("--integrator", default="rk4", choices=INTEGRATORS,
-                   help="how the controller predicts a step of a nonlinear model: rk4 (default) or euler "
-                        "(semi-implicit for x = [q, q̇]; one model and Jacobian evaluation instead of four; the plant "
-                        "stays RK4)")
+    p.add_argument(
+        "--integrator",
+        default="rk4",
+        choices=INTEGRATORS,
+        help="how the controller predicts a step of a nonlinear model: rk4 (default) or euler "
+        "(semi-implicit for x = [q, q̇]; one model and Jacobian evaluation instead of four; the plant "
+        "stays RK4)",
+    )
 
 
 def _add_controller_args(p):
@@ -54,98 +77,174 @@ def _add_controller_args(p):
     # The solvers' options default to None, "not given" (one that does not apply to the solver is refused); the
     # solver then takes its own default, the one its help names from the table (ocpkit.solvers.methods).
     p.add_argument("--solver", default="qp", help=f"solver: {', '.join(solvers.names())} (default qp)")
-    p.add_argument("--form", choices=("sparse", "condensed"),
-                   help=f"qp, rti: QP transcription (default {default('qp', 'form')})")
-    p.add_argument("--qp", choices=QP_BACKENDS,
-                   help=f"qp, rti: QP backend (default {' and '.join(f'{q} for {f}' for f, q in QP_BY_FORM.items())}; "
-                        f"hpipm: sparse traditional)")
-    p.add_argument("--method", choices=NLP_METHODS,
-                   help=f"ipopt: how the NLP is solved: ipopt (interior point), sqp (CasADi's SQP), fatrop (interior "
-                        f"point with a Riccati recursion over the stages) (default {default('ipopt', 'method')}); "
-                        f"real-time iteration is --solver rti")
-    p.add_argument("--iterations", type=int,
-                   help=f"rti: Gauss-Newton SQP iterations per control step on the knot QP (default "
-                        f"{default('rti', 'iterations')}, the real-time iteration)")
-    p.add_argument("--dynamics", choices=DYNAMICS,
-                   help=f"ipopt --method ipopt|sqp: the prediction model (default {default('ipopt', 'dynamics')}); "
-                        f"empc/cem/mppi: the rollout model (default {default('empc', 'dynamics')}, re-linearized "
-                        f"every step)")
-    p.add_argument("--linearization", choices=LINEARIZATIONS + (TRAJECTORY,),
-                   help=f"the affine model's expansion point: goal (about the goal's input), plan (the input the "
-                        f"previous plan expects now) or, qp only, trajectory (stage by stage along the shifted plan) "
-                        f"(default {default('qp', 'linearization')}); qp, ipopt --dynamics affine, empc/cem/mppi")
-    p.add_argument("--population", type=int,
-                   help=f"empc/cem/mppi: rollouts per generation (default {default('empc', 'population')})")
-    p.add_argument("--generations", type=int,
-                   help=f"empc/cem/mppi: generations per control step (default {default('empc', 'generations')})")
-    p.add_argument("--arch", choices=("auto", "cpu", "cuda"),
-                   help=f"empc/cem/mppi: Taichi arch (default {default('empc', 'arch')})")
-    p.add_argument("--variant", choices=VARIANTS,
-                   help=f"empc/cem/mppi: preconditioned by the knot QP or the paper's plain algorithm (default "
-                        f"{default('empc', 'variant')})")
+    p.add_argument(
+        "--form", choices=("sparse", "condensed"), help=f"qp, rti: QP transcription (default {default('qp', 'form')})"
+    )
+    p.add_argument(
+        "--qp",
+        choices=QP_BACKENDS,
+        help=f"qp, rti: QP backend (default {' and '.join(f'{q} for {f}' for f, q in QP_BY_FORM.items())}; "
+        f"hpipm: sparse traditional)",
+    )
+    p.add_argument(
+        "--method",
+        choices=NLP_METHODS,
+        help=f"ipopt: how the NLP is solved: ipopt (interior point), sqp (CasADi's SQP), fatrop (interior "
+        f"point with a Riccati recursion over the stages) (default {default('ipopt', 'method')}); "
+        f"real-time iteration is --solver rti",
+    )
+    p.add_argument(
+        "--iterations",
+        type=int,
+        help=f"rti: Gauss-Newton SQP iterations per control step on the knot QP (default "
+        f"{default('rti', 'iterations')}, the real-time iteration)",
+    )
+    p.add_argument(
+        "--dynamics",
+        choices=DYNAMICS,
+        help=f"ipopt --method ipopt|sqp: the prediction model (default {default('ipopt', 'dynamics')}); "
+        f"empc/cem/mppi: the rollout model (default {default('empc', 'dynamics')}, re-linearized "
+        f"every step)",
+    )
+    p.add_argument(
+        "--linearization",
+        choices=LINEARIZATIONS + (TRAJECTORY,),
+        help=f"the affine model's expansion point: goal (about the goal's input), plan (the input the "
+        f"previous plan expects now) or, qp only, trajectory (stage by stage along the shifted plan) "
+        f"(default {default('qp', 'linearization')}); qp, ipopt --dynamics affine, empc/cem/mppi",
+    )
+    p.add_argument(
+        "--population",
+        type=int,
+        help=f"empc/cem/mppi: rollouts per generation (default {default('empc', 'population')})",
+    )
+    p.add_argument(
+        "--generations",
+        type=int,
+        help=f"empc/cem/mppi: generations per control step (default {default('empc', 'generations')})",
+    )
+    p.add_argument(
+        "--arch",
+        choices=("auto", "cpu", "cuda"),
+        help=f"empc/cem/mppi: Taichi arch (default {default('empc', 'arch')})",
+    )
+    p.add_argument(
+        "--variant",
+        choices=VARIANTS,
+        help=f"empc/cem/mppi: preconditioned by the knot QP or the paper's plain algorithm (default "
+        f"{default('empc', 'variant')})",
+    )
     p.add_argument("--error", type=float, default=1.0, help="model error multiplier of the controller's model")
-    p.add_argument("--compiled", action="store_true", default=None,
-                   help="compile the affine model to C before the first step (default: large models start on "
-                        "CasADi's VM and switch once a background compile, cached, has finished)")
-    p.add_argument("--no-compiled", dest="compiled", action="store_false",
-                   help="stay on CasADi's VM (no C compile)")
+    p.add_argument(
+        "--compiled",
+        action="store_true",
+        default=None,
+        help="compile the affine model to C before the first step (default: large models start on "
+        "CasADi's VM and switch once a background compile, cached, has finished)",
+    )
+    p.add_argument("--no-compiled", dest="compiled", action="store_false", help="stay on CasADi's VM (no C compile)")
     p.add_argument("--seed", type=int, default=0, help="seed of the random start and goal")
 
 
 def _add_task_args(p):
     """A task-space target (ocpkit.model.task.reach) instead of the seeded joint-space goal: solve, simulate and
     export."""
-    p.add_argument("--target", metavar="X,Y,Z",
-                   help="bring the end effector (or --frame) to this point (m, world frame) from the seeded start "
-                        "instead of the seeded joint goal (ocpkit.model.task.reach; a robot problem with kinematics)")
-    p.add_argument("--obstacle", action="append", metavar="X,Y,Z,R",
-                   help="with a target: a sphere (centre and radius, m, world frame) the robot keeps clear of "
-                        "(repeatable)")
-    p.add_argument("--frame", metavar="NAME", help="with a target: the frame brought to it (default: the "
-                                                    "problem's end effector)")
-    p.add_argument("--orientation", metavar="R,P,Y",
-                   help="with a target: the frame's orientation too, as roll, pitch, yaw (rad, about the world's x, "
-                        "y, z: R = Rz(yaw) Ry(pitch) Rx(roll), as a URDF's rpy; ocpkit.model.task.FrameOrientation)")
-    p.add_argument("--frame-target", action="append", metavar="NAME=X,Y,Z",
-                   help="with a target: another frame brought to a point as well (m, world frame; "
-                        "ocpkit.model.task.FramePosition; repeatable)")
-    p.add_argument("--joint-limits", action="store_true",
-                   help="with a target: keep the joints off their limits (ocpkit.model.task.JointLimitBarrier at the "
-                        "robot's limits, 0.05 rad inside)")
-    p.add_argument("--task", metavar="FILE",
-                   help="a TOML reach task: target = [x, y, z], optional frame, orientation = [roll, pitch, yaw] "
-                        "(or a 3 × 3 matrix), joint_limits = true, margin, position_weight, terminal_weight, "
-                        "orientation_weight, joint_limit_weight, link_radius, obstacle_weight, [[obstacle]] tables "
-                        "(center = [x, y, z], radius = r) and [[frame_target]] tables (frame = NAME, target = "
-                        "[x, y, z], optional weight); the flags override its values, --obstacle and --frame-target "
-                        "add to its lists")
+    p.add_argument(
+        "--target",
+        metavar="X,Y,Z",
+        help="bring the end effector (or --frame) to this point (m, world frame) from the seeded start "
+        "instead of the seeded joint goal (ocpkit.model.task.reach; a robot problem with kinematics)",
+    )
+    p.add_argument(
+        "--obstacle",
+        action="append",
+        metavar="X,Y,Z,R",
+        help="with a target: a sphere (centre and radius, m, world frame) the robot keeps clear of (repeatable)",
+    )
+    p.add_argument(
+        "--frame", metavar="NAME", help="with a target: the frame brought to it (default: the problem's end effector)"
+    )
+    p.add_argument(
+        "--orientation",
+        metavar="R,P,Y",
+        help="with a target: the frame's orientation too, as roll, pitch, yaw (rad, about the world's x, "
+        "y, z: R = Rz(yaw) Ry(pitch) Rx(roll), as a URDF's rpy; ocpkit.model.task.FrameOrientation)",
+    )
+    p.add_argument(
+        "--frame-target",
+        action="append",
+        metavar="NAME=X,Y,Z",
+        help="with a target: another frame brought to a point as well (m, world frame; "
+        "ocpkit.model.task.FramePosition; repeatable)",
+    )
+    p.add_argument(
+        "--joint-limits",
+        action="store_true",
+        help="with a target: keep the joints off their limits (ocpkit.model.task.JointLimitBarrier at the "
+        "robot's limits, 0.05 rad inside)",
+    )
+    p.add_argument(
+        "--task",
+        metavar="FILE",
+        help="a TOML reach task: target = [x, y, z], optional frame, orientation = [roll, pitch, yaw] "
+        "(or a 3 × 3 matrix), joint_limits = true, margin, position_weight, terminal_weight, "
+        "orientation_weight, joint_limit_weight, link_radius, obstacle_weight, [[obstacle]] tables "
+        "(center = [x, y, z], radius = r) and [[frame_target]] tables (frame = NAME, target = "
+        "[x, y, z], optional weight); the flags override its values, --obstacle and --frame-target "
+        "add to its lists",
+    )
 
 
 def _add_study_args(p, size=True):
     if size:
-        p.add_argument("--size", default="quick", choices=("quick", "full"),
-                       help="quick (minutes, the default) or full (the paper's scale)")
-    p.add_argument("--out", default="results/reproduce",
-                   help="results folder: store, figures, report (default: results/reproduce)")
+        p.add_argument(
+            "--size",
+            default="quick",
+            choices=("quick", "full"),
+            help="quick (minutes, the default) or full (the paper's scale)",
+        )
+    p.add_argument(
+        "--out", default="results/reproduce", help="results folder: store, figures, report (default: results/reproduce)"
+    )
     p.add_argument("--workers", type=int, default=None, help="local worker processes (default: CPU count)")
     p.add_argument("--scheduler", default=None, help="Dask scheduler address tcp://HOST:PORT")
-    p.add_argument("--trial-timeout", type=float, default=None, metavar="SECONDS",
-                   help="stop a trial that runs longer and store it as failed (default: no limit)")
+    p.add_argument(
+        "--trial-timeout",
+        type=float,
+        default=None,
+        metavar="SECONDS",
+        help="stop a trial that runs longer and store it as failed (default: no limit)",
+    )
     p.add_argument("--retry-failed", action="store_true", help="run the stored failed trials again")
     stale = p.add_mutually_exclusive_group()
-    stale.add_argument("--reuse-stale", dest="stale", action="store_const", const="reuse",
-                       help="keep stored trials computed by another ocpkit version or other study code")
-    stale.add_argument("--rerun-stale", dest="stale", action="store_const", const="rerun",
-                       help="compute such trials again (default: refuse to resume over them)")
+    stale.add_argument(
+        "--reuse-stale",
+        dest="stale",
+        action="store_const",
+        const="reuse",
+        help="keep stored trials computed by another ocpkit version or other study code",
+    )
+    stale.add_argument(
+        "--rerun-stale",
+        dest="stale",
+        action="store_const",
+        const="rerun",
+        help="compute such trials again (default: refuse to resume over them)",
+    )
     p.set_defaults(stale="refuse")
-    p.add_argument("--export", default=None, metavar="FILE",
-                   help="also write the results database as one self-contained SQLite file")
+    p.add_argument(
+        "--export",
+        default=None,
+        metavar="FILE",
+        help="also write the results database as one self-contained SQLite file",
+    )
 
 
 def _parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="ocpkit", description="Parameterized and GPU-parallelized real-time MPC.")
-    parser.add_argument("--debug", action="store_true",
-                        help="on an error, print its full traceback (anywhere on the command line)")
+    parser.add_argument(
+        "--debug", action="store_true", help="on an error, print its full traceback (anywhere on the command line)"
+    )
     parser.add_argument("--version", action="version", version=f"ocpkit {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
     solve = sub.add_parser("solve", help="one MPC solve from a seeded random state and goal")
@@ -156,27 +255,60 @@ def _parser() -> argparse.ArgumentParser:
     _add_controller_args(sim)
     sim.add_argument("--duration", type=float, default=None, help="seconds (default: the problem's)")
     sim.add_argument("--out", metavar="FIG.png", help="write the closed loop's figure to this file (default: none)")
-    sim.add_argument("--plant", default="ocpkit", choices=("ocpkit", "mujoco"),
-                     help="the simulated robot: ocpkit's model integrated by RK4 (default), or MuJoCo's (pip install "
-                          "\"ocpkit[mujoco]\"; RK4 at the same sub-step) from the problem's robot or --mjcf")
+    sim.add_argument(
+        "--plant",
+        default="ocpkit",
+        choices=("ocpkit", "mujoco"),
+        help="the simulated robot: ocpkit's model integrated by RK4 (default), or MuJoCo's (pip install "
+        '"ocpkit[mujoco]"; RK4 at the same sub-step) from the problem\'s robot or --mjcf',
+    )
     sim.add_argument("--mjcf", metavar="FILE", help="--plant mujoco: simulate this MJCF instead of the problem's robot")
-    sim.add_argument("--joint-map", metavar="J1,J2,…|NAME=J,…",
-                     help="--mjcf: the file's joints for the problem's, in q's order or as problem=mjcf name pairs "
-                          "(default: the problem's joint names)")
+    sim.add_argument(
+        "--joint-map",
+        metavar="J1,J2,…|NAME=J,…",
+        help="--mjcf: the file's joints for the problem's, in q's order or as problem=mjcf name pairs "
+        "(default: the problem's joint names)",
+    )
     # MuJoCoPlant's options for what ocpkit's model leaves out, with its defaults (ocpkit.sim.mujoco_plant)
-    sim.add_argument("--frictionloss", type=float, default=0.0, metavar="N·m",
-                     help="--plant mujoco: dry joint friction added at every joint (default 0)")
-    sim.add_argument("--armature", type=float, default=0.0, metavar="KG·M²",
-                     help="--plant mujoco: rotor inertia added at every joint (default 0)")
-    sim.add_argument("--floor", type=float, default=None, metavar="Z",
-                     help="--plant mujoco: a floor plane at height Z (m) that the links touch (default none)")
-    sim.add_argument("--limits", action="store_true", default=None,
-                     help="--plant mujoco: the joint ranges as constraints (default: off for a generated or URDF "
-                          "robot, an MJCF's own)")
-    sim.add_argument("--mujoco-integrator", default="rk4", choices=MUJOCO_INTEGRATORS,
-                     help="--plant mujoco: MuJoCo's integrator at the plant's 1 ms sub-step (default rk4)")
-    sim.add_argument("--animate", metavar="FILE.gif", help="also write the robot's motion as an animated GIF (stick "
-                                                           "figure; goal pose, or target and obstacles)")
+    sim.add_argument(
+        "--frictionloss",
+        type=float,
+        default=0.0,
+        metavar="N·m",
+        help="--plant mujoco: dry joint friction added at every joint (default 0)",
+    )
+    sim.add_argument(
+        "--armature",
+        type=float,
+        default=0.0,
+        metavar="KG·M²",
+        help="--plant mujoco: rotor inertia added at every joint (default 0)",
+    )
+    sim.add_argument(
+        "--floor",
+        type=float,
+        default=None,
+        metavar="Z",
+        help="--plant mujoco: a floor plane at height Z (m) that the links touch (default none)",
+    )
+    sim.add_argument(
+        "--limits",
+        action="store_true",
+        default=None,
+        help="--plant mujoco: the joint ranges as constraints (default: off for a generated or URDF "
+        "robot, an MJCF's own)",
+    )
+    sim.add_argument(
+        "--mujoco-integrator",
+        default="rk4",
+        choices=MUJOCO_INTEGRATORS,
+        help="--plant mujoco: MuJoCo's integrator at the plant's 1 ms sub-step (default rk4)",
+    )
+    sim.add_argument(
+        "--animate",
+        metavar="FILE.gif",
+        help="also write the robot's motion as an animated GIF (stick figure; goal pose, or target and obstacles)",
+    )
     _add_task_args(sim)
     sim.add_argument("--json", action="store_true", help="print one JSON object")
     demo = sub.add_parser("demo", help="closed-loop pendulum with every available controller")
@@ -185,12 +317,20 @@ def _parser() -> argparse.ArgumentParser:
     demo.add_argument("--out", default="results/demo", help="folder for the figure")
     st = sub.add_parser("study", help="run one of the paper's studies (resumable) and write its report")
     st.add_argument("name", choices=studies.NAMES, metavar="NAME", help=f"the study: {', '.join(studies.NAMES)}")
-    st.add_argument("--problem", action="append", metavar="SPEC",
-                    help=f"{', '.join(PROBLEM_STUDIES)}: run on this problem instead of the paper's (repeatable; "
-                         f"quick size: a test-sized grid). {SPEC_HELP}")
-    st.add_argument("--plant", default="ocpkit", choices=("ocpkit", "mujoco"),
-                    help="robustness: mujoco runs LinearMPC, RTI and EMPC against MuJoCo with unmodelled joint "
-                         "friction and armature (pip install \"ocpkit[mujoco]\"), as study robustness_mujoco")
+    st.add_argument(
+        "--problem",
+        action="append",
+        metavar="SPEC",
+        help=f"{', '.join(PROBLEM_STUDIES)}: run on this problem instead of the paper's (repeatable; "
+        f"quick size: a test-sized grid). {SPEC_HELP}",
+    )
+    st.add_argument(
+        "--plant",
+        default="ocpkit",
+        choices=("ocpkit", "mujoco"),
+        help="robustness: mujoco runs LinearMPC, RTI and EMPC against MuJoCo with unmodelled joint "
+        'friction and armature (pip install "ocpkit[mujoco]"), as study robustness_mujoco',
+    )
     _add_study_args(st)
     rep = sub.add_parser("reproduce", help=f"run every study ({', '.join(studies.NAMES)}) and write report.md")
     size = rep.add_mutually_exclusive_group()
@@ -200,45 +340,78 @@ def _parser() -> argparse.ArgumentParser:
     _add_study_args(rep, size=False)
     exp = sub.add_parser("export", help="generate, build and check a C MPC step")
     _add_problem_args(exp)
-    exp.add_argument("--form", default=EXPORT_FORMS[0], choices=EXPORT_FORMS,
-                     help="QP transcription: condensed, the one exported (the sparse form is solved in Python only)")
-    exp.add_argument("--qp", default=EXPORT_QPS[0], choices=EXPORT_QPS,
-                     help="QP backend generated into the C: daqp (default), qrqp or osqp (hpipm needs a stage-wise "
-                          "QP, which the knot QP is not)")
-    exp.add_argument("--linearization", default=default("qp", "linearization"), choices=LINEARIZATIONS + (TRAJECTORY,),
-                     help="the affine model's expansion point, as solve's: goal, plan, or trajectory (the real-time "
-                          "iteration: per stage along the shifted plan) (default %(default)s)")
-    exp.add_argument("--iterations", type=int, default=default("rti", "iterations"),
-                     help="--linearization trajectory: Gauss-Newton iterations per control step (default "
-                          "%(default)s)")
+    exp.add_argument(
+        "--form",
+        default=EXPORT_FORMS[0],
+        choices=EXPORT_FORMS,
+        help="QP transcription: condensed, the one exported (the sparse form is solved in Python only)",
+    )
+    exp.add_argument(
+        "--qp",
+        default=EXPORT_QPS[0],
+        choices=EXPORT_QPS,
+        help="QP backend generated into the C: daqp (default), qrqp or osqp (hpipm needs a stage-wise "
+        "QP, which the knot QP is not)",
+    )
+    exp.add_argument(
+        "--linearization",
+        default=default("qp", "linearization"),
+        choices=LINEARIZATIONS + (TRAJECTORY,),
+        help="the affine model's expansion point, as solve's: goal, plan, or trajectory (the real-time "
+        "iteration: per stage along the shifted plan) (default %(default)s)",
+    )
+    exp.add_argument(
+        "--iterations",
+        type=int,
+        default=default("rti", "iterations"),
+        help="--linearization trajectory: Gauss-Newton iterations per control step (default %(default)s)",
+    )
     exp.add_argument("--seed", type=int, default=0, help="seed of the example closed loop's start and goal")
     exp.add_argument("--out", default="export", help="output folder (absent or empty unless --force)")
     exp.add_argument("--force", action="store_true", help="export into a non-empty --out, overwriting its files")
     _add_task_args(exp)
-    pre = sub.add_parser("build", help="fill the cache ahead of deployment with what a controller loads: the default "
-                                       "LinearMPC's C step and compiled model, or with --solver and its options "
-                                       "(as simulate takes them) that controller's C step or Taichi kernels (a "
-                                       "read-only cache is then used as it is)")
+    pre = sub.add_parser(
+        "build",
+        help="fill the cache ahead of deployment with what a controller loads: the default "
+        "LinearMPC's C step and compiled model, or with --solver and its options "
+        "(as simulate takes them) that controller's C step or Taichi kernels (a "
+        "read-only cache is then used as it is)",
+    )
     _add_controller_args(pre)
     bench = sub.add_parser("bench", help="benchmarks that print medians and ratios")
     bench.add_argument("what", choices=tuple(BENCHMARKS))
     bench.add_argument("--quick", action="store_true", help="a smaller grid (minutes instead of tens)")
     bench.add_argument("--arch", choices=("auto", "cpu", "cuda"), help="empc: Taichi arch (default auto)")
     bench.add_argument("--precision", choices=("float64", "float32"), help="empc: float type (default float64)")
-    bench.add_argument("--problem", action="append", metavar="SPEC",
-                       help=f"{'/'.join(PROBLEM_BENCHMARKS)}: benchmark this problem (repeatable). {SPEC_HELP}")
-    bench.add_argument("--integrator", choices=INTEGRATORS,
-                       help="nlp: every controller's prediction (default rk4; euler: semi-implicit; the plant: RK4)")
-    bench.add_argument("--seed", type=int, help="nlp: the first of the seeded starts and goals; startup: the seeded "
-                                                "start and goal (default 0)")
-    bench.add_argument("--busy", type=int, help="step: busy processes for the quiet-vs-loaded comparison (default 2; "
-                                                "0 skips it)")
+    bench.add_argument(
+        "--problem",
+        action="append",
+        metavar="SPEC",
+        help=f"{'/'.join(PROBLEM_BENCHMARKS)}: benchmark this problem (repeatable). {SPEC_HELP}",
+    )
+    bench.add_argument(
+        "--integrator",
+        choices=INTEGRATORS,
+        help="nlp: every controller's prediction (default rk4; euler: semi-implicit; the plant: RK4)",
+    )
+    bench.add_argument(
+        "--seed",
+        type=int,
+        help="nlp: the first of the seeded starts and goals; startup: the seeded start and goal (default 0)",
+    )
+    bench.add_argument(
+        "--busy", type=int, help="step: busy processes for the quiet-vs-loaded comparison (default 2; 0 skips it)"
+    )
     columns, rows = (" ".join(solvers.BENCHMARKED[what]) for what in ("nlp", "startup"))
-    bench.add_argument("--controller", action="append", metavar="NAME",
-                       help=f"nlp: a controller column (repeatable; default {columns}); crocoddyl adds Crocoddyl's "
-                            f"FDDP and its per-solve table (pip install \"ocpkit[peers]\"); startup: a controller row "
-                            f"(repeatable; default {rows}); the names: the solvers ({', '.join(solvers.names())}) and "
-                            f"{', '.join(c for c in solvers.CONTROLLERS if c not in solvers.names())}")
+    bench.add_argument(
+        "--controller",
+        action="append",
+        metavar="NAME",
+        help=f"nlp: a controller column (repeatable; default {columns}); crocoddyl adds Crocoddyl's "
+        f'FDDP and its per-solve table (pip install "ocpkit[peers]"); startup: a controller row '
+        f"(repeatable; default {rows}); the names: the solvers ({', '.join(solvers.names())}) and "
+        f"{', '.join(c for c in solvers.CONTROLLERS if c not in solvers.names())}",
+    )
     return parser
 
 
@@ -247,9 +420,14 @@ def _one_line_error(exc: BaseException) -> bool:
     # ImportError: an optional package missing, said with the pip command that installs it
     if isinstance(exc, (ValueError, TypeError, OSError, ImportError)):
         return True
-    kinds = [getattr(sys.modules.get(module), name, None) for module, name in (
-        ("ocpkit.runs.store", "StoreError"), ("ocpkit.codegen.kernels.runtime", "ArchUnavailable"),
-        ("ocpkit.codegen.compiled", "CompileError"))]
+    kinds = [
+        getattr(sys.modules.get(module), name, None)
+        for module, name in (
+            ("ocpkit.runs.store", "StoreError"),
+            ("ocpkit.codegen.kernels.runtime", "ArchUnavailable"),
+            ("ocpkit.codegen.compiled", "CompileError"),
+        )
+    ]
     return any(kind is not None and isinstance(exc, kind) for kind in kinds)
 
 
@@ -298,4 +476,3 @@ def main(argv=None) -> int:
             traceback.print_exception(exc, file=sys.stderr)
         print(_error_line(exc, args.debug), file=sys.stderr)
         return 2
-

@@ -1,4 +1,5 @@
 """``python -m ocpkit.cli``: the `ocpkit` command."""
+
 import sys
 
 from ocpkit.cli import main

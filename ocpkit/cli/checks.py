@@ -1,5 +1,6 @@
 """Checks made before any work starts, so that a run is not lost at its end: output paths writable, and an MPC
 problem's dense matrices within memory."""
+
 from __future__ import annotations
 
 import os
@@ -8,6 +9,7 @@ import tempfile
 from pathlib import Path
 
 from ocpkit.cli.options import QP_SOLVERS, knot_count
+
 
 def check_output_folder(path, option: str) -> None:
     """``path`` is (or can be created as) a folder this process can write into."""
@@ -77,13 +79,18 @@ def check_size(problem, args) -> None:
     have = _available_memory()
     size = f"horizon T = {T}, p = {p} knots, nx = {nx}, nu = {nu}"
     if have is not None and need > 0.5 * have:
-        raise ValueError(f"{size} needs about {_gib(need)} for its dense matrices, more than half the "
-                         f"{_gib(have)} available: shorten --horizon or give --knots")
+        raise ValueError(
+            f"{size} needs about {_gib(need)} for its dense matrices, more than half the "
+            f"{_gib(have)} available: shorten --horizon or give --knots"
+        )
     if condensed:
         seconds = 2e-9 * ((p * nu) ** 3 + T * nx * (p * nu) ** 2)
         if seconds > 30:
-            print(f"ocpkit: warning: {size}: one solve may take around {seconds:.0f} s "
-                  f"(memory about {_gib(need)}); --knots makes it smaller", file=sys.stderr)
+            print(
+                f"ocpkit: warning: {size}: one solve may take around {seconds:.0f} s "
+                f"(memory about {_gib(need)}); --knots makes it smaller",
+                file=sys.stderr,
+            )
     elif qp_based and (args.qp or "proxqp") == "proxqp" and p < T:
         # Sparse ProxQP with knots: its factorization fills in along the knots' columns, about 2.5 ns × (T·nx)³ a
         # solve (pendulum, 5 knots: 1.9 s at T = 600, 168 s at T = 2000; traditional MPC 0.1 and 1.8 s; OSQP 0.3 s).
@@ -92,9 +99,12 @@ def check_size(problem, args) -> None:
             from ocpkit.solvers.qp import LinearMPC
 
             ceiling = max(LinearMPC.CEILING_MIN, LinearMPC.CEILING_PER_VARIABLE * ((T + 1) * nx + p * nu))
-            print(f"ocpkit: warning: {size}: sparse ProxQP with knots may take around {seconds:.3g} s a solve "
-                  f"(a step stops at LinearMPC's default budget, {ceiling:.0f} s here); --qp osqp or --form "
-                  f"condensed is far faster", file=sys.stderr)
+            print(
+                f"ocpkit: warning: {size}: sparse ProxQP with knots may take around {seconds:.3g} s a solve "
+                f"(a step stops at LinearMPC's default budget, {ceiling:.0f} s here); --qp osqp or --form "
+                f"condensed is far faster",
+                file=sys.stderr,
+            )
 
 
 def _gib(n: float) -> str:

@@ -1,5 +1,6 @@
 """The commands of the command line: solve, simulate, demo, study, reproduce, build and bench (export:
 :mod:`ocpkit.cli.export`)."""
+
 from __future__ import annotations
 
 import contextlib
@@ -84,8 +85,11 @@ class _Progress:
     def __call__(self, k: int, x, solution) -> None:
         now = time.perf_counter()
         if now >= self.next and k + 1 < self.steps:
-            print(f"ocpkit: simulating {self.steps} steps: {k + 1}/{self.steps} ({now - self.start:.0f} s)",
-                  file=sys.stderr, flush=True)
+            print(
+                f"ocpkit: simulating {self.steps} steps: {k + 1}/{self.steps} ({now - self.start:.0f} s)",
+                file=sys.stderr,
+                flush=True,
+            )
             self.next = now + self.EVERY
 
 
@@ -103,11 +107,24 @@ def _solve(args):
     if task is not None:  # the plan: the OCP's model from x0 under the solved knots, x_0 … x_T
         extra["reach"] = reach_report(problem, ocp, task, ctrl.rollout(x0, ocp.parameterization.inputs(sol.knots)))
     if args.json:
-        print(json.dumps({"problem": args.problem, "solver": args.solver, "controller": repr(ctrl),
-                          "x0": x0.tolist(), "goal": goal.tolist(), **sol.to_dict(), **extra}))
+        print(
+            json.dumps(
+                {
+                    "problem": args.problem,
+                    "solver": args.solver,
+                    "controller": repr(ctrl),
+                    "x0": x0.tolist(),
+                    "goal": goal.tolist(),
+                    **sol.to_dict(),
+                    **extra,
+                }
+            )
+        )
     else:
-        print(f"{ctrl!r}\nx0 = {x0}, goal = {goal}\nu = {sol.u}  status = {sol.status} ({sol.raw_status}), "
-              f"{sol.iterations} iterations, total {1e3 * sol.times['total']:.3f} ms")
+        print(
+            f"{ctrl!r}\nx0 = {x0}, goal = {goal}\nu = {sol.u}  status = {sol.status} ({sol.raw_status}), "
+            f"{sol.iterations} iterations, total {1e3 * sol.times['total']:.3f} ms"
+        )
         if task is not None:
             print(reach_line(extra["reach"], f"at the plan's end (x_T, T = {ocp.horizon}, the OCP's model)"))
     return 0 if sol.ok else 1
@@ -128,8 +145,9 @@ def _run_closed_loop(problem, ctrl: Controller, seed: int, duration: float | Non
     if first > SLOW:
         print(f"ocpkit: first solve took {first:.1f} s", file=sys.stderr)
     duration = duration or problem.duration
-    traj = simulate(plant or problem.plant(), ctrl, x0, goal, duration,
-                    callback=_Progress(int(round(duration / ctrl.ocp.dt))))
+    traj = simulate(
+        plant or problem.plant(), ctrl, x0, goal, duration, callback=_Progress(int(round(duration / ctrl.ocp.dt)))
+    )
     return traj, actual_cost(traj, ctrl.ocp)
 
 
@@ -147,24 +165,36 @@ def _labels(problem) -> dict:
     if not n or plant.nx != 2 * n or plant.nu != n:
         return {"state_names": plant.state_names, "input_names": plant.input_names}
     position, rate = (["rad" if r else "m" for r in revolute], ["rad/s" if r else "m/s" for r in revolute])
-    effort = [("N·m" if r else "N") if name.startswith("tau") else p
-              for r, name, p in zip(revolute, plant.input_names, position)]
-    return {"state_names": [f"{s} [{u}]" for s, u in zip(plant.state_names, position + rate)],
-            "input_names": [f"{s} [{u}]" for s, u in zip(plant.input_names, effort)]}
+    effort = [
+        ("N·m" if r else "N") if name.startswith("tau") else p
+        for r, name, p in zip(revolute, plant.input_names, position)
+    ]
+    return {
+        "state_names": [f"{s} [{u}]" for s, u in zip(plant.state_names, position + rate)],
+        "input_names": [f"{s} [{u}]" for s, u in zip(plant.input_names, effort)],
+    }
 
 
 def _time_summary(traj) -> dict:
     t = traj.times("total")
-    return {"median_ms": 1e3 * float(np.median(t)), "p90_ms": 1e3 * float(np.percentile(t, 90)),
-            "max_ms": 1e3 * float(t.max())}
+    return {
+        "median_ms": 1e3 * float(np.median(t)),
+        "p90_ms": 1e3 * float(np.percentile(t, 90)),
+        "max_ms": 1e3 * float(t.max()),
+    }
 
 
 def _mujoco_options(args) -> list:
     """(option, given value, default) of simulate's options that only a MuJoCo plant takes."""
-    return [("--mjcf", args.mjcf, None), ("--joint-map", args.joint_map, None),
-            ("--frictionloss", args.frictionloss, 0.0), ("--armature", args.armature, 0.0),
-            ("--floor", args.floor, None), ("--limits", args.limits, None),
-            ("--mujoco-integrator", args.mujoco_integrator, "rk4")]
+    return [
+        ("--mjcf", args.mjcf, None),
+        ("--joint-map", args.joint_map, None),
+        ("--frictionloss", args.frictionloss, 0.0),
+        ("--armature", args.armature, 0.0),
+        ("--floor", args.floor, None),
+        ("--limits", args.limits, None),
+        ("--mujoco-integrator", args.mujoco_integrator, "rk4"),
+    ]
 
 
 def _plant(problem, args):
@@ -180,8 +210,16 @@ def _plant(problem, args):
         if any(sep for _, sep, _ in pairs) and not all(sep and a and b for a, sep, b in pairs):
             raise ValueError(f"--joint-map must be MJCF joint names J1,J2,… or pairs NAME=J,…, got {args.joint_map!r}")
         joint_map = {a: b for a, _, b in pairs} if pairs[0][1] else items
-    return MuJoCoPlant(problem, mjcf=args.mjcf, joint_map=joint_map, integrator=args.mujoco_integrator,
-                       frictionloss=args.frictionloss, armature=args.armature, floor=args.floor, limits=args.limits)
+    return MuJoCoPlant(
+        problem,
+        mjcf=args.mjcf,
+        joint_map=joint_map,
+        integrator=args.mujoco_integrator,
+        frictionloss=args.frictionloss,
+        armature=args.armature,
+        floor=args.floor,
+        limits=args.limits,
+    )
 
 
 def _simulate(args):
@@ -204,13 +242,14 @@ def _simulate(args):
     plant = _plant(problem, args)
     if args.animate is not None:
         animation.Skeleton(problem, None if task is None else task.frame)  # a robot it cannot draw fails before the run
-    traj, cost = _run_closed_loop(problem, ctrl, args.seed, args.duration,
-                                  start=seeded_start(problem, ocp, args.seed, task), plant=plant)
+    traj, cost = _run_closed_loop(
+        problem, ctrl, args.seed, args.duration, start=seeded_start(problem, ocp, args.seed, task), plant=plant
+    )
     shown, title = traj, f"{args.problem}, seed {args.seed}" + (", MuJoCo plant" if args.plant == "mujoco" else "")
     if task is not None:
         # the joint angles have no goal in a reach task (x_goal's angles are the start's, weighted zero): none drawn
         goal = traj.goal.copy()
-        goal[:problem.kinematics.n] = np.nan
+        goal[: problem.kinematics.n] = np.nan
         shown = dataclasses.replace(traj, goal=goal)
         title += f", {task.frame} to {point_text(task.target)}"
     fig = None
@@ -219,14 +258,31 @@ def _simulate(args):
         fig = plots.closed_loop({_label(ctrl): shown}, args.out, title=title, task=panels, **_labels(problem))
     # success: status "success" only; a soft step applied the solver's input but broke a clearance or state bound
     progress = traj.progress() if task is None else traj.progress(problem.kinematics, task.frame, task.target)
-    summary = {"problem": args.problem, "solver": args.solver, "controller": repr(ctrl), "actual_cost": cost,
-               "successes": traj.successes, "soft": traj.soft_steps, "soft_causes": traj.soft_causes(),
-               "fallbacks": traj.fallbacks, "fallback_causes": traj.fallback_causes(), "steps": len(traj.solutions),
-               "progress": progress.to_dict(), "total_time": _time_summary(traj),
-               "figure": None if fig is None else str(fig), "plant": "ocpkit" if plant is None else repr(plant)}
+    summary = {
+        "problem": args.problem,
+        "solver": args.solver,
+        "controller": repr(ctrl),
+        "actual_cost": cost,
+        "successes": traj.successes,
+        "soft": traj.soft_steps,
+        "soft_causes": traj.soft_causes(),
+        "fallbacks": traj.fallbacks,
+        "fallback_causes": traj.fallback_causes(),
+        "steps": len(traj.solutions),
+        "progress": progress.to_dict(),
+        "total_time": _time_summary(traj),
+        "figure": None if fig is None else str(fig),
+        "plant": "ocpkit" if plant is None else repr(plant),
+    }
     if task is not None:
-        summary["reach"] = reach_report(problem, ocp, task, traj.x, dt=float(traj.t[1] - traj.t[0]),
-                                        success_while_colliding=traj.success_while_colliding(ocp))
+        summary["reach"] = reach_report(
+            problem,
+            ocp,
+            task,
+            traj.x,
+            dt=float(traj.t[1] - traj.t[0]),
+            success_while_colliding=traj.success_while_colliding(ocp),
+        )
     if args.animate is not None:  # a reach task's target and obstacles drawn, else the joint goal's pose
         scene = {} if task is None else {"target": task.target, "obstacles": task.obstacles, "frame": task.frame}
         summary["animation"] = str(animation.animate(traj, args.animate, problem, title=title, **scene))
@@ -235,11 +291,14 @@ def _simulate(args):
     else:
         soft = f" ({summary['soft_causes']})" if traj.soft_steps else ""
         causes = f" ({summary['fallback_causes']})" if traj.fallbacks else ""
-        print(f"{ctrl!r}: actual cost {cost:.4f}; {len(traj.solutions)} steps: {traj.successes} success, "
-              f"{traj.soft_steps} soft{soft}, {traj.fallbacks} fallbacks{causes}; "
-              f"total solve time median {summary['total_time']['median_ms']:.3f} ms "
-              f"(p90 {summary['total_time']['p90_ms']:.3f} ms, max {summary['total_time']['max_ms']:.3f} ms)"
-              + ("" if fig is None else f"\nfigure: {fig}") + ("" if plant is None else f"\nplant: {plant!r}"))
+        print(
+            f"{ctrl!r}: actual cost {cost:.4f}; {len(traj.solutions)} steps: {traj.successes} success, "
+            f"{traj.soft_steps} soft{soft}, {traj.fallbacks} fallbacks{causes}; "
+            f"total solve time median {summary['total_time']['median_ms']:.3f} ms "
+            f"(p90 {summary['total_time']['p90_ms']:.3f} ms, max {summary['total_time']['max_ms']:.3f} ms)"
+            + ("" if fig is None else f"\nfigure: {fig}")
+            + ("" if plant is None else f"\nplant: {plant!r}")
+        )
         if task is not None:
             print(reach_line(summary["reach"], f"after {traj.t[-1]:g} s"))
         print(progress.text())
@@ -266,19 +325,26 @@ def _demo(args):
         for name in solvers.names():
             if name != "qp":
                 configs[f"{name} {label}"] = solvers.make(name, ocp)
-    print(f"{args.problem}: x0 = {np.round(x0, 3)}, goal = {np.round(goal, 3)}, {problem.duration} s at "
-          f"{1 / problem.dt:.0f} Hz, horizon {problem.horizon}")
+    print(
+        f"{args.problem}: x0 = {np.round(x0, 3)}, goal = {np.round(goal, 3)}, {problem.duration} s at "
+        f"{1 / problem.dt:.0f} Hz, horizon {problem.horizon}"
+    )
     print(f"{'controller':36} {'actual cost':>12} {'ratio':>8} {'median ms':>10} {'p90 ms':>8} {'fallbacks':>9}")
     trajs, base = {}, None
     for label, ctrl in configs.items():
         traj, cost = _run_closed_loop(problem, ctrl, args.seed)
         base = cost if base is None else base
         t = _time_summary(traj)
-        print(f"{label:36} {cost:12.4f} {cost / base:8.4f} {t['median_ms']:10.3f} {t['p90_ms']:8.3f} "
-              f"{traj.fallbacks:9d}")
+        print(
+            f"{label:36} {cost:12.4f} {cost / base:8.4f} {t['median_ms']:10.3f} {t['p90_ms']:8.3f} {traj.fallbacks:9d}"
+        )
         trajs[label] = traj
-    fig = plots.closed_loop(trajs, Path(args.out) / f"{args.problem}.png",
-                            title=f"{args.problem}: closed loop, seed {args.seed}", **_labels(problem))
+    fig = plots.closed_loop(
+        trajs,
+        Path(args.out) / f"{args.problem}.png",
+        title=f"{args.problem}: closed loop, seed {args.seed}",
+        **_labels(problem),
+    )
     print(f"ratio = actual cost / first row's; figure: {fig}")
     return 0
 
@@ -314,8 +380,9 @@ def _study(args):
     if args.problem:
         section = _study_problems(args, options)
     else:
-        section = run_study(args.name, args.size, args.out, workers=args.workers, scheduler=args.scheduler,
-                            plant=args.plant, **options)
+        section = run_study(
+            args.name, args.size, args.out, workers=args.workers, scheduler=args.scheduler, plant=args.plant, **options
+        )
     path = Path(args.out) / f"{args.name}{'' if args.plant == 'ocpkit' else '_' + args.plant}.md"
     path.write_text(section)
     print(section + f"\nreport: {path}")
@@ -365,9 +432,11 @@ def _bench(args):
             raise ValueError(f"--busy must be >= 0, got {args.busy}")
         options["busy"] = args.busy
     # option: {benchmark: (its keyword, type)}
-    chosen = {"controller": {"nlp": ("controllers", tuple), "startup": ("controllers", tuple)},
-              "integrator": {"nlp": ("integrator", str)},
-              "seed": {"nlp": ("first_seed", int), "startup": ("seed", int)}}
+    chosen = {
+        "controller": {"nlp": ("controllers", tuple), "startup": ("controllers", tuple)},
+        "integrator": {"nlp": ("integrator", str)},
+        "seed": {"nlp": ("first_seed", int), "startup": ("seed", int)},
+    }
     for option, where in chosen.items():
         value = getattr(args, option)
         if value is not None:
@@ -411,21 +480,26 @@ def _prebuild(args):
             print(f"C step (LinearMPC: condensed, daqp, linearization goal): {library} ({_how(library, start)})")
     else:
         pairs = ocp.task_functions.pairs if ocp.task_functions is not None else 0
-        why = ("a linear model" if ocp.model.linear else
-               f"a model of {size} VM instructions, below {BACKGROUND_MIN_INSTRUCTIONS}"
-               if size < BACKGROUND_MIN_INSTRUCTIONS else
-               "obstacles, constants of the generated C (a build per placement: --compiled builds it)"
-               if pairs else
-               f"a knot QP of {ocp.knots * ocp.nu} variables, over ocpkit.export.native.MAX_VARIABLES = "
-               f"{native.MAX_VARIABLES}")
+        why = (
+            "a linear model"
+            if ocp.model.linear
+            else f"a model of {size} VM instructions, below {BACKGROUND_MIN_INSTRUCTIONS}"
+            if size < BACKGROUND_MIN_INSTRUCTIONS
+            else "obstacles, constants of the generated C (a build per placement: --compiled builds it)"
+            if pairs
+            else f"a knot QP of {ocp.knots * ocp.nu} variables, over ocpkit.export.native.MAX_VARIABLES = "
+            f"{native.MAX_VARIABLES}"
+        )
         print(f"C step: none (the default LinearMPC keeps its Python step here: {why})")
     if size >= BACKGROUND_MIN_INSTRUCTIONS:
         start = time.time()
         library = compiled.prebuild(ocp.model.affine(ocp.dt, ocp.substeps, ocp.integrator))
         print(f"compiled affine model (the Python step's): {library} ({_how(library, start)})")
     else:
-        print(f"compiled affine model: none (a model of {size} VM instructions, below {BACKGROUND_MIN_INSTRUCTIONS}, "
-              f"stays on CasADi's VM)")
+        print(
+            f"compiled affine model: none (a model of {size} VM instructions, below {BACKGROUND_MIN_INSTRUCTIONS}, "
+            f"stays on CasADi's VM)"
+        )
     return 0
 
 
@@ -437,8 +511,10 @@ def _prebuild_controller(args):
     x0, goal = problem.sample(args.seed)
     sol = ctrl.solve(x0, goal)
     ctrl.wait_compiled()
-    print(f"{ctrl!r}: first step {sol.status} by {sol.path}; ready in {time.perf_counter() - start:.1f} s, now "
-          f"answering by {ctrl.path}")
+    print(
+        f"{ctrl!r}: first step {sol.status} by {sol.path}; ready in {time.perf_counter() - start:.1f} s, now "
+        f"answering by {ctrl.path}"
+    )
     return 0
 
 
@@ -447,5 +523,12 @@ def _how(library: Path, start: float) -> str:
 
 
 # `ocpkit COMMAND` but export (ocpkit.cli.export)
-COMMANDS = {"solve": _solve, "simulate": _simulate, "demo": _demo, "study": _study, "reproduce": _reproduce,
-            "bench": _bench, "build": _prebuild}
+COMMANDS = {
+    "solve": _solve,
+    "simulate": _simulate,
+    "demo": _demo,
+    "study": _study,
+    "reproduce": _reproduce,
+    "bench": _bench,
+    "build": _prebuild,
+}

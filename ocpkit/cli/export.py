@@ -1,5 +1,6 @@
 """`ocpkit export`: generate and build the C MPC step, then check it against the same step in Python on a closed
 loop (the round trip)."""
+
 from __future__ import annotations
 
 import sys
@@ -23,8 +24,17 @@ def export_command(args):
         ocp = make_ocp(problem, args) if task is None else reach_ocp(problem, args, task)
         x0, goal = seeded_start(problem, ocp, args.seed, task)
         with said_if_slow(f"generating the C step of {args.problem} (CasADi code generation)"):
-            exported = export(ocp, args.out, form=args.form, qp=args.qp, linearization=args.linearization, x0=x0,
-                              goal=goal, force=args.force, iterations=args.iterations)
+            exported = export(
+                ocp,
+                args.out,
+                form=args.form,
+                qp=args.qp,
+                linearization=args.linearization,
+                x0=x0,
+                goal=goal,
+                force=args.force,
+                iterations=args.iterations,
+            )
         with said_if_slow(f"building the C step in {args.out} (make: {_build_estimate(exported.out_dir)})"):
             build(args.out)
     except BuildError as exc:
@@ -33,11 +43,13 @@ def export_command(args):
     with said_if_slow("round trip: the compiled step and the Python step on the same closed loop"):
         du, steps, failures = _round_trip(problem, ocp, args, exported, (x0, goal))
     ok = failures == 0 and du <= 1e-6
-    print(f"exported and built {args.problem} ({args.form}, {ocp.parameterization.kind} with {ocp.knots} knots over "
-          f"T = {ocp.horizon}, {args.qp}, linearization {args.linearization}) in {exported.out_dir}; "
-          f"see {Path(args.out) / 'README.md'}\nround trip: the compiled step vs the same step in Python over {steps} "
-          f"closed-loop steps from seed {args.seed}: max |du| = {du:.2e}, {failures} non-successes — "
-          f"{'agree' if ok else 'DISAGREE'}")
+    print(
+        f"exported and built {args.problem} ({args.form}, {ocp.parameterization.kind} with {ocp.knots} knots over "
+        f"T = {ocp.horizon}, {args.qp}, linearization {args.linearization}) in {exported.out_dir}; "
+        f"see {Path(args.out) / 'README.md'}\nround trip: the compiled step vs the same step in Python over {steps} "
+        f"closed-loop steps from seed {args.seed}: max |du| = {du:.2e}, {failures} non-successes — "
+        f"{'agree' if ok else 'DISAGREE'}"
+    )
     return 0 if ok else 1
 
 
@@ -71,9 +83,17 @@ def _round_trip(problem, ocp, args, exported, start, steps: int = 20):
         du = max(du, float(np.abs(a.u - b.u).max()))
         x_next = np.asarray(F(x, a.u)).ravel()
         if not np.isfinite(x_next).all():  # NaN dynamics are named as such (DynamicsError), else the step diverged
-            check_dynamics(ocp.model, x, a.u, dt=ocp.dt, substeps=ocp.substeps,
-                           context=f"the round trip's closed loop, step {k + 1}")
-            raise ValueError(f"the round trip's closed loop diverged at step {k + 1}: the discrete model "
-                             f"from x = {x.tolist()}, u = {a.u.tolist()} is not finite")
+            check_dynamics(
+                ocp.model,
+                x,
+                a.u,
+                dt=ocp.dt,
+                substeps=ocp.substeps,
+                context=f"the round trip's closed loop, step {k + 1}",
+            )
+            raise ValueError(
+                f"the round trip's closed loop diverged at step {k + 1}: the discrete model "
+                f"from x = {x.tolist()}, u = {a.u.tolist()} is not finite"
+            )
         x = x_next
     return du, steps, failures

@@ -1,5 +1,6 @@
 """The solver and OCP that the command line's options ask for: each option checked against the solver it applies to,
 the knot count and the OCP."""
+
 from __future__ import annotations
 
 from ocpkit import solvers
@@ -7,9 +8,11 @@ from ocpkit.controller import LINEARIZATIONS, TRAJECTORY
 from ocpkit.solvers.methods import ARGUMENTS, DYNAMICS, METHODS, VARIANTS  # noqa: F401 - the parser's choices
 from ocpkit.solvers.methods import KNOTS as DEFAULT_KNOTS
 
-SPEC_HELP = ("problem spec: a registered name (pendulum, pendulum:linear, nlink:N with N = 1…13, puma560, baxter, "
-             "panda, urdf:FILE), package.module:Name or path/to/file.py:Name (a Problem subclass, instance or factory; "
-             "':arg' passes through)")
+SPEC_HELP = (
+    "problem spec: a registered name (pendulum, pendulum:linear, nlink:N with N = 1…13, puma560, baxter, "
+    "panda, urdf:FILE), package.module:Name or path/to/file.py:Name (a Problem subclass, instance or factory; "
+    "':arg' passes through)"
+)
 # The solvers' arguments, their meaning and defaults, and the knot count p of solve, simulate and export unless
 # --knots or --parameterization identity says otherwise (DEFAULT_KNOTS; Problem.ocp's knots=None is p = T) come from
 # the one table, ocpkit.solvers.methods, which imports no solver: `ocpkit --help` does not import them (half a
@@ -24,7 +27,6 @@ EXPORT_FORMS = ("condensed",)
 EXPORT_QPS = ("daqp", "qrqp", "osqp")
 
 
-
 def _with_methods(option: str) -> str:
     """Solver ipopt with the methods that take ``option`` (solvers.methods.METHODS), in the command line's words."""
     return f"solver ipopt with --method {' or '.join(m for m in METHODS if option in METHODS[m])}"
@@ -37,13 +39,19 @@ _SOLVER_OPTIONS = {
     "qp": (lambda c: c.solver in QP_SOLVERS, f"solvers {', '.join(QP_SOLVERS)}"),
     "method": (lambda c: c.solver == "ipopt", "solver ipopt"),
     "iterations": (lambda c: c.solver == "rti", "solver rti"),
-    "dynamics": (lambda c: "dynamics" in METHODS.get(c.method, ()) or c.solver in SAMPLING,
-                 f"{_with_methods('dynamics')}, and solvers {', '.join(SAMPLING)}"),
-    "linearization": (lambda c: c.solver == "qp" or c.dynamics == "affine" or c.variant == "preconditioned",
-                      f"solver qp, {_with_methods('linearization')} and --dynamics affine, and solvers "
-                      f"{', '.join(SAMPLING)} unless --dynamics nonlinear --variant paper (they linearize nothing)"),
-    **{name: (lambda c: c.solver in SAMPLING, f"solvers {', '.join(SAMPLING)}")
-       for name in ("population", "generations", "arch", "variant")},
+    "dynamics": (
+        lambda c: "dynamics" in METHODS.get(c.method, ()) or c.solver in SAMPLING,
+        f"{_with_methods('dynamics')}, and solvers {', '.join(SAMPLING)}",
+    ),
+    "linearization": (
+        lambda c: c.solver == "qp" or c.dynamics == "affine" or c.variant == "preconditioned",
+        f"solver qp, {_with_methods('linearization')} and --dynamics affine, and solvers "
+        f"{', '.join(SAMPLING)} unless --dynamics nonlinear --variant paper (they linearize nothing)",
+    ),
+    **{
+        name: (lambda c: c.solver in SAMPLING, f"solvers {', '.join(SAMPLING)}")
+        for name in ("population", "generations", "arch", "variant")
+    },
 }
 
 
@@ -87,12 +95,17 @@ def solver_options(args) -> dict:
     for option in given:
         applies, where = _SOLVER_OPTIONS[option]
         if not applies(config):
-            why = " (it always linearizes along its iterate)" if option == "linearization" and \
-                config.solver == "rti" else ""
+            why = (
+                " (it always linearizes along its iterate)"
+                if option == "linearization" and config.solver == "rti"
+                else ""
+            )
             raise ValueError(f"--{option} does not apply to {config.describe(option)}{why}: it applies to {where}")
     if given.get("linearization") == TRAJECTORY and args.solver != "qp":
-        raise ValueError(f"--linearization trajectory applies to solver qp only; {config.describe('')} takes "
-                         f"{' or '.join(LINEARIZATIONS)}")
+        raise ValueError(
+            f"--linearization trajectory applies to solver qp only; {config.describe('')} takes "
+            f"{' or '.join(LINEARIZATIONS)}"
+        )
     return given
 
 
@@ -100,8 +113,10 @@ def knot_count(problem, args) -> int | None:
     """The knot count p of the OCP (None: traditional MPC, p = T): --knots, or DEFAULT_KNOTS capped at the horizon."""
     if args.parameterization == "identity":
         if args.knots is not None:
-            raise ValueError(f"--knots {args.knots} does not apply to --parameterization identity (traditional MPC "
-                             f"has one knot per step, p = T); give one of them")
+            raise ValueError(
+                f"--knots {args.knots} does not apply to --parameterization identity (traditional MPC "
+                f"has one knot per step, p = T); give one of them"
+            )
         return None
     if args.knots is not None:
         return args.knots
@@ -110,5 +125,10 @@ def knot_count(problem, args) -> int | None:
 
 
 def make_ocp(problem, args, **options):
-    return problem.ocp(knots=knot_count(problem, args), horizon=args.horizon, parameterization=args.parameterization,
-                       integrator=args.integrator, **options)
+    return problem.ocp(
+        knots=knot_count(problem, args),
+        horizon=args.horizon,
+        parameterization=args.parameterization,
+        integrator=args.integrator,
+        **options,
+    )

@@ -1,5 +1,6 @@
 """Task-space targets on the command line: --target, --obstacle, --frame and --task
 (:func:`ocpkit.model.task.reach`), and how a run did on them."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -15,8 +16,15 @@ from ocpkit.cli.options import knot_count
 # tables: numbers, reach()'s keyword arguments and the weights of the orientation and joint-limit terms, all positive
 # but margin (the clearance kept, m, of either sign); link_radius and margin are lengths within
 # ocpkit.model.task.MAX_LENGTH.
-_TASK_NUMBERS = ("margin", "position_weight", "terminal_weight", "link_radius", "obstacle_weight",
-                 "orientation_weight", "joint_limit_weight")
+_TASK_NUMBERS = (
+    "margin",
+    "position_weight",
+    "terminal_weight",
+    "link_radius",
+    "obstacle_weight",
+    "orientation_weight",
+    "joint_limit_weight",
+)
 _REACH_OPTIONS = _TASK_NUMBERS[:5]
 _TASK_KEYS = ("target", "frame", "orientation", "joint_limits", "obstacle", "frame_target") + _TASK_NUMBERS
 # The orientation term's default weight: position_weight / 100, so an orientation 0.1 rad off costs what a position
@@ -106,8 +114,10 @@ def _rotation(value, option: str) -> np.ndarray:
         rpy = _numbers(value, 3)
         R = None if rpy is None else pin.rpy.rpyToMatrix(*rpy)
     if R is None:
-        raise ValueError(f"{option} is roll, pitch, yaw (rad, about the world's x, y, z: R = Rz(yaw) Ry(pitch) "
-                         f"Rx(roll)) or a 3 × 3 rotation matrix, got {value!r}")
+        raise ValueError(
+            f"{option} is roll, pitch, yaw (rad, about the world's x, y, z: R = Rz(yaw) Ry(pitch) "
+            f"Rx(roll)) or a 3 × 3 rotation matrix, got {value!r}"
+        )
     return check_rotation(R, option)
 
 
@@ -120,8 +130,12 @@ def _frame_target(text: str) -> tuple[str, np.ndarray]:
 
 
 def _number(value, where: str, positive: bool) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value) or \
-            (positive and value <= 0):
+    if (
+        isinstance(value, bool)
+        or not isinstance(value, (int, float))
+        or not np.isfinite(value)
+        or (positive and value <= 0)
+    ):
         raise ValueError(f"{where} must be a {'positive' if positive else 'finite'} number, got {value!r}")
     return float(value)
 
@@ -161,8 +175,15 @@ def read_task_file(path) -> dict:
     unknown = sorted(set(data) - set(_TASK_KEYS))
     if unknown:
         raise ValueError(f"{where}: unknown key {unknown[0]!r}; a task file has {', '.join(_TASK_KEYS)}")
-    out = {"target": None, "frame": None, "orientation": None, "joint_limits": False, "obstacles": [],
-           "frame_targets": [], "options": {}}
+    out = {
+        "target": None,
+        "frame": None,
+        "orientation": None,
+        "joint_limits": False,
+        "obstacles": [],
+        "frame_targets": [],
+        "options": {},
+    }
     if "target" in data:
         out["target"] = _point(data["target"], f"{where}: target", "[x, y, z]")
     if "frame" in data:
@@ -175,8 +196,10 @@ def read_task_file(path) -> dict:
         out["joint_limits"] = data["joint_limits"]
     for k, o in enumerate(_tables(data, "obstacle", where, "center = [x, y, z] and radius = r"), 1):
         if set(o) != {"center", "radius"}:
-            raise ValueError(f"{where}: obstacle {k} has the keys {sorted(o)}; it needs exactly center = [x, y, z] "
-                             f"and radius = r (m)")
+            raise ValueError(
+                f"{where}: obstacle {k} has the keys {sorted(o)}; it needs exactly center = [x, y, z] "
+                f"and radius = r (m)"
+            )
         center = _point(o["center"], f"{where}: obstacle {k}: center", "[x, y, z]")
         radius = _number(o["radius"], f"{where}: obstacle {k}: radius", positive=True)
         out["obstacles"].append(Sphere(tuple(center), radius))
@@ -186,8 +209,11 @@ def read_task_file(path) -> dict:
         if not {"frame", "target"} <= set(t) <= {"frame", "target", "weight"}:
             raise ValueError(f"{at} has the keys {sorted(t)}; it takes {form}")
         weight = _number(t["weight"], f"{at}: weight", positive=True) if "weight" in t else None
-        out["frame_targets"].append(FrameTarget(_frame_name(t["frame"], f"{at}: frame"),
-                                                _point(t["target"], f"{at}: target", "[x, y, z]"), weight, at))
+        out["frame_targets"].append(
+            FrameTarget(
+                _frame_name(t["frame"], f"{at}: frame"), _point(t["target"], f"{at}: target", "[x, y, z]"), weight, at
+            )
+        )
     for key in _TASK_NUMBERS:
         if key in data:
             value = _number(data[key], f"{where}: {key}", positive=key != "margin")
@@ -202,9 +228,19 @@ def reach_task(args) -> Reach | None:
     for (None: none, the seeded joint goal)."""
     from ocpkit.model.task import Sphere
 
-    file = read_task_file(args.task) if args.task else {"target": None, "frame": None, "orientation": None,
-                                                         "joint_limits": False, "obstacles": [], "frame_targets": [],
-                                                         "options": {}}
+    file = (
+        read_task_file(args.task)
+        if args.task
+        else {
+            "target": None,
+            "frame": None,
+            "orientation": None,
+            "joint_limits": False,
+            "obstacles": [],
+            "frame_targets": [],
+            "options": {},
+        }
+    )
     source = {"target": "--target", "frame": "--frame"}
     target = None
     if args.target is not None:
@@ -212,12 +248,22 @@ def reach_task(args) -> Reach | None:
     elif file["target"] is not None:
         target, source["target"] = file["target"], f"--task {args.task}: target"
     if target is None:
-        given = [o for o, v in (("--obstacle", args.obstacle), ("--frame", args.frame),
-                                ("--orientation", args.orientation), ("--frame-target", args.frame_target),
-                                ("--joint-limits", args.joint_limits)) if v]
+        given = [
+            o
+            for o, v in (
+                ("--obstacle", args.obstacle),
+                ("--frame", args.frame),
+                ("--orientation", args.orientation),
+                ("--frame-target", args.frame_target),
+                ("--joint-limits", args.joint_limits),
+            )
+            if v
+        ]
         if given:
-            raise ValueError(f"{given[0]} needs --target x,y,z (or a --task file with target = [x, y, z]): it "
-                             f"belongs to a reach task")
+            raise ValueError(
+                f"{given[0]} needs --target x,y,z (or a --task file with target = [x, y, z]): it "
+                f"belongs to a reach task"
+            )
         if args.task:
             raise ValueError(f"--task {args.task}: no target = [x, y, z] in the file (nor --target)")
         return None
@@ -240,8 +286,17 @@ def reach_task(args) -> Reach | None:
     if args.joint_limits or file["joint_limits"]:
         joint_limits = file["options"].get("joint_limit_weight", 1e3)  # JointLimitBarrier's default
         source["joint_limits"] = "--joint-limits" if args.joint_limits else f"--task {args.task}: joint_limits"
-    return Reach(target, frame, obstacles, options, source, orientation, file["options"].get("orientation_weight"),
-                 frame_targets, joint_limits)
+    return Reach(
+        target,
+        frame,
+        obstacles,
+        options,
+        source,
+        orientation,
+        file["options"].get("orientation_weight"),
+        frame_targets,
+        joint_limits,
+    )
 
 
 def _joint_limits(problem, where: str) -> tuple[np.ndarray, np.ndarray]:
@@ -262,22 +317,35 @@ def _joint_limits(problem, where: str) -> tuple[np.ndarray, np.ndarray]:
 def reach_ocp(problem, args, task: Reach, **options):
     """ocpkit.model.task.reach for the command line's task, after the checks that name its options: frames, targets
     within the robot's workspace, and the orientation, other frames and joint-limit terms (ocpkit.model.task)."""
-    from ocpkit.model.task import (FixedFrameError, FrameOrientation, FramePosition, JointLimitBarrier, check_frame,
-                                   check_point, reach, workspace_radius)
+    from ocpkit.model.task import (
+        FixedFrameError,
+        FrameOrientation,
+        FramePosition,
+        JointLimitBarrier,
+        check_frame,
+        check_point,
+        reach,
+        workspace_radius,
+    )
 
     kinematics = getattr(problem, "kinematics", None)
     if kinematics is None:
-        raise ValueError(f"{task.source['target']}: {args.problem} has no kinematics (no frames to bring to a "
-                         f"point); a reach task needs a robot problem: nlink:N, puma560, baxter, panda, urdf:FILE")
+        raise ValueError(
+            f"{task.source['target']}: {args.problem} has no kinematics (no frames to bring to a "
+            f"point); a reach task needs a robot problem: nlink:N, puma560, baxter, panda, urdf:FILE"
+        )
     if task.frame is None:
         task.frame = getattr(problem, "end_effector", None)
         if task.frame is None:
-            raise ValueError(f"{args.problem} names no end effector; give --frame NAME, one of its frames: "
-                             f"{', '.join(kinematics.frames)}")
+            raise ValueError(
+                f"{args.problem} names no end effector; give --frame NAME, one of its frames: "
+                f"{', '.join(kinematics.frames)}"
+            )
     radius = workspace_radius(kinematics)
-    for frame, point, where, named in [(task.frame, task.target, task.source["target"],
-                                        f"{task.source['frame']} {task.frame!r}"),
-                                       *((t.frame, t.target, t.source, t.source) for t in task.frame_targets)]:
+    for frame, point, where, named in [
+        (task.frame, task.target, task.source["target"], f"{task.source['frame']} {task.frame!r}"),
+        *((t.frame, t.target, t.source, t.source) for t in task.frame_targets),
+    ]:
         try:
             check_frame(kinematics, frame)
         except FixedFrameError as exc:  # named already names the frame
@@ -288,8 +356,9 @@ def reach_ocp(problem, args, task: Reach, **options):
     terms = []
     weight = task.options.get("position_weight", 1e3)  # reach()'s default
     if task.orientation is not None:
-        terms.append(FrameOrientation(kinematics, task.frame, task.orientation_weight or
-                                      ORIENTATION_PER_POSITION * weight))
+        terms.append(
+            FrameOrientation(kinematics, task.frame, task.orientation_weight or ORIENTATION_PER_POSITION * weight)
+        )
     names = [task.frame]
     for t in task.frame_targets:
         if t.frame in names:
@@ -298,9 +367,18 @@ def reach_ocp(problem, args, task: Reach, **options):
         terms.append(FramePosition(kinematics, t.frame, weight if t.weight is None else t.weight, name=t.term))
     if task.joint_limits is not None:
         terms.append(JointLimitBarrier(*_joint_limits(problem, task.source["joint_limits"]), task.joint_limits))
-    return reach(problem, task.obstacles, frame=task.frame, knots=knot_count(problem, args), horizon=args.horizon,
-                 parameterization=args.parameterization, integrator=args.integrator, terms=terms, **task.options,
-                 **options)
+    return reach(
+        problem,
+        task.obstacles,
+        frame=task.frame,
+        knots=knot_count(problem, args),
+        horizon=args.horizon,
+        parameterization=args.parameterization,
+        integrator=args.integrator,
+        terms=terms,
+        **task.options,
+        **options,
+    )
 
 
 def reach_panels(problem, ocp, task: Reach, xs) -> dict:
@@ -320,39 +398,56 @@ def _reach_series(problem, ocp, task: Reach, xs):
 
     xs = np.atleast_2d(np.asarray(xs, dtype=float))
     kin = problem.kinematics
-    positions = kin.positions(task.frame, xs[:, :kin.n])
+    positions = kin.positions(task.frame, xs[:, : kin.n])
     if not task.obstacles:
         return positions, None
-    return positions, clearances(ocp.task.kinematics, ocp.task.robot, ocp.task.obstacles, xs[:, :kin.n])
+    return positions, clearances(ocp.task.kinematics, ocp.task.robot, ocp.task.obstacles, xs[:, : kin.n])
 
 
-def reach_report(problem, ocp, task: Reach, xs, dt: float | None = None,
-                 success_while_colliding: int | None = None) -> dict:
+def reach_report(
+    problem, ocp, task: Reach, xs, dt: float | None = None, success_while_colliding: int | None = None
+) -> dict:
     """How the states ``xs`` (N, nx) did on the task: the frame's distance to the target at the last state, and the
     smallest clearance — distance from a robot sphere's surface to an obstacle's — over all states (negative: they
     overlap, a collision); for a closed loop, ``success_while_colliding``: the steps reported "success" whose next
     state collides. With an orientation target, the frame's final angle to it (rad); with more frames' targets,
     each one's final distance."""
     positions, closest = _reach_series(problem, ocp, task, xs)
-    q = np.atleast_2d(xs)[-1, :problem.kinematics.n]
-    report = {"frame": task.frame, "target": task.target.tolist(), "final_position": positions[-1].tolist(),
-              "final_distance": float(np.linalg.norm(positions[-1] - task.target)),
-              "obstacles": [[*map(float, o.center), float(o.radius)] for o in task.obstacles],
-              "margin": ocp.task.margin,
-              "min_clearance": None, "collisions": 0, "first_collision": None, "states": len(positions)}
+    q = np.atleast_2d(xs)[-1, : problem.kinematics.n]
+    report = {
+        "frame": task.frame,
+        "target": task.target.tolist(),
+        "final_position": positions[-1].tolist(),
+        "final_distance": float(np.linalg.norm(positions[-1] - task.target)),
+        "obstacles": [[*map(float, o.center), float(o.radius)] for o in task.obstacles],
+        "margin": ocp.task.margin,
+        "min_clearance": None,
+        "collisions": 0,
+        "first_collision": None,
+        "states": len(positions),
+    }
     if closest is not None:
         hit = np.flatnonzero(closest < 0)
-        report.update(min_clearance=float(closest.min()), collisions=int(hit.size),
-                      first_collision=None if not hit.size else int(hit[0]) if dt is None else float(hit[0] * dt))
+        report.update(
+            min_clearance=float(closest.min()),
+            collisions=int(hit.size),
+            first_collision=None if not hit.size else int(hit[0]) if dt is None else float(hit[0] * dt),
+        )
     if task.orientation is not None:
         R = np.asarray(problem.kinematics.function(task.frame)(q)[1])
         cosine = (np.trace(task.orientation.reshape(3, 3).T @ R) - 1) / 2
         report["final_orientation_error"] = float(np.arccos(np.clip(cosine, -1.0, 1.0)))
     if task.frame_targets:
         report["frame_targets"] = [
-            {"frame": t.frame, "target": t.target.tolist(), "final_distance": float(np.linalg.norm(
-                np.asarray(problem.kinematics.function(t.frame)(q)[0]).ravel() - t.target))}
-            for t in task.frame_targets]
+            {
+                "frame": t.frame,
+                "target": t.target.tolist(),
+                "final_distance": float(
+                    np.linalg.norm(np.asarray(problem.kinematics.function(t.frame)(q)[0]).ravel() - t.target)
+                ),
+            }
+            for t in task.frame_targets
+        ]
     if success_while_colliding is not None:
         report["success_while_colliding"] = int(success_while_colliding)
     return report
@@ -360,8 +455,10 @@ def reach_report(problem, ocp, task: Reach, xs, dt: float | None = None,
 
 def reach_line(report: dict, what: str) -> str:
     """The report as one line of text."""
-    line = (f"reach: {report['frame']} {report['final_distance']:.4f} m from the target "
-            f"{point_text(report['target'])} {what}")
+    line = (
+        f"reach: {report['frame']} {report['final_distance']:.4f} m from the target "
+        f"{point_text(report['target'])} {what}"
+    )
     if "final_orientation_error" in report:
         line += f", {report['final_orientation_error']:.4f} rad from its orientation"
     for t in report.get("frame_targets", ()):
@@ -370,14 +467,24 @@ def reach_line(report: dict, what: str) -> str:
     if not n:
         return line + "; no obstacles"
     first = report["first_collision"]
-    when = "" if first is None else f", first at t = {first:.2f} s" if isinstance(first, float) else \
-        f", first at step {first}"
-    collided = (f"COLLIDED in {report['collisions']} of {report['states']} states{when}" if report["collisions"]
-                else f"no collision in {report['states']} states")
+    when = (
+        ""
+        if first is None
+        else f", first at t = {first:.2f} s"
+        if isinstance(first, float)
+        else f", first at step {first}"
+    )
+    collided = (
+        f"COLLIDED in {report['collisions']} of {report['states']} states{when}"
+        if report["collisions"]
+        else f"no collision in {report['states']} states"
+    )
     if report["collisions"] and "success_while_colliding" in report:
         collided += f", {report['success_while_colliding']} steps reported success while colliding"
-    return (line + f"; min clearance {report['min_clearance']:.4f} m to {n} obstacle{'s' * (n > 1)} "
-                   f"(margin {report['margin']:g} m); {collided}")
+    return (
+        line + f"; min clearance {report['min_clearance']:.4f} m to {n} obstacle{'s' * (n > 1)} "
+        f"(margin {report['margin']:g} m); {collided}"
+    )
 
 
 def point_text(v) -> str:

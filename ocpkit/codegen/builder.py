@@ -8,6 +8,7 @@ child process of ocpkit's own (:func:`spawn`, its failure read back by :func:`ch
 against its recorded content hash (:func:`ocpkit.codegen.cache.entry_ok`) and loaded only once it proves loadable
 (:func:`loadable`: one that does not load is removed and built once more).
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -61,8 +62,12 @@ def warn_damaged(library: Path, what: str, stacklevel: int = 3) -> None:
     """A warning where ``library`` is there but damaged (its content does not match the hash recorded beside it)."""
     recorded = library.with_name(library.name + ".sha256")
     if library.exists() and (recorded.exists() or library.stat().st_size == 0):  # not from before hashes
-        warnings.warn(f"damaged cache entry {library} ({what}): its content does not match the hash recorded "
-                      f"beside it; rebuilding it", RuntimeWarning, stacklevel=stacklevel)
+        warnings.warn(
+            f"damaged cache entry {library} ({what}): its content does not match the hash recorded "
+            f"beside it; rebuilding it",
+            RuntimeWarning,
+            stacklevel=stacklevel,
+        )
 
 
 def loadable(library: Path, symbol: str, rebuild, what: str, error: type[Exception]) -> Path:
@@ -77,8 +82,11 @@ def loadable(library: Path, symbol: str, rebuild, what: str, error: type[Excepti
         evict(library, seen)
     except CacheReadOnlyError as exc:
         raise read_only_error(f"{what} ({library}) does not load ({problem})", library.parent.parent) from exc
-    warnings.warn(f"cache entry {library} ({what}) does not load ({problem}): removed, building it again",
-                  RuntimeWarning, stacklevel=3)
+    warnings.warn(
+        f"cache entry {library} ({what}) does not load ({problem}): removed, building it again",
+        RuntimeWarning,
+        stacklevel=3,
+    )
     library = rebuild()
     problem = load_problem(library, symbol)
     if problem is not None:

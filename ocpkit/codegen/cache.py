@@ -14,6 +14,7 @@ A read-only cache (a shared install, a container image, a read-only root file sy
 entries are loaded, and a missing one is not built (:class:`CacheReadOnlyError`, said once per process by
 :func:`warn_read_only` where the caller falls back to slower code). ``ocpkit build`` fills a cache ahead of time.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -87,7 +88,7 @@ def check_trusted(path, tree: bool = False) -> Path:
     path = Path(os.path.realpath(path))
     root = Path(os.path.realpath(cache_root()))
     top = root if path.is_relative_to(root) else path.parent
-    for part in [*reversed(path.parents[:len(path.parents) - len(top.parents)]), path]:
+    for part in [*reversed(path.parents[: len(path.parents) - len(top.parents)]), path]:
         try:
             _check_private(part, folder=part != path or tree)
         except FileNotFoundError:
@@ -107,14 +108,18 @@ def _check_private(path: Path, folder: bool = True) -> None:
     if folder and not stat.S_ISDIR(info.st_mode):
         raise NotADirectoryError(f"cache folder {path} is not a folder; remove it or set OCPKIT_CACHE_DIR")
     if info.st_mode & (stat.S_IWGRP | stat.S_IWOTH):
-        raise UnsafeCacheError(f"{what} {path} is writable by other users (mode {stat.S_IMODE(info.st_mode):o}), "
-                               f"so code loaded from it could have been planted: chmod go-w {path}, or set "
-                               f"OCPKIT_CACHE_DIR to a private folder")
+        raise UnsafeCacheError(
+            f"{what} {path} is writable by other users (mode {stat.S_IMODE(info.st_mode):o}), "
+            f"so code loaded from it could have been planted: chmod go-w {path}, or set "
+            f"OCPKIT_CACHE_DIR to a private folder"
+        )
     # Root's folders are trusted as ssh trusts them (root can change any file anyway): a cache prebuilt into a
     # shared install or a container image by root serves every user, read-only.
     if hasattr(os, "getuid") and info.st_uid not in (os.getuid(), 0):
-        raise UnsafeCacheError(f"{what} {path} belongs to another user (uid {info.st_uid}), so code loaded from it "
-                               f"could have been planted: set OCPKIT_CACHE_DIR to a folder of your own")
+        raise UnsafeCacheError(
+            f"{what} {path} belongs to another user (uid {info.st_uid}), so code loaded from it "
+            f"could have been planted: set OCPKIT_CACHE_DIR to a folder of your own"
+        )
 
 
 def read_only(exc: BaseException) -> bool:
@@ -132,15 +137,19 @@ def read_only_error(what: str, folder: Path, exc: OSError | None = None) -> Cach
     how to fill the cache."""
     if exc is not None and full(exc):
         why = exc.strerror or os.strerror(exc.errno)  # a CacheReadOnlyError passed on carries only its errno
-        error = CacheReadOnlyError(f"{what}, and the cache folder {folder} is full ({why}): make room there, or set "
-                                   f"OCPKIT_CACHE_DIR to a folder with room")
+        error = CacheReadOnlyError(
+            f"{what}, and the cache folder {folder} is full ({why}): make room there, or set "
+            f"OCPKIT_CACHE_DIR to a folder with room"
+        )
         error.errno = exc.errno
         return error
     # A CacheReadOnlyError passed on says no more than "read-only".
     why = "" if exc is None or isinstance(exc, CacheReadOnlyError) else f" ({exc.strerror or exc})"
-    error = CacheReadOnlyError(f"{what}, and the cache folder {folder} is read-only{why}: prebuild the cache with "
-                               f"`ocpkit build PROBLEM …` where it is writable, or set OCPKIT_CACHE_DIR to a writable "
-                               f"folder")
+    error = CacheReadOnlyError(
+        f"{what}, and the cache folder {folder} is read-only{why}: prebuild the cache with "
+        f"`ocpkit build PROBLEM …` where it is writable, or set OCPKIT_CACHE_DIR to a writable "
+        f"folder"
+    )
     error.errno = errno.EROFS
     return error
 
@@ -272,8 +281,10 @@ def entry_lock(entry: Path, timeout: float | None = LOCK_TIMEOUT, poll: float = 
                 waited = True
                 if timeout is not None and time.monotonic() - start > timeout:
                     holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "unknown"
-                    raise TimeoutError(f"another process (pid {holder}) has been building cache entry {entry} for "
-                                       f"over {timeout:.0f} s; if it hangs, end it or remove {lock}") from None
+                    raise TimeoutError(
+                        f"another process (pid {holder}) has been building cache entry {entry} for "
+                        f"over {timeout:.0f} s; if it hangs, end it or remove {lock}"
+                    ) from None
                 time.sleep(poll)
         try:
             os.ftruncate(fd, 0)

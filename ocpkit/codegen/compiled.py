@@ -14,6 +14,7 @@ the parent a large model's serialization became a Python string that was copied 
 running control loop; the parent now only writes the Function to a file with ``Function.save`` (C++, GIL released) and
 loads the finished library.
 """
+
 from __future__ import annotations
 
 import atexit
@@ -32,8 +33,17 @@ from pathlib import Path
 import casadi as ca
 
 from ocpkit.codegen.builder import build_entry, child_failure, entry_key, loadable, signal_name, spawn
-from ocpkit.codegen.cache import (CacheReadOnlyError, cache_dir, check_trusted, entry_ok, install, load_problem,
-                                  read_only, read_only_error, warn_read_only)
+from ocpkit.codegen.cache import (
+    CacheReadOnlyError,
+    cache_dir,
+    check_trusted,
+    entry_ok,
+    install,
+    load_problem,
+    read_only,
+    read_only_error,
+    warn_read_only,
+)
 
 
 class CompileError(RuntimeError):
@@ -91,8 +101,9 @@ def _library(fn: ca.Function, flags: str) -> Path:
         if not read_only(exc):
             raise
         state = "is damaged" if library.exists() else "is not in the cache"
-        raise read_only_error(f"the compiled function {fn.name()!r} ({library}) {state}",
-                              library.parent.parent, exc) from None
+        raise read_only_error(
+            f"the compiled function {fn.name()!r} ({library}) {state}", library.parent.parent, exc
+        ) from None
     return library
 
 
@@ -108,15 +119,21 @@ def _build(fn: ca.Function, flags: str, folder: Path, library: Path) -> None:
         partial = scratch / library.name
         compiler = os.environ.get("CC", "cc")
         try:
-            _run_compiler([compiler, *flags.split(), "-fPIC", "-shared", str(scratch / source), "-o", str(partial),
-                           "-lm"], scratch)
+            _run_compiler(
+                [compiler, *flags.split(), "-fPIC", "-shared", str(scratch / source), "-o", str(partial), "-lm"],
+                scratch,
+            )
         except FileNotFoundError:
-            raise CompileError(f"compiling {fn.name()} needs a C compiler, and `{compiler}` was not found on PATH: "
-                               f"install one (e.g. apt install gcc) or run without --compiled") from None
+            raise CompileError(
+                f"compiling {fn.name()} needs a C compiler, and `{compiler}` was not found on PATH: "
+                f"install one (e.g. apt install gcc) or run without --compiled"
+            ) from None
         except subprocess.CalledProcessError as exc:
             if exc.returncode < 0:
-                raise CompileError(f"compiling {fn.name()} with `{compiler}` failed: the compiler was killed by "
-                                   f"{signal_name(-exc.returncode)}") from None
+                raise CompileError(
+                    f"compiling {fn.name()} with `{compiler}` failed: the compiler was killed by "
+                    f"{signal_name(-exc.returncode)}"
+                ) from None
             message = " ".join(exc.stderr.split())[:300]
             raise CompileError(f"compiling {fn.name()} with `{compiler}` failed: {message}") from None
         install(partial, library)
@@ -177,12 +194,25 @@ def _library_out_of_process(fn: ca.Function, flags: str) -> Path:
     with tempfile.TemporaryDirectory(prefix="ocpkit-compile-") as tmp:
         saved = Path(tmp) / f"{fn.name()}.casadi"
         fn.save(str(saved))
-        with spawn("ocpkit.codegen.compiled", str(saved), flags, cwd=Path(tmp), stdout=subprocess.PIPE,
-                   stderr=subprocess.PIPE, text=True) as proc:
+        with spawn(
+            "ocpkit.codegen.compiled",
+            str(saved),
+            flags,
+            cwd=Path(tmp),
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        ) as proc:
             code, out, err = _tracked(proc, None)
     if code:
-        raise child_failure(code, proc.pid, err, f"the background compile of {fn.name()} failed", CompileError,
-                            (CompileError, CacheReadOnlyError))
+        raise child_failure(
+            code,
+            proc.pid,
+            err,
+            f"the background compile of {fn.name()} failed",
+            CompileError,
+            (CompileError, CacheReadOnlyError),
+        )
     return Path(out.strip().splitlines()[-1])
 
 
@@ -221,9 +251,12 @@ def compile_in_background(fn: ca.Function, flags: str = "-O1") -> Future | None:
             future.set_result(cached)
             return future
         if not compiler_available():
-            warnings.warn(f"no C compiler (`{os.environ.get('CC', 'cc')}`) on PATH: {fn.name()} stays on CasADi's "
-                          f"virtual machine (install one, e.g. apt install gcc, for the compiled model)",
-                          RuntimeWarning, stacklevel=3)
+            warnings.warn(
+                f"no C compiler (`{os.environ.get('CC', 'cc')}`) on PATH: {fn.name()} stays on CasADi's "
+                f"virtual machine (install one, e.g. apt install gcc, for the compiled model)",
+                RuntimeWarning,
+                stacklevel=3,
+            )
             _background[fn] = future = Future()
             future.set_exception(CompileError("no C compiler on PATH"))
             future.warned = True
@@ -266,8 +299,9 @@ class SwitchingFunction(ca.Function):
                     warn_read_only(exc, f"{self.name()} stays on CasADi's virtual machine", stacklevel=3)
                 if not getattr(self._future, "warned", False):
                     self._future.warned = True
-                    warnings.warn(f"{self.name()} stays on CasADi's virtual machine: {exc}", RuntimeWarning,
-                                  stacklevel=3)
+                    warnings.warn(
+                        f"{self.name()} stays on CasADi's virtual machine: {exc}", RuntimeWarning, stacklevel=3
+                    )
                 return None
             target = self._future.result()
             self._target = target if self._transform is None else self._transform(target)
@@ -292,8 +326,9 @@ class SwitchingFunction(ca.Function):
         if target is not None:
             return target.map(*args)
         transform = self._transform
-        return SwitchingFunction(ca.Function.map(self, *args), self._future,
-                                 lambda f: (f if transform is None else transform(f)).map(*args))
+        return SwitchingFunction(
+            ca.Function.map(self, *args), self._future, lambda f: (f if transform is None else transform(f)).map(*args)
+        )
 
     def __reduce__(self):  # pickled as the plain Function it currently evaluates as
         target = self.compiled()

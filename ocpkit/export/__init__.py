@@ -72,10 +72,25 @@ constants, :mod:`~ocpkit.export.qp` sets up the QP solver, :mod:`~ocpkit.export.
 :mod:`~ocpkit.export.build` runs ``make`` and :mod:`~ocpkit.export.library` loads the library back
 (:class:`ExportedMPC`).
 """
+
 from ocpkit.export.build import BuildError, build, check_tools
 from ocpkit.export.generate import FORMS, LINEARIZATIONS, QP_SOLVERS, SUPPORTED, Export, export, export_problem
 from ocpkit.export.library import ExportedMPC
 from ocpkit.export.render import MAX_INSTANCES, OPT_FLAGS, OPT_STEP
 
-__all__ = ["BuildError", "Export", "ExportedMPC", "FORMS", "LINEARIZATIONS", "MAX_INSTANCES", "OPT_FLAGS",
-           "OPT_STEP", "QP_SOLVERS", "SUPPORTED", "build", "check_tools", "export", "export_problem"]
+__all__ = [
+    "BuildError",
+    "Export",
+    "ExportedMPC",
+    "FORMS",
+    "LINEARIZATIONS",
+    "MAX_INSTANCES",
+    "OPT_FLAGS",
+    "OPT_STEP",
+    "QP_SOLVERS",
+    "SUPPORTED",
+    "build",
+    "check_tools",
+    "export",
+    "export_problem",
+]

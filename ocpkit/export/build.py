@@ -1,4 +1,5 @@
 """Building an exported folder with its own Makefile."""
+
 from __future__ import annotations
 
 import os
@@ -34,8 +35,9 @@ def build(out_dir, *, target: str = "lib", jobs: int = 2) -> Path:
         raise ValueError(f"out_dir {str(out)!r} holds no exported Makefile")
     refuse_links(out)  # make writes its objects and library by name
     check_tools()
-    proc = subprocess.run(["make", "-s", "-C", str(out), f"-j{integer(jobs, 'jobs', 1)}", target],
-                          capture_output=True, text=True)
+    proc = subprocess.run(
+        ["make", "-s", "-C", str(out), f"-j{integer(jobs, 'jobs', 1)}", target], capture_output=True, text=True
+    )
     if proc.returncode:
         raise BuildError(f"make {target} failed in {out}:\n{proc.stdout}\n{proc.stderr}")
     return out

@@ -1,6 +1,7 @@
 """The numbers the exported C step is built from, written as C: its constants (input goal, shift, bounds, weights, the
 basis' pieces, the Γ schedule, the model's sparsity, the task's weights) and the named codes the C and Python share
 (the Γ schedule's operations, the certificate's return codes): each table here is the one both sides read."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -46,7 +47,6 @@ def gram_schedule(lengths) -> list[int]:
     return ops
 
 
-
 def _c_num(v: float) -> str:
     v = float(v)
     if np.isnan(v):
@@ -65,12 +65,13 @@ def _c_const(kind: str, name: str, values) -> str:
     values = np.asarray(values).ravel()
     if values.size == 0:
         values = np.zeros(1)
-    body = ("{" + ", ".join(str(int(e)) for e in values) + "}" if kind == "int" else c_array(values))
+    body = "{" + ", ".join(str(int(e)) for e in values) + "}" if kind == "int" else c_array(values)
     return f"static const {kind} {name}[{values.size}] = {body};"
 
 
-def step_constants(tr: CondensedQP, linearization: str, jac, tf=None, iterations: int = 1, tol: float = 0.0,
-                   obstacle_rows: int = 0) -> str:
+def step_constants(
+    tr: CondensedQP, linearization: str, jac, tf=None, iterations: int = 1, tol: float = 0.0, obstacle_rows: int = 0
+) -> str:
     """The step's constants: input goal, shift, bounds, weights, the basis' pieces, the Gram schedule, for
     a nonlinear model RK4's step and the Jacobians' sparsity, with a task (``tf``) its weights and the basis, with
     obstacles (``obstacle_rows`` a stage at most) their table and the rows' bound, and for the real-time iteration
@@ -137,19 +138,30 @@ def step_constants(tr: CondensedQP, linearization: str, jac, tf=None, iterations
     if linearization == "trajectory":
         # x_{k+1} depends on the knots of stages 0 … k only: its [v S] row has 1 + ACTIVE[k] nonzero columns.
         last = np.maximum.accumulate([np.flatnonzero(row).max(initial=0) for row in phi])
-        lines += [f"#define ITERATIONS {iterations}", f"#define RTI_TOL {_c_num(tol)}",
-                  _c_const("double", "PHI_ALL", phi), _c_const("int", "ACTIVE", (last + 1) * m)]
+        lines += [
+            f"#define ITERATIONS {iterations}",
+            f"#define RTI_TOL {_c_num(tol)}",
+            _c_const("double", "PHI_ALL", phi),
+            _c_const("int", "ACTIVE", (last + 1) * m),
+        ]
     if np.any(tr._dQT):
         lines.append(_c_const("double", "DQT", tr._dQT))
     if jac is not None:
         (fxi, fxj), (fui, fuj) = jac
-        lines += [_c_const("int", "FX_I", fxi), _c_const("int", "FX_J", fxj),
-                  _c_const("int", "FU_I", fui), _c_const("int", "FU_J", fuj)]
+        lines += [
+            _c_const("int", "FX_I", fxi),
+            _c_const("int", "FX_J", fxj),
+            _c_const("int", "FU_I", fui),
+            _c_const("int", "FU_J", fuj),
+        ]
     if np.any(K):  # read only under #if HAS_K / #if NB > 0: unused constants would draw warnings
         lines.append(_c_const("double", "K_GOAL", K))
     if bounded.size:
-        lines += [_c_const("int", "XB_COMP", bounded), _c_const("double", "XB_LO", ocp.x_min[bounded]),
-                  _c_const("double", "XB_HI", ocp.x_max[bounded])]
+        lines += [
+            _c_const("int", "XB_COMP", bounded),
+            _c_const("double", "XB_LO", ocp.x_min[bounded]),
+            _c_const("double", "XB_HI", ocp.x_max[bounded]),
+        ]
     if tf is not None:  # the task's Gauss-Newton terms: φ_k of every stage (exact, not the pieces' φ_a + sΔ)
         stage, terminal = tf.stage_weight.size, tf.terminal_weight.size
         lines += [f"#define TASK_STAGE {int(bool(stage))}", f"#define TASK_TERMINAL {int(bool(terminal))}"]
@@ -158,7 +170,10 @@ def step_constants(tr: CondensedQP, linearization: str, jac, tf=None, iterations
         if terminal:
             lines.append(_c_const("double", "TASK_WT", tf.terminal_weight))
     if obstacle_rows:  # TaskRows.select's bound, the obstacles (centre, radius) and each robot sphere's reach
-        lines += [f"#define ACTIVATION {_c_num(ACTIVATION)}", f"#define ROWS_PER_SPHERE {ROWS_PER_SPHERE}",
-                  _c_const("double", "OBSTACLES", tf.table.T),
-                  _c_const("double", "SPHERE_REACH", tf.radii)]  # radius + margin
+        lines += [
+            f"#define ACTIVATION {_c_num(ACTIVATION)}",
+            f"#define ROWS_PER_SPHERE {ROWS_PER_SPHERE}",
+            _c_const("double", "OBSTACLES", tf.table.T),
+            _c_const("double", "SPHERE_REACH", tf.radii),
+        ]  # radius + margin
     return "\n".join(lines)

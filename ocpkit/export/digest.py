@@ -5,6 +5,7 @@ dynamics or task is refused by name instead of solving with its own data.
 The digest is a list of ``field value`` entries: sizes and settings as their values (``knots 5``), arrays as a
 hash of their float64 bytes, CasADi expressions (the model, a goal input, the task's residuals and robot spheres)
 as a hash of their serialization — which depends on CasADi's version, recorded as the entry ``casadi``."""
+
 from __future__ import annotations
 
 import hashlib
@@ -38,13 +39,24 @@ def ocp_entries(ocp: OCP) -> list[str]:
     model, tf = ocp.model, ocp.task_functions
     goal_input = getattr(ocp, "goal_input", None)
     fields = {
-        "nx": ocp.nx, "nu": ocp.nu, "knots": ocp.knots, "horizon": ocp.horizon, "dt": repr(ocp.dt),
-        "substeps": ocp.substeps, "integrator": ocp.integrator, "casadi": ca.__version__,
+        "nx": ocp.nx,
+        "nu": ocp.nu,
+        "knots": ocp.knots,
+        "horizon": ocp.horizon,
+        "dt": repr(ocp.dt),
+        "substeps": ocp.substeps,
+        "integrator": ocp.integrator,
+        "casadi": ca.__version__,
         "model": _functions(ca.Function("f", [model.x, model.u], [model.xdot])),
         "goal_input": "none" if goal_input is None else _functions(goal_input),
-        "Q": _arrays(ocp.Q), "R": _arrays(ocp.R), "Q_terminal": _arrays(ocp.Q_terminal),
-        "u_goal": _arrays(ocp.u_goal), "u_goal_gain": _arrays(ocp.u_goal_gain),
-        "u_min": _arrays(ocp.u_min), "u_max": _arrays(ocp.u_max), "x_min": _arrays(ocp.x_min),
+        "Q": _arrays(ocp.Q),
+        "R": _arrays(ocp.R),
+        "Q_terminal": _arrays(ocp.Q_terminal),
+        "u_goal": _arrays(ocp.u_goal),
+        "u_goal_gain": _arrays(ocp.u_goal_gain),
+        "u_min": _arrays(ocp.u_min),
+        "u_max": _arrays(ocp.u_max),
+        "x_min": _arrays(ocp.x_min),
         "x_max": _arrays(ocp.x_max),
         "parameterization": ocp.parameterization.kind + ":" + _arrays(ocp.parameterization.basis),
         "targets": ocp.ng - ocp.nx,
@@ -52,9 +64,13 @@ def ocp_entries(ocp: OCP) -> list[str]:
     if tf is None:
         fields.update(task_terms="none", task_weights="none", obstacles="none", robot_spheres="none", margin="none")
     else:
-        fields.update(task_terms=_functions(tf.stage_residual, tf.terminal_residual),
-                      task_weights=_arrays(tf.stage_weight, tf.terminal_weight), obstacles=_arrays(tf.table),
-                      robot_spheres=_functions(tf.spheres) if tf.pairs else "none", margin=repr(ocp.task.margin))
+        fields.update(
+            task_terms=_functions(tf.stage_residual, tf.terminal_residual),
+            task_weights=_arrays(tf.stage_weight, tf.terminal_weight),
+            obstacles=_arrays(tf.table),
+            robot_spheres=_functions(tf.spheres) if tf.pairs else "none",
+            margin=repr(ocp.task.margin),
+        )
     return [FORMAT] + [f"{key} {value}" for key, value in fields.items()]
 
 
@@ -76,6 +92,7 @@ def differences(stored: str, ocp: OCP) -> str:
         words.append(f"{key} {have.get(key, 'absent')} vs {value}" if key in _VALUES else f"{key} differs")
     text = ", ".join(words)
     if have.get("casadi") != want["casadi"] and any(w.split()[0] in _SERIALIZED for w in words):
-        text += (f" (exported with CasADi {have.get('casadi')}, running {want['casadi']}: its serialization may "
-                 "differ too)")
+        text += (
+            f" (exported with CasADi {have.get('casadi')}, running {want['casadi']}: its serialization may differ too)"
+        )
     return text

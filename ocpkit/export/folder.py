@@ -1,5 +1,6 @@
 """The export's folder: refused when it would overwrite a user's files or write through a symbolic link, and every
 file placed by one rename (a link or hard link already there is replaced, never written through)."""
+
 from __future__ import annotations
 
 import os
@@ -15,9 +16,11 @@ def check_out_dir(out: Path, force: bool) -> None:
     if out.is_symlink():
         target = Path(os.path.realpath(out))
         kind = "a folder" if target.is_dir() else "a file" if target.exists() else "nothing (a dangling link)"
-        raise ValueError(f"out_dir {str(out)!r} is a symbolic link to {target} ({kind}); the export replaces the "
-                         f"files of the folder it names and never follows a link there: to export into {target}, "
-                         f"name it (--out {target})")
+        raise ValueError(
+            f"out_dir {str(out)!r} is a symbolic link to {target} ({kind}); the export replaces the "
+            f"files of the folder it names and never follows a link there: to export into {target}, "
+            f"name it (--out {target})"
+        )
     if out.exists() and not out.is_dir():
         raise ValueError(f"out_dir {str(out)!r} is a file, not a folder; name a new or empty folder")
     if out.is_dir():
@@ -26,8 +29,10 @@ def check_out_dir(out: Path, force: bool) -> None:
         held = sorted(p.name for p in out.iterdir())
         if held:
             shown = ", ".join(held[:5]) + (f" and {len(held) - 5} more" if len(held) > 5 else "")
-            raise ValueError(f"out_dir {str(out)!r} is not empty (holds {shown}); name a new or empty folder, "
-                             "or pass force=True (--force) to overwrite the exported files in it")
+            raise ValueError(
+                f"out_dir {str(out)!r} is not empty (holds {shown}); name a new or empty folder, "
+                "or pass force=True (--force) to overwrite the exported files in it"
+            )
 
 
 def refuse_links(out: Path) -> None:
@@ -36,8 +41,10 @@ def refuse_links(out: Path) -> None:
     if links:
         shown = ", ".join(f"{p.name} -> {os.readlink(p)}" for p in links[:3])
         more = f" and {len(links) - 3} more" if len(links) > 3 else ""
-        raise ValueError(f"out_dir {str(out)!r} holds symbolic links ({shown}{more}); ocpkit never writes through "
-                         "a link, even with --force: remove them or name a new folder")
+        raise ValueError(
+            f"out_dir {str(out)!r} holds symbolic links ({shown}{more}); ocpkit never writes through "
+            "a link, even with --force: remove them or name a new folder"
+        )
 
 
 def _umask() -> int:

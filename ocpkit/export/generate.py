@@ -1,5 +1,6 @@
 """Writing an exported folder: the generated model, task and QP solver (CasADi code generation), then the step,
 header, example, Makefile and README rendered from the templates (:mod:`ocpkit.export.render`)."""
+
 from __future__ import annotations
 
 import shutil
@@ -27,9 +28,9 @@ LINEARIZATIONS = ("goal", "plan", "trajectory")
 SUPPORTED = {("condensed", "qrqp"), ("condensed", "daqp"), ("condensed", "osqp")}
 _UNSUPPORTED_WHY = {
     "hpipm": "CasADi's HPIPM interface needs a stage-wise OCP structure (per-stage x_k, u_k), which a QP "
-             "over parameterization knots does not have",
+    "over parameterization knots does not have",
     "sparse": "only the condensed (small-matrix) form is exported; the sparse form is solved in Python by "
-              "LinearMPC(form='sparse')",
+    "LinearMPC(form='sparse')",
 }
 
 
@@ -60,10 +61,24 @@ class Export:
         return sum(p.stat().st_size for p in self.out_dir.iterdir() if p.suffix in (".c", ".h"))
 
 
-def export(ocp: OCP, out_dir, *, form: str = "condensed", qp: str = "daqp", name: str = "mpc",
-           eps: float = 1e-9, max_iter: int = 1000, linearization: str = "goal", x0=None, goal=None,
-           steps: int = 100, force: bool = False, polish: bool = False, iterations: int = 1,
-           tol: float = 0.0) -> Export:
+def export(
+    ocp: OCP,
+    out_dir,
+    *,
+    form: str = "condensed",
+    qp: str = "daqp",
+    name: str = "mpc",
+    eps: float = 1e-9,
+    max_iter: int = 1000,
+    linearization: str = "goal",
+    x0=None,
+    goal=None,
+    steps: int = 100,
+    force: bool = False,
+    polish: bool = False,
+    iterations: int = 1,
+    tol: float = 0.0,
+) -> Export:
     """Write C sources, header, Makefile, example ``main.c`` and README for the MPC step of ``ocp``.
 
     ``out_dir`` must be absent or empty unless ``force`` (then the exported files in it are replaced: each is
@@ -83,8 +98,7 @@ def export(ocp: OCP, out_dir, *, form: str = "condensed", qp: str = "daqp", name
     choice(qp, QP_SOLVERS, "qp")
     if (form, qp) not in SUPPORTED:
         why = _UNSUPPORTED_WHY["sparse" if form == "sparse" else qp]
-        raise ValueError(f"qp={qp!r} with form={form!r} cannot be exported: {why}; "
-                         f"supported: {sorted(SUPPORTED)}")
+        raise ValueError(f"qp={qp!r} with form={form!r} cannot be exported: {why}; supported: {sorted(SUPPORTED)}")
     choice(linearization, LINEARIZATIONS, "linearization")
     iterations = integer(iterations, "iterations", 1)
     if not (isinstance(tol, (int, float)) and np.isfinite(tol) and tol >= 0):
@@ -93,9 +107,11 @@ def export(ocp: OCP, out_dir, *, form: str = "condensed", qp: str = "daqp", name
         raise ValueError(f"iterations and tol are options of linearization 'trajectory', not {linearization!r}")
     tf = ocp.task_functions
     if tf is not None and linearization == "trajectory":
-        raise ValueError(f"an OCP with a task (terms {ocp.terms[2:]}) cannot be exported with linearization "
-                         "'trajectory': the C step's task terms are linearized about the goal's model; use "
-                         "linearization 'goal' or 'plan', or the Python step")
+        raise ValueError(
+            f"an OCP with a task (terms {ocp.terms[2:]}) cannot be exported with linearization "
+            "'trajectory': the C step's task terms are linearized about the goal's model; use "
+            "linearization 'goal' or 'plan', or the Python step"
+        )
     if not (isinstance(name, str) and name.isidentifier() and name.isascii()):
         raise ValueError(f"name must be a C identifier, got {name!r}")
     eps = positive(eps, "eps")
@@ -109,9 +125,9 @@ def export(ocp: OCP, out_dir, *, form: str = "condensed", qp: str = "daqp", name
         goal = np.zeros(ng)
     else:
         goal = ocp.check_goal(goal) if tf is not None else ocp.check_state(goal, "goal")
-    for x, label in zip((x0, goal[:ocp.nx]), given):
+    for x, label in zip((x0, goal[: ocp.nx]), given):
         if given[label]:  # where the example's closed loop runs: NaN dynamics there are named before any work
-            check_dynamics(ocp.model, x, ocp.input_goal(goal[:ocp.nx]), context=label)
+            check_dynamics(ocp.model, x, ocp.input_goal(goal[: ocp.nx]), context=label)
     out = Path(out_dir)
     check_out_dir(out, bool(force))
     out.mkdir(parents=True, exist_ok=True)
@@ -146,12 +162,22 @@ def export(ocp: OCP, out_dir, *, form: str = "condensed", qp: str = "daqp", name
         shutil.rmtree(scratch, ignore_errors=True)
 
     sizes = {
-        "NX": ocp.nx, "NU": ocp.nu, "KNOTS": ocp.knots, "HORIZON": ocp.horizon, "NZ": tr.nz, "NA": na + no,
-        "NL": ocp.nx + 2 * ocp.nu + 1, "LMAX": max(tr._lengths), "NLEN": len(tr._lengths),
+        "NX": ocp.nx,
+        "NU": ocp.nu,
+        "KNOTS": ocp.knots,
+        "HORIZON": ocp.horizon,
+        "NZ": tr.nz,
+        "NA": na + no,
+        "NL": ocp.nx + 2 * ocp.nu + 1,
+        "LMAX": max(tr._lengths),
+        "NLEN": len(tr._lengths),
         "NB": int(np.count_nonzero(np.isfinite(ocp.x_min) | np.isfinite(ocp.x_max))),
-        "NNZ_FX": len(jac[0][0]) if jac else 0, "NNZ_FU": len(jac[1][0]) if jac else 0,
-        "SZ_ARG": max(f.sz_arg() for f in all_f), "SZ_RES": max(f.sz_res() for f in all_f),
-        "SZ_IW": max(f.sz_iw() for f in all_f), "SZ_W": max(f.sz_w() for f in all_f),
+        "NNZ_FX": len(jac[0][0]) if jac else 0,
+        "NNZ_FU": len(jac[1][0]) if jac else 0,
+        "SZ_ARG": max(f.sz_arg() for f in all_f),
+        "SZ_RES": max(f.sz_res() for f in all_f),
+        "SZ_IW": max(f.sz_iw() for f in all_f),
+        "SZ_W": max(f.sz_w() for f in all_f),
     }
     if task is not None:
         sizes.update(NG=ng, NRS=tf.stage_weight.size, NRT=tf.terminal_weight.size)
@@ -160,8 +186,10 @@ def export(ocp: OCP, out_dir, *, form: str = "condensed", qp: str = "daqp", name
         sizes.update(NO=no, NOS=nos, NK=spheres, NOB=obstacles, NOC=spheres * min(ROWS_PER_SPHERE, obstacles))
     info = Export(out, name, form, qp, linearization, ocp.nx, ocp.nu, ocp.knots, ocp.horizon, na, no)
     write(out / f"{name}.h", render.header(name, sizes, ocp, form, qp, linearization))
-    write(out / f"{name}.c", render.step(name, qp, linearization, tr, jac, ocp_entries(ocp), tf, iterations,
-                                         float(tol), nos))
+    write(
+        out / f"{name}.c",
+        render.step(name, qp, linearization, tr, jac, ocp_entries(ocp), tf, iterations, float(tol), nos),
+    )
     write(out / "main.c", render.example(name, x0, goal, steps, ocp.dt, task=tf is not None))
     write(out / "Makefile", render.makefile(name, qp))
     write(out / "README.md", render.readme(info, ocp, eps, max_iter))
@@ -183,9 +211,17 @@ def _model_functions(ocp: OCP, name: str):
         xs, us = ca.SX.sym("x", ocp.nx), ca.SX.sym("u", ocp.nu)
         Ad, Bd, wd = model.affine(ocp.dt, ocp.substeps)(xs, us)
         step = model.discrete(ocp.dt, ocp.substeps)(xs, us)
-        return (ca.Function(f"{name}_affine", [xs, us], [ca.densify(Ad), ca.densify(Bd), ca.densify(wd)],
-                            ["x", "u"], ["Ad", "Bd", "wd"]),
-                ca.Function(f"{name}_model", [xs, us], [step], ["x", "u"], ["x_next"]), None)
+        return (
+            ca.Function(
+                f"{name}_affine",
+                [xs, us],
+                [ca.densify(Ad), ca.densify(Bd), ca.densify(wd)],
+                ["x", "u"],
+                ["Ad", "Bd", "wd"],
+            ),
+            ca.Function(f"{name}_model", [xs, us], [step], ["x", "u"], ["x_next"]),
+            None,
+        )
     x, u, jac = model.x, model.u, model.jacobian
     fj = ca.Function(f"{name}_fjac", [x, u], jac(x, u), ["x", "u"], ["xdot", "fx", "fu"])
     X, U = ca.MX.sym("x", ocp.nx), ca.MX.sym("u", ocp.nu)
@@ -228,8 +264,15 @@ def _task_functions(tf, name: str) -> list:
     out = []
     if tf.stage_weight.size:
         r, rx, ru = tf.stage_residual(x, u, g)
-        out.append(ca.Function(f"{name}_task_stage", [x, u, g], [r, ca.densify(rx), ca.densify(ru)],
-                               ["x", "u", "g"], ["r", "r_x", "r_u"]))
+        out.append(
+            ca.Function(
+                f"{name}_task_stage",
+                [x, u, g],
+                [r, ca.densify(rx), ca.densify(ru)],
+                ["x", "u", "g"],
+                ["r", "r_x", "r_u"],
+            )
+        )
     if tf.terminal_weight.size:
         r, rx = tf.terminal_residual(x, g)
         out.append(ca.Function(f"{name}_task_terminal", [x, g], [r, ca.densify(rx)], ["x", "g"], ["r", "r_x"]))
@@ -238,11 +281,18 @@ def _task_functions(tf, name: str) -> list:
     return out
 
 
-
-
-def export_problem(problem_name: str, form: str = "condensed", knots: int | None = 5, horizon: int | None = 100,
-                   qp: str = "daqp", out_dir="export", *, seed: int = 0, steps: int = 100,
-                   force: bool = False) -> Export:
+def export_problem(
+    problem_name: str,
+    form: str = "condensed",
+    knots: int | None = 5,
+    horizon: int | None = 100,
+    qp: str = "daqp",
+    out_dir="export",
+    *,
+    seed: int = 0,
+    steps: int = 100,
+    force: bool = False,
+) -> Export:
     """Export a problem by spec (``ocpkit.problems.make``: a registered name, ``module:Name`` or ``file.py:Name``)
     with the example closed loop from ``sample(seed)``; ``out_dir`` absent or empty unless ``force``."""
     from ocpkit.problems import make

@@ -1,4 +1,5 @@
 """The built library loaded back into Python: the exported C step as a :class:`~ocpkit.controller.Controller`."""
+
 from __future__ import annotations
 
 import ctypes
@@ -83,8 +84,10 @@ class ExportedMPC(Controller):
             self._set_plan = None
         self._open = False
         if getattr(lib, f"{name}_init")(self._mem):
-            raise RuntimeError(f"{name}_init failed: all QP solver memory slots of {lib_path} are in use "
-                               f"(close() other instances, or rebuild with make MAX_INSTANCES=N)")
+            raise RuntimeError(
+                f"{name}_init failed: all QP solver memory slots of {lib_path} are in use "
+                f"(close() other instances, or rebuild with make MAX_INSTANCES=N)"
+            )
         self._open = True
         self._status = ctypes.c_int()
         self._status_ptr = ctypes.addressof(self._status)
@@ -153,8 +156,9 @@ class ExportedMPC(Controller):
         infeasible, and LinearMPC answers with its softened QP in Python; a refused step's brake."""
         self._check_open()
         if self._set_plan is None:
-            raise RuntimeError(f"{self!r} keeps its own plan: its library has no {self.name}_set_plan (an export "
-                               "with obstacles has)")
+            raise RuntimeError(
+                f"{self!r} keeps its own plan: its library has no {self.name}_set_plan (an export with obstacles has)"
+            )
         if knots is None:
             self._set_plan(self._mem, None)
             return
@@ -200,8 +204,18 @@ class ExportedMPC(Controller):
             return np.ascontiguousarray(v, dtype=float)
 
         z, status = np.empty(nz), ctypes.c_int()
-        self._solve_qp(self._mem, col(np.asarray(qp.P, dtype=float).T), col(qp.q), col(C.T), col(lo), col(hi),
-                       col(lbx), col(ubx), z, ctypes.addressof(status))
+        self._solve_qp(
+            self._mem,
+            col(np.asarray(qp.P, dtype=float).T),
+            col(qp.q),
+            col(C.T),
+            col(lo),
+            col(hi),
+            col(lbx),
+            col(ubx),
+            z,
+            ctypes.addressof(status),
+        )
         return STATUSES[status.value], z
 
     def _solve(self, x: np.ndarray, goal: np.ndarray) -> Solution:
@@ -211,8 +225,10 @@ class ExportedMPC(Controller):
         self._check_open()
         if self.ocp.task_functions is not None and np.size(goal) != self.ocp.ng:
             if goal is not self._goal:
-                raise ValueError(f"this C step has a task: it needs the whole goal vector of {self.ocp.ng} entries "
-                                 f"[x_goal; targets] (ocp.goal(...)), got {np.size(goal)}")
+                raise ValueError(
+                    f"this C step has a task: it needs the whole goal vector of {self.ocp.ng} entries "
+                    f"[x_goal; targets] (ocp.goal(...)), got {np.size(goal)}"
+                )
             goal = self.task_goal
         u = np.empty(self.ocp.nu)
         knots = np.empty(self.ocp.knots * self.ocp.nu)
@@ -226,8 +242,11 @@ class ExportedMPC(Controller):
         rc = self._rc(self._mem)
         certificate = self.certificate() if status == SUCCESS or rc >= CERT_CODE else None  # a QP solved
         reason = c_reason(self._reason(self._mem))
-        raw = (f"{self.name}_step: {reason}" if status != SUCCESS and rc == 0 and reason is not None
-               else _explain_rc(self.name, self.qp, rc, certificate.residuals if certificate else ()))
+        raw = (
+            f"{self.name}_step: {reason}"
+            if status != SUCCESS and rc == 0 and reason is not None
+            else _explain_rc(self.name, self.qp, rc, certificate.residuals if certificate else ())
+        )
         model, build_s, solve = (float(t) for t in self._split)
         x_pred = None
         if self._states is not None and status == SUCCESS:
@@ -242,9 +261,18 @@ class ExportedMPC(Controller):
         # fallback, without Controller.fallback's rollout and plan check (on the Panda with 10 obstacles they took
         # 11-19 ms of each refused step, beside a C step of 1.2 ms)
         refused = status != SUCCESS
-        return Solution(u=u, knots=knots, status=status, raw_status=raw, times=times, certificate=certificate,
-                        x_pred=x_pred, fallback=refused, path="fallback (C plan)" if refused else "",
-                        reason=None if status == SUCCESS else reason)
+        return Solution(
+            u=u,
+            knots=knots,
+            status=status,
+            raw_status=raw,
+            times=times,
+            certificate=certificate,
+            x_pred=x_pred,
+            fallback=refused,
+            path="fallback (C plan)" if refused else "",
+            reason=None if status == SUCCESS else reason,
+        )
 
 
 def _check_digest(lib, name: str, lib_path: Path, ocp: OCP) -> None:
@@ -253,14 +281,17 @@ def _check_digest(lib, name: str, lib_path: Path, ocp: OCP) -> None:
     try:
         stored = getattr(lib, f"{name}_ocp_digest")
     except AttributeError:
-        raise ValueError(f"library {lib_path} has no {name}_ocp_digest (exported by an older ocpkit): its OCP cannot "
-                         "be checked; export and build it again") from None
+        raise ValueError(
+            f"library {lib_path} has no {name}_ocp_digest (exported by an older ocpkit): its OCP cannot "
+            "be checked; export and build it again"
+        ) from None
     stored.restype = ctypes.c_char_p
     differs = differences(stored().decode(), ocp)
     if differs:
         order = " (library vs ocp)" if " vs " in differs else ""
-        raise ValueError(f"library {lib_path} was exported for another OCP: {differs}{order}; export and build it "
-                         "again for this OCP")
+        raise ValueError(
+            f"library {lib_path} was exported for another OCP: {differs}{order}; export and build it again for this OCP"
+        )
 
 
 def c_reason(code: int) -> Reason | None:
@@ -272,11 +303,15 @@ def _explain_rc(name: str, qp: str, rc: int, residuals) -> str:
     """The raw status of a C step whose solver (``qp``) returned ``rc`` (``residuals``: its certificate)."""
     if CERT_CODE <= rc < CERT_CODE + len(TESTS):
         test = TESTS[rc - CERT_CODE]
-        return (f"{name}_qp_solve returned 0 but certificate failed: {test} residual "
-                f"{residuals[rc - CERT_CODE]:.3g} > {CERT_TOL:.0e}")
+        return (
+            f"{name}_qp_solve returned 0 but certificate failed: {test} residual "
+            f"{residuals[rc - CERT_CODE]:.3g} > {CERT_TOL:.0e}"
+        )
     if rc == ILL_CONDITIONED:
-        return (f"{name}: Hessian ill-conditioned (rounding beyond {ROUNDING_MARGIN:g} x the input weight's "
-                f"curvature): the prediction model diverges over the horizon")
+        return (
+            f"{name}: Hessian ill-conditioned (rounding beyond {ROUNDING_MARGIN:g} x the input weight's "
+            f"curvature): the prediction model diverges over the horizon"
+        )
     if qp == "daqp" and rc in DAQP_EXIT:
         return f"{name}_qp_solve returned {rc}: {daqp_exit_name(rc)}"
     return f"{name}_qp_solve returned {rc}"

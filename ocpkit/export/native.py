@@ -12,6 +12,7 @@ OCP share one build, and so do processes: the builder holds the entry's lock fil
 read-only cache is used as it is: its sound library is loaded, and where it has none the Python step runs (one warning);
 ``ocpkit build`` fills a cache ahead of deployment.
 """
+
 from __future__ import annotations
 
 import os
@@ -25,8 +26,19 @@ from concurrent.futures import Future
 from pathlib import Path
 
 from ocpkit.codegen.builder import build_entry, child_failure, entry_key, loadable, signal_name, spawn, warn_damaged
-from ocpkit.codegen.cache import (CacheReadOnlyError, UnsafeCacheError, cache_dir, check_trusted, entry_ok, install,
-                          load_problem, read_only, read_only_error, scratch_dir, warn_read_only)
+from ocpkit.codegen.cache import (
+    CacheReadOnlyError,
+    UnsafeCacheError,
+    cache_dir,
+    check_trusted,
+    entry_ok,
+    install,
+    load_problem,
+    read_only,
+    read_only_error,
+    scratch_dir,
+    warn_read_only,
+)
 from ocpkit.codegen.compiled import compiler_available
 from ocpkit.export import BuildError, check_tools, export
 from ocpkit.model.ocp import BACKGROUND_MIN_INSTRUCTIONS, OCP
@@ -58,12 +70,24 @@ def wanted(ocp: OCP) -> bool:
     if ocp.compiled is not None:
         return ocp.compiled
     tf = ocp.task_functions
-    return (not ocp.model.linear and ocp.model.jacobian.n_instructions() >= BACKGROUND_MIN_INSTRUCTIONS
-            and ocp.knots * ocp.nu <= MAX_VARIABLES and (tf is None or not tf.pairs))
+    return (
+        not ocp.model.linear
+        and ocp.model.jacobian.n_instructions() >= BACKGROUND_MIN_INSTRUCTIONS
+        and ocp.knots * ocp.nu <= MAX_VARIABLES
+        and (tf is None or not tf.pairs)
+    )
 
 
-def start(ocp: OCP, *, eps: float, max_iter: int, wait: bool = False, linearization: str = "goal",
-          iterations: int = 1, tol: float = 0.0) -> Future | None:
+def start(
+    ocp: OCP,
+    *,
+    eps: float,
+    max_iter: int,
+    wait: bool = False,
+    linearization: str = "goal",
+    iterations: int = 1,
+    tol: float = 0.0,
+) -> Future | None:
     """A Future of the folder holding ``lib<NAME>.so``, the exported condensed DAQP step of ``ocp`` (DAQP tolerance
     ``eps``, ``max_iter`` iterations; ``linearization``, ``iterations`` and ``tol`` as :func:`ocpkit.export.export`
     takes them: "trajectory" is the real-time iteration's step).
@@ -90,8 +114,11 @@ def start(ocp: OCP, *, eps: float, max_iter: int, wait: bool = False, linearizat
 
 def built(ocp: OCP) -> list[Path]:
     """The cache folders of the C steps built (or found) for ``ocp`` in this process, each holding ``lib<NAME>.so``."""
-    return [f.result() for f in _by_ocp.get(ocp, {}).values()
-            if f is not None and f.done() and not f.cancelled() and f.exception() is None]
+    return [
+        f.result()
+        for f in _by_ocp.get(ocp, {}).values()
+        if f is not None and f.done() and not f.cancelled() and f.exception() is None
+    ]
 
 
 def _start(ocp: OCP, settings: tuple, wait: bool) -> Future | None:
@@ -146,8 +173,9 @@ def _start(ocp: OCP, settings: tuple, wait: bool) -> Future | None:
         # The build's child process starts here, not in the thread: a script that exits right after the
         # constructor ends its daemon threads, and one that had not spawned the child yet left the build undone.
         child = None if entry_ok(folder / f"lib{NAME}.so") else _spawn(scratch, folder)
-        threading.Thread(target=_build, args=(scratch, folder, future, True, child),
-                         name=f"ocpkit-native-{key[:8]}", daemon=True).start()
+        threading.Thread(
+            target=_build, args=(scratch, folder, future, True, child), name=f"ocpkit-native-{key[:8]}", daemon=True
+        ).start()
     return future
 
 
@@ -168,17 +196,29 @@ def _generate(ocp: OCP, settings: tuple, root: Path) -> tuple[Path, str, OSError
         scratch = Path(tempfile.mkdtemp(prefix="ocpkit-native-"))
         return scratch, _export(ocp, settings, scratch), unwritable
     except OSError as exc:  # a read-only or full cache without a writable temporary folder
-        raise read_only_error(f"LinearMPC's C step cannot be looked up: its code is generated to a temporary "
-                              f"folder, and none can be written ({exc.strerror or exc}; set TMPDIR)", root,
-                              unwritable) from None
+        raise read_only_error(
+            f"LinearMPC's C step cannot be looked up: its code is generated to a temporary "
+            f"folder, and none can be written ({exc.strerror or exc}; set TMPDIR)",
+            root,
+            unwritable,
+        ) from None
 
 
 def _export(ocp: OCP, settings: tuple, scratch: Path) -> str:
     """The key of the C step of ``ocp`` exported to ``scratch``/src (``scratch`` removed if that fails)."""
     eps, max_iter, linearization, iterations, tol = settings
     try:
-        export(ocp, scratch / "src", name=NAME, qp="daqp", eps=eps, max_iter=max_iter, linearization=linearization,
-               iterations=iterations, tol=tol)
+        export(
+            ocp,
+            scratch / "src",
+            name=NAME,
+            qp="daqp",
+            eps=eps,
+            max_iter=max_iter,
+            linearization=linearization,
+            iterations=iterations,
+            tol=tol,
+        )
         return _key(scratch / "src")
     except BaseException:
         shutil.rmtree(scratch, ignore_errors=True)
@@ -196,8 +236,11 @@ def _check_read_only_entry(folder: Path, root: Path, unwritable: OSError) -> Non
     ``unwritable`` says: read-only, or full) is sound and loads."""
     library = folder / f"lib{NAME}.so"
     if not entry_ok(library):
-        state = ("is damaged (its content does not match the hash recorded beside it)" if library.exists() else
-                 "is not in the cache")
+        state = (
+            "is damaged (its content does not match the hash recorded beside it)"
+            if library.exists()
+            else "is not in the cache"
+        )
         raise read_only_error(f"LinearMPC's C step for this OCP ({library}) {state}", root, unwritable)
     problem = _load_problem(library)
     if problem is not None:
@@ -209,8 +252,9 @@ def _load_problem(library: Path) -> str | None:
     return load_problem(library, f"{NAME}_step_timed")
 
 
-def _build(scratch: Path, folder: Path, future: Future, background: bool = True,
-           child: subprocess.Popen | None = None) -> None:
+def _build(
+    scratch: Path, folder: Path, future: Future, background: bool = True, child: subprocess.Popen | None = None
+) -> None:
     """Resolve ``future`` with ``folder`` once it holds a sound library that loads: the cached one, or one built
     from ``scratch``; a cached library that does not load is removed and built once more.
 
@@ -221,6 +265,7 @@ def _build(scratch: Path, folder: Path, future: Future, background: bool = True,
     library = folder / f"lib{NAME}.so"
     try:
         if child is None and entry_ok(library):  # cached: loaded as it is, or removed and built once more
+
             def rebuild() -> Path:
                 _make(scratch, folder, background)
                 return library
@@ -243,8 +288,14 @@ def _build(scratch: Path, folder: Path, future: Future, background: bool = True,
 
 def _spawn(scratch: Path, folder: Path) -> subprocess.Popen:
     """The background build's child process (:func:`_child`), in a session of its own so that it outlives us."""
-    return spawn("ocpkit.export.native", str(scratch), str(folder), cwd=scratch, stdout=subprocess.DEVNULL,
-                 stderr=subprocess.DEVNULL)
+    return spawn(
+        "ocpkit.export.native",
+        str(scratch),
+        str(folder),
+        cwd=scratch,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
 
 
 def _make(scratch: Path, folder: Path, background: bool, child: subprocess.Popen | None = None) -> None:
@@ -288,8 +339,11 @@ def _install(scratch: str | Path, folder: str | Path, nice: bool = False) -> Non
         if nice:
             os.nice(10)
         with open(scratch / "build.log", "w") as log:
-            code = subprocess.run(["make", "-s", "-C", str(scratch / "src"), "-j1", "lib", *MAKE_VARS],
-                                  stdout=log, stderr=subprocess.STDOUT).returncode
+            code = subprocess.run(
+                ["make", "-s", "-C", str(scratch / "src"), "-j1", "lib", *MAKE_VARS],
+                stdout=log,
+                stderr=subprocess.STDOUT,
+            ).returncode
         if code < 0:
             raise BuildError(f"make was killed by {signal_name(-code)}")
         if code:

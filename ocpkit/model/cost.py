@@ -18,6 +18,7 @@ from :attr:`Cost.stage_terms`. The QPs take the built-in terms through their wei
 quadratic) and the task's terms through the Gauss–Newton model of the same residuals
 (:class:`ocpkit.model.task.CompiledTask`).
 """
+
 from __future__ import annotations
 
 import casadi as ca
@@ -64,10 +65,12 @@ class Cost:
         self.terminal = function("terminal_cost", [x, g], ["x", "goal"], total_T)
         self.quadratic_stage = function("quadratic_stage_cost", [x, u, g], ["x", "u", "goal"], quadratic)
         self.quadratic_terminal = function("quadratic_terminal_cost", [x, g], ["x", "goal"], quadratic_T)
-        self.stage_terms = function("stage_terms", [x, u, g], ["x", "u", "goal"],
-                                    ca.vertcat(*(stage[name] for name in self.names)))
-        self.terminal_terms = function("terminal_terms", [x, g], ["x", "goal"],
-                                       ca.vertcat(*(terminal.get(name, ca.SX(0)) for name in self.names)))
+        self.stage_terms = function(
+            "stage_terms", [x, u, g], ["x", "u", "goal"], ca.vertcat(*(stage[name] for name in self.names))
+        )
+        self.terminal_terms = function(
+            "terminal_terms", [x, g], ["x", "goal"], ca.vertcat(*(terminal.get(name, ca.SX(0)) for name in self.names))
+        )
 
     def __repr__(self):
         return f"Cost({' + '.join(self.names)})"

@@ -5,6 +5,7 @@ The paper's linear(ized) model is ẋ = A x + B u + w, discretized to x_{k+1} = 
 for linear dynamics; RK4 or Euler, see :data:`INTEGRATORS`, for others) and the affine model is its first-order
 expansion about a point, so the QPs, IPOPT, generated C and the Taichi kernels all see the same discrete dynamics.
 """
+
 from __future__ import annotations
 
 import casadi as ca
@@ -71,8 +72,9 @@ class Model:
         """(x, u) -> (ẋ, ∂f/∂x, ∂f/∂u): the continuous dynamics and their Jacobians, one SX Function."""
         if "jacobian" not in self._functions:
             x, u, f = self.x, self.u, self.xdot
-            self._functions["jacobian"] = ca.Function("f_jac", [x, u], [f, ca.jacobian(f, x), ca.jacobian(f, u)],
-                                                      ["x", "u"], ["xdot", "f_x", "f_u"])
+            self._functions["jacobian"] = ca.Function(
+                "f_jac", [x, u], [f, ca.jacobian(f, x), ca.jacobian(f, u)], ["x", "u"], ["xdot", "f_x", "f_u"]
+            )
         return self._functions["jacobian"]
 
     def rk4(self, dt: float, substeps: int = 1) -> ca.Function:
@@ -131,14 +133,19 @@ def _integrate(model: Model, x, dt: float, substeps: int, integrator: str, f):
     """``substeps`` steps of ``integrator`` from x; ``x`` and ``f``'s values plain SX or :class:`_Tangent`."""
     h, nq = dt / substeps, model.second_order
     if integrator == "rk4":
+
         def step(z):
             return _rk4_step(z, h, f)
     else:
-        shift = None if nq is None else ca.DM(ca.Sparsity.triplet(2 * nq, 2 * nq, list(range(nq)),
-                                                                    list(range(nq, 2 * nq))), 1.0)
+        shift = (
+            None
+            if nq is None
+            else ca.DM(ca.Sparsity.triplet(2 * nq, 2 * nq, list(range(nq)), list(range(nq, 2 * nq))), 1.0)
+        )
 
         def step(z):
             return _euler_step(z, h, f, shift)
+
     for _ in range(substeps):
         x = step(x)
     return x
@@ -154,8 +161,9 @@ def _discrete(model: Model, dt: float, substeps: int, integrator: str) -> ca.Fun
     x, u = model.x, model.u
     if model.linear:
         Ad, Bd, wd = _zoh(model, dt)
-        return ca.Function("F", [x, u], [ca.mtimes(ca.DM(Ad), x) + ca.mtimes(ca.DM(Bd), u) + ca.DM(wd)],
-                           ["x", "u"], ["x_next"])
+        return ca.Function(
+            "F", [x, u], [ca.mtimes(ca.DM(Ad), x) + ca.mtimes(ca.DM(Bd), u) + ca.DM(wd)], ["x", "u"], ["x_next"]
+        )
     if integrator == "rk4":
         return model.rk4(dt, substeps)
     xk = _integrate(model, x, dt, substeps, integrator, lambda z: model.f(z, u))
@@ -167,8 +175,9 @@ def _zoh(model: Model, dt: float):
     from scipy.linalg import expm
 
     z = ca.vertcat(model.x, model.u)
-    lin = ca.Function("linearization", [z],
-                      [ca.jacobian(model.xdot, z), ca.substitute(model.xdot, z, ca.DM.zeros(z.shape))])
+    lin = ca.Function(
+        "linearization", [z], [ca.jacobian(model.xdot, z), ca.substitute(model.xdot, z, ca.DM.zeros(z.shape))]
+    )
     J, w = (np.asarray(v, dtype=float) for v in lin(np.zeros(z.shape[0])))
     n, m = model.nx, model.nu
     aug = np.zeros((n + m + 1, n + m + 1))
@@ -211,8 +220,9 @@ def _affine(model: Model, dt: float, substeps: int, integrator: str) -> ca.Funct
         x, u = model.x, model.u
         x_next = model.discrete(dt, substeps)(x, u)
         Ad, Bd = ca.jacobian(x_next, x), ca.jacobian(x_next, u)
-        return ca.Function("affine", [x, u], [Ad, Bd, x_next - ca.mtimes(Ad, x) - ca.mtimes(Bd, u)],
-                           ["x", "u"], ["Ad", "Bd", "wd"])
+        return ca.Function(
+            "affine", [x, u], [Ad, Bd, x_next - ca.mtimes(Ad, x) - ca.mtimes(Bd, u)], ["x", "u"], ["Ad", "Bd", "wd"]
+        )
     # RK4 evaluates the Jacobians four times a sub-step: called from an MX graph they are generated once (nlink:13:
     # 24k instructions each). Euler's one a sub-step is inlined in SX, where the step's algebra (I + h² ∂q̈/∂q, …)
     # folds into the Jacobian's own code instead of sparse matrix operations on work vectors (nlink:13, compiled:
@@ -229,5 +239,6 @@ def _affine(model: Model, dt: float, substeps: int, integrator: str) -> ca.Funct
     start = _Tangent(x, sym.eye(model.nx), sym(model.nx, model.nu))
     end = _integrate(model, start, dt, substeps, integrator, f)
     Ad, Bd = end.dx, end.du
-    return ca.Function("affine", [x, u], [Ad, Bd, end.value - ca.mtimes(Ad, x) - ca.mtimes(Bd, u)],
-                       ["x", "u"], ["Ad", "Bd", "wd"])
+    return ca.Function(
+        "affine", [x, u], [Ad, Bd, end.value - ca.mtimes(Ad, x) - ca.mtimes(Bd, u)], ["x", "u"], ["Ad", "Bd", "wd"]
+    )

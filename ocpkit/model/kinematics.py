@@ -16,6 +16,7 @@ A robot is approximated for collision checks by :class:`RobotSphere` s, each a b
 :func:`sphere_centers` is the CasADi Function q -> their world centres that obstacle constraints use
 (``ocpkit.model.task``).
 """
+
 from __future__ import annotations
 
 import difflib
@@ -38,11 +39,11 @@ MAX_SPHERES_PER_GEOMETRY = 10_000
 @dataclass(frozen=True)
 class _Frame:
     name: str
-    kind: str            # BODY, JOINT, FIXED_JOINT, OP_FRAME, SENSOR (pinocchio's FrameType names)
-    joint: int           # 0-based joint index of the Chain, -1: the fixed base
+    kind: str  # BODY, JOINT, FIXED_JOINT, OP_FRAME, SENSOR (pinocchio's FrameType names)
+    joint: int  # 0-based joint index of the Chain, -1: the fixed base
     rotation: np.ndarray  # placement in the joint's frame
     translation: np.ndarray
-    depth: int           # number of frames above it in pinocchio's frame tree
+    depth: int  # number of frames above it in pinocchio's frame tree
 
 
 class Kinematics:
@@ -60,23 +61,29 @@ class Kinematics:
     """
 
     def __init__(self, pin_model):
-        self.chain = Chain(pin_model)          # validates the joints; its transforms are the dynamics' own
+        self.chain = Chain(pin_model)  # validates the joints; its transforms are the dynamics' own
         self.n = self.chain.n
         self.joints = list(self.chain.names)
         frames = list(pin_model.frames)
         depth = []
         for k, f in enumerate(frames):
-            parent = f.parentFrame if hasattr(f, "parentFrame") else f.previousFrame   # pinocchio 3, 2
+            parent = f.parentFrame if hasattr(f, "parentFrame") else f.previousFrame  # pinocchio 3, 2
             depth.append(0 if k == 0 or parent >= k else depth[parent] + 1)
         self._frames: dict[str, _Frame] = {}
         for f, d in zip(frames, depth):
             kind = str(f.type).rsplit(".", 1)[-1]
             old = self._frames.get(f.name)
             if old is not None and (old.kind == "BODY" or kind != "BODY"):
-                continue                        # keep the BODY frame, else the first of the name
+                continue  # keep the BODY frame, else the first of the name
             joint = int(f.parentJoint if hasattr(f, "parentJoint") else f.parent) - 1
-            self._frames[f.name] = _Frame(f.name, kind, joint, _snap(np.asarray(f.placement.rotation)),
-                                          np.asarray(f.placement.translation, dtype=float).copy(), d)
+            self._frames[f.name] = _Frame(
+                f.name,
+                kind,
+                joint,
+                _snap(np.asarray(f.placement.rotation)),
+                np.asarray(f.placement.translation, dtype=float).copy(),
+                d,
+            )
         for j, name in enumerate(self.joints):
             if name not in self._frames:
                 self._frames[name] = _Frame(name, "JOINT", j, np.eye(3), np.zeros(3), 0)
@@ -197,12 +204,12 @@ class Kinematics:
         out = []
         for j, name in enumerate(self.joints):
             a = self._frames[name]
-            if a.joint != j:                   # the name means a link of another joint (a URDF naming clash)
+            if a.joint != j:  # the name means a link of another joint (a URDF naming clash)
                 continue
             ends = [(self.joints[c], np.asarray(self.chain.translations[c])) for c in self._children(j)]
             if not ends and (tip := self.tip(name)) is not None:
                 ends = [(tip, self._frames[tip].translation)]
-            for b, point in ends:               # the end point in joint j's frame, then in frame a
+            for b, point in ends:  # the end point in joint j's frame, then in frame a
                 out.append((name, b, -a.rotation.T @ a.translation, a.rotation.T @ (point - a.translation)))
         return out
 
@@ -225,8 +232,7 @@ class RobotSphere:
         object.__setattr__(self, "radius", positive(self.radius, "radius"))
 
 
-def spheres_along_links(kin: Kinematics, radius: float, spacing: float | None = None,
-                        frames=None) -> list[RobotSphere]:
+def spheres_along_links(kin: Kinematics, radius: float, spacing: float | None = None, frames=None) -> list[RobotSphere]:
     """Spheres of ``radius`` along each of ``kin.segments()``, each fixed in its segment's start frame.
 
     A segment of length L gets ⌈L / spacing⌉ + 1 evenly spaced centres from its start to its end, so every
@@ -248,8 +254,9 @@ def spheres_along_links(kin: Kinematics, radius: float, spacing: float | None = 
         starts = sorted({a for a, *_ in segments})
         stray = [f for f in frames if f not in starts]
         if stray:
-            raise ValueError(f"frame {stray[0]!r} starts no segment of non-zero length; those that do: "
-                             f"{', '.join(starts)}")
+            raise ValueError(
+                f"frame {stray[0]!r} starts no segment of non-zero length; those that do: {', '.join(starts)}"
+            )
     starts = {a for a, *_ in segments if frames is None or a in frames}
     out, seen = [], set()
     for a, b, start, end in segments:
@@ -261,7 +268,7 @@ def spheres_along_links(kin: Kinematics, radius: float, spacing: float | None = 
         for k in range(last + 1):
             sphere = RobotSphere(a, tuple(start + (end - start) * k / m), radius)
             key = (a, *np.round(sphere.offset, 12))
-            if key not in seen:                 # sibling segments (a hand's two fingers) share their start
+            if key not in seen:  # sibling segments (a hand's two fingers) share their start
                 seen.add(key)
                 out.append(sphere)
     return out
@@ -307,19 +314,21 @@ def collision_spheres(urdf_path, kin: Kinematics, radius: float | None = None) -
             where = f"{path.name}: link {name!r}"
             frame = kin._frames.get(name)
             if frame is None or frame.kind != "BODY":
-                raise ValueError(f"{where} is not a link (BODY frame) of the model; its frames: "
-                                 f"{', '.join(kin.frames)}")
+                raise ValueError(
+                    f"{where} is not a link (BODY frame) of the model; its frames: {', '.join(kin.frames)}"
+                )
             geometry = collision.find("geometry")
             shapes = list(geometry) if geometry is not None else []
             if len(shapes) != 1:
-                raise ValueError(f"{where}: a <collision> needs one <geometry> shape, found "
-                                 f"{[s.tag for s in shapes]}")
+                raise ValueError(f"{where}: a <collision> needs one <geometry> shape, found {[s.tag for s in shapes]}")
             R, t = _origin(collision.find("origin"), where)
             for center, r in _cover(shapes[0], radius, where):
                 out.append(RobotSphere(name, tuple(R @ center + t), r))
     if not found:
-        raise ValueError(f"{path.name} has no <collision> element: nothing to make spheres of; use "
-                         "spheres_along_links(kin, radius) to approximate the links instead")
+        raise ValueError(
+            f"{path.name} has no <collision> element: nothing to make spheres of; use "
+            "spheres_along_links(kin, radius) to approximate the links instead"
+        )
     return out
 
 
@@ -355,7 +364,7 @@ def _cover(shape, radius, where):
         r = positive(shape.get("radius"), f"{where}: <cylinder radius>")
         length = positive(shape.get("length"), f"{where}: <cylinder length>")
         R = math.hypot(r, min(length, 2 * r) / 2) if radius is None else radius
-        if R <= r * (1 + 1e-12):               # too thin for the cross-section: cover its bounding box
+        if R <= r * (1 + 1e-12):  # too thin for the cross-section: cover its bounding box
             return _grid(np.array([2 * r, 2 * r, length]), R, where)
         m = max(1, math.ceil(length / (2 * math.sqrt(R * R - r * r)) - 1e-9))
         if m > MAX_SPHERES_PER_GEOMETRY:
@@ -369,9 +378,11 @@ def _cover(shape, radius, where):
         R = 0.5 * math.sqrt(a * a + b * b + min(c, b) ** 2) if radius is None else radius
         return _grid(size, R, where)
     if tag == "mesh":
-        raise ValueError(f"{where}: a <mesh> collision geometry cannot be turned into spheres; use "
-                         "spheres_along_links(kin, radius) to approximate the links instead (or give the link "
-                         "<sphere>, <cylinder> or <box> collision primitives)")
+        raise ValueError(
+            f"{where}: a <mesh> collision geometry cannot be turned into spheres; use "
+            "spheres_along_links(kin, radius) to approximate the links instead (or give the link "
+            "<sphere>, <cylinder> or <box> collision primitives)"
+        )
     raise ValueError(f"{where}: unknown collision geometry <{tag}> (expected sphere, cylinder, box or mesh)")
 
 
@@ -381,7 +392,9 @@ def _grid(size, R, where):
     while np.sum((size / counts) ** 2) > 4 * R * R * (1 + 1e-12):
         counts[np.argmax(size / counts)] += 1
         if counts.prod() > MAX_SPHERES_PER_GEOMETRY:
-            raise ValueError(f"{where}: radius {R:g} needs over {MAX_SPHERES_PER_GEOMETRY} spheres to cover "
-                             f"a {size.tolist()} box; choose a larger one")
+            raise ValueError(
+                f"{where}: radius {R:g} needs over {MAX_SPHERES_PER_GEOMETRY} spheres to cover "
+                f"a {size.tolist()} box; choose a larger one"
+            )
     axes = [size[i] * ((np.arange(counts[i]) + 0.5) / counts[i] - 0.5) for i in range(3)]
     return [(np.array([x, y, z]), R) for x in axes[0] for y in axes[1] for z in axes[2]]

@@ -16,6 +16,7 @@ as named terms that every solver reads); a :class:`ocpkit.model.task.Task` adds 
 position and orientation targets, joint-limit barriers, user residuals) and obstacles. The goal is then
 [x_goal; the terms' targets] (``ng`` entries, :meth:`OCP.goal`); without a task it is x_goal.
 """
+
 from __future__ import annotations
 
 import casadi as ca
@@ -44,10 +45,27 @@ class OCP:
     :data:`ocpkit.model.dynamics.INTEGRATORS`). The plant the simulator integrates is not affected.
     """
 
-    def __init__(self, model: Model, dt: float, horizon: int, Q, R, *, Q_terminal=None, u_goal=None,
-                 u_goal_gain=None, u_min=None, u_max=None, x_min=None, x_max=None,
-                 parameterization: Parameterization | None = None, substeps: int = 1, integrator: str = "rk4",
-                 compiled: bool | None = None, task: Task | None = None):
+    def __init__(
+        self,
+        model: Model,
+        dt: float,
+        horizon: int,
+        Q,
+        R,
+        *,
+        Q_terminal=None,
+        u_goal=None,
+        u_goal_gain=None,
+        u_min=None,
+        u_max=None,
+        x_min=None,
+        x_max=None,
+        parameterization: Parameterization | None = None,
+        substeps: int = 1,
+        integrator: str = "rk4",
+        compiled: bool | None = None,
+        task: Task | None = None,
+    ):
         if not isinstance(model, Model):
             raise TypeError(f"model must be an ocpkit Model, got {type(model).__name__}")
         n, m = model.nx, model.nu
@@ -87,8 +105,10 @@ class OCP:
 
     def __repr__(self):
         integrator = "" if self.integrator == "rk4" else f", integrator={self.integrator!r}"
-        return (f"OCP({self.model.name!r}, dt={self.dt}, horizon={self.horizon}, "
-                f"{self.parameterization.kind} knots={self.knots}{integrator})")
+        return (
+            f"OCP({self.model.name!r}, dt={self.dt}, horizon={self.horizon}, "
+            f"{self.parameterization.kind} knots={self.knots}{integrator})"
+        )
 
     @property
     def terms(self) -> list[str]:
@@ -106,15 +126,18 @@ class OCP:
         if missing:
             raise ValueError(f"goal needs a target for {', '.join(repr(m) for m in missing)}")
         # a rotation target may come as a 3 × 3 matrix: its rows, in order
-        parts = [x_goal] + [self.task.check_target(name, array(np.ravel(targets[name]), name, (size,)))
-                            for name, size in sizes.items()]
+        parts = [x_goal] + [
+            self.task.check_target(name, array(np.ravel(targets[name]), name, (size,))) for name, size in sizes.items()
+        ]
         return np.concatenate(parts)
 
     def check_goal(self, goal, name: str = "goal") -> np.ndarray:
         """The goal as a finite float64 vector of ``ng`` entries (x_goal, then the task's targets)."""
         if self.ng != self.nx and np.size(goal) == self.nx:
-            raise ValueError(f"{name} has {self.nx} entries (a state) but this OCP's task needs {self.ng}: "
-                             f"x_goal and the targets {sorted(self.task.targets)}; build it with ocp.goal(...)")
+            raise ValueError(
+                f"{name} has {self.nx} entries (a state) but this OCP's task needs {self.ng}: "
+                f"x_goal and the targets {sorted(self.task.targets)}; build it with ocp.goal(...)"
+            )
         return array(goal, name, (self.ng,))
 
     @property
@@ -162,8 +185,10 @@ class OCP:
             window = array(obstacles, name, (T + 1, N, 4))
         radii = window[..., 3]
         if (radii <= 0).any() or (radii > MAX_LENGTH).any() or (np.abs(window[..., :3]) > 1e3 * MAX_LENGTH).any():
-            raise ValueError(f"{name}: radii must be > 0 and at most {MAX_LENGTH:g} m, centres within "
-                             f"{1e3 * MAX_LENGTH:g} m, got radii {np.unique(radii).tolist()[:5]}")
+            raise ValueError(
+                f"{name}: radii must be > 0 and at most {MAX_LENGTH:g} m, centres within "
+                f"{1e3 * MAX_LENGTH:g} m, got radii {np.unique(radii).tolist()[:5]}"
+            )
         return window
 
     def guess_knots(self, initial_guess, name: str = "initial_guess") -> np.ndarray:
@@ -198,8 +223,10 @@ class OCP:
         started in the background at this first call finishes (models of ``BACKGROUND_MIN_INSTRUCTIONS`` and
         more; a :class:`ocpkit.codegen.compiled.SwitchingFunction`); without a C compiler, the VM with one warning."""
         fn = self.model.affine(self.dt, self.substeps, self.integrator)
-        if not (self.compiled or (self.compiled is None
-                                  and self.model.jacobian.n_instructions() >= BACKGROUND_MIN_INSTRUCTIONS)):
+        if not (
+            self.compiled
+            or (self.compiled is None and self.model.jacobian.n_instructions() >= BACKGROUND_MIN_INSTRUCTIONS)
+        ):
             return fn
         if self._compiled_affine is None:
             self._compiled_affine = self._compile(fn)
@@ -231,9 +258,11 @@ class OCP:
             def fast(fn):
                 return BufferedFunction(fn if self.compiled is False else self._compile(fn))
 
-            self._task_maps = {"stage": fast(tf.stage_residual.map(T)) if tf.stage_weight.size else None,
-                               "terminal": fast(tf.terminal_residual) if tf.terminal_weight.size else None,
-                               "spheres": BufferedFunction(tf.spheres.map(T)) if tf.pairs else None}
+            self._task_maps = {
+                "stage": fast(tf.stage_residual.map(T)) if tf.stage_weight.size else None,
+                "terminal": fast(tf.terminal_residual) if tf.terminal_weight.size else None,
+                "spheres": BufferedFunction(tf.spheres.map(T)) if tf.pairs else None,
+            }
         return self._task_maps
 
     def check_state(self, x, name: str = "x") -> np.ndarray:

@@ -3,6 +3,7 @@
 The paper's piecewise-linear knots (Section III-B and "Parameterization" in Section V), move blocking
 (zero-order hold) and traditional MPC (the identity, p = T) are one object with different T×p bases.
 """
+
 from __future__ import annotations
 
 import numpy as np

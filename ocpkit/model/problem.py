@@ -6,6 +6,7 @@ Declare one by subclassing :class:`Problem` and implementing three public hooks 
 ``name``, ``dt``, ``horizon`` and ``duration`` as class attributes. A robot described by a URDF needs no
 code: :meth:`Problem.from_urdf` (a :class:`URDFRobot`).
 """
+
 from __future__ import annotations
 
 import inspect
@@ -60,7 +61,7 @@ def _shown(path: str) -> str:
 
 
 def where_defined(obj) -> str | None:
-    """"file:line" of the source of a function or class (None where Python does not know it)."""
+    """ "file:line" of the source of a function or class (None where Python does not know it)."""
     obj = inspect.unwrap(obj) if callable(obj) else obj
     code = getattr(getattr(obj, "__func__", obj), "__code__", None)
     try:
@@ -73,8 +74,11 @@ def where_defined(obj) -> str | None:
 
 def _library_dirs() -> tuple[str, ...]:
     """Folders of code that is not the user's: ocpkit's packages, the standard library and installed packages."""
-    dirs = {os.path.realpath(p) for key in ("stdlib", "platstdlib", "purelib", "platlib")
-            if (p := sysconfig.get_paths().get(key))}
+    dirs = {
+        os.path.realpath(p)
+        for key in ("stdlib", "platstdlib", "purelib", "platlib")
+        if (p := sysconfig.get_paths().get(key))
+    }
     for name in ("ocpkit", "ocpkit.problems", "ocpkit.solvers", "ocpkit.studies"):
         module = sys.modules.get(name)
         dirs.update(os.path.realpath(p) for p in getattr(module, "__path__", ()))
@@ -82,7 +86,7 @@ def _library_dirs() -> tuple[str, ...]:
 
 
 def where_raised(exc: BaseException, own=()) -> str | None:
-    """"file:line" in the user's code where ``exc`` was raised: a SyntaxError's own line, else the innermost frame of
+    """ "file:line" in the user's code where ``exc`` was raised: a SyntaxError's own line, else the innermost frame of
     its traceback in one of the files ``own`` or outside ocpkit, the standard library and installed packages."""
     if isinstance(exc, SyntaxError) and exc.filename and not str(exc.filename).startswith("<") and exc.lineno:
         return f"{_shown(exc.filename)}:{exc.lineno}"
@@ -150,8 +154,13 @@ def _dynamics_error(model: Model, x, u, value, context: str) -> DynamicsError:
     fmt = lambda v: "[" + ", ".join(repr(float(a)) for a in v) + "]"  # noqa: E731  exact: a NaN may lie at an edge
     where = origin[1] if origin else None
     notes = "; ".join(n for n in ((f"{who.split('(')[0]} is at {where}" if where else ""), context) if n)
-    return DynamicsError(f"{who} returned {what} in {entries} at x = {fmt(x)}, u = {fmt(u)}"
-                         + (f" ({notes})" if notes else ""), where, x=x.copy(), u=u.copy(), rows=rows)
+    return DynamicsError(
+        f"{who} returned {what} in {entries} at x = {fmt(x)}, u = {fmt(u)}" + (f" ({notes})" if notes else ""),
+        where,
+        x=x.copy(),
+        u=u.copy(),
+        rows=rows,
+    )
 
 
 class Problem:
@@ -198,8 +207,9 @@ class Problem:
         if error not in self._models:
             model = self.dynamics(error)
             if not isinstance(model, Model):
-                raise TypeError(f"{type(self).__name__}.dynamics({error}) must return an ocpkit.Model, "
-                                f"got {type(model).__name__}")
+                raise TypeError(
+                    f"{type(self).__name__}.dynamics({error}) must return an ocpkit.Model, got {type(model).__name__}"
+                )
             # who made it, for a message naming the user's hook when its ẋ is NaN (check_dynamics)
             model.origin = (f"{type(self).__name__}.dynamics(error)", where_defined(type(self).dynamics))
             self._models[error] = model
@@ -213,8 +223,16 @@ class Problem:
     def _models(self) -> dict:
         return {}
 
-    def ocp(self, *, knots: int | None = None, horizon: int | None = None, error: float = 1.0,
-            parameterization: str = "linear", dt: float | None = None, **overrides) -> OCP:
+    def ocp(
+        self,
+        *,
+        knots: int | None = None,
+        horizon: int | None = None,
+        error: float = 1.0,
+        parameterization: str = "linear",
+        dt: float | None = None,
+        **overrides,
+    ) -> OCP:
         """The MPC problem: ``knots`` None means traditional MPC (p = T) — unlike the command line, which takes 5
         knots unless told otherwise (:data:`ocpkit.solvers.methods.KNOTS`); other keywords override defaults or set
         the OCP's options, e.g. ``integrator="euler"`` for the controller's prediction (the plant keeps RK4)."""
@@ -248,11 +266,17 @@ class GoalInputOCP(OCP):
         super().__init__(*args, **kwargs)
         if not isinstance(goal_input, ca.Function):
             raise TypeError(f"goal_input must be a casadi.Function x_goal -> u, got {type(goal_input).__name__}")
-        if (goal_input.n_in() != 1 or goal_input.n_out() != 1 or goal_input.size_in(0) != (self.nx, 1)
-                or goal_input.size_out(0) != (self.nu, 1)):
-            raise ValueError(f"goal_input must map one ({self.nx}, 1) goal to one ({self.nu}, 1) input, got "
-                             f"{goal_input.size_in(0) if goal_input.n_in() else None} -> "
-                             f"{goal_input.size_out(0) if goal_input.n_out() else None}")
+        if (
+            goal_input.n_in() != 1
+            or goal_input.n_out() != 1
+            or goal_input.size_in(0) != (self.nx, 1)
+            or goal_input.size_out(0) != (self.nu, 1)
+        ):
+            raise ValueError(
+                f"goal_input must map one ({self.nx}, 1) goal to one ({self.nu}, 1) input, got "
+                f"{goal_input.size_in(0) if goal_input.n_in() else None} -> "
+                f"{goal_input.size_out(0) if goal_input.n_out() else None}"
+            )
         self.goal_input = goal_input
 
     def input_error(self, u, x_goal):
@@ -299,11 +323,28 @@ class URDFRobot(Problem):
 
     link_radius = 0.06
 
-    def __init__(self, urdf, *, locked_joints=(), locked_positions=None, damping=None, friction=None,
-                 effort_limits=None, gravity: bool = True, gravity_compensation: bool = True,
-                 position_bounds: bool = False, name: str | None = None, dt: float = 0.01, horizon: int = 50,
-                 duration: float = 2.0, q_weight: float = 100.0, qd_weight: float = 1.0, r_weight: float = 1e-3,
-                 step: float = 0.5, end_effector: str | None = None):
+    def __init__(
+        self,
+        urdf,
+        *,
+        locked_joints=(),
+        locked_positions=None,
+        damping=None,
+        friction=None,
+        effort_limits=None,
+        gravity: bool = True,
+        gravity_compensation: bool = True,
+        position_bounds: bool = False,
+        name: str | None = None,
+        dt: float = 0.01,
+        horizon: int = 50,
+        duration: float = 2.0,
+        q_weight: float = 100.0,
+        qd_weight: float = 1.0,
+        r_weight: float = 1e-3,
+        step: float = 0.5,
+        end_effector: str | None = None,
+    ):
         from ocpkit.model.rigid_body import Chain, load_urdf, position_limits
 
         self.urdf = str(urdf)
@@ -315,11 +356,10 @@ class URDFRobot(Problem):
             raise ValueError(f"horizon must be an integer >= 1, got {horizon!r}")
         self.horizon = int(horizon)
         self.damping = self.chain.coefficients(self.pin_model.damping if damping is None else damping, "damping")
-        self.friction = self.chain.coefficients(self.pin_model.friction if friction is None else friction,
-                                                "friction")
+        self.friction = self.chain.coefficients(self.pin_model.friction if friction is None else friction, "friction")
         limits = np.asarray(self.pin_model.effortLimit, dtype=float) if effort_limits is None else effort_limits
         self.tau_max = self.chain.coefficients(limits, "effort_limits")
-        self.tau_max[self.tau_max == 0] = np.inf          # a URDF without <limit effort> reads as 0
+        self.tau_max[self.tau_max == 0] = np.inf  # a URDF without <limit effort> reads as 0
         self.gravity, self.gravity_compensation = bool(gravity), bool(gravity_compensation)
         self.position_bounds = bool(position_bounds)
         self.q_weight, self.qd_weight = positive(q_weight, "q_weight"), positive(qd_weight, "qd_weight")
@@ -331,8 +371,9 @@ class URDFRobot(Problem):
         self.velocity_limit = np.where(velocity > 0, velocity, np.inf)  # the URDF's <limit velocity>; 0: none
         kin = self.kinematics
         if end_effector is not None and end_effector not in kin.frames:
-            raise ValueError(f"end_effector {end_effector!r} is not a frame of {self.urdf}; its frames: "
-                             f"{', '.join(kin.frames)}")
+            raise ValueError(
+                f"end_effector {end_effector!r} is not a frame of {self.urdf}; its frames: {', '.join(kin.frames)}"
+            )
         self.end_effector = end_effector or kin.tip() or kin.joints[-1]
 
     @cached_property
@@ -349,11 +390,18 @@ class URDFRobot(Problem):
     def dynamics(self, error: float) -> Model:
         n = self.chain.n
         x, u = ca.SX.sym("x", 2 * n), ca.SX.sym("u", n)
-        qdd = self.chain.forward_dynamics(x[:n], x[n:], u, damping=self.damping, friction=self.friction,
-                                          inertia_scale=error, gravity=self.gravity)
+        qdd = self.chain.forward_dynamics(
+            x[:n], x[n:], u, damping=self.damping, friction=self.friction, inertia_scale=error, gravity=self.gravity
+        )
         names = self.joint_names
-        return Model(self.name, x, u, ca.vertcat(x[n:], qdd), state_names=[f"q_{j}" for j in names]
-                     + [f"qd_{j}" for j in names], input_names=[f"tau_{j}" for j in names])
+        return Model(
+            self.name,
+            x,
+            u,
+            ca.vertcat(x[n:], qdd),
+            state_names=[f"q_{j}" for j in names] + [f"qd_{j}" for j in names],
+            input_names=[f"tau_{j}" for j in names],
+        )
 
     def goal_input(self) -> ca.Function | None:
         if not (self.gravity and self.gravity_compensation):
@@ -365,8 +413,7 @@ class URDFRobot(Problem):
     def defaults(self) -> dict:
         n = self.chain.n
         Q = np.diag(np.r_[np.full(n, self.q_weight), np.full(n, self.qd_weight)])
-        out = {"Q": Q, "R": self.r_weight * np.eye(n), "Q_terminal": Q, "u_min": -self.tau_max,
-               "u_max": self.tau_max}
+        out = {"Q": Q, "R": self.r_weight * np.eye(n), "Q_terminal": Q, "u_min": -self.tau_max, "u_max": self.tau_max}
         if self.position_bounds:
             out["x_min"] = np.r_[self.q_min, np.full(n, -np.inf)]
             out["x_max"] = np.r_[self.q_max, np.full(n, np.inf)]
@@ -380,7 +427,6 @@ class URDFRobot(Problem):
         mid, half = (lo + hi) / 2, (hi - lo) / 4
         q0 = rng.uniform(mid - half, mid + half)
         # A prismatic joint's step is scaled to its range (fingers travel centimetres, not half a metre).
-        step = np.where(np.array(self.chain.revolute) | ~bounded, self.step,
-                        np.minimum(self.step, half))
+        step = np.where(np.array(self.chain.revolute) | ~bounded, self.step, np.minimum(self.step, half))
         qg = np.clip(q0 + rng.uniform(-1.0, 1.0, size=n) * step, self.q_min, self.q_max)
         return np.r_[q0, np.zeros(n)], np.r_[qg, np.zeros(n)]

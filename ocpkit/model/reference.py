@@ -11,6 +11,7 @@ its window at the step's time t: g(t + k·dt). :class:`ObstaclePath` gives the o
 function of time, and a window that predicts them over the horizon at constant velocity (the velocity now, by
 finite differences unless given).
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -111,7 +112,10 @@ class ObstaclePath:
         now = self.at(t)
         out = np.repeat(now[None], horizon + 1, axis=0)
         if self.predict:
-            v = (np.asarray(self.velocity(float(t)), dtype=float).reshape(-1, 3) if self.velocity is not None
-                 else (now[:, :3] - self.at(t - dt)[:, :3]) / dt)
+            v = (
+                np.asarray(self.velocity(float(t)), dtype=float).reshape(-1, 3)
+                if self.velocity is not None
+                else (now[:, :3] - self.at(t - dt)[:, :3]) / dt
+            )
             out[:, :, :3] += dt * np.arange(horizon + 1)[:, None, None] * v[None]
         return out

@@ -24,6 +24,7 @@ pinocchio is the numerical reference in the tests; every controller sees only th
 The recursions use plain 3-vector / 3×3 block algebra so that CasADi's SX simplification drops every
 structural zero of the joint axes and placements.
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -33,11 +34,20 @@ import numpy as np
 
 _X, _Y, _Z = (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)
 # pinocchio joint kind -> (revolute?, axis in the joint frame); None: the axis is read from the joint.
-_JOINTS = {"JointModelRX": (True, _X), "JointModelRY": (True, _Y), "JointModelRZ": (True, _Z),
-           "JointModelRUBX": (True, _X), "JointModelRUBY": (True, _Y), "JointModelRUBZ": (True, _Z),
-           "JointModelRevoluteUnaligned": (True, None), "JointModelRevoluteUnboundedUnaligned": (True, None),
-           "JointModelPX": (False, _X), "JointModelPY": (False, _Y), "JointModelPZ": (False, _Z),
-           "JointModelPrismaticUnaligned": (False, None)}
+_JOINTS = {
+    "JointModelRX": (True, _X),
+    "JointModelRY": (True, _Y),
+    "JointModelRZ": (True, _Z),
+    "JointModelRUBX": (True, _X),
+    "JointModelRUBY": (True, _Y),
+    "JointModelRUBZ": (True, _Z),
+    "JointModelRevoluteUnaligned": (True, None),
+    "JointModelRevoluteUnboundedUnaligned": (True, None),
+    "JointModelPX": (False, _X),
+    "JointModelPY": (False, _Y),
+    "JointModelPZ": (False, _Z),
+    "JointModelPrismaticUnaligned": (False, None),
+}
 # Rotation entries within this of 0 or ±1 are snapped to exact values (URDF angles such as 1.57079632679
 # leave 1e-12 residues); that keeps SX expressions free of terms that are zero in the true kinematics.
 _SNAP = 1e-10
@@ -64,8 +74,7 @@ class Chain:
         if n < 1:
             raise ValueError("model must have at least one joint")
         if model.nv != n:
-            raise ValueError(f"model must hold 1-DoF joints only (revolute or prismatic): nv={model.nv}, "
-                             f"joints={n}")
+            raise ValueError(f"model must hold 1-DoF joints only (revolute or prismatic): nv={model.nv}, joints={n}")
         self.n = n
         self.names = [model.names[i] for i in range(1, n + 1)]
         self.parents, self.revolute = [], []
@@ -75,14 +84,16 @@ class Chain:
             joint = model.joints[i]
             kind = joint.shortname()
             if kind not in _JOINTS:
-                raise ValueError(f"model joint {model.names[i]!r} is {kind}; only 1-DoF revolute and prismatic "
-                                 "joints are supported (lock the others with locked_joints=)")
+                raise ValueError(
+                    f"model joint {model.names[i]!r} is {kind}; only 1-DoF revolute and prismatic "
+                    "joints are supported (lock the others with locked_joints=)"
+                )
             if joint.idx_v != i - 1:
                 raise ValueError(f"model joint {model.names[i]!r} has velocity index {joint.idx_v}, expected {i - 1}")
             revolute, axis = _JOINTS[kind]
             if axis is None:
                 axis = _joint_axis(model, i, revolute)
-            parent = model.parents[i] - 1                      # -1: the fixed base
+            parent = model.parents[i] - 1  # -1: the fixed base
             if parent >= i - 1:
                 raise ValueError(f"model joint {model.names[i]!r} is listed before its parent")
             placement = model.jointPlacements[i]
@@ -121,22 +132,25 @@ class Chain:
         X, Sq, v, c, IA, pA = [None] * n, [None] * n, [None] * n, [None] * n, [None] * n, [None] * n
         for i in range(n):
             X[i] = self._transform(i, q[i])
-            Sq[i] = _scale(self._S[i], qd[i])                      # joint velocity S q̇
+            Sq[i] = _scale(self._S[i], qd[i])  # joint velocity S q̇
             vi = (_zeros(), _zeros()) if par[i] < 0 else _motion_inv(X[i], v[par[i]])
             v[i] = (vi[0] + Sq[i][0], vi[1] + Sq[i][1])
-            c[i] = _motion_cross(v[i], Sq[i])                      # v × S q̇ (bias acceleration)
+            c[i] = _motion_cross(v[i], Sq[i])  # v × S q̇ (bias acceleration)
             IA[i] = self._body(i)
             pA[i] = _force_cross(v[i], _inertia_times(IA[i], v[i]))
         U, D, u = [None] * n, [None] * n, [None] * n
         for i in reversed(range(n)):
-            U[i] = _inertia_times(IA[i], self._S[i])                   # U = I^A S
+            U[i] = _inertia_times(IA[i], self._S[i])  # U = I^A S
             D[i] = _dot(self._S[i], U[i]) + self.armature[i]
             u[i] = tau[i] - _dot(self._S[i], pA[i])
             p = par[i]
             if p >= 0:
                 A, B, C = IA[i]
-                Ia = (A - ca.mtimes(U[i][0], U[i][0].T) / D[i], B - ca.mtimes(U[i][0], U[i][1].T) / D[i],
-                      C - ca.mtimes(U[i][1], U[i][1].T) / D[i])
+                Ia = (
+                    A - ca.mtimes(U[i][0], U[i][0].T) / D[i],
+                    B - ca.mtimes(U[i][0], U[i][1].T) / D[i],
+                    C - ca.mtimes(U[i][1], U[i][1].T) / D[i],
+                )
                 ff = _inertia_times(Ia, c[i])
                 pa = (pA[i][0] + ff[0] + U[i][0] * (u[i] / D[i]), pA[i][1] + ff[1] + U[i][1] * (u[i] / D[i]))
                 IA[p] = _add_inertia(IA[p], _inertia_act(X[i], Ia))
@@ -159,10 +173,10 @@ class Chain:
         Ic = [self._body(i) for i in range(n)]
         M = ca.SX.zeros(n, n)
         for i in reversed(range(n)):
-            F = _inertia_times(Ic[i], self._S[i])                  # I^c S: force of a unit joint rate
+            F = _inertia_times(Ic[i], self._S[i])  # I^c S: force of a unit joint rate
             M[i, i] = _dot(self._S[i], F) + self.armature[i]
             j = i
-            while par[j] >= 0:                                     # up the ancestors of i
+            while par[j] >= 0:  # up the ancestors of i
                 F = _force_act(X[j], F)
                 j = par[j]
                 M[i, j] = M[j, i] = _dot(self._S[j], F)
@@ -207,8 +221,18 @@ class Chain:
         zero = ca.SX.zeros(self.n)
         return self.rnea(q, zero, zero)
 
-    def forward_dynamics(self, q, qd, tau, *, damping=0.0, friction=0.0, friction_velocity: float = 0.01,
-                         inertia_scale: float = 1.0, gravity: bool = True):
+    def forward_dynamics(
+        self,
+        q,
+        qd,
+        tau,
+        *,
+        damping=0.0,
+        friction=0.0,
+        friction_velocity: float = 0.01,
+        inertia_scale: float = 1.0,
+        gravity: bool = True,
+    ):
         """q̈ of  e M(q) q̈ + h(q, q̇) + b q̇ + f tanh(q̇ / v_f) = τ  with the paper's error multiplier e on M(q).
 
         Exact and O(n) without any inverse: e M q̈ = τ' − h  ⇔  q̈ = ABA(q, q̇, τ') / e with τ' = τ − b q̇ − …,
@@ -272,7 +296,7 @@ def _joint_axis(model, i: int, revolute: bool) -> np.ndarray:
 
     joint = model.joints[i]
     data = joint.createData()
-    joint.calc(data, pin.neutral(model)[joint.idx_q: joint.idx_q + joint.nq])
+    joint.calc(data, pin.neutral(model)[joint.idx_q : joint.idx_q + joint.nq])
     S = np.asarray(data.S, dtype=float).ravel()
     axis = S[3:] if revolute else S[:3]
     return axis / np.linalg.norm(axis)
@@ -283,8 +307,10 @@ def position_limits(model) -> tuple[np.ndarray, np.ndarray]:
     configuration entry); −∞, +∞ for a continuous joint, whose cos/sin bounds in pinocchio are no angle limits."""
     lo, hi = np.asarray(model.lowerPositionLimit, dtype=float), np.asarray(model.upperPositionLimit, dtype=float)
     joints = [model.joints[i] for i in range(1, model.njoints)]
-    return (np.array([lo[j.idx_q] if j.nq == 1 else -np.inf for j in joints]),
-            np.array([hi[j.idx_q] if j.nq == 1 else np.inf for j in joints]))
+    return (
+        np.array([lo[j.idx_q] if j.nq == 1 else -np.inf for j in joints]),
+        np.array([hi[j.idx_q] if j.nq == 1 else np.inf for j in joints]),
+    )
 
 
 def _snap(a: np.ndarray) -> np.ndarray:
@@ -403,7 +429,7 @@ def load_urdf(path, *, locked_joints=(), locked_positions=None):
     lo, hi = model.lowerPositionLimit, model.upperPositionLimit
     for name in locked:
         joint = model.joints[model.getJointId(name)]
-        continuous = joint.nq == 2 and joint.nv == 1      # an unbounded revolute joint: q holds (cos θ, sin θ)
+        continuous = joint.nq == 2 and joint.nv == 1  # an unbounded revolute joint: q holds (cos θ, sin θ)
         if joint.nq != 1 and not continuous:
             if name in positions:
                 raise ValueError(f"locked_positions: joint {name!r} has {joint.nq} configuration entries")
@@ -412,5 +438,5 @@ def load_urdf(path, *, locked_joints=(), locked_positions=None):
         value = float(positions.get(name, np.clip(0.0, lo[k], hi[k]) if lo[k] <= hi[k] and not continuous else 0.0))
         if not np.isfinite(value):
             raise ValueError(f"locked_positions[{name!r}] must be finite, got {value!r}")
-        q[k: k + joint.nq] = (np.cos(value), np.sin(value)) if continuous else value
+        q[k : k + joint.nq] = (np.cos(value), np.sin(value)) if continuous else value
     return pin.buildReducedModel(model, [model.getJointId(name) for name in locked], q)

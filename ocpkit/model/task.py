@@ -26,6 +26,7 @@ at or above ``margin`` at x_1 … x_T. Each controller takes this in the way tha
 Residuals are CasADi expressions, so the QPs take their Gauss–Newton model (ocpkit.qp.transcription), IPOPT their
 exact derivatives and the sampling kernels their translation (ocpkit.codegen.kernels.translate).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -89,8 +90,11 @@ def check_frame(kinematics, frame: str) -> str:
 
     if not moves(frame):
         moving = [f for f in kinematics.frames if moves(f)]
-        raise FixedFrameError(frame, "is fixed to the world (it does not move with the joints); a target needs one of "
-                                     f"the robot's moving frames: {', '.join(moving)}")
+        raise FixedFrameError(
+            frame,
+            "is fixed to the world (it does not move with the joints); a target needs one of "
+            f"the robot's moving frames: {', '.join(moving)}",
+        )
     return frame
 
 
@@ -109,8 +113,10 @@ def check_point(point, radius: float, name: str) -> np.ndarray:
     scale = float(np.abs(p).max())
     distance = scale * float(np.linalg.norm(p / scale)) if scale else 0.0  # no overflow at 1e300
     if distance > radius:
-        raise ValueError(f"{name} {p.tolist()} is {distance:.3g} m from the world origin, beyond the robot's "
-                         f"plausible workspace ({radius:.3g} m, {WORKSPACE_FACTOR:g} × its size); give it in metres")
+        raise ValueError(
+            f"{name} {p.tolist()} is {distance:.3g} m from the world origin, beyond the robot's "
+            f"plausible workspace ({radius:.3g} m, {WORKSPACE_FACTOR:g} × its size); give it in metres"
+        )
     return p
 
 
@@ -141,8 +147,19 @@ class Term:
     (target, name) -> target, if given, validates a target when the goal is built
     (:meth:`ocpkit.model.ocp.OCP.goal`)."""
 
-    def __init__(self, name: str, residual, weight=1.0, *, target_size: int = 0, stage: bool = True,
-                 terminal: bool = False, terminal_weight=None, active: bool = True, target_check=None):
+    def __init__(
+        self,
+        name: str,
+        residual,
+        weight=1.0,
+        *,
+        target_size: int = 0,
+        stage: bool = True,
+        terminal: bool = False,
+        terminal_weight=None,
+        active: bool = True,
+        target_check=None,
+    ):
         if not isinstance(name, str) or not name.isidentifier():
             raise ValueError(f"a term's name must be a Python identifier (it names its target), got {name!r}")
         if name in ("state", "input", "x_goal"):
@@ -167,8 +184,11 @@ class Term:
         if not isinstance(r, ca.SX):
             r = ca.SX(r)
         w = _vector(self._weight, f"term {self.name!r}: weight", r.numel())
-        wT = w if self._terminal_weight is None else _vector(self._terminal_weight,
-                                                             f"term {self.name!r}: terminal_weight", r.numel())
+        wT = (
+            w
+            if self._terminal_weight is None
+            else _vector(self._terminal_weight, f"term {self.name!r}: terminal_weight", r.numel())
+        )
         if (w < 0).any() or (wT < 0).any():
             raise ValueError(f"term {self.name!r}: weights must be >= 0")
         if self.terminal and ca.depends_on(r, u):
@@ -176,8 +196,17 @@ class Term:
         return r, w, wT
 
 
-def FramePosition(kinematics, frame: str, weight=1.0, *, name: str = "position", stage: bool = True,
-                  terminal: bool = True, terminal_weight=None, active: bool = True) -> Term:
+def FramePosition(
+    kinematics,
+    frame: str,
+    weight=1.0,
+    *,
+    name: str = "position",
+    stage: bool = True,
+    terminal: bool = True,
+    terminal_weight=None,
+    active: bool = True,
+) -> Term:
     """p_frame(q) − target: a frame's world position (3 entries) towards a target point given in the goal (within
     :func:`workspace_radius` of the world origin)."""
     check_frame(kinematics, frame)
@@ -188,30 +217,64 @@ def FramePosition(kinematics, frame: str, weight=1.0, *, name: str = "position",
         radius = workspace_radius(kinematics) if radius is None else radius
         return check_point(target, radius, where)
 
-    return Term(name, lambda x, u, target: kinematics.position(x[:kinematics.n], frame) - target, weight,
-                target_size=3, stage=stage, terminal=terminal, terminal_weight=terminal_weight, active=active,
-                target_check=check)
+    return Term(
+        name,
+        lambda x, u, target: kinematics.position(x[: kinematics.n], frame) - target,
+        weight,
+        target_size=3,
+        stage=stage,
+        terminal=terminal,
+        terminal_weight=terminal_weight,
+        active=active,
+        target_check=check,
+    )
 
 
-def FrameOrientation(kinematics, frame: str, weight=1.0, *, name: str = "orientation", stage: bool = True,
-                     terminal: bool = True, terminal_weight=None, active: bool = True) -> Term:
+def FrameOrientation(
+    kinematics,
+    frame: str,
+    weight=1.0,
+    *,
+    name: str = "orientation",
+    stage: bool = True,
+    terminal: bool = True,
+    terminal_weight=None,
+    active: bool = True,
+) -> Term:
     """½ vee(R_tᵀR − RᵀR_t): a frame's orientation R(q) towards a target rotation R_t (the goal carries its 9
     entries row by row). It is sin θ times the rotation axis of R_tᵀR: zero at the target, smooth everywhere."""
     check_frame(kinematics, frame)
 
     def residual(x, u, target):
-        R = kinematics.placement(x[:kinematics.n], frame)[0]
+        R = kinematics.placement(x[: kinematics.n], frame)[0]
         # The target is R_t row by row; CasADi's reshape fills column by column, so it gives R_tᵀ.
         A = ca.mtimes(ca.reshape(target, 3, 3), R)
         A = A - A.T  # 2 sin θ [a]x for R_tᵀR = exp(θ [a]x)
         return 0.5 * ca.vertcat(A[2, 1], A[0, 2], A[1, 0])
 
-    return Term(name, residual, weight, target_size=9, stage=stage, terminal=terminal,
-                terminal_weight=terminal_weight, active=active, target_check=check_rotation)
+    return Term(
+        name,
+        residual,
+        weight,
+        target_size=9,
+        stage=stage,
+        terminal=terminal,
+        terminal_weight=terminal_weight,
+        active=active,
+        target_check=check_rotation,
+    )
 
 
-def JointLimitBarrier(q_min, q_max, weight=1e3, *, margin: float = 0.05, name: str = "joint_limits",
-                      terminal: bool = True, active: bool = True) -> Term:
+def JointLimitBarrier(
+    q_min,
+    q_max,
+    weight=1e3,
+    *,
+    margin: float = 0.05,
+    name: str = "joint_limits",
+    terminal: bool = True,
+    active: bool = True,
+) -> Term:
     """A C¹ barrier at the joint limits: max(0, q − (q_max − margin)) + min(0, q − (q_min + margin)) per joint
     (zero inside the limits shrunk by ``margin``, linear beyond: quadratic cost). Infinite limits are skipped."""
     lo, hi = np.asarray(q_min, dtype=float).ravel(), np.asarray(q_max, dtype=float).ravel()
@@ -222,22 +285,41 @@ def JointLimitBarrier(q_min, q_max, weight=1e3, *, margin: float = 0.05, name: s
 
     def residual(x, u, target):
         q = x[ca.DM(idx.tolist())] if idx.size else ca.SX(0, 1)
-        return (ca.fmax(0, q - ca.DM(hi[idx] - margin)) + ca.fmin(0, q - ca.DM(lo[idx] + margin)))
+        return ca.fmax(0, q - ca.DM(hi[idx] - margin)) + ca.fmin(0, q - ca.DM(lo[idx] + margin))
 
     return Term(name, residual, weight, terminal=terminal, active=active)
 
 
-def UserTerm(name: str, residual, weight=1.0, *, target_size: int = 0, stage: bool = True, terminal: bool = False,
-             terminal_weight=None, active: bool = True) -> Term:
+def UserTerm(
+    name: str,
+    residual,
+    weight=1.0,
+    *,
+    target_size: int = 0,
+    stage: bool = True,
+    terminal: bool = False,
+    terminal_weight=None,
+    active: bool = True,
+) -> Term:
     """Any residual: a callable (x, u, target) -> CasADi column, or a casadi.Function of (x, u) or (x, u, target)."""
     if isinstance(residual, ca.Function):
         fn = residual
         if fn.n_in() not in (2, 3) or fn.n_out() != 1:
-            raise ValueError(f"term {name!r}: a Function residual takes (x, u) or (x, u, target) and returns one "
-                             f"column; got {fn.n_in()} inputs and {fn.n_out()} outputs")
+            raise ValueError(
+                f"term {name!r}: a Function residual takes (x, u) or (x, u, target) and returns one "
+                f"column; got {fn.n_in()} inputs and {fn.n_out()} outputs"
+            )
         residual = (lambda x, u, t: fn(x, u)) if fn.n_in() == 2 else (lambda x, u, t: fn(x, u, t))
-    return Term(name, residual, weight, target_size=target_size, stage=stage, terminal=terminal,
-                terminal_weight=terminal_weight, active=active)
+    return Term(
+        name,
+        residual,
+        weight,
+        target_size=target_size,
+        stage=stage,
+        terminal=terminal,
+        terminal_weight=terminal_weight,
+        active=active,
+    )
 
 
 @dataclass(frozen=True)
@@ -291,8 +373,10 @@ class Task:
             if not isinstance(o, Sphere):
                 raise TypeError(f"Task obstacles must be ocpkit.model.task.Sphere, got {type(o).__name__}")
         if self.obstacles and (self.kinematics is None or not self.robot):
-            raise ValueError("a Task with obstacles needs kinematics= and robot= (the robot's spheres, e.g. "
-                             "ocpkit.model.kinematics.spheres_along_links(problem.kinematics, problem.link_radius))")
+            raise ValueError(
+                "a Task with obstacles needs kinematics= and robot= (the robot's spheres, e.g. "
+                "ocpkit.model.kinematics.spheres_along_links(problem.kinematics, problem.link_radius))"
+            )
         self.margin = length(self.margin, "margin", signed=True)
         self.obstacle_weight = positive(self.obstacle_weight, "obstacle_weight")
 
@@ -352,14 +436,16 @@ class CompiledTask:
         stage, terminal, ws, wt, offset = [], [], [], [], 0
         self.names, self._rows = [], {"stage": {}, "terminal": {}}  # a term's rows in the stacked residuals
         for term in task.terms:
-            target = g[offset:offset + term.target_size]
+            target = g[offset : offset + term.target_size]
             offset += term.target_size
             if not term.active:
                 continue
             self.names.append(term.name)
             r, w, wT = term.expression(x, u, target)
-            for part, rs, weights, weight, on in (("stage", stage, ws, w, term.stage),
-                                                  ("terminal", terminal, wt, wT, term.terminal)):
+            for part, rs, weights, weight, on in (
+                ("stage", stage, ws, w, term.stage),
+                ("terminal", terminal, wt, wT, term.terminal),
+            ):
                 if on:
                     start = sum(len(v) for v in weights)
                     self._rows[part][term.name] = slice(start, start + r.numel())
@@ -368,11 +454,16 @@ class CompiledTask:
         rs, rt = ca.vertcat(*stage) if stage else ca.SX(0, 1), ca.vertcat(*terminal) if terminal else ca.SX(0, 1)
         self.stage_weight = np.concatenate(ws) if ws else np.zeros(0)
         self.terminal_weight = np.concatenate(wt) if wt else np.zeros(0)
-        self.stage_residual = ca.Function("task_stage_residual", [x, u, g],
-                                          [rs, ca.jacobian(rs, x), ca.jacobian(rs, u)], ["x", "u", "g"],
-                                          ["r", "r_x", "r_u"])
-        self.terminal_residual = ca.Function("task_terminal_residual", [x, g], [rt, ca.jacobian(rt, x)],
-                                             ["x", "g"], ["r", "r_x"])
+        self.stage_residual = ca.Function(
+            "task_stage_residual",
+            [x, u, g],
+            [rs, ca.jacobian(rs, x), ca.jacobian(rs, u)],
+            ["x", "u", "g"],
+            ["r", "r_x", "r_u"],
+        )
+        self.terminal_residual = ca.Function(
+            "task_terminal_residual", [x, g], [rt, ca.jacobian(rt, x)], ["x", "g"], ["r", "r_x"]
+        )
         self.pairs = task.pairs
         # The obstacles (4 × N: centre, radius) and each robot sphere's radius plus the margin kept from them (k)
         self.table = np.array([[*o.center, o.radius] for o in task.obstacles], dtype=float).reshape(-1, 4).T
@@ -387,8 +478,9 @@ class CompiledTask:
         d, d_x = self.clearance_at(xm, ca.DM(self.table))
         self.clearance = ca.Function("clearance", [xm], [d, d_x], ["x"], ["d", "d_x"])
         h = ca.fmax(0, -ca.mmin(values(xm, ca.DM(self.table))))
-        self.penalty = ca.Function("obstacle_penalty", [xm], [task.obstacle_weight * (h + 0.5 * h * h)], ["x"],
-                                   ["penalty"])
+        self.penalty = ca.Function(
+            "obstacle_penalty", [xm], [task.obstacle_weight * (h + 0.5 * h * h)], ["x"], ["penalty"]
+        )
 
     def term_cost(self, name: str, r, part: str):
         """Term ``name``'s r_iᵀW_ir_i from the stacked residuals ``r`` of ``part`` ("stage" or "terminal"); zero
@@ -413,10 +505,11 @@ class CompiledTask:
         from ocpkit.model.kinematics import sphere_centers
 
         kin, k = self.task.kinematics, len(self.task.robot)
-        C = sphere_centers(kin, self.task.robot)(x[:kin.n])
+        C = sphere_centers(kin, self.task.robot)(x[: kin.n])
         J = ca.densify(ca.jacobian(ca.vec(C), x))  # row 3i + a: ∂C[a, i]/∂x
-        return ca.Function("robot_spheres", [x], [C, ca.horzcat(*(J[3 * i:3 * i + 3, :] for i in range(k)))],
-                           ["x"], ["C", "C_x"])
+        return ca.Function(
+            "robot_spheres", [x], [C, ca.horzcat(*(J[3 * i : 3 * i + 3, :] for i in range(k)))], ["x"], ["C", "C_x"]
+        )
 
     def _mapped(self) -> tuple[ca.Function, ca.Function]:
         """``clearance_at`` (x, O) -> (d, d_x), and the same without the Jacobian (x, O) -> d: one pair's clearance
@@ -435,8 +528,7 @@ class CompiledTask:
         C, C_x = self.spheres(x)
         radii = ca.DM(self.radii).T
         d, d_x = both(C, C_x, radii, O)  # 1 × pairs and 1 × pairs·nx, pair i·N + j in block i·N + j
-        at = ca.Function("clearance_at", [x, O], [d.T, ca.reshape(d_x, nx, self.pairs).T], ["x", "O"],
-                         ["d", "d_x"])
+        at = ca.Function("clearance_at", [x, O], [d.T, ca.reshape(d_x, nx, self.pairs).T], ["x", "O"], ["d", "d_x"])
         return at, ca.Function("clearance_values", [x, O], [alone(C, radii, O).T], ["x", "O"], ["d"])
 
 
@@ -460,9 +552,20 @@ def clearances(kinematics, robot, obstacles, q_rows) -> np.ndarray:
     return out
 
 
-def reach(problem, obstacles=(), *, frame: str | None = None, position_weight: float = 1e3,
-          terminal_weight: float | None = None, margin: float = 0.01, link_radius: float | None = None,
-          obstacle_weight: float = REACH_OBSTACLE_WEIGHT, velocity_limits: bool = True, terms=(), **ocp_options):
+def reach(
+    problem,
+    obstacles=(),
+    *,
+    frame: str | None = None,
+    position_weight: float = 1e3,
+    terminal_weight: float | None = None,
+    margin: float = 0.01,
+    link_radius: float | None = None,
+    obstacle_weight: float = REACH_OBSTACLE_WEIGHT,
+    velocity_limits: bool = True,
+    terms=(),
+    **ocp_options,
+):
     """The OCP "bring ``frame`` to a point, clear of ``obstacles``" for a robot problem with ``kinematics``.
 
     Cost: the frame-position term "position" (``position_weight`` per m² at every stage and, ``terminal_weight``,
@@ -484,17 +587,23 @@ def reach(problem, obstacles=(), *, frame: str | None = None, position_weight: f
 
     kinematics = getattr(problem, "kinematics", None)
     if kinematics is None:
-        raise ValueError(f"{problem!r} has no kinematics: a reach task needs a robot problem with frames "
-                         "(nlink, puma560, baxter, panda, a URDF)")
+        raise ValueError(
+            f"{problem!r} has no kinematics: a reach task needs a robot problem with frames "
+            "(nlink, puma560, baxter, panda, a URDF)"
+        )
     frame = frame or problem.end_effector
     obstacles = [o if isinstance(o, Sphere) else Sphere.parse(o) for o in obstacles]
     radius = problem.link_radius if link_radius is None else length(link_radius, "link_radius")
     weight = positive(position_weight, "position_weight")
     terminal = weight if terminal_weight is None else positive(terminal_weight, "terminal_weight")
-    task = Task([FramePosition(kinematics, frame, weight, terminal_weight=terminal), *terms], obstacles,
-                kinematics=kinematics if obstacles else None,
-                robot=spheres_along_links(kinematics, radius) if obstacles else (), margin=margin,
-                obstacle_weight=obstacle_weight)
+    task = Task(
+        [FramePosition(kinematics, frame, weight, terminal_weight=terminal), *terms],
+        obstacles,
+        kinematics=kinematics if obstacles else None,
+        robot=spheres_along_links(kinematics, radius) if obstacles else (),
+        margin=margin,
+        obstacle_weight=obstacle_weight,
+    )
     defaults = problem.defaults()
     nq = kinematics.n
     if "Q" not in ocp_options:
@@ -504,8 +613,10 @@ def reach(problem, obstacles=(), *, frame: str | None = None, position_weight: f
         ocp_options.update(Q=Q, Q_terminal=Q)
     limit = getattr(problem, "velocity_limit", None)
     if velocity_limits and limit is not None and np.isfinite(limit).any() and not {"x_min", "x_max"} & set(ocp_options):
-        x_min, x_max = (np.array(defaults.get(key, np.full(2 * nq, sign * np.inf)), dtype=float)
-                        for key, sign in (("x_min", -1.0), ("x_max", 1.0)))
+        x_min, x_max = (
+            np.array(defaults.get(key, np.full(2 * nq, sign * np.inf)), dtype=float)
+            for key, sign in (("x_min", -1.0), ("x_max", 1.0))
+        )
         x_min[nq:], x_max[nq:] = np.maximum(x_min[nq:], -limit), np.minimum(x_max[nq:], limit)
         ocp_options.update(x_min=x_min, x_max=x_max)
     return problem.ocp(task=task, **ocp_options)

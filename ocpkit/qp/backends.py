@@ -8,6 +8,7 @@ sets itself up on the first solve (and again when the QP's structure changes), u
 ones, and forgets everything on ``reset``. Every operation that cannot be stopped from outside starts only if its
 measured time (``costs``) fits in what is left of the deadline.
 """
+
 from __future__ import annotations
 
 import time
@@ -23,12 +24,24 @@ from ocpkit.qp.sparse import SparseQP
 QP_SOLVERS = ("proxqp", "osqp", "hpipm", "daqp")
 # DAQP's exit flags (daqp/include/constants.h): their names and ocpkit statuses, for the Python step and the C
 # step's failures (ocpkit.export) alike.
-DAQP_EXIT = {1: ("optimal", SUCCESS), 2: ("soft optimal", SUCCESS), -1: ("infeasible", INFEASIBLE),
-             -2: ("cycling", LIMITED), -3: ("unbounded", INFEASIBLE), -4: ("iteration limit", LIMITED),
-             -5: ("nonconvex", EXCEPTION), -6: ("overdetermined initial working set", EXCEPTION),
-             -7: ("time limit", LIMITED)}
-DAQP_REASON = {-1: Reason.QP_INFEASIBLE, -3: Reason.QP_INFEASIBLE, -4: Reason.ITERATION_LIMIT,
-               -5: Reason.NOT_DEFINITE, -7: Reason.TIME_BUDGET}  # the failed flags' reasons, where one is said
+DAQP_EXIT = {
+    1: ("optimal", SUCCESS),
+    2: ("soft optimal", SUCCESS),
+    -1: ("infeasible", INFEASIBLE),
+    -2: ("cycling", LIMITED),
+    -3: ("unbounded", INFEASIBLE),
+    -4: ("iteration limit", LIMITED),
+    -5: ("nonconvex", EXCEPTION),
+    -6: ("overdetermined initial working set", EXCEPTION),
+    -7: ("time limit", LIMITED),
+}
+DAQP_REASON = {
+    -1: Reason.QP_INFEASIBLE,
+    -3: Reason.QP_INFEASIBLE,
+    -4: Reason.ITERATION_LIMIT,
+    -5: Reason.NOT_DEFINITE,
+    -7: Reason.TIME_BUDGET,
+}  # the failed flags' reasons, where one is said
 
 
 def daqp_exit_name(flag: int) -> str:
@@ -101,8 +114,9 @@ class ProxQP(QPBackend):
         if not reuse:
             n, n_eq, n_in, has_box = key
             self._key = None  # until init succeeds
-            self.solver = (self._module.QP(n, n_eq, n_in, box_constraints=True) if has_box
-                           else self._module.QP(n, n_eq, n_in))
+            self.solver = (
+                self._module.QP(n, n_eq, n_in, box_constraints=True) if has_box else self._module.QP(n, n_eq, n_in)
+            )
         solver = self.solver
         s = solver.settings
         # Relative tolerances too: on a 7-DoF URDF arm with error multiplier 0.5 (Hessian condition 1e11, gradient
@@ -136,8 +150,10 @@ class ProxQP(QPBackend):
                 return self._cold_again(qp, deadline, left_iter, iterations)
             chunk = f"chunk x{outer}"
             if not costs.fits(chunk, time_left(deadline)):
-                why = (f"time budget reached after {iterations} iterations (a chunk measured at "
-                       f"{1e3 * costs.predict(chunk):.3g} ms)")
+                why = (
+                    f"time budget reached after {iterations} iterations (a chunk measured at "
+                    f"{1e3 * costs.predict(chunk):.3g} ms)"
+                )
                 reason = Reason.TIME_BUDGET
                 break
             s.max_iter_in = min(self.CHUNK_INNER, left_iter)
@@ -161,14 +177,26 @@ class ProxQP(QPBackend):
         duals = (np.array(r.x), np.array(r.y), np.array(r.z))
         if not chunks:
             return Result(duals[0], duals, LIMITED, why, 0, reason=reason)
-        status = {out.PROXQP_SOLVED: SUCCESS, out.PROXQP_MAX_ITER_REACHED: LIMITED,
-                  out.PROXQP_PRIMAL_INFEASIBLE: INFEASIBLE, out.PROXQP_DUAL_INFEASIBLE: INFEASIBLE,
-                  out.PROXQP_SOLVED_CLOSEST_PRIMAL_FEASIBLE: INFEASIBLE}.get(r.info.status, EXCEPTION)
+        status = {
+            out.PROXQP_SOLVED: SUCCESS,
+            out.PROXQP_MAX_ITER_REACHED: LIMITED,
+            out.PROXQP_PRIMAL_INFEASIBLE: INFEASIBLE,
+            out.PROXQP_DUAL_INFEASIBLE: INFEASIBLE,
+            out.PROXQP_SOLVED_CLOSEST_PRIMAL_FEASIBLE: INFEASIBLE,
+        }.get(r.info.status, EXCEPTION)
         raw = str(r.info.status).rsplit(".", 1)[-1]
         if status == LIMITED and why is not None:
             raw = f"{why} ({raw})"
-        return Result(duals[0], duals, status, raw, int(iterations), y=duals[1],
-                      w=self._bound_duals(qp, duals[2], key[3]), reason=reason if status == LIMITED else None)
+        return Result(
+            duals[0],
+            duals,
+            status,
+            raw,
+            int(iterations),
+            y=duals[1],
+            w=self._bound_duals(qp, duals[2], key[3]),
+            reason=reason if status == LIMITED else None,
+        )
 
     @staticmethod
     def _bound_duals(qp: QP, z_in: np.ndarray, has_box: bool) -> np.ndarray:
@@ -177,13 +205,23 @@ class ProxQP(QPBackend):
         if not has_box:
             return z_in
         k = len(qp.box)
-        return np.r_[z_in[z_in.size - qp.n:][qp.box], z_in[: qp.l.size - k]]
+        return np.r_[z_in[z_in.size - qp.n :][qp.box], z_in[: qp.l.size - k]]
 
     def _cold_again(self, qp: QP, deadline: float | None, max_iter: int, spent: int) -> Result:
         """The QP again from a cold start, with ``max_iter`` inner iterations left (``spent`` already used)."""
         self.reset()
-        res = self._solve(qp, None, deadline, max_iter) if max_iter > 0 else Result(
-            np.full(qp.n, np.nan), (), LIMITED, f"max_iter {self.max_iter} reached", 0, reason=Reason.ITERATION_LIMIT)
+        res = (
+            self._solve(qp, None, deadline, max_iter)
+            if max_iter > 0
+            else Result(
+                np.full(qp.n, np.nan),
+                (),
+                LIMITED,
+                f"max_iter {self.max_iter} reached",
+                0,
+                reason=Reason.ITERATION_LIMIT,
+            )
+        )
         res.iterations += spent
         return res
 
@@ -231,8 +269,20 @@ class OSQP(QPBackend):
         if op == "setup":
             self.solver = None
             solver = self._osqp.OSQP()
-            solver.setup(P=P, q=q, A=A, l=lb, u=ub, verbose=False, eps_abs=self.eps, eps_rel=self.eps,
-                         max_iter=self.max_iter, polishing=False, warm_starting=True, time_limit=limit)
+            solver.setup(
+                P=P,
+                q=q,
+                A=A,
+                l=lb,
+                u=ub,
+                verbose=False,
+                eps_abs=self.eps,
+                eps_rel=self.eps,
+                max_iter=self.max_iter,
+                polishing=False,
+                warm_starting=True,
+                time_limit=limit,
+            )
             self.solver, self._nnz, self._shape = solver, (P.nnz, A.nnz), shape
         else:
             solver = self.solver
@@ -242,27 +292,43 @@ class OSQP(QPBackend):
             if raw is None:  # no access to the return codes: the wrapper's update (unchecked)
                 solver.update(Px=P.data, Ax=A.data, q=q, l=lb, u=ub)
             else:
-                codes = (raw.update_data_vec(q=q, l=np.maximum(lb, -inf), u=np.minimum(ub, inf)),
-                         raw.update_data_mat(P_x=P.data, P_i=None, A_x=A.data, A_i=None))
+                codes = (
+                    raw.update_data_vec(q=q, l=np.maximum(lb, -inf), u=np.minimum(ub, inf)),
+                    raw.update_data_mat(P_x=P.data, P_i=None, A_x=A.data, A_i=None),
+                )
                 if any(codes):
                     self.solver = None  # the workspace still holds the previous problem
-                    return Result(np.full(qp.n, np.nan), (), EXCEPTION,
-                                  f"OSQP update failed (codes {codes[0]}, {codes[1]})", 0, reason=Reason.SOLVER_ERROR)
+                    return Result(
+                        np.full(qp.n, np.nan),
+                        (),
+                        EXCEPTION,
+                        f"OSQP update failed (codes {codes[0]}, {codes[1]})",
+                        0,
+                        reason=Reason.SOLVER_ERROR,
+                    )
         costs.add(op, time.perf_counter() - t)
         if warm is not None and len(warm) == 2 and warm[0].shape == (qp.n,) and warm[1].shape == lb.shape:
             solver.warm_start(x=warm[0], y=warm[1])
         r = solver.solve(raise_error=False)
         S = self._osqp.SolverStatus
-        status = {S.OSQP_SOLVED: SUCCESS, S.OSQP_MAX_ITER_REACHED: LIMITED, S.OSQP_TIME_LIMIT_REACHED: LIMITED,
-                  S.OSQP_SOLVED_INACCURATE: LIMITED, S.OSQP_PRIMAL_INFEASIBLE: INFEASIBLE,
-                  S.OSQP_PRIMAL_INFEASIBLE_INACCURATE: INFEASIBLE, S.OSQP_DUAL_INFEASIBLE: INFEASIBLE,
-                  S.OSQP_DUAL_INFEASIBLE_INACCURATE: INFEASIBLE}.get(r.info.status_val, EXCEPTION)
-        reason = {S.OSQP_MAX_ITER_REACHED: Reason.ITERATION_LIMIT,
-                  S.OSQP_TIME_LIMIT_REACHED: Reason.TIME_BUDGET}.get(r.info.status_val)
+        status = {
+            S.OSQP_SOLVED: SUCCESS,
+            S.OSQP_MAX_ITER_REACHED: LIMITED,
+            S.OSQP_TIME_LIMIT_REACHED: LIMITED,
+            S.OSQP_SOLVED_INACCURATE: LIMITED,
+            S.OSQP_PRIMAL_INFEASIBLE: INFEASIBLE,
+            S.OSQP_PRIMAL_INFEASIBLE_INACCURATE: INFEASIBLE,
+            S.OSQP_DUAL_INFEASIBLE: INFEASIBLE,
+            S.OSQP_DUAL_INFEASIBLE_INACCURATE: INFEASIBLE,
+        }.get(r.info.status_val, EXCEPTION)
+        reason = {S.OSQP_MAX_ITER_REACHED: Reason.ITERATION_LIMIT, S.OSQP_TIME_LIMIT_REACHED: Reason.TIME_BUDGET}.get(
+            r.info.status_val
+        )
         z = np.array(r.x, dtype=float) if r.x is not None else np.full(qp.n, np.nan)
         y = np.array(r.y, dtype=float) if r.y is not None else np.zeros(lb.size)
-        return Result(z, (z, y), status, r.info.status, int(r.info.iter), y=y[: qp.b.size], w=y[qp.b.size:],
-                      reason=reason)
+        return Result(
+            z, (z, y), status, r.info.status, int(r.info.iter), y=y[: qp.b.size], w=y[qp.b.size :], reason=reason
+        )
 
 
 class HPIPM(QPBackend):
@@ -278,8 +344,10 @@ class HPIPM(QPBackend):
     def __init__(self, tr, max_iter: int, eps: float):
         n, m, T = tr.n, tr.m, tr.T
         nX = n * (T + 1)
-        self._perm = np.concatenate([np.r_[np.arange(k * n, (k + 1) * n), nX + np.arange(k * m, (k + 1) * m)]
-                                     for k in range(T)] + [np.arange(T * n, nX)])
+        self._perm = np.concatenate(
+            [np.r_[np.arange(k * n, (k + 1) * n), nX + np.arange(k * m, (k + 1) * m)] for k in range(T)]
+            + [np.arange(T * n, nX)]
+        )
         self._n, self._T, self._m = n, T, m
         self.max_iter, self.eps = max_iter, eps
         self.costs = OperationCosts()
@@ -293,9 +361,22 @@ class HPIPM(QPBackend):
 
         n, m, T = self._n, self._m, self._T
         tol = max(self.eps, 1e-6)
-        opts = {"N": T, "nx": [n] * (T + 1), "nu": [m] * T + [0], "ng": [0] * (T + 1), "error_on_fail": False,
-                "hpipm": {"mode": "balance", "iter_max": self.max_iter, "warm_start": 0, "res_g_max": tol,
-                          "res_b_max": tol, "res_d_max": tol, "res_m_max": tol}}
+        opts = {
+            "N": T,
+            "nx": [n] * (T + 1),
+            "nu": [m] * T + [0],
+            "ng": [0] * (T + 1),
+            "error_on_fail": False,
+            "hpipm": {
+                "mode": "balance",
+                "iter_max": self.max_iter,
+                "warm_start": 0,
+                "res_g_max": tol,
+                "res_b_max": tol,
+                "res_d_max": tol,
+                "res_m_max": tol,
+            },
+        }
         self._sp = {k: ca.Sparsity(*M.shape, M.indptr.tolist(), M.indices.tolist()) for k, M in (("h", H), ("a", A))}
         self.solver = ca.conic("hpipm", "hpipm", self._sp, opts)
         self._ca = ca
@@ -315,14 +396,22 @@ class HPIPM(QPBackend):
         sel = sp.csr_matrix(qp.C).indices  # each row of C selects one variable
         lbx[sel], ubx[sel] = qp.l, qp.u
         lbx[:n] = ubx[:n] = -qp.b[:n]
-        r = self.solver(h=ca.DM(self._sp["h"], H.data), g=qp.q[perm], a=ca.DM(self._sp["a"], A.data),
-                        lba=qp.b[n:], uba=qp.b[n:], lbx=lbx[perm], ubx=ubx[perm])
+        r = self.solver(
+            h=ca.DM(self._sp["h"], H.data),
+            g=qp.q[perm],
+            a=ca.DM(self._sp["a"], A.data),
+            lba=qp.b[n:],
+            uba=qp.b[n:],
+            lbx=lbx[perm],
+            ubx=ubx[perm],
+        )
         self.costs.add("solve", time.perf_counter() - start)
         stats = self.solver.stats()
         code = stats.get("return_status", -1)
         status = {0: SUCCESS, 1: LIMITED, 2: LIMITED, 3: NAN}.get(code, EXCEPTION)
-        raw = {0: "HPIPM success", 1: "HPIPM max iterations", 2: "HPIPM minimum step length",
-               3: "HPIPM NaN"}.get(code, f"HPIPM status {code}")
+        raw = {0: "HPIPM success", 1: "HPIPM max iterations", 2: "HPIPM minimum step length", 3: "HPIPM NaN"}.get(
+            code, f"HPIPM status {code}"
+        )
         reason = Reason.ITERATION_LIMIT if code == 1 else None
         if status == SUCCESS and deadline is not None and time.perf_counter() > deadline:
             status, raw, reason = LIMITED, f"time budget exceeded ({raw})", Reason.TIME_BUDGET
@@ -375,9 +464,15 @@ class DAQP(QPBackend):
         # the set-up's time and each iteration's are measured per row and scaled to this QP's rows: both grow with
         # them (A R⁻¹, each iteration's constraint check), and an obstacle step's rows vary threefold step to step
         if left is not None and setup in self._measured and not self.costs.fits(setup, left / size):
-            return Result(np.full(n, np.nan), (), LIMITED, f"time budget: {1e3 * max(left, 0.0):.3g} ms left, DAQP's "
-                          f"set-up measured at {1e3 * self.costs.predict(setup) * size:.3g} ms", 0,
-                          reason=Reason.TIME_BUDGET)
+            return Result(
+                np.full(n, np.nan),
+                (),
+                LIMITED,
+                f"time budget: {1e3 * max(left, 0.0):.3g} ms left, DAQP's "
+                f"set-up measured at {1e3 * self.costs.predict(setup) * size:.3g} ms",
+                0,
+                reason=Reason.TIME_BUDGET,
+            )
         start = time.perf_counter()
         lo, hi = np.full(n, -self.INF), np.full(n, self.INF)
         if k:
@@ -391,7 +486,7 @@ class DAQP(QPBackend):
         bu = np.clip(np.concatenate([hi, qp.u[k:], qp.b]), -self.INF, self.INF)
         bl = np.clip(np.concatenate([lo, qp.l[k:], qp.b]), -self.INF, self.INF)
         sense = np.zeros(bu.size, dtype=np.int32)
-        sense[bu.size - qp.b.size:] = 5  # equality: active and immutable
+        sense[bu.size - qp.b.size :] = 5  # equality: active and immutable
         if warm is not None and len(warm) == 2 and warm[1].shape == bu.shape:
             lam = warm[1][: bu.size - qp.b.size]
             free = sense[: lam.size]
@@ -406,8 +501,14 @@ class DAQP(QPBackend):
         self.costs.add(setup, (time.perf_counter() - start) / size)
         self._measured.add(setup)
         if flag < 0:  # refused at the set-up (a Hessian not positive definite, an overdetermined equality set)
-            return Result(np.full(n, np.nan), (), DAQP_EXIT.get(flag, ("", EXCEPTION))[1], daqp_exit_name(flag), 0,
-                          reason=DAQP_REASON.get(flag))
+            return Result(
+                np.full(n, np.nan),
+                (),
+                DAQP_EXIT.get(flag, ("", EXCEPTION))[1],
+                daqp_exit_name(flag),
+                0,
+                reason=DAQP_REASON.get(flag),
+            )
         limits = self.iterations(n, size, deadline)
         if isinstance(limits, str):
             return Result(np.full(n, np.nan), (), LIMITED, limits, 0, reason=Reason.TIME_BUDGET)
@@ -438,8 +539,10 @@ class DAQP(QPBackend):
         per = self.costs.predict(f"iteration n={n}") * size
         cap = self.max_iter if per <= 0.0 else min(self.max_iter, int(left / per))
         if cap < 1 or left <= 0.0:
-            return (f"time budget: {1e3 * max(left, 0.0):.3g} ms left after DAQP's set-up, one iteration measured at "
-                    f"{1e3 * per:.3g} ms")
+            return (
+                f"time budget: {1e3 * max(left, 0.0):.3g} ms left after DAQP's set-up, one iteration measured at "
+                f"{1e3 * per:.3g} ms"
+            )
         return cap, left
 
 

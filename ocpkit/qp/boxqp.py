@@ -9,6 +9,7 @@ increases and no working set repeats, so for P ≻ 0 it ends at the exact optimu
 iterations; warm-started from the previous control step's knots it usually needs one to three. The
 sampling planners use it for their Newton candidate: the knot QP's box-constrained optimum.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass

@@ -15,6 +15,7 @@ passes it (the C step once reported success with u = 0 after DAQP's set-up had f
 The same tests run in the generated C step (``ocpkit.export``), with the same tolerance. They do not test
 convexity: a QP whose Hessian is not positive definite is refused before (DAQP's factorization, :meth:`QP.check`).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -84,8 +85,12 @@ def certify(qp, z, y, w) -> Certificate:
         primal = max(_norm(Az - qp.b), float(np.max(below, initial=0.0)), float(np.max(above, initial=0.0))) / s_p
     up, lo = np.maximum(w, 0.0), np.maximum(-w, 0.0)
     # |slack| on a finite bound: a multiplier on an infinite one is the dual-sign test's
-    gap = np.concatenate([up[np.isfinite(qp.u)] * np.abs(above[np.isfinite(qp.u)]),
-                          lo[np.isfinite(qp.l)] * np.abs(below[np.isfinite(qp.l)])])
+    gap = np.concatenate(
+        [
+            up[np.isfinite(qp.u)] * np.abs(above[np.isfinite(qp.u)]),
+            lo[np.isfinite(qp.l)] * np.abs(below[np.isfinite(qp.l)]),
+        ]
+    )
     complementarity = float(np.max(gap, initial=0.0)) / (s_d * s_p)
     sign = np.concatenate([up[np.isposinf(qp.u)], lo[np.isneginf(qp.l)]])
     dual_sign = float(sign.max(initial=0.0)) / s_d

@@ -1,5 +1,6 @@
 """What a QP solver behind :class:`~ocpkit.solvers.qp.LinearMPC` offers (:class:`QPBackend`) and answers
 (:class:`Result`), and the time budget's arithmetic they share; the backends themselves: :mod:`ocpkit.qp.backends`."""
+
 from __future__ import annotations
 
 import time
@@ -16,6 +17,7 @@ class Result:
     """A backend's answer: z, its warm start (``duals``, backend-specific), status, and the multipliers in the
     convention of :mod:`ocpkit.qp.certificate` (y of the equality rows, w of the bound rows; None: not returned).
     ``reason`` says why it is not a success (an "infeasible" answer is an infeasible QP unless said otherwise)."""
+
     z: np.ndarray
     duals: tuple
     status: str
@@ -35,13 +37,19 @@ def time_left(deadline: float | None) -> float | None:
     return None if deadline is None else deadline - time.perf_counter()
 
 
-def skipped(op: str, costs: OperationCosts, deadline: float, n: int, iterations: int = 0,
-            name: str | None = None) -> Result:
+def skipped(
+    op: str, costs: OperationCosts, deadline: float, n: int, iterations: int = 0, name: str | None = None
+) -> Result:
     """The LIMITED result of a step whose budget cannot pay for ``op`` (said as ``name``, default ``op``)."""
     left = max(0.0, deadline - time.perf_counter())
-    return Result(np.full(n, np.nan), (), LIMITED,
-                  f"time budget: {1e3 * left:.3g} ms left, {name or op} measured at {1e3 * costs.predict(op):.3g} ms",
-                  iterations, reason=Reason.TIME_BUDGET)
+    return Result(
+        np.full(n, np.nan),
+        (),
+        LIMITED,
+        f"time budget: {1e3 * left:.3g} ms left, {name or op} measured at {1e3 * costs.predict(op):.3g} ms",
+        iterations,
+        reason=Reason.TIME_BUDGET,
+    )
 
 
 class QPBackend:

@@ -1,6 +1,7 @@
 """The convex QP every transcription produces and every backend solves:  min ½ zᵀPz + qᵀz  s.t.  A z = b,
 l ≤ C z ≤ u  (the paper's  zᵀPz + 2qᵀz  form, Section V, scaled by ½), and the check that refuses a Hessian whose
 rounding swamps its curvature."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -55,8 +56,10 @@ class QP:
         if np.isnan(self.l).any() or np.isnan(self.u).any():
             return Refusal("NaN in the bounds l, u", Reason.QP_DATA)
         if (self.l > self.u).any():
-            return Refusal(f"lower bound above upper bound in {int((self.l > self.u).sum())} constraint rows",
-                           Reason.BOUNDS_CROSSED)
+            return Refusal(
+                f"lower bound above upper bound in {int((self.l > self.u).sum())} constraint rows",
+                Reason.BOUNDS_CROSSED,
+            )
         P = self.P
         if not sp.issparse(P) and np.array_equal(P, P.T):
             return None
@@ -79,17 +82,22 @@ class QP:
         if self.curvature > 0:
             rounding = self.n * np.finfo(float).eps * float(np.abs(np.diag(P)).max(initial=0.0))
             if not rounding <= ROUNDING_MARGIN * self.curvature:
-                return Refusal(f"Hessian ill-conditioned: its rounding {rounding:.3g} (n·ε·max P_ii) exceeds "
-                               f"{ROUNDING_MARGIN:g} x the curvature {self.curvature:.3g} the input weight gives: "
-                               f"the prediction model diverges over the horizon", Reason.ILL_CONDITIONED)
+                return Refusal(
+                    f"Hessian ill-conditioned: its rounding {rounding:.3g} (n·ε·max P_ii) exceeds "
+                    f"{ROUNDING_MARGIN:g} x the curvature {self.curvature:.3g} the input weight gives: "
+                    f"the prediction model diverges over the horizon",
+                    Reason.ILL_CONDITIONED,
+                )
         if not factorize:
             return None
         try:
             np.linalg.cholesky(P)
         except np.linalg.LinAlgError:
             scale = float(np.abs(np.diag(P)).max(initial=0.0))
-            return Refusal(f"Hessian not positive definite (Cholesky failed; largest diagonal entry {scale:.3g})",
-                           Reason.NOT_DEFINITE)
+            return Refusal(
+                f"Hessian not positive definite (Cholesky failed; largest diagonal entry {scale:.3g})",
+                Reason.NOT_DEFINITE,
+            )
         return None
 
 

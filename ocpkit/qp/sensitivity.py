@@ -15,6 +15,7 @@ their variables:
 and K = (φ₀ ⊗ I) dU, u₀ = Σ_j φ_0j U_j. Exact where the active set is strictly complementary (a weakly active row,
 its multiplier 0, is left free: the one-sided derivative into the feasible side).
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -58,7 +59,7 @@ def derivative(qp: QP, z, w, dq, db, dl, du) -> np.ndarray:
             sol = la.solve(kkt, rhs, assume_a="sym")
         except la.LinAlgError:
             sol = la.lstsq(kkt, rhs)[0]
-    dz[free] = sol[:free.size]
+    dz[free] = sol[: free.size]
     return dz
 
 
@@ -80,12 +81,12 @@ def data_derivative(tr, qp: QP, model):
     k = 1
     while k < tr.T:
         h = 1 if ltv else min(k, tr.T - k)
-        Phi[k:k + h] = (Ad[k] if ltv else Phi[:h]) @ Phi[k - 1]
+        Phi[k : k + h] = (Ad[k] if ltv else Phi[:h]) @ Phi[k - 1]
         k += h
     S = tr._rows()[:, 1:]  # the last build's prediction [v S]
-    dq[:tr.nz] = S.T @ np.matmul(tr.Qs, Phi).reshape(-1, n)
+    dq[: tr.nz] = S.T @ np.matmul(tr.Qs, Phi).reshape(-1, n)
     # the state-bound rows are C's last rows (after the knots' and the slacks' simple bounds)
-    dbound[nc - tr.x_rows.size:] = -Phi.reshape(-1, n)[tr.x_rows]
+    dbound[nc - tr.x_rows.size :] = -Phi.reshape(-1, n)[tr.x_rows]
     return dq, db, dbound, dbound
 
 
@@ -97,5 +98,5 @@ def feedback_gain(tr, qp: QP, model, z, w) -> np.ndarray | None:
         return None
     dz = derivative(qp, z, w, *data)
     p, m = tr.p, tr.m
-    K = np.tensordot(tr.phi[0], dz[tr._k0:tr._k0 + p * m].reshape(p, m, -1), axes=1)
+    K = np.tensordot(tr.phi[0], dz[tr._k0 : tr._k0 + p * m].reshape(p, m, -1), axes=1)
     return K if np.isfinite(K).all() else None

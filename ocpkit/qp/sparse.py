@@ -1,5 +1,6 @@
 """The paper's "large matrix" transcription (:mod:`ocpkit.qp.transcription` describes both forms): z = [x_0, …, x_T,
 U_0, …, U_{p−1}], the dynamics as equality rows, the sparsity pattern fixed at construction."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -22,8 +23,15 @@ class SparseQP(Transcription):
         self._k0 = nX
         self.nz = nX + m * p + self.ns
         # Cost: blkdiag(0 for x_0, Q … Q, Q_T, φᵀφ ⊗ R, 0 for the slacks) — constant, built once.
-        self.P = sp.block_diag([sp.csc_matrix((n, n)), *[sp.csc_matrix(Qk) for Qk in self.Qs],
-                                sp.csc_matrix(self.R_knots), self.slack_quad * sp.identity(self.ns)], format="csc")
+        self.P = sp.block_diag(
+            [
+                sp.csc_matrix((n, n)),
+                *[sp.csc_matrix(Qk) for Qk in self.Qs],
+                sp.csc_matrix(self.R_knots),
+                self.slack_quad * sp.identity(self.ns),
+            ],
+            format="csc",
+        )
         self.P.eliminate_zeros()
         # Dynamics rows: −x_0 = −x0, then A_d x_k − x_{k+1} + B_d Σ_j φ_kj U_j = −w_d.
         rows, cols, src = [np.arange(n)], [np.arange(n)], [np.full(n, -1)]  # src −1: the constant −1
@@ -44,8 +52,7 @@ class SparseQP(Transcription):
                 bd_stage.append(k)
         rows, cols, src = map(np.concatenate, (rows, cols, src))
         # Build the CSC pattern once; `_order` maps each CSC slot to the COO entry that fills it.
-        pattern = sp.coo_matrix((np.arange(1, rows.size + 1, dtype=float), (rows, cols)),
-                                shape=(nX, self.nz)).tocsc()
+        pattern = sp.coo_matrix((np.arange(1, rows.size + 1, dtype=float), (rows, cols)), shape=(nX, self.nz)).tocsc()
         self._order = pattern.data.astype(np.int64) - 1
         self.A = pattern
         self._phi_nz = np.array(phi_nz)
@@ -86,9 +93,9 @@ class SparseQP(Transcription):
         A = self.A.copy()
         A.data = v[self._order]
         q = np.zeros(self.nz)
-        q[n:n * (T + 1)] = -np.einsum("kab,b->ka", self.Qs, x_goal).ravel()
-        q[n * (T + 1):self.nz - self.ns] = self.q_knots(x_goal)
-        q[self.nz - self.ns:] = self.slack_weight
+        q[n : n * (T + 1)] = -np.einsum("kab,b->ka", self.Qs, x_goal).ravel()
+        q[n * (T + 1) : self.nz - self.ns] = self.q_knots(x_goal)
+        q[self.nz - self.ns :] = self.slack_weight
         b = np.r_[-np.asarray(x0, dtype=float), -wd.ravel() if ltv else np.tile(-wd, T)]
         return QP(self.P, q, A, b, self.C, self.l, self.u, convex=True)
 

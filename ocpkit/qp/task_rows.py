@@ -1,5 +1,6 @@
 """A task's cost terms and obstacles in the condensed QP (:class:`ocpkit.qp.transcription.CondensedQP`), Gauss–Newton
 about the plan: the rows and terms that :mod:`ocpkit.model.task` adds to the paper's small-matrix QP."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -72,13 +73,16 @@ class TaskRows:
             return None
         e = centres[:, k, i] - self.tf.table[:3, j]  # (3, rows): from the obstacle's centre to the sphere's
         # a sphere centred on the obstacle's centre (a fixed base sphere inside a huge ball): no direction, ∂d = 0
-        grad = np.einsum("ar,raj->rj", e / np.maximum(np.linalg.norm(e, axis=0), 1e-12),
-                         jacobians.reshape(3, T, spheres, n)[:, k, i].transpose(1, 0, 2))  # ∂d/∂x (rows, n)
+        grad = np.einsum(
+            "ar,raj->rj",
+            e / np.maximum(np.linalg.norm(e, axis=0), 1e-12),
+            jacobians.reshape(3, T, spheres, n)[:, k, i].transpose(1, 0, 2),
+        )  # ∂d/∂x (rows, n)
         # D S_k stage by stage (the rows come by stage): gathering S[k] row by row copied 47 MB a step at 1,200 rows
         C = np.empty((k.size, S.shape[2]))
         edges = np.searchsorted(k, np.arange(T + 1))
         for t in np.flatnonzero(np.diff(edges)):
-            C[edges[t]:edges[t + 1]] = grad[edges[t]:edges[t + 1]] @ S[t]
+            C[edges[t] : edges[t + 1]] = grad[edges[t] : edges[t + 1]] @ S[t]
         return C, C @ zbar - d[k, i, j], k
 
     def select(self, d: np.ndarray):
@@ -119,8 +123,17 @@ class TaskRows:
         C_rows, lo, stage = rows
         if not self.soft:
             C = np.vstack([qp.C, np.hstack([C_rows, np.zeros((C_rows.shape[0], qp.n - C_rows.shape[1]))])])
-            return QP(qp.P, qp.q, qp.A, qp.b, C, np.r_[qp.l, lo], np.r_[qp.u, np.full(lo.size, np.inf)], box=qp.box,
-                      curvature=qp.curvature)
+            return QP(
+                qp.P,
+                qp.q,
+                qp.A,
+                qp.b,
+                C,
+                np.r_[qp.l, lo],
+                np.r_[qp.u, np.full(lo.size, np.inf)],
+                box=qp.box,
+                curvature=qp.curvature,
+            )
         stages, slack_of = np.unique(stage, return_inverse=True)
         ne, n0 = stages.size, qp.n
         w = 0.5 * self.weight  # J's weight·(s + ½s²) in the QP's ½J
@@ -135,4 +148,3 @@ class TaskRows:
         u = np.r_[qp.u, np.full(lo.size + ne, np.inf)]
         A = np.pad(qp.A, ((0, 0), (0, ne)))
         return QP(P, q, A, qp.b, C, l, u, box=qp.box, curvature=min(qp.curvature, w))
-

@@ -24,6 +24,7 @@ multipliers the soft problem has the hard one's solution whenever that exists (t
 slope at s = 0, so exactness is kept; it makes the QP strictly convex in s, which the sparse solvers needed:
 pure L1 slacks left sparse OSQP at its iteration limit and ProxQP reporting a feasible problem infeasible).
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -75,14 +76,14 @@ class Transcription:
         """Knots (p, m) from a solution vector, put on the input bounds where they are within rounding (1e-13
         relative) of them or beyond: a solver's active bound comes back a few ulps either side of it."""
         lo, hi, tol_lo, tol_hi = self._snap
-        U = np.clip(z[self._k0:self._k0 + self.p * self.m].reshape(self.p, self.m), lo, hi)
+        U = np.clip(z[self._k0 : self._k0 + self.p * self.m].reshape(self.p, self.m), lo, hi)
         np.copyto(U, lo, where=U - lo <= tol_lo)
         np.copyto(U, hi, where=hi - U <= tol_hi)
         return U
 
     def slacks(self, z: np.ndarray) -> np.ndarray:
         """State-bound slacks (ns,) from a solution vector (empty with hard bounds)."""
-        return z[z.size - self.ns:]
+        return z[z.size - self.ns :]
 
     def _soft_rows(self, X, lo, hi):
         """Rows [X, −I, I] with bounds [lo, hi]: X the state-bound rows over the other variables, x − s⁺ + s⁻."""
@@ -120,16 +121,25 @@ class CondensedQP(Transcription):
 
     form = "condensed"
 
-    def __init__(self, ocp: OCP, *, soft: bool = False, slack_weight: float = 1e3, obstacles: bool = True,
-                 task: bool = True, soft_obstacles: bool | None = None):
+    def __init__(
+        self,
+        ocp: OCP,
+        *,
+        soft: bool = False,
+        slack_weight: float = 1e3,
+        obstacles: bool = True,
+        task: bool = True,
+        soft_obstacles: bool | None = None,
+    ):
         super().__init__(ocp, soft=soft, slack_weight=slack_weight)
         n, m, p = self.n, self.m, self.p
         # task=False: the joint-space QP alone (the C step generates the task's terms itself); obstacles=False: the
         # task's terms without its obstacle rows (the sampling planners' preconditioner); soft_obstacles: the
         # obstacle rows with their slacks (default: as the state bounds, ``soft``)
         soft_obstacles = soft if soft_obstacles is None else soft_obstacles
-        self.task = (None if ocp.task_functions is None or not task
-                     else TaskRows(ocp, obstacles, soft=bool(soft_obstacles)))
+        self.task = (
+            None if ocp.task_functions is None or not task else TaskRows(ocp, obstacles, soft=bool(soft_obstacles))
+        )
         self.nz = m * p  # the knots; the slacks (if any) follow them in z
         self.A = np.zeros((0, self.nz + self.ns))
         self.b = np.zeros(0)
@@ -172,19 +182,20 @@ class CondensedQP(Transcription):
         for s in range(1, L + 1):
             T = self._M[n:, s - 1, n:]
             T[:] = np.eye(2 * m + 1)
-            T[:m, m:2 * m] = s * np.eye(m)
+            T[:m, m : 2 * m] = s * np.eye(m)
         # With Q diagonal and positive the build runs in x̂ = Q^½ x̃ (Â = Q^½ A Q^-½, …): Γ_L is then the Gram
         # matrix of the Λ̂_s themselves, with no scaled copy; otherwise W = Q^½ Λ_s.
         self._hat = self.diagonal_Q and bool(np.all(self._qh > 0))
         self._W = None if self._hat else np.empty((n, L * K))
         self._G = np.zeros((n, nz + 1))  # the cost-to-go term G of the backward pass
-        self._H_end = np.diag(self._dQT / self._qh ** 2 if self._hat else self._dQT) if self.diagonal_Q \
-            else np.array(self._dQT)
+        self._H_end = (
+            np.diag(self._dQT / self._qh**2 if self._hat else self._dQT) if self.diagonal_Q else np.array(self._dQT)
+        )
         E, width = [], 1
         for _, _, c, rhs in reversed(self._pieces):
             Ei = np.zeros((2 * m + 1, nz + 1))
             Ei[:, 0] = rhs[n:, 0]
-            Ei[:, nz + 1 - c:] = rhs[n:, c:0:-1]  # z_t is internal column nz − t
+            Ei[:, nz + 1 - c :] = rhs[n:, c:0:-1]  # z_t is internal column nz − t
             cols = np.flatnonzero(Ei.any(axis=0))
             width = max(width, int(cols[-1]) + 1 if cols.size else 1)
             E.append(np.ascontiguousarray(Ei[:, :width]))
@@ -235,7 +246,7 @@ class CondensedQP(Transcription):
         SV[0, :, 0] += Ad[0] @ x0
         for k in range(1, T):  # then the recursion adds A_k [v S]_k on the columns in use
             c = self._stage_cols[k - 1]
-            SV[k, :, :c + 1] += Ad[k] @ SV[k - 1, :, :c + 1]
+            SV[k, :, : c + 1] += Ad[k] @ SV[k - 1, :, : c + 1]
         self._SV = SV
 
     def _predict(self, Ad, Bd, wd, x0, x_goal):
@@ -247,17 +258,17 @@ class CondensedQP(Transcription):
         if self._hat:
             qh = self._qh
             np.multiply(Ad, np.outer(qh, 1.0 / qh), out=M[:n, 0, :n])
-            np.multiply(Bd, qh[:, None], out=M[:n, 0, n:n + m])
+            np.multiply(Bd, qh[:, None], out=M[:n, 0, n : n + m])
             M[:n, 0, -1] = qh * wt
             x0t = qh * x0t
         else:
             M[:n, 0, :n] = Ad
-            M[:n, 0, n:n + m] = Bd
+            M[:n, 0, n : n + m] = Bd
             M[:n, 0, -1] = wt
         k = 1
         while k < L:  # Λ_{k+s} = Λ_k M^s, s = 1 … h: one GEMM
             h = min(k, L - k)
-            np.matmul(M[:n, k - 1], M[:, :h].reshape(K, h * K), out=M[:n, k:k + h].reshape(n, h * K))
+            np.matmul(M[:n, k - 1], M[:, :h].reshape(K, h * K), out=M[:n, k : k + h].reshape(n, h * K))
             k += h
         self._g, self._x0t, self._SVc = x_goal, x0t, None
 
@@ -273,8 +284,8 @@ class CondensedQP(Transcription):
             prev = SV[0].copy()
             prev[:, 0] = self._x0t
             for a, Lp, c, rhs in self._pieces:
-                rhs[:n] = prev[:, :c + 1]
-                SV[a:a + Lp, :, :c + 1] = (Lam @ rhs).reshape(n, L, c + 1)[:, :Lp].transpose(1, 0, 2)
+                rhs[:n] = prev[:, : c + 1]
+                SV[a : a + Lp, :, : c + 1] = (Lam @ rhs).reshape(n, L, c + 1)[:, :Lp].transpose(1, 0, 2)
                 prev = SV[a + Lp - 1]
             if self._hat:
                 SV /= self._qh[:, None]
@@ -304,8 +315,9 @@ class CondensedQP(Transcription):
         if knots is None or targets is None:
             raise ValueError("this OCP has a task: build(...) needs targets= and knots= (the plan to linearize about)")
         SV = self._rows().reshape(self.T, self.n, -1)
-        rows = self.task.add(P, q, SV, np.asarray(x0, dtype=float), np.asarray(targets, dtype=float),
-                             np.asarray(knots, dtype=float))
+        rows = self.task.add(
+            P, q, SV, np.asarray(x0, dtype=float), np.asarray(targets, dtype=float), np.asarray(knots, dtype=float)
+        )
         return self.task.constrain(self._qp(P, q), rows)
 
     # C twin: step.in.c condense_ltv() (with _predict_ltv); parity: tests/test_twins.py
@@ -368,7 +380,7 @@ class CondensedQP(Transcription):
         if self.soft:
             ns = self.ns
             P = np.pad(P, ((0, ns), (0, ns)))
-            P[self.nz:, self.nz:] += self.slack_quad * np.eye(ns)
+            P[self.nz :, self.nz :] += self.slack_quad * np.eye(ns)
             q = np.concatenate([q, np.full(ns, self.slack_weight)])
             SV = self._rows()[self.x_rows]
             vr = SV[:, 0]
@@ -391,7 +403,7 @@ class CondensedQP(Transcription):
         """Predicted states x_0 … x_T (T+1, n) of the last built QP."""
         n, X = self.n, np.empty((self.T + 1, self.n))
         X[0] = x0
-        z1 = np.concatenate([[1.0], z[:self.nz]])
+        z1 = np.concatenate([[1.0], z[: self.nz]])
         if self._SV is not None:
             X[1:] = self._SV @ z1
             return X
@@ -403,11 +415,11 @@ class CondensedQP(Transcription):
             xa = xa * self._qh
         for i, (_, Lp, c, rhs) in enumerate(pieces):
             Y[:n, i] = xa
-            Y[n:, i] = rhs[n:] @ z1[:c + 1]
+            Y[n:, i] = rhs[n:] @ z1[: c + 1]
             xa = M[:n, Lp - 1] @ Y[:, i]
         Xs = (M[:n].reshape(n * L, K) @ Y).reshape(n, L, len(pieces))  # x̃_{a+s} = Λ_s y, all pieces in one GEMM
         for i, (a, Lp, _, _) in enumerate(pieces):
-            X[a + 1:a + Lp + 1] = Xs[:, :Lp, i].T
+            X[a + 1 : a + Lp + 1] = Xs[:, :Lp, i].T
         if self._hat:
             X[1:] /= self._qh
         X[1:] += self._g
@@ -420,8 +432,10 @@ def affine_stages(Ad, Bd, wd, n: int, m: int, T: int):
     if Ad.ndim != 3:
         return Ad, Bd, wd.ravel(), False
     if Ad.shape != (T, n, n) or Bd.shape != (T, n, m) or wd.size != T * n:
-        raise ValueError(f"a per-stage affine model needs Ad (T, n, n) = {(T, n, n)}, Bd {(T, n, m)} and wd {(T, n)}, "
-                         f"got {Ad.shape}, {Bd.shape} and {wd.shape}")
+        raise ValueError(
+            f"a per-stage affine model needs Ad (T, n, n) = {(T, n, n)}, Bd {(T, n, m)} and wd {(T, n)}, "
+            f"got {Ad.shape}, {Bd.shape} and {wd.shape}"
+        )
     return Ad, Bd, wd.reshape(T, n), True
 
 
@@ -446,10 +460,9 @@ def _pieces(phi: np.ndarray, n: int, m: int) -> list:
             delta = np.zeros(p)
         c = m * (last_knot[a + L - 1] + 1)
         rhs = np.zeros((n + 2 * m + 1, 1 + c))
-        rhs[n:n + m, 1:] = np.kron(phi[a], np.eye(m))[:, :c]
-        rhs[n + m:n + 2 * m, 1:] = np.kron(delta, np.eye(m))[:, :c]
+        rhs[n : n + m, 1:] = np.kron(phi[a], np.eye(m))[:, :c]
+        rhs[n + m : n + 2 * m, 1:] = np.kron(delta, np.eye(m))[:, :c]
         rhs[-1, 0] = 1.0
         pieces.append((a, L, c, rhs))
         a += L
     return pieces
-

@@ -1,6 +1,7 @@
 """A study's trials as this process claims them from the store (a lease per trial, renewed by a heartbeat), and what
 this process computes them with: shared by the local runner (:mod:`ocpkit.runs.study`) and the Dask one
 (:mod:`ocpkit.runs.cluster`)."""
+
 from __future__ import annotations
 
 import contextlib
@@ -41,6 +42,7 @@ class Claims:
                 finished.add(key)
                 return True
             return False
+
         key, self.others = self.store.claim(self.study, self.remaining, self.owner, self.lease, done=done)
         self.remaining = [k for k in self.remaining if k not in finished and k != key]
         return None if key is None else self.params[key]

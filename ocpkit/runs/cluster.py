@@ -1,6 +1,7 @@
 """Studies on a Dask cluster: trials submitted to the scheduler at ``--scheduler``, each worker and the scheduler
 checked for this process's ocpkit version and code before they compute one, the outcomes written by the submitting
 process as they return, a lost scheduler reported in one line (the finished trials kept)."""
+
 from __future__ import annotations
 
 import contextlib
@@ -70,8 +71,10 @@ def _connect(scheduler: str, timeout: float) -> None:
         socket.create_connection((host, port), timeout=timeout).close()
     except OSError as exc:
         reason = exc.strerror or str(exc) or type(exc).__name__
-        raise ConnectionError(f"cannot reach the Dask scheduler at {scheduler} ({reason}); start one "
-                              f"(`dask scheduler`) or check the address") from None
+        raise ConnectionError(
+            f"cannot reach the Dask scheduler at {scheduler} ({reason}); start one "
+            f"(`dask scheduler`) or check the address"
+        ) from None
 
 
 def _handshake(scheduler: str, timeout: float) -> None:
@@ -97,6 +100,7 @@ def _handshake(scheduler: str, timeout: float) -> None:
 
     async def bounded():
         return await asyncio.wait_for(identity(), timeout)
+
     with ThreadPoolExecutor(1, thread_name_prefix="ocpkit-handshake") as pool:
         try:
             reply = pool.submit(asyncio.run, bounded()).result()
@@ -109,12 +113,15 @@ def _handshake(scheduler: str, timeout: float) -> None:
             if kind == "Scheduler":
                 return
             reason = f"it answers as a Dask {kind}" if isinstance(kind, str) else "an unknown answer to its identity"
-    raise ConnectionError(f"the server at {scheduler} is not a Dask scheduler ({reason}): start one "
-                          f"(`dask scheduler`) or check the address")
+    raise ConnectionError(
+        f"the server at {scheduler} is not a Dask scheduler ({reason}): start one "
+        f"(`dask scheduler`) or check the address"
+    )
 
 
-def _dask_outcomes(Client, fn, source: Claims, scheduler: str, timeout: float | None, mine: OwnProvenance,
-                   placement: Counter):
+def _dask_outcomes(
+    Client, fn, source: Claims, scheduler: str, timeout: float | None, mine: OwnProvenance, placement: Counter
+):
     """The generator behind :func:`run_dask`. The scheduler, then each worker as it joins, is refused unless it
     runs this process's ocpkit version (:func:`_check_versions`); each worker checks its code on its first trial
     (:func:`_execute_remote`). Dask reruns the trials of a worker that died on the others."""
@@ -136,8 +143,9 @@ def _dask_outcomes(Client, fn, source: Claims, scheduler: str, timeout: float | 
                         break
                     code = mine.codes[canonical_key(params)]
                     variables = mine.manifests[code].get("environment", {})
-                    running[client.submit(_execute_remote, fn, params, timeout, mine.version, code, variables,
-                                          pure=False)] = (params, time.monotonic())
+                    running[
+                        client.submit(_execute_remote, fn, params, timeout, mine.version, code, variables, pure=False)
+                    ] = (params, time.monotonic())
                 if not running:
                     if not source.others:
                         return
@@ -168,7 +176,8 @@ def _dask_outcomes(Client, fn, source: Claims, scheduler: str, timeout: float | 
             raise SchedulerLostError(
                 f"lost the connection to the Dask scheduler at {scheduler} mid-study ({len(running)} running trials "
                 f"not stored; the {sum(placement.values())} finished in this run are): start a scheduler and rerun "
-                "the same command to resume") from None
+                "the same command to resume"
+            ) from None
 
 
 def _received(future, params: dict, scheduler: str, mine: OwnProvenance) -> tuple[str | None, dict]:
@@ -178,14 +187,16 @@ def _received(future, params: dict, scheduler: str, mine: OwnProvenance) -> tupl
     try:
         address, outcome = future.result()
     except ImportError as exc:  # unpickling the trial failed on the worker (the trial's import errors are outcomes)
-        raise ClusterMismatchError(f"a Dask worker cannot load the trial ({type(exc).__name__}: {exc}); {_SAME}") \
-            from None
+        raise ClusterMismatchError(
+            f"a Dask worker cannot load the trial ({type(exc).__name__}: {exc}); {_SAME}"
+        ) from None
     except CancelledError:
         raise
     except Exception as exc:  # e.g. KilledWorker: the trial took down its workers repeatedly
         if "deserialization of the task graph" in str(exc):  # Dask's words for it failing on the scheduler
-            raise ClusterMismatchError(f"the Dask scheduler at {scheduler} cannot load the trial "
-                                       f"({str(exc).splitlines()[0]}): {_SAME}") from None
+            raise ClusterMismatchError(
+                f"the Dask scheduler at {scheduler} cannot load the trial ({str(exc).splitlines()[0]}): {_SAME}"
+            ) from None
         if _scheduler_gone(future.client, scheduler):  # not the trial's failure: it is rerun on a resume
             raise CancelledError(f"{type(exc).__name__}: {exc}") from None
         return None, failure(f"{type(exc).__name__}: {exc}")
@@ -193,8 +204,11 @@ def _received(future, params: dict, scheduler: str, mine: OwnProvenance) -> tupl
         future.release()
     if "mismatch" in outcome:
         theirs, manifest = outcome["mismatch"]
-        raise ClusterMismatchError(_mismatch_message(f"worker {address}", theirs, mine.version, manifest,
-                                                     mine.manifests[mine.codes[canonical_key(params)]]))
+        raise ClusterMismatchError(
+            _mismatch_message(
+                f"worker {address}", theirs, mine.version, manifest, mine.manifests[mine.codes[canonical_key(params)]]
+            )
+        )
     return address, outcome
 
 
@@ -222,12 +236,15 @@ def _check_versions(client, workers: list, version: str, scheduler: str | None =
         except Exception as exc:  # raised where it could not be unpickled
             found[f"scheduler {scheduler}"] = exc
     if workers:
-        found.update((f"worker {address}", theirs) for address, theirs in
-                     client.run(package_version, workers=workers, on_error="return").items())
+        found.update(
+            (f"worker {address}", theirs)
+            for address, theirs in client.run(package_version, workers=workers, on_error="return").items()
+        )
     for where, theirs in found.items():
         if isinstance(theirs, BaseException):
-            raise ClusterMismatchError(f"the Dask {where} cannot import ocpkit ({theirs}), this process runs ocpkit "
-                                       f"{version}: {_SAME}")
+            raise ClusterMismatchError(
+                f"the Dask {where} cannot import ocpkit ({theirs}), this process runs ocpkit {version}: {_SAME}"
+            )
         if theirs != version:
             raise ClusterMismatchError(_mismatch_message(where, theirs, version))
 
@@ -251,8 +268,10 @@ def _execute_remote(fn, params: dict, timeout: float | None, version: str, code:
     return address, execute(fn, params, timeout)
 
 
-_SAME = ("install the same ocpkit, study code and numerical libraries on the scheduler and every worker (or stop "
-         "that worker) and rerun")
+_SAME = (
+    "install the same ocpkit, study code and numerical libraries on the scheduler and every worker (or stop "
+    "that worker) and rerun"
+)
 
 
 def _mismatch_message(where: str, their_version, version: str, their_manifest=None, manifest=None) -> str:
@@ -277,6 +296,7 @@ def _quiet_once_lost():
 
     def keep(record) -> bool:
         return not lost.is_set()
+
     client, root = logging.getLogger("distributed.client"), logging.getLogger("distributed")
     level = root.level
     client.addFilter(keep)

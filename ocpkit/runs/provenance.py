@@ -40,6 +40,7 @@ workers to 1 itself, and the trial records the submitting process's variables.
 Hashing reads and parses each file once per process, and again only when its size, inode or times change; the
 study runner computes a manifest once per run (once per distinct set of files the trials' parameters name).
 """
+
 from __future__ import annotations
 
 import ast
@@ -66,7 +67,7 @@ ENVIRONMENT = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "OC
 ENVIRONMENT_PREFIXES = ("TI_",)
 NOT_RESULTS = ("TI_OFFLINE_CACHE", "TI_LOG_LEVEL")  # prefixes of variables that change no result
 
-_FILES: dict[str, tuple] = {}   # path -> (stat signature, digest, import references)
+_FILES: dict[str, tuple] = {}  # path -> (stat signature, digest, import references)
 
 
 def package_version() -> str:
@@ -89,8 +90,11 @@ def dependency_versions() -> dict[str, str | None]:
 def environment() -> dict[str, str]:
     """{name: value} of the environment variables set in this process that change a trial's results (see the
     module docstring), sorted by name."""
-    return {name: value for name, value in sorted(os.environ.items())
-            if (name in ENVIRONMENT or name.startswith(ENVIRONMENT_PREFIXES)) and not name.startswith(NOT_RESULTS)}
+    return {
+        name: value
+        for name, value in sorted(os.environ.items())
+        if (name in ENVIRONMENT or name.startswith(ENVIRONMENT_PREFIXES)) and not name.startswith(NOT_RESULTS)
+    }
 
 
 def manifest(fn, params: Mapping | None = None, variables: Mapping | None = None) -> dict:
@@ -132,8 +136,11 @@ def _manifest(fn, refs: tuple, variables: Mapping | None = None) -> dict:
             walk.module(target, explicit=True)
     variables = environment() if variables is None else dict(sorted(variables.items()))
     # Left out when empty: the code hash of a trial run with none set is the one stored before it was recorded.
-    return {"code": dict(sorted(walk.code.items())), "dependencies": dict(dependency_versions()),
-            **({"environment": variables} if variables else {})}
+    return {
+        "code": dict(sorted(walk.code.items())),
+        "dependencies": dict(dependency_versions()),
+        **({"environment": variables} if variables else {}),
+    }
 
 
 def _param_references(params: Mapping, seen: dict) -> tuple:
@@ -156,13 +163,17 @@ def changes(old: Mapping | None, new: Mapping) -> list[str]:
     """What differs from manifest ``old`` to ``new``, as phrases naming the modules, files, versions and environment
     variables (one phrase saying so when ``old`` is None: trials stored before manifests were kept)."""
     if old is None:
-        return ["code recorded before ocpkit 0.2.0 or by another program, without the list of its files, so what "
-                "changed is unknown"]
+        return [
+            "code recorded before ocpkit 0.2.0 or by another program, without the list of its files, so what "
+            "changed is unknown"
+        ]
     phrases = []
     was, now = old.get("code", {}), new.get("code", {})
-    for verb, names in (("changed", [k for k in was if k in now and was[k] != now[k]]),
-                        ("now also runs", [k for k in now if k not in was]),
-                        ("no longer runs", [k for k in was if k not in now])):
+    for verb, names in (
+        ("changed", [k for k in was if k in now and was[k] != now[k]]),
+        ("now also runs", [k for k in now if k not in was]),
+        ("no longer runs", [k for k in was if k not in now]),
+    ):
         if names:
             names = sorted(names)
             phrases.append(f"{verb} {', '.join(names[:8])}" + (f" and {len(names) - 8} more" if len(names) > 8 else ""))
@@ -183,11 +194,11 @@ class _Walk:
     """Source files reached from the roots through their imports: ``code`` maps each one's label to its digest."""
 
     def __init__(self, package: str):
-        self.package = package            # the trial's top-level package: followed even when installed
+        self.package = package  # the trial's top-level package: followed even when installed
         self.code: dict[str, str] = {}
-        self.seen: dict[str, bool] = {}   # path -> reached as an explicitly imported module
+        self.seen: dict[str, bool] = {}  # path -> reached as an explicitly imported module
         self.lazy: dict[str, tuple] = {}  # module -> (a package?, [(attribute names, import reference)])
-        self.used: dict[str, set] = {}    # module -> the names of its attributes used ("*": any)
+        self.used: dict[str, set] = {}  # module -> the names of its attributes used ("*": any)
 
     def module(self, name: str, explicit: bool) -> None:
         """Module ``name`` and its parent packages (importing a.b.c runs a/__init__.py and a/b/__init__.py)."""
@@ -351,8 +362,10 @@ def _attributes(source: bytes, bound: dict) -> list:
         return []
     text, names = source.decode(errors="replace"), "|".join(map(re.escape, bound))
     chains = set(re.findall(rf"\b({names})((?:\s*\.\s*\w+)+)", text))
-    chains.update((root, "." + name) for root, name in re.findall(
-        rf"\b(?:getattr|hasattr)\(\s*({names})\s*,\s*['\"](\w+)['\"]", text))
+    chains.update(
+        (root, "." + name)
+        for root, name in re.findall(rf"\b(?:getattr|hasattr)\(\s*({names})\s*,\s*['\"](\w+)['\"]", text)
+    )
     found = set()
     for root, chain in chains:
         module = bound[root]
@@ -376,7 +389,7 @@ def _absolute(name: str | None, package: bool, level: int, module: str) -> str |
     parts = name.split(".") if package else name.split(".")[:-1]
     if level - 1 > len(parts) or (level - 1 == len(parts) and not module):
         return None
-    parts = parts[:len(parts) - (level - 1)]
+    parts = parts[: len(parts) - (level - 1)]
     return ".".join(parts + ([module] if module else [])) or None
 
 
@@ -442,8 +455,9 @@ def _followed(name: str, path: str) -> bool:
 
 @functools.cache
 def _library_dirs() -> tuple[str, ...]:
-    folders = {path for key, path in sysconfig.get_paths().items() if key in ("stdlib", "platstdlib", "purelib",
-                                                                              "platlib")}
+    folders = {
+        path for key, path in sysconfig.get_paths().items() if key in ("stdlib", "platstdlib", "purelib", "platlib")
+    }
     folders.update(getattr(site, "getsitepackages", list)())
     folders.add(site.getusersitepackages() or "")
     return tuple(os.path.join(os.path.realpath(f), "") for f in folders if f)

@@ -1,5 +1,6 @@
 """A trial as a row of the results store: its key (canonical JSON of its parameters), its result split into scalar
 metrics and arrays (validated), the columns besides them, and the store's timestamps."""
+
 from __future__ import annotations
 
 import json
@@ -10,8 +11,7 @@ from datetime import datetime, timezone
 import numpy as np
 
 # Columns of the results table besides the parameters and metrics; neither may use these names.
-RESERVED = ("study", "status", "error", "traceback", "wall_time", "started", "finished", "ocpkit_version",
-            "code_hash")
+RESERVED = ("study", "status", "error", "traceback", "wall_time", "started", "finished", "ocpkit_version", "code_hash")
 
 
 def canonical_key(params: Mapping) -> str:
@@ -63,8 +63,9 @@ def split_result(params: Mapping, result) -> tuple[dict, dict]:
         if isinstance(value, (np.generic, np.ndarray)):
             value = value.item()
         if value is not None and not isinstance(value, (bool, int, float, str)):
-            raise TypeError(f"metric {name!r} must be a number, bool, string, None or array, "
-                            f"got {type(value).__name__}")
+            raise TypeError(
+                f"metric {name!r} must be a number, bool, string, None or array, got {type(value).__name__}"
+            )
         metrics[name] = value
     return metrics, arrays
 

@@ -8,6 +8,7 @@ stopped renewing it) may be taken by another process. Each run of a study is rec
 compute time summed over runs is known. Every failure of the database itself is a
 :class:`StoreError` whose one-line message names the file and what to do.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -45,8 +46,10 @@ CREATE TABLE IF NOT EXISTS trials (
 )
 """
 # Columns added after the first release: older stores gain them (NULL for their trials) when opened for writing.
-_ADDED_COLUMNS = {"ocpkit_version": "TEXT",   # the package version that computed the trial
-                  "code_hash": "TEXT"}        # hash of the code the trial ran (ocpkit.runs.provenance; see code)
+_ADDED_COLUMNS = {
+    "ocpkit_version": "TEXT",  # the package version that computed the trial
+    "code_hash": "TEXT",
+}  # hash of the code the trial ran (ocpkit.runs.provenance; see code)
 _CLAIMS = """
 CREATE TABLE IF NOT EXISTS claims (
     study   TEXT NOT NULL,
@@ -107,21 +110,25 @@ class Store:
             raise ValueError(f"out_dir must be a folder, got the file {str(folder)!r}")
         self.path = folder / FILENAME
         if readonly is None:
-            readonly = folder.is_dir() and not (os.access(folder, os.W_OK) and
-                                                (not self.path.exists() or os.access(self.path, os.W_OK)))
+            readonly = folder.is_dir() and not (
+                os.access(folder, os.W_OK) and (not self.path.exists() or os.access(self.path, os.W_OK))
+            )
         self.readonly = bool(readonly)
         if self.readonly:
             if not self.path.is_file():
-                raise StoreError(f"{self.path}: no results store to read (the folder is read-only or "
-                                 f"readonly=True was asked); run the study in a writable folder first")
+                raise StoreError(
+                    f"{self.path}: no results store to read (the folder is read-only or "
+                    f"readonly=True was asked); run the study in a writable folder first"
+                )
             self._con = self._guard("open", lambda: self._open_readonly())
             self._guard("read", lambda: self._con.execute("SELECT count(*) FROM trials").fetchone())
             return
         try:
             folder.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
-            raise StoreError(f"{folder}: cannot create the results folder ({exc.strerror or exc}); "
-                             f"choose another --out") from None
+            raise StoreError(
+                f"{folder}: cannot create the results folder ({exc.strerror or exc}); choose another --out"
+            ) from None
         self._con = self._guard("open", lambda: sqlite3.connect(self.path, timeout=60))
 
         def setup():
@@ -144,6 +151,7 @@ class Store:
             except BaseException:
                 self._con.execute("ROLLBACK")
                 raise
+
         self._guard("open", lambda: _retry_locked(setup))
 
     def _open_readonly(self):
@@ -169,8 +177,10 @@ class Store:
 
     def _writable(self) -> None:
         if self.readonly:
-            raise StoreError(f"{self.path}: opened read-only (the folder or file cannot be written); "
-                             f"copy the folder somewhere writable to run more trials")
+            raise StoreError(
+                f"{self.path}: opened read-only (the folder or file cannot be written); "
+                f"copy the folder somewhere writable to run more trials"
+            )
 
     def close(self) -> None:
         self._con.close()
@@ -204,6 +214,7 @@ class Store:
             finally:
                 target.close()
             os.replace(partial, path)
+
         try:
             self._guard("export", copy)
         finally:
@@ -226,9 +237,12 @@ class Store:
 
     def provenance(self, study: str) -> dict[str, tuple]:
         """{key: (status, finished, ocpkit_version, code_hash)} of the stored trials of ``study``."""
-        rows = self._guard("read", lambda: self._con.execute(
-            "SELECT key, status, finished, ocpkit_version, code_hash FROM trials WHERE study = ?",
-            (study,)).fetchall())
+        rows = self._guard(
+            "read",
+            lambda: self._con.execute(
+                "SELECT key, status, finished, ocpkit_version, code_hash FROM trials WHERE study = ?", (study,)
+            ).fetchall(),
+        )
         return {r[0]: tuple(r[1:]) for r in rows}
 
     def record_code(self, manifests: Mapping[str, Mapping]) -> None:
@@ -239,6 +253,7 @@ class Store:
         def insert():
             with self._con:
                 self._con.executemany("INSERT OR IGNORE INTO code VALUES (?, ?)", rows)
+
         self._guard("write", insert)
 
     def code(self, hashes) -> dict[str, dict]:
@@ -247,19 +262,37 @@ class Store:
 
         def read():
             try:
-                return [r for i in range(0, len(hashes), 500) for r in self._con.execute(
-                    f"SELECT hash, manifest FROM code WHERE hash IN ({', '.join('?' * len(hashes[i:i + 500]))})",
-                    hashes[i:i + 500])]
+                return [
+                    r
+                    for i in range(0, len(hashes), 500)
+                    for r in self._con.execute(
+                        f"SELECT hash, manifest FROM code WHERE hash IN ({', '.join('?' * len(hashes[i : i + 500]))})",
+                        hashes[i : i + 500],
+                    )
+                ]
             except sqlite3.OperationalError as exc:
                 if "no such table" in str(exc):  # a read-only store from before manifests were recorded
                     return []
                 raise
+
         return {h: json.loads(m) for h, m in self._guard("read", read)}
 
-    def write(self, study: str, params: Mapping, result: Mapping | None = None, *, status: str = "ok",
-              error: str | None = None, traceback: str | None = None, wall_time: float | None = None,
-              started: str | None = None, finished: str | None = None, version: str | None = None,
-              code: str | None = None, owner: str | None = None) -> None:
+    def write(
+        self,
+        study: str,
+        params: Mapping,
+        result: Mapping | None = None,
+        *,
+        status: str = "ok",
+        error: str | None = None,
+        traceback: str | None = None,
+        wall_time: float | None = None,
+        started: str | None = None,
+        finished: str | None = None,
+        version: str | None = None,
+        code: str | None = None,
+        owner: str | None = None,
+    ) -> None:
         """Store one finished trial (replacing an earlier one with the same parameters) and commit.
 
         ``version`` and ``code`` record the package version and the study code's hash that computed it;
@@ -282,12 +315,26 @@ class Store:
                 self._con.execute(
                     "INSERT OR REPLACE INTO trials (study, key, status, metrics, arrays, error, traceback, wall_time, "
                     "started, finished, ocpkit_version, code_hash) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                    (study, key, status, json.dumps(metrics), blob, error, traceback,
-                     None if wall_time is None else float(wall_time), started or stamp, finished or stamp,
-                     version, code))
+                    (
+                        study,
+                        key,
+                        status,
+                        json.dumps(metrics),
+                        blob,
+                        error,
+                        traceback,
+                        None if wall_time is None else float(wall_time),
+                        started or stamp,
+                        finished or stamp,
+                        version,
+                        code,
+                    ),
+                )
                 if owner is not None:
-                    self._con.execute("DELETE FROM claims WHERE study = ? AND key = ? AND owner = ?",
-                                      (study, key, owner))
+                    self._con.execute(
+                        "DELETE FROM claims WHERE study = ? AND key = ? AND owner = ?", (study, key, owner)
+                    )
+
         self._guard("write", insert)
 
     # Claims: which process runs which trial.
@@ -304,12 +351,20 @@ class Store:
         def take():
             with self._con:
                 self._con.execute("BEGIN IMMEDIATE")
-                stored = {r[0]: tuple(r[1:]) for r in self._con.execute(
-                    "SELECT key, status, finished, ocpkit_version, code_hash FROM trials WHERE study = ?", (study,))}
+                stored = {
+                    r[0]: tuple(r[1:])
+                    for r in self._con.execute(
+                        "SELECT key, status, finished, ocpkit_version, code_hash FROM trials WHERE study = ?", (study,)
+                    )
+                }
                 clock = time.time()
-                held = {r[0] for r in self._con.execute(
-                    "SELECT key, owner, expires FROM claims WHERE study = ? AND owner != ?", (study, owner))
-                    if r[2] > clock and _alive(r[1])}
+                held = {
+                    r[0]
+                    for r in self._con.execute(
+                        "SELECT key, owner, expires FROM claims WHERE study = ? AND owner != ?", (study, owner)
+                    )
+                    if r[2] > clock and _alive(r[1])
+                }
                 others = 0
                 for key in candidates:
                     if done(key, stored.get(key)):
@@ -317,17 +372,21 @@ class Store:
                     if key in held:
                         others += 1
                         continue
-                    self._con.execute("INSERT OR REPLACE INTO claims VALUES (?, ?, ?, ?)",
-                                      (study, key, owner, clock + lease))
+                    self._con.execute(
+                        "INSERT OR REPLACE INTO claims VALUES (?, ?, ?, ?)", (study, key, owner, clock + lease)
+                    )
                     return key, others
                 return None, others
+
         return self._guard("claim trials in", take)
 
     def renew(self, owner: str, lease: float) -> None:
         """Push every claim of ``owner`` ``lease`` seconds into the future (the heartbeat)."""
+
         def update():
             with self._con:
                 self._con.execute("UPDATE claims SET expires = ? WHERE owner = ?", (time.time() + lease, owner))
+
         self._guard("renew claims in", update)
 
     def release(self, owner: str, study: str | None = None) -> None:
@@ -341,6 +400,7 @@ class Store:
         def drop():
             with self._con:
                 self._con.execute(query, args)
+
         self._guard("release claims in", drop)
 
     def claims(self, study: str | None = None) -> pd.DataFrame:
@@ -357,8 +417,11 @@ class Store:
 
         def insert():
             with self._con:
-                self._con.execute("INSERT INTO runs VALUES (?, ?, ?, ?, ?, ?)",
-                                  (study, owner, started, now(), float(wall), int(trials)))
+                self._con.execute(
+                    "INSERT INTO runs VALUES (?, ?, ?, ?, ?, ?)",
+                    (study, owner, started, now(), float(wall), int(trials)),
+                )
+
         self._guard("write", insert)
 
     def runs(self, study: str | None = None) -> pd.DataFrame:
@@ -374,13 +437,19 @@ class Store:
                 if "no such table" in str(exc):  # a read-only store from before runs were recorded
                     return []
                 raise
-        return pd.DataFrame(self._guard("read", read), columns=["study", "owner", "started", "finished", "wall",
-                                                                  "trials"])
+
+        return pd.DataFrame(
+            self._guard("read", read), columns=["study", "owner", "started", "finished", "wall", "trials"]
+        )
 
     def arrays(self, study: str, params: Mapping) -> dict[str, np.ndarray]:
         """The arrays a stored trial returned ({} if none); KeyError if the trial is not stored."""
-        row = self._guard("read", lambda: self._con.execute("SELECT arrays FROM trials WHERE study = ? AND key = ?",
-                                                            (study, canonical_key(params))).fetchone())
+        row = self._guard(
+            "read",
+            lambda: self._con.execute(
+                "SELECT arrays FROM trials WHERE study = ? AND key = ?", (study, canonical_key(params))
+            ).fetchone(),
+        )
         if row is None:
             raise KeyError(f"no stored trial of study {study!r} with params {canonical_key(params)}")
         if row[0] is None:
@@ -405,6 +474,7 @@ class Store:
             have = {r[1] for r in self._con.execute("PRAGMA table_info(trials)")}
             added = ", ".join(name if name in have else "NULL" for name in _ADDED_COLUMNS)
             return self._con.execute(query.format(added) + " ORDER BY finished, rowid", args).fetchall()
+
         rows = self._guard("read", read)
         if trials is not None:
             by_key = {(r[0], r[1]): r for r in rows}
@@ -416,9 +486,21 @@ class Store:
             p, m = json.loads(key), json.loads(metrics_json)
             params.update(dict.fromkeys(p))
             metrics.update(dict.fromkeys(m))
-            records.append({"study": name, **p, **m, "status": status, "error": error, "traceback": tb,
-                            "wall_time": wall, "started": started, "finished": finished, "ocpkit_version": version,
-                            "code_hash": code})
+            records.append(
+                {
+                    "study": name,
+                    **p,
+                    **m,
+                    "status": status,
+                    "error": error,
+                    "traceback": tb,
+                    "wall_time": wall,
+                    "started": started,
+                    "finished": finished,
+                    "ocpkit_version": version,
+                    "code_hash": code,
+                }
+            )
         columns = ["study", *params, *metrics, *RESERVED[1:]]
         df = pd.DataFrame.from_records(records, columns=columns)
         for column in ("started", "finished"):
@@ -478,8 +560,10 @@ def _explain(path: Path, doing: str, exc: BaseException) -> str:
         text = exc.strerror
         lower = text.lower()
     if "not a database" in lower or "malformed" in lower or "corrupt" in lower:
-        advice = ("the file is damaged: move it (and any -wal/-shm beside it) aside and rerun to recompute, "
-                  "or restore it from a copy")
+        advice = (
+            "the file is damaged: move it (and any -wal/-shm beside it) aside and rerun to recompute, "
+            "or restore it from a copy"
+        )
     elif "disk is full" in lower or "no space" in lower or "quota" in lower:
         advice = "the disk is full: free space and rerun (finished trials are kept)"
     elif "readonly" in lower or "read-only" in lower or "permission" in lower or "unable to open" in lower:

@@ -12,6 +12,7 @@ of the numerical libraries' versions and of the environment variables that chang
 settings: :mod:`ocpkit.runs.provenance`); resuming refuses trials computed by other code or under other settings, naming
 what changed, unless told what to do with them.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -83,8 +84,9 @@ class Study:
                 raise TypeError(f"trials[{i}] must be a dict of parameters, got {params!r}")
             for name in params:
                 if not name.isidentifier() or name in RESERVED:
-                    raise ValueError(f"trials[{i}] parameter name {name!r} must be a Python identifier "
-                                     f"and not one of {RESERVED}")
+                    raise ValueError(
+                        f"trials[{i}] parameter name {name!r} must be a Python identifier and not one of {RESERVED}"
+                    )
             if key in seen:
                 raise ValueError(f"trials[{i}] repeats trials[{seen[key]}]: {key}")
             seen[key] = i
@@ -116,9 +118,18 @@ def grid(*, seeds=None, **axes) -> list[dict]:
     return [dict(zip(values, combo)) for combo in itertools.product(*values.values())]
 
 
-def run(study: Study, out_dir, *, workers: int | None = None, scheduler: str | None = None,
-        progress: bool = True, retry_failed: bool = False, trial_timeout: float | None = None,
-        stale: str = "refuse", lease: float = LEASE) -> pd.DataFrame:
+def run(
+    study: Study,
+    out_dir,
+    *,
+    workers: int | None = None,
+    scheduler: str | None = None,
+    progress: bool = True,
+    retry_failed: bool = False,
+    trial_timeout: float | None = None,
+    stale: str = "refuse",
+    lease: float = LEASE,
+) -> pd.DataFrame:
     """Run the study's trials not yet stored in ``out_dir`` and return all its trials as a table.
 
     Trials run on ``workers`` local processes (default: one per CPU), or on the Dask cluster at ``scheduler``
@@ -146,8 +157,12 @@ def run(study: Study, out_dir, *, workers: int | None = None, scheduler: str | N
     workers = (os.cpu_count() or 1) if workers is None else integer(workers, "workers", 1)
     choice(stale, STALE, "stale")
     if trial_timeout is not None:
-        if isinstance(trial_timeout, bool) or not isinstance(trial_timeout, (int, float)) or \
-                not np.isfinite(trial_timeout) or trial_timeout <= 0:
+        if (
+            isinstance(trial_timeout, bool)
+            or not isinstance(trial_timeout, (int, float))
+            or not np.isfinite(trial_timeout)
+            or trial_timeout <= 0
+        ):
             raise ValueError(f"trial_timeout must be a positive number of seconds, got {trial_timeout!r}")
     if isinstance(lease, bool) or not isinstance(lease, (int, float)) or not lease > 0:
         raise ValueError(f"lease must be a positive number of seconds, got {lease!r}")
@@ -162,15 +177,26 @@ def run(study: Study, out_dir, *, workers: int | None = None, scheduler: str | N
         stored = store.provenance(study.name)
         old = {k: row for k, row in stored.items() if k in keys and (row[2], row[3]) != (version, codes[k])}
         if old and stale == "refuse":
-            raise StaleTrialsError(_stale_message(study.name, store.path, old, len(stored), version, codes, manifests,
-                                                  store.code(row[3] for row in old.values())))
+            raise StaleTrialsError(
+                _stale_message(
+                    study.name,
+                    store.path,
+                    old,
+                    len(stored),
+                    version,
+                    codes,
+                    manifests,
+                    store.code(row[3] for row in old.values()),
+                )
+            )
         run_start, owner = now(), owner_id()
 
         def done(key, row) -> bool:
             if row is None:
                 return False
-            redo = (row[0] == "failed" and retry_failed) or \
-                (stale == "rerun" and (row[2], row[3]) != (version, codes[key]))
+            redo = (row[0] == "failed" and retry_failed) or (
+                stale == "rerun" and (row[2], row[3]) != (version, codes[key])
+            )
             return not (redo and row[1] < run_start)  # redone by any process since this run began: done
 
         todo = [k for k in keys if not done(k, stored.get(k))]
@@ -186,16 +212,24 @@ def run(study: Study, out_dir, *, workers: int | None = None, scheduler: str | N
         elif scheduler is None:
             finished = _run_local(study.fn, source, max(1, min(workers, len(todo))), trial_timeout)
         else:
-            finished = run_dask(study.fn, source, scheduler, trial_timeout, OwnProvenance(version, codes, manifests),
-                                 placement)
+            finished = run_dask(
+                study.fn, source, scheduler, trial_timeout, OwnProvenance(version, codes, manifests), placement
+            )
         failed = 0
-        with tqdm(total=len(study.trials), initial=len(study.trials) - len(todo), desc=study.name,
-                  unit="trial", disable=not progress, dynamic_ncols=True) as bar:
+        with tqdm(
+            total=len(study.trials),
+            initial=len(study.trials) - len(todo),
+            desc=study.name,
+            unit="trial",
+            disable=not progress,
+            dynamic_ncols=True,
+        ) as bar:
             heartbeat = Heartbeat(store.path.parent, owner, lease) if todo else None
             try:
                 for params, outcome in finished:
-                    store.write(study.name, params, **outcome, version=version, code=codes[canonical_key(params)],
-                                owner=owner)
+                    store.write(
+                        study.name, params, **outcome, version=version, code=codes[canonical_key(params)], owner=owner
+                    )
                     executed += 1
                     if outcome["status"] == "failed":
                         failed += 1
@@ -225,8 +259,11 @@ def failure_summary(df: pd.DataFrame, top: int = 5) -> str:
     if not len(failed):
         return ""
     errors = failed["error"].fillna("(no message)").value_counts().head(top)
-    return f"\n{len(failed)} of {len(df)} trials failed; most common errors:\n\n" + "\n".join(
-        f"- {count}× `{(err.splitlines() or [''])[0][:200]}`" for err, count in errors.items()) + "\n"
+    return (
+        f"\n{len(failed)} of {len(df)} trials failed; most common errors:\n\n"
+        + "\n".join(f"- {count}× `{(err.splitlines() or [''])[0][:200]}`" for err, count in errors.items())
+        + "\n"
+    )
 
 
 def cluster_summary(df: pd.DataFrame) -> str:
@@ -239,8 +276,10 @@ def cluster_summary(df: pd.DataFrame) -> str:
     if not n:
         return f"\nRun on the Dask cluster at {cluster['scheduler']}: no trial was left to run.\n"
     each = ", ".join(f"{address} {count}" for address, count in sorted(cluster["workers"].items()))
-    return (f"\nRun on the Dask cluster at {cluster['scheduler']}: {n} trials on {len(cluster['workers'])} workers in "
-            f"{wall:.1f} s ({n / wall:.2f} trials/s); trials per worker: {each}.\n")
+    return (
+        f"\nRun on the Dask cluster at {cluster['scheduler']}: {n} trials on {len(cluster['workers'])} workers in "
+        f"{wall:.1f} s ({n / wall:.2f} trials/s); trials per worker: {each}.\n"
+    )
 
 
 def _stale_message(name, path, old, n_stored, version, codes, manifests, recorded) -> str:
@@ -254,9 +293,11 @@ def _stale_message(name, path, old, n_stored, version, codes, manifests, recorde
             reasons.update(dict.fromkeys(provenance.changes(recorded.get(row[3]), manifests[codes[key]])))
     reasons = list(reasons)
     text = "; ".join(reasons[:6]) + (f"; and {len(reasons) - 6} more differences" if len(reasons) > 6 else "")
-    return (f"{len(old)} of the {n_stored} stored trials of study {name!r} in {path} were computed by other code or "
-            f"settings ({text or 'unknown'}): pass --reuse-stale (stale='reuse') to keep them, --rerun-stale "
-            f"(stale='rerun') to compute them again, or choose another --out")
+    return (
+        f"{len(old)} of the {n_stored} stored trials of study {name!r} in {path} were computed by other code or "
+        f"settings ({text or 'unknown'}): pass --reuse-stale (stale='reuse') to keep them, --rerun-stale "
+        f"(stale='rerun') to compute them again, or choose another --out"
+    )
 
 
 def _check_importable(fn) -> None:
@@ -264,11 +305,15 @@ def _check_importable(fn) -> None:
         raise TypeError(f"fn must be a callable trial function, got {fn!r}")
     name = getattr(fn, "__qualname__", "")
     if "<lambda>" in name or "<locals>" in name:
-        raise TypeError(f"fn must be a module-level function that worker processes can import, got {name}: "
-                        "lambdas and nested functions cannot be sent to them")
+        raise TypeError(
+            f"fn must be a module-level function that worker processes can import, got {name}: "
+            "lambdas and nested functions cannot be sent to them"
+        )
     if getattr(fn, "__module__", None) == "__main__" and not hasattr(sys.modules["__main__"], "__file__"):
-        raise TypeError(f"fn {name} is defined in an interactive session; worker processes cannot import it. "
-                        "Define it in a module (a .py file) instead")
+        raise TypeError(
+            f"fn {name} is defined in an interactive session; worker processes cannot import it. "
+            "Define it in a module (a .py file) instead"
+        )
     try:
         pickle.dumps(fn)
     except Exception as exc:
@@ -334,8 +379,9 @@ def _run_pool(fn, source: Claims, workers: int, timeout: float | None = None):
                             break
                         submit.append(params)
                 if submit and pool is None:
-                    pool = ProcessPoolExecutor(workers, mp_context=context, initializer=_worker_init,
-                                               initargs=(os.getpid(),))
+                    pool = ProcessPoolExecutor(
+                        workers, mp_context=context, initializer=_worker_init, initargs=(os.getpid(),)
+                    )
                 for params in submit:
                     running[pool.submit(execute, fn, params, timeout)] = (params, time.monotonic())
                 if not running:
@@ -360,11 +406,21 @@ def _run_pool(fn, source: Claims, workers: int, timeout: float | None = None):
                 if len(crashed) == 1:
                     params, submitted = crashed[0]
                     if timeout is not None and time.monotonic() - submitted >= timeout:
-                        yield params, failure(timeout_message(timeout) + " (it did not return to Python, so its "
-                                                                          "worker process was ended)")
+                        yield (
+                            params,
+                            failure(
+                                timeout_message(timeout) + " (it did not return to Python, so its "
+                                "worker process was ended)"
+                            ),
+                        )
                     else:
-                        yield params, failure("the worker process died while running this trial "
-                                               "(killed by a signal, os._exit, a segfault or out of memory)")
+                        yield (
+                            params,
+                            failure(
+                                "the worker process died while running this trial "
+                                "(killed by a signal, os._exit, a segfault or out of memory)"
+                            ),
+                        )
                 else:
                     suspects.extend(params for params, _ in crashed)
         except BaseException:

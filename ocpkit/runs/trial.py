@@ -1,5 +1,6 @@
 """One study trial run with a time limit, as a worker runs it (a local process or a Dask worker thread): its outcome
 as the store records it, and :class:`TrialTimeout` raised inside it when it runs too long."""
+
 from __future__ import annotations
 
 import contextlib
@@ -58,6 +59,7 @@ def deadline(timeout: float | None):
 def _alarm(timeout: float):
     def expire(signum, frame):
         raise TrialTimeout(timeout_message(timeout).partition(": ")[2])
+
     previous = signal.signal(signal.SIGALRM, expire)
     killer = threading.Timer(timeout + grace(timeout), os._exit, args=(TIMEOUT_EXIT,))
     killer.daemon = True
@@ -81,6 +83,7 @@ def _thread_alarm(timeout: float):
         with lock:
             if state["running"]:
                 state["fired"] = ctypes.pythonapi.PyThreadState_SetAsyncExc(thread, ctypes.py_object(TrialTimeout)) == 1
+
     timer = threading.Timer(timeout, expire)
     timer.daemon = True
     timer.start()

@@ -13,6 +13,7 @@ Frames play in real time, evenly spaced over the run (at most ``max_frames``), t
 offscreen renderer is not used: it needs an OpenGL context (EGL or OSMesa) that a CI machine need not have, and
 geometry to show that the problems do not describe (their URDFs ship without meshes).
 """
+
 from __future__ import annotations
 
 import math
@@ -28,8 +29,8 @@ from matplotlib.patches import Circle  # noqa: E402
 
 SUFFIXES = (".gif",)
 BASE = "(world origin)"  # the start of the base segments: not a frame name (frame names hold no spaces or brackets)
-HOLD = 1.0          # seconds the last frame stays before the GIF loops
-PLANAR_TOL = 1e-9   # m: drawn points whose z spread stays below this are a planar robot
+HOLD = 1.0  # seconds the last frame stays before the GIF loops
+PLANAR_TOL = 1e-9  # m: drawn points whose z spread stays below this are a planar robot
 GHOST = {"color": "0.6", "alpha": 0.5, "lw": 2, "ls": "--"}
 ROBOT = {"color": "C0", "lw": 3, "marker": "o", "ms": 4, "mfc": "k", "mec": "k"}
 
@@ -56,24 +57,28 @@ class Skeleton:
             self.n = self.kinematics.n
             chain = self.kinematics.chain
             # the fixed base: from the world origin to each root joint away from it (a Panda's link 0, Baxter's torso)
-            roots = [(BASE, name) for name, parent, offset in zip(self.kinematics.joints, chain.parents,
-                                                                   chain.translations)
-                     if parent < 0 and np.linalg.norm(offset) > 0]
+            roots = [
+                (BASE, name)
+                for name, parent, offset in zip(self.kinematics.joints, chain.parents, chain.translations)
+                if parent < 0 and np.linalg.norm(offset) > 0
+            ]
             self.pairs = roots + self.kinematics.segments()
             self.frame = frame or getattr(problem, "end_effector", None) or self.pairs[-1][1]
-            self.kinematics.function(self.frame)     # an unknown frame fails here, with the model's frames
+            self.kinematics.function(self.frame)  # an unknown frame fails here, with the model's frames
             self.length = None
         elif _is_pendulum(problem):
             if frame is not None:
                 raise ValueError(f"frame {frame!r}: the pendulum has no frames; it is drawn as its rod")
             self.n, self.pairs, self.frame, self.length = 1, [("pivot", "bob")], "bob", float(problem.l)
         else:
-            raise ValueError(f"problem {getattr(problem, 'name', problem)!r} has no kinematics to draw; an "
-                             "animation needs a robot with frames (nlink:N, puma560, panda, baxter, urdf:FILE) or "
-                             "the pendulum")
+            raise ValueError(
+                f"problem {getattr(problem, 'name', problem)!r} has no kinematics to draw; an "
+                "animation needs a robot with frames (nlink:N, puma560, panda, baxter, urdf:FILE) or "
+                "the pendulum"
+            )
 
     def segments(self, q_rows) -> np.ndarray:
-        q_rows = np.atleast_2d(np.asarray(q_rows, dtype=float))[:, :self.n]
+        q_rows = np.atleast_2d(np.asarray(q_rows, dtype=float))[:, : self.n]
         if self.length is not None:
             bob = self.length * np.stack([np.sin(q_rows[:, 0]), -np.cos(q_rows[:, 0]), 0 * q_rows[:, 0]], axis=1)
             return np.stack([np.zeros_like(bob), bob], axis=1)[:, None]
@@ -85,7 +90,7 @@ class Skeleton:
     def end(self, q_rows) -> np.ndarray:
         if self.length is not None:
             return self.segments(q_rows)[:, 0, 1]
-        q_rows = np.atleast_2d(np.asarray(q_rows, dtype=float))[:, :self.n]
+        q_rows = np.atleast_2d(np.asarray(q_rows, dtype=float))[:, : self.n]
         return self.kinematics.positions(self.frame, q_rows)
 
     def polyline(self, segments: np.ndarray) -> np.ndarray:
@@ -115,8 +120,20 @@ class MotionPicture:
     point's path so far), ``clock`` (the time) change per frame; ``ghost``, ``target`` and the obstacles stay.
     ``indices``: the trajectory's states drawn, in order."""
 
-    def __init__(self, trajectory, problem, *, target=None, obstacles=(), frame: str | None = None,
-                 fps: float = 20.0, max_frames: int = 120, size: float = 4.0, dpi: int = 75, title: str | None = None):
+    def __init__(
+        self,
+        trajectory,
+        problem,
+        *,
+        target=None,
+        obstacles=(),
+        frame: str | None = None,
+        fps: float = 20.0,
+        max_frames: int = 120,
+        size: float = 4.0,
+        dpi: int = 75,
+        title: str | None = None,
+    ):
         self.trajectory, self.skeleton = trajectory, Skeleton(problem, frame)
         fps, max_frames = positive(fps, "fps"), integer(max_frames, "max_frames", 2)
         self.target = None if target is None else np.asarray(target, dtype=float).ravel()
@@ -124,7 +141,7 @@ class MotionPicture:
             raise ValueError(f"target must be 3 finite numbers (x, y, z in m), got {np.asarray(target).tolist()}")
         self.obstacles = list(obstacles)
         t = np.asarray(trajectory.t, dtype=float)
-        q = np.asarray(trajectory.x, dtype=float)[:, :self.skeleton.n]
+        q = np.asarray(trajectory.x, dtype=float)[:, : self.skeleton.n]
         # real time: frames evenly spaced over the run, fewer per second where the run is long
         count = int(min(max_frames, max(2, math.floor((t[-1] - t[0]) * fps) + 1)))
         shown = np.unique(np.round(np.linspace(0, len(t) - 1, count)).astype(int))
@@ -134,7 +151,7 @@ class MotionPicture:
         # the joint goal's pose, unless the goal is a task-space target or carries a task's targets: a reach task's
         # x_goal holds the start's angles, unweighted
         plain = self.target is None and len(trajectory.goal) == np.shape(trajectory.x)[1]
-        goal_pose = self.skeleton.segments(trajectory.goal[None, :self.skeleton.n])[0] if plain else None
+        goal_pose = self.skeleton.segments(trajectory.goal[None, : self.skeleton.n])[0] if plain else None
         points = [s.reshape(-1, 3) for s in self.segments.values()]
         points += [goal_pose.reshape(-1, 3)] if goal_pose is not None else []
         self.planar = np.ptp(np.concatenate(points)[:, 2]) < PLANAR_TOL
@@ -142,15 +159,16 @@ class MotionPicture:
         ax = self.axes = self.figure.add_subplot(projection=None if self.planar else "3d")
         plots.set_title(ax, title or getattr(problem, "name", ""), fontsize=9)
         self._limits(points)
-        z = () if self.planar else ([],)   # an empty line's z, in 3-D
+        z = () if self.planar else ([],)  # an empty line's z, in 3-D
         self.ghost = self.target_artist = None
         if goal_pose is not None:
             self.ghost = ax.plot(*self._xyz(self.skeleton.polyline(goal_pose)), **GHOST, label="goal pose")[0]
         if self.target is not None:
             self.target_artist = ax.plot(*self._xyz(self.target[None]), "*", color="k", ms=12, label="target")[0]
             if not self.planar:  # a drop line to the floor places the point in depth
-                ax.plot(*np.repeat(self.target[:2, None], 2, axis=1), [self.floor, self.target[2]], ":", color="k",
-                        lw=0.8)
+                ax.plot(
+                    *np.repeat(self.target[:2, None], 2, axis=1), [self.floor, self.target[2]], ":", color="k", lw=0.8
+                )
         for o in self.obstacles:
             self._obstacle(o)
         self.trail = ax.plot([], [], *z, color="C1", lw=1.2, alpha=0.8)[0]
@@ -179,7 +197,7 @@ class MotionPicture:
         setters = (self.axes.set_xlim, self.axes.set_ylim, getattr(self.axes, "set_zlim", None))
         for k in range(dims):
             setters[k](centre[k] - half, centre[k] + half)
-        self.floor = float(centre[-1] - half)   # 3-D: the bottom of the box, where shadows fall
+        self.floor = float(centre[-1] - half)  # 3-D: the bottom of the box, where shadows fall
         labels = ("x [m]", "y [m]", "z [m]")
         self.axes.set_xlabel(labels[0], fontsize=8)
         self.axes.set_ylabel(labels[1], fontsize=8)
@@ -197,22 +215,41 @@ class MotionPicture:
             # the circle where the sphere cuts the robot's plane (its outline, dashed, where it misses the plane)
             plane = float(next(iter(self.segments.values()))[0, 0, 2])
             cut = r * r - (c[2] - plane) ** 2
-            circle = Circle(c[:2], math.sqrt(cut) if cut > 0 else r, color="C3", alpha=0.35 if cut > 0 else 0.15,
-                            ls="-" if cut > 0 else "--", label="obstacle")
+            circle = Circle(
+                c[:2],
+                math.sqrt(cut) if cut > 0 else r,
+                color="C3",
+                alpha=0.35 if cut > 0 else 0.15,
+                ls="-" if cut > 0 else "--",
+                label="obstacle",
+            )
             self.axes.add_patch(circle)
             return
         # a wireframe: matplotlib sorts 3-D artists whole, not per pixel, so a surface would hide the arm behind it
         u, v = np.meshgrid(np.linspace(0, 2 * np.pi, 17), np.linspace(0, np.pi, 9))
-        self.axes.plot_wireframe(c[0] + r * np.cos(u) * np.sin(v), c[1] + r * np.sin(u) * np.sin(v),
-                                 c[2] + r * np.cos(v), color="C3", alpha=0.6, linewidth=0.7, label="obstacle")
-        self.axes.plot(c[0] + r * np.cos(u[0]), c[1] + r * np.sin(u[0]), np.full(u.shape[1], self.floor), color="C3",
-                       alpha=0.3, lw=1)  # its shadow
+        self.axes.plot_wireframe(
+            c[0] + r * np.cos(u) * np.sin(v),
+            c[1] + r * np.sin(u) * np.sin(v),
+            c[2] + r * np.cos(v),
+            color="C3",
+            alpha=0.6,
+            linewidth=0.7,
+            label="obstacle",
+        )
+        self.axes.plot(
+            c[0] + r * np.cos(u[0]),
+            c[1] + r * np.sin(u[0]),
+            np.full(u.shape[1], self.floor),
+            color="C3",
+            alpha=0.3,
+            lw=1,
+        )  # its shadow
 
     def draw(self, k: int):
         """Set the artists to frame ``k`` (an index into :attr:`indices`); the changed artists."""
         i = int(self.indices[k])
         robot = self.skeleton.polyline(self.segments[i])
-        trail = np.array([self.ends[j] for j in self.indices[:k + 1]])
+        trail = np.array([self.ends[j] for j in self.indices[: k + 1]])
         self.robot.set_data(*self._xyz(robot)[:2])
         self.trail.set_data(*self._xyz(trail)[:2])
         self.tip.set_data(*self._xyz(self.ends[i][None])[:2])
@@ -249,7 +286,7 @@ class MotionPicture:
         slower)."""
         from PIL import Image
 
-        moving = self.draw(len(self.indices) - 1)   # the layout fits the last frame: the trail at its longest
+        moving = self.draw(len(self.indices) - 1)  # the layout fits the last frame: the trail at its longest
         for artist in moving:
             artist.set_animated(True)
         canvas = self.figure.canvas
@@ -266,8 +303,20 @@ class MotionPicture:
         plt.close(self.figure)
 
 
-def animate(trajectory, path, problem, *, target=None, obstacles=(), frame: str | None = None, fps: float = 20.0,
-            max_frames: int = 120, size: float = 4.0, dpi: int = 75, title: str | None = None) -> Path:
+def animate(
+    trajectory,
+    path,
+    problem,
+    *,
+    target=None,
+    obstacles=(),
+    frame: str | None = None,
+    fps: float = 20.0,
+    max_frames: int = 120,
+    size: float = 4.0,
+    dpi: int = 75,
+    title: str | None = None,
+) -> Path:
     """Write the closed-loop ``trajectory`` of ``problem``'s robot as an animated GIF at ``path``; its Path.
 
     ``target``: a task-space target point (x, y, z; drawn as a star), else the trajectory's joint goal is drawn as a
@@ -276,8 +325,18 @@ def animate(trajectory, path, problem, *, target=None, obstacles=(), frame: str 
     effector). Real-time playback at ``fps`` (fewer frames per second where the run would need more than
     ``max_frames``); ``size`` inches square at ``dpi``."""
     path = check_path(path)
-    picture = MotionPicture(trajectory, problem, target=target, obstacles=obstacles, frame=frame, fps=fps,
-                            max_frames=max_frames, size=size, dpi=dpi, title=title)
+    picture = MotionPicture(
+        trajectory,
+        problem,
+        target=target,
+        obstacles=obstacles,
+        frame=frame,
+        fps=fps,
+        max_frames=max_frames,
+        size=size,
+        dpi=dpi,
+        title=title,
+    )
     try:
         return picture.save(path)
     finally:

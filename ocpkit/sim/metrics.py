@@ -1,4 +1,5 @@
 """Closed-loop performance measures of the paper: actual cost, its ratio, overshoot, rise time, ITAE."""
+
 from __future__ import annotations
 
 import numpy as np

@@ -30,6 +30,7 @@ MuJoCo constraint) and ``armature`` (rotor inertia, kg·m²), both added to the 
 ``ctrlrange`` (actuator limits: MuJoCo clamps u); ``floor`` (a plane at that height that the links, capsules of
 the problem's ``link_radius`` between the joints, touch); ``limits`` (the joint ranges as constraints).
 """
+
 from __future__ import annotations
 
 import copy
@@ -40,8 +41,12 @@ import numpy as np
 from ocpkit._checks import choice, integer, positive
 
 INTEGRATORS = ("rk4", "implicit", "implicitfast", "euler")
-_MJ_INTEGRATORS = {"rk4": "mjINT_RK4", "implicit": "mjINT_IMPLICIT", "implicitfast": "mjINT_IMPLICITFAST",
-                   "euler": "mjINT_EULER"}
+_MJ_INTEGRATORS = {
+    "rk4": "mjINT_RK4",
+    "implicit": "mjINT_IMPLICIT",
+    "implicitfast": "mjINT_IMPLICITFAST",
+    "euler": "mjINT_EULER",
+}
 # MuJoCo resets its data (to qpos0) when q, q̇ or q̈ turn non-finite or huge, and zeros every input when one is, and
 # counts a warning: a run must fail there instead of continuing from the reset state or without its inputs.
 _DIVERGED = {"mjWARN_BADQPOS": "q", "mjWARN_BADQVEL": "q̇", "mjWARN_BADQACC": "q̈", "mjWARN_BADCTRL": "u"}
@@ -74,9 +79,21 @@ class MuJoCoPlant:
     sources and conventions.
     """
 
-    def __init__(self, problem, *, mjcf=None, joint_map=None, integrator: str = "rk4", frictionloss=0.0,
-                 armature=0.0, ctrlrange=None, floor: float | None = None, limits: bool | None = None,
-                 meshes: bool = False, check_tolerance: float | None = CHECK_TOLERANCE):
+    def __init__(
+        self,
+        problem,
+        *,
+        mjcf=None,
+        joint_map=None,
+        integrator: str = "rk4",
+        frictionloss=0.0,
+        armature=0.0,
+        ctrlrange=None,
+        floor: float | None = None,
+        limits: bool | None = None,
+        meshes: bool = False,
+        check_tolerance: float | None = CHECK_TOLERANCE,
+    ):
         mujoco = _mujoco()
         from ocpkit import problems
         from ocpkit.model.dynamics import Model
@@ -88,11 +105,15 @@ class MuJoCoPlant:
         plant = problem.plant()
         nq = plant.second_order
         if nq is None or plant.nu != nq:
-            raise ValueError(f"MuJoCoPlant needs a state x = [q, q̇] and one torque per joint; problem "
-                             f"{problem.name!r} has nx = {plant.nx}, nu = {plant.nu}")
+            raise ValueError(
+                f"MuJoCoPlant needs a state x = [q, q̇] and one torque per joint; problem "
+                f"{problem.name!r} has nx = {plant.nx}, nu = {plant.nu}"
+            )
         if type(plant).rk4 is not Model.rk4:
-            raise ValueError(f"problem {problem.name!r} has a plant of its own ({type(plant).__name__}: its inputs "
-                             "are not joint torques), which MuJoCoPlant does not reproduce")
+            raise ValueError(
+                f"problem {problem.name!r} has a plant of its own ({type(plant).__name__}: its inputs "
+                "are not joint torques), which MuJoCoPlant does not reproduce"
+            )
         self.problem, self.nx, self.nu = problem, plant.nx, plant.nu
         self.state_names, self.input_names = plant.state_names, plant.input_names
         self.integrator = choice(integrator, INTEGRATORS, "integrator")
@@ -107,9 +128,13 @@ class MuJoCoPlant:
         if check_tolerance is not None:
             check_tolerance = positive(check_tolerance, "check_tolerance")
         self.meshes = meshes
-        self.options = {"frictionloss": _per_joint(frictionloss, nq, "frictionloss"),
-                        "armature": _per_joint(armature, nq, "armature"),
-                        "ctrlrange": _ctrlrange(ctrlrange, nq), "floor": _floor(floor), "limits": limits}
+        self.options = {
+            "frictionloss": _per_joint(frictionloss, nq, "frictionloss"),
+            "armature": _per_joint(armature, nq, "armature"),
+            "ctrlrange": _ctrlrange(ctrlrange, nq),
+            "floor": _floor(floor),
+            "limits": limits,
+        }
         if mjcf is not None:
             spec, self.source = _mjcf_spec(mujoco, mjcf), f"mjcf:{mjcf}"
             self.mj_joints = _map_joints(mujoco, spec, joint_map, self.joint_names)
@@ -122,12 +147,16 @@ class MuJoCoPlant:
             spec, self.source = _chain_spec(mujoco, problem), "chain"
             self.mj_joints = list(self.joint_names)
         else:
-            raise ValueError(f"problem {problem.name!r} has no rigid-body description (a Chain) to write an MJCF "
-                             "from; MuJoCoPlant supports nlink:N, puma560, panda, urdf:… and Chain-based problems "
-                             "of your own, or any problem with an MJCF of yours (mjcf=…, joint_map=…)")
+            raise ValueError(
+                f"problem {problem.name!r} has no rigid-body description (a Chain) to write an MJCF "
+                "from; MuJoCoPlant supports nlink:N, puma560, panda, urdf:… and Chain-based problems "
+                "of your own, or any problem with an MJCF of yours (mjcf=…, joint_map=…)"
+            )
         if meshes and not self.source.startswith("urdf:"):
-            raise ValueError(f"meshes=True applies to a URDF robot (MuJoCo's import of a URDF problem's file), not to "
-                             f"the robot from {self.source}")
+            raise ValueError(
+                f"meshes=True applies to a URDF robot (MuJoCo's import of a URDF problem's file), not to "
+                f"the robot from {self.source}"
+            )
         if mjcf is None:
             _set_problem_dynamics(mujoco, spec, problem, self.mj_joints)
         for name in self.mj_joints:
@@ -143,8 +172,11 @@ class MuJoCoPlant:
     def __repr__(self):
         active = [k for k, v in self.options.items() if v is not None and (not isinstance(v, np.ndarray) or v.any())]
         active += ["meshes"] if self.meshes else []
-        return (f"MuJoCoPlant({self.problem.name!r}, source={self.source!r}, integrator={self.integrator!r}"
-                + "".join(f", {k}" for k in active) + ")")
+        return (
+            f"MuJoCoPlant({self.problem.name!r}, source={self.source!r}, integrator={self.integrator!r}"
+            + "".join(f", {k}" for k in active)
+            + ")"
+        )
 
     def xml(self) -> str:
         """The MJCF of the simulated robot (options applied), as MuJoCo writes it; a generated robot's inertias that
@@ -172,9 +204,11 @@ class MuJoCoPlant:
             mujoco.mj_step(model, data, substeps)
             bad = [what for w, what in diverged.items() if data.warning[w].number > before[w]]
             if bad:
-                raise FloatingPointError(f"MuJoCo found a NaN, inf or huge value in {', '.join(bad)} stepping from "
-                                         f"x = {x.tolist()}, u = {u.tolist()} and reset its data: the simulation "
-                                         "diverged (more plant_substeps or a smaller dt may help)")
+                raise FloatingPointError(
+                    f"MuJoCo found a NaN, inf or huge value in {', '.join(bad)} stepping from "
+                    f"x = {x.tolist()}, u = {u.tolist()} and reset its data: the simulation "
+                    "diverged (more plant_substeps or a smaller dt may help)"
+                )
             return np.concatenate([data.qpos[self._qpos], data.qvel[self._qvel]])
 
         return step
@@ -220,14 +254,19 @@ class MuJoCoPlant:
         depth = [_depth(model, model.joint(name).bodyid[0]) for name in self.mj_joints]
         differs = [k for k in range(n) if residual[k] > tolerance * torque] or [int(np.argmax(gap))]
         joint = model.joint(self.mj_joints[max(differs, key=lambda k: depth[k])])
-        hint = ("the generated robot follows M(q) q̈ + h(q, q̇) + b q̇ = τ of its Chain; write an MJCF (mjcf=, "
-                "joint_map=) for other dynamics" if self.source == "chain" else
-                "its masses, inertias, axes, joint types, damping or gravity are not the problem's")
-        raise ValueError(f"MuJoCo's model of {self.problem.name!r} ({self.source}) gives q̈ up to {gap.max():.3g} "
-                         f"away from the problem's dynamics (|q̈| up to {scale:.3g}, relative {gap.max() / scale:.3g} "
-                         f"> check_tolerance={tolerance:g}; the deepest joint whose torque differs: {joint.name!r}, "
-                         f"body {model.body(joint.bodyid[0]).name!r}): {hint}; a larger check_tolerance accepts it, "
-                         "check_tolerance=None skips this check")
+        hint = (
+            "the generated robot follows M(q) q̈ + h(q, q̇) + b q̇ = τ of its Chain; write an MJCF (mjcf=, "
+            "joint_map=) for other dynamics"
+            if self.source == "chain"
+            else "its masses, inertias, axes, joint types, damping or gravity are not the problem's"
+        )
+        raise ValueError(
+            f"MuJoCo's model of {self.problem.name!r} ({self.source}) gives q̈ up to {gap.max():.3g} "
+            f"away from the problem's dynamics (|q̈| up to {scale:.3g}, relative {gap.max() / scale:.3g} "
+            f"> check_tolerance={tolerance:g}; the deepest joint whose torque differs: {joint.name!r}, "
+            f"body {model.body(joint.bodyid[0]).name!r}): {hint}; a larger check_tolerance accepts it, "
+            "check_tolerance=None skips this check"
+        )
 
 
 def _depth(model, body: int) -> int:
@@ -295,8 +334,9 @@ def _map_joints(mujoco, spec, joint_map, names: list) -> list:
     elif isinstance(joint_map, dict):
         stray = [k for k in joint_map if k not in names]
         if stray:
-            raise ValueError(f"joint_map names {stray[0]!r}, not a joint of the problem; its joints: "
-                             f"{', '.join(names)}")
+            raise ValueError(
+                f"joint_map names {stray[0]!r}, not a joint of the problem; its joints: {', '.join(names)}"
+            )
         missing = [k for k in names if k not in joint_map]
         if missing:
             raise ValueError(f"joint_map has no MJCF joint for the problem's joint {missing[0]!r}")
@@ -388,13 +428,16 @@ def _urdf_spec(mujoco, problem, meshes: bool):
     default = load_urdf(problem.urdf, locked_joints=locked)
     same = len(default.inertias) == len(problem.pin_model.inertias) and all(
         np.allclose(a.toDynamicParameters(), b.toDynamicParameters(), rtol=0, atol=1e-12)
-        for a, b in zip(default.inertias, problem.pin_model.inertias))
+        for a, b in zip(default.inertias, problem.pin_model.inertias)
+    )
     for name in locked:
         joint = spec.joint(name)
         low, high = joint.range
         if not same or (joint.limited != mujoco.mjtLimited.mjLIMITED_FALSE and low < high and not low <= 0 <= high):
-            raise ValueError(f"{problem.name}: joint {name!r} is locked away from 0, which the URDF import cannot "
-                             "hold; use an MJCF of yours (mjcf=, joint_map=)")
+            raise ValueError(
+                f"{problem.name}: joint {name!r} is locked away from 0, which the URDF import cannot "
+                "hold; use an MJCF of yours (mjcf=, joint_map=)"
+            )
     for eq in list(spec.equalities):  # mimic joints (the Panda's fingers) tie locked joints together
         if {eq.name1, eq.name2} & set(locked):
             spec.delete(eq)
@@ -420,8 +463,10 @@ def _urdf_meshes(mujoco, spec, urdf: str, keep: bool) -> None:
     folder = Path(spec.modelfiledir) / spec.meshdir
     for mesh in spec.meshes:
         if not (folder / mesh.file).is_file():  # an absolute file name replaces the folder
-            raise ValueError(f"meshes=True: MuJoCo cannot open the mesh {mesh.file!r} of {urdf!r} (not a file "
-                             f"under {str(folder)!r}); leave meshes=False to simulate without the URDF's meshes")
+            raise ValueError(
+                f"meshes=True: MuJoCo cannot open the mesh {mesh.file!r} of {urdf!r} (not a file "
+                f"under {str(folder)!r}); leave meshes=False to simulate without the URDF's meshes"
+            )
 
 
 def _set_problem_dynamics(mujoco, spec, problem, joints):
@@ -445,8 +490,14 @@ def _set_problem_dynamics(mujoco, spec, problem, joints):
         end = R.T @ (np.asarray(kin.position(zero, b), dtype=float).ravel() - p.ravel())
         if np.linalg.norm(end) > 1e-9:
             body = spec.joint(a).parent
-            body.add_geom(type=mujoco.mjtGeom.mjGEOM_CAPSULE, fromto=np.r_[np.zeros(3), end], size=[radius, 0, 0],
-                          contype=0, conaffinity=1, rgba=[0.4, 0.5, 0.7, 1.0])
+            body.add_geom(
+                type=mujoco.mjtGeom.mjGEOM_CAPSULE,
+                fromto=np.r_[np.zeros(3), end],
+                size=[radius, 0, 0],
+                contype=0,
+                conaffinity=1,
+                rgba=[0.4, 0.5, 0.7, 1.0],
+            )
 
 
 def _apply_options(mujoco, spec, joints, options):
@@ -462,5 +513,11 @@ def _apply_options(mujoco, spec, joints, options):
             actuator.ctrllimited = mujoco.mjtLimited.mjLIMITED_TRUE
             actuator.ctrlrange = options["ctrlrange"][:, i]
     if options["floor"] is not None:
-        spec.worldbody.add_geom(name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, pos=[0, 0, options["floor"]],
-                                size=[0, 0, 1], contype=1, conaffinity=1)
+        spec.worldbody.add_geom(
+            name="floor",
+            type=mujoco.mjtGeom.mjGEOM_PLANE,
+            pos=[0, 0, options["floor"]],
+            size=[0, 0, 1],
+            contype=1,
+            conaffinity=1,
+        )

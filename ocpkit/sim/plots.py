@@ -2,6 +2,7 @@
 plots, in one style: a fixed look per controller (:func:`style`), constrained layout with legends outside the
 axes, spread wherever a median is drawn, labelled reference lines, units on the axes; and the one number style
 (:func:`number`) every report table, figure tick and note uses."""
+
 from __future__ import annotations
 
 import textwrap
@@ -25,20 +26,37 @@ LINESTYLES = ("-", "--", "-.", ":")
 # The studies' controllers, one look each wherever they appear: black for the reference a ratio is taken to, the
 # paper's variants dashed beside their preconditioned counterparts, a marker each so coinciding lines stay apart.
 _KNOWN = {
-    "traditional": ("k", "s", "-"), "IPOPT": ("k", "X", "-"),
-    "knots 3 (QP)": ("C0", "o", "-"), "LinearMPC": ("C0", "o", "-"), "LinearMPC (trajectory)": ("C9", "s", "--"),
-    "EMPC 1 gen": ("C1", "^", "-"), "EMPC": ("C1", "^", "-"), "EMPC 3 gen": ("C2", "v", "-"),
-    "EMPC 1 gen (paper)": ("C3", "<", "--"), "EMPC (paper)": ("C3", "<", "--"), "EMPC 3 gen (paper)": ("C4", ">", "--"),
-    "CEM": ("C5", "D", "-"), "MPPI": ("C6", "P", "-"), "RTI": ("C8", "*", "-"), "servo (step input)": ("C7", "x", ":"),
+    "traditional": ("k", "s", "-"),
+    "IPOPT": ("k", "X", "-"),
+    "knots 3 (QP)": ("C0", "o", "-"),
+    "LinearMPC": ("C0", "o", "-"),
+    "LinearMPC (trajectory)": ("C9", "s", "--"),
+    "EMPC 1 gen": ("C1", "^", "-"),
+    "EMPC": ("C1", "^", "-"),
+    "EMPC 3 gen": ("C2", "v", "-"),
+    "EMPC 1 gen (paper)": ("C3", "<", "--"),
+    "EMPC (paper)": ("C3", "<", "--"),
+    "EMPC 3 gen (paper)": ("C4", ">", "--"),
+    "CEM": ("C5", "D", "-"),
+    "MPPI": ("C6", "P", "-"),
+    "RTI": ("C8", "*", "-"),
+    "servo (step input)": ("C7", "x", ":"),
     # robustness: parameterized MPC by knot count
-    "2 knots": ("C0", "o", "-"), "4 knots": ("C2", "D", "-"), "8 knots": ("C4", "v", "-"),
+    "2 knots": ("C0", "o", "-"),
+    "4 knots": ("C2", "D", "-"),
+    "8 knots": ("C4", "v", "-"),
     # solve times: colour by formulation, dashed and square for traditional
-    "large matrix (sparse), 5 knots": ("C0", "o", "-"), "large matrix (sparse), traditional": ("C0", "s", "--"),
-    "small matrix (condensed), 5 knots": ("C3", "^", "-"), "small matrix (condensed), traditional": ("C3", "D", "--"),
+    "large matrix (sparse), 5 knots": ("C0", "o", "-"),
+    "large matrix (sparse), traditional": ("C0", "s", "--"),
+    "small matrix (condensed), 5 knots": ("C3", "^", "-"),
+    "small matrix (condensed), traditional": ("C3", "D", "--"),
     # keep-out: the QP, EMPC with the penalty in its fitness, EMPC without; and reach's fair baseline
-    "EMPC, penalized fitness": ("C1", "^", "-"), "EMPC, quadratic fitness": ("C2", "v", "--"),
-    "IPOPT, squared hinge term": ("k", "X", "-"), "RTI, squared hinge term": ("C8", "*", "-"),
-    "EMPC, hinge fitness": ("C1", "^", "-"), "EMPC, squared hinge term": ("C2", "v", "--"),
+    "EMPC, penalized fitness": ("C1", "^", "-"),
+    "EMPC, quadratic fitness": ("C2", "v", "--"),
+    "IPOPT, squared hinge term": ("k", "X", "-"),
+    "RTI, squared hinge term": ("C8", "*", "-"),
+    "EMPC, hinge fitness": ("C1", "^", "-"),
+    "EMPC, squared hinge term": ("C2", "v", "--"),
 }
 # Looks for other labels, colour first: ten colours with solid lines, then the ten again dashed, and so on.
 _LOOKS = [(c, MARKERS[(i + j) % len(MARKERS)], ls) for j, ls in enumerate(LINESTYLES) for i, c in enumerate(COLOURS)]
@@ -167,8 +185,9 @@ class _LogTicks(ticker.Locator):
         return (self._linear if lo > 0 and hi / lo < 10 else self._log).tick_values(lo, hi)
 
 
-def closed_loop(trajectories: dict, path, *, title: str = "", state_names=None, input_names=None,
-                task: dict | None = None) -> Path:
+def closed_loop(
+    trajectories: dict, path, *, title: str = "", state_names=None, input_names=None, task: dict | None = None
+) -> Path:
     """Joint positions against their goals and applied inputs, one line per labelled trajectory.
 
     Up to three joints get a panel each (position, then input), each trajectory in its :func:`styles` look with
@@ -182,10 +201,10 @@ def closed_loop(trajectories: dict, path, *, title: str = "", state_names=None, 
     n_q = first.x.shape[1] // 2
     m = first.u.shape[1]
     if n_q > 3 or task:
-        return _closed_loop_compact(trajectories, path, title, n_q, m, task, _unit(state_names and state_names[:n_q]),
-                                    _unit(input_names))
-    fig, axes = figure(n_q + m, 1, figsize=(8, 2.2 * (n_q + m) + 0.12 * len(trajectories)), sharex=True,
-                       squeeze=False)
+        return _closed_loop_compact(
+            trajectories, path, title, n_q, m, task, _unit(state_names and state_names[:n_q]), _unit(input_names)
+        )
+    fig, axes = figure(n_q + m, 1, figsize=(8, 2.2 * (n_q + m) + 0.12 * len(trajectories)), sharex=True, squeeze=False)
     axes = axes[:, 0]
     looks = styles(trajectories)
     every = max(1, len(first.t) // 12)
@@ -206,8 +225,13 @@ def closed_loop(trajectories: dict, path, *, title: str = "", state_names=None, 
     axes[-1].set_xlabel("time [s]")
     # below the panels, as wide as the figure: a long controller label beside them squeezed them to a third
     handles, labels = axes[0].get_legend_handles_labels()
-    fig.legend(handles, labels, loc="outside lower center", fontsize=7,
-               ncol=min(len(labels), max(1, 110 // (max(map(len, labels)) + 8))))
+    fig.legend(
+        handles,
+        labels,
+        loc="outside lower center",
+        fontsize=7,
+        ncol=min(len(labels), max(1, 110 // (max(map(len, labels)) + 8))),
+    )
     if title:
         set_title(axes[0], title)
     return save(fig, path)
@@ -215,12 +239,13 @@ def closed_loop(trajectories: dict, path, *, title: str = "", state_names=None, 
 
 def _unit(names) -> str:
     """The unit ("[rad]") all ``names`` end with, or "(model units)"."""
-    units = {name[name.rfind("["):] for name in names or () if name.endswith("]") and "[" in name}
+    units = {name[name.rfind("[") :] for name in names or () if name.endswith("]") and "[" in name}
     return units.pop() if len(units) == 1 and all(name.endswith("]") for name in names) else "(model units)"
 
 
-def _closed_loop_compact(trajectories, path, title, n_q, m, task=None, q_unit="(model units)",
-                         u_unit="(model units)") -> Path:
+def _closed_loop_compact(
+    trajectories, path, title, n_q, m, task=None, q_unit="(model units)", u_unit="(model units)"
+) -> Path:
     rows = 3 if task else 2
     fig, axes = figure(rows, 1, figsize=(9, 3.2 * rows), sharex=True)
     ax_q, ax_u = axes[-2:]
@@ -234,8 +259,7 @@ def _closed_loop_compact(trajectories, path, title, n_q, m, task=None, q_unit="(
     for k, (label, traj) in enumerate(trajectories.items()):
         ls = LINESTYLES[k % len(LINESTYLES)]
         for i in range(n_q):
-            ax_q.plot(traj.t, traj.x[:, i], color=f"C{i % 10}", ls=ls, lw=1.2,
-                      label=f"q{i + 1}" if k == 0 else None)
+            ax_q.plot(traj.t, traj.x[:, i], color=f"C{i % 10}", ls=ls, lw=1.2, label=f"q{i + 1}" if k == 0 else None)
         for j in range(m):
             ax_u.step(traj.t[:-1], traj.u[:, j], where="post", color=f"C{j % 10}", ls=ls, lw=1.0)
         ax_u.plot([], [], color="k", ls=ls, label=label)
@@ -268,8 +292,19 @@ def save(fig, path) -> Path:
     return targets[0]
 
 
-def boxes(labels, data, path, *, xlabel: str, ylabel: str, title: str = "", log: bool = True,
-          references=(), colours=None, unit: str = "seed") -> Path:
+def boxes(
+    labels,
+    data,
+    path,
+    *,
+    xlabel: str,
+    ylabel: str,
+    title: str = "",
+    log: bool = True,
+    references=(),
+    colours=None,
+    unit: str = "seed",
+) -> Path:
     """One group of values per label: every value as a dot and the median as a bar when each group has fewer
     than :data:`STRIP_BELOW` (a box of 5 points hides which they are), else box plots in the paper's convention
     (quartile box, median marker, 1.5 IQR whiskers, outliers as dots). ``references``: (y, legend label) of
@@ -286,22 +321,39 @@ def boxes(labels, data, path, *, xlabel: str, ylabel: str, title: str = "", log:
             order = np.argsort(values)
             # spread the dots sideways in value order: equal values sit side by side, not on top of each other
             offsets = np.linspace(-0.2, 0.2, len(values)) if len(values) > 1 else np.zeros(1)
-            ax.plot(x + offsets, values[order], "o", color=colour, ms=5, alpha=0.8, mec="k", mew=0.4,
-                    label=f"one {unit}" if x == 1 else None)
+            ax.plot(
+                x + offsets,
+                values[order],
+                "o",
+                color=colour,
+                ms=5,
+                alpha=0.8,
+                mec="k",
+                mew=0.4,
+                label=f"one {unit}" if x == 1 else None,
+            )
             if len(values):
-                ax.hlines(np.median(values), x - 0.3, x + 0.3, color="k", lw=2,
-                          label="median" if x == 1 else None)
+                ax.hlines(np.median(values), x - 0.3, x + 0.3, color="k", lw=2, label="median" if x == 1 else None)
         counts = {len(d) for d in data}
         ax.set_xlabel(xlabel + f"\n({'/'.join(map(str, sorted(counts)))} {unit}s per group)")
     else:
-        parts = ax.boxplot(data, positions=positions, patch_artist=True, medianprops={"color": "k", "lw": 1.5},
-                           flierprops={"marker": ".", "markersize": 3})
+        parts = ax.boxplot(
+            data,
+            positions=positions,
+            patch_artist=True,
+            medianprops={"color": "k", "lw": 1.5},
+            flierprops={"marker": ".", "markersize": 3},
+        )
         for box, colour in zip(parts["boxes"], colours):
             box.set(facecolor=colour, alpha=0.35)
         ax.set_xlabel(f"{xlabel}\n({BOX_CONVENTION})")
-    ax.set_xticks(positions, [number(l) if isinstance(l, (float, np.floating)) else str(l) for l in labels],
-                  fontsize=8, rotation=0 if max(len(str(l)) for l in labels) <= 12 else 30,
-                  ha="center" if max(len(str(l)) for l in labels) <= 12 else "right")
+    ax.set_xticks(
+        positions,
+        [number(l) if isinstance(l, (float, np.floating)) else str(l) for l in labels],
+        fontsize=8,
+        rotation=0 if max(len(str(l)) for l in labels) <= 12 else 30,
+        ha="center" if max(len(str(l)) for l in labels) <= 12 else "right",
+    )
     ax.set_ylabel(ylabel)
     for y, text in references:
         reference(ax, y, text)
@@ -316,9 +368,22 @@ def boxes(labels, data, path, *, xlabel: str, ylabel: str, title: str = "", log:
     return save(fig, path)
 
 
-def lines(x, series: dict, path, *, xlabel: str, ylabel: str, title: str = "", log: bool = False,
-          spread: dict | None = None, spread_label: str = "shaded: quartiles", counts: bool = False,
-          references=(), panels=None, dodge: bool = False) -> Path:
+def lines(
+    x,
+    series: dict,
+    path,
+    *,
+    xlabel: str,
+    ylabel: str,
+    title: str = "",
+    log: bool = False,
+    spread: dict | None = None,
+    spread_label: str = "shaded: quartiles",
+    counts: bool = False,
+    references=(),
+    panels=None,
+    dodge: bool = False,
+) -> Path:
     """One marked line per labelled series over a shared x, each in its :func:`style`.
 
     ``series[label]``: one value per x, or the values at each x (a sequence of arrays, e.g. one per seed): the
@@ -336,8 +401,9 @@ def lines(x, series: dict, path, *, xlabel: str, ylabel: str, title: str = "", l
         if any(np.ndim(v) > 0 for v in y):
             samples = [np.asarray(v, dtype=float)[~np.isnan(np.asarray(v, dtype=float))] for v in y]
             medians[label] = np.array([np.median(v) if len(v) else np.nan for v in samples])
-            bands[label] = tuple(np.array([np.percentile(v, q) if len(v) else np.nan for v in samples])
-                                 for q in (25, 75))
+            bands[label] = tuple(
+                np.array([np.percentile(v, q) if len(v) else np.nan for v in samples]) for q in (25, 75)
+            )
         else:
             medians[label] = np.asarray(y, dtype=float)
     groups = [list(g) for g in panels] if panels else [list(series)]

@@ -8,6 +8,7 @@ whole: a loop whose every step succeeds can stop short of its target. :meth:`Tra
 loop-level verdict — "reached", "stalled" or "moving" — and :meth:`Trajectory.success_while_colliding` counts the
 steps whose success the plant's next state contradicts.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -25,8 +26,8 @@ from ocpkit.model.reference import ObstaclePath, Reference
 # or for a joint goal the state error max_i |x_i − x_goal,i| (the state's units, rad and rad/s for an arm).
 REACHED, STALLED, MOVING = "reached", "stalled", "moving"
 TOLERANCE = 0.01  # e at the last state within this: reached (1 cm, as the reach study's success)
-WINDOW = 0.5      # s: the last stretch of the run over which a loop short of its target must still change e
-STILL = 1e-3      # e's range (max − min) over that window at or below this: stalled (1 mm in 0.5 s: > 25 s per 5 cm)
+WINDOW = 0.5  # s: the last stretch of the run over which a loop short of its target must still change e
+STILL = 1e-3  # e's range (max − min) over that window at or below this: stalled (1 mm in 0.5 s: > 25 s per 5 cm)
 
 
 @dataclass(frozen=True)
@@ -48,23 +49,37 @@ class Progress:
 
     def to_dict(self) -> dict:
         """JSON-ready: the verdict, which error, its final value and change over the window, and the thresholds."""
-        return {"verdict": self.verdict, "error": self.what, "unit": self.unit, "final": self.final,
-                "change": None if np.isnan(self.change) else self.change, "tolerance": self.tolerance,
-                "window": self.window, "still": self.still}
+        return {
+            "verdict": self.verdict,
+            "error": self.what,
+            "unit": self.unit,
+            "final": self.final,
+            "change": None if np.isnan(self.change) else self.change,
+            "tolerance": self.tolerance,
+            "window": self.window,
+            "still": self.still,
+        }
 
     def text(self) -> str:
         """One line: the verdict and the numbers it rests on."""
         u = f" {self.unit}" if self.unit else ""
-        line = (f"verdict: {self.verdict.upper() if self.verdict == STALLED else self.verdict} — {self.what} "
-                f"{self.final:.4f}{u} at the end ({'within' if self.verdict == REACHED else 'not within'} "
-                f"{self.tolerance:g}{u})")
+        line = (
+            f"verdict: {self.verdict.upper() if self.verdict == STALLED else self.verdict} — {self.what} "
+            f"{self.final:.4f}{u} at the end ({'within' if self.verdict == REACHED else 'not within'} "
+            f"{self.tolerance:g}{u})"
+        )
         if self.verdict == REACHED:
             return line
         if np.isnan(self.change):
             return line + f"; the run is shorter than the {self.window:g} s window"
-        return line + (f", changed {self.change:.4f}{u} over the last {self.window:g} s "
-                       + (f"(at most {self.still:g}{u}: no progress)" if self.verdict == STALLED else
-                          f"(more than {self.still:g}{u}: still moving)"))
+        return line + (
+            f", changed {self.change:.4f}{u} over the last {self.window:g} s "
+            + (
+                f"(at most {self.still:g}{u}: no progress)"
+                if self.verdict == STALLED
+                else f"(more than {self.still:g}{u}: still moving)"
+            )
+        )
 
 
 def _tally(labels) -> str:
@@ -93,8 +108,9 @@ class Trajectory:
 
     def goals(self) -> np.ndarray:
         """The goal at every recorded time, (H+1, ng): the reference's, or the held goal repeated."""
-        return self.reference if self.reference is not None else np.broadcast_to(self.goal, (len(self.t),
-                                                                                          len(self.goal)))
+        return (
+            self.reference if self.reference is not None else np.broadcast_to(self.goal, (len(self.t), len(self.goal)))
+        )
 
     @property
     def statuses(self) -> list[str]:
@@ -132,8 +148,12 @@ class Trajectory:
         task = getattr(ocp, "task", None)
         if task is None or not task.obstacles:
             return np.full(len(self.x), np.inf)
-        return clearances(task.kinematics, task.robot, task.obstacles if self.obstacles is None else self.obstacles,
-                          self.x[:, :task.kinematics.n])
+        return clearances(
+            task.kinematics,
+            task.robot,
+            task.obstacles if self.obstacles is None else self.obstacles,
+            self.x[:, : task.kinematics.n],
+        )
 
     def success_while_colliding(self, ocp) -> int:
         """How many steps reported "success" while the plant's next state collides with an obstacle of ``ocp``'s
@@ -141,8 +161,16 @@ class Trajectory:
         colliding = self.clearances(ocp)[1:] < 0
         return int(sum(s.status == SUCCESS and hit for s, hit in zip(self.solutions, colliding)))
 
-    def progress(self, kinematics=None, frame: str | None = None, target=None, *, tolerance: float = TOLERANCE,
-                 window: float = WINDOW, still: float = STILL) -> Progress:
+    def progress(
+        self,
+        kinematics=None,
+        frame: str | None = None,
+        target=None,
+        *,
+        tolerance: float = TOLERANCE,
+        window: float = WINDOW,
+        still: float = STILL,
+    ) -> Progress:
         """The loop-level verdict on the task (:class:`Progress`): with ``kinematics`` (an
         :class:`ocpkit.model.kinematics.Kinematics`, ``problem.kinematics``), ``frame`` and ``target`` (x, y, z), the
         frame's distance (m) to the target point; without them the joint goal's state error max_i |x_i − x_goal,i|.
@@ -152,19 +180,21 @@ class Trajectory:
         window = positive(window, "window")
         given = [name for name, v in (("kinematics", kinematics), ("frame", frame), ("target", target)) if v is None]
         if given and len(given) < 3:
-            raise ValueError(f"progress towards a frame's target needs kinematics, frame and target; {given[0]} is "
-                             f"missing (none of them: the joint goal's state error)")
+            raise ValueError(
+                f"progress towards a frame's target needs kinematics, frame and target; {given[0]} is "
+                f"missing (none of them: the joint goal's state error)"
+            )
         if given:
-            error = np.abs(self.x - self.goals()[:, :self.x.shape[1]]).max(axis=1)
+            error = np.abs(self.x - self.goals()[:, : self.x.shape[1]]).max(axis=1)
             what, unit = "max |x − x_goal|", ""
         else:
             target = np.asarray(target, dtype=float).ravel()
             if target.shape != (3,) or not np.isfinite(target).all():
                 raise ValueError(f"target must be a point x, y, z (m), got {np.asarray(target).tolist()}")
-            error = np.linalg.norm(kinematics.positions(frame, self.x[:, :kinematics.n]) - target, axis=1)
+            error = np.linalg.norm(kinematics.positions(frame, self.x[:, : kinematics.n]) - target, axis=1)
             what, unit = f"{frame}'s distance to the target", "m"
         span = int(round(window / (self.t[1] - self.t[0]))) if len(self.t) > 1 else len(self.t)
-        tail = error[-(span + 1):]
+        tail = error[-(span + 1) :]
         change = float(tail.max() - tail.min()) if len(error) > span else float("nan")
         final = float(error[-1])
         verdict = REACHED if final <= tolerance else STALLED if change <= still else MOVING
@@ -177,11 +207,22 @@ class Trajectory:
     def animate(self, path, problem, **options):
         """The run as an animated GIF of ``problem``'s robot at ``path`` (:func:`ocpkit.sim.animation.animate`)."""
         from ocpkit.sim.animation import animate  # matplotlib loads only when a picture is asked for
+
         return animate(self, path, problem, **options)
 
 
-def simulate(plant, controller: Controller, x0, goal, duration: float, *, dt: float | None = None,
-             plant_substeps: int = 10, callback=None, obstacles=None) -> Trajectory:
+def simulate(
+    plant,
+    controller: Controller,
+    x0,
+    goal,
+    duration: float,
+    *,
+    dt: float | None = None,
+    plant_substeps: int = 10,
+    callback=None,
+    obstacles=None,
+) -> Trajectory:
     """Run ``controller`` for ``duration`` seconds at its control period ``dt`` (default: its OCP's dt).
 
     ``goal``: a goal vector held, or a :class:`ocpkit.model.reference.Reference` followed: the step at time t gets
@@ -196,8 +237,10 @@ def simulate(plant, controller: Controller, x0, goal, duration: float, *, dt: fl
     """
     model = isinstance(plant, Model)
     if not model and not callable(getattr(plant, "stepper", None)):
-        raise TypeError(f"plant must be an ocpkit Model or a plant with stepper(dt, substeps) (a MuJoCoPlant), got "
-                        f"{type(plant).__name__}")
+        raise TypeError(
+            f"plant must be an ocpkit Model or a plant with stepper(dt, substeps) (a MuJoCoPlant), got "
+            f"{type(plant).__name__}"
+        )
     if not isinstance(controller, Controller):
         raise TypeError(f"controller must be an ocpkit Controller, got {type(controller).__name__}")
     ocp = controller.ocp
@@ -230,11 +273,19 @@ def simulate(plant, controller: Controller, x0, goal, duration: float, *, dt: fl
         xs[k + 1] = np.asarray(step(xs[k], sol.u), dtype=float).ravel()
         if not np.isfinite(xs[k + 1]).all():
             if model:  # the plant's own dynamics returning NaN are named as such (a DynamicsError)
-                check_dynamics(plant, xs[k], sol.u, dt=dt, substeps=plant_substeps,
-                               context=f"the plant, closed-loop step {k + 1} from t = {k * dt:.6g} s")
+                check_dynamics(
+                    plant,
+                    xs[k],
+                    sol.u,
+                    dt=dt,
+                    substeps=plant_substeps,
+                    context=f"the plant, closed-loop step {k + 1} from t = {k * dt:.6g} s",
+                )
             what = "the plant's RK4 step diverged (its dynamics stayed finite)" if model else f"{plant!r} diverged"
-            raise FloatingPointError(f"plant state became non-finite at step {k + 1} from x = {xs[k].tolist()}, "
-                                     f"u = {sol.u.tolist()}: {what}; more plant_substeps or a smaller dt may help")
+            raise FloatingPointError(
+                f"plant state became non-finite at step {k + 1} from x = {xs[k].tolist()}, "
+                f"u = {sol.u.tolist()}: {what}; more plant_substeps or a smaller dt may help"
+            )
         if callback is not None:
             callback(k, xs[k + 1], sol)
     moved = None if obstacles is None else np.array([obstacles.at(t) for t in times])

@@ -4,6 +4,7 @@ Every draw is a hash of (seed, generation counter, candidate, slot), so it does 
 on how Taichi spreads the population over threads: the same seed gives the same population,
 bit for bit, on any number of CPU threads (every random draw takes a seed).
 """
+
 # No "from __future__ import annotations": Taichi reads the annotations as types.
 import math
 

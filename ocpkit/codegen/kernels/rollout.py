@@ -46,8 +46,9 @@ def _bound_violations(ocp, x):
     """h_i = the violation of component i's state bound at x, for the components with a finite bound."""
     rows = np.flatnonzero(np.isfinite(ocp.x_min) | np.isfinite(ocp.x_max)).tolist()
     lo, hi = (np.where(np.isfinite(b[rows]), b[rows], 0.0) for b in (ocp.x_min, ocp.x_max))
-    return (ca.fmax(0, ca.DM(lo) - x[rows]) * ca.DM(np.isfinite(ocp.x_min[rows]).astype(float))
-            + ca.fmax(0, x[rows] - ca.DM(hi)) * ca.DM(np.isfinite(ocp.x_max[rows]).astype(float)))
+    return ca.fmax(0, ca.DM(lo) - x[rows]) * ca.DM(np.isfinite(ocp.x_min[rows]).astype(float)) + ca.fmax(
+        0, x[rows] - ca.DM(hi)
+    ) * ca.DM(np.isfinite(ocp.x_max[rows]).astype(float))
 
 
 def fitness(ocp):
@@ -63,8 +64,10 @@ def fitness(ocp):
         penalty = penalty + STATE_BOUND_WEIGHT * ca.sum1(h + 0.5 * h * h)
     if isinstance(penalty, int):
         return stage, terminal
-    return (ca.Function("fitness", [x, u, g], [stage(x, u, g) + penalty]),
-            ca.Function("fitness_T", [x, g], [terminal(x, g) + penalty]))
+    return (
+        ca.Function("fitness", [x, u, g], [stage(x, u, g) + penalty]),
+        ca.Function("fitness_T", [x, g], [terminal(x, g) + penalty]),
+    )
 
 
 def constrained(ocp) -> bool:
@@ -112,8 +115,8 @@ class SparseRows:
         weights = np.zeros((matrix.shape[0], self.width))
         for k, row in enumerate(nonzero):
             cols = np.flatnonzero(row)
-            columns[k, :cols.size] = cols
-            weights[k, :cols.size] = matrix[k, cols]
+            columns[k, : cols.size] = cols
+            weights[k, : cols.size] = matrix[k, cols]
         self.columns = ti.field(ti.i32, shape=columns.shape)
         self.weights = ti.field(ftype, shape=weights.shape)
         runtime.stage(self.columns, columns)
@@ -140,15 +143,26 @@ class Rollout:
     gathered.
     """
 
-    def __init__(self, ocp, num_sims: int, *, num_picked: int = 1, dynamics: str = "affine",
-                 stage_cost=None, terminal_cost=None, precision: str = "float64",
-                 arch: str = "auto"):
+    def __init__(
+        self,
+        ocp,
+        num_sims: int,
+        *,
+        num_picked: int = 1,
+        dynamics: str = "affine",
+        stage_cost=None,
+        terminal_cost=None,
+        precision: str = "float64",
+        arch: str = "auto",
+    ):
         if isinstance(num_sims, bool) or not isinstance(num_sims, (int, np.integer)) or num_sims < 1:
             raise ValueError(f"num_sims must be a positive integer, got {num_sims!r}")
-        if (isinstance(num_picked, bool) or not isinstance(num_picked, (int, np.integer))
-                or not 1 <= num_picked <= num_sims):
-            raise ValueError(f"num_picked must be an integer in [1, num_sims={num_sims}], "
-                             f"got {num_picked!r}")
+        if (
+            isinstance(num_picked, bool)
+            or not isinstance(num_picked, (int, np.integer))
+            or not 1 <= num_picked <= num_sims
+        ):
+            raise ValueError(f"num_picked must be an integer in [1, num_sims={num_sims}], got {num_picked!r}")
         choice(dynamics, DYNAMICS, "dynamics")
         self.ftype, self.ntype = runtime.float_types(precision)
         self.arch = runtime.init(arch)
@@ -305,13 +319,14 @@ class Rollout:
         device."""
         n, m = self.nx, self.nu
         if (affine is None) != (self.dynamics != "affine"):
-            raise ValueError("affine (A_d, B_d, w_d) is required with dynamics='affine' and "
-                             f"not accepted with dynamics={self.dynamics!r}")
+            raise ValueError(
+                "affine (A_d, B_d, w_d) is required with dynamics='affine' and "
+                f"not accepted with dynamics={self.dynamics!r}"
+            )
         parts = [_vector("x0", x0, n), _vector("goal", goal, self.ng)]
         if affine is not None:
             A_d, B_d, w_d = affine
-            parts += [_matrix("A_d", A_d, (n, n)).ravel(), _matrix("B_d", B_d, (n, m)).ravel(),
-                      _vector("w_d", w_d, n)]
+            parts += [_matrix("A_d", A_d, (n, n)).ravel(), _matrix("B_d", B_d, (n, m)).ravel(), _vector("w_d", w_d, n)]
         np.concatenate(parts, out=self._upload_buffer, casting="same_kind")
         runtime.upload()
         self._upload(self._upload_buffer)
@@ -338,8 +353,10 @@ class Rollout:
         indices = np.asarray(indices, dtype=np.int32).reshape(-1)
         count = indices.size
         if not 1 <= count <= self.picked.shape[0] or indices.min() < 0 or indices.max() >= self.num_sims:
-            raise ValueError(f"indices must be 1..{self.picked.shape[0]} candidate numbers in "
-                             f"[0, {self.num_sims}), got {indices.tolist()}")
+            raise ValueError(
+                f"indices must be 1..{self.picked.shape[0]} candidate numbers in "
+                f"[0, {self.num_sims}), got {indices.tolist()}"
+            )
         out = np.empty((count, self.num_knots, self.nu), dtype=self.ntype)
         runtime.upload()
         self._gather(indices, out)
@@ -351,8 +368,7 @@ def _with_violation(name, cost, v, args) -> ca.Function:
     try:
         terms = ca.vertcat(cost(*args), v(args[0]))
     except RuntimeError as exc:
-        raise TypeError(f"{cost.name()!r} cannot be evaluated on SX symbols (the kernels translate SX): "
-                        f"{exc}") from exc
+        raise TypeError(f"{cost.name()!r} cannot be evaluated on SX symbols (the kernels translate SX): {exc}") from exc
     return ca.Function(name, args, [ca.cse(terms)])
 
 
@@ -362,8 +378,7 @@ def _check_signature(name, function, inputs, outputs) -> None:
     got_in = [tuple(function.size_in(j)) for j in range(function.n_in())]
     got_out = [tuple(function.size_out(j)) for j in range(function.n_out())]
     if got_in != inputs or got_out != outputs:
-        raise ValueError(f"{name} must map inputs of shapes {inputs} to outputs {outputs}, "
-                         f"got {got_in} -> {got_out}")
+        raise ValueError(f"{name} must map inputs of shapes {inputs} to outputs {outputs}, got {got_in} -> {got_out}")
 
 
 def _vector(name, value, size) -> np.ndarray:

@@ -28,6 +28,8 @@ ARCHS = ("auto", "cpu", "cuda")
 
 class ArchUnavailable(RuntimeError):
     """The asked-for arch does not exist on this machine (``cuda`` without a GPU)."""
+
+
 PRECISIONS = ("float64", "float32")
 
 
@@ -43,22 +45,34 @@ def init(arch: str = "auto") -> str:
     started_before = impl.get_runtime().prog is not None
     if not started_before:
         if arch == "cuda" and not _cuda_driver_present():
-            raise ArchUnavailable("arch 'cuda' needs an NVIDIA GPU and its CUDA driver, and this machine has none "
-                                  "(libcuda.so.1 does not load): use --arch cpu, or --arch auto to take a GPU "
-                                  "only where there is one")
+            raise ArchUnavailable(
+                "arch 'cuda' needs an NVIDIA GPU and its CUDA driver, and this machine has none "
+                "(libcuda.so.1 does not load): use --arch cpu, or --arch auto to take a GPU "
+                "only where there is one"
+            )
         use_cuda = arch == "cuda" or (arch == "auto" and _cuda_driver_present())
         # ti.init prints "[Taichi] Starting on arch=…" to stdout: keep stdout for results (--json).
         with contextlib.redirect_stdout(sys.stderr), _floating_point_kept():
             threads = {"cpu_max_num_threads": _cpu_threads()} if os.environ.get(CPU_THREADS) else {}
-            ti.init(arch=ti.cuda if use_cuda else ti.cpu, default_fp=ti.f64,
-                    log_level=ti.WARN, unrolling_limit=0, **_offline_cache(), **threads)
+            ti.init(
+                arch=ti.cuda if use_cuda else ti.cpu,
+                default_fp=ti.f64,
+                log_level=ti.WARN,
+                unrolling_limit=0,
+                **_offline_cache(),
+                **threads,
+            )
     running = current_arch()
     if arch == "cuda" and running != "cuda" and not started_before:
-        raise ArchUnavailable("arch 'cuda' was asked for, but Taichi found no usable CUDA GPU (the driver loads, "
-                              "no device starts) and started on the CPU: use --arch cpu or --arch auto")
+        raise ArchUnavailable(
+            "arch 'cuda' was asked for, but Taichi found no usable CUDA GPU (the driver loads, "
+            "no device starts) and started on the CPU: use --arch cpu or --arch auto"
+        )
     if arch != "auto" and arch != running:
-        raise RuntimeError(f"arch={arch!r} requested but Taichi already runs on {running!r} in "
-                           f"this process (it can be started only once)")
+        raise RuntimeError(
+            f"arch={arch!r} requested but Taichi already runs on {running!r} in "
+            f"this process (it can be started only once)"
+        )
     return running
 
 
@@ -106,8 +120,11 @@ def _offline_cache() -> dict:
             probe.flush()
     except OSError as exc:
         if full(exc):
-            warn_read_only(read_only_error("Taichi's compiled kernels cannot be cached", Path(path), exc),
-                           "they are compiled again each run", stacklevel=4)
+            warn_read_only(
+                read_only_error("Taichi's compiled kernels cannot be cached", Path(path), exc),
+                "they are compiled again each run",
+                stacklevel=4,
+            )
         private = tempfile.mkdtemp(prefix="ocpkit-ticache-")
         atexit.register(shutil.rmtree, private, True)
         return {"offline_cache": False, "offline_cache_file_path": private}

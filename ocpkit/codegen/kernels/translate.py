@@ -79,8 +79,7 @@ _EXPRESSIONS = {
     ca.OP_IF_ELSE_ZERO: "ti.select({0} != 0, {1}, _F(0.0))",
 }
 
-SUPPORTED_OPERATIONS = tuple(sorted(_OP_NAMES[op] for op in _EXPRESSIONS)) + (
-    "OP_CONST", "OP_INPUT", "OP_OUTPUT")
+SUPPORTED_OPERATIONS = tuple(sorted(_OP_NAMES[op] for op in _EXPRESSIONS)) + ("OP_CONST", "OP_INPUT", "OP_OUTPUT")
 
 _DTYPES = {"float64": "ti.f64", "float32": "ti.f32"}
 
@@ -117,13 +116,11 @@ class TaichiFunction:
         for j, (value, (rows, cols)) in enumerate(zip(inputs, self.input_shapes)):
             value = np.asarray(value, dtype=np.float64)
             if value.ndim not in (2, 3) or value.shape[1:] not in ((rows, cols), (rows * cols,)):
-                raise ValueError(f"{self.name}: input {j} must have shape (N, {rows}, {cols}), "
-                                 f"got {value.shape}")
+                raise ValueError(f"{self.name}: input {j} must have shape (N, {rows}, {cols}), got {value.shape}")
             if batch is None:
                 batch = value.shape[0]
             if value.shape[0] != batch or batch == 0:
-                raise ValueError(f"{self.name}: input {j} has batch size {value.shape[0]}, "
-                                 f"expected {batch} (> 0)")
+                raise ValueError(f"{self.name}: input {j} has batch size {value.shape[0]}, expected {batch} (> 0)")
             flat.append(value.reshape(batch, rows, cols).transpose(0, 2, 1).reshape(batch, -1))
         ftype, ntype = runtime.float_types(self.precision)
         fields_in = [ti.field(ftype, shape=(batch, r * c)) for r, c in self.input_shapes]
@@ -131,8 +128,10 @@ class TaichiFunction:
         for field, value in zip(fields_in, flat):
             field.from_numpy(value.astype(ntype))
         self._module.make_batch(*fields_in, *fields_out)()
-        return tuple(field.to_numpy().astype(np.float64).reshape(batch, c, r).transpose(0, 2, 1)
-                     for field, (r, c) in zip(fields_out, self.output_shapes))
+        return tuple(
+            field.to_numpy().astype(np.float64).reshape(batch, c, r).transpose(0, 2, 1)
+            for field, (r, c) in zip(fields_out, self.output_shapes)
+        )
 
 
 def translate(function: ca.Function, *, precision: str = "float64") -> TaichiFunction:
@@ -150,21 +149,20 @@ def translate(function: ca.Function, *, precision: str = "float64") -> TaichiFun
         try:
             function = function.expand()
         except RuntimeError as exc:
-            raise TypeError(f"function {function.name()!r} cannot be expanded to an SX Function: "
-                            f"{exc}") from exc
+            raise TypeError(f"function {function.name()!r} cannot be expanded to an SX Function: {exc}") from exc
     if function.has_free():
-        raise ValueError(f"function {function.name()!r} has free variables "
-                         f"{function.free_sx()}; make them inputs")
+        raise ValueError(f"function {function.name()!r} has free variables {function.free_sx()}; make them inputs")
     if function.n_in() == 0 or function.n_out() == 0:
         raise ValueError(f"function {function.name()!r} needs at least one input and one output")
     runtime.init()
-    for kind, count, sparsity in (("input", function.n_in(), function.sparsity_in),
-                                  ("output", function.n_out(), function.sparsity_out)):
+    for kind, count, sparsity in (
+        ("input", function.n_in(), function.sparsity_in),
+        ("output", function.n_out(), function.sparsity_out),
+    ):
         for j in range(count):
             if sparsity(j).numel() == 0:
                 raise ValueError(f"function {function.name()!r}: {kind} {j} is empty")
-    key = hashlib.sha256(
-        f"{_GENERATOR_VERSION}|{precision}|{function.serialize()}".encode()).hexdigest()[:24]
+    key = hashlib.sha256(f"{_GENERATOR_VERSION}|{precision}|{function.serialize()}".encode()).hexdigest()[:24]
     path = cache_dir() / f"fn_{key}.py"
     module_name = f"ocpkit_kernel_{key}"
     if module_name not in sys.modules:
@@ -177,8 +175,11 @@ def translate(function: ca.Function, *, precision: str = "float64") -> TaichiFun
             cached = ""
         if cached != text:
             if cached is not None:
-                warnings.warn(f"kernel cache entry {path} differs from its translation (damaged or modified): "
-                              "rewritten", RuntimeWarning, stacklevel=2)
+                warnings.warn(
+                    f"kernel cache entry {path} differs from its translation (damaged or modified): rewritten",
+                    RuntimeWarning,
+                    stacklevel=2,
+                )
             path = _write_atomically(path, text)
     module = _import(path, module_name)
     return TaichiFunction(
@@ -216,9 +217,11 @@ def _source(function: ca.Function, precision: str) -> str:
             body.append(f"w{res[0]} = " + _EXPRESSIONS[op].format(*(f"w{a}" for a in args)))
         else:
             name = _OP_NAMES.get(op, str(op))
-            raise ValueError(f"function {function.name()!r}: CasADi operation {name} "
-                             f"(instruction {k}) has no Taichi translation; supported: "
-                             f"{', '.join(SUPPORTED_OPERATIONS)}")
+            raise ValueError(
+                f"function {function.name()!r}: CasADi operation {name} "
+                f"(instruction {k}) has no Taichi translation; supported: "
+                f"{', '.join(SUPPORTED_OPERATIONS)}"
+            )
     params = ", ".join(f"i{j}" for j in range(n_in))
     outs = [f"ti.Vector([{', '.join(terms)}], dt=_F)" for terms in out_terms]
     lines = [
