@@ -10,7 +10,6 @@ controller's nonlinear model, keeps every obstacle clearance and state bound, or
 
 from __future__ import annotations
 
-import sys
 import threading
 import time
 import warnings
@@ -19,7 +18,7 @@ import numpy as np
 
 from ocpkit._checks import choice, integer, positive
 from ocpkit.codegen.compiled import SwitchingFunction
-from ocpkit.numeric import BufferedFunction
+from ocpkit.numeric import BufferedFunction, ThreadLimit
 from ocpkit.model.ocp import OCP
 from ocpkit.safety import Brake, PlanCheck, spectral_radius
 from ocpkit.status import INFEASIBLE, LIMITED, NAN, SOFT, OperationCosts, Reason, Solution
@@ -46,51 +45,6 @@ def bound_scale(lower, upper) -> float:
 def state_limit(ocp: OCP) -> float:
     """|x|, |goal| beyond which a step is answered "nan" without a solve: STATE_SCALE × the problem's scale."""
     return STATE_SCALE * bound_scale(ocp.x_min, ocp.x_max)
-
-
-class _ThreadLimit:
-    """BLAS/OpenMP threads limited (threadpoolctl) while any controller step runs in this process.
-
-    The pools are process-wide, so nested or concurrent steps share one limit: the first step to enter sets
-    it, the last to leave restores the original. Multithreaded BLAS on a step's small matrices only competes with
-    the machine's other work, hence 1 thread by default.
-    """
-
-    _lock = threading.Lock()
-    _active = 0
-    _limiter = None
-    _controller = None
-    _modules = 0
-
-    def __init__(self, threads: int | None):
-        self.threads = threads
-
-    def __enter__(self):
-        if self.threads is None:
-            return self
-        cls = _ThreadLimit
-        with cls._lock:
-            if cls._active == 0:
-                # Rescan the loaded libraries when modules were imported since (a new BLAS may have come in).
-                if cls._controller is None or cls._modules != len(sys.modules):
-                    from threadpoolctl import ThreadpoolController
-
-                    cls._controller = ThreadpoolController()
-                    cls._modules = len(sys.modules)
-                cls._limiter = cls._controller.limit(limits=self.threads)
-            cls._active += 1
-        return self
-
-    def __exit__(self, *exc):
-        if self.threads is None:
-            return False
-        cls = _ThreadLimit
-        with cls._lock:
-            cls._active -= 1
-            if cls._active == 0 and cls._limiter is not None:
-                cls._limiter.restore_original_limits()
-                cls._limiter = None
-        return False
 
 
 def check_linearization(mode: str, trajectory: bool = False) -> str:
@@ -234,7 +188,7 @@ class Controller:
                 )
         full = window[0]
         goal = full[: ocp.nx]
-        with self._lock, _ThreadLimit(self._threads):
+        with self._lock, ThreadLimit(self._threads):
             start = self._step_start = time.perf_counter()
             self._goal = goal  # for the fallback's cold-start input
             self._x = x

@@ -1,4 +1,5 @@
-"""CasADi Functions called on numpy arrays through CasADi's evaluation buffer.
+"""How a step computes: CasADi Functions called on numpy arrays through CasADi's evaluation buffer, and the
+BLAS/OpenMP threads a step may use (:class:`ThreadLimit`).
 
 ``fn(x, u)`` wraps every argument in a DM and every result in a DM that numpy then copies: for a
 large robot's affine model that conversion alone is a sizeable part of an MPC step. A
@@ -7,6 +8,9 @@ once and evaluates in place.
 """
 
 from __future__ import annotations
+
+import sys
+import threading
 
 import casadi as ca
 import numpy as np
@@ -59,3 +63,48 @@ class BufferedFunction:
                 dense[where] = values
                 out.append(dense)
         return tuple(out)
+
+
+class ThreadLimit:
+    """BLAS/OpenMP threads limited (threadpoolctl) while any controller step runs in this process.
+
+    The pools are process-wide, so nested or concurrent steps share one limit: the first step to enter sets
+    it, the last to leave restores the original. Multithreaded BLAS on a step's small matrices only competes with
+    the machine's other work, hence 1 thread by default.
+    """
+
+    _lock = threading.Lock()
+    _active = 0
+    _limiter = None
+    _controller = None
+    _modules = 0
+
+    def __init__(self, threads: int | None):
+        self.threads = threads
+
+    def __enter__(self):
+        if self.threads is None:
+            return self
+        cls = ThreadLimit
+        with cls._lock:
+            if cls._active == 0:
+                # Rescan the loaded libraries when modules were imported since (a new BLAS may have come in).
+                if cls._controller is None or cls._modules != len(sys.modules):
+                    from threadpoolctl import ThreadpoolController
+
+                    cls._controller = ThreadpoolController()
+                    cls._modules = len(sys.modules)
+                cls._limiter = cls._controller.limit(limits=self.threads)
+            cls._active += 1
+        return self
+
+    def __exit__(self, *exc):
+        if self.threads is None:
+            return False
+        cls = ThreadLimit
+        with cls._lock:
+            cls._active -= 1
+            if cls._active == 0 and cls._limiter is not None:
+                cls._limiter.restore_original_limits()
+                cls._limiter = None
+        return False
