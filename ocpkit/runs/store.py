@@ -25,74 +25,15 @@ import numpy as np
 import pandas as pd
 
 from ocpkit._checks import choice
+from ocpkit.runs.database import ADDED_COLUMNS, create_tables, explain, open_readonly, retry_locked
 from ocpkit.runs.rows import RESERVED, canonical_key, now, split_result
 
 FILENAME = "results.sqlite"
 STATUSES = ("ok", "failed")
 
-_SCHEMA = """
-CREATE TABLE IF NOT EXISTS trials (
-    study     TEXT NOT NULL,
-    key       TEXT NOT NULL,   -- canonical JSON of the parameters (see canonical_key)
-    status    TEXT NOT NULL CHECK (status IN ('ok', 'failed')),
-    metrics   TEXT NOT NULL,   -- JSON object of scalars
-    arrays    BLOB,            -- .npz archive, NULL when the trial returned no arrays
-    error     TEXT,
-    traceback TEXT,
-    wall_time REAL,            -- seconds
-    started   TEXT,            -- ISO 8601, UTC
-    finished  TEXT,
-    PRIMARY KEY (study, key)
-)
-"""
-# Columns added after the first release: older stores gain them (NULL for their trials) when opened for writing.
-_ADDED_COLUMNS = {
-    "ocpkit_version": "TEXT",  # the package version that computed the trial
-    "code_hash": "TEXT",
-}  # hash of the code the trial ran (ocpkit.runs.provenance; see code)
-_CLAIMS = """
-CREATE TABLE IF NOT EXISTS claims (
-    study   TEXT NOT NULL,
-    key     TEXT NOT NULL,
-    owner   TEXT NOT NULL,     -- host:pid:token of the claiming process
-    expires REAL NOT NULL,     -- Unix time; the heartbeat pushes it forward
-    PRIMARY KEY (study, key)
-)
-"""
-_CODE = """
-CREATE TABLE IF NOT EXISTS code (
-    hash     TEXT PRIMARY KEY, -- a trials.code_hash
-    manifest TEXT NOT NULL     -- JSON: the files and dependency versions it hashes (see ocpkit.runs.provenance)
-)
-"""
-_RUNS = """
-CREATE TABLE IF NOT EXISTS runs (
-    study    TEXT NOT NULL,
-    owner    TEXT NOT NULL,
-    started  TEXT NOT NULL,
-    finished TEXT NOT NULL,
-    wall     REAL NOT NULL,    -- seconds this run took
-    trials   INTEGER NOT NULL  -- trials it ran
-)
-"""
-
 
 class StoreError(RuntimeError):
     """The results database could not be used; the message is one line naming the file and what to do."""
-
-
-def _retry_locked(action, seconds: float = 60.0):
-    """``action()``, retried while SQLite answers "database is locked" (up to ``seconds``). Switching a new
-    database to WAL takes a lock for which SQLite does not wait on its busy timeout: two processes opening one
-    new store at once saw the second fail at once (a study pair sharing a folder)."""
-    deadline = time.monotonic() + seconds
-    while True:
-        try:
-            return action()
-        except sqlite3.OperationalError as exc:
-            if "locked" not in str(exc) or time.monotonic() > deadline:
-                raise
-            time.sleep(0.05)
 
 
 class Store:
@@ -120,7 +61,7 @@ class Store:
                     f"{self.path}: no results store to read (the folder is read-only or "
                     f"readonly=True was asked); run the study in a writable folder first"
                 )
-            self._con = self._guard("open", lambda: self._open_readonly())
+            self._con = self._guard("open", lambda: open_readonly(self.path))
             self._guard("read", lambda: self._con.execute("SELECT count(*) FROM trials").fetchone())
             return
         try:
@@ -130,39 +71,7 @@ class Store:
                 f"{folder}: cannot create the results folder ({exc.strerror or exc}); choose another --out"
             ) from None
         self._con = self._guard("open", lambda: sqlite3.connect(self.path, timeout=60))
-
-        def setup():
-            self._con.execute("PRAGMA journal_mode=WAL")
-            # NORMAL in WAL mode: a commit survives the process being killed (not a power cut) at low cost.
-            self._con.execute("PRAGMA synchronous=NORMAL")
-            # One write transaction for the schema: DDL autocommits statement by statement otherwise, and two
-            # processes opening a new store both saw a column missing and both added it.
-            self._con.execute("BEGIN IMMEDIATE")
-            try:
-                self._con.execute(_SCHEMA)
-                self._con.execute(_CLAIMS)
-                self._con.execute(_RUNS)
-                self._con.execute(_CODE)
-                have = {r[1] for r in self._con.execute("PRAGMA table_info(trials)")}
-                for name, kind in _ADDED_COLUMNS.items():
-                    if name not in have:
-                        self._con.execute(f"ALTER TABLE trials ADD COLUMN {name} {kind}")
-                self._con.execute("COMMIT")
-            except BaseException:
-                self._con.execute("ROLLBACK")
-                raise
-
-        self._guard("open", lambda: _retry_locked(setup))
-
-    def _open_readonly(self):
-        con = sqlite3.connect(f"{self.path.resolve().as_uri()}?mode=ro", uri=True, timeout=60)
-        try:
-            con.execute("SELECT count(*) FROM sqlite_master").fetchone()
-        except sqlite3.OperationalError:
-            # WAL with a -wal file but no way to create the -shm beside it: read the main file as it is.
-            con.close()
-            con = sqlite3.connect(f"{self.path.resolve().as_uri()}?immutable=1", uri=True)
-        return con
+        self._guard("open", lambda: retry_locked(lambda: create_tables(self._con)))
 
     def _guard(self, doing: str, action):
         """Run ``action``; turn database and OS errors into one-line StoreErrors naming the file."""
@@ -171,9 +80,9 @@ class Store:
         except StoreError:
             raise
         except sqlite3.DatabaseError as exc:
-            raise StoreError(_explain(self.path, doing, exc)) from None
+            raise StoreError(explain(self.path, doing, exc)) from None
         except OSError as exc:
-            raise StoreError(_explain(self.path, doing, exc)) from None
+            raise StoreError(explain(self.path, doing, exc)) from None
 
     def _writable(self) -> None:
         if self.readonly:
@@ -472,7 +381,7 @@ class Store:
 
         def read():
             have = {r[1] for r in self._con.execute("PRAGMA table_info(trials)")}
-            added = ", ".join(name if name in have else "NULL" for name in _ADDED_COLUMNS)
+            added = ", ".join(name if name in have else "NULL" for name in ADDED_COLUMNS)
             return self._con.execute(query.format(added) + " ORDER BY finished, rowid", args).fetchall()
 
         rows = self._guard("read", read)
@@ -550,26 +459,3 @@ def _alive(owner: str) -> bool:
         return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
     except (OSError, IndexError):
         return True
-
-
-def _explain(path: Path, doing: str, exc: BaseException) -> str:
-    """One line: the file, what went wrong, what to do."""
-    text = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-    lower = text.lower()
-    if isinstance(exc, OSError) and exc.strerror:
-        text = exc.strerror
-        lower = text.lower()
-    if "not a database" in lower or "malformed" in lower or "corrupt" in lower:
-        advice = (
-            "the file is damaged: move it (and any -wal/-shm beside it) aside and rerun to recompute, "
-            "or restore it from a copy"
-        )
-    elif "disk is full" in lower or "no space" in lower or "quota" in lower:
-        advice = "the disk is full: free space and rerun (finished trials are kept)"
-    elif "readonly" in lower or "read-only" in lower or "permission" in lower or "unable to open" in lower:
-        advice = "the file or its folder cannot be written: fix its permissions or choose another --out"
-    elif "locked" in lower or "busy" in lower:
-        advice = "another process holds the database locked: wait for it or stop it, then rerun"
-    else:
-        advice = "check the file, or move it aside and rerun"
-    return f"results store {path}: could not {doing} it ({text}); {advice}"
