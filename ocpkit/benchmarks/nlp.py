@@ -18,7 +18,7 @@ The peer "crocoddyl" (Crocoddyl's FDDP, :mod:`ocpkit.benchmarks.crocoddyl_peer`;
 is a controller column when asked for. It solves traditional MPC (p = T) on the same horizon, and its dynamics
 have no joint damping or friction, so with it every problem of the run, for every controller and the plant, is
 made without them; problems it cannot model (no pinocchio model, servo inputs) run without its row. After the
-closed-loop table it prints its per-solve comparison (:func:`ocpkit.benchmarks.crocoddyl_peer.compare`).
+closed-loop table it prints its per-solve comparison (:func:`ocpkit.benchmarks.crocoddyl_compare.compare`).
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ import numpy as np
 from ocpkit import problems as registry
 from ocpkit import solvers
 from ocpkit._checks import integer
-from ocpkit.benchmarks import crocoddyl_peer
+from ocpkit.benchmarks import crocoddyl_compare, crocoddyl_peer
 from ocpkit.solvers.methods import KNOTS
 from ocpkit.sim.metrics import actual_cost
 from ocpkit.sim.simulate import simulate
@@ -216,7 +216,7 @@ def bench_nlp(
     if echo:
         print(f"machine load {_load()}", flush=True)
     if compared and echo:  # a printed table: without echo nobody would see it
-        crocoddyl_peer.compare(
+        crocoddyl_compare.compare(
             compared, horizon=horizon, knots=knots, seeds=samples, steps=max(2, min(steps, PER_SOLVE_STEPS)), echo=echo
         )
     return rows
