@@ -53,10 +53,10 @@ class LinearMPC(Controller):
     ``state_bounds`` "soft" (default; "hard" for HPIPM) makes the state bounds an exact L1 penalty (slacks s ≥ 0 at
     cost ``slack_weight``·Σ(s + ½s²)): a state past a bound drives back to it instead of failing. DAQP solves the hard
     QP first and the soft one only where it is infeasible, the same solution wherever the penalty is exact.
-    ``linearization`` is the expansion point: "goal" (default) about the input goal u_g, "plan" about the input the
-    previous plan expects now (the paper's scheme), "trajectory" stage by stage along the shifted plan (the LTV
-    model; it follows plans that leave the neighbourhood of x). About a nonzero torque an arm's linearized dynamics
-    are unstable and the condensed P ill-conditioned, hence "goal".
+    ``linearization`` is the expansion point: "goal" (default) about the input goal u_g of stage 0's goal, "plan"
+    about the input the previous plan expects now (the paper's scheme), "trajectory" stage by stage along the
+    shifted plan (the LTV model; it follows plans that leave the neighbourhood of x). About a nonzero torque an arm's
+    linearized dynamics are unstable and the condensed P ill-conditioned, hence "goal".
 
     With a task (``ocp.task``) the condensed QP carries the terms' Gauss–Newton model about the plan and the
     obstacles' clearances linearized there (:class:`ocpkit.qp.task_rows.TaskRows`), hard first, softened where they
@@ -72,9 +72,16 @@ class LinearMPC(Controller):
     feedback gain K = ∂u₀/∂x₀ of the solved QP (:mod:`ocpkit.qp.sensitivity`), for an inner loop's
     u = u₀ + K (x − x₀) between steps. It runs the Python step (the C step returns no QP to differentiate) and has
     none with a task's terms or obstacles.
+
+    A step takes a goal window (stage k's terms towards row k, the input term towards row k's input goal, the
+    terminal terms row T), moved obstacles (rows and certificate at x_k against row k; nothing rebuilt) and an
+    initial guess (the plan in place of the previous one shifted: the linearization and Gauss–Newton points; no warm
+    start from the previous answer) (:meth:`Controller.solve`). The C step takes none of them yet: such a step runs
+    in Python, said in ``Solution.path`` ("Python step (moving reference)").
     """
 
     CEILING_MIN, CEILING_PER_VARIABLE = 10.0, 1e-4  # seconds: the default budget (:attr:`ceiling`)
+    TAKES = frozenset({"goal window", "obstacles", "initial guess"})
 
     def __init__(
         self,
@@ -304,10 +311,23 @@ class LinearMPC(Controller):
 
     def _solve(self, x: np.ndarray, goal: np.ndarray) -> Solution:
         step = self._native_step()
-        if step is not None:
+        beyond = step is not None and self._beyond_c_step()
+        if step is not None and not beyond:
             return self._c_step(step, x, goal, self._deadline())
+        sol = self._python_step(x, goal)
+        if beyond:
+            sol.path = sol.path or f"Python step ({beyond})"
+        return sol
+
+    def _python_step(self, x: np.ndarray, goal: np.ndarray) -> Solution:
+        """The step in Python: the QP about the linearization point, solved."""
         along = self.shifted_plan(x, goal) if self.linearization == "trajectory" else None
         return self._qp_step(x, goal, along, self._deadline())
+
+    def _beyond_c_step(self) -> str:
+        """What this step has that the C step does not take yet ("": nothing; the step then runs in Python)."""
+        moved = self.moving, self._moved_obstacles() is not None, self.guess is not None
+        return ", ".join(what for what, m in zip(("moving reference", "moved obstacles", "initial guess"), moved) if m)
 
     def _c_step(self, step, x: np.ndarray, goal: np.ndarray, deadline: float | None) -> Solution:
         """The whole step (model, build, DAQP) as compiled C; a failure gives the Python step's fallback."""
@@ -335,15 +355,19 @@ class LinearMPC(Controller):
 
     # C twin: step.in.c shifted_plan() and stage_models(); parity: tests/test_twins.py
     def shifted_plan(self, x: np.ndarray, goal: np.ndarray):
-        """The linearization trajectory (x̄ (T, n), ū (T, m)) of this step: the last plan advanced one step, x̄_0 = x.
+        """The linearization trajectory (x̄ (T, n), ū (T, m)) of this step: the last plan advanced one step, x̄_0 = x;
+        the step's initial guess instead where given (not shifted).
 
-        Its states are the last successful step's predictions shifted, or (cold start, after a fallback) a
-        rollout of the model from x under the shifted inputs (the input goal at a cold start)."""
+        Its states are the last successful step's predictions shifted, or (cold start, after a fallback, a guess) a
+        rollout of the model from x under the inputs (the input goal of stage 0 at a cold start)."""
         ocp = self.ocp
         par = ocp.parameterization
-        knots = np.tile(ocp.input_goal(goal), (ocp.knots, 1)) if self.plan is None else par.shift(self.plan)
+        if self.guess is not None:
+            knots = self.guess
+        else:
+            knots = np.tile(ocp.input_goal(goal), (ocp.knots, 1)) if self.plan is None else par.shift(self.plan)
         us = par.inputs(knots)
-        if self._x_plan is not None:
+        if self._x_plan is not None and self.guess is None:
             xs = np.vstack([x, self._x_plan[2:]])
         else:
             xs = self.rollout(x, us)[:-1]
@@ -361,7 +385,9 @@ class LinearMPC(Controller):
     ) -> Solution:
         """One QP step: the affine model (about x, or per stage along ``along`` = (x̄, ū)), the build, the solve
         of each of ``transcriptions`` (default: this controller's) until one is not infeasible. A task's terms are
-        linearized about ``knots`` (default: the last plan shifted a step, or the input goal at a cold start)."""
+        linearized about ``knots`` (default: the step's initial guess, else the last plan shifted a step, or the
+        input goal at a cold start). The cost follows the step's goal window, stage k towards row k, and the
+        obstacle rows its obstacle window (:meth:`Controller.solve`); a held goal builds the held QP."""
         ocp, times = self.ocp, times or {"model": 0.0, "build": 0.0, "solve": 0.0}
         if not self._costs.fits("prepare", time_left(deadline)):
             res = skipped("prepare", self._costs, deadline, 0, name="model and QP build")
@@ -381,11 +407,14 @@ class LinearMPC(Controller):
                 NAN, f"non-finite affine model at x = {x.tolist()}", times, reason=Reason.NON_FINITE_MODEL
             )
         transcriptions = transcriptions or self._transcriptions
-        task = {}
+        task, n = {}, ocp.nx
         if ocp.task_functions is not None:
-            if knots is None:
+            if knots is None and self.guess is None:
                 knots = self.goal_knots(goal) if self.plan is None else ocp.parameterization.shift(self.plan)
-            task = {"targets": self.task_goal[ocp.nx :], "knots": knots}
+            targets = self.goal_window[:, n:] if self.moving else self.task_goal[n:]
+            knots = self.guess if knots is None else knots
+            task = {"targets": targets, "knots": knots, "obstacles": self._moved_obstacles()}
+        x_goal = self.goal_window[:, :n] if self.moving else goal
         for tr in transcriptions:
             # a softer QP after an infeasible harder one: its own build time
             retry = None if tr is self._transcriptions[0] else f"QP {self._transcriptions.index(tr) + 1} build"
@@ -393,7 +422,7 @@ class LinearMPC(Controller):
                 res = skipped(retry, self._costs, deadline, 0)
                 return self._fail(LIMITED, res.raw_status, times, reason=res.reason)
             t1 = time.perf_counter()
-            qp = tr.build(*model, x, goal, **task)
+            qp = tr.build(*model, x, x_goal, **task)
             t2 = time.perf_counter()
             times["build"] += t2 - t1
             self._costs.add(retry or "prepare", t2 - (t1 if retry else t0))
@@ -406,7 +435,8 @@ class LinearMPC(Controller):
                 if problem is not None:
                     return self._fail(EXCEPTION, problem, times, reason=problem.reason)
             try:
-                res = self._backend.solve(qp, self._warm if self.warm_start else None, deadline)
+                warm = self._warm if self.warm_start and self.guess is None else None  # a guess replaces it
+                res = self._backend.solve(qp, warm, deadline)
             except Exception as exc:  # a backend that throws must not stop the control loop
                 times["solve"] += time.perf_counter() - t2
                 return self._fail(EXCEPTION, f"{type(exc).__name__}: {exc}", times, reason=Reason.SOLVER_ERROR)

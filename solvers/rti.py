@@ -29,7 +29,8 @@ class RealTimeIteration(LinearMPC):
 
     Where LinearMPC builds its C step (:mod:`ocpkit.export.native`: DAQP, a robot-sized model, no task) the whole
     iteration runs as compiled C (:func:`ocpkit.export.export` with linearization "trajectory"), the same steps to
-    rounding: until it is built, and after a failed step's soft-bound retry, in Python.
+    rounding: until it is built, and after a failed step's soft-bound retry, in Python. A step's goal window, moved
+    obstacles and initial guess (the first iterate) as LinearMPC takes them.
 
     ``options`` are LinearMPC's but ``linearization`` (always along the iterate): ``form``, ``qp``, ``state_bounds``
     (soft by default), ``max_iter`` (each QP's iterations), ``time_limit`` (the whole step's budget, all iterations
@@ -60,10 +61,9 @@ class RealTimeIteration(LinearMPC):
         return f"RealTimeIteration({self.iterations}, {self.form}, {self.qp_name}, {self.path}, {self.ocp!r})"
 
     # C twin: step.in.c rti(), shifted_plan() and stage_models(); parity: tests/test_twins.py
-    def _solve(self, x: np.ndarray, goal: np.ndarray) -> Solution:
-        step = self._native_step()
-        if step is not None:  # the same iterations as compiled C (ocpkit.export, linearization "trajectory")
-            return self._c_step(step, x, goal, self._deadline())
+    def _python_step(self, x: np.ndarray, goal: np.ndarray) -> Solution:
+        """The iterations in Python (the C step, where loaded, runs the same ones: linearization "trajectory"), from
+        the shifted plan or the step's initial guess."""
         deadline, par = self._deadline(), self.ocp.parameterization
         times = {"model": 0.0, "build": 0.0, "solve": 0.0}
         along, sol, qp_iterations, moved, done = self.shifted_plan(x, goal), None, 0, np.inf, 0

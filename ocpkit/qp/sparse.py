@@ -80,9 +80,10 @@ class SparseQP(Transcription):
 
     def build(self, Ad, Bd, wd, x0, x_goal) -> QP:
         """The QP for the affine model (A_d, B_d, w_d) — one for all stages or one per stage (T, ·, ·) —,
-        measured state x0 and goal state."""
+        measured state x0 and goal state, held (n,) or per stage (T+1, n) (:meth:`Transcription.goals`)."""
         n, m, T = self.n, self.m, self.T
         Ad, Bd, wd, ltv = affine_stages(Ad, Bd, wd, n, m, T)
+        x_goal = self.goals(x_goal)
         v = self._values
         if ltv:
             v[self._ad_slots] = Ad.ravel()
@@ -93,7 +94,8 @@ class SparseQP(Transcription):
         A = self.A.copy()
         A.data = v[self._order]
         q = np.zeros(self.nz)
-        q[n : n * (T + 1)] = -np.einsum("kab,b->ka", self.Qs, x_goal).ravel()
+        stages = "kab,kb->ka" if x_goal.ndim == 2 else "kab,b->ka"
+        q[n : n * (T + 1)] = -np.einsum(stages, self.Qs, x_goal[1:] if x_goal.ndim == 2 else x_goal).ravel()
         q[n * (T + 1) : self.nz - self.ns] = self.q_knots(x_goal)
         q[self.nz - self.ns :] = self.slack_weight
         b = np.r_[-np.asarray(x0, dtype=float), -wd.ravel() if ltv else np.tile(-wd, T)]

@@ -45,33 +45,42 @@ class TaskRows:
             if fn is not None and isinstance(fn.fn, SwitchingFunction):
                 fn.fn.wait(timeout)
 
-    def add(self, P, q, SV, x0, targets, knots):
-        """Add the terms' Gauss–Newton model to P and q (in place); the obstacle rows (C, lower bound, stage)."""
+    def add(self, P, q, SV, x0, targets, knots, obstacles=None):
+        """Add the terms' Gauss–Newton model to P and q (in place); the obstacle rows (C, lower bound, stage).
+
+        ``targets``: held, or per stage (T+1, ·), row k stage k's (row T the terminal terms'); ``obstacles``: None
+        (where the task declares them) or each obstacle's centre and radius at each stage, (T+1, N, 4), the
+        clearance at x_k taken against row k."""
         T, n, m, p = self.T, self.n, self.m, self.p
+        held = targets.ndim == 1
+        stage_targets = np.repeat(targets[:, None], T, axis=1) if held else targets[:T].T
+        end_targets = targets if held else targets[T]
         zbar = knots.ravel()
         S = SV[:, :, 1:]
         X = np.vstack([x0, SV @ np.r_[1.0, zbar]])  # x̄_0 … x̄_T
         U = self.phi @ knots
         if self.stage is not None:
-            r, rx, ru = (np.asarray(a) for a in self.stage(X[:-1].T, U.T, np.repeat(targets[:, None], T, axis=1)))
+            r, rx, ru = (np.asarray(a) for a in self.stage(X[:-1].T, U.T, stage_targets))
             nr = r.shape[0]
             Jx, Ju = rx.reshape(nr, T, n).transpose(1, 0, 2), ru.reshape(nr, T, m).transpose(1, 0, 2)
             G = np.einsum("kj,kra->krja", self.phi, Ju).reshape(T, nr, p * m)
             G[1:] += Jx[1:] @ S[:-1]
             self._accumulate(P, q, G.reshape(T * nr, -1), r.T.ravel(), np.tile(self.ws, T), zbar)
         if self.terminal is not None:
-            r, rx = (np.asarray(a) for a in self.terminal(X[-1], targets))
+            r, rx = (np.asarray(a) for a in self.terminal(X[-1], end_targets))
             self._accumulate(P, q, rx @ S[-1], r.ravel(), self.wt, zbar)
         if not self.obstacles:
             return None
         centres, jacobians = self.spheres(X[1:].T)
         spheres = self.tf.radii.size
         centres = centres.reshape(3, T, spheres)  # column t·k + i of the mapped call: sphere i at x_{t+1}
-        d = self.tf.pair_clearances(centres)  # (T, k, N)
+        moved = None if obstacles is None else obstacles[1:]  # the obstacles at x_1 … x_T
+        d = self.tf.pair_clearances(centres, moved)  # (T, k, N)
         k, i, j = self.select(d)
         if not k.size:
             return None
-        e = centres[:, k, i] - self.tf.table[:3, j]  # (3, rows): from the obstacle's centre to the sphere's
+        # (3, rows): from the obstacle's centre to the sphere's
+        e = centres[:, k, i] - (self.tf.table[:3, j] if moved is None else moved[k, j, :3].T)
         # a sphere centred on the obstacle's centre (a fixed base sphere inside a huge ball): no direction, ∂d = 0
         grad = np.einsum(
             "ar,raj->rj",

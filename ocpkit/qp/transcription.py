@@ -27,10 +27,12 @@ pure L1 slacks left sparse OSQP at its iteration limit and ProxQP reporting a fe
 
 from __future__ import annotations
 
+import casadi as ca
 import numpy as np
 import scipy.sparse as sp
 
 from ocpkit._checks import positive
+from ocpkit.numeric import BufferedFunction
 from ocpkit.model.ocp import OCP
 from ocpkit.qp.quadratic_program import QP
 from ocpkit.qp.task_rows import TaskRows
@@ -67,10 +69,29 @@ class Transcription:
         self._k0 = 0  # index of the first knot in z (the sparse form overrides)
         # Per-step state weights Q (k = 1 … T−1) and Q_T (k = T).
         self.Qs = np.concatenate([np.broadcast_to(ocp.Q, (T - 1, n, n)), ocp.Q_terminal[None]])
+        self._input_goals = None  # the input goal mapped over the stages (per-stage goals), once made
 
     def q_knots(self, x_goal) -> np.ndarray:
-        """Linear cost term of the knots, −(φᵀ1 ⊗ R u_g) with u_g the OCP's input goal."""
-        return np.multiply.outer(-self._phi_sum, self.ocp.R @ self.ocp.input_goal(x_goal)).ravel()
+        """Linear cost term of the knots, −(φᵀ1 ⊗ R u_g) with u_g the OCP's input goal; for per-stage goals
+        (T+1, n) (:meth:`goals`) −Σ_k φ_kᵀ ⊗ R u_g,k, u_g,k the input goal of x_goal,k (k = 0 … T−1)."""
+        ocp = self.ocp
+        if x_goal.ndim == 1:
+            return np.multiply.outer(-self._phi_sum, ocp.R @ ocp.input_goal(x_goal)).ravel()
+        if self._input_goals is None:  # u_g(x_goal) = −(the "input" residual at u = 0), mapped over the stages
+            xg = ca.MX.sym("x_goal", self.n)
+            fn = ca.Function("input_goal", [xg], [-ocp.input_error(ca.MX.zeros(self.m), xg)])
+            self._input_goals = BufferedFunction(fn.map(self.T))
+        (Ug,) = self._input_goals(x_goal[: self.T].T)
+        return -(self.phi.T @ (ocp.R @ Ug).T).ravel()
+
+    def goals(self, x_goal) -> np.ndarray:
+        """The goal state as a float array: held (n,), or per stage k = 0 … T, (T+1, n), a goal window's x_goal
+        columns (:meth:`ocpkit.model.ocp.OCP.goal_window`): stage k's state term pulls x_k towards row k (k ≥ 1),
+        its input term u_k towards row k's input goal (k ≤ T−1)."""
+        x_goal = np.asarray(x_goal, dtype=float)
+        if x_goal.ndim == 2 and x_goal.shape != (self.T + 1, self.n):
+            raise ValueError(f"per-stage goals must be (T+1, n) = {(self.T + 1, self.n)}, got {x_goal.shape}")
+        return x_goal
 
     def knots(self, z: np.ndarray) -> np.ndarray:
         """Knots (p, m) from a solution vector, put on the input bounds where they are within rounding (1e-13
@@ -293,38 +314,39 @@ class CondensedQP(Transcription):
             self._SVc = SV.reshape(self.T * n, -1)
         return self._SVc
 
-    def build(self, Ad, Bd, wd, x0, x_goal, *, targets=None, knots=None) -> QP:
+    def build(self, Ad, Bd, wd, x0, x_goal, *, targets=None, knots=None, obstacles=None) -> QP:
         """P = SᵀQ̄S + φᵀφ⊗R and q = SᵀQ̄(v − x̄_goal) − (φᵀ1 ⊗ R u_goal); knot bounds (``box``), state bound rows.
 
         (A_d, B_d, w_d) is one affine model for all stages (the piece-wise build of the class docstring) or one
-        per stage, (T, n, n), (T, n, m), (T, n) (LTV: [v S] stage by stage, then one Gram product).
+        per stage, (T, n, n), (T, n, m), (T, n) (LTV: [v S] stage by stage, then one Gram product). ``x_goal`` is
+        held (n,) or per stage (T+1, n) (:meth:`goals`).
         With a task (``ocp.task``) its terms and obstacles are linearized about the plan ``knots`` (p, m) and
-        its predicted states, towards ``targets`` (the goal's entries after x_goal): see
+        its predicted states, towards ``targets`` (the goal's entries after x_goal; held, or per stage (T+1, ·)),
+        the obstacles where the task declares them or at each stage, ``obstacles`` (T+1, N, 4): see
         :class:`~ocpkit.qp.task_rows.TaskRows`."""
         Ad, Bd, wd, ltv = affine_stages(Ad, Bd, wd, self.n, self.m, self.T)
-        x_goal = np.asarray(x_goal, dtype=float)
+        x_goal = self.goals(x_goal)
         if ltv:
             self._predict_ltv(Ad, Bd, wd, x0)
             P, q = self._cost_ltv(x_goal)
         else:
             self._SV = None
-            self._predict(Ad, Bd, wd, x0, x_goal)
+            self._predict(Ad, Bd, wd, x0, x_goal[0] if x_goal.ndim == 2 else x_goal)
             P, q = self._cost_lti(x_goal)
         if self.task is None:
             return self._qp(P, q)
         if knots is None or targets is None:
             raise ValueError("this OCP has a task: build(...) needs targets= and knots= (the plan to linearize about)")
         SV = self._rows().reshape(self.T, self.n, -1)
-        rows = self.task.add(
-            P, q, SV, np.asarray(x0, dtype=float), np.asarray(targets, dtype=float), np.asarray(knots, dtype=float)
-        )
+        x0, targets, knots = (np.asarray(a, dtype=float) for a in (x0, targets, knots))
+        rows = self.task.add(P, q, SV, x0, targets, knots, obstacles)
         return self.task.constrain(self._qp(P, q), rows)
 
     # C twin: step.in.c condense_ltv() (with _predict_ltv); parity: tests/test_twins.py
     def _cost_ltv(self, x_goal):
         """P, q from the stage rows [v S]: the Gram matrix of Q^½ [v − x_goal, S], Q_T's difference at x_T."""
         E = self._SV.copy()
-        E[:, :, 0] -= x_goal
+        E[:, :, 0] -= x_goal[1:] if x_goal.ndim == 2 else x_goal
         W = self._qh[None, :, None] * E if self.diagonal_Q else np.matmul(self._qh, E)
         W = W.reshape(self.T * self.n, -1)
         Pq = W.T @ W
@@ -337,7 +359,9 @@ class CondensedQP(Transcription):
 
     # C twin: step.in.c condense() (forward over the pieces, Γ_L by grams' doubling); parity: tests/test_twins.py
     def _cost_lti(self, x_goal):
-        """P, q of the last (one-model) prediction: Γ_L, then the backward pass over the pieces (class docstring)."""
+        """P, q of the last (one-model) prediction: Γ_L, then the backward pass over the pieces (class docstring).
+        Per-stage goals x_goal,k: the prediction's deviation coordinates are about x_goal,0 (``_predict``), and
+        the state terms' pull towards x_goal,k − x_goal,0 adds −Σ_k S_kᵀ Q_k (x_goal,k − x_goal,0) to q."""
         n, nz, K, M, W = self.n, self.nz, self._K, self._M, self._W
         L = M.shape[1]
         if self._hat:
@@ -373,6 +397,9 @@ class CondensedQP(Transcription):
         S = Zh[1:, 1:]
         P = (S + S.T)[::-1, ::-1] + self.R_knots
         q = (Zh[1:, 0] + Zh[0, 1:])[::-1] + self.q_knots(x_goal)
+        if x_goal.ndim == 2:
+            pull = np.einsum("kab,kb->ka", self.Qs, x_goal[1:] - self._g)
+            q -= self._rows()[:, 1:].T @ pull.ravel()
         return P, q
 
     def _qp(self, P, q) -> QP:
