@@ -82,6 +82,9 @@ class ExportedMPC(Controller):
             self._set_plan.argtypes = [ctypes.c_void_p, ctypes.c_void_p]
         except AttributeError:
             self._set_plan = None
+        self._step_window = getattr(lib, f"{name}_step_window_timed")  # with obstacles it takes them too
+        self._step_window.argtypes = [ctypes.c_void_p] * (6 if self._set_plan is None else 7)
+        self._step_window.restype = ctypes.c_int
         self._open = False
         if getattr(lib, f"{name}_init")(self._mem):
             raise RuntimeError(
@@ -96,6 +99,7 @@ class ExportedMPC(Controller):
         super().__init__(ocp, raise_on_fail=raise_on_fail)
 
     path = "C step"
+    TAKES = frozenset({"goal window", "obstacles"})
 
     def __repr__(self):
         return f"ExportedMPC({str(self.out_dir / ('lib' + self.name + '.so'))!r}, {self.ocp!r})"
@@ -218,11 +222,19 @@ class ExportedMPC(Controller):
         )
         return STATUSES[status.value], z
 
-    def _solve(self, x: np.ndarray, goal: np.ndarray) -> Solution:
+    def _solve(self, x: np.ndarray, goal: np.ndarray, *, window=None, obstacles=None) -> Solution:
         """The C step from ``x``; ``goal``: x_goal, or the whole goal vector [x_goal; targets]. With a task the
         step takes the whole vector: ``goal`` where it is one; from :meth:`solve` (x_goal, its own slice) the
-        :attr:`task_goal` it was given. Another caller with a task (LinearMPC) passes the whole vector."""
+        :attr:`task_goal` it was given. Another caller with a task (LinearMPC) passes the whole vector.
+
+        ``window`` (T+1, ng) and ``obstacles`` (T+1, N, 4), as :meth:`Controller.solve` sets ``goal_window`` and
+        ``obstacle_window``, make it the window step (``<name>_step_window``); None: a held goal, the task's
+        obstacles (``<name>_step``). From :meth:`solve` they are this step's own, where the goal or obstacles
+        move; another caller (LinearMPC's C step) passes its own."""
         self._check_open()
+        if self._step_start is not None:  # this controller's own step
+            window = self.goal_window if self.moving else None
+            obstacles = self._moved_obstacles()
         if self.ocp.task_functions is not None and np.size(goal) != self.ocp.ng:
             if goal is not self._goal:
                 raise ValueError(
@@ -233,9 +245,19 @@ class ExportedMPC(Controller):
         u = np.empty(self.ocp.nu)
         knots = np.empty(self.ocp.knots * self.ocp.nu)
         x, goal = np.ascontiguousarray(x), np.ascontiguousarray(goal)
-        args = (self._mem, x.ctypes.data, goal.ctypes.data, u.ctypes.data, self._status_ptr, self._split.ctypes.data)
+        if window is None and obstacles is None:
+            step = self._step
+            args = (self._mem, x.ctypes.data, goal.ctypes.data)
+        else:  # row 0 is the goal the step starts from
+            T, ng = self.ocp.horizon + 1, goal.size
+            step = self._step_window
+            window = np.ascontiguousarray(np.broadcast_to(goal, (T, ng)) if window is None else window, dtype=float)
+            args = (self._mem, x.ctypes.data, window.ctypes.data)
+            if self._set_plan is not None:  # a library with obstacles takes them (NULL: its own)
+                moved = None if obstacles is None else np.ascontiguousarray(obstacles, dtype=float)
+                args += (None if moved is None else moved.ctypes.data,)
         t0 = time.perf_counter()
-        self._step(*args)
+        step(*args, u.ctypes.data, self._status_ptr, self._split.ctypes.data)
         self.step_seconds = time.perf_counter() - t0
         self._knots(self._mem, knots)
         status = STATUSES[self._status.value]

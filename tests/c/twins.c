@@ -19,7 +19,7 @@ void twins_condense_lti(mem_t* m, const double* L, const double* ug, const doubl
 void twins_condense_ltv(mem_t* m, const double* LamK, const double* ug, const double* x, const double* goal) {
   memcpy(m->LamK, LamK, sizeof m->LamK);
   memcpy(m->ug, ug, sizeof m->ug);
-  condense_ltv(m, x, goal);
+  condense_ltv(m, x, goal, 0);
 }
 
 /* The real-time iteration's first linearization trajectory (LinearMPC.shifted_plan) from the plan (NULL: none)

@@ -20,7 +20,7 @@
  *   {{ name }}_memory* mem = malloc(sizeof *mem);   // caller-owned: all work space, the plan, warm start
  *   if ({{ name }}_init(mem)) abort();              // once per instance
  *   int status;
- *   {{ name }}_step(mem, x, goal, u, &status);      // each control period
+ *   {{ name }}_step(mem, x, goal, u, &status);      // each control period (or {{ name }}_step_window: a goal window)
  *   {{ name }}_free(mem);                           // gives the QP solver's memory slot back
  *
 {% if task %}
@@ -103,6 +103,8 @@ typedef struct {
   double z_new[{{ N }}_NZ], lam_x_new[{{ N }}_NZ], lam_a_new[{{ N }}_NA1];
   double plan[{{ N }}_NZ];                                       /* knots of the current plan */
   double cert[{{ N }}_NCERT];                                      /* the last solve's certificate residuals */
+  /* a goal window's terms: Σ_k φ_k (u_g,k − u_g,0), a stage's u_g,k − u_g,0, Σ_k φ_k ⊗ λ_{k+1} and the adjoint λ */
+  double wsu[{{ N }}_NZ], wdu[{{ N }}_NU], wmu[{{ N }}_KNOTS * {{ N }}_NX], wlam[{{ N }}_NX], wnl[{{ N }}_NX];
 {% if task %}
   /* the task's terms: the plan z̄ linearized about, a stage's x̄, ū, a piece's y = R [1; z̄], the
      residual and Jacobians (column-major), Λ_1 … Λ_LMAX of all states, ∂r/∂x Λ_s, its product
@@ -141,6 +143,20 @@ int {{ name }}_step({{ name }}_memory* mem, const double* x, const double* goal,
    (the QP's matrices), t[2] the QP solver (0 for the parts a failure skipped). */
 int {{ name }}_step_timed({{ name }}_memory* mem, const double* x, const double* goal, double* u_out, int* status,
                       double* t);
+/* One MPC step towards a goal that moves over the horizon: goals holds (HORIZON + 1) rows of {{ "NG" if task else "NX" }} doubles,
+   row k = stage k's goal ({{ "x_goal,k then stage k's targets" if task else "x_goal,k" }}; ocpkit's Controller.goal_window). Stage k
+   = 0 … HORIZON−1 costs (x_k − x_goal,k)ᵀQ(·) (k ≥ 1) and (u_k − u_g(x_goal,k))ᵀR(·){{ ", the task's stage residual with row k's targets" if task }};
+   x_HORIZON is weighted by Q_T towards row HORIZON{{ "'s x_goal (the terminal residual with its targets)" if task }}. The model is
+   linearized as {{ name }}_step's about row 0's goal. {% if obstacles %}obstacles: (HORIZON + 1) x {{ N }}_NOB x 4 doubles
+   (centre x, y, z, radius of each obstacle at stage k: the clearance rows of x_k, k = 1 … HORIZON), or NULL for the
+   exported ones. {% endif %}Equal rows{{ " (and NULL obstacles)" if obstacles }} give {{ name }}_step's answer bit for
+   bit; a window whose x_goal moves costs O(HORIZON NX²) more. */
+{% set obs_arg = "const double* obstacles, " if obstacles else "" %}
+int {{ name }}_step_window({{ name }}_memory* mem, const double* x, const double* goals, {{ obs_arg }}double* u_out,
+                         int* status);
+/* {{ name }}_step_window with the seconds of its parts in t, as {{ name }}_step_timed. */
+int {{ name }}_step_window_timed({{ name }}_memory* mem, const double* x, const double* goals, {{ obs_arg }}double* u_out,
+                               int* status, double* t);
 /* Copy the current plan's knots (the solution, or the fallback plan after a failure). */
 void {{ name }}_knots(const {{ name }}_memory* mem, double* knots);
 {% if obstacles %}

@@ -1,6 +1,7 @@
 /* The task's obstacles as hard rows of the QP (ocpkit.qp.task_rows.TaskRows.add and .select). At each state x̄_k of
    the plan (k = 1 … HORIZON, as task_terms runs them) the clearances d − margin of the robot spheres (their centres
-   and Jacobians generated, {{ name }}_spheres) to the obstacles (OBSTACLES: centre, radius): the pairs within
+   and Jacobians generated, {{ name }}_spheres) to the stage's obstacles (NOB x 4: centre, radius; OBSTACLES, the
+   exported ones, or row k of an obstacle window): the pairs within
    ACTIVATION of the margin, each sphere's ROWS_PER_SPHERE closest, and of those the stage's NOS closest, become
    rows d + ∂d/∂x S_k (z − z̄) >= 0, stage by stage and in pair order (sphere, then obstacle) after the state-bound
    rows. The rows a step does not use are zero with infinite bounds: DAQP leaves zero rows out. */
@@ -11,13 +12,13 @@
 
 /* The stage's candidate pairs in m->cand_*, sphere by sphere: each robot sphere's ROWS_PER_SPHERE closest obstacles
    within ACTIVATION of the margin, the closer first (ties: the obstacle listed first). Returns their count. */
-static int obstacle_candidates(mem_t* m) {
+static int obstacle_candidates(mem_t* m, const double* obs) {
   int i, j, q, n = 0;
   for (i = 0; i < NK; ++i) {
     const double* c = m->oc + 3 * i;
     const int first = n;
     for (j = 0; j < NOB; ++j) {
-      const double* o = OBSTACLES + 4 * j;
+      const double* o = obs + 4 * j;
       const double dx = c[0] - o[0], dy = c[1] - o[1], dz = c[2] - o[2];
       const double d = sqrt(dx * dx + dy * dy + dz * dz) - (SPHERE_REACH[i] + o[3]);
       int at = n;
@@ -54,21 +55,21 @@ static int obstacle_select(mem_t* m, int n) {
   return kept;
 }
 
-/* The clearance rows of the state x̄_k in m->tx appended to the QP (L: its Λ_s; prev, cp, phi, del, c: its piece's
-   R, as in task_stage): ∂d/∂x = eᵀ/|e| ∂c/∂x (e from the obstacle's centre to the sphere's; none where they
+/* The clearance rows of the state x̄_k in m->tx to the obstacles obs appended to the QP (L: its Λ_s; prev, cp, phi,
+   del, c: its piece's R, as in task_stage): ∂d/∂x = eᵀ/|e| ∂c/∂x (e from the obstacle's centre to the sphere's; none where they
    coincide), the row ∂d/∂x S_k = (∂d/∂x Λ_s) R and its bound ∂d/∂x S_k z̄ − d. Returns nonzero if the spheres'
    evaluation failed. */
 static int obstacle_rows(mem_t* m, const double* L, const double* prev, int cp, const double* phi, const double* del,
-                         int c) {
+                         int c, const double* obs) {
   int q, a, b, col, n;
   m->arg[0] = m->tx;
   m->res[0] = m->oc; m->res[1] = m->ocx;
   if ({{ name }}_spheres(m->arg, m->res, (casadi_int*) m->iw, m->w, 0)) return 1;
-  n = obstacle_select(m, obstacle_candidates(m));
+  n = obstacle_select(m, obstacle_candidates(m, obs));
   if (!n) return 0;
   for (q = 0; q < n; ++q) {
     const int i = m->oi[q];
-    const double* o = OBSTACLES + 4 * m->oj[q];
+    const double* o = obs + 4 * m->oj[q];
     double e[3], norm;
     for (a = 0; a < 3; ++a) e[a] = m->oc[3 * i + a] - o[a];
     norm = sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2]);

@@ -19,6 +19,7 @@
 #define NL {{ N }}_NL
 #define LMAX {{ N }}_LMAX
 #define NLEN {{ N }}_NLEN
+#define NG {{ N }}_{{ "NG" if task else "NX" }}  /* a goal's entries: a goal window's row */
 typedef {{ name }}_memory mem_t;
 
 {{ constants }}
@@ -474,6 +475,118 @@ static void condense(mem_t* m, const double* x, const double* xg) {
   finish_qp(m);
 }
 
+/* A goal window (row k = stage k's goal, rows NG apart) whose x_goal moves: the step condenses towards row 0 held
+   (condense, finish_qp: the held step's arithmetic) and adds what the other rows change, linear in the goals. */
+
+/* g −= Σ_{k<HORIZON} Φ_kᵀ R (u_g,k − u_g,0): each stage's input term towards its own input goal u_g(x_goal,k)
+   (m->ug holds row 0's). Returns nonzero where an input goal is not finite. */
+static int window_inputs(mem_t* m, const double* goals) {
+  double* su = m->wsu;  /* Σ_k φ_kj (u_g,k − u_g,0), NP x NU */
+  double* du = m->wdu;
+  int k, i, j, failed = 0;
+  for (i = 0; i < NZ; ++i) su[i] = 0;
+  for (i = 0; i < NU; ++i) du[i] = 0;
+  for (k = 1; k < {{ N }}_HORIZON; ++k) {
+    const double* gk = goals + k * NG;
+    for (i = 0; i < NX && gk[i] == gk[i - NG]; ++i) {}
+    if (i < NX) {  /* x_goal moved since the last stage: its input goal */
+      memcpy(du, U_GOAL, sizeof m->wdu);
+#if HAS_K
+      add_goal_gain(gk, du);
+#endif
+#if HAS_GOAL_INPUT
+      failed |= add_goal_input(m, gk, du);
+#endif
+      for (i = 0; i < NU; ++i) du[i] -= m->ug[i];
+    }
+    for (j = 0; j < NP; ++j) {
+      const double f = PHI_ALL[k * NP + j];
+      if (f != 0) for (i = 0; i < NU; ++i) su[j * NU + i] += f * du[i];
+    }
+  }
+  if (failed || !all_finite(su, NZ)) return 1;
+  for (j = 0; j < NP; ++j)
+    for (i = 0; i < NU; ++i) {
+      double r = 0;
+      int l;
+      for (l = 0; l < NU; ++l) r += R_IN[i * NU + l] * su[j * NU + l];
+      m->g[j * NU + i] -= r;
+    }
+  return 0;
+}
+
+#if !LIN_TRAJ
+/* out = Q (x_goal,0 − x_goal,k) for the goals g0, gk. */
+static void window_weight(const double* g0, const double* gk, double* out) {
+  double d[NX];
+  int i;
+  for (i = 0; i < NX; ++i) d[i] = g0[i] - gk[i];
+#if DIAG_Q
+  for (i = 0; i < NX; ++i) out[i] = QH[i] * QH[i] * d[i];
+#else
+  {
+    double e[NX];
+    int k;
+    for (i = 0; i < NX; ++i) {
+      double v = 0;
+      for (k = 0; k < NX; ++k) v += QH[i * NX + k] * d[k];
+      e[i] = v;
+    }
+    for (i = 0; i < NX; ++i) {
+      double v = 0;
+      for (k = 0; k < NX; ++k) v += QH[k * NX + i] * e[k];
+      out[i] = v;
+    }
+  }
+#endif
+}
+
+/* The goal window's terms about the one model Λ_1 = [A_d B_d 0 w_d]: window_inputs, and g += Σ_{k=1…HORIZON} S_kᵀ Q_k
+   (x_goal,0 − x_goal,k), each state's term towards its own x_goal,k, by the adjoint of x_{k+1} = A_d x_k + B_d Φ_k z:
+   λ_T = Q_T d_T, λ_k = Q d_k + A_dᵀ λ_{k+1}, Σ_k S_kᵀ Q_k d_k = (I ⊗ B_dᵀ) Σ_k (φ_k ⊗ λ_{k+1}) — HORIZON NX² products,
+   beside the condensing's Γ_L products of NL² NX. Returns nonzero where an input goal is not finite. */
+static int window_terms(mem_t* m, const double* goals) {
+  double *lam = m->wlam, *nl = m->wnl, *mu = m->wmu, *sw;
+  int k, i, j;
+  if (window_inputs(m, goals)) return 1;
+  for (i = 0; i < NP * NX; ++i) mu[i] = 0;
+  window_weight(goals, goals + {{ N }}_HORIZON * NG, lam);
+#if HAS_DQT
+  for (i = 0; i < NX; ++i) {  /* Q_T = Q + (Q_T − Q) */
+    const double di = goals[i] - goals[{{ N }}_HORIZON * NG + i];
+#if DIAG_Q
+    lam[i] += DQT[i] * di;
+#else
+    for (j = 0; j < NX; ++j) lam[j] += DQT[j * NX + i] * di;
+#endif
+  }
+#endif
+  for (k = {{ N }}_HORIZON - 1; k >= 0; --k) {  /* lam = λ_{k+1} */
+    for (j = 0; j < NP; ++j) {
+      const double f = PHI_ALL[k * NP + j];
+      if (f != 0) for (i = 0; i < NX; ++i) mu[j * NX + i] += f * lam[i];
+    }
+    if (!k) break;
+    window_weight(goals, goals + k * NG, nl);
+    for (i = 0; i < NX; ++i) {
+      const double* ai = m->Lam1 + i * NL;
+      const double li = lam[i];
+      int c;
+      for (c = 0; c < NX; ++c) nl[c] += ai[c] * li;
+    }
+    sw = lam; lam = nl; nl = sw;
+  }
+  for (j = 0; j < NP; ++j)
+    for (i = 0; i < NU; ++i) {
+      double v = 0;
+      int r;
+      for (r = 0; r < NX; ++r) v += m->Lam1[r * NL + NX + i] * mu[j * NX + r];
+      m->g[j * NU + i] += v;
+    }
+  return 0;
+}
+#endif
+
 {% if task %}
 
 {% if obstacles %}
@@ -788,9 +901,10 @@ static int stage_models(mem_t* m, int rollout) {
 
 /* The condensed QP of the stage models (CondensedQP.build with one model per stage): the rows [v_k S_k] of
    x_k = S_k z + v_k (prev, NX x NZ1: column 0 is v_k) advance by x_{k+1} = A_k x_k + B_k Φ_k z + w_k, only over the
-   columns of the knots active so far (ACTIVE), and each adds its stage cost to Pq.
+   columns of the knots active so far (ACTIVE), and each adds its stage cost to Pq, towards x_goal,k at xg + k gs
+   (gs = 0: one goal held).
    Python twin: ocpkit.qp.transcription.CondensedQP._predict_ltv and _cost_ltv (tests/test_twins.py). */
-static void condense_ltv(mem_t* m, const double* x, const double* xg) {
+static void condense_ltv(mem_t* m, const double* x, const double* xg, int gs) {
   double *prev = m->prev, *next = m->next, *sw;
   int i, j, k, u, cols = 0;
   for (i = 0; i < NX * NZ1; ++i) prev[i] = next[i] = 0;
@@ -809,7 +923,7 @@ static void condense_ltv(mem_t* m, const double* x, const double* xg) {
       }
     }
     gemm_nx(NX, cols + 1, L, NL, 1, prev, NZ1, next, NZ1, 0);
-    add_stage(m, next, c + 1, NZ1, 0, xg, m->Pq, NZ1);
+    add_stage(m, next, c + 1, NZ1, 0, xg + (k + 1) * gs, m->Pq, NZ1);
 #if NB > 0
     for (j = 0; j < NB; ++j) state_bound_row(m, k * NB + j, j, next + XB_COMP[j] * NZ1, NZ);  /* x_{k+1}'s */
 #endif
@@ -817,7 +931,7 @@ static void condense_ltv(mem_t* m, const double* x, const double* xg) {
     sw = prev; prev = next; next = sw;
   }
 #if HAS_DQT
-  add_terminal_weight(m, prev, xg);
+  add_terminal_weight(m, prev, xg + {{ N }}_HORIZON * gs);
 #endif
   finish_qp(m);
 }
@@ -829,10 +943,11 @@ static double max_change(const double* a, const double* b, int n) {
   return d;
 }
 
-/* The iterations of one step: their summed split in t (where given; the first model's time from t0). Returns the
-   status; on success the plan, its predicted states and the warm start hold the last good iterate.
+/* The iterations of one step towards the goals at goal + k gs (moving: a goal window whose x_goal moves): their
+   summed split in t (where given; the first model's time from t0). Returns the status; on success the plan, its
+   predicted states and the warm start hold the last good iterate.
    Python twin: ocpkit.solvers.rti.RealTimeIteration._solve (tests/test_twins.py). */
-static int rti(mem_t* m, const double* x, const double* goal, double* u_out, double* t, double t0) {
+static int rti(mem_t* m, const double* x, const double* goal, int gs, int moving, double* u_out, double* t, double t0) {
   const int nxs = ({{ N }}_HORIZON + 1) * NX;
   int it, k, rc, done = 0;
   double t1 = 0, moved = INFINITY;
@@ -842,7 +957,8 @@ static int rti(mem_t* m, const double* x, const double* goal, double* u_out, dou
     rc = stage_models(m, it == 0 && !m->has_xplan);
     if (t) { t1 = seconds(); t[0] += t1 - t0; }
     if (rc == {{ N }}_SUCCESS) {
-      condense_ltv(m, x, goal);
+      condense_ltv(m, x, goal, gs);
+      if (moving && window_inputs(m, goal)) return fallback(m, u_out, fail(m, {{ N }}_NAN, {{ N }}_REASON_NON_FINITE_MODEL));
       if (t) { t0 = seconds(); t[1] += t0 - t1; }
       rc = solve_qp(m);
       if (t) t[2] += seconds() - t0;
@@ -884,8 +1000,10 @@ int {{ name }}_states(const mem_t* m, double* x_pred) {
 
 #if !LIN_TRAJ
 /* The step about one affine model (linearization "goal" or "plan"): the model about (x, ū), the condensed QP and its
-   solve, their split in t (where given; the model's time from t0). Returns the status. */
-static int step_about_one_model(mem_t* m, const double* x, const double* goal, double* u_out, double* t, double t0) {
+   solve, their split in t (where given; the model's time from t0). Stage k's goal at goal + k gs (moving: a goal
+   window whose x_goal moves{{ "; stage k's obstacles at obs + k os" if obstacles }}). Returns the status. */
+static int step_about_one_model(mem_t* m, const double* x, const double* goal, {{ "int gs, " if task }}int moving,
+                                {{ "const double* obs, int os, " if obstacles }}double* u_out, double* t, double t0) {
   double t1 = 0, t2 = 0;
   int rc;
   memcpy(m->ubar, m->ug, sizeof m->ubar);
@@ -897,8 +1015,10 @@ static int step_about_one_model(mem_t* m, const double* x, const double* goal, d
   if (!all_finite(m->Lam1, NX * NL)) return fallback(m, u_out, fail(m, {{ N }}_NAN, {{ N }}_REASON_NON_FINITE_MODEL));
   if (t) { t1 = seconds(); t[0] = t1 - t0; }
   condense(m, x, goal);
+  if (moving && window_terms(m, goal))
+    return fallback(m, u_out, fail(m, {{ N }}_NAN, {{ N }}_REASON_NON_FINITE_MODEL));
 {% if task %}
-  if (task_terms(m, x, goal))  /* a residual's evaluation failed */
+  if (task_terms(m, x, goal, gs{{ ", obs, os" if obstacles }}))  /* a residual's evaluation failed */
     return fallback(m, u_out, fail(m, {{ N }}_EXCEPTION, {{ N }}_REASON_NON_FINITE_MODEL));
 {% endif %}
   if (t) { t2 = seconds(); t[1] = t2 - t1; }
@@ -911,13 +1031,13 @@ static int step_about_one_model(mem_t* m, const double* x, const double* goal, d
 }
 #endif
 
-int {{ name }}_step(mem_t* m, const double* x, const double* goal, double* u_out, int* status) {
-  return {{ name }}_step_timed(m, x, goal, u_out, status, 0);
-}
-
-int {{ name }}_step_timed(mem_t* m, const double* x, const double* goal, double* u_out, int* status, double* t) {
+/* One step from x towards the goals at goal + k gs (gs = 0: one goal held; NG: a goal window, moving where its x_goal
+   moves{{ "; obstacles at obs + k os" if obstacles }}): the input goal u_g of row 0, then the step. */
+static int step(mem_t* m, const double* x, const double* goal, int gs,
+                {{ "const double* obs, int os, " if obstacles }}double* u_out, int* status, double* t) {
   double t0 = 0;
-  int i, failed = 0;
+  int i, failed = 0, moving = 0;
+  for (i = gs; i < ({{ N }}_HORIZON + 1) * gs && !moving; ++i) moving = i % gs < NX && goal[i] != goal[i % gs];
   if (t) { t[0] = t[1] = t[2] = 0; t0 = seconds(); }
   m->solver_rc = 0;
   m->reason = {{ N }}_REASON_NONE;
@@ -934,11 +1054,33 @@ int {{ name }}_step_timed(mem_t* m, const double* x, const double* goal, double*
     return *status;
   }
 #if LIN_TRAJ
-  *status = rti(m, x, goal, u_out, t, t0);
+  *status = rti(m, x, goal, gs, moving, u_out, t, t0);
 #else
-  *status = step_about_one_model(m, x, goal, u_out, t, t0);
+  *status = step_about_one_model(m, x, goal, {{ "gs, " if task }}moving, {{ "obs, os, " if obstacles }}u_out, t, t0);
 #endif
   return *status;
+}
+
+int {{ name }}_step(mem_t* m, const double* x, const double* goal, double* u_out, int* status) {
+  return {{ name }}_step_timed(m, x, goal, u_out, status, 0);
+}
+
+int {{ name }}_step_timed(mem_t* m, const double* x, const double* goal, double* u_out, int* status, double* t) {
+  return step(m, x, goal, 0, {{ "OBSTACLES, 0, " if obstacles }}u_out, status, t);
+}
+{% set obs_arg = "const double* obstacles, " if obstacles else "" %}
+
+int {{ name }}_step_window(mem_t* m, const double* x, const double* goals, {{ obs_arg }}double* u_out, int* status) {
+  return {{ name }}_step_window_timed(m, x, goals, {{ "obstacles, " if obstacles }}u_out, status, 0);
+}
+
+int {{ name }}_step_window_timed(mem_t* m, const double* x, const double* goals, {{ obs_arg }}double* u_out,
+                               int* status, double* t) {
+{% if obstacles %}
+  return step(m, x, goals, NG, obstacles ? obstacles : OBSTACLES, obstacles ? 4 * {{ N }}_NOB : 0, u_out, status, t);
+{% else %}
+  return step(m, x, goals, NG, u_out, status, t);
+{% endif %}
 }
 
 void {{ name }}_knots(const mem_t* m, double* knots) {

@@ -55,7 +55,7 @@ static void task_jacobian_x(mem_t* m, int nr, const double* L, const double* pre
    piece's R), none at k = 0 (x_0 is given). Returns nonzero if the residual's evaluation failed. */
 static int task_stage(mem_t* m, int k, const double* xk, const double* L, const double* prev, int cp,
                       const double* p, const double* d, int c, const double* targets) {
-  const double* phi = TASK_PHI + k * NP;
+  const double* phi = PHI_ALL + k * NP;
   int a, i, j, col, ncol = L ? c : 0;
   knot_sum(phi, m->zbar, m->tu);
   m->arg[0] = xk; m->arg[1] = m->tu; m->arg[2] = targets;
@@ -91,11 +91,12 @@ static int task_terminal(mem_t* m, const double* xT, const double* L, const doub
 }
 #endif
 
-/* The task's terms added to the QP condense built (goal: x_goal, then the targets). The plan's states run forward
-   piece by piece as in condense: x̄ = Λ_s y with y = R [1; z̄] the piece's augmented state [x̄_a; v; d; 1]
+/* The task's terms added to the QP condense built (goal: x_goal, then the targets; stage k's goal at goal + k gs:
+   gs = 0 a held goal, NG a goal window{{ ", and stage k's obstacles at obs + k os" if obstacles }}). The plan's states
+   run forward piece by piece as in condense: x̄ = Λ_s y with y = R [1; z̄] the piece's augmented state [x̄_a; v; d; 1]
    (Λ_1 … Λ_LMAX of all states; m->prev holds [v S] at the piece's start). Returns nonzero if a residual's
    evaluation failed. */
-static int task_terms(mem_t* m, const double* x, const double* goal) {
+static int task_terms(mem_t* m, const double* x, const double* goal, int gs{{ ", const double* obs, int os" if obstacles }}) {
   const double* targets = goal + NX;
   double *prev = m->prev, *y = m->ty;
   int pc, i, j, l, s, col;
@@ -135,15 +136,15 @@ static int task_terms(mem_t* m, const double* x, const double* goal) {
         m->tx[i] = v;
       }
 {% if obstacles %}
-      if (obstacle_rows(m, L, prev, cp, phi, del, c)) return 1;
+      if (obstacle_rows(m, L, prev, cp, phi, del, c, obs + (a + s + 1) * os)) return 1;
 {% endif %}
       if (a + s + 1 < {{ N }}_HORIZON) {
 #if TASK_STAGE
-        if (task_stage(m, a + s + 1, m->tx, L, prev, cp, phi, del, c, targets)) return 1;
+        if (task_stage(m, a + s + 1, m->tx, L, prev, cp, phi, del, c, targets + (a + s + 1) * gs)) return 1;
 #endif
       } else {
 #if TASK_TERMINAL
-        if (task_terminal(m, m->tx, L, prev, cp, phi, del, c, targets)) return 1;
+        if (task_terminal(m, m->tx, L, prev, cp, phi, del, c, targets + {{ N }}_HORIZON * gs)) return 1;
 #endif
       }
     }
