@@ -9,8 +9,12 @@ symbolically (u_k = Σ_j φ_kj U_j), so a knot-parameterized problem has p·m in
 ``dynamics="nonlinear"`` predicts with the model's discrete dynamics F(x, u) (RK4); ``"affine"`` with the
 affine model x⁺ = A_d x + B_d u + w_d about (x, ū), ū chosen by ``linearization`` exactly as in LinearMPC:
 LinearMPC's problem solved by a general NLP solver (as the paper did with fmincon).
-The NLP is built once per OCP with parameters (x_0, x_goal[, A_d, B_d, w_d]) and re-solved every step,
-warm-started from the previous primal and dual solution shifted by one step.
+The NLP is built once per OCP with parameters (x_0, the goal window[, the obstacle window][, A_d, B_d, w_d]) and
+re-solved every step, warm-started from the previous primal and dual solution shifted by one step. So a goal that
+moves over the horizon (stage k's terms towards row k of the window, the terminal terms towards row T), obstacles that
+move (x_k's clearances against their row k) and a user's plan (``initial_guess``: the primal start, its states rolled
+out on the discrete model, the multipliers as at a cold start) change parameters and the start, never the NLP
+(:mod:`ocpkit.model.reference`). The affine model is expanded about stage 0's goal, as in LinearMPC.
 
 Its derivatives (``hessian``): by default Gauss–Newton. The constraint Jacobian is assembled from the affine
 model (A_k, B_k) of every stage, compiled C under the OCP's ``compiled`` policy, and the Hessian of the Lagrangian
@@ -125,6 +129,8 @@ class NonlinearMPC(MultipleShooting, Controller):
     (ValueError naming the option and the method).
     ``linearization`` ("goal" or "plan") is the affine model's expansion input, as in LinearMPC.
     """
+
+    TAKES = frozenset({"goal window", "obstacles", "initial guess"})
 
     def __init__(
         self,
@@ -259,7 +265,9 @@ class NonlinearMPC(MultipleShooting, Controller):
             self._build(ocp)  # the background compile finished: the compiled affine model into the derivatives
             times["build"] = time.perf_counter() - t0
             t0 = time.perf_counter()
-        params = [x, self.task_goal]
+        params = [x, self.goal_window.ravel()]  # (T+1, ng) by rows: the NLP's (ng, T+1) by columns
+        if self._pairs:  # x_1 … x_T's obstacles, (T, N, 4) by rows: the NLP's (4, N·T) by columns
+            params.append(self.obstacle_window[1:].ravel())
         if self.dynamics == "affine":
             model = self.affine_model(x, goal, self.linearization)
             if model is None:
@@ -343,9 +351,16 @@ class NonlinearMPC(MultipleShooting, Controller):
         )
 
     def _initial_guess(self, x: np.ndarray, goal: np.ndarray):
-        """Cold: states held at x_0 and knots at the input goal u_g (clipped). Warm: the previous solution shifted
-        a step."""
+        """A user's plan (``initial_guess``): its knots (clipped) and the states they roll out to from x_0 (held at
+        x_0 where the rollout is not finite), no multipliers. Cold: states held at x_0 and knots at the input goal
+        u_g (clipped). Warm: the previous solution shifted a step."""
         ocp, n, T = self.ocp, self.ocp.nx, self.ocp.horizon
+        if self.guess is not None:
+            knots = np.clip(self.guess, ocp.u_min, ocp.u_max)
+            states = self.rollout(x, ocp.parameterization.inputs(knots))[1:]
+            if not np.isfinite(states).all():
+                states = np.tile(x, (T, 1))
+            return np.r_[states.ravel(), knots.ravel()], None, None
         if self._warm is None or not self.warm_start:
             knots = self.goal_knots(goal)
             return np.r_[np.tile(x, T), knots.ravel()], None, None

@@ -46,7 +46,9 @@ class MultipleShooting:
     ``_apply_limits`` makes the solver over it."""
 
     def _build(self, ocp: OCP) -> None:
-        """The NLP over w = [x_1 … x_T, U_0 … U_{p−1}] with parameters (x_0, x_goal[, A_d, B_d, w_d])."""
+        """The NLP over w = [x_1 … x_T, U_0 … U_{p−1}] with parameters (x_0, the goal window G[, the obstacle
+        window O][, A_d, B_d, w_d]): G (ng, T+1), column k the goal of stage k's terms, column T the terminal terms';
+        O (4, N·T), the N obstacles (centre, radius) x_k's clearances keep to, k = 1 … T side by side."""
         n, m, T, p = ocp.nx, ocp.nu, ocp.horizon, ocp.knots
         self._nX = n * T
         self._gaps, self._pairs = n * T, 0  # the gap rows, then the clearance rows (pairs per stage) of g
@@ -58,9 +60,16 @@ class MultipleShooting:
         # Function, not for T inlined copies (inlining a 7-link RK4 step 50 times takes minutes to build).
         X = ca.MX.sym("X", n, T)  # columns x_1 … x_T
         U = ca.MX.sym("U", m, p)  # columns U_0 … U_{p−1}: vec(U) is the knots (p, m) row by row
-        x0, goal = ca.MX.sym("x0", n), ca.MX.sym("goal", ocp.ng)
-        targets = goal[n:]
-        params = [x0, goal]
+        x0, goals = ca.MX.sym("x0", n), ca.MX.sym("goals", ocp.ng, T + 1)
+        targets = goals[n:, :]
+        params = [x0, ca.vec(goals)]
+        tf = ocp.task_functions
+        clearances = None
+        if tf is not None and tf.pairs:  # clearances ≥ 0 at x_1 … x_T, against the obstacles of their stage
+            obstacles = ca.MX.sym("obstacles", 4, tf.table.shape[1] * T)
+            params.append(ca.vec(obstacles))
+            clearances = tf.clearance_at.map(T)(X, obstacles)
+            self._pairs = tf.pairs
         # u = φ U, column k is u_k; φ kept sparse so u_k depends structurally on its own knots only.
         inputs = ca.mtimes(U, ca.sparsify(ca.DM(ocp.parameterization.basis.T)))
         starts = ca.horzcat(x0, X[:, :-1])
@@ -74,17 +83,12 @@ class MultipleShooting:
             stages = None
         # The OCP's cost (every term at (x_k, u_k), k = 0 … T−1, and x_T; x_0's terms that do not depend on u are
         # constants) and its built-in quadratic terms alone, whose constant Hessian the Gauss–Newton one starts from.
-        J, quadratic = _objective(ocp, starts, inputs, X[:, T - 1], goal)
-        rows = [ca.vec(predicted - X)]
-        tf = ocp.task_functions
-        if tf is not None:  # clearances ≥ 0 at x_1 … x_T
-            if tf.pairs:
-                rows.append(ca.vec(tf.clearance.map(T)(X)[0]))
-                self._pairs = tf.pairs
+        J, quadratic = _objective(ocp, starts, inputs, X[:, T - 1], goals)
+        rows = [ca.vec(predicted - X)] + ([] if clearances is None else [ca.vec(clearances[0])])
         nlp = {"x": ca.vertcat(ca.vec(X), ca.vec(U)), "p": ca.vertcat(*params), "f": J, "g": ca.vertcat(*rows)}
         opts = self._solver_options(ocp)
         if self.hessian == "gauss-newton":
-            opts.update(self._gauss_newton(ocp, nlp, quadratic, X, starts, inputs, targets, stages))
+            opts.update(self._gauss_newton(ocp, nlp, quadratic, X, starts, inputs, targets, stages, clearances))
         self._lbg = np.zeros(self._gaps + self._pairs * T)
         self._ubg = np.r_[np.zeros(self._gaps), np.full(self._pairs * T, np.inf)]
         # Input bounds on the knots, as LinearMPC: with a convex-combination basis they bound every u_k.
@@ -97,17 +101,18 @@ class MultipleShooting:
         self._nlp = ("ipopt" if self.method == "ipopt" else "sqpmethod", nlp, opts)
         self._apply_limits()
 
-    def _gauss_newton(self, ocp: OCP, nlp: dict, quadratic, X, starts, inputs, targets, stages) -> dict:
+    def _gauss_newton(self, ocp: OCP, nlp: dict, quadratic, X, starts, inputs, targets, stages, clearances) -> dict:
         """nlpsol options that evaluate the NLP's derivatives from per-stage Jacobians instead of CasADi's AD of
         the mapped RK4 step (115 ms for the constraint Jacobian and 270 ms for the Hessian per call on the Puma
         560 at T = 50).
 
         The constraint Jacobian (and the rows it comes with): the gap rows' from the affine model (A_k, B_k, w_k) of
         every stage (``stages``, or the OCP's affine model mapped over the horizon: compiled C under its
-        ``compiled`` policy), the clearances' from their own Jacobians. The Hessian of the Lagrangian: Gauss–Newton,
-        the quadratic cost's own (constant) plus 2 EᵀWE for the task's residuals with Jacobian E; the curvature of
-        the dynamics, the clearances and the residuals is left out. A KKT point is the same; only the rate of
-        convergence changes.
+        ``compiled`` policy), the clearances' from their own Jacobians (``clearances``: (d, ∂d/∂x) at x_1 … x_T, or
+        None). The Hessian of the Lagrangian: Gauss–Newton, the quadratic cost's own (constant) plus 2 EᵀWE for the
+        task's residuals with Jacobian E (stage k's towards the targets of column k of the goal window, x_T's of
+        column T); the curvature of the dynamics, the clearances and the residuals is left out. A KKT point is the
+        same; only the rate of convergence changes.
 
         Both derivatives are CasADi's of a model of the NLP that is linear in w — the gap rows A_k x_k + B_k u_k −
         x_{k+1}, the clearances' D_k x_k, the residuals' R_k (x_k, u_k) — with the per-stage Jacobians as symbols:
@@ -130,8 +135,8 @@ class MultipleShooting:
         ]
         residuals, weights, clearance = [], [], []
         if tf is not None:
-            if tf.pairs:
-                d, D_value = tf.clearance.map(T)(X)
+            if clearances is not None:
+                d, D_value = clearances
                 D = ca.MX.sym("D", tf.pairs, n * T)
                 symbols.append(D)
                 values.append(D_value)
@@ -140,7 +145,7 @@ class MultipleShooting:
             if tf.stage_weight.size:
                 Rx, Ru = (ca.MX.sym(name, tf.stage_weight.size, size * T) for name, size in (("Rx", n), ("Ru", m)))
                 symbols += [Rx, Ru]
-                values += tf.stage_residual.map(T)(starts, inputs, ca.repmat(targets, 1, T))[1:]
+                values += tf.stage_residual.map(T)(starts, inputs, targets[:, :T])[1:]
                 residuals += [
                     ca.mtimes(_block(Rx, k, n), starts[:, k]) + ca.mtimes(_block(Ru, k, m), inputs[:, k])
                     for k in range(T)
@@ -149,7 +154,7 @@ class MultipleShooting:
             if tf.terminal_weight.size:
                 RT = ca.MX.sym("RT", tf.terminal_weight.size, n)
                 symbols.append(RT)
-                values.append(tf.terminal_residual(X[:, T - 1], targets)[1])
+                values.append(tf.terminal_residual(X[:, T - 1], targets[:, T])[1])
                 residuals.append(ca.mtimes(RT, X[:, T - 1]))
                 weights.append(tf.terminal_weight)
         rows = ca.vertcat(*linear)
@@ -182,8 +187,8 @@ class MultipleShooting:
         stage-0 controls are the knots U and stages 1 … T−1 hold (x_k, C_k) with C_k = U carried by gap rows
         C_{k+1} = C_k, so each stage's input u_k = φ_k C_k is a function of that stage's variables only."""
         n, m, T, p = ocp.nx, ocp.nu, ocp.horizon, ocp.knots
-        x0, goal = ca.MX.sym("x0", n), ca.MX.sym("goal", ocp.ng)
-        targets = goal[n:]
+        x0, goals = ca.MX.sym("x0", n), ca.MX.sym("goals", ocp.ng, T + 1)
+        targets = goals[n:, :]
         phi = ocp.parameterization.basis
         traditional = ocp.parameterization.kind == "identity"
         c = m if traditional else p * m  # the controls of stage 0 / the carried block of stages 1 … T−1
@@ -212,7 +217,7 @@ class MultipleShooting:
         ]
         X, controls = ca.horzcat(*states), ca.horzcat(*inputs)
         starts = ca.horzcat(x0, X[:, :-1])
-        J, quadratic = _objective(ocp, starts, controls, X[:, -1], goal)
+        J, quadratic = _objective(ocp, starts, controls, X[:, -1], goals)
         if self.hessian == "exact":
             predicted = ocp.discrete().map(T)(starts, controls)
         else:
@@ -235,7 +240,7 @@ class MultipleShooting:
         lo[self._order] = np.r_[np.tile(ocp.x_min, T), np.tile(ocp.u_min, p)]
         hi[self._order] = np.r_[np.tile(ocp.x_max, T), np.tile(ocp.u_max, p)]
         self._lbx, self._ubx = lo, hi
-        nlp = {"x": ca.vertcat(*blocks), "p": ca.vertcat(x0, goal), "f": J, "g": ca.vertcat(*gaps)}
+        nlp = {"x": ca.vertcat(*blocks), "p": ca.vertcat(x0, ca.vec(goals)), "f": J, "g": ca.vertcat(*gaps)}
         self._lbg = self._ubg = 0.0
         nx = [0] + [n if traditional else n + c] * (T - 1) + [n]
         nu = [c] + [m if traditional else 0] * (T - 1) + [0]
@@ -260,7 +265,7 @@ class MultipleShooting:
         replaced by their first-order models about the current point, the point and the Jacobians frozen
         (``ca.stop_diff``): the same values and first derivatives, and as exact Hessian of the Lagrangian the
         Gauss–Newton one — what the IPOPT path passes as its derivative functions (:meth:`_gauss_newton`), for a
-        solver that takes none (fatrop)."""
+        solver that takes none (fatrop). ``targets``: the goal window's targets, column k for stage k, T for x_T."""
         T, tf = ocp.horizon, ocp.task_functions
         A, B, w = (ca.stop_diff(v, 1) for v in self._stage(ocp, differentiable=True).map(T)(starts, inputs))
         predicted = ca.horzcat(
@@ -271,14 +276,14 @@ class MultipleShooting:
         )
         cost = 0
         if tf is not None and tf.stage_weight.size:
-            r, Rx, Ru = (ca.stop_diff(v, 1) for v in tf.stage_residual.map(T)(starts, inputs, ca.repmat(targets, 1, T)))
+            r, Rx, Ru = (ca.stop_diff(v, 1) for v in tf.stage_residual.map(T)(starts, inputs, targets[:, :T]))
             dx, du = starts - ca.stop_diff(starts, 1), inputs - ca.stop_diff(inputs, 1)  # zero, with derivative I
             W = ca.DM(tf.stage_weight)
             for k in range(T):
                 e = r[:, k] + ca.mtimes(_block(Rx, k, ocp.nx), dx[:, k]) + ca.mtimes(_block(Ru, k, ocp.nu), du[:, k])
                 cost += ca.dot(e, W * e)
         if tf is not None and tf.terminal_weight.size:
-            r, Rx = (ca.stop_diff(v, 1) for v in tf.terminal_residual(last, targets))
+            r, Rx = (ca.stop_diff(v, 1) for v in tf.terminal_residual(last, targets[:, T]))
             e = r + ca.mtimes(Rx, last - ca.stop_diff(last, 1))
             cost += ca.dot(e, ca.DM(tf.terminal_weight) * e)
         return predicted, cost
@@ -334,13 +339,13 @@ class MultipleShooting:
         return opts
 
 
-def _objective(ocp: OCP, starts, inputs, last, goal):
+def _objective(ocp: OCP, starts, inputs, last, goals):
     """(the OCP's cost, its built-in quadratic terms alone) of the stages (``starts``, ``inputs``: columns x_k, u_k,
-    k = 0 … T−1) and the last state x_T: :class:`ocpkit.model.cost.Cost` summed over the horizon."""
+    k = 0 … T−1) and the last state x_T: :class:`ocpkit.model.cost.Cost` summed over the horizon, stage k's terms
+    towards column k of the goal window ``goals`` (ng, T+1), the terminal terms towards column T."""
     cost, T = ocp.cost, ocp.horizon
-    goals = ca.repmat(goal, 1, T)
     return tuple(
-        ca.sum2(stage.map(T)(starts, inputs, goals)) + terminal(last, goal)
+        ca.sum2(stage.map(T)(starts, inputs, goals[:, :T])) + terminal(last, goals[:, T])
         for stage, terminal in ((cost.stage, cost.terminal), (cost.quadratic_stage, cost.quadratic_terminal))
     )
 
