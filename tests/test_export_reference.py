@@ -9,7 +9,6 @@ from __future__ import annotations
 import dataclasses
 import shutil
 import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -186,28 +185,27 @@ def test_moved_obstacles_change_the_answer_as_the_python_step_says(ball, tmp_pat
     assert library.stat().st_mtime_ns == built  # no rebuild
 
 
-def test_cli_export_with_a_reference_window_builds_and_follows_it(tmp_path):
+def test_cli_export_with_a_reference_window_builds_and_follows_it(tmp_path, monkeypatch, capsys):
     """``ocpkit export nlink:3 --reference-window ref.csv``: the example reads the reference rows from reference.csv
     and steps with mpc_step_window along it."""
+    from ocpkit.cli import main
+
     problem = make("nlink:3")
     ocp = problem.ocp(knots=5)
     t = np.arange(0.0, 3.0, 0.05)
-    names = ocp.goal_names()
     goals = np.zeros((t.size, ocp.ng))
     goals[:, 0] = 0.4 * np.sin(t)
-    ref = tmp_path / "ref.csv"
-    np.savetxt(ref, np.column_stack([t, goals]), delimiter=",", header=",".join(["t", *names]), comments="")
+    monkeypatch.chdir(tmp_path)
+    header = ",".join(["t", *ocp.goal_names()])
+    np.savetxt("ref.csv", np.column_stack([t, goals]), delimiter=",", header=header, comments="")
+    assert main(["export", "nlink:3", "--knots", "5", "--out", "out", "--reference-window", "ref.csv"]) == 0
+    said = capsys.readouterr().out
+    assert "agree" in said and "along ref.csv" in said, said
     out = tmp_path / "out"
-    run = subprocess.run(
-        [sys.executable, "-m", "ocpkit", "export", "nlink:3", "--out", str(out), "--reference-window", str(ref)],
-        capture_output=True,
-        text=True,
-        timeout=600,
-        cwd=tmp_path,
-    )
-    assert run.returncode == 0, run.stdout + run.stderr
-    assert "agree" in run.stdout and "reference" in run.stdout, run.stdout
-    assert (out / "reference.csv").is_file() and "mpc_step_window" in (out / "main.c").read_text()
+    rows = np.genfromtxt(out / "reference.csv", delimiter=",", skip_header=1)
+    assert rows.shape == (100 + ocp.horizon + 1, ocp.ng)
+    np.testing.assert_allclose(rows[:, 0], 0.4 * np.sin(np.minimum(0.01 * np.arange(rows.shape[0]), t[-1])), atol=2e-4)
+    assert "mpc_step_window(&mem, x, ref + k * MPC_NX, u, &status)" in (out / "main.c").read_text()
     example = subprocess.run(["make", "-s", "run"], cwd=out, capture_output=True, text=True, timeout=300)
     assert example.returncode == 0 and "failures 0" in example.stdout, example.stdout + example.stderr
-    assert "reference" in example.stdout, example.stdout
+    assert "following reference.csv (151 rows)" in example.stdout, example.stdout

@@ -78,6 +78,7 @@ def export(
     polish: bool = False,
     iterations: int = 1,
     tol: float = 0.0,
+    reference=None,
 ) -> Export:
     """Write C sources, header, Makefile, example ``main.c`` and README for the MPC step of ``ocp``.
 
@@ -90,7 +91,10 @@ def export(
     where one moves the plan (knots and predicted states, max norm) by at most ``tol``; ``x0``, ``goal`` (with
     a task the goal vector [x_goal; targets] of ``ocp.goal``) and ``steps`` set the closed loop the example runs
     against the generated discrete model (where given, the dynamics must be finite there: else a DynamicsError
-    names them, before any file is written). A task's cost terms and obstacles are exported (linearization "goal" or
+    names them, before any file is written). ``reference``: the goal at each of the example's steps and beyond,
+    (``steps`` + T + 1, ng) rows (a :class:`~ocpkit.model.reference.Reference`'s ``window(0, dt, steps + T)``): written
+    to ``reference.csv``, which the example reads and follows with the window step (``<name>_step_window``, each step
+    the rows k … k + T), in place of ``goal``. A task's cost terms and obstacles are exported (linearization "goal" or
     "plan"), its obstacles as hard clearance rows (see the package docstring)."""
     if not isinstance(ocp, OCP):
         raise TypeError(f"ocp must be an ocpkit OCP, got {type(ocp).__name__}")
@@ -121,6 +125,15 @@ def export(
     x0 = np.zeros(ocp.nx) if x0 is None else ocp.check_state(x0, "x0")
     # With a task the goal is [x_goal; targets] (ocp.goal): the step's goal input has ng entries.
     ng = ocp.ng if tf is not None else ocp.nx
+    if reference is not None:
+        reference = np.asarray(reference, dtype=float)
+        if reference.shape != (steps + ocp.horizon + 1, ng) or not np.isfinite(reference).all():
+            raise ValueError(
+                f"reference must be {steps + ocp.horizon + 1} rows (steps + T + 1) of {ng} finite goal entries, got "
+                f"shape {reference.shape}"
+            )
+        given["the example's goal"] = True
+        goal = reference[0]
     if goal is None:
         goal = np.zeros(ng)
     else:
@@ -190,9 +203,16 @@ def export(
         out / f"{name}.c",
         render.step(name, qp, linearization, tr, jac, ocp_entries(ocp), tf, iterations, float(tol), nos),
     )
-    write(out / "main.c", render.example(name, x0, goal, steps, ocp.dt, task=tf is not None))
+    rows = 0 if reference is None else len(reference)
+    write(out / "main.c", render.example(name, x0, goal, steps, ocp.dt, tf is not None, bool(no), rows))
+    if rows:
+        names = ocp.goal_names()
+        write(
+            out / "reference.csv",
+            ",".join(names) + "\n" + "".join(",".join(map(repr, map(float, r))) + "\n" for r in reference),
+        )
     write(out / "Makefile", render.makefile(name, qp))
-    write(out / "README.md", render.readme(info, ocp, eps, max_iter))
+    write(out / "README.md", render.readme(info, ocp, eps, max_iter, reference=bool(rows)))
     return info
 
 

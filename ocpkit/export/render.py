@@ -151,10 +151,22 @@ def step(
     )
 
 
-def example(name: str, x0, goal, steps: int, dt: float, task: bool = False) -> str:
-    """``main.c``: a closed loop of ``steps`` steps from ``x0`` towards ``goal`` against the generated model."""
+def example(
+    name: str, x0, goal, steps: int, dt: float, task: bool = False, obstacles: bool = False, reference: int = 0
+) -> str:
+    """``main.c``: a closed loop of ``steps`` steps from ``x0`` towards ``goal`` against the generated model; with
+    ``reference`` (its rows) along the rows of ``reference.csv`` by the window step instead."""
     return _render(
-        "main.in.c", name=name, N=name.upper(), x0=c_array(x0), goal=c_array(goal), steps=steps, dt=repr(dt), task=task
+        "main.in.c",
+        name=name,
+        N=name.upper(),
+        x0=c_array(x0),
+        goal=c_array(goal),
+        steps=steps,
+        dt=repr(dt),
+        task=task,
+        obstacles=obstacles,
+        reference=reference,
     )
 
 
@@ -171,8 +183,9 @@ def makefile(name: str, qp: str) -> str:
     )
 
 
-def readme(info, ocp: OCP, eps: float, max_iter: int) -> str:
-    """``README.md``: what the folder holds (``info``: the :class:`~ocpkit.export.Export`), how to build it."""
+def readme(info, ocp: OCP, eps: float, max_iter: int, reference: bool = False) -> str:
+    """``README.md``: what the folder holds (``info``: the :class:`~ocpkit.export.Export`; ``reference``: the example
+    follows reference.csv), how to build it."""
     task = ocp.task_functions is not None
     return _render(
         "README.in.md",
@@ -198,5 +211,6 @@ def readme(info, ocp: OCP, eps: float, max_iter: int) -> str:
         opt_step=OPT_STEP,
         max_instances=MAX_INSTANCES,
         folder=info.out_dir.name,
+        reference=reference,
         **(_task_values(ocp, code=True) if task else {}),
     )
