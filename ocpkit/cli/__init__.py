@@ -11,7 +11,8 @@ import sys
 
 from ocpkit import __version__, solvers, studies
 from ocpkit.cli import commands
-from ocpkit.cli.commands import BENCHMARKS, PROBLEM_BENCHMARKS, PROBLEM_STUDIES
+from ocpkit.cli.bench import BENCHMARKS, PROBLEM_BENCHMARKS, bench_command
+from ocpkit.cli.build import build_command
 from ocpkit.cli.export import export_command
 from ocpkit.cli.options import (
     DEFAULT_KNOTS,
@@ -26,12 +27,20 @@ from ocpkit.cli.options import (
     default,
 )
 from ocpkit.solvers.methods import QP_BY_FORM
+from ocpkit.cli.study import PROBLEM_STUDIES, reproduce_command, study_command
 from ocpkit.cli.task import NUMBERS
 from ocpkit.controller import LINEARIZATIONS, TRAJECTORY
 from ocpkit.model.dynamics import INTEGRATORS
 
 MUJOCO_INTEGRATORS = ("rk4", "implicit", "implicitfast", "euler")  # ocpkit.sim.mujoco_plant.INTEGRATORS
-COMMANDS = {**commands.COMMANDS, "export": export_command}
+COMMANDS = {
+    **commands.COMMANDS,
+    "study": study_command,
+    "reproduce": reproduce_command,
+    "bench": bench_command,
+    "build": build_command,
+    "export": export_command,
+}
 
 __all__ = ["main", "DEFAULT_KNOTS", "DYNAMICS", "NLP_METHODS", "QP_BACKENDS", "SAMPLING", "VARIANTS"]
 
@@ -367,6 +376,12 @@ def _parser() -> argparse.ArgumentParser:
         help="--linearization trajectory: Gauss-Newton iterations per control step (default %(default)s)",
     )
     exp.add_argument("--seed", type=int, default=0, help="seed of the example closed loop's start and goal")
+    exp.add_argument(
+        "--reference-window",
+        metavar="FILE",
+        help="the example follows this reference (CSV or NPZ: column t and the goal's entries by name, as simulate's "
+        "--reference): its rows written to reference.csv, each step's window passed to <name>_step_window",
+    )
     exp.add_argument("--out", default="export", help="output folder (absent or empty unless --force)")
     exp.add_argument("--force", action="store_true", help="export into a non-empty --out, overwriting its files")
     _add_task_args(exp)

@@ -1,4 +1,5 @@
-"""The commands of the command line: solve, simulate, demo, study, reproduce, build and bench (export:
+"""The commands of a controller on a problem: solve, simulate and demo (the others: study and reproduce in
+:mod:`ocpkit.cli.study`, bench in :mod:`ocpkit.cli.bench`, build in :mod:`ocpkit.cli.build`, export in
 :mod:`ocpkit.cli.export`)."""
 
 from __future__ import annotations
@@ -19,26 +20,9 @@ from ocpkit.cli.options import make_ocp, solver_options
 from ocpkit.cli.task import Reach, point_text, reach_line, reach_ocp, reach_panels, reach_report, reach_task
 from ocpkit.controller import Controller
 
-# Studies that take --problem, and benchmarks that take --problem (their `problems` argument).
-PROBLEM_STUDIES = ("knots", "horizon", "robustness")
-PROBLEM_BENCHMARKS = ("qp", "export", "nlp", "task", "startup")
 
-# `ocpkit bench NAME`: module in ocpkit.benchmarks, function, keyword arguments of --quick.
-BENCHMARKS = {
-    "qp": ("qp", "bench_qp", {"problems": ("pendulum:linear", "pendulum", "nlink:3"), "samples": 10}),
-    "empc": ("empc", "bench_empc", {"links": (1, 7, 13), "populations": (256, 1024), "horizons": (100,)}),
-    "export": ("export", "bench_export", {"problems": ["pendulum", "nlink:2", "nlink:3"]}),
-    "model": ("model", "bench_model", {"links": (1, 7, 13), "states": 5}),
-    "nlp": ("nlp", "bench_nlp", {"problems": ["pendulum", "nlink:2", "nlink:3"], "samples": 1, "steps": 5}),
-    "faults": ("faults", "bench_faults", {}),
-    "step": ("step", "bench_step", {"links": (1, 7, 13), "steps": 10}),
-    "task": ("task", "bench_task", {"problems": ("panda",), "steps": 100, "seeds": 1}),
-    "sensitivities": ("sensitivities", "bench_sensitivities", {"problems": ("puma560", "nlink:7"), "repeats": 50}),
-    "startup": ("startup", "bench_startup", {"problems": ("nlink:13",), "controllers": ("qp", "rti", "empc")}),
-}
-
-
-def _controller(args, task: Reach | None = None) -> tuple:
+def make_controller(args, task: Reach | None = None) -> tuple:
+    """(problem, its OCP, the controller) the command line asks for; with a reach task, the OCP carries it."""
     options = solver_options(args)
     problem = problems.make(args.problem)
     check_size(problem, args)
@@ -100,7 +84,7 @@ def _label(ctrl: Controller) -> str:
 
 def _solve(args):
     task = reach_task(args)
-    problem, ocp, ctrl = _controller(args, task)
+    problem, ocp, ctrl = make_controller(args, task)
     x0, goal = seeded_start(problem, ocp, args.seed, task)
     sol = ctrl.solve(x0, goal)
     extra = {}
@@ -238,7 +222,7 @@ def _simulate(args):
             raise ValueError(f"{given[0]} applies to --plant mujoco only")
     if args.joint_map and not args.mjcf:
         raise ValueError("--joint-map names the joints of an MJCF file: give --mjcf too")
-    problem, ocp, ctrl = _controller(args, task)
+    problem, ocp, ctrl = make_controller(args, task)
     plant = _plant(problem, args)
     if args.animate is not None:
         animation.Skeleton(problem, None if task is None else task.frame)  # a robot it cannot draw fails before the run
@@ -349,186 +333,5 @@ def _demo(args):
     return 0
 
 
-def _study_options(args) -> dict:
-    """The study runner's options from the command line, with the output paths and the scheduler checked first."""
-    from ocpkit.runs.cluster import check_scheduler
-
-    check_output_folder(args.out, "--out")
-    if args.export is not None:
-        check_output_file(args.export, "--export")
-    if args.trial_timeout is not None and not args.trial_timeout > 0:
-        raise ValueError(f"--trial-timeout must be a positive number of seconds, got {args.trial_timeout}")
-    if args.scheduler is not None:
-        check_scheduler(args.scheduler)
-    return {"trial_timeout": args.trial_timeout, "retry_failed": args.retry_failed, "stale": args.stale}
-
-
-def _export_store(args) -> None:
-    if args.export is not None:
-        from ocpkit.runs.store import Store
-
-        with Store(args.out) as store:
-            print(f"results database: {store.export(args.export)}")
-
-
-def _study(args):
-    from ocpkit.studies.reproduce import run_study
-
-    options = _study_options(args)
-    if args.plant != "ocpkit" and args.name != "robustness":
-        raise ValueError(f"--plant applies to the robustness study only, not {args.name!r}")
-    if args.problem:
-        section = _study_problems(args, options)
-    else:
-        section = run_study(
-            args.name, args.size, args.out, workers=args.workers, scheduler=args.scheduler, plant=args.plant, **options
-        )
-    path = Path(args.out) / f"{args.name}{'' if args.plant == 'ocpkit' else '_' + args.plant}.md"
-    path.write_text(section)
-    print(section + f"\nreport: {path}")
-    _export_store(args)
-    return 0
-
-
-def _study_problems(args, options) -> str:
-    """A closed-loop study on the problems of --problem: its table (CSV), figures and report section."""
-    from ocpkit.runs import study as study_runner
-    from ocpkit.studies import get
-
-    if args.name not in PROBLEM_STUDIES:
-        raise ValueError(f"--problem applies to the studies {', '.join(PROBLEM_STUDIES)}, not {args.name!r}")
-    module = get(args.name)
-    out = Path(args.out)
-    study = module.study(args.size, problems=args.problem, **({} if args.plant == "ocpkit" else {"plant": args.plant}))
-    df = study_runner.run(study, out, workers=args.workers, scheduler=args.scheduler, **options)
-    df.to_csv(out / f"{study.name}.csv", index=False)
-    failed = df[df["status"] == "failed"]
-    if len(failed) == len(df):
-        raise ValueError(f"every trial of {args.name} failed; first error: {failed['error'].iloc[0].splitlines()[0]}")
-    return module.report(df, out) + study_runner.failure_summary(df) + study_runner.cluster_summary(df)
-
-
-def _reproduce(args):
-    from ocpkit.studies.reproduce import reproduce
-
-    options = _study_options(args)
-    report = reproduce(args.size, args.out, workers=args.workers, scheduler=args.scheduler, **options)
-    print(f"report: {report}")
-    _export_store(args)
-    return 0
-
-
-def _bench(args):
-    import importlib
-
-    module, function, quick = BENCHMARKS[args.what]
-    options = {k: getattr(args, k) for k in ("arch", "precision") if getattr(args, k) is not None}
-    if options and args.what != "empc":
-        raise ValueError(f"--{next(iter(options))} applies to `ocpkit bench empc` only")
-    if args.busy is not None:
-        if args.what != "step":
-            raise ValueError("--busy applies to `ocpkit bench step` only")
-        if args.busy < 0:
-            raise ValueError(f"--busy must be >= 0, got {args.busy}")
-        options["busy"] = args.busy
-    # option: {benchmark: (its keyword, type)}
-    chosen = {
-        "controller": {"nlp": ("controllers", tuple), "startup": ("controllers", tuple)},
-        "integrator": {"nlp": ("integrator", str)},
-        "seed": {"nlp": ("first_seed", int), "startup": ("seed", int)},
-    }
-    for option, where in chosen.items():
-        value = getattr(args, option)
-        if value is not None:
-            if args.what not in where:
-                raise ValueError(f"--{option} applies to `ocpkit bench {'|'.join(where)}` only")
-            keyword, kind = where[args.what]
-            options[keyword] = kind(value)
-    kwargs = dict(quick) if args.quick else {}
-    if args.problem:
-        if args.what not in PROBLEM_BENCHMARKS:
-            raise ValueError(f"--problem applies to `ocpkit bench {'|'.join(PROBLEM_BENCHMARKS)}` only")
-        for spec in args.problem:
-            problems.make(spec)  # a bad spec fails before any benchmark starts
-        kwargs["problems"] = list(args.problem)
-    bench = getattr(importlib.import_module(f"ocpkit.benchmarks.{module}"), function)
-    bench(**kwargs, **options)
-    return 0
-
-
-def _prebuild(args):
-    """`ocpkit build`: what the default LinearMPC of the problem's OCP loads from the cache — its C step and the
-    compiled affine model of its Python step — built into the cache unless there (and loading), paths printed; with
-    another solver or options, :func:`_prebuild_controller`."""
-    from ocpkit.codegen import compiled
-    from ocpkit.export import native
-    from ocpkit.codegen.cache import cache_root
-    from ocpkit.model.ocp import BACKGROUND_MIN_INSTRUCTIONS
-    from ocpkit.solvers.qp import LinearMPC
-
-    print(f"cache: {cache_root()} (set OCPKIT_CACHE_DIR to fill another)")
-    if args.solver != "qp" or solver_options(args):
-        return _prebuild_controller(args)
-    problem = problems.make(args.problem)
-    ocp = make_ocp(problem, args, error=args.error, compiled=args.compiled)
-    size = ocp.model.jacobian.n_instructions()
-    start = time.time()
-    if native.wanted(ocp):
-        LinearMPC(ocp, native=True)  # builds the C step here and now (or finds it), and loads it
-        for folder in native.built(ocp):
-            library = folder / f"lib{native.NAME}.so"
-            print(f"C step (LinearMPC: condensed, daqp, linearization goal): {library} ({_how(library, start)})")
-    else:
-        pairs = ocp.task_functions.pairs if ocp.task_functions is not None else 0
-        why = (
-            "a linear model"
-            if ocp.model.linear
-            else f"a model of {size} VM instructions, below {BACKGROUND_MIN_INSTRUCTIONS}"
-            if size < BACKGROUND_MIN_INSTRUCTIONS
-            else "obstacles, constants of the generated C (a build per placement: --compiled builds it)"
-            if pairs
-            else f"a knot QP of {ocp.knots * ocp.nu} variables, over ocpkit.export.native.MAX_VARIABLES = "
-            f"{native.MAX_VARIABLES}"
-        )
-        print(f"C step: none (the default LinearMPC keeps its Python step here: {why})")
-    if size >= BACKGROUND_MIN_INSTRUCTIONS:
-        start = time.time()
-        library = compiled.prebuild(ocp.model.affine(ocp.dt, ocp.substeps, ocp.integrator))
-        print(f"compiled affine model (the Python step's): {library} ({_how(library, start)})")
-    else:
-        print(
-            f"compiled affine model: none (a model of {size} VM instructions, below {BACKGROUND_MIN_INSTRUCTIONS}, "
-            f"stays on CasADi's VM)"
-        )
-    return 0
-
-
-def _prebuild_controller(args):
-    """`ocpkit build --solver …`: the controller as `simulate` constructs it, one step from the seeded start (a
-    Taichi kernel compiles at its first launch, into the cache) and its background builds waited for."""
-    start = time.perf_counter()
-    problem, ocp, ctrl = _controller(args)
-    x0, goal = problem.sample(args.seed)
-    sol = ctrl.solve(x0, goal)
-    ctrl.wait_compiled()
-    print(
-        f"{ctrl!r}: first step {sol.status} by {sol.path}; ready in {time.perf_counter() - start:.1f} s, now "
-        f"answering by {ctrl.path}"
-    )
-    return 0
-
-
-def _how(library: Path, start: float) -> str:
-    return "built now" if library.stat().st_mtime >= start - 0.05 else "already in the cache"
-
-
-# `ocpkit COMMAND` but export (ocpkit.cli.export)
-COMMANDS = {
-    "solve": _solve,
-    "simulate": _simulate,
-    "demo": _demo,
-    "study": _study,
-    "reproduce": _reproduce,
-    "bench": _bench,
-    "build": _prebuild,
-}
+# `ocpkit COMMAND` for the commands of a controller on a problem (the others: ocpkit.cli)
+COMMANDS = {"solve": _solve, "simulate": _simulate, "demo": _demo}
