@@ -109,3 +109,10 @@ def test_the_actual_cost_follows_the_reference_at_each_time():
     moving = Trajectory(t=np.arange(H + 1) * ocp.dt, x=x, u=u, goal=reference[-1], reference=reference)
     expected = sum((x[i] - reference[i]) @ ocp.Q @ (x[i] - reference[i]) for i in range(H + 1))
     assert cost_by_term(moving, ocp)["state"] == pytest.approx(expected, rel=1e-13)
+
+
+def test_a_reference_without_preview_holds_its_present_value():
+    ref = Reference([0.0, 1.0], [[0.0], [1.0]])
+    held = ref.without_preview()
+    np.testing.assert_allclose(held.window(0.5, 0.25, 3), 0.5)
+    np.testing.assert_allclose(ref.window(0.5, 0.25, 2).ravel(), [0.5, 0.75, 1.0])

@@ -14,6 +14,7 @@ finite differences unless given).
 
 from __future__ import annotations
 
+import copy
 from pathlib import Path
 
 import numpy as np
@@ -42,6 +43,7 @@ class Reference:
             raise ValueError("times must increase strictly")
         self.times, self.goals, self.ng = times, goals, goals.shape[1]
         self._function = None
+        self.preview = True
 
     @classmethod
     def from_function(cls, function, ng: int) -> "Reference":
@@ -82,8 +84,18 @@ class Reference:
             return np.asarray(self._function(float(t)), dtype=float).ravel()
         return np.array([np.interp(t, self.times, column) for column in self.goals.T])
 
+    def without_preview(self) -> "Reference":
+        """The same reference with no preview: each window holds g(t), the present value (a held goal updated every
+        step, what a loop that cannot see ahead does)."""
+        held = copy.copy(self)
+        held.preview = False
+        return held
+
     def window(self, t: float, dt: float, horizon: int) -> np.ndarray:
-        """The goals the step at time t previews: g(t + k·dt), k = 0 … T, as (T+1, ng)."""
+        """The goals the step at time t previews: g(t + k·dt), k = 0 … T, as (T+1, ng); without preview g(t) in
+        every row."""
+        if not self.preview:
+            return np.tile(self.at(t), (horizon + 1, 1))
         ts = t + dt * np.arange(horizon + 1)
         if self._function is not None:
             return np.array([self.at(s) for s in ts])

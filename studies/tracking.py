@@ -1,0 +1,226 @@
+"""Follow a moving reference (not a paper experiment): every controller with the reference's preview over its horizon
+against the same controller holding the reference's present value as its goal (the loop users wrote before goal
+windows, :mod:`ocpkit.model.reference`).
+
+Scenarios:
+
+* "circle": the Panda's hand along a circle of radius 0.1 m at 0.3 m/s (one turn in 2.1 s) in a plane through its
+  start pose, tilted per seed;
+* "eight": the Panda's hand along a figure eight (0.1 m half-width, the same peak speed) while a sphere of 5 cm
+  radius crosses the path at constant velocity (an :class:`ocpkit.model.reference.ObstaclePath`, predicted over the
+  horizon at its measured velocity);
+* "joints": nlink:7 following a joint-space minimum-jerk trajectory between two seeded configurations (q and q̇ as
+  the reference; 1.5 s), then holding.
+
+Measures: RMS and max tracking error (the hand's distance to the reference point, m; for "joints" max_i |q_i −
+q_ref,i|, rad), the lag (the time shift of the reference that best fits the path, s), collisions (states whose true
+clearance is below zero), step successes and the per-step optimization time.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ocpkit import problems, solvers
+from ocpkit._checks import choice
+from ocpkit.codegen.kernels.runtime import current_arch
+from ocpkit.model.reference import ObstaclePath, Reference
+from ocpkit.model.task import Sphere, reach
+from ocpkit.runs.study import Study, grid
+from ocpkit.sim import plots
+from ocpkit.sim.plots import number
+from ocpkit.sim.simulate import simulate
+from ocpkit.studies.closed_loop import run_record
+from ocpkit.studies.report import ANSWERED, answered, markdown_table, section, timing_context, trials_line
+
+NAME = "tracking"
+TITLE = "Follow a moving reference: the preview over the horizon vs a goal held at the reference's present value"
+SCENARIOS = ("circle", "eight", "joints")
+PREVIEW, HELD = "preview", "held"
+RADIUS, SPEED = 0.1, 0.3  # the circle's radius [m] and the hand's speed along it [m/s]
+SPHERE = 0.05  # the crossing sphere's radius [m]
+HORIZON, KNOTS = 30, 5
+CONTROLLERS = {
+    "LinearMPC": ("qp", {}),
+    "LinearMPC (trajectory)": ("qp", {"linearization": "trajectory"}),
+    "RTI": ("rti", {}),
+    "IPOPT": ("ipopt", {}),
+    "EMPC": ("empc", {"linearization": "plan"}),
+    "CEM": ("cem", {"linearization": "plan"}),
+    "MPPI": ("mppi", {"linearization": "plan"}),
+}
+SIZES = {
+    "quick": {
+        "scenario": list(SCENARIOS),
+        "controller": ["LinearMPC", "RTI", "EMPC"],
+        "duration": 2.1,
+        "plant": "model",
+        "seeds": 2,
+    },
+    "full": {
+        "scenario": list(SCENARIOS),
+        "controller": list(CONTROLLERS),
+        "duration": 4.2,
+        "plant": "model",
+        "seeds": 5,
+    },
+}
+
+
+def minimum_jerk(q0, q1, duration: float) -> Reference:
+    """x_ref(t) = [q(t), q̇(t)] of the minimum-jerk move q0 → q1 in ``duration`` s, held at q1 after it."""
+    q0, q1 = np.asarray(q0, dtype=float), np.asarray(q1, dtype=float)
+    t = np.linspace(0.0, duration, 151)
+    s = t / duration
+    shape = 10 * s**3 - 15 * s**4 + 6 * s**5
+    rate = (30 * s**2 - 60 * s**3 + 30 * s**4) / duration
+    return Reference(t, np.hstack([q0 + np.outer(shape, q1 - q0), np.outer(rate, q1 - q0)]))
+
+
+def _plane(seed: int) -> np.ndarray:
+    """Two orthonormal directions spanning the seed's plane: the y-z plane tilted about z by up to ±30°."""
+    tilt = np.deg2rad(np.random.default_rng(seed).uniform(-30.0, 30.0))
+    return np.array([[-np.sin(tilt), np.cos(tilt), 0.0], [0.0, 0.0, 1.0]])
+
+
+def hand_path(scenario: str, start: np.ndarray, seed: int):
+    """p(t) of the hand's reference: starting at ``start`` (the hand at the start pose), RADIUS in size, moving at
+    SPEED (peak speed for the eight)."""
+    a, b = _plane(seed)
+    w = SPEED / RADIUS
+    if scenario == "circle":
+        return lambda t: start + RADIUS * ((np.cos(w * t) - 1.0) * a + np.sin(w * t) * b)
+    # the lemniscate of Gerono x = sin(wt), y = sin(wt)cos(wt): peak speed RADIUS·w at t = 0
+    return lambda t: start + RADIUS * (np.sin(w * t) * a + 0.5 * np.sin(2 * w * t) * b)
+
+
+def crossing(start: np.ndarray, seed: int, duration: float) -> ObstaclePath:
+    """The sphere crossing the eight: from 0.25 m in front of the path's centre, through it at mid-run, on."""
+    a, b = _plane(seed)
+    normal = np.cross(a, b)
+    centre, speed = start + 0.5 * RADIUS * b, 0.5 / duration  # crosses 0.25 m either side of the plane in a run
+    return ObstaclePath(lambda t: [[*(centre + normal * (0.25 - speed * t)), SPHERE]])
+
+
+def setting(scenario: str, seed: int, duration: float):
+    """(problem, OCP, x0, reference, obstacle path or None, error(x rows, t) -> tracking error per state)."""
+    if scenario == "joints":
+        pb = problems.make("nlink:7")
+        ocp = pb.ocp(knots=KNOTS, horizon=HORIZON)
+        x0, goal = pb.sample(seed)
+        ref = minimum_jerk(x0[:7], goal[:7], 1.5)
+        return pb, ocp, x0, ref, None, lambda xs, ts: np.abs(xs[:, :7] - np.array([ref.at(t)[:7] for t in ts])).max(1)
+    pb = problems.make("panda")
+    q0 = np.array([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])
+    x0 = np.r_[q0, np.zeros(7)]
+    start = pb.kinematics.positions(pb.end_effector, q0[None])[0]
+    path = hand_path(scenario, start, seed)
+    obstacles = crossing(start, seed, duration) if scenario == "eight" else None
+    declared = [Sphere(obstacles.at(0.0)[0, :3], SPHERE)] if obstacles else []
+    ocp = reach(pb, declared, knots=KNOTS, horizon=HORIZON)
+    ref = Reference.from_function(lambda t: ocp.goal(np.zeros(ocp.nx), position=path(t)), ocp.ng)
+
+    def error(xs, ts):
+        return np.linalg.norm(
+            pb.kinematics.positions(pb.end_effector, xs[:, :7]) - np.array([path(t) for t in ts]), axis=1
+        )
+
+    return pb, ocp, x0, ref, obstacles, error
+
+
+def lag(error_at, ts, max_lag: float = 0.5) -> float:
+    """The time shift τ ∈ [0, max_lag] s of the reference that the path fits best: argmin_τ RMS e(t; ref(t − τ))."""
+    shifts = np.arange(0.0, max_lag + 1e-9, ts[1] - ts[0])
+    rms = [np.sqrt(np.mean(error_at(np.maximum(ts - tau, 0.0)) ** 2)) for tau in shifts]
+    return float(shifts[int(np.argmin(rms))])
+
+
+def trial(scenario: str, controller: str, preview: str, duration: float, plant: str, seed: int) -> dict:
+    """One closed loop of ``controller`` on ``scenario``, with the reference's preview or holding its present value."""
+    choice(scenario, SCENARIOS, "scenario")
+    choice(controller, tuple(CONTROLLERS), "controller")
+    choice(preview, (PREVIEW, HELD), "preview")
+    pb, ocp, x0, ref, obstacles, error = setting(scenario, seed, duration)
+    solver, options = CONTROLLERS[controller]
+    ctrl = solvers.make(solver, ocp, **({"seed": seed} if solver in ("empc", "cem", "mppi") else {}), **options)
+    goal = ref if preview == PREVIEW else ref.without_preview()
+    target = pb.plant() if plant == "model" else _mujoco(pb)
+    traj = simulate(target, ctrl, x0, goal, duration, obstacles=obstacles)
+    e = error(traj.x, traj.t)
+    clearance = traj.clearances(ocp)
+    return {
+        "rms_error": float(np.sqrt(np.mean(e**2))),
+        "max_error": float(e.max()),
+        "lag": lag(lambda ts: error(traj.x, ts), traj.t),
+        "collisions": int((clearance < 0).sum()),
+        "min_clearance": float(clearance.min()),
+        "successes": traj.successes,
+        "steps": len(traj.solutions),
+        "solve_median": float(np.median(traj.times("solve"))),
+        "solve_max": float(np.max(traj.times("solve"))),
+        "device": current_arch() if solver in ("empc", "cem", "mppi") else "cpu",
+        **run_record(traj, ctrl),
+    }
+
+
+def _mujoco(pb):
+    from ocpkit.sim.mujoco_plant import MuJoCoPlant
+
+    return MuJoCoPlant(pb)
+
+
+def study(size: str) -> Study:
+    choice(size, tuple(SIZES), "size")
+    s = dict(SIZES[size])
+    return Study(
+        NAME, trial, grid(**{k: v for k, v in s.items() if k != "seeds"}, preview=[PREVIEW, HELD], seeds=s["seeds"])
+    )
+
+
+def report(df, out_dir) -> str:
+    ok = df[df["status"] == "ok"]
+    trials = trials_line(
+        df,
+        {
+            "scenarios": df["scenario"].nunique(),
+            "controllers": df["controller"].nunique(),
+            "seeds": df["seed"].nunique(),
+        },
+    )
+    if ok.empty:
+        return section(TITLE, [], {}, trials=trials, claims=[], notes=["No trial succeeded."])
+    order = [c for c in CONTROLLERS if c in set(ok["controller"])]
+    figs, tables = [], {}
+    for scenario in [s for s in SCENARIOS if s in set(ok["scenario"])]:
+        rows = ok[ok["scenario"] == scenario]
+        unit = "rad" if scenario == "joints" else "m"
+        labels, values = [], []
+        for c in order:
+            for mode in (PREVIEW, HELD):
+                labels.append(f"{c}, {mode}")
+                values.append(rows[(rows["controller"] == c) & (rows["preview"] == mode)]["rms_error"].dropna().values)
+        figs.append(
+            plots.boxes(
+                labels,
+                values,
+                out_dir / f"tracking_{scenario}",
+                xlabel="controller, reference",
+                ylabel=f"RMS tracking error ({unit})",
+                title=f"{scenario}: RMS tracking error over {rows['seed'].nunique()} seeds",
+            )
+        )
+        summary = rows.groupby(["controller", "preview"])[
+            ["rms_error", "max_error", "lag", "collisions", "successes", "solve_median"]
+        ].median()
+        summary["solve_median"] *= 1e3
+        tables[
+            f"{scenario}: medians over the seeds (RMS and max tracking error in {unit}, lag in s, colliding states, "
+            "successful steps, per-step optimization time in ms)"
+        ] = markdown_table(summary)
+    tables[ANSWERED] = answered(ok)
+    notes = [
+        f"Runs: {number(ok['duration'].iloc[0])} s at 100 Hz, horizon {HORIZON}, {KNOTS} knots; sampling planners on "
+        + ", ".join(sorted(set(ok["device"])))
+        + ". 'held': the goal is the reference's present value, held over the horizon (a loop without preview)."
+    ]
+    return section(TITLE, figs, tables, trials=trials + " " + timing_context(ok), notes=notes, claims=[])
