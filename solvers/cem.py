@@ -18,7 +18,7 @@ import numpy as np
 
 from ocpkit._checks import integer
 from ocpkit.solvers.methods import CEM
-from ocpkit.solvers.sampling import GaussianSampling
+from ocpkit.solvers.gaussian import GaussianSampling
 
 
 class CrossEntropyMPC(GaussianSampling):

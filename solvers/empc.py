@@ -228,12 +228,14 @@ class EvolutionaryMPC(SamplingMPC):
 
     def _start(self, x, goal, cold):
         parents = self.engine.picked
-        if cold and self.preconditioned:  # every parent starts as the holding input
-            hold = self.preconditioner.hold
-            parents.from_numpy(np.broadcast_to(hold, parents.shape).astype(self.engine.ntype))
+        guess = self._guess
+        if guess is not None or (cold and self.preconditioned):  # every parent starts as the guess or holding input
+            start = guess if guess is not None else self.preconditioner.hold
+            parents.from_numpy(np.broadcast_to(start, parents.shape).astype(self.engine.ntype))
         elif not cold and (owed := self._missed + int(self._shift_parents)):  # steps that ran no generation
             parents.from_numpy(self._shifted(parents.to_numpy().astype(np.float64), owed).astype(self.engine.ntype))
-        self._shift_parents = not cold  # the first generation breeds from the shifted parents
+        # the first generation breeds from the shifted parents; a guess is this step's plan, not shifted
+        self._shift_parents = not cold and guess is None
         self._scale = 1.0  # paper: σ_eff = σ_min + (σ − σ_min)·scale
         if not self.preconditioned and self.shrink_distance is not None:
             self._scale = min(1.0, float(np.linalg.norm(x - goal)) / self.shrink_distance)

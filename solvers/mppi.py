@@ -21,7 +21,8 @@ import taichi as ti
 
 from ocpkit._checks import positive
 from ocpkit.solvers.methods import MPPI
-from ocpkit.solvers.sampling import GaussianSampling, excess
+from ocpkit.solvers.gaussian import GaussianSampling
+from ocpkit.solvers.sampling import excess
 
 
 class MPPI(GaussianSampling):

@@ -13,7 +13,7 @@ supplies *seeds* evaluated in every population: the optimum of that QP within th
 :func:`ocpkit.qp.boxqp.solve_box_qp`; with obstacles or state bounds, within their linearized rows too, by DAQP) and
 the input that holds the goal (u_g corrected for gravity and other static loads). Perturbations are drawn as L⁻ᵀε
 (covariance ∝ P⁻¹), so every direction costs alike. CEM and MPPI start each step's Gaussian at the best by rollout of
-their incumbent and the seeds (:class:`GaussianSampling`). The fitness stays the rollout, so
+their incumbent and the seeds (:class:`ocpkit.solvers.gaussian.GaussianSampling`). The fitness stays the rollout, so
 ``dynamics="nonlinear"`` and any CasADi stage cost keep working; the QP only shapes the search.
 ``variant="paper"`` is the plain algorithm: isotropic sampling in input coordinates, no seeds.
 
@@ -31,6 +31,12 @@ rollouts kept the arm clear but 8–49 % of their steps were "soft" (the predict
 194 s to compile and 213 ms a step, and their population diverged (final distance 1.03 m instead of 1 mm). Choose
 "nonlinear" where the robot's discrete model is cheap and stable over the horizon.
 
+A step follows a goal window and moving obstacles (``solve(x, goal_window, obstacles=…)``, TAKES) through the
+kernels' data: each rollout's stage k reads row k of the goal and obstacle windows (:meth:`Rollout.load`), so
+nothing is compiled or built again when they change. ``initial_guess`` is the step's incumbent — EMPC's parents,
+CEM's and MPPI's starting mean, the preconditioner's linearization plan — in place of the shifted previous plan. The
+preconditioner's QP is built about stage 0's goal and the task's declared obstacles (the condensed QP's own).
+
 Timings: ``model`` is the linearization; ``build`` the preconditioner's QP; ``solve`` the rest
 (``factor``, ``seed`` — the Newton (or DAQP) and holding candidates —, ``copies`` between host and device and
 ``generations``, each also reported on its own), as the paper counts EMPC's solve time.
@@ -42,11 +48,11 @@ import time
 import numpy as np
 import taichi as ti
 
-from ocpkit._checks import array, choice, integer, positive
+from ocpkit._checks import choice, integer, positive
 from ocpkit.controller import Controller, check_linearization
 from ocpkit.status import EXCEPTION, LIMITED, NAN, SUCCESS, OperationCosts, Reason, Solution
 from ocpkit.codegen.kernels import runtime
-from ocpkit.codegen.kernels.random import normal, seed_key
+from ocpkit.codegen.kernels.random import seed_key
 from ocpkit.codegen.kernels.rollout import FEASIBILITY_TOLERANCE, Rollout
 from ocpkit.solvers.methods import SAMPLING, VARIANTS
 from ocpkit.solvers.preconditioner import Preconditioner
@@ -87,6 +93,8 @@ def best_first(results: np.ndarray, count: int) -> np.ndarray:
 class SamplingMPC(Controller):
     """Base class: subclasses implement ``_start``, ``_generation`` and ``_result``.
 
+    A step takes a goal window, moved obstacles and an initial guess (module docstring).
+
     ``population`` candidates per generation, ``generations`` per control step; ``variant``
     "preconditioned" (default) or "paper" (module docstring); ``dynamics`` "affine" (re-linearized
     each step) or "nonlinear" (the discrete model F in the kernel), which also judges each candidate's violation of
@@ -107,6 +115,8 @@ class SamplingMPC(Controller):
     second measures: neither is bounded, so call :meth:`warm_up` (two steps) first. ``threads`` limits BLAS/OpenMP
     threads inside a step (see Controller); Taichi's own CPU threads are set at its start (``OCPKIT_CPU_THREADS``).
     """
+
+    TAKES = frozenset({"goal window", "obstacles", "initial guess"})
 
     def __init__(
         self,
@@ -208,7 +218,9 @@ class SamplingMPC(Controller):
     def _solve(self, x: np.ndarray, goal: np.ndarray) -> Solution:
         ocp = self.ocp
         times = self._times = dict.fromkeys(PARTS, 0.0)
-        cold = not self._warm
+        # The step's incumbent: the user's guess, else the previous plan; a cold start has neither.
+        self._guess = None if self.guess is None else np.clip(self.guess, ocp.u_min, ocp.u_max)
+        cold = not self._warm and self._guess is None
         pre = self.preconditioner if self.preconditioned else None
         # A cold start has no incumbent: it needs this step's seeds. Otherwise the preconditioner may be an earlier's.
         fresh = pre is not None and (cold or pre.L is None)
@@ -238,7 +250,7 @@ class SamplingMPC(Controller):
                     self._close_times(start)
                     return self._missed_step(("generation", "load", "start"), times)
             t = time.perf_counter()
-            self.engine.load(x, self.task_goal, model if self._affine else None)
+            self.engine.load(x, self.goal_window, model if self._affine else None, self._moved_obstacles())
             times["copies"] += self._measured("load", t)
             t = time.perf_counter()
             self._start(x, goal, cold)
@@ -306,11 +318,12 @@ class SamplingMPC(Controller):
         """Update the preconditioner at this step's linearization and copy its whitening and seeds to the device."""
         t = time.perf_counter()
         pre, ocp = self.preconditioner, self.ocp
+        warm = self._guess if self._guess is not None else None if self.plan is None else self._shifted(self.plan)
         pre.update(
             model,
             x,
             goal,
-            None if self.plan is None else self._shifted(self.plan),
+            warm,
             times,
             self.task_goal[ocp.nx :],
             self.deadline(self.time_limit),
@@ -386,7 +399,8 @@ class SamplingMPC(Controller):
         return float(self._results[i, 0]), float(self._results[i, 1])
 
     def _start(self, x: np.ndarray, goal: np.ndarray, cold: bool) -> None:
-        """Prepare this control step's search (warm start from the previous step unless cold)."""
+        """Prepare this control step's search: from ``self._guess`` where given, else (warm) from the previous
+        step's; ``cold``: from neither."""
         raise NotImplementedError
 
     def _generation(self, cold: bool) -> tuple[float, float]:
@@ -397,128 +411,3 @@ class SamplingMPC(Controller):
         """The knots (p, m) to apply, on the host, and their (cost, violation); ``best``: the last generation's
         best candidate's."""
         raise NotImplementedError
-
-
-class GaussianSampling(SamplingMPC):
-    """Base of CEM and MPPI: each generation draws knots z = μ + G ε, ε ~ N(0, I), clipped to the input
-    bounds; candidate 0 is μ itself so the incumbent is always evaluated, and with the preconditioned
-    variant candidates 1 and 2 are the seeds. G is diag(std) in input coordinates ("paper") or
-    L⁻ᵀ diag(std) with std in whitened units ("preconditioned"): see :meth:`_sample`.
-
-    Preconditioned, each control step's μ starts at the best by rollout (constraint domination) of the incumbent
-    (the shifted mean, or the holding input at a cold start) and the seeds (:meth:`_start_distribution`). A Gaussian of
-    σ whitened units moves its mean by about σ per generation, and a seed among the elites weighs only
-    1/num_elites in CEM's refit: from an incumbent far from the knot QP's optimum (the cart-pole's holding
-    input: ~600 whitened units, 10³× the Newton candidate's cost) CEM never arrived while the plant fell.
-
-    ``sigma``: with "paper", the initial std in input units (scalar or per input; default 10 % of each
-    input's range); with "preconditioned", in whitened units (a scalar; default 1: a draw then adds
-    about ‖ε‖² ≈ p·m to the rollout cost of the QP's quadratic model).
-
-    The plan returned is the final μ unless, with obstacles or state bounds, the last generation's best candidate
-    dominates it (:meth:`_final`): an average of collision-free plans can collide (two ways around a ball).
-    """
-
-    def __init__(self, ocp, *, sigma=None, **options):
-        super().__init__(ocp, **options)
-        eng = self.engine
-        F = eng.ftype
-        N, p, m = eng.num_sims, eng.num_knots, eng.nu
-        d = p * m
-        if self.preconditioned:
-            self.sigma = 1.0 if sigma is None else positive(sigma, "sigma")
-        else:
-            span = ocp.u_max - ocp.u_min
-            self.sigma = 0.1 * span if sigma is None else array(np.broadcast_to(sigma, span.shape), "sigma", span.shape)
-            if (self.sigma < 0).any():
-                raise ValueError(f"sigma must be >= 0, got {self.sigma.tolist()}")
-        knots, record, lo, hi = eng.knots, eng.record, self._u_min, self._u_max
-        seeded = SEEDS if self.preconditioned else 0
-        seeds = self._seeds if self.preconditioned else None
-        eps = ti.field(F, shape=(N, d))  # each candidate's ε, drawn once and read by every row of G ε
-
-        # Run-time loops over the knots and parameters: unrolled, the kernel's compile time grew with p·m.
-        @ti.kernel
-        def generation(key: ti.u32, counter: ti.u32, distribution: ti.types.ndarray(), out: ti.types.ndarray()):
-            for i in range(N):
-                if i > seeded:
-                    for c in range(d):
-                        eps[i, c] = ti.cast(normal(key, counter, i, c), F)
-                for j in range(p):
-                    for a in range(m):
-                        r = j * m + a
-                        v = ti.cast(distribution[0, r], F)
-                        # Only a compile-time condition drops the seeds' code where there are none ("paper": seeds
-                        # is None): `ti.static(seeded) and …` is a run-time `and`, whose body Taichi still compiles.
-                        if ti.static(seeded > 0):
-                            if 1 <= i <= seeded:
-                                v = seeds[i - 1, j, a]
-                        if i > seeded:
-                            acc = ti.cast(0.0, F)
-                            for c in range(d):
-                                acc += ti.cast(distribution[1 + r, c], F) * eps[i, c]
-                            v += acc
-                        knots[i, j, a] = ti.min(ti.max(v, lo[a]), hi[a])
-                record(i, out)
-
-        @ti.kernel
-        def evaluate(candidates: ti.types.ndarray(), out: ti.types.ndarray()):
-            for i in range(candidates.shape[0]):  # into the population's first places, clipped as there
-                for j in range(p):
-                    for a in range(m):
-                        knots[i, j, a] = ti.min(ti.max(ti.cast(candidates[i, j, a], F), lo[a]), hi[a])
-                record(i, out)
-
-        self._gaussian_kernel = generation
-        self._evaluate_kernel = evaluate
-        self._distribution = np.empty((1 + d, d), dtype=eng.ntype)
-        # As in the population, a smaller one holds fewer seeds.
-        self._centers = min(N, 1 + SEEDS) if self.preconditioned else 1
-
-    def _evaluate(self, candidates) -> np.ndarray:
-        """Roll out a few candidates (each (p, m)) in one small launch, counted as ``generations``; their (cost,
-        violation) rows. They overwrite the population's first places."""
-        results = self.engine.results(len(candidates))
-        self._launch(self._evaluate_kernel, np.ascontiguousarray(candidates, dtype=self.engine.ntype), results)
-        return results
-
-    def _final(self, mean: np.ndarray, best: tuple[float, float], index: int) -> tuple[np.ndarray, tuple]:
-        """The plan to return (and carry to the next step) and its (cost, violation): ``mean``, unless with
-        constraints the last generation's best candidate (number ``index``, of (cost, violation) ``best``)
-        dominates it by feasibility: the mean violates, the candidate less. Without constraints the mean is not
-        rolled out and ``best`` is returned."""
-        if not self.engine.constrained:
-            return mean, best
-        candidate = self._pick([index])[0]  # before the mean's rollout takes the population's first place
-        outcome = self._evaluate(mean[None])
-        if excess(np.asarray([best]))[0] < excess(outcome)[0]:
-            return candidate, best
-        return mean, (float(outcome[0, 0]), float(outcome[0, 1]))
-
-    def _start_distribution(self, mean: np.ndarray, cold: bool) -> np.ndarray:
-        """This step's starting mean; the std restarts at σ. The incumbent is the shifted mean, or at a cold
-        start the holding input (preconditioned) or the input goal (paper). Preconditioned, the incumbent and
-        the seeds are rolled out first (one small launch) and the best by constraint domination starts the
-        search; a tie keeps the incumbent."""
-        ocp = self.ocp
-        if not cold:
-            start = self._shifted(mean, 1 + self._missed)
-        elif self.preconditioned:
-            start = self.preconditioner.hold
-        else:
-            start = self.goal_knots(self._goal)
-        d = ocp.knots * ocp.nu
-        self.std = np.full(d, self.sigma) if self.preconditioned else np.tile(self.sigma, ocp.knots)
-        if self.preconditioned:
-            pre = self.preconditioner
-            centers = (start, pre.newton, pre.hold)[: self._centers]
-            start = centers[int(best_first(self._evaluate(centers), 1)[0])]
-        return start
-
-    def _sample(self, mean: np.ndarray) -> None:
-        """Roll out one population drawn around ``mean`` (p, m) with the current ``self.std`` (one call:
-        the distribution goes in, the costs and violations come back in ``self._results``)."""
-        dist = self._distribution
-        dist[0] = mean.ravel()
-        dist[1:] = self.preconditioner.whiten * self.std if self.preconditioned else np.diag(self.std)
-        self._launch(self._gaussian_kernel, self.key, self.counter & 0xFFFFFFFF, dist, self._results)

@@ -4,12 +4,14 @@ This is the inner loop of Algorithm 1 (lines 11-17 of the paper's EMPC): each ca
 knots U (p × m) become inputs through the Parameterization basis (``get_u_from_U``), the
 model is stepped T times and the stage and terminal costs are summed:
 
-    J = Σ_{k=0}^{T-1} l(x_k, u_k, x_goal) + l_T(x_T, x_goal).
+    J = Σ_{k=0}^{T-1} l(x_k, u_k, g_k, O_k) + l_T(x_T, g_T, O_T),
 
-(The x_0 term is the same for every candidate, so rankings equal the OCP's objective.) In the same pass the
-constraints the QPs hold — a task's obstacle clearances and the hard state bounds — give each candidate its
-violation V = Σ_{k=1}^{T} v(x_k) (:func:`violation`), so that planners can select by constraint domination
-(feasible first) rather than by the penalized cost alone.
+g_k the goal window's row k (a held goal: every row the same) and O_k the obstacles at stage k (where a task has
+obstacles: their penalty is part of l). (The x_0 term is the same for every candidate, so rankings equal the OCP's
+objective.) In the same pass the constraints the QPs hold — a task's obstacle clearances and the hard state bounds —
+give each candidate its violation V = Σ_{k=1}^{T} v(x_k, O_k) (:func:`violation`), so that planners can select by
+constraint domination (feasible first) rather than by the penalized cost alone. The goal and obstacle windows are
+kernel data, copied in by :meth:`Rollout.load` each step: a goal or an obstacle that moves compiles nothing.
 Dynamics are either the paper's affine model x⁺ = A_d x + B_d u + w_d, refreshed by the
 caller each control step, or the full nonlinear discrete model F translated from CasADi
 (the paper's future work). Costs are translated CasADi Functions, so non-smooth ones
@@ -51,22 +53,30 @@ def _bound_violations(ocp, x):
     ) * ca.DM(np.isfinite(ocp.x_max[rows]).astype(float))
 
 
-def fitness(ocp):
-    """(stage (x, u, goal), terminal (x, goal)): the OCP's cost over its whole goal vector, plus at every state
-    x_0 … x_T the exact penalties of what the QPs hold as constraints: a task's obstacles (ocpkit.model.task) and the
-    state bounds, STATE_BOUND_WEIGHT·Σ_i (h_i + ½h_i²) with h_i the violation of component i's bound."""
-    stage, terminal = ocp.cost.stage, ocp.cost.terminal
+def obstacle_count(ocp) -> int:
+    """N, the task's obstacles (0: none): with N > 0 the fitness and the violation take the table O (4 × N)."""
     tf = ocp.task_functions
-    x, u, g = ca.SX.sym("x", ocp.nx), ca.SX.sym("u", ocp.nu), ca.SX.sym("goal", ocp.ng)
-    penalty = tf.penalty(x) if tf is not None and tf.pairs else 0
+    return tf.table.shape[1] if tf is not None and tf.pairs else 0
+
+
+def fitness(ocp):
+    """(stage (x, u, goal[, O]), terminal (x, goal[, O])): the OCP's cost over its whole goal vector, plus at every
+    state x_0 … x_T the exact penalties of what the QPs hold as constraints: a task's obstacles (ocpkit.model.task,
+    against the table O, 4 × N: centre and radius of each, an input where the task has obstacles) and the state
+    bounds, STATE_BOUND_WEIGHT·Σ_i (h_i + ½h_i²) with h_i the violation of component i's bound."""
+    stage, terminal = ocp.cost.stage, ocp.cost.terminal
+    N = obstacle_count(ocp)
+    x, u, g, O = ca.SX.sym("x", ocp.nx), ca.SX.sym("u", ocp.nu), ca.SX.sym("goal", ocp.ng), ca.SX.sym("O", 4, N)
+    penalty = ocp.task_functions.penalty_at(x, O) if N else 0
     if ocp.has_state_bounds:
         h = _bound_violations(ocp, x)
         penalty = penalty + STATE_BOUND_WEIGHT * ca.sum1(h + 0.5 * h * h)
     if isinstance(penalty, int):
         return stage, terminal
+    table = [O] if N else []
     return (
-        ca.Function("fitness", [x, u, g], [stage(x, u, g) + penalty]),
-        ca.Function("fitness_T", [x, g], [terminal(x, g) + penalty]),
+        ca.Function("fitness", [x, u, g, *table], [stage(x, u, g) + penalty]),
+        ca.Function("fitness_T", [x, g, *table], [terminal(x, g) + penalty]),
     )
 
 
@@ -78,18 +88,19 @@ def constrained(ocp) -> bool:
 
 
 def violation(ocp):
-    """v (x) -> how far one state breaks the constraints the QPs hold: max(0, −min_pairs(d − margin)) over a task's
-    obstacle clearances d (ocpkit.model.task) plus Σ_i h_i over the state bounds; 0 exactly where x satisfies them. A
-    candidate's violation sums it over x_1 … x_T (x_0 is the same for every candidate): a plan that grazes a
-    constraint at many stages counts against one that breaks it as much once."""
-    tf = ocp.task_functions
-    x = ca.SX.sym("x", ocp.nx)
+    """v (x[, O]) -> how far one state breaks the constraints the QPs hold: max(0, −min_pairs(d − margin)) over a
+    task's obstacle clearances d (ocpkit.model.task) against the table O (4 × N, an input where the task has
+    obstacles) plus Σ_i h_i over the state bounds; 0 exactly where x satisfies them. A candidate's violation sums it
+    over x_1 … x_T (x_0 is the same for every candidate): a plan that grazes a constraint at many stages counts
+    against one that breaks it as much once."""
+    N = obstacle_count(ocp)
+    x, O = ca.SX.sym("x", ocp.nx), ca.SX.sym("O", 4, N)
     v = ca.SX(0)
-    if tf is not None and tf.pairs:
-        v += ca.fmax(0, -ca.mmin(tf.clearance(x)[0]))
+    if N:
+        v += ca.fmax(0, -ca.mmin(ocp.task_functions.clearance_at(x, O)[0]))
     if ocp.has_state_bounds:
         v += ca.sum1(_bound_violations(ocp, x))
-    return ca.Function("violation", [x], [v], ["x"], ["v"])
+    return ca.Function("violation", [x, O] if N else [x], [v], ["x", "O"] if N else ["x"], ["v"])
 
 
 class SparseRows:
@@ -133,12 +144,14 @@ class Rollout:
     engine's constant fields first, :func:`runtime.upload` does where a kernel of yours runs without it);
     ``picked`` (num_picked, p, m) receives the candidates chosen by :meth:`pick` (parents, elites).
     ``stage_cost`` (x, u, goal) -> scalar and ``terminal_cost`` (x, goal) -> scalar default to :func:`fitness`
-    (the OCP's cost; with a task, its terms and its obstacles' penalty); goal has ``ocp.ng`` entries. The
-    violation is the OCP's whatever the costs; ``constrained`` says whether it can be nonzero.
+    (the OCP's cost; with a task, its terms and its obstacles' penalty); goal has ``ocp.ng`` entries, stage k's row
+    k of the step's goal window and the terminal cost's row T. The violation is the OCP's whatever the costs;
+    ``constrained`` says whether it can be nonzero. The fitness and the violation read the ``obstacles`` (N) of the
+    task at stage k from row k of the step's obstacle window.
 
     Each Taichi call that moves an array costs tens of microseconds of launch overhead, more
     than a small population's rollouts, so a control step moves its data in as few calls as
-    possible: :meth:`load` sends x_0, the goal and the affine model in one, solver kernels
+    possible: :meth:`load` sends x_0, the goal and obstacle windows and the affine model in one, solver kernels
     return the costs and violations through one output array (:meth:`record`), :meth:`pick` returns what it
     gathered.
     """
@@ -173,25 +186,38 @@ class Rollout:
         self.dynamics, self.precision = dynamics, precision
         self.constrained = constrained(ocp)
         ng = self.ng = ocp.ng
+        N = self.obstacles = obstacle_count(ocp)
+        # the declared obstacles at every stage, (T+1, N, 4): load()'s default
+        self._declared = np.broadcast_to(ocp.task_functions.table.T if N else np.zeros((0, 4)), (T + 1, N, 4))
+        for name, cost, inputs in (
+            ("stage_cost", stage_cost, [(n, 1), (m, 1), (ng, 1)]),
+            ("terminal_cost", terminal_cost, [(n, 1), (ng, 1)]),
+        ):
+            if cost is not None:
+                _check_signature(name, cost, inputs, [(1, 1)])
         if stage_cost is None or terminal_cost is None:
             stage_default, terminal_default = fitness(ocp)
             stage_cost = stage_default if stage_cost is None else stage_cost
             terminal_cost = terminal_default if terminal_cost is None else terminal_cost
-        _check_signature("stage_cost", stage_cost, [(n, 1), (m, 1), (ng, 1)], [(1, 1)])
-        _check_signature("terminal_cost", terminal_cost, [(n, 1), (ng, 1)], [(1, 1)])
         # Each translated function returns (cost, violation) at its state: one expression graph, so the kinematics
         # that the obstacle penalty and the clearance violation share are computed once.
         v = violation(ocp)
-        x, u, g = ca.SX.sym("x", n), ca.SX.sym("u", m), ca.SX.sym("goal", ng)
-        stage = translate(_with_violation("stage_terms", stage_cost, v, [x, u, g]), precision=precision).func
-        terminal = translate(_with_violation("terminal_terms", terminal_cost, v, [x, g]), precision=precision).func
+        x, u, g, O = ca.SX.sym("x", n), ca.SX.sym("u", m), ca.SX.sym("goal", ng), ca.SX.sym("O", 4, N)
+        table = O if N else None
+        stage = translate(_with_violation("stage_terms", stage_cost, v, [x, u, g], table), precision=precision).func
+        terminal = translate(
+            _with_violation("terminal_terms", terminal_cost, v, [x, g], table), precision=precision
+        ).func
 
         F = self.ftype
         self.knots = ti.field(F, shape=(num_sims, p, m))
         self.picked = ti.field(F, shape=(num_picked, p, m))
         self.basis = SparseRows(basis, precision)
         self._x0 = ti.field(F, shape=n)
-        self._goal = ti.field(F, shape=ng)
+        self._goal = ti.field(F, shape=(T + 1, ng))  # the goal window: row k, stage k's goal
+        # the obstacle window: row k, the table O (4 × N) at stage k in column-major order (an obstacle's centre and
+        # radius side by side), as the translated functions take it
+        self._obstacles = ti.field(F, shape=(T + 1, 4 * N)) if N else None
         if dynamics == "affine":
             self._A = ti.field(F, shape=(n, n))
             self._B = ti.field(F, shape=(n, m))
@@ -233,7 +259,7 @@ class Rollout:
             _check_signature("ocp.discrete()", discrete, [(n, 1), (m, 1)], [(n, 1)])
             step = translate(discrete, precision=precision).func
 
-        knots, x0, goal = self.knots, self._x0, self._goal
+        knots, x0, goal, obstacles = self.knots, self._x0, self._goal, self._obstacles
         columns, weights, width = self.basis.columns, self.basis.weights, self.basis.width
 
         @ti.func
@@ -247,19 +273,43 @@ class Rollout:
             return u
 
         @ti.func
+        def goal_at(k):
+            return ti.Vector([goal[k, r] for r in ti.static(range(ng))], dt=F)
+
+        if N:
+
+            @ti.func
+            def table_at(k):
+                return ti.Vector([obstacles[k, r] for r in ti.static(range(4 * N))], dt=F)
+
+            stage_with, terminal_with = stage, terminal
+        else:  # no obstacles: the fitness takes no table; a placeholder stands for it
+
+            @ti.func
+            def table_at(k):
+                return ti.Vector.zero(F, 1)
+
+            @ti.func
+            def stage_with(x, u, g, o):
+                return stage(x, u, g)
+
+            @ti.func
+            def terminal_with(x, g, o):
+                return terminal(x, g)
+
+        @ti.func
         def rollout(i):
             x = ti.Vector([x0[r] for r in ti.static(range(n))], dt=F)
-            g = ti.Vector([goal[r] for r in ti.static(range(ng))], dt=F)
             J = ti.cast(0.0, F)
             V = ti.cast(0.0, F)
             for k in range(T):
                 u = input_at(i, k)
-                terms = stage(x, u, g)
+                terms = stage_with(x, u, goal_at(k), table_at(k))
                 J += terms[0]
                 if k > 0:
                     V += terms[1]
                 x = step(x, u)
-            terms = terminal(x, g)
+            terms = terminal_with(x, goal_at(T), table_at(T))
             return J + terms[0], V + terms[1]
 
         @ti.func
@@ -289,6 +339,7 @@ class Rollout:
 
         affine = dynamics == "affine"
         model_size = n * n + n * m + n if affine else 0
+        start = n + (T + 1) * (ng + 4 * N)  # the model's offset: after x_0 and the windows
 
         @ti.kernel
         def upload(values: ti.types.ndarray()):
@@ -296,34 +347,45 @@ class Rollout:
             for r in range(n):
                 x0[r] = values[r]
             ti.loop_config(serialize=serial)
-            for r in range(ng):
-                goal[r] = values[n + r]
+            for k, r in ti.ndrange(T + 1, ng):
+                goal[k, r] = values[n + k * ng + r]
+            if ti.static(N):
+                ti.loop_config(serialize=serial)
+                for k, r in ti.ndrange(T + 1, 4 * N):
+                    obstacles[k, r] = values[n + (T + 1) * ng + k * 4 * N + r]
             if ti.static(affine):
                 ti.loop_config(serialize=serial)
                 for r in range(n):
                     for c in range(n):
-                        A[r, c] = values[n + ng + r * n + c]
+                        A[r, c] = values[start + r * n + c]
                     for c in range(m):
-                        B[r, c] = values[n + ng + n * n + r * m + c]
-                    w[r] = values[n + ng + n * n + n * m + r]
+                        B[r, c] = values[start + n * n + r * m + c]
+                    w[r] = values[start + n * n + n * m + r]
 
         self._upload = upload
-        self._upload_buffer = np.empty(n + ng + model_size, dtype=self.ntype)
+        self._upload_buffer = np.empty(start + model_size, dtype=self.ntype)
         self.rollout, self.record, self.input_at = rollout, record, input_at
         self._evaluate_all = evaluate_all
         self._gather = gather
 
-    def load(self, x0: np.ndarray, goal: np.ndarray, affine=None) -> None:
-        """Copy the initial state x_0, the goal (ng entries: the goal state, then a task's targets) and, with
-        affine dynamics, this control step's model ``affine`` = (A_d, B_d, w_d) for x⁺ = A_d x + B_d u + w_d to the
-        device."""
-        n, m = self.nx, self.nu
+    def load(self, x0: np.ndarray, goal: np.ndarray, affine=None, obstacles=None) -> None:
+        """Copy the initial state x_0, the goal (ng entries: the goal state, then a task's targets) held over the
+        horizon or its window (T+1, ng), row k stage k's, the obstacles at every stage (T+1, N, 4) (centre, radius;
+        None: where the task declares them) and, with affine dynamics, this control step's model ``affine`` =
+        (A_d, B_d, w_d) for x⁺ = A_d x + B_d u + w_d to the device, in one launch: nothing is compiled again."""
+        n, m, T, N = self.nx, self.nu, self.horizon, self.obstacles
         if (affine is None) != (self.dynamics != "affine"):
             raise ValueError(
                 "affine (A_d, B_d, w_d) is required with dynamics='affine' and "
                 f"not accepted with dynamics={self.dynamics!r}"
             )
-        parts = [_vector("x0", x0, n), _vector("goal", goal, self.ng)]
+        if obstacles is not None and not N:
+            raise ValueError("obstacles given, but this OCP's task has no obstacles")
+        window = np.asarray(goal, dtype=np.float64)
+        window = _matrix("goal", window, (T + 1, self.ng)) if window.ndim == 2 else _vector("goal", window, self.ng)
+        window = np.broadcast_to(window, (T + 1, self.ng))
+        table = _matrix("obstacles", self._declared if obstacles is None else obstacles, (T + 1, N, 4))
+        parts = [_vector("x0", x0, n), window.ravel(), table.ravel()]
         if affine is not None:
             A_d, B_d, w_d = affine
             parts += [_matrix("A_d", A_d, (n, n)).ravel(), _matrix("B_d", B_d, (n, m)).ravel(), _vector("w_d", w_d, n)]
@@ -363,13 +425,16 @@ class Rollout:
         return out.astype(np.float64)
 
 
-def _with_violation(name, cost, v, args) -> ca.Function:
-    """(args) -> [cost(args); v(x)], x = args[0], as one SX Function with common subexpressions merged."""
+def _with_violation(name, cost, v, args, table=None) -> ca.Function:
+    """(args[, table]) -> [cost; v(x[, table])], x = args[0], as one SX Function with common subexpressions merged;
+    ``table`` the obstacles (4 × N) where the task has them, an input of the fitness (:func:`fitness`) and the
+    violation, not of a cost of ``args`` alone (a user's)."""
+    extra = [] if table is None else [table]
     try:
-        terms = ca.vertcat(cost(*args), v(args[0]))
+        terms = ca.vertcat(cost(*args, *extra[: cost.n_in() - len(args)]), v(args[0], *extra))
     except RuntimeError as exc:
         raise TypeError(f"{cost.name()!r} cannot be evaluated on SX symbols (the kernels translate SX): {exc}") from exc
-    return ca.Function(name, args, [ca.cse(terms)])
+    return ca.Function(name, args + extra, [ca.cse(terms)])
 
 
 def _check_signature(name, function, inputs, outputs) -> None:
