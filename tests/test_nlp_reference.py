@@ -61,7 +61,7 @@ def test_a_window_of_equal_rows_gives_the_held_goals_solution(method, kwargs):
     )
 
 
-@pytest.mark.parametrize("method, kwargs", [("ipopt", {}), ("fatrop", {}), ("fatrop", {"hessian": "exact"})])
+@pytest.mark.parametrize("method, kwargs", [CONFIGS[0], CONFIGS[4], CONFIGS[5]], ids=[IDS[0], IDS[4], IDS[5]])
 def test_the_nlp_objective_costs_each_stage_towards_its_row_of_the_window(method, kwargs):
     """The NLP's objective at any plan (states not consistent with the inputs) equals Σ_k ℓ(x_k, u_k, row k) + ℓ_T(x_T,
     row T) summed here stage by stage; fatrop's Gauss–Newton objective (the task's residuals frozen to first order)
@@ -128,7 +128,7 @@ def _ball_on_the_path():
     return x0, goal, _tip(NonlinearMPC(free).solve(x0, goal).x_pred[12, :3])
 
 
-@pytest.mark.parametrize("method, kwargs", [("ipopt", {}), ("ipopt", {"hessian": "exact"}), ("sqp", {})])
+@pytest.mark.parametrize("method, kwargs", CONFIGS[:2] + [CONFIGS[3]], ids=IDS[:2] + [IDS[3]])
 def test_obstacles_given_at_run_time_are_the_task_declaring_them_there(method, kwargs):
     """The obstacle window is the clearances' parameter: a ball given to the step where the task declared another
     gives the plan of the task declaring the ball, bit for bit (the ball active: the plan bends around it)."""
