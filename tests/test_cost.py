@@ -86,7 +86,7 @@ def test_the_nlp_objective_is_the_cost_summed_over_its_plan():
     expected = sum(np.asarray(ocp.cost.stage_terms(xs[k], inputs[k], goal)).sum() for k in range(ocp.horizon))
     expected += np.asarray(ocp.cost.terminal_terms(xs[-1], goal)).sum()
     w = np.r_[xs[1:].ravel(), knots.ravel()]
-    assert float(objective(w, np.r_[x0, goal])) == pytest.approx(expected, rel=1e-12)
+    assert float(objective(w, np.r_[x0, np.tile(goal, ocp.horizon + 1)])) == pytest.approx(expected, rel=1e-12)
 
 
 def test_the_actual_cost_by_term_equals_the_papers_sum():
