@@ -11,7 +11,7 @@ import numpy as np
 import scipy.linalg
 
 from ocpkit.codegen.kernels.rollout import constrained
-from ocpkit.qp.backends import DAQP
+from ocpkit.qp.daqp import DAQP
 from ocpkit.qp.boxqp import solve_box_qp
 from ocpkit.qp.transcription import CondensedQP
 from ocpkit.status import SUCCESS
@@ -62,17 +62,29 @@ class Preconditioner:
         return self._hold
 
     def update(
-        self, model, x, goal, warm: np.ndarray | None, times: dict, targets=None, deadline: float | None = None
+        self,
+        model,
+        x,
+        goal,
+        warm: np.ndarray | None,
+        times: dict,
+        targets=None,
+        deadline: float | None = None,
+        obstacles=None,
     ) -> None:
-        """Build, factor and seed for the affine ``model`` = (A_d, B_d, w_d) at state x; ``warm`` (p, m)
-        starts the Newton candidate (the holding input if None) and, with a task, is where its terms and obstacles
-        are linearized towards ``targets``. DAQP stops at ``deadline`` (a perf_counter value; None: none). Adds its
-        parts to ``times``."""
+        """Build, factor and seed for the affine ``model`` = (A_d, B_d, w_d) at state x towards ``goal``, the goal
+        state held (n,) or at every stage (T+1, n); ``warm`` (p, m) starts the Newton candidate (the holding input
+        of stage 0's goal if None) and, with a task, is where its terms and obstacles are linearized towards
+        ``targets`` (held, or per stage (T+1, ·)), the obstacles where the task declares them or at every stage,
+        ``obstacles`` (T+1, N, 4). DAQP stops at ``deadline`` (a perf_counter value; None: none). Adds its parts
+        to ``times``."""
         p, m = self.ocp.knots, self.ocp.nu
         t0 = time.perf_counter()
+        now = goal[0] if np.ndim(goal) == 2 else goal
         task = {}
         if self.transcription.task is not None:
-            task = {"targets": targets, "knots": np.tile(self.holding_input(goal), (p, 1)) if warm is None else warm}
+            knots = np.tile(self.holding_input(now), (p, 1)) if warm is None else warm
+            task = {"targets": targets, "knots": knots, "obstacles": obstacles}
         qp = self.transcription.build(*model, x, goal, **task)
         t1 = time.perf_counter()
         self.P, self.q = qp.P, qp.q
@@ -83,7 +95,7 @@ class Preconditioner:
             self.L = np.linalg.cholesky((V * np.maximum(w, 1e-12 * w.max())) @ V.T)
         self.whiten = scipy.linalg.solve_triangular(self.L, np.eye(p * m), lower=True).T
         t2 = time.perf_counter()
-        self.hold = np.tile(self.holding_input(goal), (p, 1))
+        self.hold = np.tile(self.holding_input(now), (p, 1))
         start = self.hold if warm is None else warm
         self.newton = self._constrained_seed(qp, deadline)
         if self.newton is None:

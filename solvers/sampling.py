@@ -35,7 +35,8 @@ A step follows a goal window and moving obstacles (``solve(x, goal_window, obsta
 kernels' data: each rollout's stage k reads row k of the goal and obstacle windows (:meth:`Rollout.load`), so
 nothing is compiled or built again when they change. ``initial_guess`` is the step's incumbent — EMPC's parents,
 CEM's and MPPI's starting mean, the preconditioner's linearization plan — in place of the shifted previous plan. The
-preconditioner's QP is built about stage 0's goal and the task's declared obstacles (the condensed QP's own).
+preconditioner's knot QP takes the windows too (its seeds: the QP's optimum along them, and the input holding
+stage 0's goal).
 
 Timings: ``model`` is the linearization; ``build`` the preconditioner's QP; ``solve`` the rest
 (``factor``, ``seed`` — the Newton (or DAQP) and holding candidates —, ``copies`` between host and device and
@@ -319,14 +320,16 @@ class SamplingMPC(Controller):
         t = time.perf_counter()
         pre, ocp = self.preconditioner, self.ocp
         warm = self._guess if self._guess is not None else None if self.plan is None else self._shifted(self.plan)
+        n, window = ocp.nx, self.goal_window
         pre.update(
             model,
             x,
-            goal,
+            window[:, :n] if self.moving else goal,
             warm,
             times,
-            self.task_goal[ocp.nx :],
+            window[:, n:] if self.moving else self.task_goal[n:],
             self.deadline(self.time_limit),
+            self._moved_obstacles(),
         )
         t_copy = time.perf_counter()
         np.concatenate(
