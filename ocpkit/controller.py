@@ -365,13 +365,14 @@ class Controller:
         """(A_d, B_d, w_d) of the OCP's affine model about (x, ū), or None if any entry is not finite.
 
         ū is the input goal u_g(goal) for ``mode`` "goal", or for "plan" the input the previous plan
-        expects now (u_g at a cold start). LinearMPC documents why "goal" is the default.
+        expects now (u_g at a cold start), the step's initial guess's first where given. LinearMPC documents why
+        "goal" is the default.
         """
-        ocp = self.ocp
+        ocp, par = self.ocp, self.ocp.parameterization
         u_bar = (
             ocp.input_goal(goal)
-            if self.plan is None or mode == "goal"
-            else ocp.parameterization.u_at(ocp.parameterization.shift(self.plan), 0)
+            if (self.plan is None and self.guess is None) or mode == "goal"
+            else par.u_at(par.shift(self.plan) if self.guess is None else self.guess, 0)
         )
         if self._affine_model is None:
             self._affine_model = BufferedFunction(ocp.affine())

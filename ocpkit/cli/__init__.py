@@ -318,6 +318,24 @@ def _parser() -> argparse.ArgumentParser:
         metavar="FILE.gif",
         help="also write the robot's motion as an animated GIF (stick figure; goal pose, or target and obstacles)",
     )
+    sim.add_argument(
+        "--reference",
+        metavar="FILE.csv|FILE.npz",
+        help="follow this reference: a column t (s) and the goal's entries by name (the state names, a target's "
+        "entries as position[0] …; missing ones as the goal) — each step previews it over the horizon; without a "
+        "task the run starts at the reference's state at t = 0",
+    )
+    sim.add_argument(
+        "--no-preview",
+        action="store_true",
+        help="--reference: hold the reference's present value as the goal instead (a loop without preview)",
+    )
+    sim.add_argument(
+        "--obstacle-path",
+        metavar="FILE.csv|FILE.npz",
+        help="move the task's obstacles: a column t (s) and obstacle<i>_x, _y, _z, _radius per obstacle i (as "
+        "--obstacle gives them, in order), predicted over the horizon at constant velocity",
+    )
     _add_task_args(sim)
     sim.add_argument("--json", action="store_true", help="print one JSON object")
     demo = sub.add_parser("demo", help="closed-loop pendulum with every available controller")

@@ -17,7 +17,16 @@ import numpy as np
 from ocpkit import problems, solvers
 from ocpkit.cli.checks import check_output_file, check_output_folder, check_size
 from ocpkit.cli.options import make_ocp, solver_options
-from ocpkit.cli.task import Reach, point_text, reach_line, reach_ocp, reach_panels, reach_report, reach_task
+from ocpkit.cli.task import (
+    motion_files,
+    Reach,
+    point_text,
+    reach_line,
+    reach_ocp,
+    reach_panels,
+    reach_report,
+    reach_task,
+)
 from ocpkit.controller import Controller
 
 
@@ -114,23 +123,36 @@ def _solve(args):
     return 0 if sol.ok else 1
 
 
-def _run_closed_loop(problem, ctrl: Controller, seed: int, duration: float | None = None, start=None, plant=None):
-    """The closed loop from the seeded start (or ``start``, (x0, goal)) against ``plant`` (default the problem's),
+def _run_closed_loop(
+    problem, ctrl: Controller, seed: int, duration: float | None = None, start=None, plant=None, obstacles=None
+):
+    """The closed loop from the seeded start (or ``start``, (x0, goal), the goal a vector or a Reference) against
+    ``plant`` (default the problem's), the task's obstacles moving along ``obstacles`` (an ObstaclePath) where given,
     after one untimed solve that compiles what the controller needs (Taichi kernels take seconds), never counted in
     the step times; a first solve over a second and a loop over two seconds are said on stderr as they run."""
+    from ocpkit.model.reference import Reference
     from ocpkit.sim.metrics import actual_cost
     from ocpkit.sim.simulate import simulate
 
     x0, goal = problem.sample(seed) if start is None else start
+    ocp = ctrl.ocp
+    first_goal = goal.window(0.0, ocp.dt, ocp.horizon) if isinstance(goal, Reference) else goal
+    moved = {} if obstacles is None else {"obstacles": obstacles.window(0.0, ocp.dt, ocp.horizon)}
     start = time.perf_counter()
     with said_if_slow(f"{_label(ctrl)}: first solve, compiling what it needs (not in the step times)"):
-        ctrl.solve(x0, goal)  # simulate() resets the controller: this solve only compiles and warms up
+        ctrl.solve(x0, first_goal, **moved)  # simulate() resets the controller: this solve only compiles, warms up
     first = time.perf_counter() - start
     if first > SLOW:
         print(f"ocpkit: first solve took {first:.1f} s", file=sys.stderr)
     duration = duration or problem.duration
     traj = simulate(
-        plant or problem.plant(), ctrl, x0, goal, duration, callback=_Progress(int(round(duration / ctrl.ocp.dt)))
+        plant or problem.plant(),
+        ctrl,
+        x0,
+        goal,
+        duration,
+        callback=_Progress(int(round(duration / ocp.dt))),
+        obstacles=obstacles,
     )
     return traj, actual_cost(traj, ctrl.ocp)
 
@@ -222,12 +244,25 @@ def _simulate(args):
             raise ValueError(f"{given[0]} applies to --plant mujoco only")
     if args.joint_map and not args.mjcf:
         raise ValueError("--joint-map names the joints of an MJCF file: give --mjcf too")
+    motion = motion_files(args)
+    if args.no_preview and motion["reference"] is None:
+        raise ValueError("--no-preview applies to --reference only")
     problem, ocp, ctrl = make_controller(args, task)
     plant = _plant(problem, args)
     if args.animate is not None:
         animation.Skeleton(problem, None if task is None else task.frame)  # a robot it cannot draw fails before the run
+    x0, goal = seeded_start(problem, ocp, args.seed, task)
+    reference, obstacles = _motion(ocp, goal, motion, args.no_preview)
+    if reference is not None and task is None:
+        x0 = reference.at(0.0)[: ocp.nx]  # a joint reference starts the run on itself
     traj, cost = _run_closed_loop(
-        problem, ctrl, args.seed, args.duration, start=seeded_start(problem, ocp, args.seed, task), plant=plant
+        problem,
+        ctrl,
+        args.seed,
+        args.duration,
+        start=(x0, goal if reference is None else reference),
+        plant=plant,
+        obstacles=obstacles,
     )
     shown, title = traj, f"{args.problem}, seed {args.seed}" + (", MuJoCo plant" if args.plant == "mujoco" else "")
     if task is not None:
@@ -241,7 +276,12 @@ def _simulate(args):
         panels = None if task is None else reach_panels(problem, ocp, task, traj.x)
         fig = plots.closed_loop({_label(ctrl): shown}, args.out, title=title, task=panels, **_labels(problem))
     # success: status "success" only; a soft step applied the solver's input but broke a clearance or state bound
-    progress = traj.progress() if task is None else traj.progress(problem.kinematics, task.frame, task.target)
+    if reference is not None:  # against the reference at each time: the tracking error, no single target to reach
+        progress = _Tracking(traj, problem, task)
+    elif task is None:
+        progress = traj.progress()
+    else:
+        progress = traj.progress(problem.kinematics, task.frame, task.target)
     summary = {
         "problem": args.problem,
         "solver": args.solver,
@@ -258,7 +298,7 @@ def _simulate(args):
         "figure": None if fig is None else str(fig),
         "plant": "ocpkit" if plant is None else repr(plant),
     }
-    if task is not None:
+    if task is not None and reference is None:
         summary["reach"] = reach_report(
             problem,
             ocp,
@@ -266,6 +306,7 @@ def _simulate(args):
             traj.x,
             dt=float(traj.t[1] - traj.t[0]),
             success_while_colliding=traj.success_while_colliding(ocp),
+            moving=traj.obstacles,
         )
     if args.animate is not None:  # a reach task's target and obstacles drawn, else the joint goal's pose
         scene = {} if task is None else {"target": task.target, "obstacles": task.obstacles, "frame": task.frame}
@@ -283,12 +324,55 @@ def _simulate(args):
             + ("" if fig is None else f"\nfigure: {fig}")
             + ("" if plant is None else f"\nplant: {plant!r}")
         )
-        if task is not None:
+        if "reach" in summary:
             print(reach_line(summary["reach"], f"after {traj.t[-1]:g} s"))
         print(progress.text())
         if args.animate is not None:
             print(f"animation: {summary['animation']}")
     return 0
+
+
+def _motion(ocp, goal, files: dict, no_preview: bool):
+    """(the Reference of ``files["reference"]`` (goal entries it leaves out from ``goal``; without preview with
+    ``no_preview``) or None, the ObstaclePath of ``files["obstacle_path"]`` or None)."""
+    from ocpkit.model.reference import ObstaclePath, Reference
+
+    reference = None
+    if files["reference"] is not None:
+        reference = Reference.load(files["reference"], ocp, default=goal)
+        reference = reference.without_preview() if no_preview else reference
+    obstacles = None
+    if files["obstacle_path"] is not None:
+        declared = ocp.task.obstacles if ocp.task is not None else []
+        if not declared:
+            raise ValueError(
+                "--obstacle-path moves the task's obstacles: declare them with --obstacle (or the task file)"
+            )
+        obstacles = ObstaclePath.load(files["obstacle_path"], declared)
+    return reference, obstacles
+
+
+class _Tracking:
+    """The loop's tracking error against its reference at each recorded time: the task frame's distance to the
+    reference's target point (m), or max_i |x_i − x_ref,i| for a joint goal; its RMS and max."""
+
+    def __init__(self, traj, problem, task):
+        goals = traj.goals()
+        if task is None:
+            n = traj.x.shape[1]
+            self.error, self.what, self.unit = np.abs(traj.x - goals[:, :n]).max(axis=1), "max |x − x_ref|", ""
+        else:
+            n, nq = traj.x.shape[1], problem.kinematics.n
+            where = problem.kinematics.positions(task.frame, traj.x[:, :nq])
+            self.error, self.what, self.unit = np.linalg.norm(where - goals[:, n : n + 3], axis=1), "distance", " m"
+
+    def to_dict(self) -> dict:
+        return {"rms_error": float(np.sqrt(np.mean(self.error**2))), "max_error": float(self.error.max())}
+
+    def text(self) -> str:
+        d = self.to_dict()
+        rms, worst = (f"{d[k]:.4g}{self.unit}" for k in ("rms_error", "max_error"))
+        return f"tracking: {self.what} to the reference RMS {rms}, max {worst}"
 
 
 def _demo(args):

@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import dataclasses
 import re
 
@@ -27,6 +29,8 @@ _TASK_NUMBERS = (
 )
 _REACH_OPTIONS = _TASK_NUMBERS[:5]
 _TASK_KEYS = ("target", "frame", "orientation", "joint_limits", "obstacle", "frame_target") + _TASK_NUMBERS
+# the motion files a --task file may name (paths relative to the file), as simulate's --reference and --obstacle-path
+_MOTION_KEYS = {"reference": "--reference", "obstacle_path": "--obstacle-path"}
 # The orientation term's default weight: position_weight / 100, so an orientation 0.1 rad off costs what a position
 # 1 cm off does (the residual is sin θ, the position's metres).
 ORIENTATION_PER_POSITION = 1e-2
@@ -172,9 +176,11 @@ def read_task_file(path) -> dict:
         raise ValueError(f"{where}: not UTF-8 text (byte {exc.start}); a TOML file is UTF-8") from None
     except tomllib.TOMLDecodeError as exc:
         raise ValueError(f"{where}: not valid TOML: {exc}") from None
-    unknown = sorted(set(data) - set(_TASK_KEYS))
+    unknown = sorted(set(data) - set(_TASK_KEYS) - set(_MOTION_KEYS))
     if unknown:
-        raise ValueError(f"{where}: unknown key {unknown[0]!r}; a task file has {', '.join(_TASK_KEYS)}")
+        raise ValueError(
+            f"{where}: unknown key {unknown[0]!r}; a task file has {', '.join(_TASK_KEYS + tuple(_MOTION_KEYS))}"
+        )
     out = {
         "target": None,
         "frame": None,
@@ -214,12 +220,38 @@ def read_task_file(path) -> dict:
                 _frame_name(t["frame"], f"{at}: frame"), _point(t["target"], f"{at}: target", "[x, y, z]"), weight, at
             )
         )
+    for key in _MOTION_KEYS:
+        if key in data:
+            if not isinstance(data[key], str):
+                raise ValueError(f"{where}: {key} must be a file name (a string), got {data[key]!r}")
+            out[key] = _motion_file(Path(path).parent / data[key], f"{where}: {key}")
     for key in _TASK_NUMBERS:
         if key in data:
             value = _number(data[key], f"{where}: {key}", positive=key != "margin")
             if key in ("link_radius", "margin"):
                 value = length(value, f"{where}: {key}", signed=key == "margin")
             out["options"][key] = value
+    return out
+
+
+def _motion_file(path, where: str) -> Path:
+    """A reference or obstacle path file that exists, a .csv or .npz."""
+    path = Path(path)
+    if path.suffix not in (".csv", ".npz"):
+        raise ValueError(f"{where}: a .csv or .npz file, got {path.name}")
+    if not path.is_file():
+        raise ValueError(f"{where}: no such file {path}")
+    return path
+
+
+def motion_files(args) -> dict:
+    """{"reference": path or None, "obstacle_path": path or None}: simulate's --reference and --obstacle-path, else
+    the --task file's reference and obstacle_path."""
+    file = read_task_file(args.task) if getattr(args, "task", None) else {}
+    out = {}
+    for key, flag in _MOTION_KEYS.items():
+        given = getattr(args, key, None)
+        out[key] = _motion_file(given, flag) if given is not None else file.get(key)
     return out
 
 
@@ -391,9 +423,10 @@ def reach_panels(problem, ocp, task: Reach, xs) -> dict:
     return panels
 
 
-def _reach_series(problem, ocp, task: Reach, xs):
+def _reach_series(problem, ocp, task: Reach, xs, moving=None):
     """The frame's positions (N, 3) along the states ``xs`` (N, nx) and the smallest clearance at each (None without
-    obstacles): distance from a robot sphere's surface to an obstacle's."""
+    obstacles): distance from a robot sphere's surface to an obstacle's (where they are at each state, (N, n, 4),
+    with ``moving``)."""
     from ocpkit.model.task import clearances
 
     xs = np.atleast_2d(np.asarray(xs, dtype=float))
@@ -401,18 +434,19 @@ def _reach_series(problem, ocp, task: Reach, xs):
     positions = kin.positions(task.frame, xs[:, : kin.n])
     if not task.obstacles:
         return positions, None
-    return positions, clearances(ocp.task.kinematics, ocp.task.robot, ocp.task.obstacles, xs[:, : kin.n])
+    obstacles = ocp.task.obstacles if moving is None else moving
+    return positions, clearances(ocp.task.kinematics, ocp.task.robot, obstacles, xs[:, : kin.n])
 
 
 def reach_report(
-    problem, ocp, task: Reach, xs, dt: float | None = None, success_while_colliding: int | None = None
+    problem, ocp, task: Reach, xs, dt: float | None = None, success_while_colliding: int | None = None, moving=None
 ) -> dict:
     """How the states ``xs`` (N, nx) did on the task: the frame's distance to the target at the last state, and the
     smallest clearance — distance from a robot sphere's surface to an obstacle's — over all states (negative: they
-    overlap, a collision); for a closed loop, ``success_while_colliding``: the steps reported "success" whose next
-    state collides. With an orientation target, the frame's final angle to it (rad); with more frames' targets,
-    each one's final distance."""
-    positions, closest = _reach_series(problem, ocp, task, xs)
+    overlap, a collision; ``moving``: where the obstacles were at each state); for a closed loop,
+    ``success_while_colliding``: the steps reported "success" whose next state collides. With an orientation
+    target, the frame's final angle to it (rad); with more frames' targets, each one's final distance."""
+    positions, closest = _reach_series(problem, ocp, task, xs, moving)
     q = np.atleast_2d(xs)[-1, : problem.kinematics.n]
     report = {
         "frame": task.frame,

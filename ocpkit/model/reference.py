@@ -55,24 +55,12 @@ class Reference:
         return ref
 
     @classmethod
-    def load(cls, path, ocp) -> "Reference":
-        """A reference from a CSV (header row of column names) or NPZ file (one array per column name)."""
-        path = Path(path)
-        if path.suffix == ".npz":
-            with np.load(path) as data:
-                columns = {name: np.asarray(data[name], dtype=float).ravel() for name in data.files}
-        elif path.suffix == ".csv":
-            table = np.genfromtxt(path, delimiter=",", names=True, deletechars="", dtype=float)
-            columns = {name: np.atleast_1d(table[name]) for name in table.dtype.names}
-        else:
-            raise ValueError(f"reference file {path}: a .csv or .npz file, got {path.suffix or 'no suffix'}")
+    def load(cls, path, ocp, default=None) -> "Reference":
+        """A reference from a CSV (header row of column names) or NPZ file (one array per column name); goal
+        entries the file does not name take ``default``'s (a goal vector; zero where not given)."""
         names = ocp.goal_names()
-        if "t" not in columns:
-            raise ValueError(f"reference file {path} has no column 't' (the time, s)")
-        unknown = sorted(set(columns) - set(names) - {"t"})
-        if unknown:
-            raise ValueError(f"reference file {path}: unknown column(s) {unknown}; the goal's entries are {names}")
-        goals = np.zeros((columns["t"].size, len(names)))
+        columns = _columns(path, "reference", names)
+        goals = np.tile(np.zeros(len(names)) if default is None else ocp.check_goal(default), (columns["t"].size, 1))
         for i, name in enumerate(names):
             if name in columns:
                 goals[:, i] = columns[name]
@@ -102,6 +90,25 @@ class Reference:
         return np.column_stack([np.interp(ts, self.times, column) for column in self.goals.T])
 
 
+def _columns(path, what: str, names: list[str]) -> dict:
+    """The named columns of a CSV (a header row) or NPZ file, with "t" (s) and otherwise only ``names``."""
+    path = Path(path)
+    if path.suffix == ".npz":
+        with np.load(path) as data:
+            columns = {name: np.asarray(data[name], dtype=float).ravel() for name in data.files}
+    elif path.suffix == ".csv":
+        table = np.genfromtxt(path, delimiter=",", names=True, deletechars="", dtype=float)
+        columns = {name: np.atleast_1d(table[name]) for name in table.dtype.names}
+    else:
+        raise ValueError(f"{what} file {path}: a .csv or .npz file, got {path.suffix or 'no suffix'}")
+    if "t" not in columns:
+        raise ValueError(f"{what} file {path} has no column 't' (the time, s)")
+    unknown = sorted(set(columns) - set(names) - {"t"})
+    if unknown:
+        raise ValueError(f"{what} file {path}: unknown column(s) {unknown}; it takes {names}")
+    return columns
+
+
 class ObstaclePath:
     """Obstacles that move: ``function(t)`` -> (N, 4), each obstacle's centre (m) and radius at time t.
 
@@ -113,6 +120,29 @@ class ObstaclePath:
         if not callable(function) or (velocity is not None and not callable(velocity)):
             raise TypeError("function (and velocity, if given) must be callables of the time t")
         self.function, self.velocity, self.predict = function, velocity, bool(predict)
+
+    @classmethod
+    def load(cls, path, obstacles, *, predict: bool = True) -> "ObstaclePath":
+        """Obstacles moving as a CSV or NPZ file says: a column "t" and, for obstacle i of the task's ``obstacles``
+        (:class:`ocpkit.model.task.Sphere` s, where they start), columns "obstacle<i>_x", "_y", "_z", "_radius"
+        (linear between rows, held beyond; an obstacle or column the file leaves out stays as declared)."""
+        fields = ("x", "y", "z", "radius")
+        names = [f"obstacle{i}_{f}" for i in range(len(obstacles)) for f in fields]
+        columns = _columns(path, "obstacle path", names)
+        table = np.array([[*o.center, o.radius] for o in obstacles], dtype=float)
+        times = columns["t"]
+        if np.any(np.diff(times) <= 0):
+            raise ValueError(f"obstacle path file {path}: times must increase strictly")
+        rows = np.repeat(table[None], times.size, axis=0)
+        for i in range(len(obstacles)):
+            for j, f in enumerate(fields):
+                rows[:, i, j] = columns.get(f"obstacle{i}_{f}", rows[:, i, j])
+        if (rows[..., 3] <= 0).any():
+            raise ValueError(f"obstacle path file {path}: radii must be > 0")
+        return cls(
+            lambda t: np.array([[np.interp(t, times, rows[:, i, j]) for j in range(4)] for i in range(len(obstacles))]),
+            predict=predict,
+        )
 
     def at(self, t: float) -> np.ndarray:
         """The obstacles at time t, (N, 4)."""
