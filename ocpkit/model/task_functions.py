@@ -19,7 +19,7 @@ class CompiledTask:
       the OCP's cost (:class:`ocpkit.model.cost.Cost`, :meth:`term_cost`), in the order of ``names``;
     * ``clearance`` (x) -> (d − margin per pair, its Jacobian, pairs × nx; robot spheres outer: pair i·N + j is
       robot sphere i and obstacle j of N) and ``penalty`` (x) -> the sampling planners' exact penalty of one state
-      (zero without obstacles);
+      (zero without obstacles), with obstacles ``penalty_at`` (x, O) -> the same against any table O (below);
     * with obstacles, ``spheres`` (x) -> (C, C_x): the robot spheres' centres (3 × k) and their Jacobians side by
       side (3 × k·nx), and ``clearance_at`` (x, O) -> ``clearance`` for any table O (4 × N: centre, radius) of N
       obstacles — moving obstacles need no new Function; :meth:`pair_clearances` gives every pair's d − margin
@@ -79,9 +79,13 @@ class CompiledTask:
         xm = ca.MX.sym("x", nx)
         d, d_x = self.clearance_at(xm, ca.DM(self.table))
         self.clearance = ca.Function("clearance", [xm], [d, d_x], ["x"], ["d", "d_x"])
-        h = ca.fmax(0, -ca.mmin(values(xm, ca.DM(self.table))))
+        Om = ca.MX.sym("O", 4, self.table.shape[1])
+        h = ca.fmax(0, -ca.mmin(values(xm, Om)))
+        self.penalty_at = ca.Function(
+            "obstacle_penalty_at", [xm, Om], [task.obstacle_weight * (h + 0.5 * h * h)], ["x", "O"], ["penalty"]
+        )
         self.penalty = ca.Function(
-            "obstacle_penalty", [xm], [task.obstacle_weight * (h + 0.5 * h * h)], ["x"], ["penalty"]
+            "obstacle_penalty", [xm], [self.penalty_at(xm, ca.DM(self.table))], ["x"], ["penalty"]
         )
 
     def term_cost(self, name: str, r, part: str):
