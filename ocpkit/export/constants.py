@@ -130,11 +130,10 @@ def step_constants(
         _c_const("double", "PIECE_PHI", pphi),
         _c_const("double", "PIECE_DELTA", pdel),
     ]
-    if bounded.size or tf is not None:  # the pieces' first stage and length: read by the state-bound and task rows
-        lines += [_c_const("int", "PIECE_A", pa), _c_const("int", "PIECE_L", pl)]
+    # the pieces' first stage and length: read by the state-bound and task rows and the goal window's terms
+    lines += [_c_const("int", "PIECE_A", pa), _c_const("int", "PIECE_L", pl)]
     if linearization == "plan":
         lines.append(_c_const("double", "W0", phi[0] @ M))
-    lines.append(_c_const("double", "PHI_ALL", phi))  # φ_k of every stage: the task's terms, the goal window's
     lines.append(f"#define LIN_TRAJ {int(linearization == 'trajectory')}")
     if linearization == "trajectory":
         # x_{k+1} depends on the knots of stages 0 … k only: its [v S] row has 1 + ACTIVE[k] nonzero columns.
@@ -142,6 +141,7 @@ def step_constants(
         lines += [
             f"#define ITERATIONS {iterations}",
             f"#define RTI_TOL {_c_num(tol)}",
+            _c_const("double", "PHI_ALL", phi),
             _c_const("int", "ACTIVE", (last + 1) * m),
         ]
     if np.any(tr._dQT):
@@ -162,11 +162,11 @@ def step_constants(
             _c_const("double", "XB_LO", ocp.x_min[bounded]),
             _c_const("double", "XB_HI", ocp.x_max[bounded]),
         ]
-    if tf is not None:  # the task's Gauss-Newton terms (with PHI_ALL: exact, not the pieces' φ_a + sΔ)
+    if tf is not None:  # the task's Gauss-Newton terms: φ_k of every stage (exact, not the pieces' φ_a + sΔ)
         stage, terminal = tf.stage_weight.size, tf.terminal_weight.size
         lines += [f"#define TASK_STAGE {int(bool(stage))}", f"#define TASK_TERMINAL {int(bool(terminal))}"]
         if stage:
-            lines.append(_c_const("double", "TASK_WS", tf.stage_weight))
+            lines += [_c_const("double", "TASK_PHI", phi), _c_const("double", "TASK_WS", tf.stage_weight)]
         if terminal:
             lines.append(_c_const("double", "TASK_WT", tf.terminal_weight))
     if obstacle_rows:  # TaskRows.select's bound, the obstacles (centre, radius) and each robot sphere's reach

@@ -479,31 +479,34 @@ static void condense(mem_t* m, const double* x, const double* xg) {
    (condense, finish_qp: the held step's arithmetic) and adds what the other rows change, linear in the goals. */
 
 /* g −= Σ_{k<HORIZON} Φ_kᵀ R (u_g,k − u_g,0): each stage's input term towards its own input goal u_g(x_goal,k)
-   (m->ug holds row 0's). Returns nonzero where an input goal is not finite. */
+   (m->ug holds row 0's; φ_k = φ_a + s Δ in its piece). Returns nonzero where an input goal is not finite. */
 static int window_inputs(mem_t* m, const double* goals) {
   double* su = m->wsu;  /* Σ_k φ_kj (u_g,k − u_g,0), NP x NU */
   double* du = m->wdu;
-  int k, i, j, failed = 0;
+  int pc, s, i, j, failed = 0;
   for (i = 0; i < NZ; ++i) su[i] = 0;
   for (i = 0; i < NU; ++i) du[i] = 0;
-  for (k = 1; k < {{ N }}_HORIZON; ++k) {
-    const double* gk = goals + k * NG;
-    for (i = 0; i < NX && gk[i] == gk[i - NG]; ++i) {}
-    if (i < NX) {  /* x_goal moved since the last stage: its input goal */
-      memcpy(du, U_GOAL, sizeof m->wdu);
+  for (pc = 0; pc < NPIECE; ++pc)
+    for (s = 0; s < PIECE_L[pc]; ++s) {
+      const int k = PIECE_A[pc] + s;
+      const double* gk = goals + k * NG;
+      if (!k) continue;  /* row 0's own */
+      for (i = 0; i < NX && gk[i] == gk[i - NG]; ++i) {}
+      if (i < NX) {  /* x_goal moved since the last stage: its input goal */
+        memcpy(du, U_GOAL, sizeof m->wdu);
 #if HAS_K
-      add_goal_gain(gk, du);
+        add_goal_gain(gk, du);
 #endif
 #if HAS_GOAL_INPUT
-      failed |= add_goal_input(m, gk, du);
+        failed |= add_goal_input(m, gk, du);
 #endif
-      for (i = 0; i < NU; ++i) du[i] -= m->ug[i];
+        for (i = 0; i < NU; ++i) du[i] -= m->ug[i];
+      }
+      for (j = 0; j < NP; ++j) {
+        const double f = PIECE_PHI[pc * NP + j] + s * PIECE_DELTA[pc * NP + j];
+        if (f != 0) for (i = 0; i < NU; ++i) su[j * NU + i] += f * du[i];
+      }
     }
-    for (j = 0; j < NP; ++j) {
-      const double f = PHI_ALL[k * NP + j];
-      if (f != 0) for (i = 0; i < NU; ++i) su[j * NU + i] += f * du[i];
-    }
-  }
   if (failed || !all_finite(su, NZ)) return 1;
   for (j = 0; j < NP; ++j)
     for (i = 0; i < NU; ++i) {
@@ -547,7 +550,7 @@ static void window_weight(const double* g0, const double* gk, double* out) {
    beside the condensing's Γ_L products of NL² NX. Returns nonzero where an input goal is not finite. */
 static int window_terms(mem_t* m, const double* goals) {
   double *lam = m->wlam, *nl = m->wnl, *mu = m->wmu, *sw;
-  int k, i, j;
+  int pc, s, i, j;
   if (window_inputs(m, goals)) return 1;
   for (i = 0; i < NP * NX; ++i) mu[i] = 0;
   window_weight(goals, goals + {{ N }}_HORIZON * NG, lam);
@@ -561,21 +564,23 @@ static int window_terms(mem_t* m, const double* goals) {
 #endif
   }
 #endif
-  for (k = {{ N }}_HORIZON - 1; k >= 0; --k) {  /* lam = λ_{k+1} */
-    for (j = 0; j < NP; ++j) {
-      const double f = PHI_ALL[k * NP + j];
-      if (f != 0) for (i = 0; i < NX; ++i) mu[j * NX + i] += f * lam[i];
+  for (pc = NPIECE - 1; pc >= 0; --pc)
+    for (s = PIECE_L[pc] - 1; s >= 0; --s) {  /* stage k = a + s, lam = λ_{k+1} */
+      const int k = PIECE_A[pc] + s;
+      for (j = 0; j < NP; ++j) {
+        const double f = PIECE_PHI[pc * NP + j] + s * PIECE_DELTA[pc * NP + j];
+        if (f != 0) for (i = 0; i < NX; ++i) mu[j * NX + i] += f * lam[i];
+      }
+      if (!k) break;
+      window_weight(goals, goals + k * NG, nl);
+      for (i = 0; i < NX; ++i) {
+        const double* ai = m->Lam1 + i * NL;
+        const double li = lam[i];
+        int c;
+        for (c = 0; c < NX; ++c) nl[c] += ai[c] * li;
+      }
+      sw = lam; lam = nl; nl = sw;
     }
-    if (!k) break;
-    window_weight(goals, goals + k * NG, nl);
-    for (i = 0; i < NX; ++i) {
-      const double* ai = m->Lam1 + i * NL;
-      const double li = lam[i];
-      int c;
-      for (c = 0; c < NX; ++c) nl[c] += ai[c] * li;
-    }
-    sw = lam; lam = nl; nl = sw;
-  }
   for (j = 0; j < NP; ++j)
     for (i = 0; i < NU; ++i) {
       double v = 0;

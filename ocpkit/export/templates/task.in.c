@@ -55,7 +55,7 @@ static void task_jacobian_x(mem_t* m, int nr, const double* L, const double* pre
    piece's R), none at k = 0 (x_0 is given). Returns nonzero if the residual's evaluation failed. */
 static int task_stage(mem_t* m, int k, const double* xk, const double* L, const double* prev, int cp,
                       const double* p, const double* d, int c, const double* targets) {
-  const double* phi = PHI_ALL + k * NP;
+  const double* phi = TASK_PHI + k * NP;
   int a, i, j, col, ncol = L ? c : 0;
   knot_sum(phi, m->zbar, m->tu);
   m->arg[0] = xk; m->arg[1] = m->tu; m->arg[2] = targets;
