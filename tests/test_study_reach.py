@@ -6,7 +6,7 @@ import pytest
 from ocpkit import problems
 from ocpkit.runs import study as runner
 from ocpkit.sim.simulate import MOVING, STALLED
-from ocpkit.studies import NAMES, get, reach, reach_trials
+from ocpkit.studies import NAMES, get, keepout, reach, reach_trials
 
 TINY = {
     "seeds": {"nlink:3": 1, "baxter": 0, "panda": 0, reach.KEEPOUT: 1},
@@ -65,7 +65,7 @@ def test_scenarios_block_the_straight_path(robot):
         p0, pg = pb.kinematics.positions(pb.end_effector, np.vstack([s["x0"][:n], s["q_target"]]))
         assert np.allclose(pg, s["target"]) and np.linalg.norm(pg - p0) >= reach_trials.MIN_DISTANCE
         q_rows = np.vstack([s["x0"][:n], s["q_target"]])
-        assert reach_trials.clearances(pb, s["obstacles"], q_rows).min() >= reach.MARGIN
+        assert reach_trials.clearances(pb, s["obstacles"], q_rows).min() >= reach_trials.MARGIN
         (o,) = s["obstacles"]
         c = np.asarray(o.center)
         t = np.clip(np.dot(c - p0, pg - p0) / np.dot(pg - p0, pg - p0), 0, 1)
@@ -83,8 +83,8 @@ def test_squared_hinge_term_is_zero_outside_and_grows_inside():
     r, w, _ = term.expression(x, u, ca.SX(0, 1))
     f = ca.Function("r", [x], [r])
     assert float(f([1.0, 0, 0, 0, 0, 0])) == 0.0
-    assert float(f([0.0] * 6)) == pytest.approx(reach.keepout.RADIUS + 0.01, abs=1e-5)
-    assert w[0] == reach.HINGE_WEIGHT and term.terminal
+    assert float(f([0.0] * 6)) == pytest.approx(keepout.RADIUS + 0.01, abs=1e-5)
+    assert w[0] == reach_trials.HINGE_WEIGHT and term.terminal
     with pytest.raises(ValueError, match="controller must be one of"):
         reach.trial("keepout", "IPOPT", 20, 0.1, 32, "cpu", 0)
 
@@ -125,12 +125,12 @@ def test_report_counts_stalls_soft_steps_and_successes_while_colliding(tmp_path)
         }
         return {**base, **values}
 
-    rows = [row(reach.IPOPT, s) for s in range(3)]
+    rows = [row(reach_trials.IPOPT, s) for s in range(3)]
     rows += [
-        row(reach.RTI, 0),
-        row(reach.RTI, 1, success=False, verdict=STALLED, final_distance=0.05),
+        row(reach_trials.RTI, 0),
+        row(reach_trials.RTI, 1, success=False, verdict=STALLED, final_distance=0.05),
         row(
-            reach.RTI,
+            reach_trials.RTI,
             2,
             success=False,
             verdict=MOVING,
@@ -152,11 +152,11 @@ def test_report_counts_stalls_soft_steps_and_successes_while_colliding(tmp_path)
         cells[0]: dict(zip(header, cells))
         for cells in ([c.strip() for c in line.strip("|").split("|")] for line in table.splitlines()[4:6])
     }
-    rti = lines[f"panda · {reach.RTI}"]
+    rti = lines[f"panda · {reach_trials.RTI}"]
     assert rti["success"] == "1/3" and rti["collided"] == "1" and rti["stalled (no collision)"] == "1"
     assert rti["colliding states"] == "11" and rti["success while colliding"] == "10" and rti["soft steps"] == "3"
     assert rti["soft causes"] == "clearance 2, state bound 1" and rti["fallbacks"] == "10"
-    assert lines[f"panda · {reach.IPOPT}"]["success while colliding"] == "0"
+    assert lines[f"panda · {reach_trials.IPOPT}"]["success while colliding"] == "0"
     claim = next(line for line in text.splitlines() if line.startswith("| No controller reports success"))
-    assert f"{reach.RTI} 10" in claim and claim.rstrip(" |").endswith("not held")
+    assert f"{reach_trials.RTI} 10" in claim and claim.rstrip(" |").endswith("not held")
     assert "1 stalled short of the target without collision" in text
