@@ -76,8 +76,8 @@ class LinearMPC(Controller):
     A step takes a goal window (stage k's terms towards row k, the input term towards row k's input goal, the
     terminal terms row T), moved obstacles (rows and certificate at x_k against row k; nothing rebuilt) and an
     initial guess (the plan in place of the previous one shifted: the linearization and Gauss–Newton points; no warm
-    start from the previous answer) (:meth:`Controller.solve`). The C step takes none of them yet: such a step runs
-    in Python, said in ``Solution.path`` ("Python step (moving reference)").
+    start from the previous answer) (:meth:`Controller.solve`). The C step takes the window and the obstacles
+    (``<name>_step_window``); a step with a guess runs in Python ("Python step (initial guess)" in its path).
     """
 
     CEILING_MIN, CEILING_PER_VARIABLE = 10.0, 1e-4  # seconds: the default budget (:attr:`ceiling`)
@@ -325,9 +325,9 @@ class LinearMPC(Controller):
         return self._qp_step(x, goal, along, self._deadline())
 
     def _beyond_c_step(self) -> str:
-        """What this step has that the C step does not take yet ("": nothing; the step then runs in Python)."""
-        moved = self.moving, self._moved_obstacles() is not None, self.guess is not None
-        return ", ".join(what for what, m in zip(("moving reference", "moved obstacles", "initial guess"), moved) if m)
+        """What this step has that the C step does not take ("": nothing; else the step runs in Python): an initial
+        guess (the C step keeps its own plan). A goal window and moved obstacles it takes (``<name>_step_window``)."""
+        return "initial guess" if self.guess is not None else ""
 
     def _c_step(self, step, x: np.ndarray, goal: np.ndarray, deadline: float | None) -> Solution:
         """The whole step (model, build, DAQP) as compiled C; a failure gives the Python step's fallback."""
@@ -337,7 +337,9 @@ class LinearMPC(Controller):
             )
         if step.sets_plan and self.plan is not None:  # the plan Python answered last (a softened QP, the brake)
             step.set_plan(self.plan)
-        sol = step._solve(x, self.task_goal)
+        sol = step._solve(
+            x, self.task_goal, window=self.goal_window if self.moving else None, obstacles=self._moved_obstacles()
+        )
         self._costs.add("C step", step.step_seconds)
         self._warm, self._x_plan = None, None
         if sol.status == SUCCESS and deadline is not None and time.perf_counter() > deadline:
