@@ -99,7 +99,7 @@ def test_daqp_deadline_becomes_an_iteration_limit():
     import time
 
     from ocpkit.status import OperationCosts
-    from ocpkit.qp.backends import DAQP
+    from ocpkit.qp.daqp import DAQP
 
     qp = _many_active_rows()
     backend = DAQP(max_iter=10_000, eps=1e-9)

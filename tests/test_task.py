@@ -206,7 +206,7 @@ def test_daqp_softens_the_obstacle_rows_before_the_state_bounds(nlink3, monkeypa
     """A start inside the margin makes the hard QP infeasible: DAQP then solves the QP with only the obstacle rows
     softened (one slack per stage with rows), not the soft QP with two slacks per bounded state and stage, and
     gives the soft QP's answer (ProxQP's)."""
-    from ocpkit.qp.backends import DAQP
+    from ocpkit.qp.daqp import DAQP
 
     x0, target, _ = _blocked(nlink3)
     tip = _tip(nlink3, x0[:3])
