@@ -17,16 +17,8 @@ import numpy as np
 from ocpkit import problems, solvers
 from ocpkit.cli.checks import check_output_file, check_output_folder, check_size
 from ocpkit.cli.options import make_ocp, solver_options
-from ocpkit.cli.task import (
-    motion_files,
-    Reach,
-    point_text,
-    reach_line,
-    reach_ocp,
-    reach_panels,
-    reach_report,
-    reach_task,
-)
+from ocpkit.cli.task import Reach, motion_files, reach_ocp, reach_task
+from ocpkit.cli.task_report import point_text, reach_line, reach_panels, reach_report
 from ocpkit.controller import Controller
 
 
