@@ -11,6 +11,7 @@ import sys
 
 from ocpkit import __version__, solvers, studies
 from ocpkit.cli import commands
+from ocpkit.cli.arguments import add_controller_args, add_problem_args, add_study_args, add_task_args
 from ocpkit.cli.bench import BENCHMARKS, PROBLEM_BENCHMARKS, bench_command
 from ocpkit.cli.build import build_command
 from ocpkit.cli.export import export_command
@@ -26,7 +27,6 @@ from ocpkit.cli.options import (
     VARIANTS,
     default,
 )
-from ocpkit.solvers.methods import QP_BY_FORM
 from ocpkit.cli.study import PROBLEM_STUDIES, reproduce_command, study_command
 from ocpkit.cli.task import NUMBERS
 from ocpkit.controller import LINEARIZATIONS, TRAJECTORY
@@ -52,203 +52,6 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"ocpkit: error: {message}\n")
 
 
-def _add_problem_args(p):
-    """The problem and its OCP, the same in solve, simulate and export."""
-    p.add_argument("problem", help=SPEC_HELP)
-    p.add_argument(
-        "--knots",
-        type=int,
-        default=None,
-        help=f"knot points p (default {DEFAULT_KNOTS}, or T when the horizon is shorter; the Python API's "
-        f"Problem.ocp(knots=None) is traditional MPC instead); traditional MPC (one knot per step, "
-        f"p = T) is --parameterization identity",
-    )
-    p.add_argument(
-        "--parameterization",
-        default="linear",
-        choices=("linear", "zoh", "identity"),
-        help="input between the knots: linear (default, the paper's piecewise-linear), zoh (move blocking) "
-        "or identity (traditional MPC, p = T; takes no --knots)",
-    )
-    p.add_argument("--horizon", type=int, default=None, help="horizon T in steps (default: the problem's)")
-    p.add_argument(
-        "--integrator",
-        default="rk4",
-        choices=INTEGRATORS,
-        help="how the controller predicts a step of a nonlinear model: rk4 (default) or euler "
-        "(semi-implicit for x = [q, q̇]; one model and Jacobian evaluation instead of four; the plant "
-        "stays RK4)",
-    )
-
-
-def _add_controller_args(p):
-    _add_problem_args(p)
-    # The solvers' options default to None, "not given" (one that does not apply to the solver is refused); the
-    # solver then takes its own default, the one its help names from the table (ocpkit.solvers.methods).
-    p.add_argument("--solver", default="qp", help=f"solver: {', '.join(solvers.names())} (default qp)")
-    p.add_argument(
-        "--form", choices=("sparse", "condensed"), help=f"qp, rti: QP transcription (default {default('qp', 'form')})"
-    )
-    p.add_argument(
-        "--qp",
-        choices=QP_BACKENDS,
-        help=f"qp, rti: QP backend (default {' and '.join(f'{q} for {f}' for f, q in QP_BY_FORM.items())}; "
-        f"hpipm: sparse traditional)",
-    )
-    p.add_argument(
-        "--method",
-        choices=NLP_METHODS,
-        help=f"ipopt: how the NLP is solved: ipopt (interior point), sqp (CasADi's SQP), fatrop (interior "
-        f"point with a Riccati recursion over the stages) (default {default('ipopt', 'method')}); "
-        f"real-time iteration is --solver rti",
-    )
-    p.add_argument(
-        "--iterations",
-        type=int,
-        help=f"rti: Gauss-Newton SQP iterations per control step on the knot QP (default "
-        f"{default('rti', 'iterations')}, the real-time iteration)",
-    )
-    p.add_argument(
-        "--dynamics",
-        choices=DYNAMICS,
-        help=f"ipopt --method ipopt|sqp: the prediction model (default {default('ipopt', 'dynamics')}); "
-        f"empc/cem/mppi: the rollout model (default {default('empc', 'dynamics')}, re-linearized "
-        f"every step)",
-    )
-    p.add_argument(
-        "--linearization",
-        choices=LINEARIZATIONS + (TRAJECTORY,),
-        help=f"the affine model's expansion point: goal (about the goal's input), plan (the input the "
-        f"previous plan expects now) or, qp only, trajectory (stage by stage along the shifted plan) "
-        f"(default {default('qp', 'linearization')}); qp, ipopt --dynamics affine, empc/cem/mppi",
-    )
-    p.add_argument(
-        "--population",
-        type=int,
-        help=f"empc/cem/mppi: rollouts per generation (default {default('empc', 'population')})",
-    )
-    p.add_argument(
-        "--generations",
-        type=int,
-        help=f"empc/cem/mppi: generations per control step (default {default('empc', 'generations')})",
-    )
-    p.add_argument(
-        "--arch",
-        choices=("auto", "cpu", "cuda"),
-        help=f"empc/cem/mppi: Taichi arch (default {default('empc', 'arch')})",
-    )
-    p.add_argument(
-        "--variant",
-        choices=VARIANTS,
-        help=f"empc/cem/mppi: preconditioned by the knot QP or the paper's plain algorithm (default "
-        f"{default('empc', 'variant')})",
-    )
-    p.add_argument("--error", type=float, default=1.0, help="model error multiplier of the controller's model")
-    p.add_argument(
-        "--compiled",
-        action="store_true",
-        default=None,
-        help="compile the affine model to C before the first step (default: large models start on "
-        "CasADi's VM and switch once a background compile, cached, has finished)",
-    )
-    p.add_argument("--no-compiled", dest="compiled", action="store_false", help="stay on CasADi's VM (no C compile)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the random start and goal")
-
-
-def _add_task_args(p):
-    """A task-space target (ocpkit.model.task.reach) instead of the seeded joint-space goal: solve, simulate and
-    export."""
-    p.add_argument(
-        "--target",
-        metavar="X,Y,Z",
-        help="bring the end effector (or --frame) to this point (m, world frame) from the seeded start "
-        "instead of the seeded joint goal (ocpkit.model.task.reach; a robot problem with kinematics)",
-    )
-    p.add_argument(
-        "--obstacle",
-        action="append",
-        metavar="X,Y,Z,R",
-        help="with a target: a sphere (centre and radius, m, world frame) the robot keeps clear of (repeatable)",
-    )
-    p.add_argument(
-        "--frame", metavar="NAME", help="with a target: the frame brought to it (default: the problem's end effector)"
-    )
-    p.add_argument(
-        "--orientation",
-        metavar="R,P,Y",
-        help="with a target: the frame's orientation too, as roll, pitch, yaw (rad, about the world's x, "
-        "y, z: R = Rz(yaw) Ry(pitch) Rx(roll), as a URDF's rpy; ocpkit.model.task.FrameOrientation)",
-    )
-    p.add_argument(
-        "--frame-target",
-        action="append",
-        metavar="NAME=X,Y,Z",
-        help="with a target: another frame brought to a point as well (m, world frame; "
-        "ocpkit.model.task.FramePosition; repeatable)",
-    )
-    p.add_argument(
-        "--joint-limits",
-        action="store_true",
-        help="with a target: keep the joints off their limits (ocpkit.model.task.JointLimitBarrier at the "
-        "robot's limits, 0.05 rad inside)",
-    )
-    p.add_argument(
-        "--task",
-        metavar="FILE",
-        help="a TOML reach task: target = [x, y, z], optional frame, orientation = [roll, pitch, yaw] "
-        "(or a 3 × 3 matrix), joint_limits = true, margin, position_weight, terminal_weight, "
-        "orientation_weight, joint_limit_weight, link_radius, obstacle_weight, [[obstacle]] tables "
-        "(center = [x, y, z], radius = r) and [[frame_target]] tables (frame = NAME, target = "
-        "[x, y, z], optional weight); the flags override its values, --obstacle and --frame-target "
-        "add to its lists",
-    )
-
-
-def _add_study_args(p, size=True):
-    if size:
-        p.add_argument(
-            "--size",
-            default="quick",
-            choices=("quick", "full"),
-            help="quick (minutes, the default) or full (the paper's scale)",
-        )
-    p.add_argument(
-        "--out", default="results/reproduce", help="results folder: store, figures, report (default: results/reproduce)"
-    )
-    p.add_argument("--workers", type=int, default=None, help="local worker processes (default: CPU count)")
-    p.add_argument("--scheduler", default=None, help="Dask scheduler address tcp://HOST:PORT")
-    p.add_argument(
-        "--trial-timeout",
-        type=float,
-        default=None,
-        metavar="SECONDS",
-        help="stop a trial that runs longer and store it as failed (default: no limit)",
-    )
-    p.add_argument("--retry-failed", action="store_true", help="run the stored failed trials again")
-    stale = p.add_mutually_exclusive_group()
-    stale.add_argument(
-        "--reuse-stale",
-        dest="stale",
-        action="store_const",
-        const="reuse",
-        help="keep stored trials computed by another ocpkit version or other study code",
-    )
-    stale.add_argument(
-        "--rerun-stale",
-        dest="stale",
-        action="store_const",
-        const="rerun",
-        help="compute such trials again (default: refuse to resume over them)",
-    )
-    p.set_defaults(stale="refuse")
-    p.add_argument(
-        "--export",
-        default=None,
-        metavar="FILE",
-        help="also write the results database as one self-contained SQLite file",
-    )
-
-
 def _parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="ocpkit", description="Parameterized and GPU-parallelized real-time MPC.")
     parser.add_argument(
@@ -257,11 +60,11 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"ocpkit {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
     solve = sub.add_parser("solve", help="one MPC solve from a seeded random state and goal")
-    _add_controller_args(solve)
-    _add_task_args(solve)
+    add_controller_args(solve)
+    add_task_args(solve)
     solve.add_argument("--json", action="store_true", help="print one JSON object")
     sim = sub.add_parser("simulate", help="closed loop: actual cost, solve times, a figure with --out")
-    _add_controller_args(sim)
+    add_controller_args(sim)
     sim.add_argument("--duration", type=float, default=None, help="seconds (default: the problem's)")
     sim.add_argument("--out", metavar="FIG.png", help="write the closed loop's figure to this file (default: none)")
     sim.add_argument(
@@ -336,7 +139,7 @@ def _parser() -> argparse.ArgumentParser:
         help="move the task's obstacles: a column t (s) and obstacle<i>_x, _y, _z, _radius per obstacle i (as "
         "--obstacle gives them, in order), predicted over the horizon at constant velocity",
     )
-    _add_task_args(sim)
+    add_task_args(sim)
     sim.add_argument("--json", action="store_true", help="print one JSON object")
     demo = sub.add_parser("demo", help="closed-loop pendulum with every available controller")
     demo.add_argument("--problem", default="pendulum")
@@ -358,15 +161,15 @@ def _parser() -> argparse.ArgumentParser:
         help="robustness: mujoco runs LinearMPC, RTI and EMPC against MuJoCo with unmodelled joint "
         'friction and armature (pip install "ocpkit[mujoco]"), as study robustness_mujoco',
     )
-    _add_study_args(st)
+    add_study_args(st)
     rep = sub.add_parser("reproduce", help=f"run every study ({', '.join(studies.NAMES)}) and write report.md")
     size = rep.add_mutually_exclusive_group()
     size.add_argument("--quick", dest="size", action="store_const", const="quick", help="minutes (default)")
     size.add_argument("--full", dest="size", action="store_const", const="full", help="paper scale")
     rep.set_defaults(size="quick")
-    _add_study_args(rep, size=False)
+    add_study_args(rep, size=False)
     exp = sub.add_parser("export", help="generate, build and check a C MPC step")
-    _add_problem_args(exp)
+    add_problem_args(exp)
     exp.add_argument(
         "--form",
         default=EXPORT_FORMS[0],
@@ -402,7 +205,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     exp.add_argument("--out", default="export", help="output folder (absent or empty unless --force)")
     exp.add_argument("--force", action="store_true", help="export into a non-empty --out, overwriting its files")
-    _add_task_args(exp)
+    add_task_args(exp)
     pre = sub.add_parser(
         "build",
         help="fill the cache ahead of deployment with what a controller loads: the default "
@@ -410,7 +213,7 @@ def _parser() -> argparse.ArgumentParser:
         "(as simulate takes them) that controller's C step or Taichi kernels (a "
         "read-only cache is then used as it is)",
     )
-    _add_controller_args(pre)
+    add_controller_args(pre)
     bench = sub.add_parser("bench", help="benchmarks that print medians and ratios")
     bench.add_argument("what", choices=tuple(BENCHMARKS))
     bench.add_argument("--quick", action="store_true", help="a smaller grid (minutes instead of tens)")
