@@ -18,7 +18,7 @@ from ocpkit.export.constants import CERT_CODE, ILL_CONDITIONED
 from ocpkit.export.digest import differences
 from ocpkit.export.generate import general_rows
 from ocpkit.model.ocp import OCP
-from ocpkit.qp.backends import DAQP_EXIT, daqp_exit_name
+from ocpkit.qp.daqp import DAQP_EXIT, daqp_exit_name
 from ocpkit.qp.quadratic_program import ROUNDING_MARGIN
 
 

@@ -13,7 +13,7 @@ import jinja2
 from ocpkit.qp.certificate import TOL as CERT_TOL
 from ocpkit.status import INFEASIBLE, LIMITED, REASONS, SOFT, STATUSES, SUCCESS, Reason
 from ocpkit.export.constants import CERT_CODE, CERT_NAMES, ILL_CONDITIONED, c_array, step_constants
-from ocpkit.qp.backends import DAQP_EXIT, DAQP_REASON
+from ocpkit.qp.daqp import DAQP_EXIT, DAQP_REASON
 from ocpkit.model.task import ACTIVATION, ROWS_PER_SPHERE
 from ocpkit.model.ocp import OCP
 from ocpkit.qp.transcription import CondensedQP
