@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from importlib import import_module
 
-NAMES = ("knots", "horizon", "robustness", "solve_times", "comparison", "keepout", "baxter", "reach")
+NAMES = ("knots", "horizon", "robustness", "solve_times", "comparison", "keepout", "baxter", "reach", "tracking")
 
 
 def get(name: str):

@@ -30,6 +30,7 @@ SECONDS_PER_TRIAL = {
     "keepout": 1.8,
     "baxter": 2.4,
     "reach": 16.7,
+    "tracking": 1.4,  # 36 quick trials, 2026-12-03, load 4: 1.0-2.3 s each
     "robustness_mujoco": 0.94,
 }
 # Studies whose claims are about time: run one trial at a time (locally), so two trials never share the 2 cores.

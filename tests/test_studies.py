@@ -47,7 +47,22 @@ def tiny(monkeypatch):
     )
 
 
-def test_reproduce_quick_on_tiny_grids(tiny, tmp_path):
+@pytest.fixture
+def tiny_tracking(monkeypatch):
+    monkeypatch.setitem(
+        get("tracking").SIZES,
+        "quick",
+        {
+            "scenario": ["circle", "eight", "joints"],
+            "controller": ["LinearMPC"],
+            "duration": 0.2,
+            "plant": "model",
+            "seeds": 1,
+        },
+    )
+
+
+def test_reproduce_quick_on_tiny_grids(tiny, tiny_tracking, tmp_path):
     report = reproduce("quick", tmp_path, workers=1, progress=False)
     text = report.read_text()
     for title in (
@@ -60,12 +75,13 @@ def test_reproduce_quick_on_tiny_grids(tiny, tmp_path):
         "Table III",
         "Reaching past spherical obstacles",
         "MuJoCo as the plant",
+        "Follow a moving reference",
     ):
         assert title in text
     assert "wall time" in text and "casadi" in text and "failed" not in text
     # Every study section says how many trials stand behind it and ends with its claim checks.
     sections = text.split("\n## ")[1:]
-    assert len(sections) == 10  # the studies, robustness's MuJoCo variant, then the appendix of per-seed values
+    assert len(sections) == 11  # the studies, robustness's MuJoCo variant, then the appendix of per-seed values
     for part in sections:
         title = part.splitlines()[0]
         if title.startswith("Appendix"):
