@@ -68,7 +68,7 @@ def _failures(qp: str) -> tuple[dict, str]:
                 for flag, (name, status) in DAQP_EXIT.items()
                 if status != SUCCESS
             },
-            "DAQP's exit flags, ocpkit.qp.backends.DAQP_EXIT and DAQP_REASON",
+            "DAQP's exit flags, ocpkit.qp.daqp.DAQP_EXIT and DAQP_REASON",
         )
     return {}, ""
 
