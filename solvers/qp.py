@@ -65,8 +65,7 @@ class LinearMPC(Controller):
     ``native`` runs the whole step as compiled C (:mod:`ocpkit.export.native`; the condensed form with DAQP, hard
     QP only: a failure goes on to the softer QPs in Python). None (default) follows the OCP's ``compiled`` policy and
     builds it in the background while the Python step runs; True builds it now (a ValueError where this
-    configuration has none); False keeps the Python step. Changing ``max_iter`` returns to the Python step. Measured
-    step times: README, "Performance".
+    configuration has none); False keeps the Python step. Changing ``max_iter`` returns to the Python step.
 
     ``gains`` (set at construction) has every successful step also compute ``Solution.gains``, the first input's
     feedback gain K = ∂u₀/∂x₀ of the solved QP (:mod:`ocpkit.qp.sensitivity`), for an inner loop's
