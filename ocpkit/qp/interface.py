@@ -1,5 +1,6 @@
 """What a QP solver behind :class:`~ocpkit.solvers.qp.LinearMPC` offers (:class:`QPBackend`) and answers
-(:class:`Result`), and the time budget's arithmetic they share; the backends themselves by name: :mod:`ocpkit.qp.backends`."""
+(:class:`Result`), and the time budget's arithmetic they share; the backends themselves by name:
+:mod:`ocpkit.qp.backends`."""
 
 from __future__ import annotations
 
