@@ -157,6 +157,19 @@ def _tables(data, key: str, where: str, form: str) -> list:
     return tables
 
 
+def _no_task() -> dict:
+    """What a --task file gives when it gives nothing (read_task_file's keys, empty)."""
+    return {
+        "target": None,
+        "frame": None,
+        "orientation": None,
+        "joint_limits": False,
+        "obstacles": [],
+        "frame_targets": [],
+        "options": {},
+    }
+
+
 def read_task_file(path) -> dict:
     """A --task TOML file as {target, frame, orientation, joint_limits, obstacles, frame_targets, options}, every
     value checked (errors name the file and the key)."""
@@ -181,15 +194,7 @@ def read_task_file(path) -> dict:
         raise ValueError(
             f"{where}: unknown key {unknown[0]!r}; a task file has {', '.join(_TASK_KEYS + tuple(_MOTION_KEYS))}"
         )
-    out = {
-        "target": None,
-        "frame": None,
-        "orientation": None,
-        "joint_limits": False,
-        "obstacles": [],
-        "frame_targets": [],
-        "options": {},
-    }
+    out = _no_task()
     if "target" in data:
         out["target"] = _point(data["target"], f"{where}: target", "[x, y, z]")
     if "frame" in data:
@@ -260,19 +265,7 @@ def reach_task(args) -> Reach | None:
     for (None: none, the seeded joint goal)."""
     from ocpkit.model.task import Sphere
 
-    file = (
-        read_task_file(args.task)
-        if args.task
-        else {
-            "target": None,
-            "frame": None,
-            "orientation": None,
-            "joint_limits": False,
-            "obstacles": [],
-            "frame_targets": [],
-            "options": {},
-        }
-    )
+    file = read_task_file(args.task) if args.task else _no_task()
     source = {"target": "--target", "frame": "--frame"}
     target = None
     if args.target is not None:
