@@ -290,7 +290,12 @@ class SamplingMPC(Controller):
         found = f"cost {cost:.6g}" + (f", predicted violation {violation:.3g}" if self.engine.constrained else "")
         if stale:
             found += "; preconditioner of an earlier step (time budget)"
+        late = ""
         if done < self.generations:
+            late = f"time limit {self.time_limit:g} s reached after {done} of {self.generations} generations"
+        elif self._out_of_time():
+            late = f"time limit {self.time_limit:g} s exceeded by the last generation"
+        if late:
             return Solution(
                 u=u,
                 knots=knots,
@@ -298,18 +303,7 @@ class SamplingMPC(Controller):
                 iterations=done,
                 times=times,
                 reason=Reason.TIME_BUDGET,
-                raw_status=f"time limit {self.time_limit:g} s reached after {done} of "
-                f"{self.generations} generations (best {found})",
-            )
-        if self._out_of_time():
-            return Solution(
-                u=u,
-                knots=knots,
-                status=LIMITED,
-                iterations=done,
-                times=times,
-                reason=Reason.TIME_BUDGET,
-                raw_status=f"time limit {self.time_limit:g} s exceeded by the last generation (best {found})",
+                raw_status=f"{late} (best {found})",
             )
         return Solution(
             u=u, knots=knots, status=SUCCESS, raw_status=f"best {found}", iterations=self.generations, times=times
