@@ -197,20 +197,49 @@ class Term:
         return r, w, wT
 
 
-def FramePosition(
-    kinematics,
-    frame: str,
-    weight=1.0,
-    *,
-    name: str = "position",
-    stage: bool = True,
-    terminal: bool = True,
-    terminal_weight=None,
-    active: bool = True,
-) -> Term:
+def _frame_term(default_name: str, target_size: int):
+    """Make ``pieces(kinematics, frame) -> (residual, target_check)`` a frame term's constructor, ``(kinematics, frame,
+    weight=1.0, *, name=default_name, stage=True, terminal=True, terminal_weight=None, active=True) -> Term``: the
+    frame checked first (:func:`check_frame`), the keywords handed on to :class:`Term` with a target of
+    ``target_size`` entries."""
+
+    def make(pieces):
+        def constructor(
+            kinematics,
+            frame: str,
+            weight=1.0,
+            *,
+            name: str = default_name,
+            stage: bool = True,
+            terminal: bool = True,
+            terminal_weight=None,
+            active: bool = True,
+        ) -> Term:
+            check_frame(kinematics, frame)
+            residual, target_check = pieces(kinematics, frame)
+            return Term(
+                name,
+                residual,
+                weight,
+                target_size=target_size,
+                stage=stage,
+                terminal=terminal,
+                terminal_weight=terminal_weight,
+                active=active,
+                target_check=target_check,
+            )
+
+        constructor.__name__ = constructor.__qualname__ = pieces.__name__
+        constructor.__doc__ = pieces.__doc__
+        return constructor
+
+    return make
+
+
+@_frame_term("position", 3)
+def FramePosition(kinematics, frame: str):
     """p_frame(q) − target: a frame's world position (3 entries) towards a target point given in the goal (within
     :func:`workspace_radius` of the world origin)."""
-    check_frame(kinematics, frame)
     radius = None  # computed at the first goal, once
 
     def check(target, where):
@@ -218,33 +247,13 @@ def FramePosition(
         radius = workspace_radius(kinematics) if radius is None else radius
         return check_point(target, radius, where)
 
-    return Term(
-        name,
-        lambda x, u, target: kinematics.position(x[: kinematics.n], frame) - target,
-        weight,
-        target_size=3,
-        stage=stage,
-        terminal=terminal,
-        terminal_weight=terminal_weight,
-        active=active,
-        target_check=check,
-    )
+    return lambda x, u, target: kinematics.position(x[: kinematics.n], frame) - target, check
 
 
-def FrameOrientation(
-    kinematics,
-    frame: str,
-    weight=1.0,
-    *,
-    name: str = "orientation",
-    stage: bool = True,
-    terminal: bool = True,
-    terminal_weight=None,
-    active: bool = True,
-) -> Term:
+@_frame_term("orientation", 9)
+def FrameOrientation(kinematics, frame: str):
     """½ vee(R_tᵀR − RᵀR_t): a frame's orientation R(q) towards a target rotation R_t (the goal carries its 9
     entries row by row). It is sin θ times the rotation axis of R_tᵀR: zero at the target, smooth everywhere."""
-    check_frame(kinematics, frame)
 
     def residual(x, u, target):
         R = kinematics.placement(x[: kinematics.n], frame)[0]
@@ -253,17 +262,7 @@ def FrameOrientation(
         A = A - A.T  # 2 sin θ [a]x for R_tᵀR = exp(θ [a]x)
         return 0.5 * ca.vertcat(A[2, 1], A[0, 2], A[1, 0])
 
-    return Term(
-        name,
-        residual,
-        weight,
-        target_size=9,
-        stage=stage,
-        terminal=terminal,
-        terminal_weight=terminal_weight,
-        active=active,
-        target_check=check_rotation,
-    )
+    return residual, check_rotation
 
 
 def JointLimitBarrier(
