@@ -108,7 +108,8 @@ def crossing(start: np.ndarray, seed: int, duration: float) -> ObstaclePath:
 
 
 def setting(scenario: str, seed: int, duration: float):
-    """(problem, OCP, x0, reference, obstacle path or None, error(x rows, t) -> tracking error per state)."""
+    """(problem, OCP, x0, reference, obstacle path or None, error(trajectory, delay) -> its tracking error per state
+    against the reference ``delay`` steps late, :meth:`ocpkit.sim.simulate.Trajectory.tracking_error`)."""
     if scenario == "joints":
         pb = problems.make("nlink:7")
         ocp = pb.ocp(knots=KNOTS, horizon=HORIZON)
@@ -116,7 +117,7 @@ def setting(scenario: str, seed: int, duration: float):
         x0[7:] = 0.0  # at rest
         move = np.random.default_rng(seed).choice([-1.0, 1.0], 7) * JOINT_MOVE
         ref = minimum_jerk(x0[:7], x0[:7] + move, JOINT_TIME)
-        return pb, ocp, x0, ref, None, lambda xs, ts: np.abs(xs[:, :7] - np.array([ref.at(t)[:7] for t in ts])).max(1)
+        return pb, ocp, x0, ref, None, lambda traj, delay: traj.tracking_error(states=7, delay=delay)
     pb = problems.make("panda")
     q0 = np.array([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])
     x0 = np.r_[q0, np.zeros(7)]
@@ -127,19 +128,17 @@ def setting(scenario: str, seed: int, duration: float):
     ocp = reach(pb, declared, knots=KNOTS, horizon=HORIZON)
     ref = Reference.from_function(lambda t: ocp.goal(np.zeros(ocp.nx), position=path(t)), ocp.ng)
 
-    def error(xs, ts):
-        return np.linalg.norm(
-            pb.kinematics.positions(pb.end_effector, xs[:, :7]) - np.array([path(t) for t in ts]), axis=1
-        )
+    def error(traj, delay):
+        return traj.tracking_error(pb.kinematics, pb.end_effector, traj.targets(ocp), delay=delay)
 
     return pb, ocp, x0, ref, obstacles, error
 
 
-def lag(error_at, ts, max_lag: float = 0.5) -> float:
-    """The time shift τ ∈ [0, max_lag] s of the reference that the path fits best: argmin_τ RMS e(t; ref(t − τ))."""
-    shifts = np.arange(0.0, max_lag + 1e-9, ts[1] - ts[0])
-    rms = [np.sqrt(np.mean(error_at(np.maximum(ts - tau, 0.0)) ** 2)) for tau in shifts]
-    return float(shifts[int(np.argmin(rms))])
+def lag(error_late, dt: float, max_lag: float = 0.5) -> float:
+    """The time shift τ = j·dt ∈ [0, max_lag] s of the reference that the path fits best: argmin_τ RMS e(t; ref(t −
+    τ)), with ``error_late(j)`` the tracking error against the reference j steps late."""
+    rms = [np.sqrt(np.mean(error_late(j) ** 2)) for j in range(int(round(max_lag / dt)) + 1)]
+    return float(int(np.argmin(rms)) * dt)
 
 
 def trial(scenario: str, controller: str, preview: str, duration: float, plant: str, seed: int) -> dict:
@@ -153,12 +152,12 @@ def trial(scenario: str, controller: str, preview: str, duration: float, plant: 
     goal = ref if preview == PREVIEW else ref.without_preview()
     target = pb.plant() if plant == "model" else _mujoco(pb)
     traj = simulate(target, ctrl, x0, goal, duration, obstacles=obstacles)
-    e = error(traj.x, traj.t)
+    e = error(traj, 0)
     clearance = traj.clearances(ocp)
     return {
         "rms_error": float(np.sqrt(np.mean(e**2))),
         "max_error": float(e.max()),
-        "lag": lag(lambda ts: error(traj.x, ts), traj.t),
+        "lag": lag(lambda j: error(traj, j), traj.t[1] - traj.t[0]),
         "collisions": int((clearance < 0).sum()),
         "min_clearance": float(clearance.min()),
         "successes": traj.successes,

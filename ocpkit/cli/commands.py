@@ -269,7 +269,7 @@ def _simulate(args):
         fig = plots.closed_loop({_label(ctrl): shown}, args.out, title=title, task=panels, **_labels(problem))
     # success: status "success" only; a soft step applied the solver's input but broke a clearance or state bound
     if reference is not None:  # against the reference at each time: the tracking error, no single target to reach
-        progress = _Tracking(traj, problem, task)
+        progress = _Tracking(traj, problem, ocp, task)
     elif task is None:
         progress = traj.progress()
     else:
@@ -345,18 +345,16 @@ def _motion(ocp, goal, files: dict, no_preview: bool):
 
 
 class _Tracking:
-    """The loop's tracking error against its reference at each recorded time: the task frame's distance to the
-    reference's target point (m), or max_i |x_i − x_ref,i| for a joint goal; its RMS and max."""
+    """The loop's tracking error against its reference at each recorded time (:meth:`Trajectory.tracking_error`):
+    the task frame's distance to the reference's target point (m), or max_i |x_i − x_ref,i| for a joint goal; its
+    RMS and max."""
 
-    def __init__(self, traj, problem, task):
-        goals = traj.goals()
+    def __init__(self, traj, problem, ocp, task):
         if task is None:
-            n = traj.x.shape[1]
-            self.error, self.what, self.unit = np.abs(traj.x - goals[:, :n]).max(axis=1), "max |x − x_ref|", ""
+            self.error, self.what, self.unit = traj.tracking_error(), "max |x − x_ref|", ""
         else:
-            n, nq = traj.x.shape[1], problem.kinematics.n
-            where = problem.kinematics.positions(task.frame, traj.x[:, :nq])
-            self.error, self.what, self.unit = np.linalg.norm(where - goals[:, n : n + 3], axis=1), "distance", " m"
+            error = traj.tracking_error(problem.kinematics, task.frame, traj.targets(ocp))
+            self.error, self.what, self.unit = error, "distance", " m"
 
     def to_dict(self) -> dict:
         return {"rms_error": float(np.sqrt(np.mean(self.error**2))), "max_error": float(self.error.max())}

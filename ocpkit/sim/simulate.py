@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ocpkit._checks import integer, positive
+from ocpkit._checks import array, integer, positive
 from ocpkit.controller import Controller
 from ocpkit.status import SOFT, SUCCESS, Solution
 from ocpkit.model.dynamics import Model
@@ -111,6 +111,37 @@ class Trajectory:
         return (
             self.reference if self.reference is not None else np.broadcast_to(self.goal, (len(self.t), len(self.goal)))
         )
+
+    def targets(self, ocp, term: str = "position") -> np.ndarray:
+        """Task term ``term``'s target at every recorded time, (H+1, its size): its entries of :meth:`goals` (named
+        "<term>[i]" by :meth:`ocpkit.model.ocp.OCP.goal_names`), the moving target point of a frame-position term."""
+        names = ocp.goal_names()
+        if f"{term}[0]" not in names:
+            targets = sorted(getattr(ocp.task, "targets", None) or {})
+            raise ValueError(f"the OCP's goal has no target of term {term!r}; targets: {targets or 'none'}")
+        first = names.index(f"{term}[0]")
+        return self.goals()[:, first : first + ocp.task.targets[term]]
+
+    def tracking_error(
+        self, kinematics=None, frame: str | None = None, targets=None, *, states: int | None = None, delay: int = 0
+    ) -> np.ndarray:
+        """The distance to the reference at every recorded time, (H+1,): with ``kinematics``, ``frame`` and
+        ``targets`` (the target point at every recorded time, (H+1, 3), :meth:`targets`), the frame's distance (m)
+        to it; without them max_i |x_i − x_ref,i| over the first ``states`` entries of x (default all; the joint
+        angles: ``kinematics.n``). ``delay``: against the reference that many steps late (held at its first value
+        before the start), for the lag."""
+        given = [name for name, v in (("kinematics", kinematics), ("frame", frame), ("targets", targets)) if v is None]
+        if given and len(given) < 3:
+            raise ValueError(
+                f"the tracking error of a frame needs kinematics, frame and targets; {given[0]} is missing "
+                f"(none of them: the state error)"
+            )
+        late = np.maximum(np.arange(len(self.t)) - integer(delay, "delay", 0), 0)
+        if given:
+            n = self.x.shape[1] if states is None else integer(states, "states", 1)
+            return np.abs(self.x[:, :n] - self.goals()[late, :n]).max(axis=1)
+        targets = array(targets, "targets", (len(self.t), 3))
+        return np.linalg.norm(kinematics.positions(frame, self.x[:, : kinematics.n]) - targets[late], axis=1)
 
     @property
     def statuses(self) -> list[str]:
