@@ -32,6 +32,45 @@ def _cache_script(wait: float) -> list[str]:
     return [sys.executable, "-c", _CACHE_SCRIPT.replace("WAIT", repr(wait))]
 
 
+def _script_options(root, cwd) -> dict:
+    """How the script runs with its cache at ``root``: its output captured as text, in ``cwd`` (outside any
+    checkout, which would shadow the installed ocpkit)."""
+    import os
+
+    return {
+        "env": {**os.environ, "OCPKIT_CACHE_DIR": str(root)},
+        "capture_output": True,
+        "text": True,
+        "timeout": 600,
+        "cwd": cwd,
+    }
+
+
+def _script_row(
+    what: str, label: str, where: str, r: dict, says: str | None, criterion: str, written: bool = False
+) -> RealTimeRow:
+    """The row of the script's result ``r`` (:func:`_script_result`): which step ran first and its warnings, passed
+    where nothing was ``written`` to the cache and the first step ran in C with no warning (``says`` None) or in
+    Python with one warning that says ``says``; or what the script raised (failed: nothing may raise)."""
+    if "error" in r:
+        return RealTimeRow(
+            what, label, f"raised: {r['error'][:100]}", float("nan"), "exception", False, "nothing raised"
+        )
+    warned = not r["warnings"] if says is None else len(r["warnings"]) == 1 and says in r["warnings"][0]
+    ok = bool(r["native"]) == (says is None) and r["status"] == SUCCESS and warned and not written
+    return RealTimeRow(
+        what,
+        label,
+        f"nlink:13 p=5 ({where}): "
+        f"{'C step' if r['native'] else 'Python step'}, {len(r['warnings'])} warnings"
+        f"{': ' + _gist(r['warnings'][0]) if r['warnings'] else ''}",
+        r["wall"],
+        r["status"],
+        bool(ok),
+        criterion,
+    )
+
+
 def _script_result(run) -> dict:
     """The script's JSON line, or {"error": its last stderr line} where it raised."""
     import json
@@ -77,55 +116,13 @@ def cache_rows(out=print) -> list[RealTimeRow]:
             )  # the scripts run outside any checkout, which would shadow the installed ocpkit
             for label, root in (("sound entry", filled), ("no entry", empty)):
                 before = sorted(p.name for p in root.rglob("*"))
-                run = readonly.run(
-                    root,
-                    _cache_script(0),
-                    env={**os.environ, "OCPKIT_CACHE_DIR": str(root)},
-                    capture_output=True,
-                    text=True,
-                    timeout=600,
-                    cwd=tmp,
-                )
-                r = _script_result(run)
+                r = _script_result(readonly.run(root, _cache_script(0), **_script_options(root, tmp)))
                 written = sorted(p.name for p in root.rglob("*")) != before
-                if "error" in r:
-                    rows.append(
-                        RealTimeRow(
-                            "read-only cache",
-                            label,
-                            f"raised: {r['error'][:100]}",
-                            float("nan"),
-                            "exception",
-                            False,
-                            "nothing raised",
-                        )
-                    )
-                    continue
                 if label == "sound entry":
-                    ok = r["native"] and r["status"] == SUCCESS and not r["warnings"] and not written
-                    criterion = "first step in C, success, no warning, nothing written"
+                    says, criterion = None, "first step in C, success, no warning, nothing written"
                 else:
-                    ok = (
-                        not r["native"]
-                        and r["status"] == SUCCESS
-                        and len(r["warnings"]) == 1
-                        and "read-only" in r["warnings"][0]
-                        and not written
-                    )
-                    criterion = "Python step, success, one warning, nothing raised or written"
-                rows.append(
-                    RealTimeRow(
-                        "read-only cache",
-                        label,
-                        f"nlink:13 p=5 ({readonly.method()}): "
-                        f"{'C step' if r['native'] else 'Python step'}, {len(r['warnings'])} warnings"
-                        f"{': ' + _gist(r['warnings'][0]) if r['warnings'] else ''}",
-                        r["wall"],
-                        r["status"],
-                        bool(ok),
-                        criterion,
-                    )
-                )
+                    says, criterion = "read-only", "Python step, success, one warning, nothing raised or written"
+                rows.append(_script_row("read-only cache", label, readonly.method(), r, says, criterion, written))
         rows.append(_concurrent_row(tmp))
     return rows + [planted_entry_row()] + full_disk_rows(out)
 
@@ -194,7 +191,6 @@ def planted_entry_row() -> RealTimeRow:
     with tempfile.TemporaryDirectory(prefix="ocpkit-bench-planted-") as tmp:
         tmp = Path(tmp)
         root, marker = tmp / "cache", tmp / "constructor-ran"
-        env = {**os.environ, "OCPKIT_CACHE_DIR": str(root)}
         ocp = problems.make("nlink:13").ocp(knots=5)
         python = LinearMPC(ocp, native=False)  # the settings a default LinearMPC hands to ocpkit.export.native
         settings = (python._backend.tolerance, python.max_iter, python.linearization, 1, 0.0)
@@ -214,7 +210,7 @@ def planted_entry_row() -> RealTimeRow:
         )
         write_entry(entry / f"lib{native.NAME}.so", (tmp / "planted.so").read_bytes())
         t0 = time.perf_counter()
-        run = subprocess.run(_cache_script(0), env=env, capture_output=True, text=True, timeout=600, cwd=tmp)
+        run = subprocess.run(_cache_script(0), **_script_options(root, tmp))
         wall = time.perf_counter() - t0
         r = _script_result(run)
         refused = r.get("error", "").startswith("ocpkit.codegen.cache.UnsafeCacheError: ")
@@ -235,7 +231,6 @@ def full_disk_rows(out=print) -> list[RealTimeRow]:
     """A script's default LinearMPC of nlink:13 with its cache on a full file system (a filled tmpfs,
     :func:`ocpkit.benchmarks.readonly.run_full`; root with mount namespaces only): the Python step, success, one
     warning naming the folder as full, nothing raised."""
-    import os
     import tempfile
     from pathlib import Path
 
@@ -247,44 +242,14 @@ def full_disk_rows(out=print) -> list[RealTimeRow]:
     with tempfile.TemporaryDirectory(prefix="ocpkit-bench-full-") as tmp:
         root = Path(tmp) / "cache"
         root.mkdir(mode=0o700)
-        run = readonly.run_full(
-            root,
-            _cache_script(0),
-            env={**os.environ, "OCPKIT_CACHE_DIR": str(root)},
-            capture_output=True,
-            text=True,
-            timeout=600,
-            cwd=tmp,
-        )
-    r = _script_result(run)
-    if "error" in r:
-        return [
-            RealTimeRow(
-                "full disk",
-                "qp condensed daqp (default)",
-                f"raised: {r['error'][:100]}",
-                float("nan"),
-                "exception",
-                False,
-                "nothing raised",
-            )
-        ]
-    ok = (
-        not r["native"]
-        and r["status"] == SUCCESS
-        and len(r["warnings"]) == 1
-        and f"{root}/native is full" in r["warnings"][0]
-    )
+        r = _script_result(readonly.run_full(root, _cache_script(0), **_script_options(root, tmp)))
     return [
-        RealTimeRow(
+        _script_row(
             "full disk",
             "qp condensed daqp (default)",
-            f"nlink:13 p=5 (filled tmpfs): "
-            f"{'C step' if r['native'] else 'Python step'}, {len(r['warnings'])} warnings"
-            f"{': ' + _gist(r['warnings'][0]) if r['warnings'] else ''}",
-            r["wall"],
-            r["status"],
-            bool(ok),
+            "filled tmpfs",
+            r,
+            f"{root}/native is full",
             "Python step, success, one warning naming the folder as full, nothing raised",
         )
     ]
