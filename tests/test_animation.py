@@ -131,7 +131,11 @@ def test_3d_arm_with_target_and_obstacle(tmp_path):
         assert picture.ghost is None
         assert np.linalg.norm(picture.drawn(picture.tip)[0] - target) < 0.01
         np.testing.assert_allclose(picture.drawn(picture.robot)[0], 0)  # the base segment starts at the world origin
-        assert len(picture.axes.collections) == 1  # the ball's wireframe
+        ((wire, shadow),) = picture.obstacle_artists  # the ball's wireframe and its shadow on the floor
+        on = picture.drawn(wire)
+        on = on[~np.isnan(on).any(axis=1)]
+        np.testing.assert_allclose(np.linalg.norm(on - ball.center, axis=1), ball.radius, atol=1e-12)
+        assert (picture.drawn(shadow)[:, 2] == picture.floor).all()
     finally:
         picture.close()
 

@@ -300,8 +300,9 @@ def _simulate(args):
             success_while_colliding=traj.success_while_colliding(ocp),
             moving=traj.obstacles,
         )
-    if args.animate is not None:  # a reach task's target and obstacles drawn, else the joint goal's pose
-        scene = {} if task is None else {"target": task.target, "obstacles": task.obstacles, "frame": task.frame}
+    if args.animate is not None:  # a reach task's target (moving with a reference) and obstacles, else the goal pose
+        target = None if task is None else task.target if reference is None else traj.targets(ocp)
+        scene = {} if task is None else {"target": target, "obstacles": task.obstacles, "frame": task.frame}
         summary["animation"] = str(animation.animate(traj, args.animate, problem, title=title, **scene))
     if args.json:
         print(json.dumps(summary))

@@ -4,9 +4,11 @@ The robot is a stick figure drawn from the problem's forward kinematics (:mod:`o
 segment of :meth:`~ocpkit.model.kinematics.Kinematics.segments` (joint to child joint, last joint to its tip frame),
 the end effector's path as a trail. A robot whose every drawn point stays in one plane z = const (the planar
 N-link chains) is drawn in that plane, any other in 3-D; the pendulum (no kinematics) as its rod, pivot at the
-origin, q = 0 hanging down. The goal is drawn where the run has one: a task-space ``target`` point (``reach``), or
-else the joint goal's pose as a faint ghost; obstacles (:class:`ocpkit.model.task.Sphere`) as spheres (in the plane: the
-circle where they cut it). Every frame shows the simulated time.
+origin, q = 0 hanging down. The goal is drawn where the run has one: a task-space ``target`` point (``reach``; a moving
+reference's target where it is at each frame), or else the joint goal's pose as a faint ghost; obstacles
+(:class:`ocpkit.model.task.Sphere`) as wireframe spheres (in the plane: the circle where they cut it), where the run
+moved them (:attr:`~ocpkit.sim.simulate.Trajectory.obstacles`) where they are at each frame. Every frame shows the
+simulated time.
 
 Frames play in real time, evenly spaced over the run (at most ``max_frames``), the last held a second; Pillow
 (matplotlib's own dependency) writes them at a small size, so a run of a few seconds takes a few hundred kB. MuJoCo's
@@ -117,7 +119,9 @@ class MotionPicture:
     """The frames of one closed-loop run: a figure whose artists :meth:`draw` sets to the run's k-th frame.
 
     ``robot`` (the stick figure, a line through the joints), ``tip`` (the end point: a marker), ``trail`` (the end
-    point's path so far), ``clock`` (the time) change per frame; ``ghost``, ``target`` and the obstacles stay.
+    point's path so far), ``clock`` (the time) change per frame; ``ghost`` stays; ``target_artist`` and
+    ``obstacle_artists`` (per obstacle: its circle in the plane, its wireframe and shadow in 3-D) move where the
+    target (``target`` (H+1, 3), a moving reference's) and the obstacles (the trajectory's ``obstacles``) moved.
     ``indices``: the trajectory's states drawn, in order."""
 
     def __init__(
@@ -136,11 +140,19 @@ class MotionPicture:
     ):
         self.trajectory, self.skeleton = trajectory, Skeleton(problem, frame)
         fps, max_frames = positive(fps, "fps"), integer(max_frames, "max_frames", 2)
-        self.target = None if target is None else np.asarray(target, dtype=float).ravel()
-        if self.target is not None and (self.target.shape != (3,) or not np.isfinite(self.target).all()):
-            raise ValueError(f"target must be 3 finite numbers (x, y, z in m), got {np.asarray(target).tolist()}")
-        self.obstacles = list(obstacles)
         t = np.asarray(trajectory.t, dtype=float)
+        self.target = None if target is None else np.asarray(target, dtype=float)
+        if self.target is not None and (
+            self.target.shape not in ((3,), (len(t), 3)) or not np.isfinite(self.target).all()
+        ):
+            raise ValueError(
+                f"target must be 3 finite numbers (x, y, z in m), or one such row per recorded time ({len(t)}, 3), "
+                f"got {np.asarray(target).tolist()}"
+            )
+        # the obstacles at every recorded time (H+1, N, 4): where the run moved them, else as given, held
+        moved = getattr(trajectory, "obstacles", None)
+        held = np.array([[*o.center, o.radius] for o in obstacles], dtype=float).reshape(-1, 4)
+        self.spheres = np.broadcast_to(held, (len(t), *held.shape)) if moved is None else np.asarray(moved, float)
         q = np.asarray(trajectory.x, dtype=float)[:, : self.skeleton.n]
         # real time: frames evenly spaced over the run, fewer per second where the run is long
         count = int(min(max_frames, max(2, math.floor((t[-1] - t[0]) * fps) + 1)))
@@ -160,17 +172,15 @@ class MotionPicture:
         plots.set_title(ax, title or getattr(problem, "name", ""), fontsize=9)
         self._limits(points)
         z = () if self.planar else ([],)  # an empty line's z, in 3-D
-        self.ghost = self.target_artist = None
+        self.ghost = self.target_artist = self.drop = None
         if goal_pose is not None:
             self.ghost = ax.plot(*self._xyz(self.skeleton.polyline(goal_pose)), **GHOST, label="goal pose")[0]
         if self.target is not None:
-            self.target_artist = ax.plot(*self._xyz(self.target[None]), "*", color="k", ms=12, label="target")[0]
-            if not self.planar:  # a drop line to the floor places the point in depth
-                ax.plot(
-                    *np.repeat(self.target[:2, None], 2, axis=1), [self.floor, self.target[2]], ":", color="k", lw=0.8
-                )
-        for o in self.obstacles:
-            self._obstacle(o)
+            self.target_artist = ax.plot([], [], *z, "*", color="k", ms=12, label="target")[0]
+            # 3-D: a drop line to the floor places the point in depth
+            self.drop = None if self.planar else ax.plot([], [], [], ":", color="k", lw=0.8)[0]
+        self.obstacle_artists = [self._obstacle() for _ in range(self.spheres.shape[1])]
+        self._place(0)
         self.trail = ax.plot([], [], *z, color="C1", lw=1.2, alpha=0.8)[0]
         # the robot's shadow on the floor of the box (straight down): depth that one 3-D view cannot show
         self.shadow = None if self.planar else ax.plot([], [], [], color="0.2", lw=3, alpha=0.2)[0]
@@ -185,13 +195,22 @@ class MotionPicture:
         points = np.atleast_2d(points)
         return (points[:, 0], points[:, 1]) if self.planar else (points[:, 0], points[:, 1], points[:, 2])
 
+    @property
+    def moving(self) -> list:
+        """The artists that move with the target and obstacles (each frame places them; none where nothing moved)."""
+        target = [] if self.target is None or self.target.ndim == 1 else [self.target_artist, self.drop]
+        obstacles = [] if getattr(self.trajectory, "obstacles", None) is None else self.obstacle_artists
+        return [a for a in target + [a for artists in obstacles for a in artists] if a is not None]
+
     def _limits(self, points):
-        """Fixed equal-scale limits around every drawn point, target and obstacle, with a margin."""
-        pts = np.concatenate(points + ([self.target[None]] if self.target is not None else []))
+        """Fixed equal-scale limits around every drawn point, target and obstacle (wherever they move), with a
+        margin."""
+        pts = np.concatenate(points + ([self.target.reshape(-1, 3)] if self.target is not None else []))
         lo, hi = pts.min(axis=0), pts.max(axis=0)
-        for o in self.obstacles:
-            c = np.asarray(o.center)
-            lo, hi = np.minimum(lo, c - o.radius), np.maximum(hi, c + o.radius)
+        if self.spheres.shape[1]:
+            spheres = self.spheres[self.indices].reshape(-1, 4)
+            lo = np.minimum(lo, (spheres[:, :3] - spheres[:, 3:]).min(axis=0))
+            hi = np.maximum(hi, (spheres[:, :3] + spheres[:, 3:]).max(axis=0))
         dims = 2 if self.planar else 3
         centre, half = (lo + hi)[:dims] / 2, 0.55 * max(float(np.max(hi - lo)), 0.1)
         setters = (self.axes.set_xlim, self.axes.set_ylim, getattr(self.axes, "set_zlim", None))
@@ -209,41 +228,45 @@ class MotionPicture:
             self.axes.set_box_aspect((1, 1, 1))
         self.axes.tick_params(labelsize=6)
 
-    def _obstacle(self, sphere):
-        c, r = np.asarray(sphere.center, dtype=float), float(sphere.radius)
+    def _obstacle(self) -> tuple:
+        """An obstacle's artists, placed by :meth:`_place`: in the plane the circle where the sphere cuts the robot's
+        plane (its outline, dashed, where it misses the plane); in 3-D a wireframe (matplotlib sorts 3-D artists
+        whole, not per pixel, so a surface would hide the arm behind it) and its shadow on the floor."""
         if self.planar:
-            # the circle where the sphere cuts the robot's plane (its outline, dashed, where it misses the plane)
-            plane = float(next(iter(self.segments.values()))[0, 0, 2])
-            cut = r * r - (c[2] - plane) ** 2
-            circle = Circle(
-                c[:2],
-                math.sqrt(cut) if cut > 0 else r,
-                color="C3",
-                alpha=0.35 if cut > 0 else 0.15,
-                ls="-" if cut > 0 else "--",
-                label="obstacle",
-            )
-            self.axes.add_patch(circle)
-            return
-        # a wireframe: matplotlib sorts 3-D artists whole, not per pixel, so a surface would hide the arm behind it
-        u, v = np.meshgrid(np.linspace(0, 2 * np.pi, 17), np.linspace(0, np.pi, 9))
-        self.axes.plot_wireframe(
-            c[0] + r * np.cos(u) * np.sin(v),
-            c[1] + r * np.sin(u) * np.sin(v),
-            c[2] + r * np.cos(v),
-            color="C3",
-            alpha=0.6,
-            linewidth=0.7,
-            label="obstacle",
-        )
-        self.axes.plot(
-            c[0] + r * np.cos(u[0]),
-            c[1] + r * np.sin(u[0]),
-            np.full(u.shape[1], self.floor),
-            color="C3",
-            alpha=0.3,
-            lw=1,
-        )  # its shadow
+            return (self.axes.add_patch(Circle((0.0, 0.0), 1.0, color="C3", label="obstacle")),)
+        wire = self.axes.plot([], [], [], color="C3", alpha=0.6, lw=0.7, label="obstacle")[0]
+        return wire, self.axes.plot([], [], [], color="C3", alpha=0.3, lw=1)[0]
+
+    def _place(self, i: int):
+        """Put the target and the obstacles where they are at recorded time ``i``."""
+        if self.target is not None:
+            point = self.target if self.target.ndim == 1 else self.target[i]
+            self.target_artist.set_data(*self._xyz(point[None])[:2])
+            if not self.planar:
+                self.target_artist.set_3d_properties([point[2]])
+                self.drop.set_data([point[0]] * 2, [point[1]] * 2)
+                self.drop.set_3d_properties([self.floor, point[2]])
+        for artists, (*c, r) in zip(self.obstacle_artists, self.spheres[i]):
+            c = np.asarray(c)
+            if self.planar:
+                plane = float(next(iter(self.segments.values()))[0, 0, 2])
+                cut = r * r - (c[2] - plane) ** 2
+                (circle,) = artists
+                circle.set_center(c[:2])
+                circle.set_radius(math.sqrt(cut) if cut > 0 else r)
+                circle.set_alpha(0.35 if cut > 0 else 0.15)
+                circle.set_linestyle("-" if cut > 0 else "--")
+                continue
+            wire, shadow = artists
+            u, v = np.meshgrid(np.linspace(0, 2 * np.pi, 17), np.linspace(0, np.pi, 9))
+            grid = c[:, None, None] + r * np.stack([np.cos(u) * np.sin(v), np.sin(u) * np.sin(v), np.cos(v)])
+            # the wireframe's parallels, then its meridians, as one line broken by NaN rows
+            lines = [grid[:, j] for j in range(grid.shape[1])] + [grid[:, :, j] for j in range(grid.shape[2])]
+            points = np.concatenate([np.c_[line, np.full((3, 1), np.nan)] for line in lines], axis=1)
+            wire.set_data(points[0], points[1])
+            wire.set_3d_properties(points[2])
+            shadow.set_data(c[0] + r * np.cos(u[0]), c[1] + r * np.sin(u[0]))
+            shadow.set_3d_properties(np.full(u.shape[1], self.floor))
 
     def draw(self, k: int):
         """Set the artists to frame ``k`` (an index into :attr:`indices`); the changed artists."""
@@ -260,7 +283,8 @@ class MotionPicture:
             self.trail.set_3d_properties(trail[:, 2])
             self.tip.set_3d_properties(self.ends[i][None, 2])
         self.clock.set_text(f"t = {self.trajectory.t[i]:.2f} s")
-        return [a for a in (self.robot, self.shadow, self.trail, self.tip, self.clock) if a is not None]
+        self._place(i)
+        return [a for a in (self.robot, self.shadow, self.trail, self.tip, self.clock) if a is not None] + self.moving
 
     def drawn(self, artist) -> np.ndarray:
         """The points (P, 3) an artist holds now (z = 0 in the plane): what a frame shows, for checks."""
