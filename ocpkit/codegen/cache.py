@@ -253,6 +253,29 @@ def load_problem(library: Path, symbol: str) -> str | None:
     return None
 
 
+def entry_problem(library: Path, symbol: str) -> str | None:
+    """None where the cached shared library is sound (:func:`entry_ok`) and loads with ``symbol``
+    (:func:`load_problem`); otherwise what is wrong, said of the entry: "is not in the cache", "is damaged (…)",
+    "does not load (…)"."""
+    library = Path(library)
+    if not entry_ok(library):
+        if library.exists():
+            return "is damaged (its content does not match the hash recorded beside it)"
+        return "is not in the cache"
+    problem = load_problem(library, symbol)
+    return None if problem is None else f"does not load ({problem})"
+
+
+def read_only_entry(library: Path, symbol: str, what: str, unwritable: OSError) -> Path:
+    """``library``, the entry ``what`` of a cache that cannot be written (as ``unwritable`` says: read-only, or full),
+    where it is sound and loads (:func:`entry_problem`); else :class:`CacheReadOnlyError` saying what is wrong and
+    how to fill the cache."""
+    problem = entry_problem(library, symbol)
+    if problem is not None:
+        raise read_only_error(f"{what} ({library}) {problem}", Path(library).parent.parent, unwritable) from None
+    return library
+
+
 @contextlib.contextmanager
 def entry_lock(entry: Path, timeout: float | None = LOCK_TIMEOUT, poll: float = 0.05):
     """Hold the build lock of cache entry ``entry`` (a file or folder): ``fcntl.flock`` on ``<entry>.lock``.

@@ -37,11 +37,10 @@ from ocpkit.codegen.cache import (
     CacheReadOnlyError,
     cache_dir,
     check_trusted,
-    entry_ok,
+    entry_problem,
     install,
-    load_problem,
     read_only,
-    read_only_error,
+    read_only_entry,
     warn_read_only,
 )
 
@@ -86,7 +85,7 @@ def _cached(fn: ca.Function, flags: str) -> ca.Function | None:
     """The compiled twin of ``fn`` from a sound cache entry that loads, or None (absent, damaged, not loading: the
     background compile sees to it)."""
     library = _entry(fn, flags)
-    if not entry_ok(library) or load_problem(library, fn.name()) is not None:
+    if entry_problem(library, fn.name()) is not None:
         return None
     return ca.external(fn.name(), str(library))
 
@@ -100,10 +99,7 @@ def _library(fn: ca.Function, flags: str) -> Path:
     except OSError as exc:  # CacheReadOnlyError, or a write on a full file system
         if not read_only(exc):
             raise
-        state = "is damaged" if library.exists() else "is not in the cache"
-        raise read_only_error(
-            f"the compiled function {fn.name()!r} ({library}) {state}", library.parent.parent, exc
-        ) from None
+        return read_only_entry(library, fn.name(), f"the compiled function {fn.name()!r}", exc)
     return library
 
 

@@ -35,6 +35,7 @@ from ocpkit.codegen.cache import (
     install,
     load_problem,
     read_only,
+    read_only_entry,
     read_only_error,
     scratch_dir,
     warn_read_only,
@@ -147,7 +148,9 @@ def _start(ocp: OCP, settings: tuple, wait: bool) -> Future | None:
         check_trusted(folder / f"lib{NAME}.so")  # refused before anything is loaded from it or built into it
         if unwritable is not None:
             shutil.rmtree(scratch, ignore_errors=True)
-            _check_read_only_entry(folder, root, unwritable)
+            read_only_entry(
+                folder / f"lib{NAME}.so", f"{NAME}_step_timed", "LinearMPC's C step for this OCP", unwritable
+            )
             future.set_result(folder)
             return future
         if not entry_ok(folder / f"lib{NAME}.so"):
@@ -229,22 +232,6 @@ def _key(source: Path) -> str:
     """The cache key of the generated files and the build's settings (:func:`ocpkit.codegen.builder.entry_key`)."""
     files = (path.name.encode() + b"\0" + path.read_bytes() for path in sorted(source.iterdir()))
     return entry_key(" ".join(MAKE_VARS).encode(), *files)
-
-
-def _check_read_only_entry(folder: Path, root: Path, unwritable: OSError) -> None:
-    """Raise :class:`CacheReadOnlyError` unless the library in ``folder`` of the cache that cannot be written (as
-    ``unwritable`` says: read-only, or full) is sound and loads."""
-    library = folder / f"lib{NAME}.so"
-    if not entry_ok(library):
-        state = (
-            "is damaged (its content does not match the hash recorded beside it)"
-            if library.exists()
-            else "is not in the cache"
-        )
-        raise read_only_error(f"LinearMPC's C step for this OCP ({library}) {state}", root, unwritable)
-    problem = _load_problem(library)
-    if problem is not None:
-        raise read_only_error(f"LinearMPC's cached C step {library} does not load ({problem})", root, unwritable)
 
 
 def _load_problem(library: Path) -> str | None:
