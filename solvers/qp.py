@@ -74,8 +74,8 @@ class LinearMPC(Controller):
 
     A step takes a goal window (stage k's terms towards row k, the input term towards row k's input goal, the
     terminal terms row T), moved obstacles (rows and certificate at x_k against row k; nothing rebuilt) and an
-    initial guess (the plan in place of the previous one shifted: the linearization and Gauss–Newton points; no warm
-    start from the previous answer) (:meth:`Controller.solve`). The C step takes the window and the obstacles
+    initial guess (the plan in place of the previous one shifted: the linearization and Gauss–Newton points, and
+    ProxQP's and OSQP's primal start) (:meth:`Controller.solve`). The C step takes the window and the obstacles
     (``<name>_step_window``); a step with a guess runs in Python ("Python step (initial guess)" in its path).
     """
 
@@ -408,7 +408,7 @@ class LinearMPC(Controller):
                 NAN, f"non-finite affine model at x = {x.tolist()}", times, reason=Reason.NON_FINITE_MODEL
             )
         transcriptions = transcriptions or self._transcriptions
-        task, n = {}, ocp.nx
+        task, n, guess = {}, ocp.nx, self.guess if knots is None else None  # the guess starts the step's first QP
         if ocp.task_functions is not None:
             if knots is None and self.guess is None:
                 knots = self.goal_knots(goal) if self.plan is None else ocp.parameterization.shift(self.plan)
@@ -436,7 +436,7 @@ class LinearMPC(Controller):
                 if problem is not None:
                     return self._fail(EXCEPTION, problem, times, reason=problem.reason)
             try:
-                warm = self._warm if self.warm_start and self.guess is None else None  # a guess replaces it
+                warm = (tr.primal(qp, guess),) if guess is not None else self._warm if self.warm_start else None
                 res = self._backend.solve(qp, warm, deadline)
             except Exception as exc:  # a backend that throws must not stop the control loop
                 times["solve"] += time.perf_counter() - t2

@@ -64,8 +64,9 @@ class QPBackend:
     costs: OperationCosts
 
     def solve(self, qp: QP, warm: tuple | None, deadline: float | None) -> Result:
-        """The answer to ``qp``, warm-started from ``warm`` (a previous :attr:`Result.duals`; None: cold) and
-        stopped at ``deadline`` (a ``time.perf_counter()`` value; None: no deadline) with status "limited"."""
+        """The answer to ``qp``, warm-started from ``warm`` (a previous :attr:`Result.duals`; ``(z,)``: a primal point
+        alone, a user's plan, that ProxQP and OSQP start from and the others ignore; None: cold) and stopped at
+        ``deadline`` (a ``time.perf_counter()`` value; None: no deadline) with status "limited"."""
         raise NotImplementedError
 
     def reset(self) -> None:

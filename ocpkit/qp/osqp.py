@@ -19,7 +19,7 @@ class OSQP(QPBackend):
     The update's return codes are checked (a failed update leaves the previous problem in place) and the
     time left of the step is OSQP's ``time_limit`` on every solve (OSQP counts its update time in it); the
     setup and the update (numeric refactorization), with the conversion of the data, start only if their measured
-    time fits.
+    time fits. A primal start ``(z,)`` starts the multipliers from zero.
     """
 
     factorizes = False
@@ -94,8 +94,8 @@ class OSQP(QPBackend):
                         reason=Reason.SOLVER_ERROR,
                     )
         costs.add(op, time.perf_counter() - t)
-        if warm is not None and len(warm) == 2 and warm[0].shape == (qp.n,) and warm[1].shape == lb.shape:
-            solver.warm_start(x=warm[0], y=warm[1])
+        if warm is not None and warm[0].shape == (qp.n,) and (len(warm) == 1 or warm[1].shape == lb.shape):
+            solver.warm_start(x=warm[0], y=warm[1] if len(warm) == 2 else np.zeros(lb.size))  # (z,): y from zero
         r = solver.solve(raise_error=False)
         S = self._osqp.SolverStatus
         status = {

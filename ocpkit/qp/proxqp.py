@@ -28,7 +28,8 @@ class ProxQP(QPBackend):
     A warm start from the previous step can leave ProxQP stalled with zero residuals and an open duality gap
     (the pendulum driven against a soft state bound: 10,000 iterations on every later step, where a cold solve
     takes 34), so a warm-started solve gets WARM_INNER inner iterations; if it has not converged by then the
-    QP is solved again from a cold start with what is left of the iterations and the budget.
+    QP is solved again from a cold start with what is left of the iterations and the budget. A primal start
+    ``(z,)`` (a user's plan) is ProxQP's WARM_START from z, its multipliers from zero.
     """
 
     CHUNK_OUTER, CHUNK_MAX_OUTER, CHUNK_INNER = 5, 640, 50
@@ -88,17 +89,18 @@ class ProxQP(QPBackend):
         # (5.8e-4 off in u on the pendulum); the duality gap closes that (GAP_REL: its part relative to the
         # objective's terms, far below eps wherever they are of order one).
         s.check_duality_gap, s.eps_duality_gap_abs, s.eps_duality_gap_rel = True, self.eps, self.GAP_REL
-        first = ()
+        primal = warm is not None and len(warm) == 1  # z alone: (z, None, None) to ProxQP
+        first = (warm[0], None, None) if primal else ()
         if reuse:
-            s.initial_guess = px.InitialGuess.WARM_START_WITH_PREVIOUS_RESULT
+            s.initial_guess = px.InitialGuess.WARM_START if primal else px.InitialGuess.WARM_START_WITH_PREVIOUS_RESULT
             solver.update(H, g, A, b, C, l, u, **box)
         else:
             # A fresh box-constrained solver starts cold: ProxQP 0.8 rejects (or crashes on) warm box duals.
-            warm_ok = warm is not None and not key[3]
+            warm_ok = warm is not None and (primal or not key[3])
             s.initial_guess = px.InitialGuess.WARM_START if warm_ok else px.InitialGuess.NO_INITIAL_GUESS
             solver.init(H, g, A, b, C, l, u, **box)
             self._key = key
-            first = warm if warm_ok else ()
+            first = first or (warm if warm_ok else ())
         warm_started = reuse or bool(first)
         costs.add(op, time.perf_counter() - t)
         out = px.QPSolverOutput

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
+from scipy.sparse.linalg import spsolve_triangular
 
 from ocpkit.qp.quadratic_program import QP
 from ocpkit.model.ocp import OCP
@@ -100,6 +101,13 @@ class SparseQP(Transcription):
         q[self.nz - self.ns :] = self.slack_weight
         b = np.r_[-np.asarray(x0, dtype=float), -wd.ravel() if ltv else np.tile(-wd, T)]
         return QP(self.P, q, A, b, self.C, self.l, self.u, convex=True)
+
+    def primal(self, qp: QP, knots) -> np.ndarray:
+        """A start z for ``qp`` at ``knots`` (p, m): with the states x_0 … x_T they imply through its dynamics rows
+        (lower triangular in the states), the slacks zero."""
+        z, nX = super().primal(qp, knots), self._k0
+        z[:nX] = spsolve_triangular(qp.A[:, :nX].tocsr(), qp.b - qp.A[:, nX:] @ z[nX:], lower=True)
+        return z
 
     def states(self, z: np.ndarray) -> np.ndarray:
         """Predicted states x_0 … x_T (T+1, n) from a solution vector."""

@@ -102,6 +102,10 @@ class Transcription:
         np.copyto(U, hi, where=hi - U <= tol_hi)
         return U
 
+    def primal(self, qp: QP, knots) -> np.ndarray:
+        """A start z for ``qp`` at ``knots`` (p, m) (:meth:`knots`' inverse), its other entries zero."""
+        return np.r_[np.zeros(self._k0), np.ravel(knots), np.zeros(qp.n - self._k0 - self.p * self.m)]
+
     def slacks(self, z: np.ndarray) -> np.ndarray:
         """State-bound slacks (ns,) from a solution vector (empty with hard bounds)."""
         return z[z.size - self.ns :]
