@@ -30,7 +30,7 @@ from ocpkit.codegen.kernels import runtime
 from ocpkit.codegen.kernels.random import normal, uniform
 from ocpkit.codegen.kernels.rollout import SparseRows
 from ocpkit.solvers.methods import EMPC
-from ocpkit.solvers.sampling import SEEDS, SamplingMPC
+from ocpkit.solvers.sampling import SEEDS, SamplingMPC, clip_func, seed_func
 
 
 class EvolutionaryMPC(SamplingMPC):
@@ -65,6 +65,7 @@ class EvolutionaryMPC(SamplingMPC):
         super().__init__(
             ocp, population=population, generations=generations, num_picked=self.num_parents, variant=variant, **options
         )
+        self.engine.write("shift", self._shift_rows.values())
         # Candidates below this index are carried over (the parents, then the seeds); the rest are bred.
         self._first_child = self.num_parents + (SEEDS if self.preconditioned else 0)
         paper_only = {"sigma": sigma, "shrink_distance": shrink_distance, "sigma_min": sigma_min}
@@ -76,14 +77,21 @@ class EvolutionaryMPC(SamplingMPC):
                     f"variant draws its mutation scale from scales"
                 )
             self.scales = _scales(scales)
-            self._generation_kernel = self._preconditioned_kernel()
+            self._generation_kernel = self._kernel("preconditioned")
         else:
             if scales is not None:
                 raise ValueError(
                     "scales applies to variant='preconditioned' only; the paper's variant mutates with sigma"
                 )
             self._paper_settings(sigma, shrink_distance, sigma_min)
-            self._generation_kernel = self._paper_kernel()
+            self._generation_kernel = self._kernel("paper")
+
+    def _sections(self) -> dict:
+        """The planner's sections and EMPC's: the shift S's rows (:class:`SparseRows`) and, with the paper's variant,
+        σ then σ_min."""
+        self._shift_rows = SparseRows(self._shift)
+        sigma = {} if self.preconditioned else {"sigma": 2 * self.ocp.nu}
+        return {**super()._sections(), "shift": self._shift_rows.size, **sigma}
 
     def _paper_settings(self, sigma, shrink_distance, sigma_min):
         ocp = self.ocp
@@ -104,122 +112,14 @@ class EvolutionaryMPC(SamplingMPC):
                 f"sigma_min must be finite with 0 <= sigma_min <= sigma "
                 f"({self.sigma.tolist()}), got {self.sigma_min.tolist()}"
             )
-        self._sigma = ti.field(self.engine.ftype, shape=(2, ocp.nu))  # σ and σ_min
-        runtime.stage(self._sigma, np.stack([self.sigma, self.sigma_min]))
+        self.engine.write("sigma", np.concatenate([self.sigma, self.sigma_min]))
 
-    def _parent_func(self):
-        """``parent(r, j, a, shift)``: knot j, input a of parent r; with ``shift``, of the parent
-        advanced one control step (U⁺ = S U, clipped): the warm start from the previous step's parents."""
+    def _kernel(self, variant: str):
+        """The generation kernel of ``variant``, shared by every EMPC of this engine's shape."""
         eng = self.engine
-        F = eng.ftype
-        parents, lo, hi = eng.picked, self._u_min, self._u_max
-        # S's nonzeros by row, in float64 as the Python constants they were when the kernel unrolled S (each product
-        # rounded to the knots' type). A run-time loop over them: S is dense for the piecewise-linear basis (its
-        # pseudo-inverse), p nonzeros a row.
-        shift_rows = SparseRows(self._shift)
-        columns, weights, width = shift_rows.columns, shift_rows.weights, shift_rows.width
-
-        @ti.func
-        def parent(r, j, a, shift):
-            v = parents[r, j, a]
-            if shift:
-                v = ti.cast(0.0, F)
-                for s in range(width):
-                    v += ti.cast(weights[j, s] * parents[r, columns[j, s], a], F)
-                v = ti.min(ti.max(v, lo[a]), hi[a])
-            return v
-
-        return parent
-
-    def _paper_kernel(self):
-        eng = self.engine
-        F = eng.ftype
-        N, p, m, k = eng.num_sims, eng.num_knots, eng.nu, self.num_parents
-        knots, record = eng.knots, eng.record
-        lo, hi, sigma = self._u_min, self._u_max, self._sigma
-        parent = self._parent_func()
-        # Random slots per candidate: parents, then a mutation flag per input, then a
-        # crossover coin and a noise draw per parameter.
-        MUTATE, CROSS, NOISE = 2, 2 + m, 2 + m + p * m
-
-        @ti.kernel
-        def generation(key: ti.u32, counter: ti.u32, cold: ti.i32, shift: ti.i32, scale: F, out: ti.types.ndarray()):
-            for i in range(N):
-                if cold:
-                    for j in range(p):
-                        for a in range(m):
-                            r = ti.cast(uniform(key, counter, i, CROSS + j * m + a), F)
-                            knots[i, j, a] = lo[a] + (hi[a] - lo[a]) * r
-                elif i < k:
-                    for j in range(p):
-                        for a in range(m):
-                            knots[i, j, a] = parent(i, j, a, shift)
-                else:
-                    p1 = ti.min(ti.cast(uniform(key, counter, i, 0) * k, ti.i32), k - 1)
-                    p2 = ti.min(ti.cast(uniform(key, counter, i, 1) * k, ti.i32), k - 1)
-                    for a in range(m):
-                        mutate = uniform(key, counter, i, MUTATE + a) < 0.5
-                        noise = sigma[1, a] + (sigma[0, a] - sigma[1, a]) * scale
-                        for j in range(p):
-                            slot = j * m + a
-                            v = parent(p1, j, a, shift)
-                            if uniform(key, counter, i, CROSS + slot) < 0.5:
-                                v = parent(p2, j, a, shift)
-                            if mutate:
-                                v += noise * ti.cast(normal(key, counter, i, NOISE + slot), F)
-                            knots[i, j, a] = ti.min(ti.max(v, lo[a]), hi[a])
-                record(i, out)
-
-        return generation
-
-    def _preconditioned_kernel(self):
-        eng = self.engine
-        F = eng.ftype
-        N, p, m, k = eng.num_sims, eng.num_knots, eng.nu, self.num_parents
-        d, pool = p * m, self.num_parents + SEEDS
-        knots, record = eng.knots, eng.record
-        lo, hi, whiten, seeds = self._u_min, self._u_max, self._whiten, self._seeds
-        parent = self._parent_func()
-        log_lo, log_span = math.log(self.scales[0]), math.log(self.scales[1] / self.scales[0])
-        # Random slots per candidate: two parents, the mutation scale, a crossover coin per parameter;
-        # the normal draws ε use their own stream.
-        SCALE, CROSS = 2, 3
-        eps = ti.field(F, shape=(N, d))  # each child's ε, drawn once and read by every row of L⁻ᵀε
-
-        @ti.func
-        def breeder(r, j, a, shift):
-            """Member r of the breeding pool: the parents, then the seeds."""
-            v = ti.cast(0.0, F)
-            if r < k:
-                v = parent(r, j, a, shift)
-            else:
-                v = seeds[r - k, j, a]
-            return v
-
-        @ti.kernel
-        def generation(key: ti.u32, counter: ti.u32, shift: ti.i32, out: ti.types.ndarray()):
-            for i in range(N):
-                if i < pool:  # the elites and the seeds themselves
-                    for j in range(p):
-                        for a in range(m):
-                            knots[i, j, a] = breeder(i, j, a, shift)
-                else:
-                    p1 = ti.min(ti.cast(uniform(key, counter, i, 0) * pool, ti.i32), pool - 1)
-                    p2 = ti.min(ti.cast(uniform(key, counter, i, 1) * pool, ti.i32), pool - 1)
-                    s = ti.cast(ti.exp(log_lo + log_span * uniform(key, counter, i, SCALE)), F)
-                    for c in range(d):
-                        eps[i, c] = ti.cast(normal(key, counter, i, c), F)
-                    for j in range(p):  # crossover, then the mutation s·L⁻ᵀε, then the clip, in place
-                        for a in range(m):
-                            r = j * m + a
-                            mate = p1 if uniform(key, counter, i, CROSS + r) < 0.5 else p2
-                            acc = ti.cast(0.0, F)
-                            for c in range(r, d):  # L⁻ᵀ is upper triangular
-                                acc += whiten[r, c] * eps[i, c]
-                            knots[i, j, a] = ti.min(ti.max(breeder(mate, j, a, shift) + s * acc, lo[a]), hi[a])
-                record(i, out)
-
-        return generation
+        shape = (eng.ftype, eng.num_knots, eng.nu, self._shift_rows.width, eng.layout)
+        build = _paper_kernel if variant == "paper" else _preconditioned_kernel
+        return runtime.shared(("empc", variant, *eng.key, self._shift_rows.width), lambda: build(eng.record, *shape))
 
     def reset(self):
         super().reset()
@@ -242,10 +142,13 @@ class EvolutionaryMPC(SamplingMPC):
 
     def _generation(self, cold):
         key, counter, shift = self.key, self.counter & 0xFFFFFFFF, int(self._shift_parents)
+        eng = self.engine
         if self.preconditioned:
-            self._launch(self._generation_kernel, key, counter, shift, self._results)
+            log_lo, log_span = math.log(self.scales[0]), math.log(self.scales[1] / self.scales[0])
+            args = (key, counter, shift, log_lo, log_span, eng.knots, eng.picked, eng.data, self._eps, self._results)
         else:
-            self._launch(self._generation_kernel, key, counter, int(cold), shift, self._scale, self._results)
+            args = (key, counter, int(cold), shift, self._scale, eng.knots, eng.picked, eng.data, self._results)
+        self._launch(self._generation_kernel, *args)
         self._shift_parents = False
         idx = self._ranked(self.num_parents)
         self._best = self._pick(idx)[0]
@@ -262,6 +165,144 @@ class EvolutionaryMPC(SamplingMPC):
 
     def _result(self, best):
         return self._best, best
+
+
+def _parent_func(ftype, p, width, layout):
+    """``parent(r, j, a, shift, parents, data)``: knot j, input a of parent r; with ``shift``, of the parent advanced
+    one control step (U⁺ = S U, clipped): the warm start from the previous step's parents. S enters by its nonzeros
+    per row (``width``; the "shift" section), in float64 as the Python constants they were when the kernel unrolled
+    S (each product rounded to the knots' type): a run-time loop over them, S dense for the piecewise-linear basis
+    (its pseudo-inverse), p nonzeros a row."""
+    columns = layout["shift"]
+    weights = columns + p * width
+    clip = clip_func(layout["bounds"], layout.sizes["bounds"] // 2, ftype)
+
+    @ti.func
+    def parent(r, j, a, shift, parents: ti.template(), data: ti.template()):
+        v = parents[r, j, a]
+        if shift:
+            v = ti.cast(0.0, ftype)
+            for s in range(width):
+                column = ti.cast(data[columns + j * width + s], ti.i32)
+                v += ti.cast(data[weights + j * width + s] * parents[r, column, a], ftype)
+            v = clip(v, a, data)
+        return v
+
+    return parent
+
+
+def _paper_kernel(record, F, p, m, width, layout):
+    """Algorithm 1's generation: a cold start draws every knot uniformly within the bounds; else the parents carry
+    over and the rest are children by uniform crossover and Gaussian mutation (σ, σ_min: the "sigma" section)."""
+    parent = _parent_func(F, p, width, layout)
+    bounds, sigma = layout["bounds"], layout["sigma"]
+    # Random slots per candidate: parents, then a mutation flag per input, then a
+    # crossover coin and a noise draw per parameter.
+    MUTATE, CROSS, NOISE = 2, 2 + m, 2 + m + p * m
+
+    @ti.kernel
+    def generation(
+        key: ti.u32,
+        counter: ti.u32,
+        cold: ti.i32,
+        shift: ti.i32,
+        scale: F,
+        knots: ti.types.ndarray(),
+        parents: ti.types.ndarray(),
+        data: ti.types.ndarray(),
+        out: ti.types.ndarray(),
+    ):
+        for i in range(knots.shape[0]):
+            k = parents.shape[0]
+            if cold:
+                for j in range(p):
+                    for a in range(m):
+                        r = ti.cast(uniform(key, counter, i, CROSS + j * m + a), F)
+                        lo, hi = ti.cast(data[bounds + a], F), ti.cast(data[bounds + m + a], F)
+                        knots[i, j, a] = lo + (hi - lo) * r
+            elif i < k:
+                for j in range(p):
+                    for a in range(m):
+                        knots[i, j, a] = parent(i, j, a, shift, parents, data)
+            else:
+                p1 = ti.min(ti.cast(uniform(key, counter, i, 0) * k, ti.i32), k - 1)
+                p2 = ti.min(ti.cast(uniform(key, counter, i, 1) * k, ti.i32), k - 1)
+                for a in range(m):
+                    mutate = uniform(key, counter, i, MUTATE + a) < 0.5
+                    high, low = ti.cast(data[sigma + a], F), ti.cast(data[sigma + m + a], F)
+                    noise = low + (high - low) * scale
+                    for j in range(p):
+                        slot = j * m + a
+                        v = parent(p1, j, a, shift, parents, data)
+                        if uniform(key, counter, i, CROSS + slot) < 0.5:
+                            v = parent(p2, j, a, shift, parents, data)
+                        if mutate:
+                            v += noise * ti.cast(normal(key, counter, i, NOISE + slot), F)
+                        lo, hi = ti.cast(data[bounds + a], F), ti.cast(data[bounds + m + a], F)
+                        knots[i, j, a] = ti.min(ti.max(v, lo), hi)
+            record(i, knots, data, out)
+
+    return generation
+
+
+def _preconditioned_kernel(record, F, p, m, width, layout):
+    """The preconditioned generation: the parents and the seeds carry over; each child crosses two of them and
+    is mutated by s·L⁻ᵀε, s log-uniform in [exp(log_lo), exp(log_lo + log_span)] (module docstring)."""
+    parent = _parent_func(F, p, width, layout)
+    d = p * m
+    clip = clip_func(layout["bounds"], m, F)
+    seed = seed_func(layout["preconditioner"], d, p, m, F)
+    whiten = layout["preconditioner"]  # L⁻ᵀ (d × d), then the seeds
+    # Random slots per candidate: two parents, the mutation scale, a crossover coin per parameter;
+    # the normal draws ε use their own stream.
+    SCALE, CROSS = 2, 3
+
+    @ti.func
+    def breeder(r, j, a, shift, parents: ti.template(), data: ti.template()):
+        """Member r of the breeding pool: the parents, then the seeds."""
+        v = ti.cast(0.0, F)
+        if r < parents.shape[0]:
+            v = parent(r, j, a, shift, parents, data)
+        else:
+            v = seed(r - parents.shape[0], j, a, data)
+        return v
+
+    @ti.kernel
+    def generation(
+        key: ti.u32,
+        counter: ti.u32,
+        shift: ti.i32,
+        log_lo: ti.f64,
+        log_span: ti.f64,
+        knots: ti.types.ndarray(),
+        parents: ti.types.ndarray(),
+        data: ti.types.ndarray(),
+        eps: ti.types.ndarray(),
+        out: ti.types.ndarray(),
+    ):
+        for i in range(knots.shape[0]):
+            pool = parents.shape[0] + SEEDS
+            if i < pool:  # the elites and the seeds themselves
+                for j in range(p):
+                    for a in range(m):
+                        knots[i, j, a] = breeder(i, j, a, shift, parents, data)
+            else:
+                p1 = ti.min(ti.cast(uniform(key, counter, i, 0) * pool, ti.i32), pool - 1)
+                p2 = ti.min(ti.cast(uniform(key, counter, i, 1) * pool, ti.i32), pool - 1)
+                s = ti.cast(ti.exp(log_lo + log_span * uniform(key, counter, i, SCALE)), F)
+                for c in range(d):
+                    eps[i, c] = ti.cast(normal(key, counter, i, c), F)
+                for j in range(p):  # crossover, then the mutation s·L⁻ᵀε, then the clip, in place
+                    for a in range(m):
+                        r = j * m + a
+                        mate = p1 if uniform(key, counter, i, CROSS + r) < 0.5 else p2
+                        acc = ti.cast(0.0, F)
+                        for c in range(r, d):  # L⁻ᵀ is upper triangular
+                            acc += ti.cast(data[whiten + r * d + c], F) * eps[i, c]
+                        knots[i, j, a] = clip(breeder(mate, j, a, shift, parents, data) + s * acc, a, data)
+            record(i, knots, data, out)
+
+    return generation
 
 
 def _scales(scales) -> tuple[float, float]:

@@ -6,8 +6,9 @@ import numpy as np
 import taichi as ti
 
 from ocpkit._checks import array, positive
+from ocpkit.codegen.kernels import runtime
 from ocpkit.codegen.kernels.random import normal
-from ocpkit.solvers.sampling import SEEDS, SamplingMPC, best_first, excess
+from ocpkit.solvers.sampling import SEEDS, SamplingMPC, best_first, clip_func, excess, seed_func
 
 
 class GaussianSampling(SamplingMPC):
@@ -43,45 +44,10 @@ class GaussianSampling(SamplingMPC):
             self.sigma = 0.1 * span if sigma is None else array(np.broadcast_to(sigma, span.shape), "sigma", span.shape)
             if (self.sigma < 0).any():
                 raise ValueError(f"sigma must be >= 0, got {self.sigma.tolist()}")
-        knots, record, lo, hi = eng.knots, eng.record, self._u_min, self._u_max
         seeded = SEEDS if self.preconditioned else 0
-        seeds = self._seeds if self.preconditioned else None
-        eps = ti.field(F, shape=(N, d))  # each candidate's ε, drawn once and read by every row of G ε
-
-        # Run-time loops over the knots and parameters: unrolled, the kernel's compile time grew with p·m.
-        @ti.kernel
-        def generation(key: ti.u32, counter: ti.u32, distribution: ti.types.ndarray(), out: ti.types.ndarray()):
-            for i in range(N):
-                if i > seeded:
-                    for c in range(d):
-                        eps[i, c] = ti.cast(normal(key, counter, i, c), F)
-                for j in range(p):
-                    for a in range(m):
-                        r = j * m + a
-                        v = ti.cast(distribution[0, r], F)
-                        # Only a compile-time condition drops the seeds' code where there are none ("paper": seeds
-                        # is None): `ti.static(seeded) and …` is a run-time `and`, whose body Taichi still compiles.
-                        if ti.static(seeded > 0):
-                            if 1 <= i <= seeded:
-                                v = seeds[i - 1, j, a]
-                        if i > seeded:
-                            acc = ti.cast(0.0, F)
-                            for c in range(d):
-                                acc += ti.cast(distribution[1 + r, c], F) * eps[i, c]
-                            v += acc
-                        knots[i, j, a] = ti.min(ti.max(v, lo[a]), hi[a])
-                record(i, out)
-
-        @ti.kernel
-        def evaluate(candidates: ti.types.ndarray(), out: ti.types.ndarray()):
-            for i in range(candidates.shape[0]):  # into the population's first places, clipped as there
-                for j in range(p):
-                    for a in range(m):
-                        knots[i, j, a] = ti.min(ti.max(ti.cast(candidates[i, j, a], F), lo[a]), hi[a])
-                record(i, out)
-
-        self._gaussian_kernel = generation
-        self._evaluate_kernel = evaluate
+        self._gaussian_kernel, self._evaluate_kernel = runtime.shared(
+            ("gaussian", seeded, *eng.key), lambda: _kernels(eng.record, F, p, m, seeded, eng.layout)
+        )
         self._distribution = np.empty((1 + d, d), dtype=eng.ntype)
         # As in the population, a smaller one holds fewer seeds.
         self._centers = min(N, 1 + SEEDS) if self.preconditioned else 1
@@ -90,7 +56,10 @@ class GaussianSampling(SamplingMPC):
         """Roll out a few candidates (each (p, m)) in one small launch, counted as ``generations``; their (cost,
         violation) rows. They overwrite the population's first places."""
         results = self.engine.results(len(candidates))
-        self._launch(self._evaluate_kernel, np.ascontiguousarray(candidates, dtype=self.engine.ntype), results)
+        eng = self.engine
+        self._launch(
+            self._evaluate_kernel, np.ascontiguousarray(candidates, dtype=eng.ntype), eng.knots, eng.data, results
+        )
         return results
 
     def _final(self, mean: np.ndarray, best: tuple[float, float], index: int) -> tuple[np.ndarray, tuple]:
@@ -134,4 +103,58 @@ class GaussianSampling(SamplingMPC):
         dist = self._distribution
         dist[0] = mean.ravel()
         dist[1:] = self.preconditioner.whiten * self.std if self.preconditioned else np.diag(self.std)
-        self._launch(self._gaussian_kernel, self.key, self.counter & 0xFFFFFFFF, dist, self._results)
+        eng = self.engine
+        counter = self.counter & 0xFFFFFFFF
+        self._launch(self._gaussian_kernel, self.key, counter, dist, eng.knots, eng.data, self._eps, self._results)
+
+
+def _kernels(record, F, p, m, seeded, layout):
+    """(generation, evaluate): the population drawn around a distribution and rolled out, and a few given candidates
+    rolled out; ``seeded``: how many seeds (the "preconditioner" section) follow the mean, 0 for none."""
+    d = p * m
+    clip = clip_func(layout["bounds"], m, F)
+    seed = seed_func(layout["preconditioner"], d, p, m, F) if seeded else None
+
+    # Run-time loops over the knots and parameters: unrolled, the kernel's compile time grew with p·m.
+    @ti.kernel
+    def generation(
+        key: ti.u32,
+        counter: ti.u32,
+        distribution: ti.types.ndarray(),
+        knots: ti.types.ndarray(),
+        data: ti.types.ndarray(),
+        eps: ti.types.ndarray(),
+        out: ti.types.ndarray(),
+    ):
+        for i in range(knots.shape[0]):
+            if i > seeded:
+                for c in range(d):
+                    eps[i, c] = ti.cast(normal(key, counter, i, c), F)
+            for j in range(p):
+                for a in range(m):
+                    r = j * m + a
+                    v = ti.cast(distribution[0, r], F)
+                    # Only a compile-time condition drops the seeds' code where there are none ("paper"):
+                    # `ti.static(seeded) and …` is a run-time `and`, whose body Taichi still compiles.
+                    if ti.static(seeded > 0):
+                        if 1 <= i <= seeded:
+                            v = seed(i - 1, j, a, data)
+                    if i > seeded:
+                        acc = ti.cast(0.0, F)
+                        for c in range(d):
+                            acc += ti.cast(distribution[1 + r, c], F) * eps[i, c]
+                        v += acc
+                    knots[i, j, a] = clip(v, a, data)
+            record(i, knots, data, out)
+
+    @ti.kernel
+    def evaluate(
+        candidates: ti.types.ndarray(), knots: ti.types.ndarray(), data: ti.types.ndarray(), out: ti.types.ndarray()
+    ):
+        for i in range(candidates.shape[0]):  # into the population's first places, clipped as there
+            for j in range(p):
+                for a in range(m):
+                    knots[i, j, a] = clip(ti.cast(candidates[i, j, a], F), a, data)
+            record(i, knots, data, out)
+
+    return generation, evaluate

@@ -20,6 +20,7 @@ import numpy as np
 import taichi as ti
 
 from ocpkit._checks import positive
+from ocpkit.codegen.kernels import runtime
 from ocpkit.solvers.methods import MPPI
 from ocpkit.solvers.gaussian import GaussianSampling
 from ocpkit.solvers.sampling import excess
@@ -42,19 +43,10 @@ class MPPI(GaussianSampling):
         super().__init__(ocp, population=population, generations=generations, sigma=sigma, **options)
         self.temperature = positive(temperature, "temperature")
         eng = self.engine
-        N, p, m = eng.num_sims, eng.num_knots, eng.nu
-        knots, serial = eng.knots, eng.serial_transfers
-
-        @ti.kernel
-        def weighted_average(weights: ti.types.ndarray(), out: ti.types.ndarray()):
-            ti.loop_config(serialize=serial)
-            for j, a in ti.ndrange(p, m):
-                s = ti.cast(0.0, eng.ftype)
-                for i in range(N):
-                    s += ti.cast(weights[i], eng.ftype) * knots[i, j, a]
-                out[j, a] = s
-
-        self._weighted_average = weighted_average
+        self._weighted_average = runtime.shared(
+            ("weighted average", eng.ftype, eng.num_knots, eng.nu, eng.arch),
+            lambda: _weighted_average(eng.ftype, eng.num_knots, eng.nu, eng.serial_transfers),
+        )
 
     def _start(self, x, goal, cold):
         self.nominal = self._start_distribution(getattr(self, "nominal", None), cold)
@@ -70,12 +62,27 @@ class MPPI(GaussianSampling):
         if np.isfinite(low):
             w = np.exp(-(cost - low) / self.temperature)
             self.nominal = np.empty((self.ocp.knots, self.ocp.nu))
-            self._launch(self._weighted_average, w / w.sum(), self.nominal)
+            self._launch(self._weighted_average, w / w.sum(), self.engine.knots, self.nominal)
         return self._outcome(self._best_index)
 
     def _result(self, best):
         self.nominal, best = self._final(self.nominal, best, self._best_index)
         return self.nominal, best
+
+
+def _weighted_average(F, p, m, serial):
+    """Σ_i w_i U_i over the population's knots."""
+
+    @ti.kernel
+    def weighted_average(weights: ti.types.ndarray(), knots: ti.types.ndarray(), out: ti.types.ndarray()):
+        ti.loop_config(serialize=serial)
+        for j, a in ti.ndrange(p, m):
+            s = ti.cast(0.0, F)
+            for i in range(knots.shape[0]):
+                s += ti.cast(weights[i], F) * knots[i, j, a]
+            out[j, a] = s
+
+    return weighted_average
 
 
 SOLVERS = {"mppi": MPPI}

@@ -52,7 +52,6 @@ import taichi as ti
 from ocpkit._checks import choice, integer, positive
 from ocpkit.controller import Controller, check_linearization
 from ocpkit.status import EXCEPTION, LIMITED, NAN, SUCCESS, OperationCosts, Reason, Solution
-from ocpkit.codegen.kernels import runtime
 from ocpkit.codegen.kernels.random import seed_key
 from ocpkit.codegen.kernels.rollout import FEASIBILITY_TOLERANCE, Rollout
 from ocpkit.solvers.methods import SAMPLING, VARIANTS
@@ -89,6 +88,28 @@ def best_first(results: np.ndarray, count: int) -> np.ndarray:
             break
     order = np.lexsort((idx,) + tuple(key[idx] for key in reversed(keys)))
     return idx[order[:count]]
+
+
+def clip_func(offset: int, m: int, ftype):
+    """``clip(v, a, data)`` (a ``@ti.func``): v within input a's bounds, read from the "bounds" section of the engine's
+    data at ``offset`` (u_min, then u_max; ``m`` inputs) in the float type ``ftype``."""
+
+    @ti.func
+    def clip(v, a, data: ti.template()):
+        return ti.min(ti.max(v, ti.cast(data[offset + a], ftype)), ti.cast(data[offset + m + a], ftype))
+
+    return clip
+
+
+def seed_func(offset: int, d: int, p: int, m: int, ftype):
+    """``seed(s, j, a, data)`` (a ``@ti.func``): knot j, input a of seed s (0: the Newton candidate, 1: the holding
+    input), read from the "preconditioner" section at ``offset`` after L⁻ᵀ (d × d)."""
+
+    @ti.func
+    def seed(s, j, a, data: ti.template()):
+        return ti.cast(data[offset + d * d + (s * p + j) * m + a], ftype)
+
+    return seed
 
 
 class SamplingMPC(Controller):
@@ -157,6 +178,9 @@ class SamplingMPC(Controller):
                 "ocpkit.codegen.kernels.rollout.fitness(ocp), or leave them out of the OCP"
             )
         self.key = seed_key(seed)
+        p, m = ocp.knots, ocp.nu
+        # The warm start's time shift is linear in the knots: U⁺ = S U.
+        self._shift = ocp.parameterization.shift(np.eye(p))
         self.engine = Rollout(
             ocp,
             self.population,
@@ -166,37 +190,23 @@ class SamplingMPC(Controller):
             terminal_cost=terminal_cost,
             precision=precision,
             arch=arch,
+            sections=self._sections(),
         )
-        F = self.engine.ftype
-        p, m = ocp.knots, ocp.nu
-        self._u_min = ti.field(F, shape=m)
-        self._u_max = ti.field(F, shape=m)
-        runtime.stage(self._u_min, ocp.u_min)
-        runtime.stage(self._u_max, ocp.u_max)
+        self.engine.write("bounds", np.concatenate([ocp.u_min, ocp.u_max]))
         self._affine = dynamics == "affine"
         self._costs = OperationCosts()  # the stages of a step (see time_limit)
         self._compiled = False  # whether a step has run: the first one compiles the kernels, its times are not kept
         self._results = self.engine.results()  # the last generation's (cost, violation) per candidate
-        # The warm start's time shift is linear in the knots: U⁺ = S U.
-        self._shift = ocp.parameterization.shift(np.eye(p))
+        # each candidate's ε, drawn once and read by every row of its mutation (EMPC's L⁻ᵀε, CEM's and MPPI's G ε)
+        self._eps = ti.ndarray(self.engine.ftype, (self.population, p * m))
         if self.preconditioned:
             self.preconditioner = Preconditioner(ocp)
-            d = p * m
-            self._whiten = ti.field(F, shape=(d, d))  # L⁻ᵀ
-            self._seeds = ti.field(F, shape=(SEEDS, p, m))  # Newton candidate, holding input
-            whiten, seeds, serial = self._whiten, self._seeds, self.engine.serial_transfers
 
-            @ti.kernel
-            def upload(values: ti.types.ndarray()):
-                ti.loop_config(serialize=serial)
-                for r, c in ti.ndrange(d, d):
-                    whiten[r, c] = values[r * d + c]
-                ti.loop_config(serialize=serial)
-                for s, j, a in ti.ndrange(SEEDS, p, m):
-                    seeds[s, j, a] = values[d * d + (s * p + j) * m + a]
-
-            self._upload_preconditioner = upload
-            self._upload_buffer = np.empty(d * d + SEEDS * d, dtype=self.engine.ntype)
+    def _sections(self) -> dict:
+        """The engine's data sections this planner's kernels read (:class:`Rollout` ``sections``): the input bounds
+        (u_min, then u_max) and, preconditioned, L⁻ᵀ then the seeds (Newton candidate, holding input)."""
+        d = self.ocp.knots * self.ocp.nu
+        return {"bounds": 2 * self.ocp.nu, **({"preconditioner": d * d + SEEDS * d} if self.preconditioned else {})}
 
     @property
     def path(self) -> str:
@@ -326,10 +336,7 @@ class SamplingMPC(Controller):
             self._moved_obstacles(),
         )
         t_copy = time.perf_counter()
-        np.concatenate(
-            [pre.whiten.ravel(), pre.newton.ravel(), pre.hold.ravel()], out=self._upload_buffer, casting="same_kind"
-        )
-        self._upload_preconditioner(self._upload_buffer)
+        self.engine.write("preconditioner", np.concatenate([pre.whiten.ravel(), pre.newton.ravel(), pre.hold.ravel()]))
         times["copies"] += time.perf_counter() - t_copy
         self._measured("preconditioner", t)
 

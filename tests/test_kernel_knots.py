@@ -19,25 +19,28 @@ from ocpkit.solvers.empc import EvolutionaryMPC
 pytestmark = pytest.mark.usefixtures("taichi_arch")
 
 
-def test_staged_constants_upload_in_one_quiet_launch(capfd):
-    """runtime.stage/upload fill fields of any rank in one kernel, and Taichi prints nothing doing it (a struct-for
-    with serialize made it warn once per field in every planner's construction)."""
-    vector, matrix = ti.field(ti.f64, shape=3), ti.field(ti.i32, shape=(2, 3))
-    runtime.stage(vector, [1.0, 2.0, 3.0])
-    runtime.stage(matrix, np.arange(6).reshape(2, 3))
-    runtime.upload()
-    np.testing.assert_array_equal(vector.to_numpy(), [1.0, 2.0, 3.0])
-    np.testing.assert_array_equal(matrix.to_numpy(), np.arange(6).reshape(2, 3))
+def test_write_fills_a_section_of_a_device_array_in_one_quiet_launch(capfd):
+    """runtime.write copies a host array into a device array from an offset and leaves the rest alone, and Taichi
+    prints nothing doing it (a struct-for with serialize warned once per field in every planner's construction)."""
+    data = ti.ndarray(ti.f64, (6,))
+    data.from_numpy(np.zeros(6))
+    runtime.write(data, np.array([1.0, 2.0, 3.0]), 2)
+    np.testing.assert_array_equal(data.to_numpy(), [0.0, 0.0, 1.0, 2.0, 3.0, 0.0])
     assert "[W " not in capfd.readouterr().err
-    with pytest.raises(ValueError, match="shape"):
-        runtime.stage(vector, [1.0, 2.0])
+
+
+def test_shared_builds_once_per_key():
+    built = []
+    first = runtime.shared(("test", 1), lambda: built.append(1) or object())
+    assert runtime.shared(("test", 1), lambda: built.append(2) or object()) is first
+    assert runtime.shared(("test", 2), lambda: built.append(3) or object()) is not first
+    assert built == [1, 3]
 
 
 def test_sparse_rows_hold_each_rows_nonzeros_in_column_order():
     M = np.array([[0.0, 2.0, 0.0, -1.0], [0.0, 0.0, 0.0, 0.0], [3.0, 4.0, 5.0, 1e-300]])
     rows = SparseRows(M)
-    runtime.upload()
-    columns, weights = rows.columns.to_numpy(), rows.weights.to_numpy()
+    columns, weights = rows.columns, rows.weights
     assert rows.width == 4 and columns.shape == weights.shape == (3, 4)
     np.testing.assert_array_equal(columns[0, :2], [1, 3])
     np.testing.assert_array_equal(columns[2], [0, 1, 2, 3])
@@ -46,7 +49,8 @@ def test_sparse_rows_hold_each_rows_nonzeros_in_column_order():
     for k in range(M.shape[0]):
         np.add.at(dense[k], columns[k], weights[k])
     np.testing.assert_array_equal(dense, M)
-    assert SparseRows(np.zeros((2, 3))).width == 1
+    np.testing.assert_array_equal(rows.values(), np.r_[columns.ravel(), weights.ravel()])  # the section, in order
+    assert rows.size == 24 and SparseRows(np.zeros((2, 3))).width == 1
     with pytest.raises(ValueError, match="matrix"):
         SparseRows(np.zeros(3))
 
@@ -70,20 +74,19 @@ def test_kernel_inputs_equal_the_parameterization(kind):
         param = Parameterization.make(kind, T, p)
     ocp = OCP(problem.model(1.0), problem.dt, T, parameterization=param, **problem.defaults())
     engine = Rollout(ocp, N)
-    runtime.upload()  # the basis' fields, before a kernel of our own reads them (load() does it otherwise)
     U = np.random.default_rng(0).uniform(ocp.u_min, ocp.u_max, size=(N, ocp.knots, ocp.nu))
     engine.knots.from_numpy(U)
     input_at, m = engine.input_at, ocp.nu
 
     @ti.kernel
-    def inputs(out: ti.types.ndarray()):
+    def inputs(knots: ti.types.ndarray(), data: ti.types.ndarray(), out: ti.types.ndarray()):
         for i, k in ti.ndrange(N, T):
-            u = input_at(i, k)
+            u = input_at(i, k, knots, data)
             for a in ti.static(range(m)):
                 out[i, k, a] = u[a]
 
     got = np.empty((N, T, m))
-    inputs(got)
+    inputs(engine.knots, engine.data, got)
     expected = np.array([param.inputs(knots) for knots in U])
     np.testing.assert_allclose(got, expected, rtol=1e-14, atol=1e-14 * np.abs(U).max())
     if kind in ("zoh", "identity"):  # one weight 1.0 a row: the knots themselves

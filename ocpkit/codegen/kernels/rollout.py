@@ -19,10 +19,12 @@ caller each control step, or the full nonlinear discrete model F translated from
 
 Kernels loop over knots and knot parameters at run time instead of unrolling them, so their compile time does not grow
 with p (unrolled, it did): the basis enters as its few nonzeros per row
-(:class:`SparseRows`), and the knots are read from their field.
+(:class:`SparseRows`), and the knots are read from their array.
 """
 
 # No "from __future__ import annotations": Taichi reads kernel annotations as types.
+import types
+
 import casadi as ca
 import numpy as np
 import taichi as ti
@@ -104,45 +106,73 @@ def violation(ocp):
 
 
 class SparseRows:
-    """A matrix (r × c) as Taichi fields of its nonzeros by row: ``columns[k, s]`` and ``weights[k, s]``,
-    s < ``width`` (the most nonzeros of a row, at least 1), columns in increasing order, a shorter row padded
-    with weight 0 at column 0.
+    """A matrix (r × c) as its nonzeros by row: ``columns[k, s]`` and ``weights[k, s]``, s < ``width`` (the most
+    nonzeros of a row, at least 1), columns in increasing order, a shorter row padded with weight 0 at column 0.
 
     Row k times a vector v is then Σ_s weights[k, s]·v[columns[k, s]]: the dense sum Σ_j M_kj v_j in the same
     order without its exact zeros, so the same value (up to the sign of a zero) for finite v. A
     Parameterization's basis has at most a B-spline's degree + 1 nonzeros per row (piecewise-linear 2, zero-order
-    hold and identity 1); its shift matrix can be dense (the linear basis' pseudo-inverse).
-    ``precision`` is the weights' float type. The fields are filled at the next :func:`runtime.upload`.
+    hold and identity 1); its shift matrix can be dense (the linear basis' pseudo-inverse). Kernels read both from
+    a section of a :class:`Layout` (:meth:`values`, the columns as floats: exact below 2^53).
     """
 
-    def __init__(self, matrix: np.ndarray, precision: str = "float64"):
+    def __init__(self, matrix: np.ndarray):
         matrix = np.asarray(matrix, dtype=np.float64)
         if matrix.ndim != 2:
             raise ValueError(f"matrix must be 2-D, got shape {matrix.shape}")
-        ftype, _ = runtime.float_types(precision)
         nonzero = matrix != 0
         self.width = max(1, int(nonzero.sum(axis=1).max(initial=0)))
-        columns = np.zeros((matrix.shape[0], self.width), dtype=np.int32)
-        weights = np.zeros((matrix.shape[0], self.width))
+        self.columns = np.zeros((matrix.shape[0], self.width), dtype=np.int32)
+        self.weights = np.zeros((matrix.shape[0], self.width))
         for k, row in enumerate(nonzero):
             cols = np.flatnonzero(row)
-            columns[k, : cols.size] = cols
-            weights[k, : cols.size] = matrix[k, cols]
-        self.columns = ti.field(ti.i32, shape=columns.shape)
-        self.weights = ti.field(ftype, shape=weights.shape)
-        runtime.stage(self.columns, columns)
-        runtime.stage(self.weights, weights)
+            self.columns[k, : cols.size] = cols
+            self.weights[k, : cols.size] = matrix[k, cols]
+
+    @property
+    def size(self) -> int:
+        """The section's length: the columns, then the weights, row by row."""
+        return 2 * self.columns.size
+
+    def values(self) -> np.ndarray:
+        """The section's contents (:attr:`size` floats)."""
+        return np.concatenate([self.columns.ravel(), self.weights.ravel()]).astype(np.float64)
+
+
+class Layout:
+    """Named sections of a rollout engine's data: one float64 array on the device, the sections side by side in the
+    order given. Kernels read a section at its offset, a compile-time constant: the layout is part of their key
+    (:func:`ocpkit.codegen.kernels.runtime.shared`)."""
+
+    def __init__(self, sizes: dict):
+        self.sizes, self.offsets, total = dict(sizes), {}, 0
+        for name, size in self.sizes.items():
+            self.offsets[name] = total
+            total += int(size)
+        self.total = total
+
+    def __getitem__(self, name: str) -> int:
+        return self.offsets[name]
+
+    @property
+    def key(self) -> tuple:
+        return tuple(self.sizes.items())
 
 
 class Rollout:
     """Rollout engine for ``num_sims`` candidates of ``ocp`` on the Taichi runtime.
 
-    ``knots`` (num_sims, p, m) is a device field; ``rollout(i)`` is a ``@ti.func`` that simulates candidate i and
-    returns its cost J and violation V (:func:`violation` summed over x_1 … x_T, on the rollout's ``dynamics``), and
-    ``record(i, out)`` one that writes them to row i of ``out``, for solver kernels that generate candidates and roll
-    them out in one launch (``input_at(i, k)``: the ``@ti.func`` of its input u_k; :meth:`load` fills the
-    engine's constant fields first, :func:`runtime.upload` does where a kernel of yours runs without it);
-    ``picked`` (num_picked, p, m) receives the candidates chosen by :meth:`pick` (parents, elites).
+    Its arrays live on the device (Taichi ndarrays): ``knots`` (num_sims, p, m) the population, ``picked``
+    (num_picked, p, m) the candidates chosen by :meth:`pick` (parents, elites), and ``data`` the float64 sections of
+    :attr:`layout`: x_0, the goal and obstacle windows, the affine model, the basis, then the ``sections`` a planner
+    asks for (its bounds, seeds …), which it fills with :meth:`write`. Kernels take them as arguments, so the kernels
+    are compiled once per shape (:attr:`key`) and serve every engine of that shape in the process; Taichi's offline
+    cache keys them by their code, so other processes load them (:func:`ocpkit.codegen.kernels.runtime.shared`).
+
+    ``rollout(i, knots, data)`` is a ``@ti.func`` that simulates candidate i and returns its cost J and violation V
+    (:func:`violation` summed over x_1 … x_T, on the rollout's ``dynamics``), and ``record(i, knots, data, out)`` one
+    that writes them to row i of ``out``, for solver kernels that generate candidates and roll them out in one launch
+    (``input_at(i, k, knots, data)``: the ``@ti.func`` of its input u_k).
     ``stage_cost`` (x, u, goal) -> scalar and ``terminal_cost`` (x, goal) -> scalar default to :func:`fitness`
     (the OCP's cost; with a task, its terms and its obstacles' penalty); goal has ``ocp.ng`` entries, stage k's row
     k of the step's goal window and the terminal cost's row T. The violation is the OCP's whatever the costs;
@@ -167,6 +197,7 @@ class Rollout:
         terminal_cost=None,
         precision: str = "float64",
         arch: str = "auto",
+        sections: dict | None = None,
     ):
         if isinstance(num_sims, bool) or not isinstance(num_sims, (int, np.integer)) or num_sims < 1:
             raise ValueError(f"num_sims must be a positive integer, got {num_sims!r}")
@@ -204,169 +235,41 @@ class Rollout:
         v = violation(ocp)
         x, u, g, O = ca.SX.sym("x", n), ca.SX.sym("u", m), ca.SX.sym("goal", ng), ca.SX.sym("O", 4, N)
         table = O if N else None
-        stage = translate(_with_violation("stage_terms", stage_cost, v, [x, u, g], table), precision=precision).func
-        terminal = translate(
-            _with_violation("terminal_terms", terminal_cost, v, [x, g], table), precision=precision
-        ).func
-
-        F = self.ftype
-        self.knots = ti.field(F, shape=(num_sims, p, m))
-        self.picked = ti.field(F, shape=(num_picked, p, m))
-        self.basis = SparseRows(basis, precision)
-        self._x0 = ti.field(F, shape=n)
-        self._goal = ti.field(F, shape=(T + 1, ng))  # the goal window: row k, stage k's goal
-        # the obstacle window: row k, the table O (4 × N) at stage k in column-major order (an obstacle's centre and
-        # radius side by side), as the translated functions take it
-        self._obstacles = ti.field(F, shape=(T + 1, 4 * N)) if N else None
-        if dynamics == "affine":
-            self._A = ti.field(F, shape=(n, n))
-            self._B = ti.field(F, shape=(n, m))
-            self._w = ti.field(F, shape=n)
-            A, B, w = self._A, self._B, self._w
-
-            # Both forms unroll the rows and loop over the columns (a full unroll compiles far longer
-            # at nlink:13). On the CPU, one dot product per row (measured faster: its n accumulators
-            # would not fit in registers). On CUDA, the column loop outside: each column's n
-            # multiply-adds are independent, so a thread issues them back to back instead of waiting
-            # on one row's running sum (measured faster per generation on an H100, the launch
-            # overhead subtracted).
-            column_outer = self.arch == "cuda"
-
-            @ti.func
-            def step(x, u):
-                xn = ti.Vector([w[r] for r in ti.static(range(n))], dt=F)
-                if ti.static(column_outer):
-                    for c in range(n):
-                        xc = x[c]
-                        for r in ti.static(range(n)):
-                            xn[r] += A[r, c] * xc
-                    for c in range(m):
-                        uc = u[c]
-                        for r in ti.static(range(n)):
-                            xn[r] += B[r, c] * uc
-                else:
-                    for r in ti.static(range(n)):
-                        s = xn[r]
-                        for c in range(n):
-                            s += A[r, c] * x[c]
-                        for c in range(m):
-                            s += B[r, c] * u[c]
-                        xn[r] = s
-                return xn
-        else:
-            A = B = w = None
+        stage = translate(_with_violation("stage_terms", stage_cost, v, [x, u, g], table), precision=precision)
+        terminal = translate(_with_violation("terminal_terms", terminal_cost, v, [x, g], table), precision=precision)
+        discrete = None
+        if dynamics == "nonlinear":
             discrete = ocp.discrete()
             _check_signature("ocp.discrete()", discrete, [(n, 1), (m, 1)], [(n, 1)])
-            step = translate(discrete, precision=precision).func
-
-        knots, x0, goal, obstacles = self.knots, self._x0, self._goal, self._obstacles
-        columns, weights, width = self.basis.columns, self.basis.weights, self.basis.width
-
-        @ti.func
-        def input_at(i, k):
-            """u_k = Σ_j φ_kj U_j of candidate i, over the nonzeros of the basis' row k."""
-            u = ti.Vector.zero(F, m)
-            for s in ti.static(range(width)):
-                j, phi = columns[k, s], weights[k, s]
-                for a in ti.static(range(m)):
-                    u[a] += phi * knots[i, j, a]
-            return u
-
-        @ti.func
-        def goal_at(k):
-            return ti.Vector([goal[k, r] for r in ti.static(range(ng))], dt=F)
-
-        if N:
-
-            @ti.func
-            def table_at(k):
-                return ti.Vector([obstacles[k, r] for r in ti.static(range(4 * N))], dt=F)
-
-            stage_with, terminal_with = stage, terminal
-        else:  # no obstacles: the fitness takes no table; a placeholder stands for it
-
-            @ti.func
-            def table_at(k):
-                return ti.Vector.zero(F, 1)
-
-            @ti.func
-            def stage_with(x, u, g, o):
-                return stage(x, u, g)
-
-            @ti.func
-            def terminal_with(x, g, o):
-                return terminal(x, g)
-
-        @ti.func
-        def rollout(i):
-            x = ti.Vector([x0[r] for r in ti.static(range(n))], dt=F)
-            J = ti.cast(0.0, F)
-            V = ti.cast(0.0, F)
-            for k in range(T):
-                u = input_at(i, k)
-                terms = stage_with(x, u, goal_at(k), table_at(k))
-                J += terms[0]
-                if k > 0:
-                    V += terms[1]
-                x = step(x, u)
-            terms = terminal_with(x, goal_at(T), table_at(T))
-            return J + terms[0], V + terms[1]
-
-        @ti.func
-        def record(i, out: ti.template()):
-            """Roll out candidate i into row i of ``out`` (num, 2): its cost, its violation."""
-            J, V = rollout(i)
-            out[i, 0] = J
-            out[i, 1] = V
-
-        @ti.kernel
-        def evaluate_all(out: ti.types.ndarray()):
-            for i in range(knots.shape[0]):
-                record(i, out)
-
-        picked = self.picked
+            discrete = translate(discrete, precision=precision)
+        rows = SparseRows(basis)
+        model = {"A": n * n, "B": n * m, "w": n} if dynamics == "affine" else {}
+        windows = {"x0": n, "goal": (T + 1) * ng, "obstacles": (T + 1) * 4 * N}
+        self.layout = Layout({**windows, **model, "basis": rows.size, **(sections or {})})
+        shape = (n, m, T, p, ng, N, rows.width, precision, self.arch)
+        functions = tuple(f.path.stem for f in (stage, terminal, discrete) if f is not None)
+        self.key = (*shape, dynamics, functions, self.layout.key)
+        kernels = runtime.shared(
+            ("rollout", *self.key),
+            lambda: _kernels(shape, self.layout, stage.func, terminal.func, discrete and discrete.func),
+        )
+        self.input_at, self.rollout, self.record = kernels.input_at, kernels.rollout, kernels.record
+        self._evaluate_all, self._gather = kernels.evaluate_all, kernels.gather
         # The transfer kernels move a few hundred numbers: on the CPU one thread does that in microseconds, while
         # a parallel loop waits for the pool's threads to wake, which on a busy machine took milliseconds.
-        serial = self.serial_transfers = self.arch != "cuda"
+        self.serial_transfers = self.arch != "cuda"
+        self.knots = ti.ndarray(self.ftype, (num_sims, p, m))
+        self.picked = ti.ndarray(self.ftype, (num_picked, p, m))
+        self.data = ti.ndarray(ti.f64, (max(1, self.layout.total),))
+        self.write("basis", rows.values())
+        self._upload_buffer = np.empty(self.layout["basis"])  # x_0, the windows and the model: what load() sends
 
-        @ti.kernel
-        def gather(indices: ti.types.ndarray(), out: ti.types.ndarray()):
-            ti.loop_config(serialize=serial)
-            for r, j, a in ti.ndrange(indices.shape[0], p, m):
-                v = knots[indices[r], j, a]
-                picked[r, j, a] = v
-                out[r, j, a] = v
-
-        affine = dynamics == "affine"
-        model_size = n * n + n * m + n if affine else 0
-        start = n + (T + 1) * (ng + 4 * N)  # the model's offset: after x_0 and the windows
-
-        @ti.kernel
-        def upload(values: ti.types.ndarray()):
-            ti.loop_config(serialize=serial)
-            for r in range(n):
-                x0[r] = values[r]
-            ti.loop_config(serialize=serial)
-            for k, r in ti.ndrange(T + 1, ng):
-                goal[k, r] = values[n + k * ng + r]
-            if ti.static(N):
-                ti.loop_config(serialize=serial)
-                for k, r in ti.ndrange(T + 1, 4 * N):
-                    obstacles[k, r] = values[n + (T + 1) * ng + k * 4 * N + r]
-            if ti.static(affine):
-                ti.loop_config(serialize=serial)
-                for r in range(n):
-                    for c in range(n):
-                        A[r, c] = values[start + r * n + c]
-                    for c in range(m):
-                        B[r, c] = values[start + n * n + r * m + c]
-                    w[r] = values[start + n * n + n * m + r]
-
-        self._upload = upload
-        self._upload_buffer = np.empty(start + model_size, dtype=self.ntype)
-        self.rollout, self.record, self.input_at = rollout, record, input_at
-        self._evaluate_all = evaluate_all
-        self._gather = gather
+    def write(self, section: str, values) -> None:
+        """Copy ``values`` (the section's size, any shape) into ``section`` of :attr:`data`, in one launch."""
+        values = np.asarray(values, dtype=np.float64).ravel()
+        if values.size != self.layout.sizes[section]:
+            raise ValueError(f"section {section!r} takes {self.layout.sizes[section]} values, got {values.size}")
+        runtime.write(self.data, values, self.layout[section])
 
     def load(self, x0: np.ndarray, goal: np.ndarray, affine=None, obstacles=None) -> None:
         """Copy the initial state x_0, the goal (ng entries: the goal state, then a task's targets) held over the
@@ -389,9 +292,8 @@ class Rollout:
         if affine is not None:
             A_d, B_d, w_d = affine
             parts += [_matrix("A_d", A_d, (n, n)).ravel(), _matrix("B_d", B_d, (n, m)).ravel(), _vector("w_d", w_d, n)]
-        np.concatenate(parts, out=self._upload_buffer, casting="same_kind")
-        runtime.upload()
-        self._upload(self._upload_buffer)
+        np.concatenate(parts, out=self._upload_buffer)
+        runtime.write(self.data, self._upload_buffer)
 
     def results(self, count: int | None = None) -> np.ndarray:
         """A host array for :meth:`record`'s output: (count, 2), count defaulting to ``num_sims``."""
@@ -403,10 +305,9 @@ class Rollout:
         shape = (self.num_sims, self.num_knots, self.nu)
         if knots.shape != shape:
             raise ValueError(f"knots must have shape {shape}, got {knots.shape}")
-        runtime.upload()
         self.knots.from_numpy(knots.astype(self.ntype))
         out = self.results()
-        self._evaluate_all(out)
+        self._evaluate_all(self.knots, self.data, out)
         return out[:, 0].astype(np.float64), out[:, 1].astype(np.float64)
 
     def pick(self, indices: np.ndarray) -> np.ndarray:
@@ -420,9 +321,135 @@ class Rollout:
                 f"[0, {self.num_sims}), got {indices.tolist()}"
             )
         out = np.empty((count, self.num_knots, self.nu), dtype=self.ntype)
-        runtime.upload()
-        self._gather(indices, out)
+        self._gather(indices, self.knots, self.picked, out)
         return out.astype(np.float64)
+
+
+def _kernels(shape, layout, stage, terminal, discrete):
+    """The engine's ``@ti.func``s and kernels for one shape: (n, m, T, p, ng, N, basis width, precision, arch), the
+    data's ``layout``, the translated ``stage`` and ``terminal`` fitness and, with nonlinear dynamics, the model F
+    (``discrete``; None: affine). Every array is an argument, every size and offset a compile-time constant."""
+    n, m, T, p, ng, N, width, precision, arch = shape
+    F = runtime.float_types(precision)[0]
+    o = layout.offsets
+    serial = arch != "cuda"
+
+    if discrete is None:
+        oA, oB, ow = o["A"], o["B"], o["w"]
+        # Both forms unroll the rows and loop over the columns (a full unroll compiles far longer
+        # at nlink:13). On the CPU, one dot product per row (measured faster: its n accumulators
+        # would not fit in registers). On CUDA, the column loop outside: each column's n
+        # multiply-adds are independent, so a thread issues them back to back instead of waiting
+        # on one row's running sum (measured faster per generation on an H100, the launch
+        # overhead subtracted).
+        column_outer = arch == "cuda"
+
+        @ti.func
+        def step(x, u, data: ti.template()):
+            xn = ti.Vector([ti.cast(data[ow + r], F) for r in ti.static(range(n))], dt=F)
+            if ti.static(column_outer):
+                for c in range(n):
+                    xc = x[c]
+                    for r in ti.static(range(n)):
+                        xn[r] += ti.cast(data[oA + r * n + c], F) * xc
+                for c in range(m):
+                    uc = u[c]
+                    for r in ti.static(range(n)):
+                        xn[r] += ti.cast(data[oB + r * m + c], F) * uc
+            else:
+                for r in ti.static(range(n)):
+                    s = xn[r]
+                    for c in range(n):
+                        s += ti.cast(data[oA + r * n + c], F) * x[c]
+                    for c in range(m):
+                        s += ti.cast(data[oB + r * m + c], F) * u[c]
+                    xn[r] = s
+            return xn
+    else:
+
+        @ti.func
+        def step(x, u, data: ti.template()):
+            return discrete(x, u)
+
+    ox, og, oO, ob = o["x0"], o["goal"], o["obstacles"], o["basis"]
+    weights = ob + T * width  # the basis' weights, after its columns
+
+    @ti.func
+    def input_at(i, k, knots: ti.template(), data: ti.template()):
+        """u_k = Σ_j φ_kj U_j of candidate i, over the nonzeros of the basis' row k."""
+        u = ti.Vector.zero(F, m)
+        for s in ti.static(range(width)):
+            j = ti.cast(data[ob + k * width + s], ti.i32)
+            phi = ti.cast(data[weights + k * width + s], F)
+            for a in ti.static(range(m)):
+                u[a] += phi * knots[i, j, a]
+        return u
+
+    @ti.func
+    def goal_at(k, data: ti.template()):
+        return ti.Vector([ti.cast(data[og + k * ng + r], F) for r in ti.static(range(ng))], dt=F)
+
+    if N:
+
+        @ti.func
+        def table_at(k, data: ti.template()):
+            return ti.Vector([ti.cast(data[oO + k * 4 * N + r], F) for r in ti.static(range(4 * N))], dt=F)
+
+        stage_with, terminal_with = stage, terminal
+    else:  # no obstacles: the fitness takes no table; a placeholder stands for it
+
+        @ti.func
+        def table_at(k, data: ti.template()):
+            return ti.Vector.zero(F, 1)
+
+        @ti.func
+        def stage_with(x, u, g, table):
+            return stage(x, u, g)
+
+        @ti.func
+        def terminal_with(x, g, table):
+            return terminal(x, g)
+
+    @ti.func
+    def rollout(i, knots: ti.template(), data: ti.template()):
+        x = ti.Vector([ti.cast(data[ox + r], F) for r in ti.static(range(n))], dt=F)
+        J = ti.cast(0.0, F)
+        V = ti.cast(0.0, F)
+        for k in range(T):
+            u = input_at(i, k, knots, data)
+            terms = stage_with(x, u, goal_at(k, data), table_at(k, data))
+            J += terms[0]
+            if k > 0:
+                V += terms[1]
+            x = step(x, u, data)
+        terms = terminal_with(x, goal_at(T, data), table_at(T, data))
+        return J + terms[0], V + terms[1]
+
+    @ti.func
+    def record(i, knots: ti.template(), data: ti.template(), out: ti.template()):
+        """Roll out candidate i into row i of ``out`` (num, 2): its cost, its violation."""
+        J, V = rollout(i, knots, data)
+        out[i, 0] = J
+        out[i, 1] = V
+
+    @ti.kernel
+    def evaluate_all(knots: ti.types.ndarray(), data: ti.types.ndarray(), out: ti.types.ndarray()):
+        for i in range(knots.shape[0]):
+            record(i, knots, data, out)
+
+    @ti.kernel
+    def gather(
+        indices: ti.types.ndarray(), knots: ti.types.ndarray(), picked: ti.types.ndarray(), out: ti.types.ndarray()
+    ):
+        ti.loop_config(serialize=serial)
+        for r, j, a in ti.ndrange(indices.shape[0], p, m):
+            v = knots[indices[r], j, a]
+            picked[r, j, a] = v
+            out[r, j, a] = v
+
+    return types.SimpleNamespace(
+        input_at=input_at, rollout=rollout, record=record, evaluate_all=evaluate_all, gather=gather
+    )
 
 
 def _with_violation(name, cost, v, args, table=None) -> ca.Function:

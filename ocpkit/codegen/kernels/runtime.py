@@ -1,8 +1,8 @@
 """The Taichi runtime: started once per process, on CUDA or the CPU.
 
-``ti.init`` may run only once: a second call would destroy every field and compiled kernel
+``ti.init`` may run only once: a second call would destroy every array and compiled kernel
 that live controllers hold. So the first caller picks the arch and later callers must agree.
-Precision is not a process-wide setting here: every field and generated function carries
+Precision is not a process-wide setting here: every array and generated function carries
 its own float type, so float32 and float64 controllers can coexist.
 """
 
@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import ctypes.util
+import functools
 import os
 import sys
 import threading
@@ -164,46 +165,40 @@ def float_types(precision: str):
     raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
 
 
-_staged: list = []  # (field, numpy array) pairs waiting for upload()
-_staged_lock = threading.Lock()
+_shared: dict = {}
+_shared_lock = threading.RLock()
 
 
-def stage(field, values) -> None:
-    """Queue ``values`` (the field's shape) for ``field``; :func:`upload` copies every queued array in one kernel
-    launch. Taichi's own ``from_numpy`` compiles a kernel per field at its first call, even from a warm cache: most
-    of a sampling planner's construction, where six fields of constants were filled that way."""
-    values = np.asarray(values, dtype=np.float64)
-    if values.shape != tuple(field.shape):
-        raise ValueError(f"values must have the field's shape {tuple(field.shape)}, got {values.shape}")
-    with _staged_lock:
-        _staged.append((field, values))
+def shared(key: tuple, build):
+    """``build()``, once per ``key`` in the process: the kernels of one shape (sizes, float type, translated
+    functions, data layout), which take every array as an argument, so every controller of that shape launches the
+    same compiled code. Taichi compiles a kernel at its first launch and keys its offline cache by the kernel's code,
+    so another process with the same shapes loads what this one compiled, whatever else it built first (kernels
+    that read fields were keyed by the fields' ids: a trial's planner compiled again when fields had come before)."""
+    with _shared_lock:
+        if key not in _shared:
+            _shared[key] = build()
+        return _shared[key]
 
 
-def upload() -> None:
-    """Copy the arrays :func:`stage` queued into their fields, in one launch (nothing when none is queued): call it
-    before the first kernel that reads them."""
-    if not _staged:  # every step of a planner asks; only the first after a construction finds any
-        return
-    with _staged_lock:
-        pairs = list(_staged)
-        _staged.clear()
-    if not pairs:
-        return
-    fields = [field for field, _ in pairs]
-    shapes = [tuple(field.shape) for field in fields]
-    offsets = np.cumsum([0] + [values.size for _, values in pairs]).tolist()
+@functools.cache
+def _writer():
+    serial = current_arch() != "cuda"  # a few hundred numbers: one CPU thread copies them before a pool wakes
 
-    def copy(flat):
-        for q in ti.static(range(len(fields))):
-            ti.loop_config(serialize=True)  # a range-for: Taichi ignores (and warns about) serialize on a struct-for
-            for I in ti.grouped(ti.ndrange(*shapes[q])):
-                index = 0
-                for d in ti.static(range(len(shapes[q]))):
-                    index = index * shapes[q][d] + I[d]
-                fields[q][I] = ti.cast(flat[offsets[q] + index], fields[q].dtype)
+    def write(values, data, start):
+        ti.loop_config(serialize=serial)
+        for r in range(values.shape[0]):
+            data[start + r] = values[r]
 
-    copy.__annotations__ = {"flat": ti.types.ndarray()}  # this module's annotations are strings (__future__)
-    ti.kernel(copy)(np.concatenate([values.ravel() for _, values in pairs]))
+    # this module's annotations are strings (__future__): Taichi reads them as types
+    write.__annotations__ = {"values": ti.types.ndarray(), "data": ti.types.ndarray(), "start": ti.i32}
+    return ti.kernel(write)
+
+
+def write(data, values: np.ndarray, start: int = 0) -> None:
+    """Copy the host array ``values`` (1-D, ``data``'s dtype) into the device array ``data`` (a 1-D Taichi ndarray)
+    from index ``start``, in one launch of a kernel compiled once per process."""
+    _writer()(values, data, start)
 
 
 def sync() -> None:
