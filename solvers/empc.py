@@ -170,9 +170,8 @@ class EvolutionaryMPC(SamplingMPC):
 def _parent_func(ftype, p, width, layout):
     """``parent(r, j, a, shift, parents, data)``: knot j, input a of parent r; with ``shift``, of the parent advanced
     one control step (U⁺ = S U, clipped): the warm start from the previous step's parents. S enters by its nonzeros
-    per row (``width``; the "shift" section), in float64 as the Python constants they were when the kernel unrolled
-    S (each product rounded to the knots' type): a run-time loop over them, S dense for the piecewise-linear basis
-    (its pseudo-inverse), p nonzeros a row."""
+    per row (``width``; the "shift" section): a run-time loop over them, S dense for the piecewise-linear basis (its
+    pseudo-inverse), p nonzeros a row."""
     columns = layout["shift"]
     weights = columns + p * width
     clip = clip_func(layout["bounds"], layout.sizes["bounds"] // 2, ftype)
@@ -184,7 +183,7 @@ def _parent_func(ftype, p, width, layout):
             v = ti.cast(0.0, ftype)
             for s in range(width):
                 column = ti.cast(data[columns + j * width + s], ti.i32)
-                v += ti.cast(data[weights + j * width + s] * parents[r, column, a], ftype)
+                v += data[weights + j * width + s] * parents[r, column, a]
             v = clip(v, a, data)
         return v
 
@@ -218,7 +217,7 @@ def _paper_kernel(record, F, p, m, width, layout):
                 for j in range(p):
                     for a in range(m):
                         r = ti.cast(uniform(key, counter, i, CROSS + j * m + a), F)
-                        lo, hi = ti.cast(data[bounds + a], F), ti.cast(data[bounds + m + a], F)
+                        lo, hi = data[bounds + a], data[bounds + m + a]
                         knots[i, j, a] = lo + (hi - lo) * r
             elif i < k:
                 for j in range(p):
@@ -229,7 +228,7 @@ def _paper_kernel(record, F, p, m, width, layout):
                 p2 = ti.min(ti.cast(uniform(key, counter, i, 1) * k, ti.i32), k - 1)
                 for a in range(m):
                     mutate = uniform(key, counter, i, MUTATE + a) < 0.5
-                    high, low = ti.cast(data[sigma + a], F), ti.cast(data[sigma + m + a], F)
+                    high, low = data[sigma + a], data[sigma + m + a]
                     noise = low + (high - low) * scale
                     for j in range(p):
                         slot = j * m + a
@@ -238,7 +237,7 @@ def _paper_kernel(record, F, p, m, width, layout):
                             v = parent(p2, j, a, shift, parents, data)
                         if mutate:
                             v += noise * ti.cast(normal(key, counter, i, NOISE + slot), F)
-                        lo, hi = ti.cast(data[bounds + a], F), ti.cast(data[bounds + m + a], F)
+                        lo, hi = data[bounds + a], data[bounds + m + a]
                         knots[i, j, a] = ti.min(ti.max(v, lo), hi)
             record(i, knots, data, out)
 
@@ -298,7 +297,7 @@ def _preconditioned_kernel(record, F, p, m, width, layout):
                         mate = p1 if uniform(key, counter, i, CROSS + r) < 0.5 else p2
                         acc = ti.cast(0.0, F)
                         for c in range(r, d):  # L⁻ᵀ is upper triangular
-                            acc += ti.cast(data[whiten + r * d + c], F) * eps[i, c]
+                            acc += data[whiten + r * d + c] * eps[i, c]
                         knots[i, j, a] = clip(breeder(mate, j, a, shift, parents, data) + s * acc, a, data)
             record(i, knots, data, out)
 

@@ -96,7 +96,7 @@ def clip_func(offset: int, m: int, ftype):
 
     @ti.func
     def clip(v, a, data: ti.template()):
-        return ti.min(ti.max(v, ti.cast(data[offset + a], ftype)), ti.cast(data[offset + m + a], ftype))
+        return ti.min(ti.max(v, data[offset + a]), data[offset + m + a])
 
     return clip
 
@@ -107,7 +107,7 @@ def seed_func(offset: int, d: int, p: int, m: int, ftype):
 
     @ti.func
     def seed(s, j, a, data: ti.template()):
-        return ti.cast(data[offset + d * d + (s * p + j) * m + a], ftype)
+        return data[offset + d * d + (s * p + j) * m + a]
 
     return seed
 

@@ -113,7 +113,7 @@ class SparseRows:
     order without its exact zeros, so the same value (up to the sign of a zero) for finite v. A
     Parameterization's basis has at most a B-spline's degree + 1 nonzeros per row (piecewise-linear 2, zero-order
     hold and identity 1); its shift matrix can be dense (the linear basis' pseudo-inverse). Kernels read both from
-    a section of a :class:`Layout` (:meth:`values`, the columns as floats: exact below 2^53).
+    a section of a :class:`Layout` (:meth:`values`, the columns as floats: exact below 2^24).
     """
 
     def __init__(self, matrix: np.ndarray):
@@ -140,9 +140,9 @@ class SparseRows:
 
 
 class Layout:
-    """Named sections of a rollout engine's data: one float64 array on the device, the sections side by side in the
-    order given. Kernels read a section at its offset, a compile-time constant: the layout is part of their key
-    (:func:`ocpkit.codegen.kernels.runtime.shared`)."""
+    """Named sections of a rollout engine's data: one array on the device, of the engine's float type, the sections
+    side by side in the order given. Kernels read a section at its offset, a compile-time constant: the layout is
+    part of their key (:func:`ocpkit.codegen.kernels.runtime.shared`)."""
 
     def __init__(self, sizes: dict):
         self.sizes, self.offsets, total = dict(sizes), {}, 0
@@ -163,7 +163,7 @@ class Rollout:
     """Rollout engine for ``num_sims`` candidates of ``ocp`` on the Taichi runtime.
 
     Its arrays live on the device (Taichi ndarrays): ``knots`` (num_sims, p, m) the population, ``picked``
-    (num_picked, p, m) the candidates chosen by :meth:`pick` (parents, elites), and ``data`` the float64 sections of
+    (num_picked, p, m) the candidates chosen by :meth:`pick` (parents, elites), and ``data`` the sections of
     :attr:`layout`: x_0, the goal and obstacle windows, the affine model, the basis, then the ``sections`` a planner
     asks for (its bounds, seeds …), which it fills with :meth:`write`. Kernels take them as arguments, so the kernels
     are compiled once per shape (:attr:`key`) and serve every engine of that shape in the process; Taichi's offline
@@ -260,13 +260,13 @@ class Rollout:
         self.serial_transfers = self.arch != "cuda"
         self.knots = ti.ndarray(self.ftype, (num_sims, p, m))
         self.picked = ti.ndarray(self.ftype, (num_picked, p, m))
-        self.data = ti.ndarray(ti.f64, (max(1, self.layout.total),))
+        self.data = ti.ndarray(self.ftype, (max(1, self.layout.total),))
         self.write("basis", rows.values())
-        self._upload_buffer = np.empty(self.layout["basis"])  # x_0, the windows and the model: what load() sends
+        self._upload_buffer = np.empty(self.layout["basis"], dtype=self.ntype)  # x_0, the windows, the model: load()
 
     def write(self, section: str, values) -> None:
         """Copy ``values`` (the section's size, any shape) into ``section`` of :attr:`data`, in one launch."""
-        values = np.asarray(values, dtype=np.float64).ravel()
+        values = np.asarray(values, dtype=self.ntype).ravel()
         if values.size != self.layout.sizes[section]:
             raise ValueError(f"section {section!r} takes {self.layout.sizes[section]} values, got {values.size}")
         runtime.write(self.data, values, self.layout[section])
@@ -292,7 +292,7 @@ class Rollout:
         if affine is not None:
             A_d, B_d, w_d = affine
             parts += [_matrix("A_d", A_d, (n, n)).ravel(), _matrix("B_d", B_d, (n, m)).ravel(), _vector("w_d", w_d, n)]
-        np.concatenate(parts, out=self._upload_buffer)
+        np.concatenate(parts, out=self._upload_buffer, casting="same_kind")
         runtime.write(self.data, self._upload_buffer)
 
     def results(self, count: int | None = None) -> np.ndarray:
@@ -346,23 +346,23 @@ def _kernels(shape, layout, stage, terminal, discrete):
 
         @ti.func
         def step(x, u, data: ti.template()):
-            xn = ti.Vector([ti.cast(data[ow + r], F) for r in ti.static(range(n))], dt=F)
+            xn = ti.Vector([data[ow + r] for r in ti.static(range(n))], dt=F)
             if ti.static(column_outer):
                 for c in range(n):
                     xc = x[c]
                     for r in ti.static(range(n)):
-                        xn[r] += ti.cast(data[oA + r * n + c], F) * xc
+                        xn[r] += data[oA + r * n + c] * xc
                 for c in range(m):
                     uc = u[c]
                     for r in ti.static(range(n)):
-                        xn[r] += ti.cast(data[oB + r * m + c], F) * uc
+                        xn[r] += data[oB + r * m + c] * uc
             else:
                 for r in ti.static(range(n)):
                     s = xn[r]
                     for c in range(n):
-                        s += ti.cast(data[oA + r * n + c], F) * x[c]
+                        s += data[oA + r * n + c] * x[c]
                     for c in range(m):
-                        s += ti.cast(data[oB + r * m + c], F) * u[c]
+                        s += data[oB + r * m + c] * u[c]
                     xn[r] = s
             return xn
     else:
@@ -380,20 +380,20 @@ def _kernels(shape, layout, stage, terminal, discrete):
         u = ti.Vector.zero(F, m)
         for s in ti.static(range(width)):
             j = ti.cast(data[ob + k * width + s], ti.i32)
-            phi = ti.cast(data[weights + k * width + s], F)
+            phi = data[weights + k * width + s]
             for a in ti.static(range(m)):
                 u[a] += phi * knots[i, j, a]
         return u
 
     @ti.func
     def goal_at(k, data: ti.template()):
-        return ti.Vector([ti.cast(data[og + k * ng + r], F) for r in ti.static(range(ng))], dt=F)
+        return ti.Vector([data[og + k * ng + r] for r in ti.static(range(ng))], dt=F)
 
     if N:
 
         @ti.func
         def table_at(k, data: ti.template()):
-            return ti.Vector([ti.cast(data[oO + k * 4 * N + r], F) for r in ti.static(range(4 * N))], dt=F)
+            return ti.Vector([data[oO + k * 4 * N + r] for r in ti.static(range(4 * N))], dt=F)
 
         stage_with, terminal_with = stage, terminal
     else:  # no obstacles: the fitness takes no table; a placeholder stands for it
@@ -412,7 +412,7 @@ def _kernels(shape, layout, stage, terminal, discrete):
 
     @ti.func
     def rollout(i, knots: ti.template(), data: ti.template()):
-        x = ti.Vector([ti.cast(data[ox + r], F) for r in ti.static(range(n))], dt=F)
+        x = ti.Vector([data[ox + r] for r in ti.static(range(n))], dt=F)
         J = ti.cast(0.0, F)
         V = ti.cast(0.0, F)
         for k in range(T):
