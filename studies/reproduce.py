@@ -19,19 +19,20 @@ PACKAGES = ("ocpkit", "casadi", "numpy", "proxsuite", "osqp", "pin", "taichi", "
 
 
 # Seconds per trial and worker of each study's quick grid, measured on the idle 2-core development machine
-# (`reproduce --quick`, 2 workers, 2026-12-03: 1,427 s in all): what the start-up estimate scales.
-# robustness_mujoco: 36 trials in 17 s on 2 workers (`ocpkit study robustness --plant mujoco`, load 0.5–1.0).
+# (`reproduce --quick` from a fresh clone and an empty cache, 2 workers, 2026-12-04, 0.11.0: 948 s in all, load
+# 1.5-3.0 with its own workers): what the start-up estimate scales. Reach: its IPOPT trials are 95 % of it (one
+# nlink:3 seed 298 s).
 SECONDS_PER_TRIAL = {
-    "knots": 0.5,
-    "horizon": 0.61,
-    "robustness": 0.52,
-    "solve_times": 6.0,
-    "comparison": 10.3,
-    "keepout": 1.8,
-    "baxter": 2.4,
-    "reach": 16.7,
-    "tracking": 1.4,  # 36 quick trials, 2026-12-03, load 4: 1.0-2.3 s each
-    "robustness_mujoco": 0.94,
+    "knots": 0.38,
+    "horizon": 0.47,
+    "robustness": 0.35,
+    "solve_times": 3.4,
+    "comparison": 5.3,
+    "keepout": 0.97,
+    "baxter": 1.14,
+    "reach": 12.7,
+    "tracking": 0.81,
+    "robustness_mujoco": 0.36,
 }
 # Studies whose claims are about time: run one trial at a time (locally), so two trials never share the 2 cores.
 TIMING_STUDIES = ("solve_times",)
