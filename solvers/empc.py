@@ -167,6 +167,14 @@ class EvolutionaryMPC(SamplingMPC):
         return self._best, best
 
 
+@ti.func
+def _two_parents(key, counter, i, count):
+    """Child i's two parents, each uniform among the first ``count`` of the pool (random slots 0 and 1)."""
+    p1 = ti.min(ti.cast(uniform(key, counter, i, 0) * count, ti.i32), count - 1)
+    p2 = ti.min(ti.cast(uniform(key, counter, i, 1) * count, ti.i32), count - 1)
+    return p1, p2
+
+
 def _parent_func(ftype, p, width, layout):
     """``parent(r, j, a, shift, parents, data)``: knot j, input a of parent r; with ``shift``, of the parent advanced
     one control step (U⁺ = S U, clipped): the warm start from the previous step's parents. S enters by its nonzeros
@@ -224,8 +232,7 @@ def _paper_kernel(record, F, p, m, width, layout):
                     for a in range(m):
                         knots[i, j, a] = parent(i, j, a, shift, parents, data)
             else:
-                p1 = ti.min(ti.cast(uniform(key, counter, i, 0) * k, ti.i32), k - 1)
-                p2 = ti.min(ti.cast(uniform(key, counter, i, 1) * k, ti.i32), k - 1)
+                p1, p2 = _two_parents(key, counter, i, k)
                 for a in range(m):
                     mutate = uniform(key, counter, i, MUTATE + a) < 0.5
                     high, low = data[sigma + a], data[sigma + m + a]
@@ -286,8 +293,7 @@ def _preconditioned_kernel(record, F, p, m, width, layout):
                     for a in range(m):
                         knots[i, j, a] = breeder(i, j, a, shift, parents, data)
             else:
-                p1 = ti.min(ti.cast(uniform(key, counter, i, 0) * pool, ti.i32), pool - 1)
-                p2 = ti.min(ti.cast(uniform(key, counter, i, 1) * pool, ti.i32), pool - 1)
+                p1, p2 = _two_parents(key, counter, i, pool)
                 s = ti.cast(ti.exp(log_lo + log_span * uniform(key, counter, i, SCALE)), F)
                 for c in range(d):
                     eps[i, c] = ti.cast(normal(key, counter, i, c), F)
