@@ -182,7 +182,7 @@ def _parent_func(ftype, p, width, layout):
     pseudo-inverse), p nonzeros a row."""
     columns = layout["shift"]
     weights = columns + p * width
-    clip = clip_func(layout["bounds"], layout.sizes["bounds"] // 2, ftype)
+    clip = clip_func(layout["bounds"], layout.sizes["bounds"] // 2)
 
     @ti.func
     def parent(r, j, a, shift, parents: ti.template(), data: ti.template()):
@@ -202,6 +202,7 @@ def _paper_kernel(record, F, p, m, width, layout):
     """Algorithm 1's generation: a cold start draws every knot uniformly within the bounds; else the parents carry
     over and the rest are children by uniform crossover and Gaussian mutation (σ, σ_min: the "sigma" section)."""
     parent = _parent_func(F, p, width, layout)
+    clip = clip_func(layout["bounds"], m)
     bounds, sigma = layout["bounds"], layout["sigma"]
     # Random slots per candidate: parents, then a mutation flag per input, then a
     # crossover coin and a noise draw per parameter.
@@ -244,8 +245,7 @@ def _paper_kernel(record, F, p, m, width, layout):
                             v = parent(p2, j, a, shift, parents, data)
                         if mutate:
                             v += noise * ti.cast(normal(key, counter, i, NOISE + slot), F)
-                        lo, hi = data[bounds + a], data[bounds + m + a]
-                        knots[i, j, a] = ti.min(ti.max(v, lo), hi)
+                        knots[i, j, a] = clip(v, a, data)
             record(i, knots, data, out)
 
     return generation
@@ -256,8 +256,8 @@ def _preconditioned_kernel(record, F, p, m, width, layout):
     is mutated by s·L⁻ᵀε, s log-uniform in [exp(log_lo), exp(log_lo + log_span)] (module docstring)."""
     parent = _parent_func(F, p, width, layout)
     d = p * m
-    clip = clip_func(layout["bounds"], m, F)
-    seed = seed_func(layout["preconditioner"], d, p, m, F)
+    clip = clip_func(layout["bounds"], m)
+    seed = seed_func(layout["preconditioner"], d, p, m)
     whiten = layout["preconditioner"]  # L⁻ᵀ (d × d), then the seeds
     # Random slots per candidate: two parents, the mutation scale, a crossover coin per parameter;
     # the normal draws ε use their own stream.

@@ -112,8 +112,8 @@ def _kernels(record, F, p, m, seeded, layout):
     """(generation, evaluate): the population drawn around a distribution and rolled out, and a few given candidates
     rolled out; ``seeded``: how many seeds (the "preconditioner" section) follow the mean, 0 for none."""
     d = p * m
-    clip = clip_func(layout["bounds"], m, F)
-    seed = seed_func(layout["preconditioner"], d, p, m, F) if seeded else None
+    clip = clip_func(layout["bounds"], m)
+    seed = seed_func(layout["preconditioner"], d, p, m) if seeded else None
 
     # Run-time loops over the knots and parameters: unrolled, the kernel's compile time grew with p·m.
     @ti.kernel

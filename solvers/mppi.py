@@ -45,7 +45,7 @@ class MPPI(GaussianSampling):
         eng = self.engine
         self._weighted_average = runtime.shared(
             ("weighted average", eng.ftype, eng.num_knots, eng.nu, eng.arch),
-            lambda: _weighted_average(eng.ftype, eng.num_knots, eng.nu, eng.serial_transfers),
+            lambda: _weighted_average(eng.ftype, eng.num_knots, eng.nu, runtime.serial_transfers()),
         )
 
     def _start(self, x, goal, cold):

@@ -90,9 +90,9 @@ def best_first(results: np.ndarray, count: int) -> np.ndarray:
     return idx[order[:count]]
 
 
-def clip_func(offset: int, m: int, ftype):
+def clip_func(offset: int, m: int):
     """``clip(v, a, data)`` (a ``@ti.func``): v within input a's bounds, read from the "bounds" section of the engine's
-    data at ``offset`` (u_min, then u_max; ``m`` inputs) in the float type ``ftype``."""
+    data at ``offset`` (u_min, then u_max; ``m`` inputs)."""
 
     @ti.func
     def clip(v, a, data: ti.template()):
@@ -101,7 +101,7 @@ def clip_func(offset: int, m: int, ftype):
     return clip
 
 
-def seed_func(offset: int, d: int, p: int, m: int, ftype):
+def seed_func(offset: int, d: int, p: int, m: int):
     """``seed(s, j, a, data)`` (a ``@ti.func``): knot j, input a of seed s (0: the Newton candidate, 1: the holding
     input), read from the "preconditioner" section at ``offset`` after L⁻ᵀ (d × d)."""
 

@@ -255,9 +255,6 @@ class Rollout:
         )
         self.input_at, self.rollout, self.record = kernels.input_at, kernels.rollout, kernels.record
         self._evaluate_all, self._gather = kernels.evaluate_all, kernels.gather
-        # The transfer kernels move a few hundred numbers: on the CPU one thread does that in microseconds, while
-        # a parallel loop waits for the pool's threads to wake, which on a busy machine took milliseconds.
-        self.serial_transfers = self.arch != "cuda"
         self.knots = ti.ndarray(self.ftype, (num_sims, p, m))
         self.picked = ti.ndarray(self.ftype, (num_picked, p, m))
         self.data = ti.ndarray(self.ftype, (max(1, self.layout.total),))
@@ -332,7 +329,7 @@ def _kernels(shape, layout, stage, terminal, discrete):
     n, m, T, p, ng, N, width, precision, arch = shape
     F = runtime.float_types(precision)[0]
     o = layout.offsets
-    serial = arch != "cuda"
+    serial = runtime.serial_transfers()
 
     if discrete is None:
         oA, oB, ow = o["A"], o["B"], o["w"]

@@ -181,9 +181,16 @@ def shared(key: tuple, build):
         return _shared[key]
 
 
+def serial_transfers() -> bool:
+    """Whether kernels that move a few hundred numbers run as one thread: on the CPU one thread does that in
+    microseconds, while a parallel loop waits for the pool's threads to wake, which on a busy machine took
+    milliseconds (on CUDA, never)."""
+    return current_arch() != "cuda"
+
+
 @functools.cache
 def _writer():
-    serial = current_arch() != "cuda"  # a few hundred numbers: one CPU thread copies them before a pool wakes
+    serial = serial_transfers()
 
     def write(values, data, start):
         ti.loop_config(serialize=serial)
