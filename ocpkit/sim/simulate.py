@@ -130,14 +130,16 @@ class Trajectory:
         to it; without them max_i |x_i − x_ref,i| over the first ``states`` entries of x (default all; the joint
         angles: ``kinematics.n``). ``delay``: against the reference that many steps late (held at its first value
         before the start), for the lag."""
-        given = [name for name, v in (("kinematics", kinematics), ("frame", frame), ("targets", targets)) if v is None]
-        if given and len(given) < 3:
+        missing = [
+            name for name, v in (("kinematics", kinematics), ("frame", frame), ("targets", targets)) if v is None
+        ]
+        if missing and len(missing) < 3:
             raise ValueError(
-                f"the tracking error of a frame needs kinematics, frame and targets; {given[0]} is missing "
+                f"the tracking error of a frame needs kinematics, frame and targets; {missing[0]} is missing "
                 f"(none of them: the state error)"
             )
         late = np.maximum(np.arange(len(self.t)) - integer(delay, "delay", 0), 0)
-        if given:
+        if missing:  # none of them: the state error
             n = self.x.shape[1] if states is None else integer(states, "states", 1)
             return np.abs(self.x[:, :n] - self.goals()[late, :n]).max(axis=1)
         targets = array(targets, "targets", (len(self.t), 3))
