@@ -8,8 +8,10 @@ whitened by the knot QP's Hessian and evaluates the seeds in every population
 (:mod:`ocpkit.solvers.sampling`); "paper" uses per-parameter stds in input coordinates. The mean
 carries over to the next control step shifted one step in time; preconditioned, the step starts from
 whichever of it and the seeds rolls out cheapest (the refit alone moves the mean only about σ per
-generation). The std restarts at σ each step. u is the mean's input at t = 0, unless with obstacles or state
-bounds the best elite dominates the mean (:meth:`GaussianSampling._final`).
+generation). Preconditioned, a draw that leaves the input bounds is shortened along its ray, not clipped
+(:class:`GaussianSampling`, ``TRUNCATED``): clipped, the elite mean left a bound the plan should hold. The std
+restarts at σ each step. u is the mean's input at t = 0, unless with obstacles or state bounds the best elite
+dominates the mean (:meth:`GaussianSampling._final`).
 """
 
 from __future__ import annotations
@@ -25,6 +27,8 @@ class CrossEntropyMPC(GaussianSampling):
     """CEM with ``population`` samples, ``num_elites`` kept, initial std ``sigma`` (see
     :class:`GaussianSampling`), floor ``sigma_min`` (default σ/100) and ``smoothing`` α ∈ [0, 1):
     mean ← α·mean + (1−α)·elite mean (same for the std)."""
+
+    TRUNCATED = True
 
     def __init__(
         self,

@@ -29,7 +29,17 @@ class GaussianSampling(SamplingMPC):
 
     The plan returned is the final μ unless, with obstacles or state bounds, the last generation's best candidate
     dominates it (:meth:`_final`): an average of collision-free plans can collide (two ways around a ball).
+
+    ``TRUNCATED`` (CEM's, preconditioned): a draw that leaves the input bounds is shortened along its ray,
+    z = μ + t·G ε with the largest t ≤ 1 that keeps z within them, instead of clipped. Clipping moves a draw along
+    the input axes, which the whitening makes stiff: on nlink:3 following a reference whose plan holds a torque at
+    its bound, 97–100 % of the draws were clipped and landed 39–57 whitened units from μ (the draw itself: about
+    √(p·m) = 3), CEM's elite mean 15–30 units (a rollout cost 200–1000 against the Newton seed's 0.6–60), and it
+    tracked worse with the reference's preview than holding its present value. Shortened, a draw costs at most what
+    it would unclipped on the QP's quadratic model.
     """
+
+    TRUNCATED = False
 
     def __init__(self, ocp, *, sigma=None, **options):
         super().__init__(ocp, **options)
@@ -105,14 +115,20 @@ class GaussianSampling(SamplingMPC):
         dist[1:] = self.preconditioner.whiten * self.std if self.preconditioned else np.diag(self.std)
         eng = self.engine
         counter = self.counter & 0xFFFFFFFF
-        self._launch(self._gaussian_kernel, self.key, counter, dist, eng.knots, eng.data, self._eps, self._results)
+        truncate = int(self.preconditioned and self.TRUNCATED)
+        self._launch(
+            self._gaussian_kernel, self.key, counter, truncate, dist, eng.knots, eng.data, self._eps, self._results
+        )
 
 
 def _kernels(record, F, p, m, seeded, layout):
     """(generation, evaluate): the population drawn around a distribution and rolled out, and a few given candidates
-    rolled out; ``seeded``: how many seeds (the "preconditioner" section) follow the mean, 0 for none."""
+    rolled out; ``seeded``: how many seeds (the "preconditioner" section) follow the mean, 0 for none. The generation's
+    ``truncate`` (run time: one kernel for CEM and MPPI) scales each draw G ε along its ray to the input bounds
+    (:class:`GaussianSampling`) before the clip, which then only absorbs rounding."""
     d = p * m
-    clip = clip_func(layout["bounds"], m)
+    bounds = layout["bounds"]
+    clip = clip_func(bounds, m)
     seed = seed_func(layout["preconditioner"], d, p, m) if seeded else None
 
     # Run-time loops over the knots and parameters: unrolled, the kernel's compile time grew with p·m.
@@ -120,6 +136,7 @@ def _kernels(record, F, p, m, seeded, layout):
     def generation(
         key: ti.u32,
         counter: ti.u32,
+        truncate: ti.i32,
         distribution: ti.types.ndarray(),
         knots: ti.types.ndarray(),
         data: ti.types.ndarray(),
@@ -127,9 +144,22 @@ def _kernels(record, F, p, m, seeded, layout):
         out: ti.types.ndarray(),
     ):
         for i in range(knots.shape[0]):
+            t = ti.cast(1.0, F)  # the share of the draw taken
             if i > seeded:
                 for c in range(d):
                     eps[i, c] = ti.cast(normal(key, counter, i, c), F)
+                for j in range(p):  # the draw G ε, held in the candidate's place until it is scaled
+                    for a in range(m):
+                        r = j * m + a
+                        acc = ti.cast(0.0, F)
+                        for c in range(d):
+                            acc += ti.cast(distribution[1 + r, c], F) * eps[i, c]
+                        knots[i, j, a] = acc
+                        if truncate:
+                            room = ti.select(acc > 0, data[bounds + m + a], data[bounds + a])
+                            if acc != 0:
+                                t = ti.min(t, (room - ti.cast(distribution[0, r], F)) / acc)
+                t = ti.max(t, ti.cast(0.0, F))
             for j in range(p):
                 for a in range(m):
                     r = j * m + a
@@ -140,10 +170,7 @@ def _kernels(record, F, p, m, seeded, layout):
                         if 1 <= i <= seeded:
                             v = seed(i - 1, j, a, data)
                     if i > seeded:
-                        acc = ti.cast(0.0, F)
-                        for c in range(d):
-                            acc += ti.cast(distribution[1 + r, c], F) * eps[i, c]
-                        v += acc
+                        v += t * knots[i, j, a]
                     knots[i, j, a] = clip(v, a, data)
             record(i, knots, data, out)
 

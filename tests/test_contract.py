@@ -306,18 +306,9 @@ def _tracking_error(traj, reference) -> np.ndarray:
     return np.abs(traj.x[:, :n] - np.array([reference.at(t)[:n] for t in traj.t])).max(axis=1)
 
 
-# Measured 2026-12-03 (nlink:3, population 64, seed 0): preconditioned CEM tracks the previewed reference worse than
-# the held one (RMS 0.167 vs 0.126 rad; 0.115 vs 0.092 at population 1024); the cause is not found yet.
-TRACKING_XFAIL = {("cem", "preconditioned"): "CEM with the preview tracks worse than holding g(t) (cause not found)"}
-
-
-def _tracking_param(config):
-    why = TRACKING_XFAIL.get((config.solver, config.options.get("variant")))
-    marks = [pytest.mark.xfail(strict=True, reason=why)] if why else []
-    return pytest.param(config, id=config.label, marks=marks)
-
-
-@pytest.mark.parametrize("config", [_tracking_param(c) for c in CONFIGS])
+# Preconditioned CEM tracked worse with the preview than held (RMS 0.167 vs 0.126 rad) while its draws were clipped
+# to the input bounds: the tracking plan holds joint 1's torque at its bound (tests/test_cem_bounds.py).
+@pytest.mark.parametrize("config", [pytest.param(c, id=c.label) for c in CONFIGS])
 def test_contract_tracks_a_reference(config, problems):
     """Issue 46: every configuration follows a moving joint-space reference on nlink:3 — a 0.3 rad sinusoid of the
     three joints at 0.5 Hz with its rates, previewed over the horizon — each step within the contract, most of them
