@@ -7,16 +7,34 @@ from __future__ import annotations
 import argparse
 import atexit
 import importlib.util
+import re
 import shutil
 import tempfile
 from pathlib import Path
 
+import griffe
 from mkdocs.plugins import event_priority
 
 CLI_MARKER = "<!-- ocpkit-cli -->"
 # ocpkit.problems, ocpkit.solvers and ocpkit.studies live in their own top-level folders of the checkout
 # (setuptools package-dir): one tree that holds them under ocpkit/ lets mkdocstrings find them statically.
 SUBPACKAGES = ("problems", "solvers", "studies")
+# A Sphinx cross-reference in a docstring, :class:`~ocpkit.x.Name` or :func:`text <target>` (mkdocstrings reads
+# Markdown: it would show the role's markup).
+SPHINX_ROLE = re.compile(r":(?:py:)?(?:class|func|meth|attr|mod|data|exc|obj|const):`(~?)([^`<]+?)(?:\s*<[^>]+>)?`")
+
+
+class SphinxRoles(griffe.Extension):
+    """Docstrings' Sphinx roles as code spans: ``:class:`~a.B``` as ```B```, ``:mod:`a.b``` as ```a.b```."""
+
+    def on_object(self, *, obj, **kwargs):
+        if obj.docstring is not None:
+            obj.docstring.value = SPHINX_ROLE.sub(_code_span, obj.docstring.value)
+
+
+def _code_span(match) -> str:
+    tilde, target = match.groups()
+    return f"`{target.rsplit('.', 1)[-1] if tilde else target}`"
 
 
 def _source_tree() -> Path:
@@ -38,6 +56,7 @@ def _source_tree() -> Path:
 def on_config(config):
     python = config["plugins"]["mkdocstrings"].config["handlers"].setdefault("python", {})
     python["paths"] = [str(_source_tree())]
+    python.setdefault("options", {})["extensions"] = [f"{__file__}:SphinxRoles"]
     # the tutorials include examples/*.py wherever mkdocs is run from
     config["mdx_configs"]["pymdownx.snippets"]["base_path"] = [
         str(Path(config["config_file_path"]).parent / "examples")
