@@ -23,7 +23,6 @@ closed-loop table it prints its per-solve comparison (:func:`ocpkit.benchmarks.c
 
 from __future__ import annotations
 
-import os
 import re
 import time
 from pathlib import Path
@@ -33,14 +32,14 @@ import numpy as np
 from ocpkit import problems as registry
 from ocpkit import solvers
 from ocpkit._checks import integer
-from ocpkit.benchmarks import crocoddyl_compare, crocoddyl_peer
+from ocpkit.benchmarks import acados_compare, acados_install, crocoddyl_compare, crocoddyl_peer
+from ocpkit.benchmarks.closed_loop import closed_loop
+from ocpkit.benchmarks.closed_loop import load as _load  # startup.py reads it here
 from ocpkit.solvers.methods import KNOTS
-from ocpkit.sim.metrics import actual_cost
-from ocpkit.sim.simulate import simulate
 
 ROBOTS = ("nlink:3", "nlink:7", "puma560", "baxter")
 CONTROLLERS = solvers.BENCHMARKED["nlp"]  # the default columns, names of solvers.CONTROLLERS
-PEERS = ("crocoddyl",)  # other libraries' controllers, run only when asked for
+PEERS = ("crocoddyl", "acados")  # other libraries' controllers, run only when asked for
 # Warm steps of the peers' per-solve comparison at most (IPOPT at p = T takes a second a solve on the Puma).
 PER_SOLVE_STEPS = 10
 
@@ -91,7 +90,7 @@ def bench_nlp(
     *,
     controllers=CONTROLLERS,
     compiled: bool = False,
-    integrator: str = "rk4",
+    integrator: str | None = None,
     first_seed: int = 0,
     echo: bool = True,
 ) -> list[dict]:
@@ -103,8 +102,8 @@ def bench_nlp(
     keeps its own horizon (1 s, 100 steps: half of it cannot see the pole come up) with 10 knots, and runs
     for the problem's duration plus one second. ``samples`` seeded start/goal pairs (seeds ``first_seed``, …) run
     ``steps`` control steps. ``integrator`` is every controller's prediction
-    (:data:`ocpkit.model.dynamics.INTEGRATORS`); the plant is RK4 whatever it is, so the costs of two runs compare
-    across integrators.
+    (:data:`ocpkit.model.dynamics.INTEGRATORS`, None: "rk4"); the plant is RK4 whatever it is, so the costs of two
+    runs compare across integrators.
 
     ``compiled`` evaluates the affine model as compiled C (RTI's and LTV's T per-stage models, LinearMPC's one):
     the one-off compile (cached) is done before any controller runs and printed, never counted in a step.
@@ -112,6 +111,10 @@ def bench_nlp(
     "crocoddyl" (PEERS) adds Crocoddyl's FDDP, p = T, on the problems without damping and friction (see the module
     docstring), then its per-solve table over ``samples`` seeds and min(``steps``, PER_SOLVE_STEPS) MPC steps;
     the rows returned are the closed-loop table's.
+    "acados" (PEERS) runs the other controllers' table (if any), then the like-for-like tables of
+    :func:`ocpkit.benchmarks.acados_compare.compare` (p = T and knots, acados' SQP-RTI beside ocpkit's RTI C step
+    and IPOPT) on ``problems`` (None: its Puma 560, Panda and nlink:13) with ``knots`` (None: KNOTS) and
+    ``integrator`` (None: RK4 and Euler), and returns both tables' rows.
     """
     if isinstance(problems, str):
         raise TypeError(f"problems must be a list of problem names, got the string {problems!r}")
@@ -123,6 +126,20 @@ def bench_nlp(
     unknown = [c for c in controllers if c not in known]
     if unknown or not controllers:
         raise ValueError(f"controllers must be among {known}, got {controllers}")
+    if "acados" in controllers:
+        acados_install.require()
+        others = tuple(c for c in controllers if c != "acados")
+        options = {"horizon": horizon, "samples": samples, "steps": steps, "first_seed": first_seed, "echo": echo}
+        rows = []
+        if others:
+            rows = bench_nlp(problems, knots, controllers=others, compiled=compiled, integrator=integrator, **options)
+        return rows + acados_compare.compare(
+            acados_compare.PROBLEMS if problems is None else problems,
+            knots=KNOTS if knots is None else knots,
+            integrators=acados_compare.INTEGRATORS if integrator is None else (integrator,),
+            **options,
+        )
+    integrator = integrator or "rk4"
     peer = "crocoddyl" in controllers
     if peer:
         crocoddyl_peer.require()
@@ -171,16 +188,6 @@ def bench_nlp(
             if hasattr(ctrl, "wait_compiled"):  # the steady state: C step or compiled model loaded
                 ctrl.wait_compiled()
             build = time.perf_counter() - t0
-            times, cost, fallbacks, errors, split = [], 0.0, 0, [], {"model": [], "build": [], "solve": []}
-            for x0, goal in cases:
-                ctrl.reset()
-                traj = simulate(prob.plant(), ctrl, x0, goal, duration)
-                times += list(traj.times())
-                for part in split:
-                    split[part] += list(traj.times(part))
-                cost += actual_cost(traj, ocp)
-                fallbacks += traj.fallbacks
-                errors.append(float(np.abs(traj.x[-1] - goal).max()))
             own = ctrl.ocp
             results[kind] = {
                 "problem": prob.name if swing else name,
@@ -188,15 +195,9 @@ def bench_nlp(
                 "horizon": own.horizon,
                 "controller": kind,
                 "build_s": build,
-                "step_ms": 1e3 * float(np.median(times)),
-                "p90_ms": 1e3 * float(np.percentile(times, 90)),
-                "cost": cost,
-                "fallbacks": fallbacks,
-                "final_error": float(np.median(errors)),
                 "swing_up": swing,
-                "steps": len(times),
                 "integrator": own.integrator,
-                **{f"{part}_ms": 1e3 * float(np.median(v)) for part, v in split.items()},
+                **closed_loop(prob, ctrl, ocp, cases, duration),
             }
         if peer and "crocoddyl" in results:
             compared.append(name)
@@ -220,8 +221,3 @@ def bench_nlp(
             compared, horizon=horizon, knots=knots, seeds=samples, steps=max(2, min(steps, PER_SOLVE_STEPS)), echo=echo
         )
     return rows
-
-
-def _load() -> str:
-    """The 1-, 5- and 15-minute load averages, and the CPUs they compare to."""
-    return f"{' '.join(f'{v:.2f}' for v in os.getloadavg())} on {os.cpu_count()} CPUs"
