@@ -3,6 +3,7 @@
 set -euo pipefail
 cd "$(dirname "$0")"
 ocpkit simulate pendulum --out pendulum.png --animate pendulum.gif
+ocpkit simulate pendulum --seed 1 --duration 2 --animate pendulum_swing_up.gif
 ocpkit simulate nlink:3 --target 0.3,0.5,0 --obstacle 0.55,0.2,0,0.08 --duration 2 --animate nlink3_reach.gif
 ocpkit simulate panda --target 0.4,0,0.3 --obstacle 0.4,-0.25,0.35,0.08 --duration 2 --out panda_reach.png \
   --animate panda_reach.gif
