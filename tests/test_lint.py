@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
-TREE = ["ocpkit", "solvers", "studies", "problems", "tests"]
+TREE = ["ocpkit", "solvers", "studies", "problems", "tests", "examples", "docs/hooks"]
 
 
 @pytest.mark.parametrize("command", [["check"], ["format", "--check"]], ids=["lint", "format"])
