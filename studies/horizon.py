@@ -11,7 +11,7 @@ from ocpkit.sim import plots
 from ocpkit.problems import filename
 from ocpkit.runs.study import Study, grid
 from ocpkit.studies.closed_loop import grid_size, trial
-from ocpkit.studies.knots import PROBLEMS, REFERENCE_HORIZON
+from ocpkit.studies.knots import HORIZON, PROBLEMS, REFERENCE_HORIZON
 from ocpkit.runs.store import Store
 from ocpkit.studies.evidence import NOT_TESTED, combine, median_claim, paired, series
 from ocpkit.studies.report import Claim, markdown_table, section, timing_context, trials_line
@@ -23,6 +23,10 @@ SIZES = {
     "full": {"horizons": [5, 10, 15, 20, 25, 30, 40, 50, 60, 70, 80, 90, 100], "seeds": 30},
 }
 USER_QUICK = {"horizons": [10, 25, 50], "seeds": 3}
+FAR_MORE = (
+    "III-D: 'the effect of decreasing horizon is far more dramatic than that of decreasing the number of "
+    "parameter knot points'"
+)
 
 
 def study(size: str, problems=None) -> Study:
@@ -93,17 +97,19 @@ def claims(ok, knots_rows) -> list:
             "; ".join(f"{p} {e}" for p, (_, e) in parts.items()),
         )
     ]
-    claim = "Shortening the horizon costs far more than cutting knots"
+    claim = "Shortening the horizon costs far more than cutting knots (at equal decision variables)"
     common = [] if knots_rows is None else [p for p in problems if p in set(knots_rows["problem"])]
     if not common:
-        out.append(Claim(claim, "the knots study is not in this results folder", NOT_TESTED))
+        out.append(Claim(claim, "the knots study is not in this results folder", NOT_TESTED, paper=FAR_MORE))
     else:
-        fewest = knots_rows["knots"].min()
+        # Equal footing: T = shortest has T·m decision variables, p knots p·m; the most knots not above T gives the
+        # knots side as many variables or fewer (fewer only makes the paper's claim harder to hold).
+        knots = max((k for k in knots_rows["knots"].unique() if k <= shortest), default=knots_rows["knots"].min())
         parts = {
             p: median_claim(
                 paired(
                     series(ok, "ratio", problem=p, horizon=shortest),
-                    series(knots_rows, "ratio", problem=p, knots=fewest),
+                    series(knots_rows, "ratio", problem=p, knots=knots),
                 ),
                 1.0,
                 ">",
@@ -113,9 +119,11 @@ def claims(ok, knots_rows) -> list:
         out.append(
             Claim(
                 claim,
-                f"per seed: ratio at T = {shortest} / ratio at {int(fewest)} knot(s) > 1",
+                f"per seed: ratio at T = {shortest} ({shortest} inputs per joint) / ratio at {int(knots)} knots "
+                f"(T = {HORIZON}, {int(knots)} inputs per joint) > 1 (ours: 'far' is not quantified; > 1 tests 'more')",
                 combine(v for v, _ in parts.values()),
                 "; ".join(f"{p} {e}" for p, (_, e) in parts.items()),
+                paper=FAR_MORE,
             )
         )
     return out

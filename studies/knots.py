@@ -103,7 +103,7 @@ def claims(rows, table) -> list:
         out.append(
             Claim(
                 claim,
-                f"per-seed ratio at 4 knots ≤ {number(HARDLY)}",
+                f"per-seed ratio at 4 knots ≤ {number(HARDLY)} (ours: the paper does not quantify 'very slight')",
                 combine(decide(i, HARDLY, "<=") for i in parts.values()),
                 "; ".join(f"{p} {i.text()}" for p, i in parts.items()),
             )
@@ -113,15 +113,17 @@ def claims(rows, table) -> list:
     claim = "The cost is highest with one knot"
     if table.index.min() == 1 and len(table.index) > 1:
         verdicts, evidence = [], []
-        for p in problems:  # one knot against the knot count with the next-highest median, seed by seed
-            runner_up = table[p].drop(index=1).idxmax()
-            v, e = median_claim(paired(ratio(p, 1), ratio(p, runner_up)), 1.0, ">")
-            verdicts.append(v)
-            evidence.append(f"{p}: 1 / {int(runner_up)} knots {e}")
+        for p in problems:  # one knot against every other knot count, seed by seed; the rival nearest to refuting
+            # "> 1" (the lowest interval) decides, whatever its median
+            intervals = {k: median_interval(paired(ratio(p, 1), ratio(p, k))) for k in table.index if k != 1}
+            rival = min(intervals, key=lambda k: intervals[k].low)
+            verdicts.append(decide(intervals[rival], 1.0, ">"))
+            evidence.append(f"{p}: 1 / {int(rival)} knots {intervals[rival].text()}")
         out.append(
             Claim(
                 claim,
-                "per seed: cost with 1 knot / with the knot count of the next-highest median",
+                "per seed: cost with 1 knot / with each other knot count > 1; shown: the deciding rival (lowest "
+                "interval)",
                 combine(verdicts),
                 "; ".join(evidence),
             )

@@ -10,7 +10,9 @@ import matplotlib as mpl
 import numpy as np
 import pandas as pd
 import pytest
+from matplotlib.collections import PolyCollection
 from matplotlib.container import BarContainer
+from matplotlib.lines import Line2D
 from matplotlib.figure import Figure
 from matplotlib.transforms import TransformedBbox
 
@@ -40,8 +42,10 @@ class Saved:
                 self.problems.append(f"{name} {text.get_text()!r} outside the saved canvas")
         self.problems += _overlapping(fig, renderer)
         for ax in fig.axes:
-            self.problems += _hidden_series(ax) + _blended(ax)
+            self.problems += _hidden_series(ax) + _blended(ax) + _bands_alike(ax) + _legend_colours(ax)
+            self.problems += _unlabelled_references(ax)
         self.xticks = [[t.label1.get_text() for t in _ticks_in_view(ax.xaxis)] for ax in fig.axes]
+        self.xlocs = [[t.get_loc() for t in _ticks_in_view(ax.xaxis)] for ax in fig.axes]
         self.axes = fig.axes
 
 
@@ -171,6 +175,62 @@ def _blended(ax) -> list:
     return out
 
 
+def _bands_alike(ax) -> list:
+    """Shaded bands of different series that overlap in the same hatch: their translucent fills blend into one
+    colour that hides which series is which (issue 51, robustness_pendulum.png)."""
+    bands = [c for c in ax.collections if isinstance(c, PolyCollection) and len(c.get_paths())]
+    out = []
+    for a, b in combinations(bands, 2):
+        if a.get_hatch() == b.get_hatch() and _intersection(a.get_datalim(ax.transData), b.get_datalim(ax.transData)):
+            out.append(f"two overlapping bands share hatch {a.get_hatch()!r}")
+    return out
+
+
+def _legend_colours(ax) -> list:
+    """Legend markers whose colour no drawn point has, and point colours the legend does not name where it names
+    colours (issue 51: points coloured per controller under a legend of one blue "one seed")."""
+    legend = ax.get_legend()
+    if legend is None:
+        return []
+    dots = [
+        l
+        for l in ax.get_lines()
+        if l.get_marker() == "o" and l.get_linestyle() in ("None", "none", "") and len(l.get_xdata())
+    ]
+    drawn = {mpl.colors.to_hex(l.get_markerfacecolor()) for l in dots}
+    handles = [
+        h
+        for h in legend.legend_handles
+        if isinstance(h, Line2D) and h.get_marker() == "o" and h.get_linestyle() in ("None", "none", "")
+    ]
+    named = {mpl.colors.to_hex(h.get_markerfacecolor()) for h in handles}
+    neutral = mpl.colors.to_hex("0.6")
+    out = [f"legend marker colour {c} is no drawn point's" for c in sorted(named - drawn - {neutral})]
+    if drawn and named and neutral not in named:
+        out += [f"points in {c} have no legend entry" for c in sorted(drawn - named)]
+    return out
+
+
+def _unlabelled_references(ax) -> list:
+    """Dotted reference lines (y = 1: 'the same as traditional MPC') whose value no y tick label names."""
+    labels = {t.label1.get_text().replace("−", "-") for t in _ticks_in_view(ax.yaxis)}
+    out = []
+    for line in ax.get_lines():
+        y = line.get_ydata()
+        if line.get_linestyle() == ":" and not line.get_label().startswith("_") and len(set(y)) == 1:
+            lo, hi = sorted(ax.get_ylim())
+            if lo <= y[0] <= hi and not any(_same_number(t, y[0]) for t in labels):
+                out.append(f"reference line {line.get_label()!r} at y = {y[0]} has no tick label")
+    return out
+
+
+def _same_number(text, value) -> bool:
+    try:
+        return np.isclose(float(text), value)
+    except ValueError:
+        return False
+
+
 def _assert_clean(saved):
     assert saved, "no figure was saved"
     problems = [p for record in saved.values() for p in record.problems]
@@ -282,7 +342,7 @@ def _robustness_table():
             "overshoot": 5 * rng.random(),
             "rise_time": 0.3 + 0.1 * rng.random(),
         }
-        for p in ("pendulum", "puma560")
+        for p in ("pendulum:paper", "puma560")
         for k in (2, 4, 8, np.nan)
         for e in (0.5, 1.0, 1.5)
         for s in range(3)
@@ -328,10 +388,43 @@ def _solve_times_table():
 
 
 def test_solve_times_report(saved, figures_only, tmp_path):
-    solve_times.report(_solve_times_table(), tmp_path)
+    table = _solve_times_table()
+    gone = (table["links"] == 13) & (table["horizon"] == 100) & (table["form"] == "condensed") & table["knots"].isna()
+    solve_times.report(table[~gone], tmp_path)
     _assert_clean(saved)
     for record in saved.values():
         _integer_ticks(record.xticks[-1])
+    # the 13-link point not run at T = 100 is marked where it would be (issue 51), not silently left out
+    marks = [l for record in saved.values() for ax in record.axes for l in ax.get_lines() if l.get_marker() == "x"]
+    assert [list(l.get_xdata()) for l in marks] == [[13.0], [13.0]]  # the solve and the total time at T = 100
+
+
+def test_overlapping_bands_and_coloured_points_are_told_apart(saved, tmp_path):
+    """Two series' quartile bands over each other get different hatches; points coloured per controller get a
+    legend entry per colour (issue 51: robustness_pendulum.png, robustness_mujoco_*.png)."""
+    rng = np.random.default_rng(1)
+    plots.lines(
+        [1, 2, 3],
+        {c: [1 + rng.random(5) for _ in range(3)] for c in ("a", "b", "c")},
+        tmp_path / "bands",
+        xlabel="x",
+        ylabel="y",
+        references=[(1.0, "1: reference")],
+    )
+    plots.boxes(
+        ["A\nf", "B\nf"],
+        [rng.random(3) + 0.5, rng.random(3) + 0.5],
+        tmp_path / "dots",
+        xlabel="x",
+        ylabel="y",
+        colours=["C1", "C2"],
+        names={"A": "C1", "B": "C2"},
+        references=[(1.0, "1: no change")],
+    )
+    _assert_clean(saved)
+    bands, dots = (record.axes[0] for record in saved.values())
+    assert len({c.get_hatch() for c in bands.collections}) == 3
+    assert [t.get_text() for t in dots.get_legend().get_texts()][:2] == ["A: one seed", "B: one seed"]
 
 
 def _closed_loop_rows(key, values, seeds, cost):
@@ -355,6 +448,10 @@ def test_knots_and_horizon_reports(saved, figures_only, tmp_path):
     )
     horizon.report(horizon_df, tmp_path)
     _assert_clean(saved)
+    knots_fig, horizon_fig = saved.values()
+    # numeric x axes (issue 51): the knot counts at their values on a log axis, not evenly spaced categories
+    assert knots_fig.axes[0].get_xscale() == "log" and knots_fig.xlocs[0] == [1, 2, 4, 10]
+    assert horizon_fig.axes[0].get_xscale() == "log" and horizon_fig.xlocs[0] == [5, 10, 50, 100]
 
 
 def _comparison_table():
@@ -440,3 +537,31 @@ def test_baxter_solve_time_histograms(saved, tmp_path):
     }
     baxter._histogram(times, pd.Series({c: 1e3 * np.median(t) for c, t in times.items()}), tmp_path / "h")
     _assert_clean(saved)
+
+
+def test_robustness_mujoco_report_legend_names_each_controller(saved, tmp_path):
+    """Points coloured per controller, a legend entry per controller in its colour (issue 51)."""
+    rows = [
+        {
+            "status": "ok",
+            "problem": "nlink:2",
+            "controller": c,
+            "plant": plant,
+            "mismatch": mismatch,
+            "level": level,
+            "seed": s,
+            "actual_cost": (10.0 + s) * (1 if plant == "ocpkit" else 1.2 + 0.1 * k),
+            "final_error": 0.1,
+            "fallbacks": 0,
+            "fallback_causes": "",
+            "child_win_rate": np.nan,
+            "load": 1.0,
+        }
+        for k, c in enumerate(robustness.MUJOCO_CONTROLLERS)
+        for plant, mismatch, level in (("ocpkit", "none", 0.0), ("mujoco", "friction", 0.1))
+        for s in range(3)
+    ]
+    robustness.mujoco_report(pd.DataFrame(rows), tmp_path)
+    _assert_clean(saved)
+    texts = [t.get_text() for t in next(iter(saved.values())).axes[0].get_legend().get_texts()]
+    assert texts[:3] == [f"{c}: one seed" for c in robustness.MUJOCO_CONTROLLERS]

@@ -14,14 +14,19 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-from matplotlib import ticker  # noqa: E402
+from matplotlib.legend_handler import HandlerTuple  # noqa: E402
+from matplotlib.lines import Line2D  # noqa: E402
 from matplotlib.patches import Patch  # noqa: E402
+
+from ocpkit.sim.ticks import count_axis, log_axis, number, numeric_ticks, reference_ticks  # noqa: E402, F401 - plots.number: re-exported
 
 BOX_CONVENTION = "box: quartiles; line: median; whiskers: 1.5 IQR; dots: outliers"
 SAVE = {"dpi": 130, "bbox_inches": "tight", "pad_inches": 0.05}  # tight: an outside legend is never cut
 STRIP_BELOW = 10  # groups with fewer points are drawn point by point (a box of 5 points hides which they are)
 COLOURS = tuple(f"C{i}" for i in range(10))
 MARKERS = ("o", "s", "^", "v", "D", "P", "X", "*", "<", ">")
+# Quartile bands of one figure's series, one hatch each: overlapping translucent bands otherwise blend into one grey.
+HATCHES = ("////", "\\\\", "....", "xxxx", "||||", "----", "++++", "oo")
 LINESTYLES = ("-", "--", "-.", ":")
 # The studies' controllers, one look each wherever they appear: black for the reference a ratio is taken to, the
 # paper's variants dashed beside their preconditioned counterparts, a marker each so coinciding lines stay apart.
@@ -60,21 +65,6 @@ _KNOWN = {
 }
 # Looks for other labels, colour first: ten colours with solid lines, then the ten again dashed, and so on.
 _LOOKS = [(c, MARKERS[(i + j) % len(MARKERS)], ls) for j, ls in enumerate(LINESTYLES) for i, c in enumerate(COLOURS)]
-
-
-def number(value, digits: int = 4) -> str:
-    """A number as reports print it: ``digits`` significant digits in plain decimals (scientific only below
-    1e-4 or from 10^digits on), "–" for a missing value, ints as ints: 1.0037 → "1.004", 0.5 → "0.5"."""
-    if value is None:
-        return "–"
-    if isinstance(value, (int, np.integer)) and not isinstance(value, bool):
-        return str(int(value))
-    v = float(value)
-    if np.isnan(v):
-        return "–"
-    if np.isinf(v):
-        return "∞" if v > 0 else "−∞"
-    return format(v, f".{digits}g")
 
 
 def _look(look) -> dict:
@@ -118,71 +108,28 @@ def set_title(target, text: str, *, fontsize: float = 10) -> None:
     (target.suptitle if target is fig else target.set_title)(wrapped, fontsize=fontsize)
 
 
-def reference(ax, y: float, label: str) -> None:
+def _band_look(colour, hatch: str) -> dict:
+    """A quartile band: faint fill, the series's colour in its own hatch (bands over each other stay apart)."""
+    rgb = matplotlib.colors.to_rgb(colour)
+    return {"facecolor": (*rgb, 0.08), "edgecolor": (*rgb, 0.55), "hatch": hatch, "lw": 0}
+
+
+def _missing_look(ax, colour) -> dict:
+    """A point with no value: an × at the bottom of the axes, at its x."""
+    from matplotlib.transforms import blended_transform_factory
+
+    transform = blended_transform_factory(ax.transData, ax.transAxes)
+    return {"marker": "x", "ls": "none", "color": colour, "ms": 7, "mew": 1.5, "transform": transform, "clip_on": False}
+
+
+def reference(ax, y: float, label: str):
     """A dotted horizontal reference line at ``y``, named in the legend (e.g. "ratio 1: traditional MPC")."""
-    ax.axhline(y, color="k", lw=0.8, ls=":", label=label, zorder=1)
+    return ax.axhline(y, color="k", lw=0.8, ls=":", label=label, zorder=1)
 
 
 def legend_outside(ax, **kwargs):
     """The axes' legend to the right of it: it covers no data and constrained layout makes room for it."""
     return ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7, borderaxespad=0, **kwargs)
-
-
-def count_axis(ax, values=None, axis: str = "x") -> None:
-    """Integer ticks on an axis that counts (links, knots): at ``values`` if given and few, else integer steps."""
-    which = ax.xaxis if axis == "x" else ax.yaxis
-    values = None if values is None else sorted({int(v) for v in values})
-    if values is not None and len(values) <= 15:
-        which.set_major_locator(ticker.FixedLocator(values))
-    else:
-        which.set_major_locator(ticker.MaxNLocator(integer=True))
-    which.set_major_formatter(ticker.FuncFormatter(lambda v, _: str(int(round(v)))))
-    which.set_minor_locator(ticker.NullLocator())
-
-
-class _Ticks(ticker.Formatter):
-    """One notation for all ticks of an axis: plain decimals, or powers of ten when a tick needs them."""
-
-    ticks = ()
-
-    def set_locs(self, locs):
-        self.ticks = tuple(locs)
-
-    def __call__(self, value, pos=None):
-        ticks = [abs(v) for v in self.ticks if v] or [abs(value) or 1.0]
-        if max(ticks) >= 1e5 or min(ticks) < 1e-3:
-            return f"{value:.0e}".replace("e+0", "e").replace("e-0", "e-").replace("e+", "e")
-        return number(value, max(3, int(np.floor(np.log10(abs(value)))) + 1) if value else 3)
-
-
-def log_axis(ax, axis: str = "y") -> None:
-    """A log axis with readable ticks in one notation; within one decade, evenly spaced values (a log locator
-    would label only 10⁰ on a ratio axis spanning 0.98–1.4), else 1, 2, 5 per decade."""
-    which = ax.yaxis if axis == "y" else ax.xaxis
-    which.set_major_locator(_LogTicks())
-    which.set_major_formatter(_Ticks())
-    which.set_minor_formatter(ticker.NullFormatter())
-
-
-class _LogTicks(ticker.Locator):
-    """:func:`log_axis`'s tick positions, chosen when the axis is drawn: from the final limits, which series and
-    bands drawn after the call may still widen (a range chosen too early left a 0.9–12 axis without its 1)."""
-
-    def __init__(self):
-        self._linear = ticker.MaxNLocator(nbins=6)
-        self._log = ticker.LogLocator(base=10, subs=(1.0, 2.0, 5.0))
-
-    def set_axis(self, axis):
-        super().set_axis(axis)
-        self._linear.set_axis(axis)
-        self._log.set_axis(axis)
-
-    def __call__(self):
-        return self.tick_values(*self.axis.get_view_interval())
-
-    def tick_values(self, vmin, vmax):
-        lo, hi = sorted((vmin, vmax))
-        return (self._linear if lo > 0 and hi / lo < 10 else self._log).tick_values(lo, hi)
 
 
 def closed_loop(
@@ -303,69 +250,99 @@ def boxes(
     log: bool = True,
     references=(),
     colours=None,
+    names=None,
     unit: str = "seed",
 ) -> Path:
     """One group of values per label: every value as a dot and the median as a bar when each group has fewer
     than :data:`STRIP_BELOW` (a box of 5 points hides which they are), else box plots in the paper's convention
-    (quartile box, median marker, 1.5 IQR whiskers, outliers as dots). ``references``: (y, legend label) of
-    dotted lines, as :func:`lines` takes them; ``colours``: one per group (default: all C0); ``unit``: what one
-    value is ("seed")."""
+    (quartile box, median marker, 1.5 IQR whiskers, outliers as dots). Numeric labels (knots, horizons) sit at
+    their values on a numeric x axis, logarithmic where they span a decade or more. ``references``: (y, legend
+    label) of dotted lines, as :func:`lines` takes them; ``colours``: one per group (default: all C0); ``names``:
+    {legend name: colour} when the colours mean something (controllers); ``unit``: what one value is ("seed")."""
     if len(labels) != len(data):
         raise ValueError(f"labels and data must have the same length, got {len(labels)} and {len(data)}")
     data = [np.asarray(d, dtype=float) for d in data]
     colours = list(colours) if colours is not None else ["C0"] * len(labels)
     fig, ax = figure(figsize=(max(6, 0.5 * len(labels) + 2.5), 3.8))
-    positions = np.arange(1, len(labels) + 1)
+    numeric = len(labels) > 0 and all(isinstance(v, (int, float, np.integer, np.floating)) for v in labels)
+    positions = np.asarray(labels, dtype=float) if numeric else np.arange(1, len(labels) + 1, dtype=float)
+    logx = numeric and positions.min() > 0 and positions.max() / positions.min() >= 10
+    half = _half_widths(positions, logx)
+    legend = []  # (handle, label) of the marks, in the colours they are drawn in
+    one_colour = len(set(colours)) == 1 or names is None
+    dot_face = colours[0] if len(set(colours)) == 1 else "0.6"  # a colour that names nothing stays neutral
     if max((len(d) for d in data), default=0) < STRIP_BELOW:
-        for x, values, colour in zip(positions, data, colours):
+        for x, h, values, colour in zip(positions, half, data, colours):
             order = np.argsort(values)
             # spread the dots sideways in value order: equal values sit side by side, not on top of each other
-            offsets = np.linspace(-0.2, 0.2, len(values)) if len(values) > 1 else np.zeros(1)
-            ax.plot(
-                x + offsets,
-                values[order],
-                "o",
-                color=colour,
-                ms=5,
-                alpha=0.8,
-                mec="k",
-                mew=0.4,
-                label=f"one {unit}" if x == 1 else None,
-            )
+            t = np.linspace(-0.67, 0.67, len(values)) if len(values) > 1 else np.zeros(1)
+            ax.plot(_spread(x, h * t, logx), values[order], "o", color=colour, ms=5, alpha=0.8, mec="k", mew=0.4)
             if len(values):
-                ax.hlines(np.median(values), x - 0.3, x + 0.3, color="k", lw=2, label="median" if x == 1 else None)
+                ax.hlines(np.median(values), *_spread(x, np.array([-h, h]), logx), color="k", lw=2)
+        if one_colour:
+            legend.append((Line2D([], [], marker="o", ls="none", color=dot_face, mec="k", mew=0.4), f"one {unit}"))
+        else:
+            legend += [
+                (Line2D([], [], marker="o", ls="none", color=c, mec="k", mew=0.4), f"{n}: one {unit}")
+                for n, c in names.items()
+            ]
+        legend.append((Line2D([], [], color="k", lw=2), "median"))
         counts = {len(d) for d in data}
         ax.set_xlabel(xlabel + f"\n({'/'.join(map(str, sorted(counts)))} {unit}s per group)")
     else:
+        widths = _spread(positions, half, logx) - _spread(positions, -half, logx)
         parts = ax.boxplot(
             data,
             positions=positions,
+            widths=widths,
+            manage_ticks=False,
             patch_artist=True,
             medianprops={"color": "k", "lw": 1.5},
             flierprops={"marker": ".", "markersize": 3},
         )
         for box, colour in zip(parts["boxes"], colours):
             box.set(facecolor=colour, alpha=0.35)
+        if not one_colour:
+            legend += [(Patch(facecolor=c, alpha=0.35), n) for n, c in names.items()]
         ax.set_xlabel(f"{xlabel}\n({BOX_CONVENTION})")
-    ax.set_xticks(
-        positions,
-        [number(l) if isinstance(l, (float, np.floating)) else str(l) for l in labels],
-        fontsize=8,
-        rotation=0 if max(len(str(l)) for l in labels) <= 12 else 30,
-        ha="center" if max(len(str(l)) for l in labels) <= 12 else "right",
-    )
+    if numeric:
+        if logx:
+            ax.set_xscale("log")
+        ax.set_xlim(_spread(positions[0], -1.6 * half[0], logx), _spread(positions[-1], 1.6 * half[-1], logx))
+        numeric_ticks(ax, positions, logx)
+    else:
+        ax.set_xticks(
+            positions,
+            [str(l) for l in labels],
+            fontsize=8,
+            rotation=0 if max(len(str(l)) for l in labels) <= 12 else 30,
+            ha="center" if max(len(str(l)) for l in labels) <= 12 else "right",
+        )
     ax.set_ylabel(ylabel)
-    for y, text in references:
-        reference(ax, y, text)
+    legend += [(reference(ax, y, text), text) for y, text in references]
     if log:
         ax.set_yscale("log")
         log_axis(ax)
+    reference_ticks(ax, [y for y, _ in references])
     ax.grid(axis="y", alpha=0.3)
-    if ax.get_legend_handles_labels()[1]:
-        legend_outside(ax)
+    if legend:
+        legend_outside(ax, handles=[h for h, _ in legend], labels=[l for _, l in legend])
     if title:
         set_title(ax, title)
     return save(fig, path)
+
+
+def _half_widths(positions, logx: bool) -> np.ndarray:
+    """Each group's half width on the x axis: 0.3 of the narrowest gap (in decades on a log axis)."""
+    where = np.log10(positions) if logx else positions
+    gaps = np.diff(np.sort(where))
+    step = gaps[gaps > 0].min() if (gaps > 0).any() else 1.0
+    return np.full(len(positions), 0.3 * step)
+
+
+def _spread(x, offset, logx: bool):
+    """``x`` moved by ``offset`` (decades on a log axis)."""
+    return x * 10.0**offset if logx else x + offset
 
 
 def lines(
@@ -414,26 +391,47 @@ def lines(
     looks = styles(series)
     width = (x.max() - x.min()) if len(x) > 1 else 1.0
     for ax, group in zip(axes[:, 0], groups):
+        handles, labels, missing = [], [], False
         for i, label in enumerate(group):
             xi = x + (0.012 * width * (i - (len(group) - 1) / 2) if dodge else 0.0)
-            ax.plot(xi, medians[label], ms=4, lw=1.3, label=label, **looks[label])
+            (line,) = ax.plot(xi, medians[label], ms=4, lw=1.3, label=label, **looks[label])
+            handle = line
             if label in bands:
-                lo, hi = bands[label]
-                ax.fill_between(xi, lo, hi, color=looks[label]["color"], alpha=0.15, lw=0)
+                band = _band_look(looks[label]["color"], HATCHES[i % len(HATCHES)])
+                ax.fill_between(xi, *bands[label], **band)
+                handle = (Patch(**band), line)
+            handles.append(handle)
+            labels.append(label)
+            gaps = np.isnan(medians[label])
+            if gaps.any() and not gaps.all():  # a point not run or without a value, marked where it would be
+                missing = True
+                ax.plot(xi[gaps], np.full(gaps.sum(), 0.04), **_missing_look(ax, looks[label]["color"]))
         for y, text in references:
-            reference(ax, y, text)
+            handles.append(reference(ax, y, text))
+            labels.append(text)
         if log:
             ax.set_yscale("log")
             log_axis(ax)
+        reference_ticks(ax, [y for y, _ in references])
         if counts:
             count_axis(ax, x)
         ax.set_ylabel(ylabel)
         ax.grid(alpha=0.3)
-        handles, labels = ax.get_legend_handles_labels()
         if any(label in bands for label in group):
-            handles.append(Patch(color="0.5", alpha=0.3, lw=0))
+            handles.append(Patch(facecolor="none", edgecolor="0.4", hatch="////", lw=0))
             labels.append(spread_label)
-        ax.legend(handles, labels, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7, borderaxespad=0)
+        if missing:
+            handles.append(Line2D([], [], marker="x", ls="none", color="0.3", ms=7, mew=1.5))
+            labels.append("×: no value at this x (not run or failed)")
+        ax.legend(
+            handles,
+            labels,
+            loc="upper left",
+            bbox_to_anchor=(1.01, 1.0),
+            fontsize=7,
+            borderaxespad=0,
+            handler_map={tuple: HandlerTuple(ndivide=1)},
+        )
     axes[-1, 0].set_xlabel(xlabel)
     if title:
         set_title(axes[0, 0] if len(groups) == 1 else fig, title)

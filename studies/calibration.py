@@ -1,0 +1,175 @@
+"""The paper's pendulum set-up: what its text fixes, what it leaves open, and the one anchor cell that settles it.
+
+Section III-C fixes the model (eq. inverted_pendulum), dt = 0.01 s, T = 50, 100 Hz and a 1 s closed loop; it does
+not print Q, R, the torque limit, m, l, b or how start and goal are drawn. We keep ours for all but the cost's shape:
+Q's position weight is the scale (the optimum does not depend on it) and the two ratios left, Q's velocity weight
+and R, are calibrated on ONE anchor cell of Tables I–II — traditional MPC at error multiplier 1 (4.17 % overshoot,
+0.38 s rise time) — by :func:`calibrate`, once; the result is stored with its provenance in
+:data:`ocpkit.problems.pendulum.PAPER_COST` and held fixed. Every other cell of the tables is then a prediction,
+printed beside the paper's number by :func:`fidelity`. Rerun with ``python -m ocpkit.studies.calibration``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from ocpkit.problems.pendulum import PAPER_COST, Pendulum
+from ocpkit.sim.metrics import step_metrics
+from ocpkit.sim.plots import number
+
+# The paper's Tables I–II (inverted pendulum): percent overshoot and rise time [s] per error multiplier, for
+# 2, 4 and 8 knots and traditional MPC, as printed (a value's printed digits are its precision).
+PAPER_COLUMNS = ("2 knots", "4 knots", "8 knots", "traditional")
+PAPER_TABLES = {
+    "overshoot": {
+        0.5: (37.7, 40.2, 40.3, 43.5),
+        0.6: (26.5, 29.3, 29.3, 31.1),
+        0.7: (18.6, 19.8, 20.8, 22),
+        0.8: (12.1, 12.3, 13.8, 14.6),
+        0.9: (6.88, 6.78, 8.13, 8.64),
+        1.0: (3.05, 2.96, 3.89, 4.17),
+        1.1: (0.772, 0.732, 1.18, 1.3),
+        1.2: (0.0252, 0.0171, 0.0729, 0.0919),
+        1.3: (0, 0, 0, 0),
+        1.4: (0, 0, 0, 0),
+        1.5: (0, 0, 0, 0),
+    },
+    "rise_time": {
+        0.5: (0.85, 0.41, 0.3, 0.28),
+        0.6: (0.65, 0.36, 0.3, 0.29),
+        0.7: (0.56, 0.35, 0.31, 0.3),
+        0.8: (0.54, 0.36, 0.32, 0.31),
+        0.9: (0.54, 0.38, 0.35, 0.34),
+        1.0: (0.59, 0.43, 0.39, 0.38),
+        1.1: (0.67, 0.5, 0.45, 0.44),
+        1.2: (0.78, 0.6, 0.55, 0.54),
+        1.3: (0.89, 0.71, 0.67, 0.66),
+        1.4: (0.96, 0.81, 0.77, 0.76),
+        1.5: (1.02, 0.88, 0.85, 0.84),
+    },
+}
+ANCHOR = {"error_multiplier": 1.0, "controller": "traditional"}
+ANCHOR_VALUES = {m: PAPER_TABLES[m][1.0][PAPER_COLUMNS.index("traditional")] for m in PAPER_TABLES}
+SEEDS = range(30)  # the full robustness study's seeds: the anchor is their median, as the report's tables are
+# The search (calibrate): Q's velocity weights tried, and the bracket in which R is solved for each.
+VELOCITY_WEIGHTS = (0.003, 0.01, 0.03, 0.1, 0.3)
+INPUT_WEIGHTS = (1e-3, 1.0)
+
+# Each setting of the robustness study: (setting, value, source). "paper": quoted from its text; "ours": why.
+SETUP = (
+    ("model", "m l² q̈ + b q̇ + m g l sin q = τ", "paper III-C, eq. inverted_pendulum"),
+    ("m, l, b, g", "1 kg, 0.5 m, 0.1 N·m·s, 9.81 m/s²", "ours: the paper prints no values"),
+    ("torque limit", "|τ| ≤ 5 N·m", "ours: holds any angle against gravity (m g l = 4.9 N·m); the paper prints none"),
+    ("Q position weight", "10", "ours: the scale of the cost (the optimum does not depend on it)"),
+    ("Q velocity weight, R", "calibrated (below)", "ours: calibrated on the anchor cell; the paper prints neither"),
+    ("dt, rate", "0.01 s, 100 Hz", "paper III-C: 'running MPC at a rate of 100 Hz … discretized at .01 s'"),
+    ("horizon", "T = 50", "paper III-C: 'a set horizon (50 time steps)'"),
+    ("closed loop", "1 s, rest to rest", "paper III-C: 'for one second from an initial position at rest'"),
+    ("start, goal", "uniform in [−π, π]", "paper III-C: 'sampled from a random uniform distribution' (range ours)"),
+    ("error multiplier", "scales m and l of the model", "paper IV-A: 'applied to both the mass and length'"),
+    ("controllers", "2, 4, 8 knots, traditional", "paper Tables I–II"),
+    ("Tables' statistic", "median over seeds, steps ≥ 0.1 rad", "ours: the paper does not say how it aggregates"),
+    ("Puma 560", "error scales the whole inertia matrix", "paper IV-A: 'applied to the entire inertia matrix'"),
+)
+
+
+def anchor_cell(velocity_weight: float, input_weight: float, seeds=SEEDS) -> dict:
+    """Traditional MPC on the paper's pendulum at error 1 with Q = diag(10, ``velocity_weight``) and R =
+    ``input_weight``: median percent overshoot and rise time [s] over ``seeds`` (steps of at least 0.1 rad)."""
+    from ocpkit import solvers
+    from ocpkit.sim.simulate import simulate
+
+    pb = Pendulum()
+    ocp = pb.ocp(error=1.0, Q=np.diag([10.0, velocity_weight]), R=np.array([[input_weight]]))
+    ctrl = solvers.make("qp", ocp)
+    overshoot, rise = [], []
+    for seed in seeds:
+        x0, goal = pb.sample(seed)
+        steps = step_metrics(simulate(pb.plant(), ctrl, x0, goal, pb.duration))
+        overshoot.append(steps["overshoot"][0])
+        rise.append(steps["rise_time"][0])
+    return {"overshoot": float(np.nanmedian(overshoot)), "rise_time": float(np.nanmedian(rise))}
+
+
+def calibrate(seeds=SEEDS, velocity_weights=VELOCITY_WEIGHTS, input_weights=INPUT_WEIGHTS) -> dict:
+    """Q's velocity weight and R that bring :func:`anchor_cell` to the paper's anchor (4.17 %, 0.38 s). Overshoot
+    grows with R, so for each velocity weight R is solved for the anchor's overshoot (Brent's method in log R
+    within ``input_weights``); of these, the velocity weight whose rise time is nearest the anchor's is kept (rise
+    time moves in steps of dt, so it is matched by choice, not solved). Returns the values and what they achieve,
+    in the form of :data:`ocpkit.problems.pendulum.PAPER_COST`."""
+    from scipy.optimize import brentq
+
+    target = ANCHOR_VALUES["overshoot"]
+    fits = []
+    for qd in velocity_weights:
+
+        def miss(log_r, qd=qd):
+            return anchor_cell(qd, float(np.exp(log_r)), seeds)["overshoot"] - target
+
+        lo, hi = np.log(input_weights)
+        if miss(lo) * miss(hi) > 0:  # this velocity weight cannot reach the anchor's overshoot within the bracket
+            continue
+        r = float(number(np.exp(brentq(miss, lo, hi, xtol=1e-3)), 3))
+        fits.append((qd, r, anchor_cell(qd, r, seeds)))
+    if not fits:
+        raise ValueError(f"no velocity weight in {list(velocity_weights)} reaches {target} % overshoot")
+    qd, r, cell = min(fits, key=lambda f: abs(f[2]["rise_time"] - ANCHOR_VALUES["rise_time"]))
+    return {"velocity_weight": float(qd), "input_weight": r, "achieved": cell, "seeds": len(seeds)}
+
+
+def precision(value) -> float:
+    """Half a unit of the last digit the paper prints (4.17 → 0.005, 22 → 0.5, 0.0171 → 0.00005)."""
+    text = repr(value)
+    return 0.5 * 10.0 ** -(len(text.split(".")[1]) if "." in text else 0)
+
+
+def fidelity(table, metric: str) -> pd.DataFrame:
+    """Every cell of ``table`` (rows: error multiplier, columns: controller; ours) that the paper's table has, beside
+    the paper's number: the difference and whether it lies within the paper's printed precision. The anchor cell is
+    marked: it was fitted, not predicted."""
+    rows = []
+    for error in table.index:
+        printed = PAPER_TABLES[metric].get(round(float(error), 1))
+        for j, controller in enumerate(PAPER_COLUMNS):
+            if printed is None or controller not in table:
+                continue
+            ours, paper = float(table.loc[error, controller]), printed[j]
+            anchor = round(float(error), 1) == ANCHOR["error_multiplier"] and controller == ANCHOR["controller"]
+            within = abs(ours - paper) <= precision(paper)
+            rows.append(
+                {
+                    "error multiplier": error,
+                    "controller": controller,
+                    "ours": ours,
+                    "paper": paper,
+                    "ours − paper": ours - paper,
+                    "verdict": ("anchor (fitted): " if anchor else "")
+                    + ("within the paper's precision" if within else f"not within ±{number(precision(paper))}"),
+                }
+            )
+    return pd.DataFrame(rows).set_index("error multiplier") if rows else pd.DataFrame()
+
+
+def within_count(cells: pd.DataFrame) -> tuple[int, int]:
+    """How many predicted cells (the anchor excluded) land within the paper's precision, of how many."""
+    if cells.empty:
+        return 0, 0
+    predicted = cells[~cells["verdict"].str.startswith("anchor")]
+    return int(predicted["verdict"].str.startswith("within").sum()), len(predicted)
+
+
+def setup_table() -> pd.DataFrame:
+    """The robustness study's settings with their source, and the calibrated cost with its provenance."""
+    rows = list(SETUP) + [
+        (
+            "calibrated Q velocity weight, R",
+            f"{number(PAPER_COST['velocity_weight'])}, {number(PAPER_COST['input_weight'])}",
+            f"ours: {PAPER_COST['provenance']}",
+        )
+    ]
+    return pd.DataFrame(rows, columns=["setting", "value", "source"]).set_index("setting")
+
+
+if __name__ == "__main__":
+    print(calibrate())
