@@ -1,6 +1,9 @@
-"""Shared fixtures: seeded random stable LTI systems as ocpkit Models; the README's user-declared cart-pole."""
+"""Shared fixtures: seeded random stable LTI systems as ocpkit Models; the docs' examples (the user-declared
+cart-pole, the tutorials' scripts run as written)."""
 
-import re
+import runpy
+import shutil
+import sys
 from pathlib import Path
 
 import casadi as ca
@@ -43,26 +46,32 @@ def taichi_arch(request):
     return runtime.init(request.config.getoption("arch"))
 
 
-README = Path(__file__).resolve().parents[1] / "README.md"
+ROOT = Path(__file__).resolve().parents[1]
+EXAMPLES = ROOT / "examples"  # the tutorials' complete scripts, shown in the docs by inclusion
+DOCS = ROOT / "docs"
 
 
-def readme_block(heading: str) -> str:
-    """The first Python code block of the README section ``heading``, as written there."""
-    text = README.read_text()
-    return re.search(r"```python\n(.*?)```", text[text.index(f"## {heading}") :], re.S).group(1)
+def run_example(name: str, *args) -> None:
+    """Run ``examples/NAME`` as ``python NAME ARGS`` does, in this process (what it prints goes to capsys)."""
+    argv = sys.argv
+    sys.argv = [str(EXAMPLES / name), *map(str, args)]
+    try:
+        runpy.run_path(sys.argv[0], run_name="__main__")
+    finally:
+        sys.argv = argv
 
 
 @pytest.fixture
 def cartpole_dir(tmp_path, monkeypatch):
-    """A folder holding the README's cartpole.py (section "Declare your own problem"), as the working directory."""
-    (tmp_path / "cartpole.py").write_text(readme_block("Declare your own problem"))
+    """A folder holding the tutorial's cartpole.py ("Declare your own problem"), as the working directory."""
+    shutil.copy(EXAMPLES / "cartpole.py", tmp_path / "cartpole.py")
     monkeypatch.chdir(tmp_path)
     return tmp_path
 
 
 @pytest.fixture
 def cartpole(cartpole_dir):
-    """The README's user-declared cart-pole problem."""
+    """The tutorial's user-declared cart-pole problem."""
     from ocpkit.problems import make
 
     return make("./cartpole.py:CartPole")

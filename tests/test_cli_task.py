@@ -1,12 +1,13 @@
-"""Task-space targets on the command line (--target, --obstacle, --frame, --task) and the README's reach example."""
+"""Task-space targets on the command line (--target, --obstacle, --frame, --task) and the docs' reach tutorial."""
 
 import json
 import re
+import shutil
 
 import numpy as np
 import pytest
 
-from conftest import README, readme_block
+from conftest import DOCS, EXAMPLES, run_example
 from ocpkit import cli
 from ocpkit.cli import main
 from ocpkit.cli.task import reach_ocp, reach_task, read_task_file
@@ -262,21 +263,21 @@ def test_attach_values():
     assert cli._attach_values(["--target", "--json"]) == ["--target", "--json"]
 
 
-def test_readme_reach_example(tmp_path, monkeypatch, capsys):
-    """The README's Python example runs and prints what the README says; its TOML file is the example's task, and
-    the command line with it reaches the same point."""
+def test_reach_tutorial(tmp_path, monkeypatch, capsys):
+    """The tutorial's script (examples/reach_obstacle.py) runs and prints what its page says; its TOML file
+    (examples/reach.toml, shown on the same page) is the script's task, and the command line with it reaches the same
+    point."""
     monkeypatch.chdir(tmp_path)
-    exec(compile(readme_block("Reach a point around a sphere"), "README.md", "exec"), {})
+    run_example("reach_obstacle.py")
     printed = capsys.readouterr().out.strip()
     verdict, distance, clearance = re.fullmatch(
         r"(\w+): final distance (\S+) m, min clearance (\S+) m", printed
     ).groups()
     distance, clearance = float(distance), float(clearance)
     assert verdict == "reached" and distance < 0.01 and 0 < clearance < 0.02
-    section = README.read_text().split("## Reach a point around a sphere")[1]
-    assert f"It prints `{printed}`" in section
-    toml = re.search(r"```toml\n(.*?)```", section, re.S).group(1)
-    (tmp_path / "reach.toml").write_text(toml)
+    page = (DOCS / "tutorials" / "obstacles.md").read_text()
+    assert f"It prints `{printed}`" in page and '--8<-- "reach.toml"' in page
+    shutil.copy(EXAMPLES / "reach.toml", tmp_path / "reach.toml")
     task = read_task_file(tmp_path / "reach.toml")
     assert task["target"].tolist() == [0.4, 0.0, 0.3] and [(o.center, o.radius) for o in task["obstacles"]] == [
         ((0.4, -0.25, 0.35), 0.08)

@@ -16,6 +16,7 @@ loop) and on one other problem each (a few steps); ``pytest -m slow`` the whole 
 
 from __future__ import annotations
 
+import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -32,7 +33,7 @@ from ocpkit.sim.simulate import simulate
 from ocpkit.solvers.qp import LinearMPC
 from ocpkit.problems.panda import urdf_path as panda_urdf
 
-from conftest import readme_block
+from conftest import EXAMPLES
 
 
 class _Exports:
@@ -95,7 +96,7 @@ def exported_builds(tmp_path_factory):
 @pytest.fixture(scope="module")
 def problems(tmp_path_factory):
     cartpole = tmp_path_factory.mktemp("contract") / "cartpole.py"
-    cartpole.write_text(readme_block("Declare your own problem"))
+    shutil.copy(EXAMPLES / "cartpole.py", cartpole)
     cache = {}
 
     def get(name):

@@ -220,10 +220,9 @@ def test_urdf_spec_and_export_with_gravity_compensation(tmp_path):
     assert "HAS_GOAL_INPUT 1" in (info.out_dir / "mpc.c").read_text()  # g(q_goal) generated into the C
 
 
-def test_readme_urdf_section_runs_as_written(monkeypatch, capsys):
-    readme = Path(__file__).resolve().parents[1] / "README.md"
-    text = readme.read_text()
-    code = re.search(r"```python\n(.*?)```", text[text.index("## Robot from a URDF") :], re.S).group(1)
-    monkeypatch.chdir(readme.parent)
-    exec(compile(code, "README: Robot from a URDF", "exec"), {})
+def test_urdf_tutorial_runs_as_written(capsys):
+    """The tutorial "Your own robot from a URDF" (examples/urdf_robot.py) brings the Panda to its joint goal."""
+    from conftest import run_example
+
+    run_example("urdf_robot.py")
     assert float(capsys.readouterr().out) <= 0.02

@@ -118,14 +118,14 @@ def test_a_reference_without_preview_holds_its_present_value():
     np.testing.assert_allclose(ref.window(0.5, 0.25, 2).ravel(), [0.5, 0.75, 1.0])
 
 
-def test_readme_reference_section_runs_as_written(capsys):
-    """README "Follow a moving reference": its printed claims hold (preview beats the held goal; the gain's feedback
-    at 1 kHz beats holding u₀ under the disturbance)."""
+def test_tracking_tutorial_runs_as_written(capsys):
+    """The tutorial "Track a moving reference" (examples/tracking.py): its printed claims hold (preview beats the held
+    goal; the gain's feedback at 1 kHz beats holding u₀ under the disturbance)."""
     import re
 
-    from conftest import readme_block
+    from conftest import run_example
 
-    exec(compile(readme_block("Follow a moving reference"), "README.md", "exec"), {})
+    run_example("tracking.py")
     errors = [float(v) for v in re.findall(r"RMS error ([0-9.]+) rad", capsys.readouterr().out)]
     preview, held, hold_u0, feedback = errors
     assert preview < 0.2 * held and feedback < hold_u0, errors
