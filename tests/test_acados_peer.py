@@ -112,10 +112,12 @@ def test_bench_nlp_acados_tables(capsys):
         ("p = T", "ipopt"),
         ("p = T", "rti"),
         ("p = T", "acados erk"),
+        ("p = T", "acados sqp"),
         ("knots", "rti linear"),
         ("knots", "rti zoh"),
         ("knots", "acados erk"),
     }
     assert tables[("p = T", "acados erk")]["grid"] == "N=10" and tables[("knots", "acados erk")]["grid"] == "N=2"
     assert all(r["fallbacks"] == 0 and np.isfinite(r["cost_ratio"]) for r in rows)
+    assert tables[("p = T", "acados sqp")]["cost_ratio"] == pytest.approx(1.0, rel=1e-3)
     assert os.environ.get("ACADOS_SOURCE_DIR", "").startswith(str(acados_install.folder()))

@@ -4,16 +4,18 @@
 Two tables a problem and integrator, never mixed:
 
 * p = T (traditional MPC, a node every step): IPOPT (the reference: NonlinearMPC converged), ocpkit's RTI (one
-  Gauss–Newton step a control step, its C step where it builds) and acados' SQP-RTI (N = T, partial-condensing
-  HPIPM; RK4 as acados' ERK, semi-implicit Euler as DISCRETE dynamics of ocpkit's step).
+  Gauss–Newton step a control step, its C step where it builds), acados' SQP-RTI (N = T, partial-condensing
+  HPIPM; RK4 as acados' ERK, semi-implicit Euler as DISCRETE dynamics of ocpkit's step) and acados' SQP converged
+  to SQP_TOL (a converged solve each step, as IPOPT's).
 * knots (the same freedom, p inputs over the horizon): ocpkit's RTI on its ``knots``-knot piecewise-linear OCP and on
   the zero-order hold of p blocks, and acados on the coarse grid (N = p intervals of T/p integrator steps, the
   input held over each), the nearest analogue acados has.
 
 Every row runs its own closed loops on the plant (RK4, the same seeded starts and goals, as ``ocpkit bench nlp``);
 its cost is the closed-loop actual cost over IPOPT's at p = T with the same integrator. Times: the median step
-(``Solution.times["total"]``, what the control loop waits for, ms), its 90th percentile, and for acados its own
-``time_tot`` (the rest is the Python around it: goal, shifted guess, x_0, reading the plan). "ready s" is the
+(``Solution.times["total"]``, what the control loop waits for, ms), its 90th percentile, the medians of its parts
+(model: the sensitivities, build: the QP's, or acados' set-up from Python, solve: the QP, or acados' call and
+reading its plan) and for acados its own ``time_tot`` (sensitivities and QP together). "ready s" is the
 construction (acados: generation and compilation, cached after the first time) and C builds waited for.
 """
 
@@ -31,6 +33,8 @@ from ocpkit.benchmarks.closed_loop import closed_loop, load
 
 PROBLEMS = ("puma560", "panda", "nlink:13")
 INTEGRATORS = ("rk4", "euler")
+# The converged rows' tolerance: every KKT residual of acados' SQP (IPOPT: its default tol 1e-8).
+SQP_TOL = 1e-6
 
 
 def compare(
@@ -77,6 +81,7 @@ def _problem(spec, integrator, horizon, knots, samples, steps, first_seed, echo)
         ("p = T", "ipopt", "T", lambda ocp: solvers.controller("ipopt", ocp)),
         ("p = T", "rti", "rti T", lambda ocp: solvers.controller("rti", ocp)),
         ("p = T", f"acados {dynamics}", "T", lambda ocp: AcadosMPC(ocp, dynamics=dynamics)),
+        ("p = T", "acados sqp", "T", lambda ocp: AcadosMPC(ocp, dynamics=dynamics, nlp="sqp", tol=SQP_TOL)),
         ("knots", "rti linear", "rti linear", lambda ocp: solvers.controller("rti", ocp)),
         ("knots", "rti zoh", "rti zoh", lambda ocp: solvers.controller("rti", ocp)),
         ("knots", f"acados {dynamics}", "blocks", lambda ocp: AcadosMPC(ocp, dynamics=dynamics)),
@@ -121,8 +126,8 @@ def _print(spec, integrator, rows, samples, steps) -> None:
             flush=True,
         )
         print(
-            f"{'controller':<16}{'grid':>6}{'ready s':>9}{'step ms':>9}{'p90 ms':>8}{'acados ms':>10}"
-            f"{'cost/ipopt':>11}{'fallbk':>7}  path"
+            f"{'controller':<16}{'grid':>6}{'ready s':>9}{'step ms':>9}{'p90 ms':>8}{'model':>8}{'build':>8}"
+            f"{'solve':>8}{'acados ms':>10}{'cost/ipopt':>11}{'fallbk':>7}  path"
         )
         for row in rows:
             if row["table"] != table:
@@ -130,6 +135,7 @@ def _print(spec, integrator, rows, samples, steps) -> None:
             own = f"{row['acados_ms']:.3f}" if "acados_ms" in row else "-"
             print(
                 f"{row['controller']:<16}{row['grid']:>6}{row['ready_s']:>9.1f}{row['step_ms']:>9.3f}"
-                f"{row['p90_ms']:>8.3f}{own:>10}{row['cost_ratio']:>11.4f}{row['fallbacks']:>7d}  {row['path']}",
+                f"{row['p90_ms']:>8.3f}{row['model_ms']:>8.3f}{row['build_ms']:>8.3f}{row['solve_ms']:>8.3f}{own:>10}"
+                f"{row['cost_ratio']:>11.4f}{row['fallbacks']:>7d}  {row['path']}",
                 flush=True,
             )
