@@ -66,6 +66,7 @@ PAPER_COST = {
     "velocity_weight": 0.1,
     "input_weight": 0.076,
     "achieved": {"overshoot": 4.169889216973733, "rise_time": 0.39},
+    "seeds": 30,
     "provenance": "calibrate() on 2026-12-04 over seeds 0–29 (velocity weights 0.003–0.3, R by Brent's method): "
     "anchor 4.17 % overshoot, 0.38 s rise time; achieved 4.17 %, 0.39 s",
 }

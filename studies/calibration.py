@@ -136,7 +136,7 @@ def fidelity(table, metric: str) -> pd.DataFrame:
                 continue
             ours, paper = float(table.loc[error, controller]), printed[j]
             anchor = round(float(error), 1) == ANCHOR["error_multiplier"] and controller == ANCHOR["controller"]
-            within = abs(ours - paper) <= precision(paper)
+            within = abs(ours - paper) <= precision(paper) * (1 + 1e-9)  # 0.275 vs 0.28 is within, round-off aside
             rows.append(
                 {
                     "error multiplier": error,
