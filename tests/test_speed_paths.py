@@ -142,6 +142,8 @@ def test_bench_step_runs_every_solver_in_rounds():
     parts = [r for r in rows if "flops" in r]  # the four condensed variants report their parts
     assert len(parts) == 8 and all(r["step"] == "Python" for r in parts)  # nlink:1: too small for the C step
     assert all(r["model"] + r["build"] + r["solve"] <= r["median"] * 1.5 for r in parts)
+    assert all(0.0 <= r["rest"] < r["median"] for r in parts)  # the Python around the parts
+    assert sum(" rest " in line for line in lines) == 8
     assert any("solve(T=20)/solve(T=10)" in line for line in lines)
     floors = [line for line in lines if line.startswith("  ") and "best step" in line]
     assert len(floors) == 2 and all("nlink:1" in line and "%" in line for line in floors)

@@ -34,6 +34,8 @@ BASE = "ocpkit condensed knots daqp (default)"  # the default QP of the condense
 PYTHON = "ocpkit condensed knots daqp, Python step"
 PROXQP = "ocpkit condensed knots proxqp"
 VM = "ocpkit condensed knots daqp, VM model"
+# A step's parts (Solution.times) and the rest of its total: the Python around them (checks, ctypes, bookkeeping)
+PARTS = ("model", "build", "solve", "rest")
 
 
 def bench_step(
@@ -207,7 +209,7 @@ def _one(problem, T, p, steps, seed, peers, rounds):
         ctrls[name].wait_compiled()  # after its background compile (cached by hash: once per model)
     peer = _peers(ocp_k, goal, models[0]) if peers else {}
     times = {name: [] for name in [*ctrls, *peer]}
-    parts = {name: {"model": [], "build": [], "solve": []} for name in ctrls if name.startswith("ocpkit condensed")}
+    parts = {name: {k: [] for k in PARTS} for name in ctrls if name.startswith("ocpkit condensed")}
     u0 = [None] * steps
     agree, status = {name: 0.0 for name in peer}, {name: set() for name in times}
     iterations = {name: [] for name in peer}
@@ -220,8 +222,9 @@ def _one(problem, T, p, steps, seed, peers, rounds):
                 status[name].add(sol.status)
                 if name == BASE:
                     u0[k] = sol.u
+                t = sol.times
                 for part, values in parts.get(name, {}).items():
-                    values.append(sol.times[part])
+                    values.append(t["total"] - t["model"] - t["build"] - t["solve"] if part == "rest" else t[part])
         for name, mpc in _rotated(peer, r):
             mpc.resetWarmStart()
             for k, (x, model) in enumerate(zip(xs, models)):
@@ -340,7 +343,8 @@ def _print(rows, gemm, knots, out):
         )
     out(
         "ocpkit condensed knots, medians (ms) of the parts and the build's rate (C: the compiled C step, timed in C; "
-        "Python: the Python step, its model compiled after its background compile; vm: compiled=False):"
+        "Python: the Python step, its model compiled after its background compile; vm: compiled=False; rest: the "
+        "whole step less the three, the Python around them):"
     )
     parts = {(r["problem"], r["horizon"], r["solver"]): r for r in rows if "flops" in r}
     for (name, T, solver), r in parts.items():
@@ -364,7 +368,7 @@ def _print(rows, gemm, knots, out):
         )
         out(
             f"  {name:10} T={T:<4} {tag:13} model {1e3 * r['model']:.3f}  build {1e3 * r['build']:.3f} ({rate})  "
-            f"solve {1e3 * r['solve']:.3f}{ratio}"
+            f"solve {1e3 * r['solve']:.3f}  rest {1e3 * r['rest']:.3f}{ratio}"
         )
     out("Floor estimate = build FLOPs / GEMM rate + fastest QP solve + compiled model; fraction = floor / best step:")
     for name, T in dict.fromkeys((nm, t) for nm, t, _ in parts):
