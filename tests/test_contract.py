@@ -335,7 +335,7 @@ def test_contract_tracks_a_reference(config, problems):
     oks = sum(sol.ok for sol in runs["preview"].solutions)
     assert oks >= 0.8 * len(runs["preview"].solutions), (oks, {s.raw_status for s in runs["preview"].solutions})
     if config.options.get("variant") == "paper":
-        return  # the paper's Algorithm 1 as printed does not control the N-link robots (README, "Sampling planners")
+        return  # the paper's Algorithm 1 as printed does not control the N-link robots (docs: Choose a controller)
     rms = {mode: float(np.sqrt(np.mean(_tracking_error(traj, reference) ** 2))) for mode, traj in runs.items()}
     still = float(np.sqrt(np.mean(np.abs(q[:51] - q[0]).max(axis=1) ** 2)))  # holding the start, 0.5 s
     assert rms["preview"] <= 0.5 * still, (rms, still)
