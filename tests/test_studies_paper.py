@@ -24,6 +24,9 @@ def test_paper_pendulum_carries_the_calibrated_cost():
 def test_precision_is_half_the_last_printed_digit():
     assert calibration.precision(4.17) == pytest.approx(0.005)
     assert calibration.precision(22) == 0.5 and calibration.precision(0) == 0.5
+    # a 0 in a table that prints 0.0171 elsewhere means none, not 0 ± 0.5
+    assert calibration.precision(0, calibration.PAPER_TABLES["overshoot"]) == pytest.approx(0.00005)
+    assert calibration.precision(0, {1.0: (0, 0.3)}) == pytest.approx(0.05)
     assert calibration.precision(0.0171) == pytest.approx(0.00005)
     assert calibration.precision(0.3) == pytest.approx(0.05)
 
