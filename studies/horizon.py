@@ -36,10 +36,16 @@ def study(size: str, problems=None) -> Study:
     return Study(NAME, trial, grid(problem=list(s["problems"]), horizon=horizons, knots=[None], seeds=s["seeds"]))
 
 
-def report(df, out_dir) -> str:
+def ratios(df):
+    """The successful trials with their actual cost over the reference horizon's (same problem and seed)."""
     ok = df[df["status"] == "ok"]
     ref = ok[ok["horizon"] == REFERENCE_HORIZON].set_index(["problem", "seed"])["actual_cost"]
     ok = ok.assign(ratio=ok["actual_cost"].values / ref.loc[list(zip(ok["problem"], ok["seed"]))].values)
+    return ok
+
+
+def report(df, out_dir) -> str:
+    ok = ratios(df)
     figs = []
     for problem, g in ok.groupby("problem", sort=False):
         labels = sorted(g["horizon"].unique())

@@ -87,14 +87,25 @@ def _label(knots) -> str:
     return "traditional" if knots != knots or knots is None else f"{int(knots)} knots"
 
 
+def normalized(df):
+    """The successful trials with their controller's label and normalized cost: actual cost over the same
+    controller, problem and seed's without error (MuJoCo study: over the same on ocpkit's plant)."""
+    ok = df[df["status"] == "ok"].copy()
+    if "mismatch" in df:
+        ok["condition"] = [_condition(r) for _, r in ok.iterrows()]
+        base = ok[ok["plant"] == "ocpkit"].set_index(["problem", "controller", "seed"])["actual_cost"]
+    else:
+        ok["controller"] = [_label(k) for k in ok["knots"]]
+        base = ok[ok["error_multiplier"] == 1.0].set_index(["problem", "controller", "seed"])["actual_cost"]
+    keys = list(zip(ok["problem"], ok["controller"], ok["seed"]))
+    ok["normalized"] = ok["actual_cost"].to_numpy() / base.reindex(keys).to_numpy()
+    return ok
+
+
 def report(df, out_dir) -> str:
     if "mismatch" in df:
         return mujoco_report(df, out_dir)
-    ok = df[df["status"] == "ok"].copy()
-    ok["controller"] = [_label(k) for k in ok["knots"]]
-    base = ok[ok["error_multiplier"] == 1.0].set_index(["problem", "controller", "seed"])["actual_cost"]
-    keys = list(zip(ok["problem"], ok["controller"], ok["seed"]))
-    ok["normalized"] = ok["actual_cost"].values / base.loc[keys].values
+    ok = normalized(df)
     figs, tables, notes, out, fidelity_counts = [], {}, [], [], {}
     seeds = ok["seed"].nunique()
     if PAPER_PROBLEM in set(ok["problem"]):
@@ -342,11 +353,7 @@ def _condition(row) -> str:
 
 
 def mujoco_report(df, out_dir) -> str:
-    ok = df[df["status"] == "ok"].copy()
-    ok["condition"] = [_condition(r) for _, r in ok.iterrows()]
-    base = ok[ok["plant"] == "ocpkit"].set_index(["problem", "controller", "seed"])["actual_cost"]
-    keys = list(zip(ok["problem"], ok["controller"], ok["seed"]))
-    ok["normalized"] = ok["actual_cost"].to_numpy() / base.reindex(keys).to_numpy()
+    ok = normalized(df)
     seeds = ok["seed"].nunique()
     figs, tables, out = [], {}, []
     controllers = [c for c in MUJOCO_CONTROLLERS if c in set(ok["controller"])]
