@@ -201,10 +201,10 @@ class AcadosMPC(Controller):
     """MPC by acados on :func:`acados_ocp` of ``ocp`` (p = T, or a zero-order hold: the coarse grid), an ocpkit
     Controller.
 
-    ``nlp`` "rti": one SQP-RTI iteration (preparation and feedback in one call) a control step, from the previous
-    iterate shifted one step where the grid is the step's (p = T), as ocpkit's RTI shifts its plan; on the coarse
-    grid, whose intervals are T/p steps long, from the previous iterate as it is. "sqp": SQP until every KKT
-    residual is below ``tol``. A cold step starts from the states held at x and the input goal. acados' nonzero
+    ``nlp`` "rti": one SQP-RTI iteration (preparation and feedback in one call) a control step; "sqp": SQP until
+    every KKT residual is below ``tol``. Each starts from the previous iterate shifted one step where the grid is
+    the step's (p = T), as ocpkit's RTI shifts its plan; on the coarse grid, whose intervals are T/p steps long,
+    from the previous iterate as it is. A cold step starts from the states held at x and the input goal. acados' nonzero
     status (QP failure, SQP iteration limit) is the fallback with status "limited"; non-finite output, "nan".
     ``times["acados"]`` is acados' own time of the solve (its ``time_tot``), within ``times["solve"]``.
     """
@@ -249,7 +249,7 @@ class AcadosMPC(Controller):
         if self._last is None:
             ug = np.clip(self.ocp.input_goal(goal), self.ocp.u_min, self.ocp.u_max)
             self._iterate.write(np.tile(x, (N + 1, 1)), np.tile(ug, (N, 1)))
-        elif self.block == 1 and self.nlp == "rti":
+        elif self.block == 1:
             X, U = self._last
             self._iterate.write(np.vstack([X[1:], X[-1:]]), np.vstack([U[1:], U[-1:]]))
 
