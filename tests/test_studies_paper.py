@@ -81,3 +81,17 @@ def test_horizon_against_knots_at_equal_decision_variables():
     assert claim.verdict == "held", claim
     assert "4 knots" in claim.ours and "equal decision variables" in claim.claim
     assert claim.paper.startswith("III-D: 'the effect of decreasing horizon is far more dramatic")
+
+
+def test_demo_table_shows_each_controllers_final_error(monkeypatch, tmp_path, capsys):
+    """A controller that drifts off the goal at a small cost ratio (CEM, p = T: issue 51) shows it in its row."""
+    from ocpkit import solvers
+    from ocpkit.cli import main
+
+    monkeypatch.setattr(solvers, "names", lambda: ["qp"])  # the QP rows only: a quick table
+    assert main(["demo", "--out", str(tmp_path)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    head = next(line for line in lines if line.startswith("controller"))
+    assert "final err" in head
+    rows = [line.split() for line in lines if line.startswith("qp ")]
+    assert len(rows) == 8 and all(float(r[-4]) < 0.2 for r in rows)
