@@ -10,7 +10,7 @@ import pytest
 from ocpkit import problems
 from ocpkit.export import native
 from ocpkit.status import LIMITED, SOFT, SUCCESS
-from ocpkit.export import check_tools
+from ocpkit.export import check_tools, export
 from ocpkit.solvers.qp import LinearMPC
 
 try:
@@ -55,6 +55,20 @@ def test_controllers_of_one_ocp_share_one_build(ocp):
     a, b = LinearMPC(ocp, native=True), LinearMPC(ocp, native=True)
     assert a.native and b.native
     assert a._native is not b._native and a._native.out_dir == b._native.out_dir  # own memory, one library
+
+
+def test_an_equal_ocp_finds_the_build_without_exporting_again(ocp, monkeypatch):
+    """Every trial of a study builds its own OCP: an equal one (same digest) gets the C step of the first in this
+    process without generating its code again; a different one (other weights) is exported."""
+    LinearMPC(ocp, native=True)  # built (or found) and its key known
+    exported = []
+    monkeypatch.setattr(native, "export", lambda *a, **k: exported.append(1) or export(*a, **k))
+    again = PROBLEM.ocp(knots=4, horizon=40)
+    assert again is not ocp
+    assert LinearMPC(again, native=True).native and exported == []
+    other = PROBLEM.ocp(knots=4, horizon=40, R=2 * ocp.R)
+    LinearMPC(other, native=True)
+    assert exported == [1]
 
 
 def test_configurations_without_a_c_step_say_why(ocp):
