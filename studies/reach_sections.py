@@ -18,6 +18,7 @@ from ocpkit.studies.reach_trials import (
     EMPC,
     HINGE_WEIGHT,
     IPOPT,
+    IPOPT_BUDGET,
     K_EMPC_HINGE,
     K_EMPC_SQUARED,
     K_IPOPT,
@@ -211,7 +212,9 @@ def reach_section(r, out_dir, figs, tables, notes, claims):
     )
     notes.append(
         "How each controller holds the obstacle (ocpkit.model.task): IPOPT as a hard constraint d ≥ margin at "
-        "every predicted state; RTI and LinearMPC as QP rows linearized about the plan, hard for DAQP "
+        f"every predicted state, given {IPOPT_BUDGET['max_iter']} iterations a step (a step that needs more is "
+        "'limited' and falls back; not in the keep-out runs); RTI and LinearMPC as QP rows linearized about the "
+        "plan, hard for DAQP "
         "and softened (exact penalty) only where infeasible; EMPC, CEM and MPPI as the penalty "
         f"{REACH_OBSTACLE_WEIGHT:g}·(h + ½h²), h = max(0, margin − min clearance), in the rollout "
         "fitness: a penalty, not a constraint, so a sampled plan that cuts the sphere can still be the "

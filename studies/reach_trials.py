@@ -36,8 +36,13 @@ IPOPT, RTI, QP, QP_TRAJ, EMPC, CEM, MPPI = (
     "MPPI",
 )
 SAMPLING = {"linearization": "plan"}  # sampling planners: affine model re-linearized about the plan each step
+# IPOPT's iterations per step (its default: 200). Its Gauss–Newton Hessian (the default; it leaves out the
+# clearances' and the dynamics' curvature) ran every step to 200 iterations on some reaches (nlink:3 seed 1: 1.1 s a
+# step, 298 s a run; Baxter seed 0: 117 s), the largest share of `reproduce --quick`; an iteration count, not a time
+# limit, so that a busy machine does not change the result.
+IPOPT_BUDGET = {"max_iter": 50}
 CONTROLLERS = {
-    IPOPT: ("ipopt", {}),
+    IPOPT: ("ipopt", IPOPT_BUDGET),
     RTI: ("rti", {}),
     QP: ("qp", {}),
     QP_TRAJ: ("qp", {"linearization": "trajectory"}),
