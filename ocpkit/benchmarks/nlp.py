@@ -10,9 +10,9 @@ closed-loop actual cost (ocpkit.sim.metrics.actual_cost) as a ratio to IPOPT's (
 horizon); IPOPT is the reference solution of the nonlinear problem, so a ratio below 1 is luck of the
 closed loop, not a better optimizer.
 
-A problem named "cartpole" (the README's user-declared cart-pole, x = [p, θ, ṗ, θ̇], θ = 0 upright) is run
-as a swing-up: from hanging, θ = π, to the sampled goal. By default the bench reads that cart-pole from the
-README's "Declare your own problem" section when the package runs from its source tree.
+A problem named "cartpole" (the docs' user-declared cart-pole, x = [p, θ, ṗ, θ̇], θ = 0 upright) is run
+as a swing-up: from hanging, θ = π, to the sampled goal. By default the bench takes that cart-pole from
+examples/cartpole.py (the tutorial "Declare your own problem") when the package runs from its source tree.
 
 The peer "crocoddyl" (Crocoddyl's FDDP, :mod:`ocpkit.benchmarks.crocoddyl_peer`; ``pip install "ocpkit[peers]"``)
 is a controller column when asked for. It solves traditional MPC (p = T) on the same horizon, and its dynamics
@@ -23,7 +23,6 @@ closed-loop table it prints its per-solve comparison (:func:`ocpkit.benchmarks.c
 
 from __future__ import annotations
 
-import re
 import time
 from pathlib import Path
 
@@ -44,30 +43,16 @@ PEERS = ("crocoddyl", "acados")  # other libraries' controllers, run only when a
 PER_SOLVE_STEPS = 10
 
 
-def readme_cartpole() -> str | None:
-    """The README's cart-pole as a problem spec (a file written to the cache), or None outside the source tree."""
-    from ocpkit.codegen.cache import cache_dir
-
-    readme = Path(__file__).resolve().parents[2] / "README.md"
-    if not readme.exists():
-        return None
-    text = readme.read_text()
-    if "## Declare your own problem" not in text:
-        return None
-    match = re.search(r"```python\n(.*?)```", text[text.index("## Declare your own problem") :], re.S)
-    if match is None:
-        return None
-    path = cache_dir("bench_nlp") / "cartpole.py"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    if not path.exists() or path.read_text() != match.group(1):
-        path.write_text(match.group(1))
-    return f"{path}:CartPole"
+def example_cartpole() -> str | None:
+    """The tutorial's cart-pole, examples/cartpole.py, as a problem spec, or None outside the source tree."""
+    path = Path(__file__).resolve().parents[2] / "examples" / "cartpole.py"
+    return f"{path}:CartPole" if path.exists() else None
 
 
 def default_problems() -> list[str]:
     known = set(registry.names())
     chosen = [name for name in ROBOTS if name.partition(":")[0] in known]
-    cartpole = readme_cartpole()
+    cartpole = example_cartpole()
     return chosen + ([cartpole] if cartpole else [])
 
 

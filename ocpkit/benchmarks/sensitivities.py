@@ -118,9 +118,9 @@ def bench_integrators(
     "rti", one iteration, and "ipopt", converged: what the integrator costs without RTI's inexactness) with each
     integrator, over ``steps`` control steps from ``problem.sample(seed)``, and the cost ratios euler/rk4 per method
     and, with "ipopt", RTI's over IPOPT's with RK4 (the reference); one row per problem and seed. "cartpole" is the
-    README's cart-pole swinging up (10 knots, its own horizon, its duration + 1 s) as in
+    tutorial's cart-pole (examples/cartpole.py) swinging up (10 knots, its own horizon, its duration + 1 s) as in
     :func:`ocpkit.benchmarks.nlp.bench_nlp`."""
-    from ocpkit.benchmarks.nlp import readme_cartpole
+    from ocpkit.benchmarks.nlp import example_cartpole
     from ocpkit import solvers
 
     kinds = [f"{m} {i}" for m in methods for i in INTEGRATORS]
@@ -137,7 +137,7 @@ def bench_integrators(
     rows = []
     for name in problems:
         swing = name == "cartpole"
-        problem = registry.make(readme_cartpole() if swing else name)
+        problem = registry.make(example_cartpole() if swing else name)
         p, T = (10, None) if swing else (knots, horizon)
         ocps = {i: problem.ocp(knots=p, horizon=T, integrator=i, compiled=True) for i in INTEGRATORS}
         for ocp in ocps.values():
