@@ -53,7 +53,7 @@ ANCHOR = {"error_multiplier": 1.0, "controller": "traditional"}
 ANCHOR_VALUES = {m: PAPER_TABLES[m][1.0][PAPER_COLUMNS.index("traditional")] for m in PAPER_TABLES}
 SEEDS = range(30)  # the full robustness study's seeds: the anchor is their median, as the report's tables are
 # The search (calibrate): Q's velocity weights tried, and the bracket in which R is solved for each.
-VELOCITY_WEIGHTS = (0.003, 0.01, 0.03, 0.1, 0.3)
+VELOCITY_WEIGHTS = (0.003, 0.01, 0.03, 0.05, 0.07, 0.1, 0.15, 0.2, 0.3)
 INPUT_WEIGHTS = (1e-3, 1.0)
 
 # Each setting of the robustness study: (setting, value, source). "paper": quoted from its text; "ours": why.
