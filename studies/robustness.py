@@ -413,7 +413,7 @@ def mujoco_claims(problem, g, controllers) -> list:
     out = [
         Claim(
             f"{problem}: MuJoCo without mismatch reproduces ocpkit's plant (issue 34)",
-            f"per run: cost on MuJoCo / cost on ocpkit's plant within 1 ± {number(SAME_PLANT)}",
+            f"per run: cost on MuJoCo / cost on ocpkit's plant within 1 ± {number(SAME_PLANT)} (ours: round-off)",
             verdict,
             evidence,
         )
@@ -440,7 +440,7 @@ def mujoco_claims(problem, g, controllers) -> list:
                 f"{problem}, {condition}: {leaders} degrade{'s' if not tied else ''} least of "
                 f"{', '.join(medians)} (issue 34)",
                 f"median normalized cost {degraded}; per seed, the leader's / each other's < 1 (within "
-                f"{number(100 * TIE)} %: tied)",
+                f"{number(100 * TIE)} %: tied; ours)",
                 verdict,
                 "; ".join(parts),
             )
