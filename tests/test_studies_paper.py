@@ -95,3 +95,17 @@ def test_demo_table_shows_each_controllers_final_error(monkeypatch, tmp_path, ca
     assert "final err" in head
     rows = [line.split() for line in lines if line.startswith("qp ")]
     assert len(rows) == 8 and all(float(r[-4]) < 0.2 for r in rows)
+
+
+def test_solve_time_verdict_prints_the_rival_that_decides_it(monkeypatch):
+    """ "Lowest solve time" is decided by the rival whose interval reaches highest, not the one with the highest
+    median (issue 51: 1 link, T = 50, the large matrix with 5 knots, 0.5 [0.303, 1.32], was not printed)."""
+    from ocpkit.studies import solve_times
+
+    small = solve_times.label("condensed", solve_times.KNOTS)
+    ones = np.ones(20)
+    times = {small: ones, "steady": ones / np.linspace(0.88, 0.92, 20), "wide": ones / np.repeat([0.3, 1.2], 10)}
+    monkeypatch.setattr(solve_times, "_per_state", lambda *a: {"solve": {(1, 50): times}, "total": {(1, 50): times}})
+    claim = solve_times.claims(pd.DataFrame({"load": [0.0]}), None, None)[0]
+    assert claim.verdict == "inconclusive"
+    assert "1/50 vs wide: 0.75 [0.3, 1.2]" in claim.evidence, claim.evidence
