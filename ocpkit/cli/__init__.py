@@ -244,7 +244,9 @@ def _parser() -> argparse.ArgumentParser:
         action="append",
         metavar="NAME",
         help=f"nlp: a controller column (repeatable; default {columns}); crocoddyl adds Crocoddyl's "
-        f'FDDP and its per-solve table (pip install "ocpkit[peers]"); startup: a controller row '
+        f'FDDP and its per-solve table (pip install "ocpkit[peers]"); '
+        "acados prints acados' SQP-RTI tables beside "
+        f"ocpkit's RTI C step (p = T and knots; python -m ocpkit.benchmarks.acados_install); startup: a controller row "
         f"(repeatable; default {rows}); the names: the solvers ({', '.join(solvers.names())}) and "
         f"{', '.join(c for c in solvers.CONTROLLERS if c not in solvers.names())}",
     )
