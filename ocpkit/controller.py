@@ -173,7 +173,7 @@ class Controller:
         ocp = self.ocp
         x = ocp.check_state(x, "x")
         window = ocp.goal_window(goal)
-        moving = bool((window != window[0]).any())
+        moving = window.strides[0] != 0 and bool((window != window[0]).any())  # a held goal's rows are one row
         obstacle_window = self._declared if obstacles is None else ocp.obstacle_window(obstacles)
         guess = None if initial_guess is None else ocp.guess_knots(initial_guess)
         for given, what in (
@@ -194,7 +194,7 @@ class Controller:
             self._x = x
             self.task_goal, self.goal_window, self.moving = full, window, moving
             self.obstacle_window, self.guess = obstacle_window, guess
-            big = max(np.abs(x).max(initial=0.0), np.abs(window).max(initial=0.0))
+            big = max(np.abs(x).max(initial=0.0), np.abs(window if moving else full).max(initial=0.0))
             if big > self._state_limit:
                 sol = self.fallback(
                     NAN,
@@ -261,20 +261,18 @@ class Controller:
             return sol
         ocp = self.ocp
         u, knots = np.asarray(sol.u, dtype=float), np.asarray(sol.knots, dtype=float)
-        if not (np.all(np.isfinite(u)) and np.all(np.isfinite(knots))):
-            return self._rejected(NAN, f"{sol.raw_status} with non-finite result", sol, Reason.NON_FINITE_SOLUTION)
-        excess = max(
-            float((ocp.u_min - knots).max(initial=0.0)),
-            float((knots - ocp.u_max).max(initial=0.0)),
-            float((ocp.u_min - u).max(initial=0.0)),
-            float((u - ocp.u_max).max(initial=0.0)),
-        )
-        if excess > BOUND_TOL * self._input_scale:
+        # Clipped first: how far clipping moved an entry is its bound violation (NaN or inf where it is not finite):
+        # one pass where a finiteness test and four differences took 12 us of a 0.2 ms step
+        u_in, knots_in = u.clip(ocp.u_min, ocp.u_max), knots.clip(ocp.u_min, ocp.u_max)
+        moved = float(np.abs(u_in - u).max(initial=0.0)), float(np.abs(knots_in - knots).max(initial=0.0))
+        limit = BOUND_TOL * self._input_scale
+        if not (moved[0] <= limit and moved[1] <= limit):
+            if not (np.isfinite(u).all() and np.isfinite(knots).all()):
+                return self._rejected(NAN, f"{sol.raw_status} with non-finite result", sol, Reason.NON_FINITE_SOLUTION)
             return self._rejected(
-                LIMITED, f"{sol.raw_status} but an input bound violated by {excess:.3g}", sol, Reason.INPUT_BOUND
+                LIMITED, f"{sol.raw_status} but an input bound violated by {max(moved):.3g}", sol, Reason.INPUT_BOUND
             )
-        sol.u = np.clip(u, ocp.u_min, ocp.u_max)
-        sol.knots = np.clip(knots, ocp.u_min, ocp.u_max)
+        sol.u, sol.knots = u_in, knots_in
         return sol
 
     def _certified(self, x: np.ndarray, sol: Solution) -> Solution:
