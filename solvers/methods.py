@@ -16,7 +16,7 @@ Where one name has different defaults it means a different thing, said here once
   the real-time iteration's is soft.
 * The knot count p: :meth:`ocpkit.model.problem.Problem.ocp`'s ``knots=None`` is traditional MPC, p = T (the OCP
   the API is asked for, unchanged); the command line and the benchmarks take :data:`KNOTS` knots (capped at the
-  horizon), the README's examples and the size the C step and the Taichi kernels compile quickly for.
+  horizon), the docs' examples and the size the C step and the Taichi kernels compile quickly for.
 """
 
 from __future__ import annotations

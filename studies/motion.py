@@ -1,7 +1,7 @@
 """Pictures of motion for the reproduce report: one short closed loop per robot family, animated (ocpkit.sim.animation).
 
 Not a study (nothing is stored or resumed): three seeded LinearMPC runs (5 knots) against ocpkit's plant — the
-pendulum to its joint goal, the planar 3-link arm and the Panda reaching a point past a sphere (the README's
+pendulum to its joint goal, the planar 3-link arm and the Panda reaching a point past a sphere (the docs'
 examples) — each written as a GIF beside the report and embedded in it with what the run reached.
 """
 

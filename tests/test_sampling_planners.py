@@ -1,5 +1,5 @@
 """Regressions of the sampling planners (issue 27): the paper variant of CEM and MPPI runs, and the preconditioned
-CEM brings an open-loop unstable system (the README's cart-pole) to its goal, on the arch of `pytest --arch`."""
+CEM brings an open-loop unstable system (the tutorial's cart-pole, examples/cartpole.py) to its goal, on the arch of `pytest --arch`."""
 
 import time
 
@@ -21,8 +21,8 @@ pytestmark = pytest.mark.usefixtures("taichi_arch")
 
 
 class CartPole(Problem):
-    """The README's user-declared cart-pole ("Declare your own problem"), copied so that these tests do not
-    depend on the README's wording: x = [p, θ, ṗ, θ̇], θ = 0 upright (open-loop unstable at the goal)."""
+    """The tutorial's user-declared cart-pole (examples/cartpole.py), copied so that these tests do not
+    depend on the tutorial's wording: x = [p, θ, ṗ, θ̇], θ = 0 upright (open-loop unstable at the goal)."""
 
     name, dt, horizon, duration = "cartpole", 0.01, 100, 2.0
 

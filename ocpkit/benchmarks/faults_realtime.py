@@ -165,7 +165,7 @@ def beyond_bounds_rows(
     the bound (within 0.02) and no success may predict a state beyond it. The exact and interior-point backends must
     answer every step (a success, or "soft" where the plan on the nonlinear model passes the bound: the QP's model
     about the goal beyond it mispredicts gravity there); OSQP, first-order, is accepted with its success rate
-    reported (at eps 1e-9 its ADMM needs 10⁴–6.5·10⁴ iterations on this QP: README, "for state bounds that may be
+    reported (at eps 1e-9 its ADMM needs 10⁴–6.5·10⁴ iterations on this QP: docs, "for state bounds that may be
     active, use DAQP or ProxQP") as long as each step stays within the default budget."""
     from ocpkit.sim.simulate import simulate
 

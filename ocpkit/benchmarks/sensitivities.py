@@ -11,7 +11,7 @@ of max |F(x, u) − x⁺| with x⁺ from RK4 over 100 sub-steps.
 (``RealTimeIteration(ocp)``, solver "rti", its Python step, so that the integrator measured is
 :mod:`ocpkit.model.dynamics`'s) and of IPOPT, each predicting with each integrator: actual costs
 (:func:`ocpkit.sim.metrics.actual_cost`) per seed as ratios, IPOPT with RK4 the reference. A problem named "cartpole"
-(the README's) swings up from hanging as in :func:`ocpkit.benchmarks.nlp.bench_nlp`.
+(examples/cartpole.py) swings up from hanging as in :func:`ocpkit.benchmarks.nlp.bench_nlp`.
 
 ``python -m ocpkit.benchmarks.sensitivities`` prints both tables.
 """

@@ -1,6 +1,6 @@
 """CasADi Functions code-generated to C, compiled with the system compiler and loaded back.
 
-Compiled at -O1, a Function evaluates faster than on CasADi's SX virtual machine (README, "Performance"), at the price
+Compiled at -O1, a Function evaluates faster than on CasADi's SX virtual machine (docs, Benchmarks), at the price
 of a one-off compile, cached on disk by the Function's hash so it is paid once per model. The library is checked against
 the content hash recorded beside it before it is loaded; a damaged one (truncated, empty) is rebuilt with a warning, and
 one that does not load (another machine's) is removed and compiled once more. One compile per entry machine-wide: the

@@ -1,7 +1,7 @@
 """LinearMPC's compiled step: the exported C step (:mod:`ocpkit.export`) built without asking, cached by hash.
 
-The Python step of the condensed knot QP spends most of a robot's step in per-call overheads (README, "The MPC step on
-the CPU"). :func:`start` exports the step of an OCP (condensed form, DAQP, linearization about the input goal) to a
+The Python step of the condensed knot QP spends most of a robot's step in per-call overheads (docs, Benchmarks, "The MPC step
+on the CPU"). :func:`start` exports the step of an OCP (condensed form, DAQP, linearization about the input goal) to a
 scratch folder — code generation in this process — and keys it by the hash of the generated files. A cached library is
 used at once; otherwise a child process in a session of its own builds it with ``make`` at lower priority (``nice`` +10,
 one compile job, so a running control loop keeps a core) and moves it into the cache atomically with its content hash
@@ -47,8 +47,8 @@ from ocpkit.model.ocp import BACKGROUND_MIN_INSTRUCTIONS, OCP
 
 NAME = "mpc"
 SLOTS = 64  # controllers of one OCP live at once in one process (the library's QP-solver memory slots)
-# The generated model and DAQP at -O1: a build far shorter than at the export's -O2, and a C step as fast (README,
-# "The MPC step on the CPU"); the condensing keeps the export's -O3.
+# The generated model and DAQP at -O1: a build far shorter than at the export's -O2, and a C step as fast (docs,
+# Benchmarks, "The MPC step on the CPU"); the condensing keeps the export's -O3.
 MAKE_VARS = (f"MAX_INSTANCES={SLOTS}", "OPT=-O1")
 
 _builds: dict[str, Future] = {}  # by the hash of the generated files
@@ -62,7 +62,7 @@ _warned = set()
 
 # The default builds the C step for knot QPs up to this many variables (knots × inputs): above it the C step's lead
 # over the Python step fades, and the traditional QP is no faster in C (the generated DAQP starts cold and sets up
-# every step) for a long code generation at construction and a large library (README, "The MPC step on the CPU").
+# every step) for a long code generation at construction and a large library (docs, Benchmarks, "The MPC step on the CPU").
 MAX_VARIABLES = 256
 
 
