@@ -30,7 +30,7 @@ class Preconditioner:
     ``newton`` is then that QP's optimum by DAQP, a candidate that keeps the constraints to first order, and the
     box-constrained optimum only where the rows cannot all be met (a start inside a margin), DAQP fails or runs out
     of the step's time; ``seed_status`` says which. P, and so the preconditioning, is the same either way: hard rows
-    add no cost. On the docs' Panda reach (tutorial "Reach around obstacles") this seed is what keeps the hand out of the sphere: with the
+    add no cost. On the docs' Panda reach this seed is what keeps the hand out of the sphere: with the
     box-constrained one alone no candidate was feasible for long stretches and the hand ended 7–13 cm inside.
     """
 

@@ -121,7 +121,7 @@ class LinearMPC(Controller):
         # The QPs a step solves, in order, until one is not infeasible. DAQP, an exact method, finds a hard QP
         # infeasible at once: it solves the hard QP first and the soft one only where that is infeasible — the
         # same solution where the penalty is exact, and a few variables instead of two slacks per bounded state
-        # per step (docs, Reference, "Statuses and what success guarantees"). The iterative backends (ProxQP, OSQP) only stop at their limits on an
+        # per step (docs: Reference, "Statuses"). The iterative backends (ProxQP, OSQP) only stop at their limits on an
         # infeasible QP: they solve the soft QP alone. A task's obstacle rows likewise: hard first, then only they
         # softened (a start in the margin, a plan that cannot clear every linearized row: one slack per stage, far
         # fewer variables than the soft QP's), then all.
@@ -300,7 +300,7 @@ class LinearMPC(Controller):
     def ceiling(self) -> float:
         """The step's budget when no ``time_limit`` is given (seconds): CEILING_MIN, or CEILING_PER_VARIABLE per QP
         variable where that is more. No MPC step is of use after it; it bounds the solvers that run on where nobody
-        set a budget (docs, Reference, "Statuses and what success guarantees")."""
+        set a budget (docs: Reference, "Statuses")."""
         tr = self.transcription
         variables = tr.nz + (tr.ns if self.form == "condensed" else 0)
         return max(self.CEILING_MIN, self.CEILING_PER_VARIABLE * variables)

@@ -27,7 +27,7 @@ wins, among the feasible the smaller J (:func:`best_first`). By the penalty alon
 did, at any weight. The rollouts stay affine by default even around obstacles, the violation then judged on the affine
 prediction while the controller's certificate rolls the plan out on the nonlinear model: on nlink:3 past a ball, affine
 rollouts kept the arm clear but 8–49 % of their steps were "soft" (the prediction's drift over the horizon), where
-``dynamics="nonlinear"`` made every step a certified success; on the docs' Panda reach (tutorial "Reach around obstacles") the nonlinear rollouts took
+``dynamics="nonlinear"`` made every step a certified success; on the docs' Panda reach the nonlinear rollouts took
 194 s to compile and 213 ms a step, and their population diverged (final distance 1.03 m instead of 1 mm). Choose
 "nonlinear" where the robot's discrete model is cheap and stable over the horizon.
 

@@ -1,5 +1,5 @@
 """Regressions of the sampling planners (issue 27): the paper variant of CEM and MPPI runs, and the preconditioned
-CEM brings an open-loop unstable system (the tutorial's cart-pole, examples/cartpole.py) to its goal, on the arch of `pytest --arch`."""
+CEM brings an open-loop unstable system (examples/cartpole.py) to its goal, on the arch of `pytest --arch`."""
 
 import time
 

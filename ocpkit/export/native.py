@@ -1,13 +1,13 @@
 """LinearMPC's compiled step: the exported C step (:mod:`ocpkit.export`) built without asking, cached by hash.
 
-The Python step of the condensed knot QP spends most of a robot's step in per-call overheads (docs, Benchmarks, "The MPC step
-on the CPU"). :func:`start` exports the step of an OCP (condensed form, DAQP, linearization about the input goal) to a
-scratch folder — code generation in this process — and keys it by the hash of the generated files. A cached library is
-used at once; otherwise a child process in a session of its own builds it with ``make`` at lower priority (``nice`` +10,
-one compile job, so a running control loop keeps a core) and moves it into the cache atomically with its content hash
-beside it (a damaged entry is rebuilt; one that does not load is removed and built once more). The child outlives this
-process if need be: a script shorter than the build finds the C step ready on its next run. Several controllers of one
-OCP share one build, and so do processes: the builder holds the entry's lock file
+The Python step of the condensed knot QP spends most of a robot's step in per-call overheads (docs: Benchmarks, "The MPC
+step on the CPU"). :func:`start` exports the step of an OCP (condensed form, DAQP, linearization about the input goal)
+to a scratch folder — code generation in this process — and keys it by the hash of the generated files. A cached library
+is used at once; otherwise a child process in a session of its own builds it with ``make`` at lower priority (``nice``
++10, one compile job, so a running control loop keeps a core) and moves it into the cache atomically with its content
+hash beside it (a damaged entry is rebuilt; one that does not load is removed and built once more). The child outlives
+this process if need be: a script shorter than the build finds the C step ready on its next run. Several controllers of
+one OCP share one build, and so do processes: the builder holds the entry's lock file
 (:func:`ocpkit.codegen.cache.entry_lock`), and another process's build child waits for it and finds the library built. A
 read-only cache is used as it is: its sound library is loaded, and where it has none the Python step runs (one warning);
 ``ocpkit build`` fills a cache ahead of deployment.
@@ -62,7 +62,8 @@ _warned = set()
 
 # The default builds the C step for knot QPs up to this many variables (knots × inputs): above it the C step's lead
 # over the Python step fades, and the traditional QP is no faster in C (the generated DAQP starts cold and sets up
-# every step) for a long code generation at construction and a large library (docs, Benchmarks, "The MPC step on the CPU").
+# every step) for a long code generation at construction and a large library (docs:
+# Benchmarks, "The MPC step on the CPU").
 MAX_VARIABLES = 256
 
 
