@@ -27,10 +27,10 @@ SECONDS_PER_TRIAL = {
     "horizon": 0.47,
     "robustness": 0.35,
     "solve_times": 3.4,
-    "comparison": 5.3,
+    "comparison": 3.0,
     "keepout": 0.97,
     "baxter": 1.14,
-    "reach": 12.7,
+    "reach": 5.5,
     "tracking": 0.81,
     "robustness_mujoco": 0.36,
 }
