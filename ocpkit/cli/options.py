@@ -9,8 +9,8 @@ from ocpkit.solvers.methods import ARGUMENTS, DYNAMICS, METHODS, VARIANTS  # noq
 from ocpkit.solvers.methods import KNOTS as DEFAULT_KNOTS
 
 SPEC_HELP = (
-    "problem spec: a registered name (pendulum, pendulum:linear, nlink:N with N = 1…13, puma560, baxter, "
-    "panda, urdf:FILE), package.module:Name or path/to/file.py:Name (a Problem subclass, instance or factory; "
+    "problem spec: a registered name (pendulum, pendulum:linear, pendulum:paper, nlink:N with N = 1…13, puma560, "
+    "baxter, panda, urdf:FILE), package.module:Name or path/to/file.py:Name (a Problem subclass, instance or factory; "
     "':arg' passes through)"
 )
 # The solvers' arguments, their meaning and defaults, and the knot count p of solve, simulate and export unless
