@@ -32,7 +32,13 @@ class RealTimeIteration(LinearMPC):
     rounding: until it is built, and after a failed step's soft-bound retry, in Python. A step's goal window, moved
     obstacles and initial guess (the first iterate) as LinearMPC takes them.
 
-    ``options`` are LinearMPC's but ``linearization`` (always along the iterate): ``form``, ``qp``, ``state_bounds``
+    ``form`` None (the default) is "sparse" for traditional MPC (p = T) without a task, solved by ProxQP's sparse
+    backend unless ``qp`` says otherwise, and "condensed" otherwise (knots, a task, ``qp`` "daqp" or ``native``
+    True: the C step is the condensed QP). At p = T the condensed QP has T·m variables and a dense Hessian whose
+    factorization grows as (T·m)³, while the sparse form's banded KKT system grows as T: at T = 50 the sparse step was
+    1.1-2× faster than the condensed C step (Puma 560, Panda, nlink:13), the closed loop the same to ~1e-8.
+
+    ``options`` are LinearMPC's but ``linearization`` (always along the iterate): ``qp``, ``state_bounds``
     (soft by default), ``max_iter`` (each QP's iterations), ``time_limit`` (the whole step's budget, all iterations
     together), ``eps``, ``slack_weight``, ``native``, ``warm_start``, ``raise_on_fail``, ``threads``, ``gains`` (the
     last iteration's QP's feedback gain, each iteration computing its own)."""
@@ -44,6 +50,7 @@ class RealTimeIteration(LinearMPC):
         iterations: int = RTI["iterations"].default,
         tol: float = RTI["tol"].default,
         state_bounds: str = RTI["state_bounds"].default,
+        form: str | None = RTI["form"].default,
         **options,
     ):
         if "linearization" in options:
@@ -52,7 +59,9 @@ class RealTimeIteration(LinearMPC):
         if not (isinstance(tol, (int, float)) and np.isfinite(tol) and tol >= 0):
             raise ValueError(f"tol must be a finite number >= 0, got {tol!r}")
         self.tol = float(tol)
-        super().__init__(ocp, linearization="trajectory", state_bounds=state_bounds, **options)
+        if form is None:
+            form = default_form(ocp, options.get("qp"), options.get("native"))
+        super().__init__(ocp, linearization="trajectory", state_bounds=state_bounds, form=form, **options)
 
     def _native_options(self) -> dict:
         return {"iterations": self.iterations, "tol": self.tol}
@@ -95,6 +104,13 @@ class RealTimeIteration(LinearMPC):
         sol.raw_status = f"RTI {done} of {self.iterations} iterations, {converged}; QP: {sol.raw_status}"
         sol.iterations, sol.times = qp_iterations, times
         return sol
+
+
+def default_form(ocp: OCP, qp: str | None = None, native: bool | None = None) -> str:
+    """RealTimeIteration's QP form where none is given: "sparse" at p = T (no task, no ``qp`` "daqp", not
+    ``native``), else "condensed" (see :class:`RealTimeIteration`)."""
+    dense = ocp.knots < ocp.horizon or ocp.task_functions is not None or qp == "daqp" or bool(native)
+    return "condensed" if dense else "sparse"
 
 
 SOLVERS = {"rti": RealTimeIteration}

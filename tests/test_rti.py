@@ -97,6 +97,23 @@ def test_rti_is_its_own_solver():
     assert RealTimeIteration(ocp, max_iter=1, native=False).solve(x0, goal).status == LIMITED
 
 
+def test_rti_solves_traditional_mpc_in_the_sparse_form():
+    """Issue 48: at p = T the default form is the sparse QP (ProxQP's sparse backend), whose closed loop is the
+    condensed QP's to the backends' tolerance; knots, a dense backend or the C step keep the condensed QP."""
+    prob = make("nlink:3")
+    ocp, knots = prob.ocp(horizon=20, knots=None), prob.ocp(horizon=20, knots=4)
+    rti = RealTimeIteration(ocp)
+    assert (rti.form, rti.qp_name) == ("sparse", "proxqp")
+    assert RealTimeIteration(knots).form == "condensed"
+    assert RealTimeIteration(ocp, qp="daqp").form == "condensed"
+    assert RealTimeIteration(ocp, native=True).form == "condensed"
+    assert RealTimeIteration(ocp, qp="hpipm", state_bounds="hard").form == "sparse"
+    x0, goal = prob.sample(0)
+    sparse, dense = (simulate(prob.plant(), c, x0, goal, 0.2) for c in (rti, RealTimeIteration(ocp, form="condensed")))
+    assert sparse.fallbacks == dense.fallbacks == 0
+    np.testing.assert_allclose(sparse.u, dense.u, rtol=0, atol=1e-7)
+
+
 def test_rti_time_budget_falls_back():
     """A budget no iteration fits in: the fallback input, finite, no exception."""
     prob = make("nlink:3")
