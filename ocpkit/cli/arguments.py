@@ -53,7 +53,10 @@ def add_controller_args(p):
     # solver then takes its own default, the one its help names from the table (ocpkit.solvers.methods).
     p.add_argument("--solver", default="qp", help=f"solver: {', '.join(solvers.names())} (default qp)")
     p.add_argument(
-        "--form", choices=("sparse", "condensed"), help=f"qp, rti: QP transcription (default {default('qp', 'form')})"
+        "--form",
+        choices=("sparse", "condensed"),
+        help=f"qp, rti: QP transcription (default {default('qp', 'form')}; rti: sparse at p = T without a task, else "
+        f"condensed), solved by default by {' and '.join(f'{q} for {f}' for f, q in QP_BY_FORM.items())}",
     )
     p.add_argument(
         "--qp",
