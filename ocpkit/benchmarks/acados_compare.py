@@ -18,6 +18,9 @@ its cost is the closed-loop actual cost over IPOPT's at p = T with the same inte
 (model: the sensitivities, build: the QP's, or acados' set-up from Python, solve: the QP, or acados' call and
 reading its plan) and for acados its own ``time_tot`` (sensitivities and QP together). "ready s" is the
 construction (acados: generation and compilation, cached after the first time) and C builds waited for.
+
+No row solves with ``qp="hpipm"``: CasADi's HPIPM plugin crashes (segmentation fault, whichever is loaded first)
+in a process that has loaded acados' own HPIPM and BLASFEO libraries.
 """
 
 from __future__ import annotations
