@@ -74,9 +74,6 @@ RTI = {
     "tol": Argument("stop iterating once the plan moves less than this (max norm; 0: all iterations)", 0.0),
     **{name: argument for name, argument in LINEAR.items() if name != "linearization"},
     "state_bounds": Argument("soft or hard", "soft"),
-    "form": Argument(
-        "the QP transcription: condensed or sparse (None: sparse at p = T without a task, else condensed)"
-    ),
 }
 
 _GAUSS_NEWTON = Argument(

@@ -32,15 +32,15 @@ class RealTimeIteration(LinearMPC):
     rounding: until it is built, and after a failed step's soft-bound retry, in Python. A step's goal window, moved
     obstacles and initial guess (the first iterate) as LinearMPC takes them.
 
-    ``form`` None (the default) is "sparse" for traditional MPC (p = T) without a task, solved by ProxQP's sparse
-    backend unless ``qp`` says otherwise, and "condensed" otherwise (knots, a task, ``qp`` "daqp" or ``native``
-    True: the C step is the condensed QP). At p = T the condensed QP has T·m variables and a dense Hessian whose
-    factorization grows as (T·m)³, while the sparse form's banded KKT system grows as T. T = 50, RK4, median step
-    (3 seeds x 50 steps, load 0.6-0.9 on 2 CPUs): Puma 560 2.7 against the condensed C step's 4.1 ms, Panda 3.4
-    against 6.0, nlink:13 18.6 against 51.4, the closed-loop cost the same to 2e-8 (relative); its cold first steps
-    and ProxQP's warm-start stalls are slower (90th percentile 7.0, 19.7, 105 ms against 4.5, 6.2, 55).
+    ``form="sparse"`` (ProxQP's sparse backend unless ``qp`` says otherwise) solves traditional MPC (p = T) faster in
+    the median than the condensed QP's C step, the default: its banded KKT system grows as T where the condensed
+    Hessian's factorization grows as (T·m)³. T = 50, RK4, median step (3 seeds x 50 steps, load 0.6-0.9 on 2 CPUs):
+    Puma 560 2.7 against the C step's 4.1 ms, Panda 3.4 against 6.0, nlink:13 18.6 against 51.4, the closed-loop
+    cost the same to 2e-8 (relative). It is not the default: its cold first steps and ProxQP's warm starts that
+    stall and are solved again cold make its tail heavier (90th percentile 7.0, 19.7, 105 ms against 4.5, 6.2, 55;
+    worst 1.2 s on nlink:13), and a real-time loop is bounded by its slow steps.
 
-    ``options`` are LinearMPC's but ``linearization`` (always along the iterate): ``qp``, ``state_bounds``
+    ``options`` are LinearMPC's but ``linearization`` (always along the iterate): ``form``, ``qp``, ``state_bounds``
     (soft by default), ``max_iter`` (each QP's iterations), ``time_limit`` (the whole step's budget, all iterations
     together), ``eps``, ``slack_weight``, ``native``, ``warm_start``, ``raise_on_fail``, ``threads``, ``gains`` (the
     last iteration's QP's feedback gain, each iteration computing its own)."""
@@ -52,7 +52,6 @@ class RealTimeIteration(LinearMPC):
         iterations: int = RTI["iterations"].default,
         tol: float = RTI["tol"].default,
         state_bounds: str = RTI["state_bounds"].default,
-        form: str | None = RTI["form"].default,
         **options,
     ):
         if "linearization" in options:
@@ -61,9 +60,7 @@ class RealTimeIteration(LinearMPC):
         if not (isinstance(tol, (int, float)) and np.isfinite(tol) and tol >= 0):
             raise ValueError(f"tol must be a finite number >= 0, got {tol!r}")
         self.tol = float(tol)
-        if form is None:
-            form = default_form(ocp, options.get("qp"), options.get("native"))
-        super().__init__(ocp, linearization="trajectory", state_bounds=state_bounds, form=form, **options)
+        super().__init__(ocp, linearization="trajectory", state_bounds=state_bounds, **options)
 
     def _native_options(self) -> dict:
         return {"iterations": self.iterations, "tol": self.tol}
@@ -106,13 +103,6 @@ class RealTimeIteration(LinearMPC):
         sol.raw_status = f"RTI {done} of {self.iterations} iterations, {converged}; QP: {sol.raw_status}"
         sol.iterations, sol.times = qp_iterations, times
         return sol
-
-
-def default_form(ocp: OCP, qp: str | None = None, native: bool | None = None) -> str:
-    """RealTimeIteration's QP form where none is given: "sparse" at p = T (no task, no ``qp`` "daqp", not
-    ``native``), else "condensed" (see :class:`RealTimeIteration`)."""
-    dense = ocp.knots < ocp.horizon or ocp.task_functions is not None or qp == "daqp" or bool(native)
-    return "condensed" if dense else "sparse"
 
 
 SOLVERS = {"rti": RealTimeIteration}

@@ -98,18 +98,14 @@ def test_rti_is_its_own_solver():
 
 
 def test_rti_solves_traditional_mpc_in_the_sparse_form():
-    """Issue 48: at p = T the default form is the sparse QP (ProxQP's sparse backend), whose closed loop is the
-    condensed QP's to the backends' tolerance; knots, a dense backend or the C step keep the condensed QP."""
+    """Issue 48: at p = T the sparse QP (ProxQP's sparse backend) gives the condensed QP's closed loop (the default)
+    to the backends' tolerance."""
     prob = make("nlink:3")
-    ocp, knots = prob.ocp(horizon=20, knots=None), prob.ocp(horizon=20, knots=4)
-    rti = RealTimeIteration(ocp)
-    assert (rti.form, rti.qp_name) == ("sparse", "proxqp")
-    assert RealTimeIteration(knots).form == "condensed"
-    assert RealTimeIteration(ocp, qp="daqp").form == "condensed"
-    assert RealTimeIteration(ocp, native=True).form == "condensed"
-    assert RealTimeIteration(ocp, qp="hpipm", state_bounds="hard").form == "sparse"
+    ocp = prob.ocp(horizon=20, knots=None)
+    rti = RealTimeIteration(ocp, form="sparse")
+    assert (rti.form, rti.qp_name) == ("sparse", "proxqp") and RealTimeIteration(ocp).form == "condensed"
     x0, goal = prob.sample(0)
-    sparse, dense = (simulate(prob.plant(), c, x0, goal, 0.2) for c in (rti, RealTimeIteration(ocp, form="condensed")))
+    sparse, dense = (simulate(prob.plant(), c, x0, goal, 0.2) for c in (rti, RealTimeIteration(ocp)))
     assert sparse.fallbacks == dense.fallbacks == 0
     np.testing.assert_allclose(sparse.u, dense.u, rtol=0, atol=1e-7)
 

@@ -4,8 +4,8 @@
 Two tables a problem and integrator, never mixed:
 
 * p = T (traditional MPC, a node every step): IPOPT (the reference: NonlinearMPC converged), ocpkit's RTI (one
-  Gauss–Newton step a control step: its default at p = T, the sparse QP by ProxQP, and the condensed QP's C step
-  beside it), acados' SQP-RTI (N = T, partial-condensing
+  Gauss–Newton step a control step: its default, the condensed QP's C step, and the sparse QP by ProxQP beside
+  it), acados' SQP-RTI (N = T, partial-condensing
   HPIPM; RK4 as acados' ERK, semi-implicit Euler as DISCRETE dynamics of ocpkit's step) and acados' SQP converged
   to SQP_TOL (a converged solve each step, as IPOPT's).
 * knots (the same freedom, p inputs over the horizon): ocpkit's RTI on its ``knots``-knot piecewise-linear OCP and on
@@ -84,7 +84,7 @@ def _problem(spec, integrator, horizon, knots, samples, steps, first_seed, echo)
     runs = [
         ("p = T", "ipopt", "T", lambda ocp: solvers.controller("ipopt", ocp)),
         ("p = T", "rti", "rti T", lambda ocp: solvers.controller("rti", ocp)),
-        ("p = T", "rti condensed", "rti T", lambda ocp: solvers.make("rti", ocp, form="condensed")),
+        ("p = T", "rti sparse", "rti T", lambda ocp: solvers.make("rti", ocp, form="sparse")),
         ("p = T", f"acados {dynamics}", "T", lambda ocp: AcadosMPC(ocp, dynamics=dynamics)),
         ("p = T", "acados sqp", "T", lambda ocp: AcadosMPC(ocp, dynamics=dynamics, nlp="sqp", tol=SQP_TOL)),
         ("knots", "rti linear", "rti linear", lambda ocp: solvers.controller("rti", ocp)),

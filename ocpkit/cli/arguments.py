@@ -55,8 +55,8 @@ def add_controller_args(p):
     p.add_argument(
         "--form",
         choices=("sparse", "condensed"),
-        help=f"qp, rti: QP transcription (default {default('qp', 'form')}; rti: sparse at p = T without a task, else "
-        f"condensed), solved by default by {' and '.join(f'{q} for {f}' for f, q in QP_BY_FORM.items())}",
+        help=f"qp, rti: QP transcription (default {default('qp', 'form')}; sparse is faster in the median for rti at "
+        "p = T, with a heavier tail)",
     )
     p.add_argument(
         "--qp",
