@@ -1,7 +1,8 @@
 """The acados peer: installed beside the project's CasADi without replacing it, the same OCP as ocpkit's, SQP at
-IPOPT's optimum, SQP-RTI in closed loop on both grids, and its tables in ``ocpkit bench nlp``."""
+IPOPT's optimum, SQP-RTI in closed loop on both grids, and its tables in ``ocpkit bench nlp``. Every check that
+loads acados runs in a process of its own (``acados_install.isolated``): loaded into the test process, its HPIPM and
+BLASFEO crashed a later test of CasADi's HPIPM plugin."""
 
-import os
 import subprocess
 import sys
 
@@ -64,6 +65,10 @@ def optimum(spec, dynamics, integrator, seed=0):
 def test_sqp_reaches_ipopts_optimum(spec, dynamics, integrator):
     """Same OCP, same integrator: acados' converged SQP plan is IPOPT's p = T optimum (3e-14 to 3e-12 relative
     cost measured), input bounds active."""
+    acados_install.isolated(_sqp_reaches_ipopts_optimum, spec, dynamics, integrator)
+
+
+def _sqp_reaches_ipopts_optimum(spec, dynamics, integrator):
     ocp, costs, ours, theirs = optimum(spec, dynamics, integrator)
     assert costs[1] == pytest.approx(costs[0], rel=1e-6)
     assert np.isclose(np.abs(theirs.knots), ocp.u_max).any()
@@ -73,14 +78,22 @@ def test_sqp_reaches_ipopts_optimum(spec, dynamics, integrator):
 @needs_acados
 def test_sqp_reaches_ipopts_optimum_on_the_puma():
     """The Puma 560 (acados' ERK generated from ocpkit's rigid-body model: 20 s to build, once): 3e-14 measured."""
-    _, costs, _, _ = optimum("puma560", "erk", "rk4")
+    costs = acados_install.isolated(_costs, "puma560", "erk", "rk4")
     assert costs[1] == pytest.approx(costs[0], rel=1e-6)
+
+
+def _costs(spec, dynamics, integrator):
+    return optimum(spec, dynamics, integrator)[1]
 
 
 @needs_acados
 def test_rti_closed_loop_on_both_grids():
     """SQP-RTI at p = T and on the coarse grid (N = p intervals of T/p steps, the zero-order hold's knots) runs a
     closed loop without fallbacks; the coarse grid's plan is p inputs held T/p steps each."""
+    acados_install.isolated(_rti_closed_loop_on_both_grids)
+
+
+def _rti_closed_loop_on_both_grids():
     from ocpkit.benchmarks.acados_peer import AcadosMPC, grid
     from ocpkit.sim.simulate import simulate
 
@@ -103,9 +116,12 @@ def test_rti_closed_loop_on_both_grids():
 
 
 @needs_acados
-def test_bench_nlp_acados_tables(capsys):
+def test_bench_nlp_acados_tables(capfd):
+    """The tables come from a process of their own (the child's output reaches the terminal: capfd, not capsys), and
+    this one never loads acados."""
     rows = bench_nlp(["nlink:2"], samples=1, steps=3, horizon=10, knots=2, controllers=("acados",), integrator="rk4")
-    out = capsys.readouterr().out
+    out = capfd.readouterr().out
+    assert not acados_install.loaded()
     assert "nlink:2, rk4, p = T" in out and "nlink:2, rk4, knots" in out and "load" in out
     tables = {(r["table"], r["controller"]): r for r in rows}
     assert set(tables) == {
@@ -124,4 +140,31 @@ def test_bench_nlp_acados_tables(capsys):
     # RTI's sparse QP at p = T beside its default, the condensed QP: one closed loop to the backends' tolerance
     rti, sparse = tables[("p = T", "rti")], tables[("p = T", "rti sparse")]
     assert sparse["cost_ratio"] == pytest.approx(rti["cost_ratio"], rel=1e-8)
-    assert os.environ.get("ACADOS_SOURCE_DIR", "").startswith(str(acados_install.folder()))
+
+
+@needs_acados
+def test_casadis_hpipm_and_acados_refuse_to_share_a_process():
+    """Loaded together they crashed (a segmentation fault): each refuses a process where the other is loaded."""
+    acados_install.isolated(_hpipm_after_acados)
+    acados_install.isolated(_acados_after_hpipm)
+
+
+def _hpipm_after_acados():
+    from ocpkit.solvers.qp import LinearMPC
+
+    acados_install.require()
+    prob = registry.make("nlink:2")
+    x0, goal = prob.sample(0)
+    sol = LinearMPC(prob.ocp(knots=None, horizon=10), form="sparse", qp="hpipm").solve(x0, goal)
+    assert not sol.ok and "acados" in sol.raw_status, sol.raw_status
+
+
+def _acados_after_hpipm():
+    from ocpkit.solvers.qp import LinearMPC
+
+    prob = registry.make("nlink:2")
+    x0, goal = prob.sample(0)
+    assert LinearMPC(prob.ocp(knots=None, horizon=10), form="sparse", qp="hpipm").solve(x0, goal).ok
+    assert acados_install.casadi_hpipm_loaded()
+    with pytest.raises(RuntimeError, match="process of its own"):
+        acados_install.require()

@@ -12,6 +12,11 @@ layout file under ``$ACADOS_SOURCE_DIR/interfaces/acados_template/acados_templat
 a link to the unpacked ``acados_template``.
 
 Install (repeatable; it replaces an older copy): ``python -m ocpkit.benchmarks.acados_install``.
+
+acados' HPIPM and BLASFEO have the sonames of those CasADi's HPIPM plugin loads (``libhpipm.so``,
+``libblasfeo.so.0``), and a process that has loaded both crashed (a segmentation fault, whichever came first): the
+peer runs in a process of its own (:func:`isolated`), :func:`require` refuses a process where CasADi's plugin is
+loaded, and :mod:`ocpkit.qp.hpipm` one where acados is.
 """
 
 from __future__ import annotations
@@ -74,6 +79,11 @@ def require():
     reason = missing()
     if reason:
         raise ImportError(reason)
+    if casadi_hpipm_loaded():
+        raise RuntimeError(
+            "acados cannot be loaded into a process that has loaded CasADi's HPIPM plugin (their HPIPM and BLASFEO "
+            "libraries share names, and the process crashes): run it in a process of its own (acados_install.isolated)"
+        )
     root = folder() / "acados"
     lib = root / "install" / "lib"
     for name in LIBRARIES:  # RTLD_GLOBAL: the generated solvers find their dependencies already loaded
@@ -83,6 +93,29 @@ def require():
     import acados_template
 
     return acados_template
+
+
+def loaded() -> bool:
+    """Whether this process has loaded acados' libraries."""
+    return "acados_template" in sys.modules
+
+
+def casadi_hpipm_loaded() -> bool:
+    """Whether this process has loaded CasADi's HPIPM plugin (read from /proc/self/maps; False where there is none)."""
+    try:
+        return "libcasadi_conic_hpipm" in Path("/proc/self/maps").read_text()
+    except OSError:
+        return False
+
+
+def isolated(function, *args, **kwargs):
+    """``function(*args, **kwargs)`` run in a new process (spawned: nothing of this one's libraries), its result
+    returned and its exception raised here: where the acados peer runs, so that this process never loads it."""
+    from concurrent.futures import ProcessPoolExecutor
+    from multiprocessing import get_context
+
+    with ProcessPoolExecutor(1, mp_context=get_context("spawn")) as pool:
+        return pool.submit(function, *args, **kwargs).result()
 
 
 def available() -> bool:

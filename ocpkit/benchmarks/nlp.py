@@ -112,13 +112,16 @@ def bench_nlp(
     if unknown or not controllers:
         raise ValueError(f"controllers must be among {known}, got {controllers}")
     if "acados" in controllers:
-        acados_install.require()
+        reason = acados_install.missing()
+        if reason:
+            raise ImportError(reason)
         others = tuple(c for c in controllers if c != "acados")
         options = {"horizon": horizon, "samples": samples, "steps": steps, "first_seed": first_seed, "echo": echo}
         rows = []
         if others:
             rows = bench_nlp(problems, knots, controllers=others, compiled=compiled, integrator=integrator, **options)
-        return rows + acados_compare.compare(
+        return rows + acados_install.isolated(  # acados in a process of its own (acados_install's docstring)
+            acados_compare.compare,
             acados_compare.PROBLEMS if problems is None else problems,
             knots=KNOTS if knots is None else knots,
             integrators=acados_compare.INTEGRATORS if integrator is None else (integrator,),

@@ -3,6 +3,7 @@ HPIPM's stage order."""
 
 from __future__ import annotations
 
+import sys
 import time
 
 import numpy as np
@@ -60,6 +61,11 @@ class HPIPM(QPBackend):
             },
         }
         self._sp = {k: ca.Sparsity(*M.shape, M.indptr.tolist(), M.indices.tolist()) for k, M in (("h", H), ("a", A))}
+        if "acados_template" in sys.modules:  # the acados peer's HPIPM and BLASFEO have these libraries' names
+            raise RuntimeError(
+                "CasADi's HPIPM cannot run in a process that has loaded the acados peer (their HPIPM and BLASFEO "
+                "libraries share names, and the process crashes): run acados in a process of its own"
+            )
         self.solver = ca.conic("hpipm", "hpipm", self._sp, opts)
         self._ca = ca
 
