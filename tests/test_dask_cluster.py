@@ -266,6 +266,7 @@ def test_study_on_a_cluster_stores_what_local_processes_store(cluster, local, tm
     assert writes(tmp_path / "dask") == TRIALS
 
 
+@pytest.mark.slow  # 5 s: a worker process is killed mid-trial
 def test_a_killed_worker_s_trials_rerun_on_the_other(cluster, local, tmp_path):
     address = cluster.scheduler()
     victim, _ = cluster.workers(2)
@@ -278,6 +279,7 @@ def test_a_killed_worker_s_trials_rerun_on_the_other(cluster, local, tmp_path):
     assert writes(tmp_path / "dask") == TRIALS  # each trial stored once
 
 
+@pytest.mark.slow  # 8 s: the scheduler is killed and a second cluster started
 def test_a_lost_scheduler_is_one_line_and_a_new_one_resumes(cluster, local, tmp_path):
     out_dir = tmp_path / "dask"
     first = cluster.scheduler()
@@ -332,6 +334,7 @@ def test_a_worker_without_ocpkit_or_with_another_version_or_other_code_is_refuse
             cluster.kill(process)
 
 
+@pytest.mark.slow  # 8 s; its local twin: test_study_claims.py, a trial that never returns is stopped
 def test_the_trial_timeout_holds_on_remote_workers(cluster, tmp_path):
     address = cluster.scheduler()
     cluster.workers(2)

@@ -38,7 +38,11 @@ def _same_optimum(sol, ref, tol=1e-6):
 
 
 @pytest.mark.parametrize(
-    "name, horizon, methods", [("nlink:3", 20, ("ipopt", "sqp", "fatrop")), ("puma560", 50, ("ipopt", "fatrop"))]
+    "name, horizon, methods",
+    [
+        ("nlink:3", 20, ("ipopt", "sqp", "fatrop")),
+        pytest.param("puma560", 50, ("ipopt", "fatrop"), marks=pytest.mark.slow),  # 4.4 s: the rigid-body model
+    ],
 )
 def test_gauss_newton_reaches_the_exact_hessians_optimum(name, horizon, methods):
     prob = problems.make(name)

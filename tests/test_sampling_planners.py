@@ -114,7 +114,10 @@ def test_cem_follows_the_knot_qp_on_six_links():
         assert actual_cost(traj, ocp) <= 1.08 * actual_cost(qp, ocp), seed
 
 
-@pytest.mark.parametrize("cls", [EvolutionaryMPC, CrossEntropyMPC, MPPI])
+# CEM and MPPI in the slow run (4 s each): they share the budget code of EMPC's run here
+@pytest.mark.parametrize(
+    "cls", [EvolutionaryMPC, *(pytest.param(c, marks=pytest.mark.slow) for c in (CrossEntropyMPC, MPPI))]
+)
 def test_a_1ms_budget_covers_the_whole_step_on_13_links(cls):
     """Issue 44: at time_limit 1 ms after warm_up every nlink:13 step was "limited" yet took 88 ms-1.1 s, the model
     and the preconditioner (its box QP: 0.5 s at 50 knots) running before the budget was checked. Each stage now

@@ -62,6 +62,58 @@ def tiny_tracking(monkeypatch):
     )
 
 
+def _check_sections(text: str, count: int) -> None:
+    """Every study section of a reproduce report says how many trials stand behind it and ends with its claim
+    checks, each decided verdict with its evidence; ``count`` sections, the appendix of per-seed values last."""
+    assert "wall time" in text and "casadi" in text and "failed" not in text
+    sections = text.split("\n## ")[1:]
+    assert len(sections) == count
+    for part in sections:
+        title = part.splitlines()[0]
+        if title.startswith("Appendix"):
+            assert "per seed" in part
+            continue
+        assert "trials succeeded (" in part, title
+        claims = part.split("Claim checks:")[1]
+        assert "| paper's claim | paper | here | evidence | verdict |" in claims, title
+        rows = [row for row in claims.strip().splitlines()[2:] if row.startswith("|")]
+        verdicts = [row.rsplit("|", 2)[-2].strip().split(" (")[0] for row in rows]
+        assert verdicts and set(verdicts) <= {"held", "not held", "inconclusive", "not tested", "unreliable", "–"}, (
+            title,
+            verdicts,
+        )
+        for row in rows:  # n, and an interval where the verdict rests on a median
+            if row.rsplit("|", 2)[-2].strip() in ("held", "not held", "inconclusive"):
+                assert "n = " in row or " runs " in row, row
+    assert "How verdicts are decided" in text
+
+
+def _check_knots(out) -> None:
+    """The knots study's figure, table and store in a reproduce folder, and a second run that redoes none of it."""
+    assert (out / "knots_pendulum_linear.png").stat().st_size > 5000
+    assert (out / "knots_pendulum_linear.pdf").exists()
+    assert len((out / "knots.csv").read_text().splitlines()) == 7  # header and six trials
+    df = Store(out).load("knots")
+    assert len(df) == 6 and (df["status"] == "ok").all()
+    ratios = get("knots").ratios(df, "knots")
+    assert (ratios.loc[ratios["knots"] == 2, "ratio"] > 1).all()
+    # Resume: a second run finds every trial stored and redoes none (the knots study: its report alone is rebuilt;
+    # re-rendering every study's figures would add ~15 s and check nothing more).
+    before = Store(out).load("knots")["finished"].tolist()
+    reproduce("quick", out, names=("knots",), workers=1, progress=False, pictures=False)
+    assert Store(out).load("knots")["finished"].tolist() == before
+
+
+def test_reproduce_assembles_its_report_on_two_tiny_studies(tiny, tiny_tracking, tmp_path):
+    """The fast twin of the slow run over every study below: two studies, their sections and the appendix."""
+    report = reproduce("quick", tmp_path, names=("knots", "tracking"), workers=1, progress=False, pictures=False)
+    text = report.read_text()
+    assert "Fig. 3" in text and "Follow a moving reference" in text
+    _check_sections(text, 3)
+    _check_knots(tmp_path)
+
+
+@pytest.mark.slow
 def test_reproduce_quick_on_tiny_grids(tiny, tiny_tracking, tmp_path):
     report = reproduce("quick", tmp_path, workers=1, progress=False)
     text = report.read_text()
@@ -78,41 +130,8 @@ def test_reproduce_quick_on_tiny_grids(tiny, tiny_tracking, tmp_path):
         "Follow a moving reference",
     ):
         assert title in text
-    assert "wall time" in text and "casadi" in text and "failed" not in text
-    # Every study section says how many trials stand behind it and ends with its claim checks.
-    sections = text.split("\n## ")[1:]
-    assert len(sections) == 11  # the studies, robustness's MuJoCo variant, then the appendix of per-seed values
-    for part in sections:
-        title = part.splitlines()[0]
-        if title.startswith("Appendix"):
-            assert "per seed" in part
-            continue
-        assert "trials succeeded (" in part, title
-        claims = part.split("Claim checks:")[1]
-        assert "| paper's claim | paper | here | evidence | verdict |" in claims, title
-        rows = [row for row in claims.strip().splitlines()[2:] if row.startswith("|")]
-        verdicts = [row.rsplit("|", 2)[-2].strip().split(" (")[0] for row in rows]
-        assert verdicts and set(verdicts) <= {"held", "not held", "inconclusive", "not tested", "unreliable", "–"}, (
-            title,
-            verdicts,
-        )
-        # Every decided verdict shows its evidence: n, and an interval where it rests on a median.
-        for row in rows:
-            if row.rsplit("|", 2)[-2].strip() in ("held", "not held", "inconclusive"):
-                assert "n = " in row or " runs " in row, row
-    assert "How verdicts are decided" in text
-    assert (tmp_path / "knots_pendulum_linear.png").stat().st_size > 5000
-    assert (tmp_path / "knots_pendulum_linear.pdf").exists()
-    assert len((tmp_path / "knots.csv").read_text().splitlines()) == 7  # header and six trials
-    df = Store(tmp_path).load("knots")
-    assert len(df) == 6 and (df["status"] == "ok").all()
-    ratios = get("knots").ratios(df, "knots")
-    assert (ratios.loc[ratios["knots"] == 2, "ratio"] > 1).all()
-    # Resume: a second run finds every trial stored and redoes none (the knots study: its report alone is rebuilt;
-    # re-rendering every study's figures would add ~15 s and check nothing more).
-    before = Store(tmp_path).load("knots")["finished"].tolist()
-    reproduce("quick", tmp_path, names=("knots",), workers=1, progress=False, pictures=False)
-    assert Store(tmp_path).load("knots")["finished"].tolist() == before
+    _check_sections(text, 11)  # the studies, robustness's MuJoCo variant, then the appendix of per-seed values
+    _check_knots(tmp_path)
 
 
 def test_unknown_study():
