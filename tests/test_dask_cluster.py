@@ -368,7 +368,7 @@ class _QuietHandler(http.server.SimpleHTTPRequestHandler):
         pass
 
 
-@pytest.fixture(params=["web server", "silent listener"])
+@pytest.fixture(params=["web server", pytest.param("silent listener", marks=pytest.mark.slow)])  # 4 s each
 def not_dask(request):
     """The address of a server that is no Dask scheduler: a web server (``python -m http.server``), or a listener
     whose connections the kernel accepts and nothing ever answers."""
