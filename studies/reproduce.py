@@ -24,14 +24,14 @@ PACKAGES = ("ocpkit", "casadi", "numpy", "proxsuite", "osqp", "pin", "taichi", "
 # nlink:3 seed 298 s).
 SECONDS_PER_TRIAL = {
     "knots": 0.38,
-    "horizon": 0.47,
-    "robustness": 0.35,
-    "solve_times": 3.4,
-    "comparison": 3.0,
-    "keepout": 0.97,
-    "baxter": 1.14,
-    "reach": 5.5,
-    "tracking": 0.81,
+    "horizon": 0.45,
+    "robustness": 0.33,
+    "solve_times": 1.25,
+    "comparison": 2.8,
+    "keepout": 0.91,
+    "baxter": 1.04,
+    "reach": 5.8,
+    "tracking": 0.74,
     "robustness_mujoco": 0.36,
 }
 # Studies whose claims are about time: run one trial at a time (locally), so two trials never share the 2 cores.

@@ -31,9 +31,10 @@ NOT_REDUCED = 0.1  # "does not reduce": faster by less than this fraction
 HARDLY = 1.5  # "hardly depends on the horizon": twice the horizon, at most this factor in time
 HARDLY_SOURCE = "ours: the paper gives no number for 'hardly'"
 # "max_dense_vars": the traditional small matrix QP has links × T dense variables and its OSQP solve grows
-# steeply with them; quick skips it above this size. None: no skip.
+# steeply with them; quick skips it above this size (600: 7 links at T = 100 and 13 at T = 50, 700 and 650
+# variables, took 35 and 33 s of the quick study's 104, a tenth of `reproduce --quick`). None: no skip.
 SIZES = {
-    "quick": {"links": [1, 3, 7, 13], "states": 20, "qp": "osqp", "max_dense_vars": 700},
+    "quick": {"links": [1, 3, 7, 13], "states": 20, "qp": "osqp", "max_dense_vars": 600},
     "full": {"links": list(range(1, 14)), "states": 100, "qp": "osqp", "max_dense_vars": None},
 }
 
