@@ -91,6 +91,12 @@ class OCP:
             raise TypeError(f"parameterization must be a Parameterization, got {type(parameterization).__name__}")
         if parameterization.horizon != self.horizon:
             raise ValueError(f"parameterization has horizon {parameterization.horizon}, the OCP {self.horizon}")
+        if not parameterization.convex and np.any(np.isfinite(np.r_[self.u_min, self.u_max])):
+            raise ValueError(
+                f"input bounds need a parameterization whose rows are convex combinations (nonnegative, summing to "
+                f"1): the QPs and planners bound the knots, which bounds u = φU only then; {parameterization.kind!r} "
+                f"has another basis (drop u_min/u_max or use such a basis)"
+            )
         self.parameterization = parameterization
         self._compiled_affine = None  # compiled=True: the compiled model; None: the switching one, once made
         self.knots = parameterization.knots

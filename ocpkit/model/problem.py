@@ -229,17 +229,26 @@ class Problem:
         knots: int | None = None,
         horizon: int | None = None,
         error: float = 1.0,
-        parameterization: str = "linear",
+        parameterization: str | Parameterization = "linear",
         dt: float | None = None,
         **overrides,
     ) -> OCP:
         """The MPC problem: ``knots`` None means traditional MPC (p = T) — unlike the command line, which takes 5
         knots unless told otherwise (:data:`ocpkit.solvers.methods.KNOTS`); other keywords override defaults or set
-        the OCP's options, e.g. ``integrator="euler"`` for the controller's prediction (the plant keeps RK4)."""
-        T = self.horizon if horizon is None else horizon
+        the OCP's options, e.g. ``integrator="euler"`` for the controller's prediction (the plant keeps RK4).
+        ``parameterization`` is a kind's name (:data:`~ocpkit.model.parameterization.KINDS`) or a Parameterization,
+        e.g. ``Parameterization.custom(basis)``, which sets the knots and the horizon (``knots``, ``horizon`` None or
+        the same)."""
+        if isinstance(parameterization, Parameterization):
+            param, T = parameterization, parameterization.horizon
+            for name, value in (("knots", knots), ("horizon", horizon)):
+                if value is not None and value != getattr(param, name):
+                    raise ValueError(f"{name}={value} differs from the parameterization's {getattr(param, name)}")
+        else:
+            T = self.horizon if horizon is None else horizon
+            param = Parameterization.make(parameterization, T, knots)
         kwargs = {**self.defaults(), **overrides}
         args = (self.model(error), self.dt if dt is None else dt, T)
-        param = Parameterization.make(parameterization, T, knots)
         extra = self.goal_input()
         if extra is None:
             return OCP(*args, parameterization=param, **kwargs)
