@@ -119,6 +119,17 @@ def study(size: str) -> Study:
     )
 
 
+def per_seed_rows(df):
+    """Each seed's ITAE per controller, command and joint, and its ratio to the servo's (the verdicts' unit), for
+    the report's appendix."""
+    ok = df[df["status"] == "ok"]
+    itae = ok.set_index(["controller", "command", "seed"])[[f"itae_{j}" for j in SHORT]]
+    itae.columns = pd.Index(SHORT, name="joint")
+    itae = itae.stack().reorder_levels(["controller", "command", "joint", "seed"]).sort_index()
+    servo = itae.xs(SERVO, level="controller").reindex(itae.index.droplevel("controller")).to_numpy()
+    return pd.DataFrame({"ITAE": itae, "ITAE / the servo's": itae.to_numpy() / servo}, index=itae.index)
+
+
 def report(df, out_dir) -> str:
     ok = df[df["status"] == "ok"]
     trials = trials_line(

@@ -44,6 +44,15 @@ def ratios(df):
     return ok
 
 
+def per_seed_rows(df):
+    """Each seed's cost ratio (the verdicts' unit) per problem and horizon, for the report's appendix."""
+    ok = ratios(df)
+    ok = ok[ok["horizon"] != REFERENCE_HORIZON]
+    return ok.set_index(["problem", "horizon", "seed"])[["ratio"]].rename(
+        columns={"ratio": f"actual cost / traditional MPC's at T = {REFERENCE_HORIZON}"}
+    )
+
+
 def report(df, out_dir) -> str:
     ok = ratios(df)
     figs = []

@@ -58,6 +58,14 @@ def ratios(df, by: str):
     return rows
 
 
+def per_seed_rows(df):
+    """Each seed's cost ratio (the verdicts' unit) per problem and knot count, for the report's appendix."""
+    rows = ratios(df, "knots").astype({"knots": int})
+    return rows.set_index(["problem", "knots", "seed"])[["ratio"]].rename(
+        columns={"ratio": f"actual cost / traditional MPC's at T = {REFERENCE_HORIZON}"}
+    )
+
+
 def report(df, out_dir) -> str:
     rows = ratios(df, "knots")
     figs = []

@@ -87,6 +87,31 @@ def timing_context(df) -> str:
     )
 
 
+def per_seed_section(heading: str, rows, out_dir) -> str:
+    """A study's per-seed values in its verdicts' units (``rows``: a study module's ``per_seed_rows(df)``, indexed by
+    its configuration and ``seed``, one column per metric) as Markdown, one table per metric (rows: configurations,
+    columns: seeds); written in full precision to ``out_dir``/<heading>_per_seed.csv, beside the raw values of
+    every trial (<heading>.csv, written by the runner)."""
+    if rows.empty:
+        return ""
+    csv = f"{heading}_per_seed.csv"
+    rows.to_csv(os.path.join(out_dir, csv))
+    parts = [
+        f"### {heading}: per seed, in the verdicts' units",
+        "",
+        f"Full precision: [{csv}]({csv}); every trial's raw values (actual costs, times): "
+        f"[{heading}.csv]({heading}.csv).",
+    ]
+    axes = [n for n in rows.index.names if n != "seed"]
+    for metric in rows.columns:
+        table = rows[metric].unstack("seed")
+        table.index = [" / ".join(map(str, i)) if isinstance(i, tuple) else str(i) for i in table.index]
+        table.index.name = " / ".join(axes)
+        table.columns = [f"seed {c}" for c in table.columns]
+        parts += ["", f"{metric}:", "", markdown_table(table)]
+    return "\n".join(parts) + "\n"
+
+
 def section(title: str, figures, tables: dict, *, trials: str, claims: list, notes=()) -> str:
     """A report section: title, the trials behind it, figures (PNG paths relative to the report), captioned
     tables, notes, and the claim checks it ends with."""

@@ -102,6 +102,18 @@ def normalized(df):
     return ok
 
 
+def per_seed_rows(df):
+    """Each seed's values in the verdicts' units, for the report's appendix: normalized cost, and (model error)
+    percent overshoot and rise time [s]."""
+    ok = normalized(df)
+    if "mismatch" in df:
+        return ok.set_index(["problem", "condition", "controller", "seed"])[["normalized"]].rename(
+            columns={"normalized": "normalized cost (mismatched / ocpkit's plant)"}
+        )
+    columns = {"normalized": "normalized cost", "overshoot": "percent overshoot", "rise_time": "rise time [s]"}
+    return ok.set_index(["problem", "controller", "error_multiplier", "seed"])[list(columns)].rename(columns=columns)
+
+
 def report(df, out_dir) -> str:
     if "mismatch" in df:
         return mujoco_report(df, out_dir)

@@ -13,6 +13,7 @@ from __future__ import annotations
 import os
 
 import numpy as np
+import pandas as pd
 
 from ocpkit import problems, solvers
 from ocpkit.sim import plots
@@ -144,6 +145,25 @@ def report(df, out_dir) -> str:
         trials=trials + " " + timing_context(ok),
         notes=_notes(ok, df),
         claims=claims(ok, df, out_dir),
+    )
+
+
+def per_seed_rows(df):
+    """Each formulation's median times per (links, T) and its median optimization time over the parameterized
+    small matrix's, for the report's appendix (one seed: :data:`SIZES`' states are its samples; the verdicts'
+    per-state ratios come from the stored time arrays)."""
+    ok = df[df["status"] == "ok"].copy()
+    ok["formulation"] = [label(f, k) for f, k in zip(ok["form"], ok["knots"])]
+    rows = ok.set_index(["links", "horizon", "formulation", "seed"])
+    best = rows.xs(label("condensed", KNOTS), level="formulation")["solve_median"]
+    keys = rows.index.droplevel("formulation")
+    return pd.DataFrame(
+        {
+            "median optimization solve time [ms]": 1e3 * rows["solve_median"],
+            "median MPC solve time [ms]": 1e3 * rows["total_median"],
+            "optimization time / the parameterized small matrix's": rows["solve_median"].to_numpy()
+            / best.reindex(keys).to_numpy(),
+        }
     )
 
 
