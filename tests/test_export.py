@@ -14,6 +14,7 @@ import pytest
 
 from ocpkit.status import SUCCESS
 from ocpkit.export import ExportedMPC, build, export
+from ocpkit.model.parameterization import Parameterization
 from ocpkit.problems import make
 from ocpkit.solvers.qp import LinearMPC
 
@@ -270,12 +271,15 @@ def test_nlink7_generated_c_is_small(tmp_path):
     assert info.c_bytes < 400_000, info.c_bytes  # the unrolled SX step was 5.2 MB
 
 
-@pytest.mark.parametrize("variant", ["zoh", "identity", "full_q_and_goal_gain"])
+@pytest.mark.parametrize("variant", ["zoh", "identity", "bspline", "custom", "full_q_and_goal_gain"])
 def test_condensing_variants_match_linear_mpc(variant, tmp_path):
-    """Other bases (other pieces), non-diagonal Q and Q_T and an input goal linear in the goal (u_goal + K goal)."""
+    """Other bases (other pieces: the cubic B-spline's and a dense basis' are two steps long), non-diagonal Q and
+    Q_T and an input goal linear in the goal (u_goal + K goal)."""
     problem = make("pendulum")
-    if variant == "zoh":
-        ocp = problem.ocp(knots=4, horizon=30, parameterization="zoh")
+    if variant in ("zoh", "bspline"):
+        ocp = problem.ocp(knots=4 if variant == "zoh" else 6, horizon=30, parameterization=variant)
+    elif variant == "custom":
+        ocp = problem.ocp(parameterization=Parameterization.custom(_bumps(30, 5)))
     elif variant == "identity":
         ocp = problem.ocp(knots=None, horizon=12)
     else:
@@ -291,6 +295,25 @@ def test_condensing_variants_match_linear_mpc(variant, tmp_path):
     build(info.out_dir)
     with ExportedMPC(ocp, info.out_dir) as c:
         _compare(problem, ocp, c, "plan", seeds=[0, 1], steps=12)
+
+
+def _bumps(T, p):
+    """A dense user basis: normalized Gaussian bumps, every row a convex combination of all p knots."""
+    B = np.exp(-0.5 * ((np.linspace(0, 1, T)[:, None] - np.linspace(0, 1, p)[None]) * p) ** 2)
+    return B / B.sum(axis=1, keepdims=True)
+
+
+@pytest.mark.parametrize("kind", ["bspline", "custom"])
+def test_real_time_iteration_with_other_bases_matches_linear_mpc(kind, tmp_path):
+    """The C step's stage-by-stage (trajectory) build reads the whole basis (PHI_ALL): nlink:3 with a B-spline and
+    a dense basis against LinearMPC(linearization="trajectory") in Python."""
+    problem = make("nlink:3")
+    par = Parameterization.bspline(30, 5) if kind == "bspline" else Parameterization.custom(_bumps(30, 5))
+    ocp = problem.ocp(parameterization=par)
+    info = export(ocp, tmp_path / kind, linearization="trajectory")
+    build(info.out_dir)
+    with ExportedMPC(ocp, info.out_dir) as c:
+        _compare(problem, ocp, c, "trajectory", seeds=[0], steps=8)
 
 
 def test_two_instances_step_alternately(tmp_path):

@@ -14,8 +14,9 @@ Both build from an affine model, one (A_d, B_d, w_d) for the whole horizon (the 
 current state, LTI) or one per stage, (T, n, n), (T, n, m), (T, n) arrays: the model linearized along a
 trajectory (LTV), as real-time iteration and ``LinearMPC(linearization="trajectory")`` need.
 
-Input bounds apply to the knots: for piecewise-linear and zero-order-hold bases every u_k is a convex
-combination of knots, so bounded knots bound the whole input trajectory.
+Input bounds apply to the knots: for piecewise-linear, zero-order-hold and B-spline bases (and a user basis
+whose rows are convex combinations, ``Parameterization.convex``; the OCP refuses input bounds with any other)
+every u_k is a convex combination of knots, so bounded knots bound the whole input trajectory.
 
 State bounds are hard constraints by default; with ``soft=True`` they become an exact L1 penalty: one slack
 s ≥ 0 per bounded state component and step, appended after the other variables, rows x + s ≥ x_min and
@@ -125,8 +126,9 @@ class CondensedQP(Transcription):
 
     The build exploits the structure of S and never forms it. The horizon splits into *pieces*, runs of inputs
     u_a … u_{a+L−1} along which φ_i = φ_a + (i − a) Δ is affine in i (one piece per knot interval for
-    piecewise-linear and zero-order-hold bases). In deviation coordinates x̃ = x − x_goal (w̃_d = w_d + (A_d − I)
-    x_goal), inside a piece with y = [x̃_a; α; β; 1], α = (φ_a ⊗ I) z and β = (Δ ⊗ I) z,
+    piecewise-linear and zero-order-hold bases; two steps for a cubic B-spline or a dense user basis). In
+    deviation coordinates x̃ = x − x_goal (w̃_d = w_d + (A_d − I) x_goal), inside a piece with y = [x̃_a; α; β; 1],
+    α = (φ_a ⊗ I) z and β = (Δ ⊗ I) z,
 
         x̃_{a+s} = Λ_s y,   Λ_s = [A_d^s  E_s  F_s  e_s],
         E_s = Σ_{t<s} A_d^t B_d,  F_s = Σ_{t<s} (s−1−t) A_d^t B_d,  e_s = Σ_{t<s} A_d^t w̃_d.
