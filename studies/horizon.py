@@ -13,6 +13,7 @@ from ocpkit.runs.study import Study, grid
 from ocpkit.studies.closed_loop import grid_size, trial
 from ocpkit.studies.knots import HORIZON, PROBLEMS, REFERENCE_HORIZON
 from ocpkit.runs.store import Store
+from ocpkit.studies.calibration import puma_setup
 from ocpkit.studies.evidence import NOT_TESTED, combine, median_claim, paired, series
 from ocpkit.studies.report import Claim, markdown_table, section, timing_context, trials_line
 
@@ -78,7 +79,7 @@ def report(df, out_dir) -> str:
     return section(
         TITLE,
         figs,
-        {caption: markdown_table(table)},
+        {**puma_setup(ok["problem"]), caption: markdown_table(table)},
         trials=trials + " " + timing_context(ok),
         claims=claims(ok, _knots_rows(out_dir)),
     )

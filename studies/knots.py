@@ -12,13 +12,14 @@ from ocpkit.sim import plots
 from ocpkit.problems import filename
 from ocpkit.runs.study import Study, grid
 from ocpkit.studies.closed_loop import grid_size, trial
+from ocpkit.studies.calibration import puma_setup, stated
 from ocpkit.studies.evidence import NOT_TESTED, combine, decide, every, median_claim, median_interval, paired, series
 from ocpkit.studies.report import Claim, markdown_table, section, timing_context, trials_line
 from ocpkit.sim.plots import number
 
 NAME = "knots"
 TITLE = "Actual cost ratio vs number of knot points (Fig. 3)"
-PROBLEMS = ("pendulum:linear", "pendulum", "puma560")
+PROBLEMS = ("pendulum:linear", "pendulum", "puma560:paper")
 HORIZON, REFERENCE_HORIZON = 50, 100
 SIZES = {
     "quick": {"knots": [1, 2, 3, 4, 6, 10, 25, 50], "seeds": 8, "problems": PROBLEMS},
@@ -99,13 +100,36 @@ def report(df, out_dir) -> str:
         f"Median actual cost ratio to traditional MPC with T = {REFERENCE_HORIZON} over the seeds "
         f"(rows: knots, horizon {HORIZON})"
     )
+    threshold = stated(
+        [
+            (
+                f"{p}: fewest knots from which every median ratio ≤ {number(HARDLY)}",
+                QUOTES["slight"],
+                (3, 4),
+                knee(table[p]),
+            )
+            for p in table.columns
+        ]
+    )
     return section(
         TITLE,
         figs,
-        {caption: markdown_table(table)},
+        {
+            **puma_setup(rows["problem"]),
+            caption: markdown_table(table),
+            "The paper's stated threshold beside ours": markdown_table(threshold),
+        },
         trials=trials + " " + timing_context(ok),
         claims=claims(rows, table),
     )
+
+
+def knee(medians) -> float:
+    """The fewest knots from which every median cost ratio (``medians``, indexed by knots) is at most
+    :data:`HARDLY`: where "the effect on cost … is very slight" begins (NaN if even the most knots are above)."""
+    above = medians[medians > HARDLY]
+    rest = medians.index[medians.index > above.index.max()] if len(above) else medians.index
+    return float(rest.min()) if len(rest) else float("nan")
 
 
 def claims(rows, table) -> list:

@@ -45,11 +45,15 @@ NAME = "robustness"
 TITLE = "Robustness to model error (Figs. 5–6, Tables I–II)"
 CONTROLLERS = [2, 4, 8, None]  # knot points; None = traditional MPC
 SIZES = {
-    "quick": {"errors": [0.5, 0.7, 0.9, 1.0, 1.1, 1.3, 1.5], "seeds": 8, "problems": ["pendulum:paper", "puma560"]},
+    "quick": {
+        "errors": [0.5, 0.7, 0.9, 1.0, 1.1, 1.3, 1.5],
+        "seeds": 8,
+        "problems": ["pendulum:paper", "puma560:paper"],
+    },
     "full": {
         "errors": [round(0.5 + 0.1 * i, 1) for i in range(11)],
         "seeds": 30,
-        "problems": ["pendulum:paper", "puma560"],
+        "problems": ["pendulum:paper", "puma560:paper"],
     },
 }
 USER_QUICK = {"errors": [0.7, 1.0, 1.3], "seeds": 2}

@@ -109,3 +109,66 @@ def test_solve_time_verdict_prints_the_rival_that_decides_it(monkeypatch):
     claim = solve_times.claims(pd.DataFrame({"load": [0.0]}), None, None)[0]
     assert claim.verdict == "inconclusive"
     assert "1/50 vs wide: 0.75 [0.3, 1.2]" in claim.evidence, claim.evidence
+
+
+def test_paper_puma_has_no_terminal_weight_and_is_the_paper_studies_puma():
+    """The paper's cost (eq. mpc_problem) has no terminal term: x_T weighs Q, as the other states (issue 51: the
+    default 10 Q made traditional MPC at T = 5 cost only 1.105x its best)."""
+    from ocpkit.studies import knots
+
+    paper, default = problems.make("puma560:paper"), problems.make("puma560")
+    assert paper.name == "puma560:paper"
+    assert np.array_equal(paper.defaults()["Q_terminal"], paper.defaults()["Q"])
+    assert np.array_equal(default.defaults()["Q_terminal"], 10 * default.defaults()["Q"])  # the other users' Puma
+    assert "puma560:paper" in knots.PROBLEMS
+    assert all("puma560:paper" in s["problems"] for s in robustness.SIZES.values())
+    with pytest.raises(ValueError, match="takes no argument but 'paper'"):
+        problems.make("puma560:2")
+    table = calibration.setup_table(calibration.PUMA_SETUP)
+    assert table.loc["Puma: terminal weight", "source"].startswith("paper III-A")
+    assert "Puma: terminal weight" in calibration.setup_table().index
+    assert calibration.puma_setup(["pendulum"]) == {}
+    assert "Puma: terminal weight" in next(iter(calibration.puma_setup(["puma560:paper"]).values()))
+
+
+def test_stated_values_beside_ours_with_their_printed_precision():
+    rows = calibration.stated(
+        [
+            ("a", "Table III", ".90", 0.904),  # printed with two decimals: ±0.005
+            ("b", "Table III", "1.30", 1.31),
+            ("c", "III-D: 'between three and four'", (3, 4), 4.0),
+            ("d", "III-D", (3, 4), 6.0),
+            ("e", "VI-D", "31", float("nan")),
+        ]
+    )
+    assert list(rows["paper"]) == [0.9, 1.3, 3.5, 3.5, 31.0]
+    assert list(rows["verdict"]) == [
+        "within the paper's precision",
+        "not within ±0.005",
+        "within the paper's precision",
+        "not within ±0.5",
+        "not measured here",
+    ]
+    assert calibration.within_count(rows) == (2, 5)
+
+
+def test_table_iii_every_cell_and_the_texts_reductions_beside_ours():
+    from ocpkit.studies import baxter
+
+    values = {baxter.SERVO: np.array([1.0, 1.3, 2.53]), baxter.QP: np.array([0.5, 0.9, 2.47])}
+    rows = baxter.paper_values(values)
+    assert len(rows) == 5  # mean and median per controller, and the QP's median reduction
+    assert rows.loc[f"{baxter.SERVO}: median ITAE", "verdict"] == "within the paper's precision"
+    assert rows.loc[f"{baxter.QP}: mean ITAE", "paper"] == 1.29
+    cut = rows.loc[f"{baxter.QP}: median ITAE reduction vs the servo [%]"]
+    assert cut["paper"] == 31 and cut["ours"] == pytest.approx(100 * (1 - 0.9 / 1.3))
+    assert cut["paper says"].startswith("VI-D: 'Parameterized OSQPMPC and EMPC reduce the median ITAE by 31%")
+
+
+def test_knee_is_the_fewest_knots_from_which_every_median_is_slight():
+    from ocpkit.studies import knots
+
+    medians = pd.Series([1.5, 1.06, 1.02, 1.01, 1.07, 1.0], index=[1, 2, 3, 4, 6, 10])
+    assert knots.knee(medians) == 10  # 6 knots is above again
+    assert knots.knee(medians.drop(6)) == 3
+    assert np.isnan(knots.knee(pd.Series([1.2, 1.1], index=[1, 2])))
