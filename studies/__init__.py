@@ -4,7 +4,18 @@ from __future__ import annotations
 
 from importlib import import_module
 
-NAMES = ("knots", "horizon", "robustness", "solve_times", "comparison", "keepout", "baxter", "reach", "tracking")
+NAMES = (
+    "knots",
+    "horizon",
+    "robustness",
+    "solve_times",
+    "comparison",
+    "keepout",
+    "baxter",
+    "reach",
+    "tracking",
+    "nonconvex",
+)
 
 
 def get(name: str):

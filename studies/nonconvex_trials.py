@@ -1,0 +1,147 @@
+"""The non-convex suite's controllers and trials (:mod:`ocpkit.studies.nonconvex`): one closed-loop reach of a drawn
+case (:mod:`ocpkit.studies.nonconvex_cases`) by one controller, at its default or at an equal time budget per step.
+
+Every controller gets the same task OCP as in the reach study (:func:`ocpkit.model.task.reach`, margin 1 cm; the
+limits case adds the joint limits to its state bounds, beside the velocity limits). Defaults: IPOPT (50 iterations a
+step, as in the reach study), IPOPT multi-start (:data:`STARTS` guesses per cold solve,
+:mod:`ocpkit.studies.nonconvex_multistart`), RTI with 1 and 3 iterations, LinearMPC linearized along the plan
+("trajectory"), MPPI, CEM and EMPC (population as the size says, one generation, the affine model re-linearized about
+the plan). At an equal budget (``budget`` seconds a step, the whole step: ``time_limit``): IPOPT with 1 000
+iterations, multi-start at every step, RTI with up to :data:`MANY` iterations, and the sampling planners with up to
+:data:`MANY` generations — each runs what fits. A budget makes the outcome depend on the machine's speed and load:
+the trial records the load; the default controllers' outcomes do not depend on it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ocpkit import problems, solvers
+from ocpkit._checks import choice
+from ocpkit.codegen.kernels.runtime import current_arch
+from ocpkit.model.task import reach
+from ocpkit.sim.metrics import actual_cost
+from ocpkit.sim.simulate import REACHED, simulate
+from ocpkit.studies.nonconvex_cases import SEED_OFFSET
+from ocpkit.studies.nonconvex_cases import case as draw
+from ocpkit.studies.nonconvex_multistart import MultiStartNLP
+from ocpkit.studies.reach_trials import IPOPT_BUDGET, KNOTS, MARGIN, SAMPLING, TOLERANCE, _times
+
+STARTS = 8  # IPOPT multi-start's guesses per cold solve (its own cold start and 7 random plans)
+MANY = 1000  # iterations or generations a budgeted controller may run: the budget, not this, stops it
+LIMIT_TOLERANCE = 0.01  # rad beyond a joint limit a success may go (the limits case)
+BUDGET = ", budget"  # the suffix of a controller at the equal budget
+IPOPT, MULTI, RTI, RTI3, LTV, MPPI, CEM, EMPC = (
+    "IPOPT",
+    f"IPOPT ×{STARTS}",
+    "RTI",
+    "RTI ×3",
+    "LinearMPC (trajectory)",
+    "MPPI",
+    "CEM",
+    "EMPC",
+)
+DEFAULTS = {
+    IPOPT: ("ipopt", IPOPT_BUDGET),
+    MULTI: ("multistart", {**IPOPT_BUDGET, "starts": STARTS}),
+    RTI: ("rti", {}),
+    RTI3: ("rti", {"iterations": 3}),
+    LTV: ("qp", {"linearization": "trajectory"}),
+    MPPI: ("mppi", SAMPLING),
+    CEM: ("cem", SAMPLING),
+    EMPC: ("empc", SAMPLING),
+}
+BUDGETED = {
+    IPOPT + BUDGET: ("ipopt", {"max_iter": MANY}),
+    MULTI + BUDGET: ("multistart", {"max_iter": MANY, "starts": STARTS, "every_step": True}),
+    RTI + BUDGET: ("rti", {"iterations": MANY}),
+    MPPI + BUDGET: ("mppi", {**SAMPLING, "generations": MANY}),
+    CEM + BUDGET: ("cem", {**SAMPLING, "generations": MANY}),
+    EMPC + BUDGET: ("empc", {**SAMPLING, "generations": MANY}),
+}
+CONTROLLERS = {**DEFAULTS, **BUDGETED}
+GRADIENT = (IPOPT, MULTI, RTI, RTI3, LTV, IPOPT + BUDGET, MULTI + BUDGET, RTI + BUDGET)
+SAMPLERS = ("empc", "cem", "mppi")
+
+
+def make_controller(name: str, ocp, *, population: int, arch: str, seed: int, budget: float):
+    """The suite's controller ``name`` for ``ocp``: a sampling planner keyed by ``seed``, a budgeted one with
+    ``time_limit`` = ``budget``."""
+    choice(name, tuple(CONTROLLERS), "controller")
+    solver, options = CONTROLLERS[name]
+    options = dict(options)
+    if solver in SAMPLERS:
+        options.update(population=population, arch=arch, seed=seed)
+    if name in BUDGETED:
+        options["time_limit"] = budget
+    if solver == "multistart":
+        return MultiStartNLP(ocp, seed=seed, **options)
+    return solvers.make(solver, ocp, **options)
+
+
+def task_ocp(robot: str, drawn: dict, horizon: int):
+    """The reach OCP of a drawn case; the limits case's joint limits join the velocity limits as state bounds."""
+    pb = problems.make(robot)
+    options = {"knots": KNOTS.get(robot, 5), "horizon": horizon}
+    if drawn["limits"] is not None:
+        n, defaults = pb.kinematics.n, pb.defaults()
+        x_min = np.array(defaults.get("x_min", np.full(2 * n, -np.inf)), dtype=float)
+        x_max = np.array(defaults.get("x_max", np.full(2 * n, np.inf)), dtype=float)
+        velocity = getattr(pb, "velocity_limit", None)
+        velocity = np.full(n, np.inf) if velocity is None else np.asarray(velocity, dtype=float)
+        x_min[:n], x_max[:n] = drawn["limits"]
+        x_min[n:], x_max[n:] = np.maximum(x_min[n:], -velocity), np.minimum(x_max[n:], velocity)
+        options.update(x_min=x_min, x_max=x_max)
+    return reach(pb, drawn["obstacles"], margin=MARGIN, **options)
+
+
+def trial(
+    robot: str,
+    case: str,
+    controller: str,
+    horizon: int,
+    duration: float,
+    population: int,
+    arch: str,
+    budget: float,
+    seed: int,
+) -> dict:
+    """One closed-loop run of case ``case`` drawn from SEED_OFFSET + ``seed`` on ``robot``."""
+    drawn = draw(robot, case, SEED_OFFSET + seed)
+    pb = problems.make(robot)
+    n = pb.kinematics.n
+    ocp = task_ocp(robot, drawn, horizon)
+    goal = ocp.goal(drawn["x0"], position=drawn["target"])
+    ctrl = make_controller(controller, ocp, population=population, arch=arch, seed=seed, budget=budget)
+    # compiles kernels and functions and measures the steps' stages outside the timed run (simulate resets ctrl)
+    ctrl.warm_up(drawn["x0"], goal)
+    traj = simulate(pb.plant(), ctrl, drawn["x0"], goal, duration)
+    d = traj.clearances(ocp)
+    progress = traj.progress(pb.kinematics, pb.end_effector, drawn["target"], tolerance=TOLERANCE)
+    collisions = int((d < 0).sum())
+    beyond = 0.0
+    if drawn["limits"] is not None:
+        q = traj.x[:, :n]
+        beyond = float(max(0.0, (drawn["limits"][0] - q).max(), (q - drawn["limits"][1]).max()))
+    return {
+        "success": bool(progress.verdict == REACHED and collisions == 0 and beyond <= LIMIT_TOLERANCE),
+        "reached": progress.verdict == REACHED,
+        "verdict": progress.verdict,
+        "collision_steps": collisions,
+        "beyond_limit": beyond,
+        "successes": traj.successes,
+        "soft_steps": traj.soft_steps,
+        "steps": len(traj.solutions),
+        "min_clearance": float(d.min()),
+        "final_distance": progress.final,
+        "start_distance": float(progress.error[0]),
+        "actual_cost": actual_cost(traj, ocp),
+        **_times(traj, ctrl),
+        "random_win_rate": float(getattr(ctrl, "random_win_rate", float("nan"))),
+        "rejected": drawn["rejected"],
+        "case_seed": SEED_OFFSET + seed,
+        "device": current_arch() if CONTROLLERS[controller][0] in SAMPLERS else "cpu",
+        "ee": pb.kinematics.positions(pb.end_effector, traj.x[:, :n]),
+        "target": drawn["target"],
+        "obstacles": np.array([[*o.center, o.radius] for o in drawn["obstacles"]]),
+    }

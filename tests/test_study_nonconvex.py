@@ -1,0 +1,136 @@
+"""The non-convex suite: its cases, its paired statistics against known values, IPOPT multi-start, and the study end
+to end on a tiny grid."""
+
+import math
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from ocpkit import problems
+from ocpkit.runs import study as runner
+from ocpkit.studies import NAMES, get, nonconvex, nonconvex_trials
+from ocpkit.studies.evidence import HELD, INCONCLUSIVE, NOT_HELD, median_interval
+from ocpkit.studies.nonconvex_cases import CASES, LIMIT_GAP, ROBOTS, SEED_OFFSET, case, joint_limits
+from ocpkit.studies.nonconvex_multistart import MultiStartNLP
+from ocpkit.studies.nonconvex_stats import binomial_cdf_half, mcnemar_exact, paired_interval, paired_success
+from ocpkit.studies.reach_trials import MARGIN, clearances
+
+
+@pytest.mark.parametrize("robot", ROBOTS)
+def test_cases_block_the_straight_path(robot):
+    pb = problems.make(robot)
+    n = pb.kinematics.n
+    for kind in CASES:
+        for seed in range(2):  # development draws: the study's are SEED_OFFSET + s
+            s = case(robot, kind, seed)
+            again = case(robot, kind, seed)
+            assert np.array_equal(s["x0"], again["x0"]) and s["obstacles"] == again["obstacles"]  # deterministic
+            q = np.vstack([s["x0"][:n], s["q_target"]])
+            assert clearances(pb, s["obstacles"], q).min() >= MARGIN  # start and target clear of every sphere
+            p0, pg = pb.kinematics.positions(pb.end_effector, q)
+            assert np.allclose(pg, s["target"])
+            t = np.linspace(0, 1, 201)[:, None]
+            path = p0 + t * (pg - p0)
+            # the end effector's sphere moving along the straight segment hits some sphere
+            depth = min(np.linalg.norm(path - o.center, axis=1).min() - o.radius for o in s["obstacles"])
+            assert depth < pb.link_radius, (kind, seed)
+            assert len(s["obstacles"]) == {"sphere": 1, "spheres": 3, "passage": 2, "limits": 1}[kind]
+            if kind == "limits":
+                lo, hi = s["limits"]
+                assert ((lo <= s["x0"][:n]) & (s["x0"][:n] <= hi)).all()
+                assert np.isclose(np.minimum(s["q_target"] - lo, hi - s["q_target"]).min(), LIMIT_GAP)
+            else:
+                assert s["limits"] is None
+    assert joint_limits(robot, pb)[0].shape == (n,)
+
+
+def test_mcnemar_exact_against_known_values():
+    assert binomial_cdf_half(0, 5) == 1 / 32 and binomial_cdf_half(2, 10) == 56 / 1024
+    assert mcnemar_exact(5, 0) == 2 / 32  # the smallest p with five discordant pairs
+    assert mcnemar_exact(10, 2) == pytest.approx(2 * (1 + 12 + 66) / 4096)
+    assert mcnemar_exact(1, 1) == 1.0 and mcnemar_exact(0, 0) == 1.0 and mcnemar_exact(3, 4) == 1.0
+    scipy = pytest.importorskip("scipy.stats")
+    for b, c in ((7, 1), (0, 6), (12, 5), (20, 20), (3, 9)):
+        assert mcnemar_exact(b, c) == pytest.approx(scipy.binomtest(b, b + c, 0.5).pvalue, rel=1e-12)
+    with pytest.raises(ValueError):
+        mcnemar_exact(-1, 2)
+
+
+def test_paired_success_and_its_verdict():
+    keys = pd.Index(range(12), name="seed")
+    a = pd.Series([True] * 10 + [False, True], index=keys)
+    b = pd.Series([False] * 9 + [True, True, True], index=keys)
+    s = paired_success(a, b.iloc[1:])  # only the keys both have: 11
+    assert (s.n, s.both, s.a_only, s.b_only, s.neither) == (11, 2, 8, 1, 0)
+    assert s.p == pytest.approx(2 * (1 + 9) / 512) and s.share == pytest.approx(8 / 9)
+    assert s.low > 0.5 and s.verdict() == HELD  # 8 of 9 discordant: Clopper–Pearson low 0.518
+    assert paired_success(a[:3], b[:3]).verdict() == INCONCLUSIVE  # 3 of 3: low 0.29
+    assert paired_success(b, b).verdict() == NOT_HELD  # never succeeds alone
+    assert math.isnan(paired_success(b, b).share)
+
+
+def test_paired_interval_is_the_median_interval_of_the_ratios():
+    keys = pd.Index(range(9))
+    a = pd.Series(np.arange(1.0, 10.0), index=keys)
+    b = pd.Series(np.full(9, 2.0), index=keys)
+    got = paired_interval(a, b.iloc[:8])
+    want = median_interval(np.arange(1.0, 9.0) / 2)
+    assert (got.value, got.low, got.high, got.n) == (want.value, want.low, want.high, 8)
+    assert paired_interval(a, b, "difference").value == 3.0
+
+
+def test_multistart_keeps_the_least_objective_of_its_starts():
+    pb = problems.make("nlink:2")
+    ocp = pb.ocp(knots=3, horizon=10)
+    x0, goal = pb.sample(3)
+    one = MultiStartNLP(ocp, starts=1).solve(x0, goal)
+    plain = nonconvex_trials.solvers.make("ipopt", ocp).solve(x0, goal)
+    assert np.array_equal(one.u, plain.u)  # one start: NonlinearMPC's cold start
+    many = MultiStartNLP(ocp, starts=4, seed=1)
+    sol = many.solve(x0, goal)
+    assert sol.ok and many.starts_run == 4 and "best of 4 starts" in sol.raw_status
+    again = MultiStartNLP(ocp, starts=4, seed=1).solve(x0, goal)
+    assert np.array_equal(sol.u, again.u)  # seeded guesses: repeatable
+    many.solve(x0, goal)  # warm: one start
+    assert many.starts_run == 4 and many.steps_run == 1
+    every = MultiStartNLP(ocp, starts=2, every_step=True)
+    every.solve(x0, goal), every.solve(x0, goal)
+    assert every.starts_run == 4
+
+
+TINY = {"seeds": {"nlink:3": 1}, "duration": 0.05, "horizon": 10, "population": 32, "arch": "cpu", "budget": 0.01}
+
+
+def _tiny(monkeypatch, tmp_path, cases, controllers):
+    assert "nonconvex" in NAMES and get("nonconvex") is nonconvex
+    monkeypatch.setitem(nonconvex.SIZES, "quick", TINY)
+    monkeypatch.setattr(nonconvex, "CASES", cases)
+    monkeypatch.setattr(nonconvex, "CONTROLLERS", dict.fromkeys(controllers))
+    df = runner.run(nonconvex.study("quick"), tmp_path, workers=1, progress=False)
+    assert (df["status"] == "ok").all(), df["error"].dropna().tolist()
+    assert len(df) == len(cases) * len(controllers)
+    # 0.05 s is too short to get there: nobody succeeds, nobody collides, every metric is recorded
+    assert not df["success"].any() and (df["collision_steps"] == 0).all() and (df["steps"] == 5).all()
+    assert (df["step_max"] >= df["step_median"]).all() and (df["case_seed"] == SEED_OFFSET).all()
+    text = nonconvex.report(df, tmp_path)
+    for piece in ("Per controller over every robot", "EMPC against each controller", "not used in development"):
+        assert piece in text, piece
+    claims = text.split("Claim checks:")[1].strip().splitlines()[2:]
+    verdicts = [row.rsplit("|", 2)[-2].strip() for row in claims]
+    assert len(verdicts) == 2 and set(verdicts) <= {"held", "not held", "inconclusive", "not tested"}
+    return df, verdicts
+
+
+def test_nonconvex_tiny(monkeypatch, tmp_path):
+    """The fast twin: the limits case, EMPC and RTI at the default and at the budget."""
+    names = [nonconvex_trials.EMPC, nonconvex_trials.RTI]
+    names += [name + nonconvex_trials.BUDGET for name in names]
+    df, verdicts = _tiny(monkeypatch, tmp_path, ("limits",), names)
+    assert verdicts == ["not held", "not held"]  # EMPC reached no target the others missed
+    assert df.loc[df["controller"] == nonconvex_trials.EMPC, "child_win_rate"].notna().all()
+
+
+@pytest.mark.slow
+def test_nonconvex_tiny_every_controller_and_case(monkeypatch, tmp_path):
+    _tiny(monkeypatch, tmp_path, CASES, list(nonconvex_trials.CONTROLLERS))
