@@ -168,3 +168,30 @@ def _acados_after_hpipm():
     assert acados_install.casadi_hpipm_loaded()
     with pytest.raises(RuntimeError, match="process of its own"):
         acados_install.require()
+
+
+@needs_acados
+def test_bench_step_acados_rows():
+    """`ocpkit bench step`'s acados rows: its QP on ocpkit's affine model at p = T gives the first input of
+    ocpkit's traditional QP (1e-8 measured), and on the coarse grid of the knots runs; both from a process of their
+    own (this one has CasADi's HPIPM loaded by the traditional row)."""
+    from ocpkit.benchmarks.step import bench_step
+
+    lines = []
+    rows = bench_step(links=(2,), horizons=(10,), knots=2, steps=4, rounds=1, busy=0, fresh=0, out=lines.append)
+    by = {r["solver"]: r for r in rows}
+    same, coarse = by["acados p=T hpipm (SQP-RTI: its QP)"], by["acados coarse grid N=2 hpipm (SQP-RTI)"]
+    assert same["status"] == coarse["status"] == "success"
+    assert same["u0_diff"] < 1e-6 and same["iterations"] >= 1
+    assert np.isfinite(coarse["u0_diff"]) and coarse["median"] > 0
+    assert not acados_install.loaded()
+
+
+def test_bench_step_without_acados_says_so(tmp_path, monkeypatch):
+    from ocpkit.benchmarks.step import bench_step
+
+    monkeypatch.setenv(acados_install.ENV, str(tmp_path))
+    lines = []
+    rows = bench_step(links=(1,), horizons=(10,), knots=2, steps=2, rounds=1, busy=0, fresh=0, out=lines.append)
+    assert lines[0].startswith("no acados rows: acados not installed")
+    assert not any(r["solver"].startswith("acados") for r in rows)

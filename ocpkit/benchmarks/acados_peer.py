@@ -7,6 +7,9 @@ partial-condensing HPIPM (installed by :mod:`ocpkit.benchmarks.acados_install`).
   generated forward sensitivities; the OCP's integrator must be "rk4") or as ``DISCRETE`` dynamics, the OCP's own
   discrete step (``ocp.discrete()``, any integrator: semi-implicit Euler too) with its CasADi Jacobian, both
   generated into C by acados. Both step exactly as ocpkit's discrete model.
+* or, for the linear case (``ocpkit bench step``), ``dynamics="affine"``: x⁺ = A x + B u + w with (A, B, w) given at
+  every solve as acados parameters, the same at every stage (:class:`AcadosAffine`): ocpkit's affine model, as
+  LinearMPC and affine_mpc get it; one SQP-RTI iteration is then exactly the QP.
 * cost: ocpkit's Σ_k (x_k − x_g)ᵀQ(x_k − x_g) + (u_k − u_g)ᵀR(u_k − u_g) + (x_N − x_g)ᵀQ_T(x_N − x_g) as acados'
   LINEAR_LS ½‖y − y_ref‖²_W, which acados multiplies by the interval's length h, with W = 2 diag(Q, R) / dt,
   W_e = 2 Q_T, y_ref = (x_g, u_g(x_g)) (the input goal: gravity compensation on URDF robots); the x_0 term is a
@@ -44,6 +47,7 @@ DYNAMICS = ("erk", "discrete")
 # step also compiled 6x longer: 124 s against 20 s). ERK's sensitivities are 8.3 of its 11.3 ms, the QP 0.9 ms, so
 # partial condensing (qp_solver_cond_N 25, 10, 5 against acados' default N: no condensing) made no step faster.
 DEFAULT_DYNAMICS = "erk"
+AFFINE = "affine"  # DYNAMICS of the linear case (AcadosAffine)
 NLP = ("rti", "sqp")
 
 
@@ -66,9 +70,9 @@ def acados_ocp(ocp: OCP, *, dynamics: str = DEFAULT_DYNAMICS, nlp: str = "rti", 
     """ocpkit's ``ocp`` as an ``AcadosOcp`` (see the module docstring); ``nlp`` "rti" (SQP_RTI, one Gauss–Newton
     iteration a solve) or "sqp" (SQP to ``tol`` on every KKT residual)."""
     at = require()
-    choice(dynamics, DYNAMICS, "dynamics")
+    choice(dynamics, (*DYNAMICS, AFFINE), "dynamics")
     choice(nlp, NLP, "nlp")
-    if ocp.task is not None or ocp.model.linear:
+    if ocp.task is not None or (ocp.model.linear and dynamics != AFFINE):
         raise ValueError("the acados peer builds the state and input terms of a nonlinear model only")
     if dynamics == "erk" and ocp.integrator != "rk4":
         raise ValueError(f'dynamics "erk" is acados\' RK4; ocp predicts with {ocp.integrator!r}: use "discrete"')
@@ -85,6 +89,11 @@ def acados_ocp(ocp: OCP, *, dynamics: str = DEFAULT_DYNAMICS, nlp: str = "rti", 
         xdot = ca.SX.sym("xdot", nx)
         f = ocp.model.f(x, u)
         model.xdot, model.f_expl_expr, model.f_impl_expr = xdot, f, xdot - f
+    elif dynamics == AFFINE:  # one interval's (A, B, w), column-major, as parameters (AcadosAffine.load)
+        model.p = p = ca.SX.sym("p", nx * nx + nx * nu + nx)
+        A, B = ca.reshape(p[: nx * nx], nx, nx), ca.reshape(p[nx * nx : nx * (nx + nu)], nx, nu)
+        model.disc_dyn_expr = A @ x + B @ u + p[nx * (nx + nu) :]
+        parameters = np.zeros(p.numel())
     elif block == 1:
         model.disc_dyn_expr = ocp.discrete()(x, u)
     else:
@@ -92,6 +101,8 @@ def acados_ocp(ocp: OCP, *, dynamics: str = DEFAULT_DYNAMICS, nlp: str = "rti", 
     out = at.AcadosOcp()
     out.model = model
     out.dims.N = N
+    if dynamics == AFFINE:
+        out.parameter_values = parameters
     cost = out.cost
     W = 2.0 / ocp.dt * np.block([[ocp.Q, np.zeros((nx, nu))], [np.zeros((nu, nx)), ocp.R]])
     Vx, Vu = np.vstack([np.eye(nx), np.zeros((nu, nx))]), np.vstack([np.zeros((nx, nu)), np.eye(nu)])
@@ -153,7 +164,7 @@ def solver(ocp: OCP, *, dynamics: str = DEFAULT_DYNAMICS, nlp: str = "rti", tol:
 def _digest(description) -> str:
     """12 hex digits of sha256 over an AcadosOcp's dynamics expression, cost, bounds, dimensions and options."""
     model = description.model
-    digest = hashlib.sha256(str((model.f_expl_expr, model.disc_dyn_expr)).encode())
+    digest = hashlib.sha256(str((model.f_expl_expr, model.disc_dyn_expr, model.p)).encode())
     for part in (description.dims, description.cost, description.constraints, description.solver_options):
         for field, value in sorted(vars(part).items()):
             digest.update(field.encode())
@@ -190,6 +201,10 @@ class _Iterate:
             self._set(*self._out, k, b"x", X[k].ctypes.data)
         for k in range(self.N):
             self._set(*self._out, k, b"u", U[k].ctypes.data)
+
+    def first_input(self, out: np.ndarray) -> None:
+        """u_0 of the solver's iterate into ``out`` (C-contiguous float64)."""
+        self._get(*self._out, 0, b"u", out.ctypes.data)
 
     def start(self, x: np.ndarray) -> None:
         """The initial-state constraint x_0 = x."""
@@ -287,3 +302,46 @@ class AcadosMPC(Controller):
             times=times,
             raw_status=f"acados {self.nlp} status 0 in {iterations} iterations",
         )
+
+
+class AcadosAffine:
+    """acados' QP on ocpkit's affine model, for ``ocpkit bench step`` beside LinearMPC and affine_mpc: SQP-RTI on
+    :func:`acados_ocp` with ``dynamics="affine"`` (one iteration: the QP, partial-condensing HPIPM) over ``ocp``'s
+    grid (p = T, or the coarse grid of a zero-order hold). :meth:`step` loads the model, x and the goal and solves;
+    it returns u_0."""
+
+    def __init__(self, ocp: OCP):
+        self.ocp = ocp
+        self.intervals, self.block = grid(ocp)
+        self.acados = solver(ocp, dynamics=AFFINE)
+        lib, name = self.acados.shared_lib, self.acados.model_name
+        self._update = getattr(lib, f"{name}_acados_update_params")
+        self._update.argtypes = [ctypes.c_void_p, ctypes.c_int, ctypes.c_void_p, ctypes.c_int]
+        self._iterate = _Iterate(self.acados, self.intervals, ocp.nx, ocp.nu)
+        self._u0 = np.empty(ocp.nu)
+        self._goal = None
+
+    def load(self, A, B, w) -> None:
+        """x⁺ = A x + B u + w at every stage (over a coarse interval of b steps its b-fold composition)."""
+        A, B, w = (np.asarray(M, dtype=float) for M in (A, B, w))
+        Ab, Bb, wb = A, B, w
+        for _ in range(self.block - 1):
+            Ab, Bb, wb = A @ Ab, A @ Bb + B, A @ wb + w
+        p = np.concatenate([Ab.ravel(order="F"), Bb.ravel(order="F"), wb])
+        for k in range(self.intervals):
+            self._update(self.acados.capsule, k, p.ctypes.data, p.size)
+
+    def step(self, x, goal, model) -> tuple[np.ndarray, int, int]:
+        """(u_0, acados' status, QP iterations) of the QP at x, ``goal`` and the affine ``model`` (A, B, w)."""
+        a = self.acados
+        if self._goal is None or not np.array_equal(goal, self._goal):
+            ref = np.r_[goal[: self.ocp.nx], self.ocp.input_goal(goal)]
+            for k in range(self.intervals):
+                a.cost_set(k, "yref", ref)
+            a.cost_set(self.intervals, "yref", ref[: self.ocp.nx])
+            self._goal = np.array(goal, dtype=float)
+        self.load(*model)
+        self._iterate.start(np.ascontiguousarray(x, dtype=float))
+        status = a.solve()
+        self._iterate.first_input(self._u0)
+        return self._u0.copy(), status, int(np.sum(a.get_stats("qp_iter")))

@@ -14,10 +14,10 @@ from ocpkit.sim.simulate import simulate
 
 def closed_loop(prob, ctrl, ocp, cases, duration: float, parts=("model", "build", "solve")) -> dict:
     """``ctrl``'s closed loops on ``prob``'s plant from each (x0, goal) of ``cases`` for ``duration`` seconds: the
-    median and 90th percentile of its step times (ms) and the medians of their ``parts`` (keys of
+    median, 90th percentile and maximum of its step times (ms) and the medians of their ``parts`` (keys of
     ``Solution.times``), the summed actual cost (on ``ocp``'s weights), the fallbacks, the median final error
-    max |x_T − x_goal|, the steps and what answered most of them (``Solution.path``)."""
-    times, cost, fallbacks, errors, split = [], 0.0, 0, [], {part: [] for part in parts}
+    max |x_T − x_goal|, the steps, their median iterations and what answered most of them (``Solution.path``)."""
+    times, cost, fallbacks, errors, split, iterations = [], 0.0, 0, [], {part: [] for part in parts}, []
     paths = Counter()
     for x0, goal in cases:
         ctrl.reset()
@@ -29,13 +29,16 @@ def closed_loop(prob, ctrl, ocp, cases, duration: float, parts=("model", "build"
         fallbacks += traj.fallbacks
         errors.append(float(np.abs(traj.x[-1] - goal).max()))
         paths.update(s.path for s in traj.solutions)
+        iterations += [s.iterations for s in traj.solutions]
     return {
         "step_ms": 1e3 * float(np.median(times)),
         "p90_ms": 1e3 * float(np.percentile(times, 90)),
+        "max_ms": 1e3 * float(np.max(times)),
         "cost": cost,
         "fallbacks": fallbacks,
         "final_error": float(np.median(errors)),
         "steps": len(times),
+        "iterations": float(np.median(iterations)),
         "path": paths.most_common(1)[0][0],
         **{f"{part}_ms": 1e3 * float(np.median(v)) for part, v in split.items()},
     }

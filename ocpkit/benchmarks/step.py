@@ -1,11 +1,15 @@
 """`ocpkit bench step`: one whole MPC step (affine model + QP build + solve), ocpkit's condensed knots form
-against the sparse traditional baselines (HPIPM, OSQP) and, when installed, the paper lab's affine_mpc.
+against the sparse traditional baselines (HPIPM, OSQP) and, when installed, the paper lab's affine_mpc and acados.
 
 Every controller replays the same closed-loop state sequence (recorded once with ocpkit's condensed knots controller on
 the OCP's discrete model) from a cold start, warm-starting from its own previous step as in a control loop. Each replay
 runs one controller alone, as a real loop would (its data stay in cache); ``rounds`` rounds alternate the controllers in
 rotated order, so all see the same machine load. affine_mpc gets the identical affine model (A_d, B_d, w_d) ocpkit
-linearized at that state and is timed on its solve() alone.
+linearized at that state and is timed on its solve() alone. So is acados
+(:class:`ocpkit.benchmarks.acados_peer.AcadosAffine`: SQP-RTI on that affine model, one iteration, i.e. its QP by
+partial-condensing HPIPM), at p = T and on the coarse grid of the knots (N = p intervals of T/p steps, the input held
+over each), timed on loading the model (its parameters at every stage), x and solving; it runs in a process of its
+own (acados_install.isolated), its rounds after the others'.
 
 The default row is LinearMPC as constructed without options, timed once its background builds have finished: for models
 from nlink:5 up the whole step as compiled C (:mod:`ocpkit.export.native`), below it the Python step. The "Python step"
@@ -26,6 +30,7 @@ from contextlib import contextmanager
 
 import numpy as np
 
+from ocpkit.benchmarks import acados_install
 from ocpkit.problems import make
 from ocpkit.solvers.qp import DEFAULT_QP, LinearMPC
 
@@ -34,6 +39,7 @@ BASE = "ocpkit condensed knots daqp (default)"  # the default QP of the condense
 PYTHON = "ocpkit condensed knots daqp, Python step"
 PROXQP = "ocpkit condensed knots proxqp"
 VM = "ocpkit condensed knots daqp, VM model"
+TRADITIONAL = "ocpkit sparse traditional hpipm"  # p = T: the OCP of acados' p = T row
 # A step's parts (Solution.times) and the rest of its total: the Python around them (checks, ctypes, bookkeeping)
 PARTS = ("model", "build", "solve", "rest")
 
@@ -55,10 +61,13 @@ def bench_step(
     with ``fresh`` > 0, the first ``fresh`` seconds of a closed loop after a fresh install (:func:`bench_fresh`)."""
     rows = []
     gemm = _gemm_rate()
+    absent = acados_install.missing() if peers else None
+    if absent:
+        out(f"no acados rows: {absent}")
     for N in links:
         problem = make(f"nlink:{N}")
         for T in horizons:
-            rows += _one(problem, T, knots, steps, seed, peers, rounds)
+            rows += _one(problem, T, knots, steps, seed, peers, rounds, acados=peers and absent is None)
     _print(rows, gemm, knots, out)
     if busy:
         bench_load(busy=busy, knots=knots, out=out)
@@ -186,7 +195,33 @@ def bench_load(problem="nlink:13", horizon=100, knots=5, steps=30, busy=2, out=p
     return med
 
 
-def _one(problem, T, p, steps, seed, peers, rounds):
+def _acados(spec, T, p, xs, goal, models, rounds) -> dict:
+    """{row name: (step times (s), statuses, QP iterations, u_0 of each replayed step)} of acados' QP
+    (AcadosAffine) at p = T and on the coarse grid: ``rounds`` replays each, alternating (run in a process of its
+    own)."""
+    from ocpkit.benchmarks.acados_peer import AcadosAffine
+
+    problem = make(spec)
+    grids = {
+        "acados p=T hpipm (SQP-RTI: its QP)": problem.ocp(horizon=T, knots=None),
+        f"acados coarse grid N={p} hpipm (SQP-RTI)": problem.ocp(horizon=T, knots=p, parameterization="zoh"),
+    }
+    solvers = {name: AcadosAffine(ocp) for name, ocp in grids.items()}
+    seen = {name: ([], set(), [], [None] * len(xs)) for name in solvers}
+    for r in range(rounds):
+        for name, qp in _rotated(solvers, r):
+            times, status, iterations, u0 = seen[name]
+            for k, (x, model) in enumerate(zip(xs, models)):
+                t0 = time.perf_counter()
+                u, code, its = qp.step(x, goal, model)
+                times.append(time.perf_counter() - t0)
+                status.add("success" if code == 0 else f"acados status {code}")
+                iterations.append(its)
+                u0[k] = u
+    return seen
+
+
+def _one(problem, T, p, steps, seed, peers, rounds, acados=False):
     ocp_k, ocp_t = problem.ocp(horizon=T, knots=p), problem.ocp(horizon=T)
     x, goal = problem.sample(seed)
     F = ocp_k.discrete()
@@ -195,14 +230,16 @@ def _one(problem, T, p, steps, seed, peers, rounds):
     for _ in range(steps):  # the replayed closed loop
         xs.append(x)
         x = np.asarray(F(x, ref.solve(x, goal).u)).ravel()
-    models = [ref.affine_model(x, goal, "goal") for x in xs]  # what affine_mpc is given at each step
+    # What affine_mpc and acados are given at each step: copies (affine_model returns views of reused buffers, so
+    # every step's w_d had been the last step's)
+    models = [tuple(np.array(M) for M in ref.affine_model(x, goal, "goal")) for x in xs]
     ocp_vm = problem.ocp(horizon=T, knots=p, compiled=False)  # CasADi's SX virtual machine throughout
     ctrls = {
         BASE: LinearMPC(ocp_k),
         PYTHON: LinearMPC(ocp_k, native=False),
         PROXQP: LinearMPC(ocp_k, form="condensed", qp="proxqp"),
         VM: LinearMPC(ocp_vm, form="condensed", qp="daqp"),
-        "ocpkit sparse traditional hpipm": LinearMPC(ocp_t, form="sparse", qp="hpipm"),
+        TRADITIONAL: LinearMPC(ocp_t, form="sparse", qp="hpipm"),
         "ocpkit sparse traditional osqp": LinearMPC(ocp_t, form="sparse", qp="osqp"),
     }
     for name in (BASE, PYTHON):  # the default step once built (cached: once per OCP); the Python step's model
@@ -210,7 +247,7 @@ def _one(problem, T, p, steps, seed, peers, rounds):
     peer = _peers(ocp_k, goal, models[0]) if peers else {}
     times = {name: [] for name in [*ctrls, *peer]}
     parts = {name: {k: [] for k in PARTS} for name in ctrls if name.startswith("ocpkit condensed")}
-    u0 = [None] * steps
+    u0, u0_t = [None] * steps, [None] * steps  # the default's and the traditional (p = T) QP's first inputs
     agree, status = {name: 0.0 for name in peer}, {name: set() for name in times}
     iterations = {name: [] for name in peer}
     for r in range(rounds):
@@ -222,6 +259,8 @@ def _one(problem, T, p, steps, seed, peers, rounds):
                 status[name].add(sol.status)
                 if name == BASE:
                     u0[k] = sol.u
+                elif name == TRADITIONAL:
+                    u0_t[k] = sol.u
                 t = sol.times
                 for part, values in parts.get(name, {}).items():
                     values.append(t["total"] - t["model"] - t["build"] - t["solve"] if part == "rest" else t[part])
@@ -238,6 +277,12 @@ def _one(problem, T, p, steps, seed, peers, rounds):
                 agree[name] = max(agree[name], float(np.abs(mpc.getNextInput() - u0[k]).max()))
                 if not mpc.isWithinSparsityPattern():  # outside the timing: it scans every entry
                     status[name].add("model entries dropped")
+    if acados:
+        found = acados_install.isolated(_acados, problem.name, T, p, xs, goal, models, rounds)
+        for name, (t, st, its, u) in found.items():  # u0 against the same OCP's at p = T, else the default's
+            times[name], status[name], iterations[name] = t, st, its
+            ours = u0_t if "p=T" in name else u0
+            agree[name] = max(float(np.abs(a - b).max()) for a, b in zip(u, ours))
     flops = ctrls[BASE].transcription.build_flops()
     base = float(np.median(times[BASE]))
     out = []
@@ -325,9 +370,9 @@ def _timed(f) -> float:
 def _print(rows, gemm, knots, out):
     out(
         f"Whole MPC step (affine model + build + solve), ms: median [p25, p75]; ratio = median / ocpkit condensed "
-        f"knots({knots}); u0 = max |u0 − ocpkit's u0| over the replayed steps; it = median QP iterations. affine_mpc "
-        f"rows time its setModelDiscrete() + solve(), given ocpkit's affine model (its linearization is not "
-        f"counted)."
+        f"knots({knots}); u0 = max |u0 − ocpkit's u0| over the replayed steps (acados p=T: − ocpkit's sparse "
+        f"traditional u0, the same OCP); it = median QP iterations. affine_mpc and acados rows time setting the model "
+        f"and solving, given ocpkit's affine model (its linearization is not counted)."
     )
     out(f"Dense GEMM (1000³, numpy BLAS) in this run: {gemm:.1f} GFLOP/s")
     out(

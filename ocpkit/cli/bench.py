@@ -16,9 +16,18 @@ BENCHMARKS = {
     "task": ("task", "bench_task", {"problems": ("panda",), "steps": 100, "seeds": 1}),
     "sensitivities": ("sensitivities", "bench_sensitivities", {"problems": ("puma560", "nlink:7"), "repeats": 50}),
     "startup": ("startup", "bench_startup", {"problems": ("nlink:13",), "controllers": ("qp", "rti", "empc")}),
+    "peers": ("peers", "bench_peers", {"problems": ["nlink:3"], "horizon": 20, "samples": 1, "steps": 5}),
 }
 # Benchmarks that take --problem (their `problems` argument).
-PROBLEM_BENCHMARKS = ("qp", "export", "nlp", "task", "startup")
+PROBLEM_BENCHMARKS = ("qp", "export", "nlp", "task", "startup", "peers")
+# `ocpkit bench --help`: what each benchmark prints.
+HELP = (
+    "qp, empc, export, model, nlp, faults, step, task, sensitivities, startup: see ocpkit.benchmarks; "
+    "peers: the like-for-like tables of acados (SQP-RTI p = T and coarse grid, SQP converged), Crocoddyl (FDDP one "
+    "iteration a step and converged) and ocpkit (RTI C step p = T and 5 knots, IPOPT): Puma 560, Panda, nlink:13, "
+    "T = 50, RK4 and Euler, ms a step and closed-loop cost / IPOPT's over seeds 100-102 (--seed, --problem, "
+    "--integrator narrow it; ~15 min at idle on 2 cores; a peer not installed is skipped with one line)"
+)
 
 
 def bench_command(args):
@@ -38,8 +47,8 @@ def bench_command(args):
     # option: {benchmark: (its keyword, type)}
     chosen = {
         "controller": {"nlp": ("controllers", tuple), "startup": ("controllers", tuple)},
-        "integrator": {"nlp": ("integrator", str)},
-        "seed": {"nlp": ("first_seed", int), "startup": ("seed", int)},
+        "integrator": {"nlp": ("integrator", str), "peers": ("integrators", lambda name: (name,))},
+        "seed": {"nlp": ("first_seed", int), "startup": ("seed", int), "peers": ("first_seed", int)},
     }
     for option, where in chosen.items():
         value = getattr(args, option)
