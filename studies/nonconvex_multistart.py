@@ -5,9 +5,10 @@ A cold solve (the first step after a reset, or the step after a failed one) trie
 own cold start (states held at x_0, knots at the input goal), then ``starts`` − 1 random plans, knots uniform within
 the input bounds (seeded: a run is repeatable), each rolled out on the model as NonlinearMPC does with a user's
 initial guess. With ``every_step`` every step does so, the first guess the warm start. The answer is the converged
-solve of least NLP objective; a guess that fails (not converged, limited) is dropped, and the step fails only when
-all do. With a ``time_limit`` (the whole step's budget, every start together) a start begins only while
-NonlinearMPC's own check says a solve still fits in what is left: the budget decides how many starts run.
+solve of least NLP objective (a later start replaces the best only if it is lower by :data:`BETTER`, relative); a
+guess that fails (not converged, limited) is dropped, and the step fails only when all do. With a ``time_limit``
+(the whole step's budget, every start together) a start begins only while NonlinearMPC's own check says a solve
+still fits in what is left: the budget decides how many starts run.
 """
 
 from __future__ import annotations
@@ -17,6 +18,9 @@ import numpy as np
 from ocpkit._checks import integer
 from ocpkit.status import Reason
 from ocpkit.solvers.nlp import NonlinearMPC
+
+
+BETTER = 1e-6  # a later start replaces the best only if its objective is lower by this much (relative): not rounding
 
 
 class _Recording:
@@ -52,6 +56,7 @@ class MultiStartNLP(NonlinearMPC):
         super().reset()
         self.draws = 0  # random guesses drawn since the reset: with the seed, it keys the next one
         self.starts_run = self.steps_run = self.random_wins = 0  # see random_win_rate
+        self.objectives: list = []  # the last multi-start step's NLP objective per start (NaN: not converged)
 
     @property
     def random_win_rate(self) -> float:
@@ -65,6 +70,7 @@ class MultiStartNLP(NonlinearMPC):
         if self.guess is not None or not (self.every_step or self._warm is None):
             return super()._solve(x, goal)
         ocp, best, kept, times, iterations, tried = self.ocp, None, None, {}, 0, 0
+        self.objectives = []
         for start in range(self.starts):
             if start:
                 rng = np.random.default_rng([self.seed, self.draws])
@@ -79,7 +85,8 @@ class MultiStartNLP(NonlinearMPC):
                 times[part] = times.get(part, 0.0) + t
             iterations += sol.iterations
             tried += 1
-            if sol.ok and (best is None or self._solver.f < best[1]):
+            self.objectives.append(self._solver.f if sol.ok else np.nan)
+            if sol.ok and (best is None or self._solver.f < best[1] - BETTER * abs(best[1])):
                 best, kept = (sol, self._solver.f, start), self._warm
             if sol.reason is Reason.TIME_BUDGET:
                 break  # no room left for another start

@@ -92,11 +92,32 @@ def test_multistart_keeps_the_least_objective_of_its_starts():
     assert sol.ok and many.starts_run == 4 and "best of 4 starts" in sol.raw_status
     again = MultiStartNLP(ocp, starts=4, seed=1).solve(x0, goal)
     assert np.array_equal(sol.u, again.u)  # seeded guesses: repeatable
+    assert sol.raw_status.endswith(f"objective {np.nanmin(many.objectives):.6g}")
     many.solve(x0, goal)  # warm: one start
     assert many.starts_run == 4 and many.steps_run == 1
     every = MultiStartNLP(ocp, starts=2, every_step=True)
     every.solve(x0, goal), every.solve(x0, goal)
     assert every.starts_run == 4
+
+
+def test_multistart_picks_the_least_objective_beyond_rounding(monkeypatch):
+    """Starts whose objectives are 5, 3, 4 and 3 (1e-9 less): the second start's answer is kept."""
+    from ocpkit.studies import nonconvex_multistart
+
+    fake = iter([5.0, 3.0, 4.0, 3.0 - 1e-9])
+
+    class Faked(nonconvex_multistart._Recording):
+        def __call__(self, **args):
+            res = self.solver(**args)
+            self.f = next(fake)
+            return res
+
+    monkeypatch.setattr(nonconvex_multistart, "_Recording", Faked)
+    pb = problems.make("nlink:2")
+    ctrl = MultiStartNLP(pb.ocp(knots=3, horizon=10), starts=4)
+    sol = ctrl.solve(*pb.sample(3))
+    assert ctrl.objectives == [5.0, 3.0, 4.0, 3.0 - 1e-9] and "start 1, objective 3" in sol.raw_status
+    assert ctrl.random_win_rate == 1.0
 
 
 TINY = {"seeds": {"nlink:3": 1}, "duration": 0.05, "horizon": 10, "population": 32, "arch": "cpu", "budget": 0.01}
