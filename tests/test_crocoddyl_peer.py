@@ -76,8 +76,9 @@ def test_cost_is_the_objective_ipopt_minimizes(spec, integrator):
     X = np.vstack([x0, goal + 0.3 * rng.normal(size=(ocp.horizon, ocp.nx))])
     U = ocp.input_goal(goal) + rng.normal(size=(ocp.horizon, ocp.nu))
     ipopt = NonlinearMPC(ocp)
-    f = ipopt._solver.get_function("nlp_f")  # w = [x_1 … x_T, knots row by row], p = [x0, goal]
-    reference = float(f(np.r_[X[1:].ravel(), U.ravel()], np.r_[x0, goal]))
+    f = ipopt._solver.get_function("nlp_f")  # w = [x_1 … x_T, knots row by row], p = [x0, goal window (ng, T+1)]
+    e0 = x0 - goal[: ocp.nx]  # the NLP's f has x_0's state term, a constant the peer's cost leaves out
+    reference = float(f(np.r_[X[1:].ravel(), U.ravel()], np.r_[x0, np.tile(goal, ocp.horizon + 1)])) - e0 @ ocp.Q @ e0
     assert shooting.cost(X, U) == pytest.approx(reference, rel=1e-12)
     assert peer.objective(ocp, goal, X, U) == pytest.approx(reference, rel=1e-12)
 
