@@ -191,6 +191,7 @@ class SamplingMPC(Controller):
             precision=precision,
             arch=arch,
             sections=self._sections(),
+            step_sections={"preconditioner": p * m * (p * m + SEEDS)} if self.preconditioned else None,
         )
         self.engine.write("bounds", np.concatenate([ocp.u_min, ocp.u_max]))
         self._affine = dynamics == "affine"
@@ -203,10 +204,10 @@ class SamplingMPC(Controller):
             self.preconditioner = Preconditioner(ocp)
 
     def _sections(self) -> dict:
-        """The engine's data sections this planner's kernels read (:class:`Rollout` ``sections``): the input bounds
-        (u_min, then u_max) and, preconditioned, L⁻ᵀ then the seeds (Newton candidate, holding input)."""
-        d = self.ocp.knots * self.ocp.nu
-        return {"bounds": 2 * self.ocp.nu, **({"preconditioner": d * d + SEEDS * d} if self.preconditioned else {})}
+        """The engine's data sections this planner's kernels read, set once (:class:`Rollout` ``sections``): the input
+        bounds (u_min, then u_max). Preconditioned, its "preconditioner" step section holds L⁻ᵀ then the seeds (Newton
+        candidate, holding input), sent with each step's load."""
+        return {"bounds": 2 * self.ocp.nu}
 
     @property
     def path(self) -> str:
@@ -320,7 +321,8 @@ class SamplingMPC(Controller):
         )
 
     def _precondition(self, model, x: np.ndarray, goal: np.ndarray, times: dict) -> None:
-        """Update the preconditioner at this step's linearization and copy its whitening and seeds to the device."""
+        """Update the preconditioner at this step's linearization and stage its whitening and seeds (the step's load
+        sends them)."""
         t = time.perf_counter()
         pre, ocp = self.preconditioner, self.ocp
         warm = self._guess if self._guess is not None else None if self.plan is None else self._shifted(self.plan)
@@ -336,7 +338,7 @@ class SamplingMPC(Controller):
             self._moved_obstacles(),
         )
         t_copy = time.perf_counter()
-        self.engine.write("preconditioner", np.concatenate([pre.whiten.ravel(), pre.newton.ravel(), pre.hold.ravel()]))
+        self.engine.stage("preconditioner", np.concatenate([pre.whiten.ravel(), pre.newton.ravel(), pre.hold.ravel()]))
         times["copies"] += time.perf_counter() - t_copy
         self._measured("preconditioner", t)
 

@@ -101,6 +101,32 @@ def test_pick_gathers_candidates():
         engine.pick([10])
 
 
+def test_step_sections_travel_with_load():
+    """A step section sits before the basis and reaches the device with the next load, in its one launch, and with
+    every later load until staged again; write() refuses it (load would overwrite it) and stage() any other."""
+    ocp = problems.make("pendulum").ocp(knots=3)
+    engine = Rollout(ocp, 4, dynamics="nonlinear", sections={"once": 2}, step_sections={"each": 3})
+    layout = engine.layout
+    assert layout["each"] < layout["basis"] < layout["once"]
+    engine.write("once", [7.0, 8.0])
+    engine.stage("each", [1.0, 2.0, 3.0])
+    data = engine.data.to_numpy()
+    np.testing.assert_array_equal(data[layout["each"] : layout["each"] + 3], 0.0)  # staged, not yet sent
+    x0, goal = np.array([0.1, 0.2]), np.zeros(2)
+    for _ in range(2):
+        engine.load(x0, goal)
+        data = engine.data.to_numpy()
+        np.testing.assert_array_equal(data[layout["each"] : layout["each"] + 3], [1.0, 2.0, 3.0])
+        np.testing.assert_array_equal(data[layout["x0"] : layout["x0"] + 2], x0)
+        np.testing.assert_array_equal(data[layout["once"] : layout["once"] + 2], [7.0, 8.0])
+    with pytest.raises(ValueError, match="stage"):
+        engine.write("each", [0.0, 0.0, 0.0])
+    with pytest.raises(ValueError, match="not a step section"):
+        engine.stage("once", [0.0, 0.0])
+    with pytest.raises(ValueError, match="takes 3 values"):
+        engine.stage("each", [0.0])
+
+
 def test_bad_arguments():
     ocp = problems.make("pendulum").ocp(knots=3)
     x = ca.SX.sym("x", 2)

@@ -164,8 +164,9 @@ class Rollout:
 
     Its arrays live on the device (Taichi ndarrays): ``knots`` (num_sims, p, m) the population, ``picked``
     (num_picked, p, m) the candidates chosen by :meth:`pick` (parents, elites), and ``data`` the sections of
-    :attr:`layout`: x_0, the goal and obstacle windows, the affine model, the basis, then the ``sections`` a planner
-    asks for (its bounds, seeds …), which it fills with :meth:`write`. Kernels take them as arguments, so the kernels
+    :attr:`layout`: x_0, the goal and obstacle windows, the affine model, the ``step_sections`` a planner changes every
+    control step (its whitening and seeds), which it fills with :meth:`stage`, the basis, then the ``sections`` it
+    sets once (its bounds …), which it fills with :meth:`write`. Kernels take them as arguments, so the kernels
     are compiled once per shape (:attr:`key`) and serve every engine of that shape in the process; Taichi's offline
     cache keys them by their code, so other processes load them (:func:`ocpkit.codegen.kernels.runtime.shared`).
 
@@ -181,9 +182,9 @@ class Rollout:
 
     Each Taichi call that moves an array costs tens of microseconds of launch overhead, more
     than a small population's rollouts, so a control step moves its data in as few calls as
-    possible: :meth:`load` sends x_0, the goal and obstacle windows and the affine model in one, solver kernels
-    return the costs and violations through one output array (:meth:`record`), :meth:`pick` returns what it
-    gathered.
+    possible: :meth:`load` sends x_0, the goal and obstacle windows, the affine model and the step sections in one,
+    solver kernels return the costs and violations through one output array (:meth:`record`), :meth:`pick` returns
+    what it gathered.
     """
 
     def __init__(
@@ -198,6 +199,7 @@ class Rollout:
         precision: str = "float64",
         arch: str = "auto",
         sections: dict | None = None,
+        step_sections: dict | None = None,
     ):
         if isinstance(num_sims, bool) or not isinstance(num_sims, (int, np.integer)) or num_sims < 1:
             raise ValueError(f"num_sims must be a positive integer, got {num_sims!r}")
@@ -245,7 +247,8 @@ class Rollout:
         rows = SparseRows(basis)
         model = {"A": n * n, "B": n * m, "w": n} if dynamics == "affine" else {}
         windows = {"x0": n, "goal": (T + 1) * ng, "obstacles": (T + 1) * 4 * N}
-        self.layout = Layout({**windows, **model, "basis": rows.size, **(sections or {})})
+        self.layout = Layout({**windows, **model, **(step_sections or {}), "basis": rows.size, **(sections or {})})
+        self._step_sections = frozenset(step_sections or ())
         shape = (n, m, T, p, ng, N, rows.width, precision, self.arch)
         functions = tuple(f.path.stem for f in (stage, terminal, discrete) if f is not None)
         self.key = (*shape, dynamics, functions, self.layout.key)
@@ -259,20 +262,36 @@ class Rollout:
         self.picked = ti.ndarray(self.ftype, (num_picked, p, m))
         self.data = ti.ndarray(self.ftype, (max(1, self.layout.total),))
         self.write("basis", rows.values())
-        self._upload_buffer = np.empty(self.layout["basis"], dtype=self.ntype)  # x_0, the windows, the model: load()
+        # what load() sends: x_0, the windows and the model, then the step sections as stage() left them
+        self._upload_buffer = np.zeros(self.layout["basis"], dtype=self.ntype)
+        self._per_step = sum(windows.values()) + sum(model.values())  # load()'s own part of it
 
     def write(self, section: str, values) -> None:
         """Copy ``values`` (the section's size, any shape) into ``section`` of :attr:`data`, in one launch."""
+        if section in self._step_sections:
+            raise ValueError(f"section {section!r} changes every step: stage() it, load() sends it")
+        runtime.write(self.data, self._values(section, values), self.layout[section])
+
+    def stage(self, section: str, values) -> None:
+        """Keep ``values`` (the section's size, any shape) for step section ``section``: the next :meth:`load` sends
+        them with x_0 (and every later one, until staged again)."""
+        if section not in self._step_sections:
+            raise ValueError(f"section {section!r} is not a step section ({sorted(self._step_sections)})")
+        start = self.layout[section]
+        self._upload_buffer[start : start + self.layout.sizes[section]] = self._values(section, values)
+
+    def _values(self, section: str, values) -> np.ndarray:
         values = np.asarray(values, dtype=self.ntype).ravel()
         if values.size != self.layout.sizes[section]:
             raise ValueError(f"section {section!r} takes {self.layout.sizes[section]} values, got {values.size}")
-        runtime.write(self.data, values, self.layout[section])
+        return values
 
     def load(self, x0: np.ndarray, goal: np.ndarray, affine=None, obstacles=None) -> None:
         """Copy the initial state x_0, the goal (ng entries: the goal state, then a task's targets) held over the
         horizon or its window (T+1, ng), row k stage k's, the obstacles at every stage (T+1, N, 4) (centre, radius;
         None: where the task declares them) and, with affine dynamics, this control step's model ``affine`` =
-        (A_d, B_d, w_d) for x⁺ = A_d x + B_d u + w_d to the device, in one launch: nothing is compiled again."""
+        (A_d, B_d, w_d) for x⁺ = A_d x + B_d u + w_d to the device, with the step sections (:meth:`stage`), in one
+        launch: nothing is compiled again."""
         n, m, T, N = self.nx, self.nu, self.horizon, self.obstacles
         if (affine is None) != (self.dynamics != "affine"):
             raise ValueError(
@@ -289,7 +308,7 @@ class Rollout:
         if affine is not None:
             A_d, B_d, w_d = affine
             parts += [_matrix("A_d", A_d, (n, n)).ravel(), _matrix("B_d", B_d, (n, m)).ravel(), _vector("w_d", w_d, n)]
-        np.concatenate(parts, out=self._upload_buffer, casting="same_kind")
+        np.concatenate(parts, out=self._upload_buffer[: self._per_step], casting="same_kind")
         runtime.write(self.data, self._upload_buffer)
 
     def results(self, count: int | None = None) -> np.ndarray:
