@@ -125,9 +125,8 @@ TINY = {"seeds": {"nlink:3": 1}, "duration": 0.05, "horizon": 10, "population": 
 
 def _tiny(monkeypatch, tmp_path, cases, controllers):
     assert "nonconvex" in NAMES and get("nonconvex") is nonconvex
-    monkeypatch.setitem(nonconvex.SIZES, "quick", TINY)
+    monkeypatch.setitem(nonconvex.SIZES, "quick", {**TINY, "controllers": list(controllers)})
     monkeypatch.setattr(nonconvex, "CASES", cases)
-    monkeypatch.setattr(nonconvex, "CONTROLLERS", dict.fromkeys(controllers))
     df = runner.run(nonconvex.study("quick"), tmp_path, workers=1, progress=False)
     assert (df["status"] == "ok").all(), df["error"].dropna().tolist()
     assert len(df) == len(cases) * len(controllers)
