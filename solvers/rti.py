@@ -32,13 +32,21 @@ class RealTimeIteration(LinearMPC):
     rounding: until it is built, and after a failed step's soft-bound retry, in Python. A step's goal window, moved
     obstacles and initial guess (the first iterate) as LinearMPC takes them.
 
-    ``form="sparse"`` (ProxQP's sparse backend unless ``qp`` says otherwise) solves traditional MPC (p = T) faster in
-    the median than the condensed QP's C step, the default: its banded KKT system grows as T where the condensed
-    Hessian's factorization grows as (T·m)³. T = 50, RK4, median step (3 seeds x 50 steps, load 0.6-0.9 on 2 CPUs):
-    Puma 560 2.7 against the C step's 4.1 ms, Panda 3.4 against 6.0, nlink:13 18.6 against 51.4, the closed-loop
-    cost the same to 2e-8 (relative). It is not the default: its cold first steps and ProxQP's warm starts that
-    stall and are solved again cold make its tail heavier (90th percentile 7.0, 19.7, 105 ms against 4.5, 6.2, 55;
-    worst 1.2 s on nlink:13), and a real-time loop is bounded by its slow steps.
+    For traditional MPC (p = T) ``form="sparse", qp="hpipm"`` (HPIPM's Riccati interior point through CasADi, on
+    the stage-ordered sparse QP) is the fastest path, every step certified. T = 50, RK4, 3 seeds x 50 steps, median
+    step in CPU time beside acados' SQP-RTI (partial-condensing HPIPM) run alike in the same minutes (load 7.5-9 on 2
+    CPUs): Puma 560 3.6-3.7 ms against acados' 3.0-3.5, Panda 4.1-4.6 against 5.2-5.7, nlink:13 15.7-16.2 against
+    12.4-12.6 (1.3x; the condensed C step 53.5, ProxQP's sparse backend 21.5); 90th percentile 5.1, 6.2 and 17.9 ms,
+    the worst the first step (with the interface's build, 30 ms). Its QPs take 10-12 HPIPM iterations of 0.85 ms
+    (CPU) at nlink:13, acados' 9 of 0.28 ms (its own timer): CasADi's BLASFEO is the generic build (no AVX2 or FMA
+    kernels), acados' the Haswell one. It is not the default: it takes hard state bounds only, no task terms, has
+    no C step (:mod:`ocpkit.export`), and cannot run in a process that has loaded acados.
+
+    ``form="sparse"`` alone (ProxQP's sparse backend) is faster than the condensed C step in the median, but its tail
+    is heavy: at nlink:13 its cold first steps (27-44 iterations) and the steps after far warm starts cost 10-25 ms
+    (CPU) an iteration, about 4 on the median warm step (4 iterations), and a warm start that stalls is solved
+    again cold (587 iterations, 1.5 s); 90th percentile 7.0, 19.7 and 105 ms at load 0.6-0.9, worst 1.2 s on
+    nlink:13.
 
     ``options`` are LinearMPC's but ``linearization`` (always along the iterate): ``form``, ``qp``, ``state_bounds``
     (soft by default), ``max_iter`` (each QP's iterations), ``time_limit`` (the whole step's budget, all iterations
