@@ -51,18 +51,17 @@ class PairedSuccess:
     low: float
     high: float
 
-    def text(self) -> str:
+    def text(self, a: str = "A", b: str = "B") -> str:
         """E.g. "A only 5, B only 1 of n = 30 (McNemar exact p = 0.22; A's share of the discordant 0.83 [0.36, 1])"."""
         from ocpkit.sim.plots import number
 
         share = (
-            f"; A's share of the discordant {number(self.share, 2)} [{number(self.low, 2)}, {number(self.high, 2)}]"
+            f"; {a}'s share of the discordant {number(self.share, 2)} [{number(self.low, 2)}, {number(self.high, 2)}]"
             if self.a_only + self.b_only
             else ""
         )
-        return (
-            f"A only {self.a_only}, B only {self.b_only} of n = {self.n} (McNemar exact p = {number(self.p, 2)}{share})"
-        )
+        counts = f"{a} only {self.a_only}, {b} only {self.b_only} of n = {self.n}"
+        return f"{counts} (McNemar exact p = {number(self.p, 2)}{share})"
 
     def verdict(self) -> str:
         """ "A succeeds where B misses more often than the reverse": held when the interval of A's share of the
