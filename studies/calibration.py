@@ -192,19 +192,20 @@ def _within(ours: float, paper: float, band: float) -> str:
 def stated(values) -> pd.DataFrame:
     """Numbers the paper states beside ours: ``values`` rows (what, the paper's sentence or table, the paper's number
     as printed, ours), each with the difference and its fidelity verdict (within the paper's printed precision or
-    not: :func:`precision`). A printed range (low, high), e.g. "between three and four", is its midpoint ± half its
-    width."""
+    not: :func:`precision`); the paper's column as printed. A range (low, high), e.g. "between three and four", is
+    its midpoint ± half its width (the difference: from the midpoint)."""
     rows = []
     for what, source, printed, ours in values:
         if isinstance(printed, tuple):
             paper, band = (printed[0] + printed[1]) / 2, (printed[1] - printed[0]) / 2
+            printed = f"{printed[0]}–{printed[1]}"
         else:
             paper, band = float(printed), precision(printed)
         rows.append(
             {
                 "value": what,
                 "paper says": source,
-                "paper": paper,
+                "paper": printed,
                 "ours": ours,
                 "ours − paper": ours - paper,
                 "verdict": _within(ours, paper, band) if ours == ours else "not measured here",

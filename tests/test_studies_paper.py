@@ -141,7 +141,8 @@ def test_stated_values_beside_ours_with_their_printed_precision():
             ("e", "VI-D", "31", float("nan")),
         ]
     )
-    assert list(rows["paper"]) == [0.9, 1.3, 3.5, 3.5, 31.0]
+    assert list(rows["paper"]) == [".90", "1.30", "3–4", "3–4", "31"]  # as printed
+    assert np.allclose(rows["ours − paper"].iloc[:4], [0.004, 0.01, 0.5, 2.5])
     assert list(rows["verdict"]) == [
         "within the paper's precision",
         "not within ±0.005",
@@ -159,9 +160,9 @@ def test_table_iii_every_cell_and_the_texts_reductions_beside_ours():
     rows = baxter.paper_values(values)
     assert len(rows) == 5  # mean and median per controller, and the QP's median reduction
     assert rows.loc[f"{baxter.SERVO}: median ITAE", "verdict"] == "within the paper's precision"
-    assert rows.loc[f"{baxter.QP}: mean ITAE", "paper"] == 1.29
+    assert rows.loc[f"{baxter.QP}: mean ITAE", "paper"] == "1.29"
     cut = rows.loc[f"{baxter.QP}: median ITAE reduction vs the servo [%]"]
-    assert cut["paper"] == 31 and cut["ours"] == pytest.approx(100 * (1 - 0.9 / 1.3))
+    assert cut["paper"] == "31" and cut["ours"] == pytest.approx(100 * (1 - 0.9 / 1.3))
     assert cut["paper says"].startswith("VI-D: 'Parameterized OSQPMPC and EMPC reduce the median ITAE by 31%")
 
 
