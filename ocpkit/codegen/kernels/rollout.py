@@ -165,10 +165,10 @@ class Rollout:
     Its arrays live on the device (Taichi ndarrays): ``knots`` (num_sims, p, m) the population, ``picked``
     (num_picked, p, m) the candidates chosen by :meth:`pick` (parents, elites), and ``data`` the sections of
     :attr:`layout`: x_0, the goal and obstacle windows, the affine model, the ``step_sections`` a planner changes every
-    control step (its whitening and seeds), which it fills with :meth:`stage`, the basis, then the ``sections`` it
-    sets once (its bounds …), which it fills with :meth:`write`. Kernels take them as arguments, so the kernels
-    are compiled once per shape (:attr:`key`) and serve every engine of that shape in the process; Taichi's offline
-    cache keys them by their code, so other processes load them (:func:`ocpkit.codegen.kernels.runtime.shared`).
+    step (its seeds …: :meth:`stage`), the basis, then the ``sections`` it sets once (its bounds …: :meth:`write`).
+    Kernels take them as arguments, so the kernels are compiled once per shape (:attr:`key`) and serve every engine of
+    that shape in the process; Taichi's offline cache keys them by their code, so other processes load them
+    (:func:`ocpkit.codegen.kernels.runtime.shared`).
 
     ``rollout(i, knots, data)`` is a ``@ti.func`` that simulates candidate i and returns its cost J and violation V
     (:func:`violation` summed over x_1 … x_T, on the rollout's ``dynamics``), and ``record(i, knots, data, out)`` one
@@ -180,11 +180,10 @@ class Rollout:
     ``constrained`` says whether it can be nonzero. The fitness and the violation read the ``obstacles`` (N) of the
     task at stage k from row k of the step's obstacle window.
 
-    Each Taichi call that moves an array costs tens of microseconds of launch overhead, more
-    than a small population's rollouts, so a control step moves its data in as few calls as
-    possible: :meth:`load` sends x_0, the goal and obstacle windows, the affine model and the step sections in one,
-    solver kernels return the costs and violations through one output array (:meth:`record`), :meth:`pick` returns
-    what it gathered.
+    Each Taichi call that moves an array costs tens of microseconds of launch overhead, more than a small population's
+    rollouts, so a control step moves its data in as few calls as possible: :meth:`load` sends x_0, the goal and
+    obstacle windows, the affine model and the step sections in one, solver kernels return the costs and violations
+    through one output array (:meth:`record`), :meth:`pick` returns what it gathered.
     """
 
     def __init__(
@@ -262,9 +261,8 @@ class Rollout:
         self.picked = ti.ndarray(self.ftype, (num_picked, p, m))
         self.data = ti.ndarray(self.ftype, (max(1, self.layout.total),))
         self.write("basis", rows.values())
-        # what load() sends: x_0, the windows and the model, then the step sections as stage() left them
-        self._upload_buffer = np.zeros(self.layout["basis"], dtype=self.ntype)
-        self._per_step = sum(windows.values()) + sum(model.values())  # load()'s own part of it
+        self._upload_buffer = np.zeros(self.layout["basis"], dtype=self.ntype)  # load()'s: its own, then the staged
+        self._per_step = sum(windows.values()) + sum(model.values())  # load()'s own: x_0, the windows, the model
 
     def write(self, section: str, values) -> None:
         """Copy ``values`` (the section's size, any shape) into ``section`` of :attr:`data`, in one launch."""
@@ -289,9 +287,8 @@ class Rollout:
     def load(self, x0: np.ndarray, goal: np.ndarray, affine=None, obstacles=None) -> None:
         """Copy the initial state x_0, the goal (ng entries: the goal state, then a task's targets) held over the
         horizon or its window (T+1, ng), row k stage k's, the obstacles at every stage (T+1, N, 4) (centre, radius;
-        None: where the task declares them) and, with affine dynamics, this control step's model ``affine`` =
-        (A_d, B_d, w_d) for x⁺ = A_d x + B_d u + w_d to the device, with the step sections (:meth:`stage`), in one
-        launch: nothing is compiled again."""
+        None: where the task declares them), with affine dynamics this step's model ``affine`` = (A_d, B_d, w_d) for
+        x⁺ = A_d x + B_d u + w_d, and the step sections (:meth:`stage`) to the device in one launch (no compiling)."""
         n, m, T, N = self.nx, self.nu, self.horizon, self.obstacles
         if (affine is None) != (self.dynamics != "affine"):
             raise ValueError(
