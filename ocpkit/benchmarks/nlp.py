@@ -19,6 +19,8 @@ is a controller column when asked for. It solves traditional MPC (p = T) on the 
 have no joint damping or friction, so with it every problem of the run, for every controller and the plant, is
 made without them; problems it cannot model (no pinocchio model, servo inputs) run without its row. After the
 closed-loop table it prints its per-solve comparison (:func:`ocpkit.benchmarks.crocoddyl_compare.compare`).
+Both peers side by side on the same OCPs, one iteration a step and converged, p = T and knots in tables of their own
+(issue 48's must-show): ``ocpkit bench peers`` (:mod:`ocpkit.benchmarks.peers`).
 """
 
 from __future__ import annotations

@@ -25,8 +25,9 @@ HELP = (
     "qp, empc, export, model, nlp, faults, step, task, sensitivities, startup: see ocpkit.benchmarks; "
     "peers: the like-for-like tables of acados (SQP-RTI p = T and coarse grid, SQP converged), Crocoddyl (FDDP one "
     "iteration a step and converged) and ocpkit (RTI C step p = T and 5 knots, IPOPT): Puma 560, Panda, nlink:13, "
-    "T = 50, RK4 and Euler, ms a step and closed-loop cost / IPOPT's over seeds 100-102 (--seed, --problem, "
-    "--integrator narrow it; ~15 min at idle on 2 cores; a peer not installed is skipped with one line)"
+    "T = 50, RK4 and Euler, ms a step and closed-loop cost / IPOPT's, 5 seeds from 100 (never tuned on) x 50 steps "
+    "(--seed moves them, --problem and --integrator narrow the grid; 5-10 min on 2 idle cores once built, the "
+    "first run compiles acados' solvers for minutes more; a peer not installed is skipped with one line)"
 )
 
 
