@@ -22,7 +22,9 @@ Two tables, never mixed:
 Columns: "it" the median iterations a step; "step ms" the median over seeds of each seed's median step time
 (``Solution.times["total"]``, what the control loop waits for) and, in brackets, the worst seed's; "max ms" the
 slowest step of all (the first steps are cold); "ms/it" the median step over its iterations (per iteration);
-"cost/ipopt" each seed's closed-loop actual cost over IPOPT's, median [worst]; "fallbk" the fallbacks; "path" what
+"model/build/QP" the medians of the step's parts (ocpkit: sensitivities, condensing, QP; the peers time their
+whole solve as QP, acados' set-up from Python as build); "cost/ipopt" each seed's closed-loop actual cost over IPOPT's,
+median [worst]; "fallbk" the fallbacks; "path" what
 answered most steps (ocpkit's C step, a fallback, the peer). The default size, 5 seeds x 50 steps (n = 250 steps a
 row), takes 5-10 minutes on 2 idle cores once every solver is built (2 x 10 took 50 s at load 5); the first run
 compiles acados' 18 solvers (10-80 s each) and ocpkit's C steps into the cache. acados runs
@@ -225,6 +227,7 @@ def _row(key, run, reference) -> dict:
         "cost_ratio": float(np.median(ratios)),
         "worst_ratio": float(max(ratios)),
         "fallbacks": sum(s["fallbacks"] for s in seeds),
+        **{f"{part}_ms": float(np.median([s[f"{part}_ms"] for s in seeds])) for part in ("model", "build", "solve")},
         "path": seeds[0]["path"],
         "steps": sum(s["steps"] for s in seeds),
     }
@@ -239,16 +242,17 @@ def _print(rows, samples, steps) -> None:
         )
         print(
             f"{'problem':<10}{'integ':>6} {'controller':<20}{'grid':>5}{'ready s':>8}{'it':>4}{'step ms':>20}"
-            f"{'max ms':>9}{'ms/it':>8}{'cost/ipopt':>22}{'fallbk':>7}  path"
+            f"{'max ms':>9}{'ms/it':>8}{'model/build/QP':>21}{'cost/ipopt':>22}{'fallbk':>7}  path"
         )
         for r in rows:
             if r["table"] != table:
                 continue
             step = f"{r['step_ms']:.3f} [{r['worst_ms']:.3f}]"
             cost = f"{r['cost_ratio']:.4f} [{r['worst_ratio']:.4f}]"
+            split = f"{r['model_ms']:.2f}/{r['build_ms']:.2f}/{r['solve_ms']:.2f}"
             print(
                 f"{r['problem']:<10}{r['integrator']:>6} {r['controller']:<20}{r['grid']:>5}{r['ready_s']:>8.1f}"
-                f"{r['iterations']:>4.0f}{step:>20}{r['max_ms']:>9.2f}{r['iteration_ms']:>8.3f}{cost:>22}"
+                f"{r['iterations']:>4.0f}{step:>20}{r['max_ms']:>9.2f}{r['iteration_ms']:>8.3f}{split:>21}{cost:>22}"
                 f"{r['fallbacks']:>7d}  {r['path']}",
                 flush=True,
             )
