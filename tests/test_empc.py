@@ -251,3 +251,13 @@ def test_puma560_with_gravity_reaches_goal():
         assert traj.fallbacks == 0
         errors.append(np.abs(traj.x[-1, :6] - goal[:6]).max())
     assert max(errors) <= 0.05, errors  # 0.0024–0.0151 rad measured
+
+
+def test_bench_reports_the_step_cpu_time():
+    """`ocpkit bench empc` prints the step's CPU time beside its wall time: on a machine other processes share, the
+    CPU time (one Taichi thread) is what an idle machine would take."""
+    from ocpkit.benchmarks.empc import bench_empc
+
+    lines = []
+    (row,) = bench_empc((1,), (8,), (10,), variants=("preconditioned",), steps=2, arch="auto", out=lines.append)
+    assert "step cpu" in lines[0] and 0 < row["step_cpu"] < 10 * row["step"] + 1.0

@@ -4,6 +4,8 @@ Solver, and Traditional MPC", solve-time figures)."""
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from ocpkit import problems
@@ -36,7 +38,9 @@ def bench_empc(
     one sampled state (warm-started, as in closed loop). Reported medians: the step's parts
     (``model`` linearization, the preconditioner's ``build``, ``factor`` and ``seed`` (Newton and
     holding candidates), host↔device ``copies``, the ``generations``' kernel launches), ``generation`` =
-    generations time / generations, ``rollouts/s`` and ``step`` (the whole control step).
+    generations time / generations, ``rollouts/s``, ``step`` (the whole control step) and ``step_cpu``, the
+    process's CPU time in it (all threads: with ``OCPKIT_CPU_THREADS=1`` the step an idle machine would take
+    where other processes share the cores).
     """
     from ocpkit.solvers.empc import EvolutionaryMPC
 
@@ -61,7 +65,11 @@ def bench_empc(
                         seed=seed,
                     )
                     ctrl.solve(x0, goal)  # compile and cold start
-                    sols = [ctrl.solve(x0, goal) for _ in range(steps)]
+                    sols, cpu = [], []
+                    for _ in range(steps):
+                        start = time.process_time()
+                        sols.append(ctrl.solve(x0, goal))
+                        cpu.append(time.process_time() - start)
                     row = {part: float(np.median([s.times[part] for s in sols])) for part in PARTS}
                     row.update(
                         links=L,
@@ -72,6 +80,7 @@ def bench_empc(
                         generation=row["generations"] / generations,
                         rollouts_per_s=N * generations / row["generations"],
                         step=float(np.median([s.times["total"] for s in sols])),
+                        step_cpu=float(np.median(cpu)),
                         arch=device,
                         precision=precision,
                     )
@@ -85,7 +94,7 @@ def _header(device, precision):
         f"EMPC on nlink:L, arch {device}, {precision}; medians, times in ms\n"
         f"{'links':>5} {'T':>4} {'population':>10} {'variant':>14} "
         + " ".join(f"{p:>11}" for p in PARTS)
-        + f" {'generation':>10} {'rollouts/s':>10} {'step':>8}"
+        + f" {'generation':>10} {'rollouts/s':>10} {'step':>8} {'step cpu':>8}"
     )
 
 
@@ -93,5 +102,6 @@ def _row(r):
     return (
         f"{r['links']:>5} {r['horizon']:>4} {r['population']:>10} {r['variant']:>14} "
         + " ".join(f"{1e3 * r[p]:>11.3f}" for p in PARTS)
-        + f" {1e3 * r['generation']:>10.3f} {r['rollouts_per_s']:>10.3g} {1e3 * r['step']:>8.3f}"
+        + f" {1e3 * r['generation']:>10.3f} {r['rollouts_per_s']:>10.3g}"
+        + f" {1e3 * r['step']:>8.3f} {1e3 * r['step_cpu']:>8.3f}"
     )
