@@ -27,14 +27,22 @@ class HPIPM(QPBackend):
     ``DM`` conversion of the 52,000 dynamics nonzeros alone took 1.4-2.5 ms at nlink:13, T = 50. Each solve takes
     a new buffer (0.1 ms), which matched CasADi's ordinary call on every QP tried: one buffer evaluated again and
     again answered wrongly in a test harness (states 2.0 off; not understood, so not risked). The interface keeps
-    nothing between solves (no warm start), so it is built once for a structure, iteration limit and tolerance
-    and kept across :meth:`reset`.
+    nothing between solves, so it is built once for a structure, iteration limit and tolerance and kept across
+    :meth:`reset`.
+
+    HPIPM starts from a primal guess (its ``warm_start`` 1): the warm start's z (the previous answer), else zero,
+    each bounded variable moved WARM_INTERIOR of its range inside its bounds. RTI closed loops at T = 50, seeds 0-2
+    and 3-5, CPU time at load 4.6-5 on 2 CPUs, against HPIPM's own cold start: median step nlink:13 12.3 and 11.1 ms
+    (14.0, 13.0; HPIPM iterations 8 and 7 against 10), Puma 560 2.5 and 2.3 (3.0, 2.7), Panda 2.9 and 2.9 (3.4,
+    3.4), no 90th percentile worse, every step certified; the previous answer as it is (its bounds active) took
+    Panda up to 39 iterations where a cold start took 13.
     """
 
     factorizes = False
     # HPIPM's "balance" mode (its LQ factorization where the Riccati one is ill-conditioned); "speed" took 10 %
     # less per iteration at nlink:13 but up to 18 iterations where balance took 12.
     MODE = "balance"
+    WARM_INTERIOR = 0.1
 
     def __init__(self, tr, max_iter: int, eps: float):
         n, m, T = tr.n, tr.m, tr.T
@@ -65,7 +73,7 @@ class HPIPM(QPBackend):
             "hpipm": {
                 "mode": self.MODE,
                 "iter_max": self.max_iter,
-                "warm_start": 0,
+                "warm_start": 1,
                 "res_g_max": tol,
                 "res_b_max": tol,
                 "res_d_max": tol,
@@ -110,6 +118,12 @@ class HPIPM(QPBackend):
         args["h"][:], args["a"][:], args["g"][:] = H.data, A.data, qp.q[perm]
         args["lba"][:] = args["uba"][:] = qp.b[n:]
         args["lbx"][:], args["ubx"][:] = lbx[perm], ubx[perm]
+        guess = np.array(warm[0], dtype=float) if warm is not None and np.size(warm[0]) == qp.n else np.zeros(qp.n)
+        margin = self.WARM_INTERIOR * (qp.u - qp.l)
+        inside = np.isfinite(margin)  # both bounds finite
+        rows = sel[inside]
+        guess[rows] = np.clip(guess[rows], qp.l[inside] + margin[inside], qp.u[inside] - margin[inside])
+        args["x0"][:] = guess[perm]
         buffer, evaluate = self.solver.buffer()
         for i, name in enumerate(self.solver.name_in()):
             buffer.set_arg(i, memoryview(args[name]))
