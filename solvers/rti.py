@@ -33,14 +33,15 @@ class RealTimeIteration(LinearMPC):
     obstacles and initial guess (the first iterate) as LinearMPC takes them.
 
     For traditional MPC (p = T) ``form="sparse", qp="hpipm"`` (HPIPM's Riccati interior point through CasADi, on
-    the stage-ordered sparse QP) is the fastest path, every step certified. T = 50, RK4, 3 seeds x 50 steps, median
-    step in CPU time beside acados' SQP-RTI (partial-condensing HPIPM) run alike in the same minutes (load 7.5-9 on 2
-    CPUs): Puma 560 3.6-3.7 ms against acados' 3.0-3.5, Panda 4.1-4.6 against 5.2-5.7, nlink:13 15.7-16.2 against
-    12.4-12.6 (1.3x; the condensed C step 53.5, ProxQP's sparse backend 21.5); 90th percentile 5.1, 6.2 and 17.9 ms,
-    the worst the first step (with the interface's build, 30 ms). Its QPs take 10-12 HPIPM iterations of 0.85 ms
-    (CPU) at nlink:13, acados' 9 of 0.28 ms (its own timer): CasADi's BLASFEO is the generic build (no AVX2 or FMA
-    kernels), acados' the Haswell one. It is not the default: it takes hard state bounds only, no task terms, has
-    no C step (:mod:`ocpkit.export`), and cannot run in a process that has loaded acados.
+    the stage-ordered sparse QP, warm-started) is the fastest path, every step certified. T = 50, RK4, 50 steps of
+    seeds 0-2 and 3-5, median step in CPU time beside acados' SQP-RTI (partial-condensing HPIPM) run alike in the
+    same minutes (load 2.8 on 2 CPUs): nlink:13 12.8 and 11.0 ms against acados' 10.2 and 10.3 (1.26x, 1.07x; the
+    condensed C step about 51), Puma 560 3.0 and 2.3 against 2.9 and 2.7, Panda 3.1 and 3.2 against 4.8 and 4.6;
+    90th percentile 14.1 and 12.3, 4.4 and 3.2, 4.3 and 4.8 ms (acados 11.0 and 11.5, 3.1 and 3.0, 5.4 and 5.2), the
+    worst the first step (with the interface's build, 30 ms). An HPIPM iteration takes 0.85 ms (CPU) at nlink:13,
+    acados' 0.28 (its own timer): CasADi's BLASFEO is the generic build (no AVX2 or FMA kernels), acados' the
+    Haswell one. It is not the default: it takes hard state bounds only, no task terms, has no C step
+    (:mod:`ocpkit.export`), and cannot run in a process that has loaded acados.
 
     ``form="sparse"`` alone (ProxQP's sparse backend) is faster than the condensed C step in the median, but its tail
     is heavy: at nlink:13 its cold first steps (27-44 iterations) and the steps after far warm starts cost 10-25 ms
