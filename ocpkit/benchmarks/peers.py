@@ -12,7 +12,8 @@ Two tables, never mixed:
 * p = T (a node every step), one iteration a step: ocpkit's RTI (one Gauss–Newton step, the condensed QP's C step),
   acados' SQP-RTI (one SQP iteration, partial-condensing HPIPM; RK4 as acados' ERK, Euler as DISCRETE dynamics of
   ocpkit's step), Crocoddyl's FDDP with one iteration a step warm-started from the last plan (its RTI analogue);
-  and converged every step: IPOPT (tol 1e-8 on its scaled NLP error, the reference), acados' SQP (every KKT
+  and converged every step: IPOPT (tol 1e-8 on its scaled NLP error, the reference; and "ipopt 1e-6" with that and
+  its unscaled dual and primal infeasibility and complementarity ≤ 1e-6: :data:`IPOPT_KKT`), acados' SQP (every KKT
   residual, ∞-norm, ≤ 1e-6: tol_stat, tol_eq, tol_ineq, tol_comp), FDDP (th_stop 1e-12 on its expected decrease
   ½ Σ Q_uᵀQ_uu⁻¹Q_u, which leaves ‖Q_u‖∞ ≤ 1e-6: :data:`~ocpkit.benchmarks.crocoddyl_peer.TH_STOP_KKT`).
 * knots (the same freedom: p inputs over the horizon): ocpkit's RTI C step on its p-knot piecewise-linear OCP and on
@@ -51,6 +52,9 @@ FIRST_SEED = 100
 # Every converged row's tolerance (acados' KKT residuals; FDDP: crocoddyl_peer.TH_STOP_KKT).
 KKT_TOL = 1e-6
 TABLES = ("p = T", "knots")
+# IPOPT at the peers' tolerance: its scaled NLP error and each unscaled residual (dual and primal infeasibility,
+# complementarity) ≤ KKT_TOL; the reference row keeps its default tol 1e-8.
+IPOPT_KKT = {"tol": KKT_TOL, "dual_inf_tol": KKT_TOL, "constr_viol_tol": KKT_TOL, "compl_inf_tol": KKT_TOL}
 
 
 def bench_peers(
@@ -157,6 +161,7 @@ def _runs(problems, integrators, horizon, knots, samples, steps, first_seed, *, 
             # (table, controller, grid, its OCP, its maker)
             rows = [
                 ("p = T", "ipopt", f"N={horizon}", ocp, lambda o: solvers.controller("ipopt", o)),
+                ("p = T", "ipopt 1e-6", f"N={horizon}", ocp, lambda o: solvers.make("ipopt", o, options=IPOPT_KKT)),
                 ("p = T", "rti", f"N={horizon}", _own(prob, None, "linear", ocp), rti),
                 ("knots", f"rti {knots} knots", f"p={knots}", _own(prob, knots, "linear", ocp), rti),
                 ("knots", f"rti {knots} blocks", f"p={knots}", _own(prob, knots, "zoh", ocp), rti),
