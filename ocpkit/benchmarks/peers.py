@@ -85,8 +85,8 @@ def bench_peers(
     if echo:
         print(
             f"peers, like for like: {', '.join(problems)}; {'/'.join(integrators)}; T = {horizon}, {knots} knots; "
-            f"{samples} seeds from {first_seed} x {steps} steps (n = {samples * steps} steps a row); without joint "
-            f"damping and friction; load {load()}",
+            f"{samples} seed{'s' if samples > 1 else ''} from {first_seed} x {steps} steps (n = {samples * steps} "
+            f"steps a row); without joint damping and friction; load {load()}",
             flush=True,
         )
         for peer, why in skipped.items():
