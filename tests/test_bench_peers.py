@@ -38,7 +38,7 @@ def test_tables_apart_and_absent_peers_said(capfd):
         r["grid"] == ("p=2" if r["controller"].startswith("rti 2") else "N=2") for r in rows if r["table"] == "knots"
     )
     assert all(r["grid"] == "N=10" for r in rows if r["table"] == "p = T")
-    assert "seeds from 100" in out and "load" in out
+    assert "seed from 100 x 3 steps" in out and "load" in out
     p_t, knots = out.index("\np = T:"), out.index("\nknots:")
     assert p_t < knots and "p=2" not in out[p_t:knots] and "N=10" not in out[knots:]
     by = {(r["table"], r["controller"]): r for r in rows}
