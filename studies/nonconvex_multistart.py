@@ -6,7 +6,9 @@ own cold start (states held at x_0, knots at the input goal), then ``starts`` âˆ
 the input bounds (seeded: a run is repeatable), each rolled out on the model as NonlinearMPC does with a user's
 initial guess. With ``every_step`` every step does so, the first guess the warm start. The answer is the converged
 solve of least NLP objective (a later start replaces the best only if it is lower by :data:`BETTER`, relative); a
-guess that fails (not converged, limited) is dropped, and the step fails only when all do. With a ``time_limit``
+guess that fails (not converged, limited) is dropped, and the step fails only when all do; after such a step, the
+steps try NonlinearMPC's own start alone until one converges (on the 3-link arm's limits case IPOPT failed step after
+step, and 8 starts of 50 iterations each a step took minutes a run). With a ``time_limit``
 (the whole step's budget, every start together) a start begins only while NonlinearMPC's own check says a solve
 still fits in what is left: the budget decides how many starts run.
 """
@@ -57,6 +59,7 @@ class MultiStartNLP(NonlinearMPC):
         self.draws = 0  # random guesses drawn since the reset: with the seed, it keys the next one
         self.starts_run = self.steps_run = self.random_wins = 0  # see random_win_rate
         self.objectives: list = []  # the last multi-start step's NLP objective per start (NaN: not converged)
+        self._stuck = False  # every start of the last multi-start step failed: one start a step until one converges
 
     @property
     def random_win_rate(self) -> float:
@@ -67,8 +70,10 @@ class MultiStartNLP(NonlinearMPC):
         return _Recording(super()._nlpsol())
 
     def _solve(self, x, goal):
-        if self.guess is not None or not (self.every_step or self._warm is None):
-            return super()._solve(x, goal)
+        if self.guess is not None or self._stuck or not (self.every_step or self._warm is None):
+            sol = super()._solve(x, goal)
+            self._stuck = self._stuck and not sol.ok
+            return sol
         ocp, best, kept, times, iterations, tried = self.ocp, None, None, {}, 0, 0
         self.objectives = []
         for start in range(self.starts):
@@ -94,7 +99,7 @@ class MultiStartNLP(NonlinearMPC):
         self.steps_run += 1
         self.starts_run += tried
         if best is None:
-            self._warm = None
+            self._warm, self._stuck = None, True
             return sol
         sol, f, start = best
         self._warm = kept

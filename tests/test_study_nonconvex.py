@@ -95,6 +95,12 @@ def test_multistart_keeps_the_least_objective_of_its_starts():
     assert sol.raw_status.endswith(f"objective {np.nanmin(many.objectives):.6g}")
     many.solve(x0, goal)  # warm: one start
     assert many.starts_run == 4 and many.steps_run == 1
+    stuck = MultiStartNLP(ocp, starts=3, max_iter=1)  # one iteration: no start converges
+    assert not stuck.solve(x0, goal).ok and stuck.starts_run == 3
+    assert not stuck.solve(x0, goal).ok and stuck.starts_run == 3  # then one start a step until one converges
+    stuck.max_iter = 200
+    assert stuck.solve(x0, goal).ok and stuck.starts_run == 3
+    assert stuck.solve(x0, goal).ok and stuck.starts_run == 3  # warm
     every = MultiStartNLP(ocp, starts=2, every_step=True)
     every.solve(x0, goal), every.solve(x0, goal)
     assert every.starts_run == 4
