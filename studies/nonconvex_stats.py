@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ocpkit.studies.evidence import NOT_HELD, NOT_TESTED, Interval, decide, median_interval, paired, proportion
+from ocpkit.studies.evidence import INCONCLUSIVE, NOT_TESTED, Interval, decide, median_interval, paired, proportion
 
 
 def binomial_cdf_half(k: int, n: int) -> float:
@@ -64,13 +64,13 @@ class PairedSuccess:
         return f"{counts} (McNemar exact p = {number(self.p, 2)}{share})"
 
     def verdict(self) -> str:
-        """ "A succeeds where B misses more often than the reverse": held when the interval of A's share of the
-        discordant pairs lies above ½, not held when it lies at or below ½ or when A never succeeds alone (b = 0),
-        inconclusive otherwise; not tested without shared seeds."""
+        """ "A succeeds where B misses more often than the reverse": held when the exact interval of A's share of the
+        discordant pairs lies above ½, not held when it lies at or below ½, inconclusive when it straddles ½ or there
+        is no discordant pair (no evidence either way); not tested without shared seeds."""
         if self.n == 0:
             return NOT_TESTED
-        if self.a_only == 0:
-            return NOT_HELD
+        if self.a_only + self.b_only == 0:
+            return INCONCLUSIVE
         return decide(Interval(self.share, self.low, self.high, self.a_only + self.b_only, 0.95), 0.5, ">")
 
 

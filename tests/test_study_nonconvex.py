@@ -66,8 +66,11 @@ def test_paired_success_and_its_verdict():
     assert s.p == pytest.approx(2 * (1 + 9) / 512) and s.share == pytest.approx(8 / 9)
     assert s.low > 0.5 and s.verdict() == HELD  # 8 of 9 discordant: Clopper–Pearson low 0.518
     assert paired_success(a[:3], b[:3]).verdict() == INCONCLUSIVE  # 3 of 3: low 0.29
-    assert paired_success(b, b).verdict() == NOT_HELD  # never succeeds alone
+    assert paired_success(b, b).verdict() == INCONCLUSIVE  # no discordant seed: no evidence either way
     assert math.isnan(paired_success(b, b).share)
+    never, always = pd.Series([False] * 6), pd.Series([True] * 6)
+    assert paired_success(never, always).verdict() == NOT_HELD  # B only on 6 of 6 discordant: high 0.46 < ½
+    assert paired_success(never[:5], always[:5]).verdict() == INCONCLUSIVE  # 5 of 5: high 0.52
 
 
 def test_paired_interval_is_the_median_interval_of_the_ratios():
@@ -153,7 +156,7 @@ def test_nonconvex_tiny(monkeypatch, tmp_path):
     names = [nonconvex_trials.EMPC, nonconvex_trials.RTI]
     names += [name + nonconvex_trials.BUDGET for name in names]
     df, verdicts = _tiny(monkeypatch, tmp_path, ("limits",), names)
-    assert verdicts == ["not held", "not held"]  # EMPC reached no target the others missed
+    assert verdicts == ["inconclusive", "inconclusive"]  # no seed where one succeeds and the other misses
     assert df.loc[df["controller"] == nonconvex_trials.EMPC, "child_win_rate"].notna().all()
 
 
