@@ -53,6 +53,8 @@ CONTROLLERS = {
     "qp-python": Configuration("qp", {"native": False}),  # LinearMPC without its C step
     "ltv": Configuration("qp", {"linearization": "trajectory"}),  # one real-time iteration, LinearMPC's
     "rti3": Configuration("rti", {"iterations": 3}),
+    # traditional MPC (p = T) only: HPIPM's Riccati interior point on the sparse QP, hard state bounds
+    "rti-hpipm": Configuration("rti", {"form": "sparse", "qp": "hpipm", "state_bounds": "hard"}, knots="horizon"),
     "fatrop": Configuration("ipopt", {"method": "fatrop"}),
 }
 
@@ -109,6 +111,7 @@ CONFIGURATIONS = {
     "rti": [
         Configuration("rti"),
         Configuration("rti", {"form": "sparse"}),
+        Configuration("rti", {"form": "sparse", "qp": "hpipm", "state_bounds": "hard"}, knots="horizon"),
         Configuration("rti", {"iterations": 30, "tol": 1e-10, "state_bounds": "hard"}, optimum="nlp"),
     ],
     **{

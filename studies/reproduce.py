@@ -13,7 +13,7 @@ from pathlib import Path
 from ocpkit.runs import study as study_runner
 from ocpkit.runs.store import Store
 from ocpkit.studies import NAMES, get, motion
-from ocpkit.studies.report import markdown_table
+from ocpkit.studies.report import markdown_table, per_seed_section
 
 PACKAGES = ("ocpkit", "casadi", "numpy", "proxsuite", "osqp", "pin", "taichi", "control", "matplotlib")
 
@@ -33,6 +33,7 @@ SECONDS_PER_TRIAL = {
     "reach": 5.8,
     "tracking": 0.74,
     "robustness_mujoco": 0.36,
+    "nonconvex": 6.2,  # its quick grid alone, 2026-12-04 (162 s, 52 trials, 2 workers, load 2-3)
 }
 # Studies whose claims are about time: run one trial at a time (locally), so two trials never share the 2 cores.
 TIMING_STUDIES = ("solve_times",)
@@ -100,10 +101,13 @@ def _parts(names) -> list:
     return out
 
 
-def per_seed(name: str, df) -> str:
-    """The study's per-seed values as a Markdown table (rows: configurations, columns: seeds), of the metric its
-    module names in ``PER_SEED`` (default the actual cost); ``name`` is the study module's (its table's study
-    names the heading)."""
+def per_seed(name: str, df, out_dir=None) -> str:
+    """The study's per-seed values as a Markdown table (rows: configurations, columns: seeds): in its verdicts' units
+    where its module has ``per_seed_rows(df)`` (also written to ``out_dir``), else of the metric it names in
+    ``PER_SEED`` (default the actual cost); ``name`` is the study module's (its table's study names the heading)."""
+    heading = df["study"].iloc[0] if "study" in df and len(df) else name
+    if hasattr(get(name), "per_seed_rows") and out_dir is not None and (df["status"] == "ok").any():
+        return per_seed_section(heading, get(name).per_seed_rows(df), out_dir)
     metric = getattr(get(name), "PER_SEED", "actual_cost")
     ok = df[df["status"] == "ok"]
     if metric not in ok or "seed" not in ok or ok.empty:
@@ -117,7 +121,6 @@ def per_seed(name: str, df) -> str:
     table.index = [" / ".join(map(str, i)) if isinstance(i, tuple) else str(i) for i in table.index]
     table.index.name = " / ".join(axes) or "metric"
     table.columns = [f"seed {c}" for c in table.columns]
-    heading = df["study"].iloc[0] if "study" in df and len(df) else name
     return f"### {heading}: {metric} per seed\n\n" + markdown_table(table) + "\n"
 
 
@@ -168,7 +171,7 @@ def reproduce(
             **options,
         )
         sections.append(section)
-        appendix.append(per_seed(module, df))
+        appendix.append(per_seed(module, df, out_dir))
         timings[name] = time.perf_counter() - t0
     if pictures:  # not a study: nothing stored, drawn again on every run
         t0 = time.perf_counter()

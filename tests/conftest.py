@@ -29,6 +29,13 @@ def lti():
     return random_lti
 
 
+def smooth_basis(T: int, p: int) -> np.ndarray:
+    """A dense "learned" T×p input basis: normalized Gaussian bumps (every row a convex combination of all p knots)."""
+    t, c = np.linspace(0, 1, T)[:, None], np.linspace(0, 1, p)[None]
+    B = np.exp(-0.5 * ((t - c) * p) ** 2)
+    return B / B.sum(axis=1, keepdims=True)
+
+
 def pytest_addoption(parser):
     parser.addoption(
         "--arch",

@@ -10,15 +10,9 @@ from ocpkit import solvers
 from ocpkit.codegen.kernels.rollout import Rollout, SparseRows
 from ocpkit.model.parameterization import Parameterization
 from ocpkit.problems import make
-from ocpkit.sim.simulate import simulate
 from ocpkit.solvers.qp import LinearMPC
 
-
-def smooth_basis(T, p):
-    """A dense "learned" basis: normalized Gaussian bumps (every row a convex combination of all p knots)."""
-    t, c = np.linspace(0, 1, T)[:, None], np.linspace(0, 1, p)[None]
-    B = np.exp(-0.5 * ((t - c) * p) ** 2)
-    return B / B.sum(axis=1, keepdims=True)
+from conftest import smooth_basis
 
 
 def _kinds(T, p):
@@ -158,31 +152,3 @@ def test_taichi_rollout_of_the_basis_matches_numpy(kind):
             x = np.asarray(F(x, u)).ravel()
         expected.append(J + float(ocp.cost.terminal(x, goal)))
     np.testing.assert_allclose(engine.evaluate(U)[0], expected, rtol=1e-10)
-
-
-# One configuration per solver and form: the QP's two forms and its C step, RTI, IPOPT and the sampling planners.
-LOOPS = [
-    "qp[form=condensed,qp=daqp,linearization=plan,native=False]",
-    "qp[form=sparse,qp=proxqp,linearization=goal,native=False]",
-    "qp[form=condensed,qp=daqp,native=True]",
-    "rti",
-    "ipopt[method=ipopt]",
-    "empc[variant=preconditioned,population=64]",
-    "cem[variant=preconditioned,population=64]",
-    "mppi[variant=paper,population=64]",
-]
-
-
-@pytest.mark.usefixtures("taichi_arch")
-@pytest.mark.parametrize("kind", ["bspline", "custom"])
-@pytest.mark.parametrize("label", LOOPS)
-def test_each_controller_closes_the_loop_with_the_basis(label, kind):
-    problem = make("pendulum")
-    ocp = problem.ocp(parameterization=_kinds(40, 5)[kind])
-    config = next(c for c in solvers.configurations() if c.label == label)
-    controller = config.make(ocp)
-    controller.wait_compiled()
-    traj = simulate(problem.plant(), controller, np.zeros(2), np.array([1.0, 0.0]), duration=1.5)
-    assert all(sol.ok for sol in traj.solutions), {sol.raw_status for sol in traj.solutions}
-    assert all(np.all(np.abs(sol.u) <= 5.0 + 1e-9) for sol in traj.solutions)
-    assert abs(traj.x[-1, 0] - 1.0) < 0.05, traj.x[-1]

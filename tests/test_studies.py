@@ -45,6 +45,19 @@ def tiny(monkeypatch):
             "arch": "cpu",
         },
     )
+    monkeypatch.setitem(
+        get("nonconvex").SIZES,
+        "quick",
+        {
+            "seeds": {"nlink:3": 1},
+            "controllers": ["LinearMPC (trajectory)", "EMPC"],
+            "duration": 0.1,
+            "horizon": 20,
+            "population": 32,
+            "arch": "cpu",
+            "budget": 0.01,
+        },
+    )
 
 
 @pytest.fixture
@@ -128,9 +141,10 @@ def test_reproduce_quick_on_tiny_grids(tiny, tiny_tracking, tmp_path):
         "Reaching past spherical obstacles",
         "MuJoCo as the plant",
         "Follow a moving reference",
+        "Non-convex reaches",
     ):
         assert title in text
-    _check_sections(text, 11)  # the studies, robustness's MuJoCo variant, then the appendix of per-seed values
+    _check_sections(text, 12)  # the studies, robustness's MuJoCo variant, then the appendix of per-seed values
     _check_knots(tmp_path)
 
 

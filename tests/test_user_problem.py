@@ -226,7 +226,7 @@ def test_cli_rejects_bad_variant_with_one_line(capsys):
     err = capsys.readouterr().err
     assert "valid: pendulum, pendulum:linear" in err and len(err.strip().splitlines()) == 1
     assert main(["bench", "step", "--problem", "pendulum"]) == 2
-    assert "--problem applies to `ocpkit bench qp|export|nlp|task|startup` only" in capsys.readouterr().err
+    assert "--problem applies to `ocpkit bench qp|export|nlp|task|startup|peers` only" in capsys.readouterr().err
 
 
 def test_bench_qp_takes_a_user_problem(cartpole_dir, capsys):

@@ -59,12 +59,13 @@ def default_problems() -> list[str]:
 
 
 def controller(kind: str, ocp, problem=None):
-    """A controller of :data:`ocpkit.solvers.CONTROLLERS` or PEERS for ``ocp`` (the peer "crocoddyl": on
-    ``problem``'s p = T OCP of that horizon)."""
+    """A controller of :data:`ocpkit.solvers.CONTROLLERS` or PEERS for ``ocp`` (the peer "crocoddyl" and a
+    controller for traditional MPC only, such as "rti-hpipm": on ``problem``'s p = T OCP of that horizon)."""
+    traditional = kind == "crocoddyl" or solvers.CONTROLLERS.get(kind, solvers.CONTROLLERS["qp"]).knots == "horizon"
+    if traditional and problem is not None and ocp.knots != ocp.horizon:
+        ocp = problem.ocp(knots=None, horizon=ocp.horizon, integrator=ocp.integrator)
     if kind == "crocoddyl":
-        return crocoddyl_peer.CrocoddylMPC(
-            problem, problem.ocp(knots=None, horizon=ocp.horizon, integrator=ocp.integrator)
-        )
+        return crocoddyl_peer.CrocoddylMPC(problem, ocp)
     return solvers.controller(kind, ocp)
 
 

@@ -9,7 +9,8 @@ without Crocoddyl, solves the same OCP and shares one reference: IPOPT's closed 
 
 Two tables, never mixed:
 
-* p = T (a node every step), one iteration a step: ocpkit's RTI (one Gauss–Newton step, the condensed QP's C step),
+* p = T (a node every step), one iteration a step: ocpkit's RTI (one Gauss–Newton step, the condensed QP's C step;
+  and "rti hpipm", the controller "rti-hpipm": the sparse QP by HPIPM's Riccati interior point through CasADi),
   acados' SQP-RTI (one SQP iteration, partial-condensing HPIPM; RK4 as acados' ERK, Euler as DISCRETE dynamics of
   ocpkit's step), Crocoddyl's FDDP with one iteration a step warm-started from the last plan (its RTI analogue);
   and converged every step: IPOPT (tol 1e-8 on its scaled NLP error, the reference; and "ipopt 1e-6" with that and
@@ -163,6 +164,7 @@ def _runs(problems, integrators, horizon, knots, samples, steps, first_seed, *, 
                 ("p = T", "ipopt", f"N={horizon}", ocp, lambda o: solvers.controller("ipopt", o)),
                 ("p = T", "ipopt 1e-6", f"N={horizon}", ocp, lambda o: solvers.make("ipopt", o, options=IPOPT_KKT)),
                 ("p = T", "rti", f"N={horizon}", _own(prob, None, "linear", ocp), rti),
+                ("p = T", "rti hpipm", f"N={horizon}", ocp, lambda o: solvers.controller("rti-hpipm", o)),
                 ("knots", f"rti {knots} knots", f"p={knots}", _own(prob, knots, "linear", ocp), rti),
                 ("knots", f"rti {knots} blocks", f"p={knots}", _own(prob, knots, "zoh", ocp), rti),
             ]

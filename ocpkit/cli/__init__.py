@@ -13,6 +13,7 @@ from ocpkit import __version__, solvers, studies
 from ocpkit.cli import commands
 from ocpkit.cli.arguments import add_controller_args, add_problem_args, add_study_args, add_task_args
 from ocpkit.cli.bench import BENCHMARKS, PROBLEM_BENCHMARKS, bench_command
+from ocpkit.cli.bench import HELP as BENCH_HELP
 from ocpkit.cli.build import build_command
 from ocpkit.cli.export import export_command
 from ocpkit.cli.options import (
@@ -215,7 +216,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     add_controller_args(pre)
     bench = sub.add_parser("bench", help="benchmarks that print medians and ratios")
-    bench.add_argument("what", choices=tuple(BENCHMARKS))
+    bench.add_argument("what", choices=tuple(BENCHMARKS), help=BENCH_HELP)
     bench.add_argument("--quick", action="store_true", help="a smaller grid (minutes instead of tens)")
     bench.add_argument("--arch", choices=("auto", "cpu", "cuda"), help="empc: Taichi arch (default auto)")
     bench.add_argument("--precision", choices=("float64", "float32"), help="empc: float type (default float64)")
@@ -228,12 +229,14 @@ def _parser() -> argparse.ArgumentParser:
     bench.add_argument(
         "--integrator",
         choices=INTEGRATORS,
-        help="nlp: every controller's prediction (default rk4; euler: semi-implicit; the plant: RK4)",
+        help="nlp: every controller's prediction (default rk4; euler: semi-implicit; the plant: RK4); peers: this "
+        "integrator only (default both)",
     )
     bench.add_argument(
         "--seed",
         type=int,
-        help="nlp: the first of the seeded starts and goals; startup: the seeded start and goal (default 0)",
+        help="nlp, peers: the first of the seeded starts and goals (default 0; peers: 100); startup: the seeded start "
+        "and goal (default 0)",
     )
     bench.add_argument(
         "--busy", type=int, help="step: busy processes for the quiet-vs-loaded comparison (default 2; 0 skips it)"

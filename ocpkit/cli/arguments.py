@@ -32,9 +32,9 @@ def add_problem_args(p):
     p.add_argument(
         "--parameterization",
         default="linear",
-        choices=("linear", "zoh", "identity"),
-        help="input between the knots: linear (default, the paper's piecewise-linear), zoh (move blocking) "
-        "or identity (traditional MPC, p = T; takes no --knots)",
+        choices=("linear", "zoh", "bspline", "identity"),
+        help="input between the knots: linear (default, the paper's piecewise-linear), zoh (move blocking), "
+        "bspline (clamped cubic B-spline, 4 knots or more) or identity (traditional MPC, p = T; takes no --knots)",
     )
     p.add_argument("--horizon", type=int, default=None, help="horizon T in steps (default: the problem's)")
     p.add_argument(
