@@ -23,7 +23,7 @@ def test_tables_apart_and_absent_peers_said(capfd):
     tables = {r["table"]: set() for r in rows}
     for r in rows:
         tables[r["table"]].add(r["controller"])
-    expected = {"p = T": {"ipopt", "ipopt 1e-6", "rti"}, "knots": {"rti 2 knots", "rti 2 blocks"}}
+    expected = {"p = T": {"ipopt", "ipopt 1e-6", "rti", "rti hpipm"}, "knots": {"rti 2 knots", "rti 2 blocks"}}
     if ACADOS is None:
         expected["p = T"] |= {"acados rti erk", "acados sqp"}
         expected["knots"] |= {"acados rti erk"}
