@@ -359,20 +359,17 @@ class LinearMPC(Controller):
         """The linearization trajectory (x̄ (T, n), ū (T, m)) of this step: the last plan advanced one step, x̄_0 = x;
         the step's initial guess instead where given (not shifted).
 
-        Its states are the last successful step's predictions shifted, or (cold start, after a fallback, a guess) a
-        rollout of the model from x under the inputs (the input goal of stage 0 at a cold start)."""
-        ocp = self.ocp
-        par = ocp.parameterization
+        Its states are the last successful step's predictions shifted; where there are none (a cold start, under the
+        input goal of stage 0, or after a fallback) x held, as NonlinearMPC and acados start cold (an unstable
+        model's rollout runs far from x: :class:`~ocpkit.solvers.rti.RealTimeIteration`); a guess's, its rollout."""
+        ocp, par = self.ocp, self.ocp.parameterization
         if self.guess is not None:
-            knots = self.guess
-        else:
-            knots = np.tile(ocp.input_goal(goal), (ocp.knots, 1)) if self.plan is None else par.shift(self.plan)
-        us = par.inputs(knots)
-        if self._x_plan is not None and self.guess is None:
-            xs = np.vstack([x, self._x_plan[2:]])
-        else:
-            xs = self.rollout(x, us)[:-1]
-        return xs, us
+            us = par.inputs(self.guess)
+            return self.rollout(x, us)[:-1], us
+        us = par.inputs(np.tile(ocp.input_goal(goal), (ocp.knots, 1)) if self.plan is None else par.shift(self.plan))
+        if self._x_plan is None:
+            return np.tile(x, (ocp.horizon, 1)), us
+        return np.vstack([x, self._x_plan[2:]]), us
 
     def _qp_step(
         self,

@@ -27,6 +27,13 @@ class RealTimeIteration(LinearMPC):
     iteration after the first fails (a time budget, a QP limit), the previous iteration's plan is returned:
     every iterate is a usable plan, the point of RTI.
 
+    Where there are no predicted states to shift (a cold start, the step after a fallback) the first iteration
+    linearizes at x held over the horizon, as NonlinearMPC and acados' SQP-RTI start cold, never along a rollout: the
+    undamped Panda's input-goal rollout (|eig A_d| 1.11 a step at dt 0.01) ran 16-64 from x within T = 50 steps, and
+    the closed loop cost 1.11 [1.61] times acados' with RK4 (median [worst], seeds 100-104 x 50 steps), 1.34 [3.30]
+    and 29 fallbacks with Euler; held, the first plan equals acados' to 3e-7 and the closed-loop costs to 2e-5, no
+    fallbacks (seeds 200-204 alike; the Puma 560 and nlink:13 within 2e-5 of before).
+
     Where LinearMPC builds its C step (:mod:`ocpkit.export.native`: DAQP, a robot-sized model, no task) the whole
     iteration runs as compiled C (:func:`ocpkit.export.export` with linearization "trajectory"), the same steps to
     rounding: until it is built, and after a failed step's soft-bound retry, in Python. A step's goal window, moved

@@ -259,8 +259,8 @@ def test_fallback_and_shift(twins):
 
 
 def test_rti_shifted_plan(twins):
-    """The first linearization trajectory of the real-time iteration: shifted_plan and stage_models (a rollout of
-    the stage models at a cold start) = LinearMPC.shifted_plan (the plan shifted, its states or a rollout)."""
+    """The first linearization trajectory of the real-time iteration: shifted_plan and stage_models (x held where
+    there are no predicted states) = LinearMPC.shifted_plan (the plan shifted, its states or x held)."""
     problem, ocp, c = twins
     rng = np.random.default_rng(5)
     ctrl = LinearMPC(ocp, linearization="trajectory", native=False)

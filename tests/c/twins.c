@@ -23,7 +23,7 @@ void twins_condense_ltv(mem_t* m, const double* LamK, const double* ug, const do
 }
 
 /* The real-time iteration's first linearization trajectory (LinearMPC.shifted_plan) from the plan (NULL: none)
-   and its predicted states (NULL: none, a rollout of the stage models): x̄ (HORIZON x NX), ū (HORIZON x NU). */
+   and its predicted states (NULL: none, x held): x̄ (HORIZON x NX), ū (HORIZON x NU). */
 int twins_shifted_plan(mem_t* m, const double* plan, const double* xplan, const double* ug, const double* x,
                        double* xbar, double* ubar) {
   int rc;
@@ -33,7 +33,7 @@ int twins_shifted_plan(mem_t* m, const double* plan, const double* xplan, const 
   if (xplan) memcpy(m->xplan, xplan, sizeof m->xplan);
   memcpy(m->ug, ug, sizeof m->ug);
   shifted_plan(m, x);
-  rc = stage_models(m, !m->has_xplan);
+  rc = stage_models(m);
   memcpy(xbar, m->xbar, sizeof m->xbar);
   memcpy(ubar, m->ubark, sizeof m->ubark);
   return rc;

@@ -139,7 +139,7 @@ static int fallback(mem_t* m, double* u_out, int status) {
   m->has_plan = 1;
   m->warm = 0;
 #if LIN_TRAJ
-  m->has_xplan = 0;  /* the next step linearizes along a rollout of the fallback plan */
+  m->has_xplan = 0;  /* the next step linearizes along the fallback plan, x held */
 #endif
   return status;
 }
@@ -866,14 +866,13 @@ static void stage_inputs(const double* z, double* u) {
 }
 
 /* The trajectory of the first iteration (LinearMPC.shifted_plan): knots z̄ = the plan shifted a step (the input goal
-   at a cold start), ū_k = Φ_k z̄, x̄_0 = x and x̄_k the plan's predicted x_{k+1} (a rollout where there is none). */
+   at a cold start), ū_k = Φ_k z̄, x̄_0 = x and x̄_k the plan's predicted x_{k+1} (x held where there is none). */
 static void shifted_plan(mem_t* m, const double* x) {
   int k;
   shifted_knots(m, m->zlin);
   stage_inputs(m->zlin, m->ubark);
-  memcpy(m->xbar, x, NX * sizeof(double));
-  if (m->has_xplan)
-    for (k = 1; k < {{ N }}_HORIZON; ++k) memcpy(m->xbar + k * NX, m->xplan + (k + 1) * NX, NX * sizeof(double));
+  for (k = 0; k < {{ N }}_HORIZON; ++k)
+    memcpy(m->xbar + k * NX, k && m->has_xplan ? m->xplan + (k + 1) * NX : x, NX * sizeof(double));
 }
 
 /* out = L [x; u; 0; 1] = A x + B u + w: the affine model's step. */
@@ -888,9 +887,8 @@ static void affine_step(const double* L, const double* x, const double* u, doubl
   }
 }
 
-/* Λ_k of every stage about (x̄_k, ū_k); with rollout, x̄_{k+1} = F(x̄_k, ū_k) as it goes. Returns a status (its
-   reason in m->reason). */
-static int stage_models(mem_t* m, int rollout) {
+/* Λ_k of every stage about (x̄_k, ū_k). Returns a status (its reason in m->reason). */
+static int stage_models(mem_t* m) {
   int k;
   for (k = 0; k < {{ N }}_HORIZON; ++k) {
     double* L = m->LamK + k * NX * NL;
@@ -899,7 +897,6 @@ static int stage_models(mem_t* m, int rollout) {
     if (affine_model(m, m->xbar + k * NX, m->ubark + k * NU, L))
       return fail(m, {{ N }}_EXCEPTION, {{ N }}_REASON_NON_FINITE_MODEL);
     if (!all_finite(L, NX * NL)) return fail(m, {{ N }}_NAN, {{ N }}_REASON_NON_FINITE_MODEL);
-    if (rollout && k + 1 < {{ N }}_HORIZON) affine_step(L, m->xbar + k * NX, m->ubark + k * NU, m->xbar + (k + 1) * NX);
   }
   return {{ N }}_SUCCESS;
 }
@@ -959,7 +956,7 @@ static int rti(mem_t* m, const double* x, const double* goal, int gs, int moving
   shifted_plan(m, x);
   for (it = 0; it < ITERATIONS; ++it) {
     if (t && it) t0 = seconds();
-    rc = stage_models(m, it == 0 && !m->has_xplan);
+    rc = stage_models(m);
     if (t) { t1 = seconds(); t[0] += t1 - t0; }
     if (rc == {{ N }}_SUCCESS) {
       condense_ltv(m, x, goal, gs);
