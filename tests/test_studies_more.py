@@ -54,6 +54,8 @@ def test_comparison_tiny(monkeypatch, tmp_path):
     df, text = _run(comparison, tmp_path)
     assert len(df) == len(comparison.CONTROLLERS) and df["record"].all() and (df["fallbacks"] == 0).all()
     assert "| 2 | 1 |" in text  # traditional MPC is its own reference
+    assert "The paper's Section VI-B numbers beside ours" in text and "accruing less than 20% more cost" in text
+    assert "not tested: EMPC ran on cpu; the paper's times are GPU times" in text
     _figures(
         tmp_path,
         "comparison_sample_response",
