@@ -43,8 +43,9 @@ def test_the_sparse_start_holds_the_states_the_guess_implies():
 
 def test_rti_from_its_converged_plan_converges_at_once_to_it():
     """RTI iterated to convergence, then again from its answer as the guess: the first QP starts from the guess, the
-    later ones from the previous iteration's answer. Measured (Panda, seed 1): 441 QP iterations cold, 13 from the
-    guess (52 where the guess was only the linearization point and every QP started cold)."""
+    later ones from the previous iteration's answer. Measured (Panda, seed 1): 35 QP iterations cold (from the state
+    held at x; 441 from the input goal's rollout before 0.13.0), 13 from the guess (52 where the guess was only the
+    linearization point and every QP started cold)."""
     panda = problems.make("panda")
     ocp = panda.ocp(knots=5, compiled=False)
     x0, goal = panda.sample(1)
@@ -52,5 +53,5 @@ def test_rti_from_its_converged_plan_converges_at_once_to_it():
     cold = RealTimeIteration(ocp, **options).solve(x0, goal)
     guided = RealTimeIteration(ocp, **options).solve(x0, goal, initial_guess=cold.knots)
     assert cold.ok and guided.ok and "converged" in guided.raw_status
-    assert guided.iterations < cold.iterations / 10, (guided.iterations, cold.iterations)
+    assert guided.iterations < cold.iterations / 2, (guided.iterations, cold.iterations)
     np.testing.assert_allclose(guided.knots, cold.knots, rtol=0, atol=1e-6 * np.abs(ocp.u_max).max())
