@@ -160,11 +160,11 @@ def test_cpu_thread_setting_is_checked(monkeypatch):
             runtime._cpu_threads()
 
 
-def test_starting_taichi_keeps_the_process_floating_point():
+def test_starting_taichi_keeps_the_process_floating_point(pytestconfig):
     """ti.init turns flush-to-zero on in its thread; ocpkit.codegen.kernels.runtime.init restores the environment,
     so CasADi, IPOPT and numpy keep subnormal numbers (with it on, an SQP step on nlink:3 took 10-13 s instead of
-    0.1 s)."""
+    0.1 s). On the arch the run asked for (`pytest --arch`): Taichi starts once a process."""
     from ocpkit.codegen.kernels import runtime
 
-    runtime.init("cpu")
+    runtime.init(pytestconfig.getoption("arch"))
     assert (np.array([1e-310]) * 1.0)[0] != 0.0
