@@ -46,6 +46,9 @@ class Configuration:
         return make(self.solver, ocp, **self.options)
 
 
+# RTI on HPIPM's Riccati interior point (the sparse QP, hard state bounds): traditional MPC (p = T) only.
+RTI_HPIPM = Configuration("rti", {"form": "sparse", "qp": "hpipm", "state_bounds": "hard"}, knots="horizon")
+
 # Controllers by name, the one list the benchmarks take (`ocpkit bench nlp|startup --controller NAME`): each
 # registered solver as constructed by default, under its own name, and a few variants.
 CONTROLLERS = {
@@ -53,8 +56,7 @@ CONTROLLERS = {
     "qp-python": Configuration("qp", {"native": False}),  # LinearMPC without its C step
     "ltv": Configuration("qp", {"linearization": "trajectory"}),  # one real-time iteration, LinearMPC's
     "rti3": Configuration("rti", {"iterations": 3}),
-    # traditional MPC (p = T) only: HPIPM's Riccati interior point on the sparse QP, hard state bounds
-    "rti-hpipm": Configuration("rti", {"form": "sparse", "qp": "hpipm", "state_bounds": "hard"}, knots="horizon"),
+    "rti-hpipm": RTI_HPIPM,
     "fatrop": Configuration("ipopt", {"method": "fatrop"}),
 }
 
@@ -111,7 +113,7 @@ CONFIGURATIONS = {
     "rti": [
         Configuration("rti"),
         Configuration("rti", {"form": "sparse"}),
-        Configuration("rti", {"form": "sparse", "qp": "hpipm", "state_bounds": "hard"}, knots="horizon"),
+        RTI_HPIPM,
         Configuration("rti", {"iterations": 30, "tol": 1e-10, "state_bounds": "hard"}, optimum="nlp"),
     ],
     **{

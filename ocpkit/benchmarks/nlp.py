@@ -61,7 +61,7 @@ def default_problems() -> list[str]:
 def controller(kind: str, ocp, problem=None):
     """A controller of :data:`ocpkit.solvers.CONTROLLERS` or PEERS for ``ocp`` (the peer "crocoddyl" and a
     controller for traditional MPC only, such as "rti-hpipm": on ``problem``'s p = T OCP of that horizon)."""
-    traditional = kind == "crocoddyl" or solvers.CONTROLLERS.get(kind, solvers.CONTROLLERS["qp"]).knots == "horizon"
+    traditional = kind == "crocoddyl" or getattr(solvers.CONTROLLERS.get(kind), "knots", None) == "horizon"
     if traditional and problem is not None and ocp.knots != ocp.horizon:
         ocp = problem.ocp(knots=None, horizon=ocp.horizon, integrator=ocp.integrator)
     if kind == "crocoddyl":
