@@ -68,3 +68,24 @@ def test_a_planner_never_faster_reads_inf_and_only_present_controllers_are_compa
     assert np.isinf(crossover["ours"]).all() and (crossover["verdict"] == "not within ±0.5").all()
     traditional_only = comparison.paper_values(_frame()[lambda d: d["controller"] == "traditional"])
     assert list(traditional_only.index) == ["solve time saved by the larger GPU [ms]"]
+
+
+def test_the_set_up_names_every_setting_from_the_paper_or_ours_with_what_the_run_chose():
+    run = _frame(device="cpu").assign(duration=10.0, population=1024)
+    rows = comparison.setup(run)
+    assert all(source.startswith(("paper ", "ours: ")) for _, _, source in rows)
+    table = {setting: (value, source) for setting, value, source in rows}
+    assert table["closed loop"] == ("10 s, rest to rest", "paper VI-A: 'perform control at 100 Hz for ten seconds'")
+    assert table["torque limit"][0] == "|τ| ≤ 2 N·m per joint" and "two Nm" in table["torque limit"][1]
+    assert table["damping b"] == ("0.01", "paper V-C: 'b is a viscous damping coefficient (.01)'")
+    assert table["Q, R"][0] == "Q = I, R = 0.01 I" and table["terminal weight"][0] == "100 Q"
+    for solver in ("traditional MPC", "parameterized QP"):  # the paper's OSQP replaced: said so, and why
+        assert table[solver][1].startswith("ours: the paper used OSQP")
+    assert table["links run"][0] == "1, 9, 10" and table["links run"][1].endswith("; ours: a subset")
+    assert table["start/goal pairs"][0] == "2 per robot" and table["device (sampling planners)"][0] == "cpu"
+    assert table["EMPC population, parents"][0] == "1024 rollouts, 16 parents"
+    quick = dict((s, v) for s, v, _ in comparison.setup(run.assign(duration=5.0)))
+    assert quick["closed loop"] == "5 s, rest to rest"
+    assert dict((s, src) for s, _, src in comparison.setup(run.assign(duration=5.0)))["closed loop"].startswith(
+        "ours: "
+    )

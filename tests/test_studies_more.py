@@ -56,6 +56,8 @@ def test_comparison_tiny(monkeypatch, tmp_path):
     assert "| 2 | 1 |" in text  # traditional MPC is its own reference
     assert "The paper's Section VI-B numbers beside ours" in text and "accruing less than 20% more cost" in text
     assert "not tested: EMPC ran on cpu; the paper's times are GPU times" in text
+    assert "The set-up: each setting, from the paper (quoted) or ours (why)" in text
+    assert "| closed loop | 0.3 s, rest to rest | ours: paper VI-A: 'perform control at 100 Hz for ten seconds'" in text
     _figures(
         tmp_path,
         "comparison_sample_response",
