@@ -2,6 +2,10 @@
 
 M(q) q̈ + C(q, q̇) q̇ + b q̇ = τ  (eq. threelink): the workspace lies in the plane perpendicular to gravity,
 so g(q) = 0. State x = [q, q̇] (relative joint angles), input τ (joint torques).
+
+"nlink:N:gravity" turns the plane vertical (not the paper's): gravity g = 9.81 m/s² in the arm's plane, along the
+zero configuration, so that q = 0 hangs straight down and q = (π, 0, …, 0) stands upright — N = 2 is the double
+pendulum of the non-convex suite's swing-up (:mod:`ocpkit.studies.nonconvex_cases`).
 """
 
 from __future__ import annotations
@@ -18,21 +22,25 @@ from ocpkit.model.problem import Problem
 from ocpkit.model.rigid_body import Chain
 
 
-def planar_chain(links: int, mass: float = 1.0, length: float = 0.25):
+def planar_chain(links: int, mass: float = 1.0, length: float = 0.25, gravity: float = 0.0):
     """A pinocchio Model of ``links`` identical uniform rods joined by revolute joints about z.
 
     Each rod has mass m and length l, its centre of mass at l/2 along the link's x axis and a rotational
     inertia about its centre of mass of diag(0, m l²/12, m l²/12) (thin uniform rod along x). Joint i+1
-    sits at the tip of link i. Gravity is zero: it would act along −z, parallel to every joint axis.
+    sits at the tip of link i. Gravity is zero (it would act along −z, parallel to every joint axis), or
+    ``gravity`` m/s² along +x, in the arm's plane: then q = 0 hangs down.
     Frames: one per joint (``joint1`` …) and ``tip``, the end of the last link (x = l in its joint's frame).
     """
     import pinocchio as pin
 
     links = integer(links, "links", 1)
     mass, length = positive(mass, "mass"), positive(length, "length")
+    gravity = float(gravity)
+    if not np.isfinite(gravity) or gravity < 0:
+        raise ValueError(f"gravity must be finite and >= 0, got {gravity!r}")
     model = pin.Model()
     model.name = f"nlink{links}"
-    model.gravity = pin.Motion.Zero()
+    model.gravity = pin.Motion(np.array([gravity, 0.0, 0.0]), np.zeros(3))
     rod = pin.Inertia(mass, np.array([length / 2, 0.0, 0.0]), np.diag([0.0, 1.0, 1.0]) * mass * length**2 / 12)
     parent, frame = 0, 0
     for i in range(links):
@@ -49,7 +57,8 @@ def planar_chain(links: int, mass: float = 1.0, length: float = 0.25):
 class NLink(Problem):
     """A planar robot of N links, each 1 kg and 0.25 m (uniform rod, see :func:`planar_chain`).
 
-    Viscous damping b = 0.01 N·m·s per joint (clearly underdamped), torque limits ±2 N·m, no gravity.
+    Viscous damping b = 0.01 N·m·s per joint (clearly underdamped), torque limits ±2 N·m, no gravity (or
+    ``gravity`` m/s² in the arm's plane, q = 0 hanging: see :func:`planar_chain`).
     Defaults: dt = 0.01 s, T = 50 (the paper's solve-time experiments; its closed-loop EMPC experiments
     use T = 100 over 10 s), Q = I (angles and rates alike: lighter rate weights let the 0.5 s horizon
     ring on 7 links), R = 0.01 I, terminal weight 100 Q.
@@ -62,15 +71,24 @@ class NLink(Problem):
     end_effector = "tip"
     link_radius = 0.05
 
-    def __init__(self, links: int = 2, *, damping: float = 0.01, tau_max: float = 2.0, sample_range: float = np.pi / 2):
+    def __init__(
+        self,
+        links: int = 2,
+        *,
+        damping: float = 0.01,
+        tau_max: float = 2.0,
+        sample_range: float = np.pi / 2,
+        gravity: float = 0.0,
+    ):
         self.links = integer(links, "links", 1)
-        self.name = f"nlink:{self.links}"
+        self.name = f"nlink:{self.links}" + (":gravity" if gravity else "")
         self.damping = float(damping)
         if not np.isfinite(self.damping) or self.damping < 0:
             raise ValueError(f"damping must be finite and >= 0, got {damping!r}")
         self.tau_max = positive(tau_max, "tau_max")
         self.sample_range = positive(sample_range, "sample_range")
-        self.pin_model = planar_chain(self.links)
+        self.pin_model = planar_chain(self.links, gravity=gravity)
+        self.gravity = float(gravity)
         self.chain = Chain(self.pin_model)
 
     @cached_property
@@ -112,9 +130,15 @@ class NLink(Problem):
 LINKS = range(1, 14)  # the paper's robots: 1 to 13 links
 
 
+GRAVITY = 9.81  # m/s², "nlink:N:gravity"
+
+
 def _make(arg=None) -> NLink:
     if arg is None:
         raise ValueError("nlink needs a number of links, e.g. 'nlink:7' (1 to 13)")
+    arg, _, variant = arg.partition(":")
+    if variant not in ("", "gravity"):
+        raise ValueError(f"unknown nlink variant {variant!r}; valid: nlink:N, nlink:N:gravity")
     try:
         links = int(arg)
     except ValueError:
@@ -124,7 +148,7 @@ def _make(arg=None) -> NLink:
             f"nlink: number of links must be 1 to 13 (the paper's robots), got {links}; "
             "NLink(links) builds any size in Python"
         )
-    return NLink(links)
+    return NLink(links, gravity=GRAVITY if variant else 0.0)
 
 
 REGISTRY = {"nlink": _make}

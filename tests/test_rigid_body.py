@@ -148,6 +148,7 @@ def test_puma560_matches_published_values():
     "problem, tau_of",
     [
         (NLink(7), lambda p, q, qd, u: u - p.damping * qd),
+        (NLink(2, gravity=9.81), lambda p, q, qd, u: u - p.damping * qd),  # the vertical double pendulum
         (Puma560(), lambda p, q, qd, u: u - p.damping * qd),
     ],
 )
@@ -162,6 +163,22 @@ def test_problem_model_is_forward_dynamics_with_damping(problem, tau_of):
         xdot = np.array(f(np.r_[q, qd], u)).ravel()
         np.testing.assert_allclose(xdot[:n], qd, rtol=0, atol=0)
         np.testing.assert_allclose(xdot[n:], pin.aba(model, data, q, qd, tau_of(problem, q, qd, u)), atol=TOL)
+
+
+def test_nlink_gravity_variant_hangs_at_zero():
+    """"nlink:2:gravity": gravity in the arm's plane along q = 0, so q = 0 hangs and holding the straight arm
+    horizontal takes m g (l/2 + 3l/2) at joint 1 and m g l/2 at joint 2 (pinocchio's g(q))."""
+    from ocpkit import problems
+
+    p = problems.make("nlink:2:gravity")
+    assert p.name == "nlink:2:gravity" and p.gravity == 9.81 and problems.make("nlink:2").gravity == 0.0
+    data = p.pin_model.createData()
+    g = pin.computeGeneralizedGravity(p.pin_model, data, np.array([np.pi / 2, 0.0]))
+    np.testing.assert_allclose(g, [9.81 * 0.5, 9.81 * 0.125], atol=1e-12)
+    xdot = np.array(p.plant().f([0.1, 0.0, 0.0, 0.0], [0.0, 0.0])).ravel()
+    assert xdot[2] < 0  # pulled back towards q = 0
+    with pytest.raises(ValueError, match="variant"):
+        problems.make("nlink:2:moon")
 
 
 def test_baxter_model_is_the_pd_servo_without_gravity():
