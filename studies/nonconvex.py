@@ -1,38 +1,47 @@
 """The non-convex suite (issue 49): reaches whose straight path is blocked — behind one sphere, behind a staggered
 wall of three, through a narrow passage between two, to a target near the joint limits — on the planar 3- and 7-link
-arms and the Panda (full size only: its sampling kernels compile for minutes), by every controller at its default
-and at an equal time budget per step; success with exact intervals, and EMPC against each baseline seed by seed.
+arms and the Panda (full size only: its sampling kernels compile for minutes), and torque-saturated swing-ups of the
+pendulum and the double pendulum (the double at full size only), by every controller at its default and at an equal
+time budget per step (the B-spline rows at full size only); success with exact intervals, and EMPC against each
+baseline seed by seed.
 
 Cases: :mod:`ocpkit.studies.nonconvex_cases` (drawn from seed 490 000 + s: seeds never used in development).
 Controllers and trials: :mod:`ocpkit.studies.nonconvex_trials` (IPOPT multi-start:
 :mod:`ocpkit.studies.nonconvex_multistart`). Statistics: :mod:`ocpkit.studies.nonconvex_stats`. Report:
 :mod:`ocpkit.studies.nonconvex_report`. A trial succeeds when the end effector ends within 1 cm of the target with
-true clearance ≥ 0 at every recorded state (and, in the limits case, no joint more than 0.01 rad beyond its limit).
+true clearance ≥ 0 at every recorded state (and, in the limits case, no joint more than 0.01 rad beyond its limit);
+a swing-up when it holds upright over the last 0.2 s (:mod:`ocpkit.studies.nonconvex_trials`).
 """
 
 from __future__ import annotations
 
 from ocpkit._checks import choice
 from ocpkit.runs.study import Study, grid
-from ocpkit.studies.nonconvex_cases import CASES, ROBOTS
+from ocpkit.studies.nonconvex_cases import CASES, ROBOTS, SWING_ROBOTS, SWINGUP
 from ocpkit.studies.nonconvex_report import report_section
-from ocpkit.studies.nonconvex_trials import CONTROLLERS, IPOPT, trial
+from ocpkit.studies.nonconvex_trials import BSPLINE, CONTROLLERS, IPOPT, trial
 
 NAME = "nonconvex"
-TITLE = "Non-convex reaches: blocked straight paths, every controller at its default and at an equal step budget"
+TITLE = (
+    "Non-convex reaches and swing-ups: blocked straight paths and torque-saturated swing-ups, every controller at its "
+    "default and at an equal step budget"
+)
 PER_SEED = "success"
 # A robot a size leaves out has 0 seeds. budget: seconds a step for the budgeted controllers (the control period).
-# The quick size leaves out IPOPT at its default: IPOPT ×8 starts from IPOPT's own cold start and warm-starts as it
-# does, and plain IPOPT was a fifth of the quick grid's time.
+# The quick size leaves out IPOPT at its default (IPOPT ×8 starts from IPOPT's own cold start and warm-starts as it
+# does, and plain IPOPT was a fifth of the quick grid's time) and the B-spline rows. "swingup": the swing-up's
+# seeds per robot, horizon and duration (it needs a horizon that sees the whole swing, and the time to make it).
+SWING_HORIZON = 300  # steps (3 s): shorter horizons' optimum is to push against gravity, never to pump
 SIZES = {
     "quick": {
         "seeds": {"nlink:3": 1, "nlink:7": 0, "panda": 0},
-        "controllers": [c for c in CONTROLLERS if c != IPOPT],
+        "controllers": [c for c in CONTROLLERS if c != IPOPT and c not in BSPLINE],
         "duration": 2.0,
         "horizon": 30,
         "population": 256,
         "arch": "cpu",
         "budget": 0.01,
+        "swingup": {"seeds": {"pendulum": 1, "nlink:2:gravity": 0}, "horizon": SWING_HORIZON, "duration": 5.0},
     },
     "full": {
         "seeds": {"nlink:3": 30, "nlink:7": 30, "panda": 30},
@@ -42,6 +51,7 @@ SIZES = {
         "population": 1024,
         "arch": "auto",
         "budget": 0.01,
+        "swingup": {"seeds": {"pendulum": 30, "nlink:2:gravity": 30}, "horizon": SWING_HORIZON, "duration": 5.0},
     },
 }
 
@@ -62,6 +72,20 @@ def study(size: str) -> Study:
                 arch=s["arch"],
                 budget=s["budget"],
                 seeds=s["seeds"][robot],
+            )
+    swing = s["swingup"]
+    for robot in SWING_ROBOTS:
+        if swing["seeds"].get(robot):
+            trials += grid(
+                robot=robot,
+                case=[SWINGUP],
+                controller=s["controllers"],
+                horizon=swing["horizon"],
+                duration=swing["duration"],
+                population=s["population"],
+                arch=s["arch"],
+                budget=s["budget"],
+                seeds=swing["seeds"][robot],
             )
     return Study(NAME, trial, trials)
 

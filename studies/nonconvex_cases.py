@@ -21,6 +21,14 @@ with ``along`` the unit vector from the start's end effector p_0 to the target p
 Every case blocks the straight path (the end effector's own sphere moving along it would hit a sphere); a draw whose
 start or goal configuration is within the margin of a sphere (or, for ``limits``, whose start is beyond a limit) is
 rejected and redrawn from s + 1 000 003·k (k = 1, 2, …), deterministically, as in the reach study.
+
+``swingup`` (:data:`SWINGUP`, on :data:`SWING_ROBOTS`: the pendulum and the double pendulum "nlink:2:gravity", q = 0
+hanging): start hanging, every joint angle uniform in ±:data:`START_ANGLE` rad and velocity in ±:data:`START_SPEED`
+rad/s (``numpy.random.default_rng(s)``), goal upright at rest (q₁ = π, the other joints 0); every joint's torque
+limited to ±:data:`TORQUE_FRACTION` of the torque that holds the straight arm horizontal at joint 1
+(:func:`static_torque`), so no quasi-static path exists, nor a single push (a pendulum pushed at τ from hanging
+gains τ·π by the top, which takes 2 m g l: τ < 2/π m g l): the controller must swing back first and pump. (Pumping
+at the limit reaches upright in about 1.5 s, development draws 0–2.) No obstacles, no rejections.
 """
 
 from __future__ import annotations
@@ -34,6 +42,10 @@ from ocpkit.studies.reach_trials import ATTEMPTS, MARGIN, clearances
 
 ROBOTS = ("nlink:3", "nlink:7", "panda")
 CASES = ("sphere", "spheres", "passage", "limits")
+SWINGUP = "swingup"
+SWING_ROBOTS = ("pendulum", "nlink:2:gravity")
+START_ANGLE, START_SPEED = 0.2, 0.5  # the swing-up's start: rad and rad/s about hanging at rest
+TORQUE_FRACTION = 0.6  # the swing-up's torque limit: this share of the torque holding the arm horizontal
 RADIUS = {"nlink:3": 0.06, "nlink:7": 0.1, "panda": 0.08}
 MIN_DISTANCE = {"nlink:3": 0.25, "nlink:7": 0.5, "panda": 0.25}
 LIMIT = 2.6  # the planar arms' joint limits [rad] in the limits case (they have none of their own)
@@ -54,11 +66,52 @@ def joint_limits(robot: str, pb) -> tuple[np.ndarray, np.ndarray]:
     return np.where(np.isfinite(lo), lo, -LIMIT), np.where(np.isfinite(hi), hi, LIMIT)
 
 
+def static_torque(pb, q) -> np.ndarray:
+    """The torques that hold configuration ``q`` at rest on ``pb``'s plant (q̈ = 0 at q̇ = 0; the dynamics are affine
+    in the input)."""
+    q = np.asarray(q, dtype=float)
+    n, f = q.size, pb.plant().f
+    x = np.r_[q, np.zeros(n)]
+    a0 = np.asarray(f(x, np.zeros(n))).ravel()[n:]
+    B = np.column_stack([np.asarray(f(x, e)).ravel()[n:] - a0 for e in np.eye(n)])
+    return np.linalg.solve(B, -a0)
+
+
+def swing_limit(pb) -> float:
+    """The swing-up's torque limit [N·m], every joint: TORQUE_FRACTION of joint 1's torque holding the straight arm
+    horizontal."""
+    n = pb.model().nx // 2
+    return TORQUE_FRACTION * abs(float(static_torque(pb, np.r_[np.pi / 2, np.zeros(n - 1)])[0]))
+
+
+def swingup(robot: str, seed: int) -> dict:
+    """The drawn swing-up (see the module docstring): start state ``x0``, goal state ``x_goal`` (upright, at rest),
+    torque limit ``tau_max``; no ``obstacles``, ``limits``, ``target`` or rejections, as the reach cases have."""
+    choice(robot, SWING_ROBOTS, "robot")
+    pb = problems.make(robot)
+    n = pb.model().nx // 2
+    rng = np.random.default_rng(seed)
+    x0 = np.r_[rng.uniform(-START_ANGLE, START_ANGLE, n), rng.uniform(-START_SPEED, START_SPEED, n)]
+    x_goal = np.r_[np.pi, np.zeros(2 * n - 1)]
+    return {
+        "x0": x0,
+        "x_goal": x_goal,
+        "tau_max": swing_limit(pb),
+        "target": None,
+        "obstacles": [],
+        "limits": None,
+        "rejected": 0,
+    }
+
+
 def case(robot: str, kind: str, seed: int) -> dict:
     """The drawn case: start state ``x0``, goal configuration ``q_target``, ``target`` point, ``obstacles``, joint
-    ``limits`` ((q_min, q_max) or None) and how many draws were ``rejected``."""
+    ``limits`` ((q_min, q_max) or None) and how many draws were ``rejected``; for :data:`SWINGUP` see
+    :func:`swingup`."""
+    choice(kind, (*CASES, SWINGUP), "case")
+    if kind == SWINGUP:
+        return swingup(robot, seed)
     choice(robot, ROBOTS, "robot")
-    choice(kind, CASES, "case")
     pb = problems.make(robot)
     n, radius = pb.kinematics.n, RADIUS[robot]
     limits = joint_limits(robot, pb) if kind == "limits" else None

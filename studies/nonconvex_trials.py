@@ -10,6 +10,14 @@ the plan). At an equal budget (``budget`` seconds a step, the whole step: ``time
 iterations, multi-start at every step, RTI with up to :data:`MANY` iterations, and the sampling planners with up to
 :data:`MANY` generations — each runs what fits. A budget makes the outcome depend on the machine's speed and load:
 the trial records the load; the default controllers' outcomes do not depend on it.
+
+Bases at an equal decision-variable count (issue 49 item 4): the rows of :data:`BSPLINE` run the same controller with
+a cubic B-spline basis (``Parameterization.bspline``) of the same knot count as the piecewise-linear rows.
+
+The swing-up (:data:`~ocpkit.studies.nonconvex_cases.SWINGUP`) is the problem's own OCP (its Q, R and terminal
+weight) towards the upright state, with the case's torque limit as the input bounds; it succeeds when every state of
+the last :data:`HOLD` s is within :data:`ANGLE_TOLERANCE` rad of upright (each joint, modulo 2π) and
+:data:`SPEED_TOLERANCE` rad/s of rest, every applied torque within the limit.
 """
 
 from __future__ import annotations
@@ -31,6 +39,7 @@ STARTS = 8  # IPOPT multi-start's guesses per cold solve (its own cold start and
 MANY = 1000  # iterations or generations a budgeted controller may run: the budget, not this, stops it
 LIMIT_TOLERANCE = 0.01  # rad beyond a joint limit a success may go (the limits case)
 BUDGET = ", budget"  # the suffix of a controller at the equal budget
+HOLD, ANGLE_TOLERANCE, SPEED_TOLERANCE = 0.2, 0.1, 0.5  # the swing-up's success: s held, rad, rad/s
 IPOPT, MULTI, RTI, RTI3, LTV, MPPI, CEM, EMPC = (
     "IPOPT",
     f"IPOPT ×{STARTS}",
@@ -59,8 +68,10 @@ BUDGETED = {
     CEM + BUDGET: ("cem", {**SAMPLING, "generations": MANY}),
     EMPC + BUDGET: ("empc", {**SAMPLING, "generations": MANY}),
 }
-CONTROLLERS = {**DEFAULTS, **BUDGETED}
-GRADIENT = (IPOPT, MULTI, RTI, RTI3, LTV, IPOPT + BUDGET, MULTI + BUDGET, RTI + BUDGET)
+LTV_BSPLINE, EMPC_BSPLINE = "LinearMPC (trajectory, B-spline)", "EMPC (B-spline)"
+BSPLINE = {LTV_BSPLINE: DEFAULTS[LTV], EMPC_BSPLINE: DEFAULTS[EMPC]}  # the same controllers on a cubic B-spline
+CONTROLLERS = {**DEFAULTS, **BUDGETED, **BSPLINE}
+GRADIENT = (IPOPT, MULTI, RTI, RTI3, LTV, LTV_BSPLINE, IPOPT + BUDGET, MULTI + BUDGET, RTI + BUDGET)
 SAMPLERS = ("empc", "cem", "mppi")
 
 
@@ -79,10 +90,20 @@ def make_controller(name: str, ocp, *, population: int, arch: str, seed: int, bu
     return solvers.make(solver, ocp, **options)
 
 
-def task_ocp(robot: str, drawn: dict, horizon: int):
-    """The reach OCP of a drawn case; the limits case's joint limits join the velocity limits as state bounds."""
+def basis(controller: str) -> str:
+    """The parameterization kind of controller ``controller``'s OCP: "bspline" for the :data:`BSPLINE` rows."""
+    return "bspline" if controller in BSPLINE else "linear"
+
+
+def task_ocp(robot: str, drawn: dict, horizon: int, parameterization: str = "linear"):
+    """The OCP of a drawn case: the reach, the limits case's joint limits joining the velocity limits as state bounds;
+    for the swing-up, the problem's OCP under the case's torque limit. ``parameterization``: a kind's name, the same
+    knot count either way."""
     pb = problems.make(robot)
-    options = {"knots": KNOTS.get(robot, 5), "horizon": horizon}
+    options = {"knots": KNOTS.get(robot, 5), "horizon": horizon, "parameterization": parameterization}
+    if "x_goal" in drawn:
+        limit = np.full(pb.model().nu, drawn["tau_max"])
+        return pb.ocp(u_min=-limit, u_max=limit, **options)
     if drawn["limits"] is not None:
         n, defaults = pb.kinematics.n, pb.defaults()
         x_min = np.array(defaults.get("x_min", np.full(2 * n, -np.inf)), dtype=float)
@@ -108,14 +129,49 @@ def trial(
 ) -> dict:
     """One closed-loop run of case ``case`` drawn from SEED_OFFSET + ``seed`` on ``robot``."""
     drawn = draw(robot, case, SEED_OFFSET + seed)
+    options = {"horizon": horizon, "duration": duration, "population": population, "arch": arch, "budget": budget}
+    return {**closed_loop(robot, drawn, controller, seed=seed, **options), "case_seed": SEED_OFFSET + seed}
+
+
+def closed_loop(
+    robot: str,
+    drawn: dict,
+    controller: str,
+    *,
+    horizon: int,
+    duration: float,
+    population: int,
+    arch: str,
+    budget: float,
+    seed: int,
+) -> dict:
+    """One closed-loop run of the drawn case ``drawn`` (:func:`~ocpkit.studies.nonconvex_cases.case`) by
+    ``controller``, its sampling planners keyed by ``seed``: the trial's metrics."""
     pb = problems.make(robot)
-    n = pb.kinematics.n
-    ocp = task_ocp(robot, drawn, horizon)
-    goal = ocp.goal(drawn["x0"], position=drawn["target"])
+    ocp = task_ocp(robot, drawn, horizon, basis(controller))
+    swing = "x_goal" in drawn
+    goal = ocp.goal(drawn["x_goal"]) if swing else ocp.goal(drawn["x0"], position=drawn["target"])
     ctrl = make_controller(controller, ocp, population=population, arch=arch, seed=seed, budget=budget)
     # compiles kernels and functions and measures the steps' stages outside the timed run (simulate resets ctrl)
     ctrl.warm_up(drawn["x0"], goal)
     traj = simulate(pb.plant(), ctrl, drawn["x0"], goal, duration)
+    return {
+        **(_swung(traj, ocp, drawn) if swing else _reached(traj, ocp, pb, drawn)),
+        "successes": traj.successes,
+        "soft_steps": traj.soft_steps,
+        "steps": len(traj.solutions),
+        "first_fallback": next((s.raw_status for s in traj.solutions if s.fallback), ""),
+        "actual_cost": actual_cost(traj, ocp),
+        **_times(traj, ctrl),
+        "random_win_rate": float(getattr(ctrl, "random_win_rate", float("nan"))),
+        "rejected": drawn["rejected"],
+        "device": current_arch() if CONTROLLERS[controller][0] in SAMPLERS else "cpu",
+    }
+
+
+def _reached(traj, ocp, pb, drawn) -> dict:
+    """A reach's verdict: within TOLERANCE of the target at the end, no collision, no joint beyond its limit."""
+    n = pb.kinematics.n
     d = traj.clearances(ocp)
     progress = traj.progress(pb.kinematics, pb.end_effector, drawn["target"], tolerance=TOLERANCE)
     collisions = int((d < 0).sum())
@@ -129,19 +185,36 @@ def trial(
         "verdict": progress.verdict,
         "collision_steps": collisions,
         "beyond_limit": beyond,
-        "successes": traj.successes,
-        "soft_steps": traj.soft_steps,
-        "steps": len(traj.solutions),
         "min_clearance": float(d.min()),
         "final_distance": progress.final,
         "start_distance": float(progress.error[0]),
-        "actual_cost": actual_cost(traj, ocp),
-        **_times(traj, ctrl),
-        "random_win_rate": float(getattr(ctrl, "random_win_rate", float("nan"))),
-        "rejected": drawn["rejected"],
-        "case_seed": SEED_OFFSET + seed,
-        "device": current_arch() if CONTROLLERS[controller][0] in SAMPLERS else "cpu",
         "ee": pb.kinematics.positions(pb.end_effector, traj.x[:, :n]),
         "target": drawn["target"],
         "obstacles": np.array([[*o.center, o.radius] for o in drawn["obstacles"]]),
+    }
+
+
+def swing_errors(x: np.ndarray, x_goal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per state (rows of ``x``): the largest joint-angle error to ``x_goal``'s, modulo 2π, and the largest speed."""
+    n = x.shape[1] // 2
+    angle = np.abs((x[:, :n] - x_goal[:n] + np.pi) % (2 * np.pi) - np.pi).max(axis=1)
+    return angle, np.abs(x[:, n:]).max(axis=1)
+
+
+def _swung(traj, ocp, drawn) -> dict:
+    """A swing-up's verdict (see the module docstring)."""
+    angle, speed = swing_errors(traj.x, drawn["x_goal"])
+    held = traj.t >= traj.t[-1] - HOLD - 1e-9
+    upright = bool((angle[held] <= ANGLE_TOLERANCE).all() and (speed[held] <= SPEED_TOLERANCE).all())
+    torque = float(np.abs(traj.u).max())
+    return {
+        "success": bool(upright and torque <= drawn["tau_max"] * (1 + 1e-9)),
+        "reached": upright,
+        "verdict": "upright" if upright else "not upright",
+        "collision_steps": 0,
+        "beyond_limit": 0.0,
+        "final_angle_error": float(angle[-1]),
+        "final_speed": float(speed[-1]),
+        "torque_max": torque,
+        "tau_max": drawn["tau_max"],
     }

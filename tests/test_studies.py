@@ -56,6 +56,7 @@ def tiny(monkeypatch):
             "population": 32,
             "arch": "cpu",
             "budget": 0.01,
+            "swingup": {"seeds": {"pendulum": 1}, "horizon": 20, "duration": 0.1},
         },
     )
 

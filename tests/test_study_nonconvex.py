@@ -9,9 +9,22 @@ import pytest
 
 from ocpkit import problems
 from ocpkit.runs import study as runner
-from ocpkit.studies import NAMES, get, nonconvex, nonconvex_trials
+from ocpkit.studies import NAMES, get, nonconvex, nonconvex_report, nonconvex_trials
 from ocpkit.studies.evidence import HELD, INCONCLUSIVE, NOT_HELD, median_interval
-from ocpkit.studies.nonconvex_cases import CASES, LIMIT_GAP, ROBOTS, SEED_OFFSET, case, joint_limits
+from ocpkit.studies.nonconvex_cases import (
+    CASES,
+    LIMIT_GAP,
+    ROBOTS,
+    SEED_OFFSET,
+    START_ANGLE,
+    START_SPEED,
+    SWING_ROBOTS,
+    SWINGUP,
+    TORQUE_FRACTION,
+    case,
+    joint_limits,
+    static_torque,
+)
 from ocpkit.studies.nonconvex_multistart import MultiStartNLP
 from ocpkit.studies.nonconvex_stats import binomial_cdf_half, mcnemar_exact, paired_interval, paired_success
 from ocpkit.studies.reach_trials import MARGIN, clearances
@@ -43,6 +56,51 @@ def test_cases_block_the_straight_path(robot):
             else:
                 assert s["limits"] is None
     assert joint_limits(robot, pb)[0].shape == (n,)
+
+
+@pytest.mark.parametrize("robot", SWING_ROBOTS)
+def test_swingup_draws_from_its_seed_and_blocks_a_quasi_static_path(robot):
+    pb = problems.make(robot)
+    n = pb.model().nx // 2
+    a, again, other = case(robot, SWINGUP, 0), case(robot, SWINGUP, 0), case(robot, SWINGUP, 1)
+    assert np.array_equal(a["x0"], again["x0"]) and not np.array_equal(a["x0"], other["x0"])
+    assert (np.abs(a["x0"][:n]) <= START_ANGLE).all() and (np.abs(a["x0"][n:]) <= START_SPEED).all()  # hanging
+    assert np.array_equal(a["x_goal"], np.r_[np.pi, np.zeros(2 * n - 1)])  # upright, at rest
+    horizontal = static_torque(pb, np.r_[np.pi / 2, np.zeros(n - 1)])
+    assert abs(horizontal[0]) > a["tau_max"] == pytest.approx(TORQUE_FRACTION * abs(horizontal[0]))
+    assert TORQUE_FRACTION < 2 / np.pi  # nor one push: τ·π < the 2 m g l a pendulum's top takes
+    ocp = nonconvex_trials.task_ocp(robot, a, 10)
+    assert np.array_equal(ocp.u_max, np.full(n, a["tau_max"])) and np.array_equal(ocp.u_min, -ocp.u_max)
+    if robot == "pendulum":
+        assert horizontal[0] == pytest.approx(pb.m * pb.g * pb.l)
+    with pytest.raises(ValueError, match="robot"):
+        case("nlink:3", SWINGUP, 0)
+
+
+def test_swing_errors_wrap_angles():
+    x_goal = np.array([np.pi, 0.0, 0.0, 0.0])
+    x = np.array([[-np.pi, 2 * np.pi, 0.0, 0.0], [np.pi + 0.1, -0.2, 0.3, -0.4], [0.0, 0.0, 0.0, 0.0]])
+    angle, speed = nonconvex_trials.swing_errors(x, x_goal)
+    assert np.allclose(angle, [0.0, 0.2, np.pi]) and np.allclose(speed, [0.0, 0.4, 0.0])
+
+
+def test_swingup_trial_runs_within_its_torque_limit():
+    r = nonconvex_trials.trial("pendulum", SWINGUP, nonconvex_trials.RTI, 10, 0.05, 32, "cpu", 0.01, 0)
+    assert r["case_seed"] == SEED_OFFSET and r["steps"] == 5 and not r["success"] and r["verdict"] == "not upright"
+    assert r["torque_max"] <= r["tau_max"] and r["collision_steps"] == 0 and np.isfinite(r["actual_cost"])
+    assert r["final_angle_error"] > 2.5  # still hanging after 0.05 s
+
+
+def test_bspline_rows_run_the_same_controller_on_a_cubic_bspline_of_as_many_knots():
+    drawn = case("nlink:3", "sphere", 0)
+    for name, plain in ((nonconvex_trials.LTV_BSPLINE, nonconvex_trials.LTV), (nonconvex_trials.EMPC_BSPLINE, "EMPC")):
+        assert nonconvex_trials.CONTROLLERS[name] == nonconvex_trials.CONTROLLERS[plain]
+        spline = nonconvex_trials.task_ocp("nlink:3", drawn, 10, nonconvex_trials.basis(name)).parameterization
+        linear = nonconvex_trials.task_ocp("nlink:3", drawn, 10, nonconvex_trials.basis(plain)).parameterization
+        assert (spline.kind, linear.kind) == ("bspline", "linear") and spline.knots == linear.knots
+    assert not set(nonconvex_trials.BSPLINE) & set(nonconvex.SIZES["quick"]["controllers"])  # full size only
+    r = nonconvex_trials.trial("nlink:3", "sphere", nonconvex_trials.LTV_BSPLINE, 10, 0.05, 32, "cpu", 0.01, 0)
+    assert r["steps"] == 5 and r["successes"] == 5
 
 
 def test_mcnemar_exact_against_known_values():
@@ -129,7 +187,15 @@ def test_multistart_picks_the_least_objective_beyond_rounding(monkeypatch):
     assert ctrl.random_win_rate == 1.0
 
 
-TINY = {"seeds": {"nlink:3": 1}, "duration": 0.05, "horizon": 10, "population": 32, "arch": "cpu", "budget": 0.01}
+TINY = {
+    "seeds": {"nlink:3": 1},
+    "duration": 0.05,
+    "horizon": 10,
+    "population": 32,
+    "arch": "cpu",
+    "budget": 0.01,
+    "swingup": {"seeds": {}, "horizon": 10, "duration": 0.05},
+}
 
 
 def _tiny(monkeypatch, tmp_path, cases, controllers):
@@ -138,7 +204,8 @@ def _tiny(monkeypatch, tmp_path, cases, controllers):
     monkeypatch.setattr(nonconvex, "CASES", cases)
     df = runner.run(nonconvex.study("quick"), tmp_path, workers=1, progress=False)
     assert (df["status"] == "ok").all(), df["error"].dropna().tolist()
-    assert len(df) == len(cases) * len(controllers)
+    seeds = sum(TINY["seeds"].values()) * len(cases) + sum(TINY["swingup"]["seeds"].values())
+    assert len(df) == seeds * len(controllers)
     # 0.05 s is too short to get there: nobody succeeds, nobody collides, every metric is recorded
     assert not df["success"].any() and (df["collision_steps"] == 0).all() and (df["steps"] == 5).all()
     assert (df["step_max"] >= df["step_median"]).all() and (df["case_seed"] == SEED_OFFSET).all()
@@ -158,6 +225,31 @@ def test_nonconvex_tiny(monkeypatch, tmp_path):
     df, verdicts = _tiny(monkeypatch, tmp_path, ("limits",), names)
     assert verdicts == ["inconclusive", "inconclusive"]  # no seed where one succeeds and the other misses
     assert df.loc[df["controller"] == nonconvex_trials.EMPC, "child_win_rate"].notna().all()
+    # a budgeted controller whose every step was a fallback ran no search: listed apart, in no success table or test
+    rti = nonconvex_trials.RTI + nonconvex_trials.BUDGET
+    blind = df.copy()
+    rows = blind["controller"] == rti
+    blind.loc[rows, "fallbacks"] = blind.loc[rows, "steps"]
+    blind.loc[rows, "first_fallback"] = "time budget: 9.8 ms left, an IPOPT iteration measured at 23 ms"
+    assert nonconvex_report.no_search(blind).tolist() == rows.tolist()
+    rti_default = blind["controller"] == nonconvex_trials.RTI
+    blind.loc[rti_default, "fallbacks"] = blind.loc[rti_default, "steps"]  # a default controller: no rule
+    assert nonconvex_report.no_search(blind).tolist() == rows.tolist()
+    text = nonconvex.report(blind, tmp_path)
+    cannot, rest = text.split("Cannot run at this budget")[1].split("Per controller over every robot")
+    assert f"| {rti} |" in cannot and "measured at 23 ms" in cannot and "nlink:3 · limits" in cannot
+    assert f"| {rti} |" not in rest and f"{nonconvex_trials.EMPC + nonconvex_trials.BUDGET} · {rti}" not in rest
+    assert "Cannot run at this budget" not in nonconvex.report(df, tmp_path)
+
+
+def test_nonconvex_tiny_swingup(monkeypatch, tmp_path):
+    """The swing-up in the study's grid and report (its own horizon and duration)."""
+    monkeypatch.setitem(TINY, "seeds", {})  # no reaches
+    monkeypatch.setitem(TINY, "swingup", {"seeds": {"pendulum": 1}, "horizon": 12, "duration": 0.05})
+    df, _ = _tiny(monkeypatch, tmp_path, CASES, [nonconvex_trials.RTI, nonconvex_trials.EMPC])
+    assert set(df["robot"]) == {"pendulum"} and set(df["case"]) == {SWINGUP} and (df["horizon"] == 12).all()
+    text = nonconvex.report(df, tmp_path)
+    assert "pendulum · swingup · RTI" in text and "swing-up: horizon 12" in text
 
 
 @pytest.mark.slow
