@@ -41,7 +41,7 @@ SIZES = {
         "population": 256,
         "arch": "cpu",
         "budget": 0.01,
-        "swingup": {"seeds": {"pendulum": 1, "nlink:2:gravity": 0}, "horizon": SWING_HORIZON, "duration": 5.0},
+        "swingup": {"seeds": {"pendulum": 1, "nlink:2:gravity": 0}, "horizon": SWING_HORIZON, "duration": 6.0},
     },
     "full": {
         "seeds": {"nlink:3": 30, "nlink:7": 30, "panda": 30},
@@ -51,7 +51,7 @@ SIZES = {
         "population": 1024,
         "arch": "auto",
         "budget": 0.01,
-        "swingup": {"seeds": {"pendulum": 30, "nlink:2:gravity": 30}, "horizon": SWING_HORIZON, "duration": 5.0},
+        "swingup": {"seeds": {"pendulum": 30, "nlink:2:gravity": 30}, "horizon": SWING_HORIZON, "duration": 6.0},
     },
 }
 

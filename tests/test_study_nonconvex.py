@@ -69,8 +69,9 @@ def test_swingup_draws_from_its_seed_and_blocks_a_quasi_static_path(robot):
     horizontal = static_torque(pb, np.r_[np.pi / 2, np.zeros(n - 1)])
     assert abs(horizontal[0]) > a["tau_max"] == pytest.approx(TORQUE_FRACTION * abs(horizontal[0]))
     assert TORQUE_FRACTION < 2 / np.pi  # nor one push: τ·π < the 2 m g l a pendulum's top takes
-    ocp = nonconvex_trials.task_ocp(robot, a, 10)
+    ocp = nonconvex_trials.task_ocp(robot, a, 300)
     assert np.array_equal(ocp.u_max, np.full(n, a["tau_max"])) and np.array_equal(ocp.u_min, -ocp.u_max)
+    assert ocp.parameterization.knots == nonconvex_trials.SWING_KNOTS
     if robot == "pendulum":
         assert horizontal[0] == pytest.approx(pb.m * pb.g * pb.l)
     with pytest.raises(ValueError, match="robot"):
@@ -223,10 +224,14 @@ def test_nonconvex_tiny(monkeypatch, tmp_path):
     names = [nonconvex_trials.EMPC, nonconvex_trials.RTI]
     names += [name + nonconvex_trials.BUDGET for name in names]
     df, verdicts = _tiny(monkeypatch, tmp_path, ("limits",), names)
-    assert verdicts == ["inconclusive", "inconclusive"]  # no seed where one succeeds and the other misses
+    # no seed where one succeeds and the other misses; on a busy machine a budgeted run may not fit a single search
+    # (see below): then EMPC at the budget has no baseline left, or is left out itself
+    blind = nonconvex_report.no_search(df).any()
+    assert verdicts[0] == "inconclusive" and verdicts[1] == ("not tested" if blind else "inconclusive")
     assert df.loc[df["controller"] == nonconvex_trials.EMPC, "child_win_rate"].notna().all()
     # a budgeted controller whose every step was a fallback ran no search: listed apart, in no success table or test
     rti = nonconvex_trials.RTI + nonconvex_trials.BUDGET
+    df = df.assign(fallbacks=0)  # a synthetic table: every run searched
     blind = df.copy()
     rows = blind["controller"] == rti
     blind.loc[rows, "fallbacks"] = blind.loc[rows, "steps"]
