@@ -1,5 +1,7 @@
 """The solve-time, comparison and Baxter studies on tiny grids: trials stored, figures and tables written."""
 
+import re
+
 import numpy as np
 import pytest
 
@@ -29,6 +31,8 @@ def test_solve_times_tiny(monkeypatch, tmp_path):
     assert (df["solve_median"] < df["total_median"]).all()
     assert "Not run (too slow for this size): small matrix traditional at 1 links, T = 100, 2 links, T = 50" in text
     assert "| links | large matrix (sparse), 5 knots |" in text
+    # the solve-time verdict prints the interval that decides it: per case, the rival whose interval reaches highest
+    assert re.search(r"deciding rival per case \(the interval reaching highest\): 1/50 vs [^;]+: [0-9.]+ \[", text)
     _figures(
         tmp_path, "solve_times_solve_T50", "solve_times_total_T50", "solve_times_solve_T100", "solve_times_total_T100"
     )
