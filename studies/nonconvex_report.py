@@ -3,9 +3,10 @@ exact interval, collisions, cost over the best where every controller succeeds, 
 baseline seed by seed (McNemar's exact test on success, the paired interval of the cost ratio); the GA's child win
 rate per case; and the claim "EMPC reaches targets that gradient methods miss, at real-time step times".
 
-A budgeted run whose every step was a fallback ran no search within the budget: its success measures the fallback,
-not the controller, so such runs (:func:`no_search`) are left out of every table and test and listed apart, with the
-controller's first refusal (e.g. IPOPT's "an IPOPT iteration measured at 23 ms"): "cannot run at this budget"."""
+A budgeted run whose every step was a fallback answered no step within the budget (no search fitted, or none
+finished): its success measures the fallback, not the controller, so such runs (:func:`no_search`) are left out of
+every table and test and listed apart, with the controller's first refusal (e.g. IPOPT's "an IPOPT iteration measured
+at 23 ms"): "cannot run at this budget"."""
 
 from __future__ import annotations
 
@@ -36,7 +37,7 @@ PERIOD = 0.01  # s: the control period (100 Hz) a real-time step must keep
 
 
 def no_search(ok: pd.DataFrame) -> pd.Series:
-    """True for the budgeted runs whose every step was a fallback: no search ran within the budget."""
+    """True for the budgeted runs whose every step was a fallback: no search answered within the budget."""
     return ok["controller"].isin(list(BUDGETED)) & (ok["fallbacks"] >= ok["steps"])
 
 
@@ -212,8 +213,8 @@ def report_section(df, out_dir, title: str) -> str:
     if len(blind):
         tables = {
             "Cannot run at this budget: budgeted runs whose every step was a fallback (no search fitted in the "
-            "budget; their success would measure the fallback, so they are left out of every table and test above "
-            "and below)": markdown_table(cannot_run(blind)),
+            "budget, or none finished; their success would measure the fallback, so they are left out of every table "
+            "and test below)": markdown_table(cannot_run(blind)),
             **tables,
         }
     samplers = ok["controller"].map(lambda c: CONTROLLERS[c][0] in SAMPLERS)
