@@ -1,9 +1,9 @@
 """The non-convex suite (issue 49): reaches whose straight path is blocked — behind one sphere, behind a staggered
 wall of three, through a narrow passage between two, to a target near the joint limits — on the planar 3- and 7-link
-arms and the Panda (full size only: its sampling kernels compile for minutes), and torque-saturated swing-ups of the
-pendulum and the double pendulum (the double at full size only), by every controller at its default and at an equal
-time budget per step (the B-spline rows at full size only); success with exact intervals, and EMPC against each
-baseline seed by seed.
+arms and the Panda (full size only: its sampling kernels compile for minutes), and a torque-saturated swing-up of the
+pendulum (the double pendulum's is drawn, not run: see SWING_HORIZON), by every controller at its default and at an
+equal time budget per step (the B-spline rows at full size only); success with exact intervals, and EMPC against
+each baseline seed by seed.
 
 Cases: :mod:`ocpkit.studies.nonconvex_cases` (drawn from seed 490 000 + s: seeds never used in development).
 Controllers and trials: :mod:`ocpkit.studies.nonconvex_trials` (IPOPT multi-start:
@@ -31,7 +31,11 @@ PER_SEED = "success"
 # The quick size leaves out IPOPT at its default (IPOPT ×8 starts from IPOPT's own cold start and warm-starts as it
 # does, and plain IPOPT was a fifth of the quick grid's time) and the B-spline rows. "swingup": the swing-up's
 # seeds per robot, horizon and duration (it needs a horizon that sees the whole swing, and the time to make it).
-SWING_HORIZON = 300  # steps (3 s): shorter horizons' optimum is to push against gravity, never to pump
+# The swing-up's horizon [steps]: 3 s. At 0.5-1.5 s every controller pushed against gravity on development draws 0-1
+# (the horizon's optimum cannot pump there). The double pendulum's 3 s OCP (the arm's cost: Q = I, 100 Q terminal)
+# had 6 local optima from 16 IPOPT starts on draw 0, none upright at the horizon's end, and no controller swung it up
+# on draws 0-2: the case is drawn and tested, but the full size leaves it out until a horizon or cost is shown to work.
+SWING_HORIZON = 300
 SIZES = {
     "quick": {
         "seeds": {"nlink:3": 1, "nlink:7": 0, "panda": 0},
@@ -51,7 +55,8 @@ SIZES = {
         "population": 1024,
         "arch": "auto",
         "budget": 0.01,
-        "swingup": {"seeds": {"pendulum": 30, "nlink:2:gravity": 30}, "horizon": SWING_HORIZON, "duration": 6.0},
+        # the double pendulum left out until shown solvable: see SWING_HORIZON
+        "swingup": {"seeds": {"pendulum": 30, "nlink:2:gravity": 0}, "horizon": SWING_HORIZON, "duration": 6.0},
     },
 }
 
