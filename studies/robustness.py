@@ -38,7 +38,7 @@ from ocpkit.studies.evidence import (
     series,
 )
 from ocpkit.problems.pendulum import PAPER_COST
-from ocpkit.studies.calibration import ANCHOR_VALUES, fidelity, setup_table, within_count
+from ocpkit.studies.calibration import ANCHOR_VALUES, fidelity, setup_table, tried_table, within_count
 from ocpkit.studies.report import ANSWERED, Claim, answered, markdown_table, section, timing_context, trials_line
 
 NAME = "robustness"
@@ -126,6 +126,9 @@ def report(df, out_dir) -> str:
     seeds = ok["seed"].nunique()
     if PAPER_PROBLEM in set(ok["problem"]):
         tables["The set-up: each setting, from the paper (quoted) or ours (why)"] = markdown_table(setup_table())
+        tables["Settings tried for the cells far from the anchor, each re-anchored (issue 51)"] = markdown_table(
+            tried_table()
+        )
     for problem, g in ok.groupby("problem", sort=False):
         med = g.pivot_table(index="error_multiplier", columns="controller", values="normalized", aggfunc="median")
         per_seed = {
