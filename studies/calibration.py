@@ -78,7 +78,7 @@ SETUP = (
     ("Tables' statistic", "median over seeds, steps ≥ 0.1 rad", "ours: the paper does not say how it aggregates"),
     (
         "far from the anchor",
-        "not reproduced: error 0.5, traditional MPC overshoots 21.6 % (paper 43.5 %)",
+        "not reproduced: error 0.5, traditional MPC overshoots 21.6 % over seeds 0–29 (paper 43.5 %)",
         "ours: no setting we tried and the paper supports reproduces error 0.5 (each tried alone, re-anchored; the "
         "next table)",
     ),
@@ -86,6 +86,7 @@ SETUP = (
 # What was tried to reproduce the cells far from the anchor (issue 51): each setting alone on this set-up, R re-fitted
 # for the anchor's overshoot at the calibrated velocity weight (30 seeds); then the three together that fit best, both
 # weights re-fitted (a linear pendulum without a binding torque limit gives every start the same response: 1 seed).
+# None: not predicted (no anchor).
 # (setting, what the paper's text says of it, anchor overshoot % and rise time s, traditional MPC's overshoot % at
 # error 0.5 (paper 43.5) and rise time s at error 1.5 (paper 0.84), adopted or not and why). Measured 2026-12-04.
 TRIED = (
@@ -108,6 +109,15 @@ TRIED = (
         "no: the anchor's rise time breaks (0.455 s)",
     ),
     ("no torque limit", "open: the paper prints none", (4.17, 0.28), 24.99, 0.42, "no: anchor rise time 0.28 s"),
+    (
+        "horizon T = 100",
+        "open: Section IV states no horizon (III-C's reference is 1 s)",
+        (4.35, 0.49),
+        None,
+        None,
+        "no: no anchor: rise time ≥ 0.425 s at every Q velocity weight (0, 0.01, 0.07) and R (0.003–1) tried; the "
+        "overshoot nearest 4.17 % (4.35) at R = 0.3 with 0.49 s (so not predicted)",
+    ),
     (
         "g = 0, no torque limit, T = 100, 2 s (together)",
         "g = 0, no torque limit, T = 100: open (not stated for Section IV); 2 s: supported",
@@ -287,8 +297,8 @@ def tried_table() -> pd.DataFrame:
             "setting tried": setting,
             "the paper's text": text or "–",
             "anchor (4.17 %, 0.38 s)": f"{number(anchor[0], 3)} %, {number(anchor[1], 3)} s",
-            "traditional, error 0.5: overshoot % (paper 43.5)": overshoot,
-            "traditional, error 1.5: rise time s (paper 0.84)": rise,
+            "traditional, error 0.5: overshoot % (paper 43.5)": "–" if overshoot is None else overshoot,
+            "traditional, error 1.5: rise time s (paper 0.84)": "–" if rise is None else rise,
             "adopted": adopted,
         }
         for setting, text, anchor, overshoot, rise, adopted in TRIED

@@ -11,9 +11,13 @@ def test_every_setting_tried_is_re_anchored_and_says_why_it_was_not_adopted():
     assert table.index[0] == "none (this set-up)"
     for setting, row in table.iterrows():
         if setting != table.index[0]:
-            assert row["adopted"].startswith("no: ") and row["the paper's text"].startswith(("supported", "open"))
+            assert row["adopted"].startswith("no: ")
+            assert "open" in row["the paper's text"] or "supported" in row["the paper's text"]
         overshoot = float(row["anchor (4.17 %, 0.38 s)"].split(" %")[0])
-        assert overshoot == calibration.ANCHOR_VALUES["overshoot"]  # R re-fitted for the anchor's overshoot
+        if row["adopted"].startswith("no: no anchor"):  # not predicted: nothing to compare without the anchor
+            assert row["traditional, error 0.5: overshoot % (paper 43.5)"] == "–"
+        else:
+            assert overshoot == calibration.ANCHOR_VALUES["overshoot"]  # R re-fitted for the anchor's overshoot
     # the one setting the text supports (Table II's 1.02 s rise time) does not bring error 0.5 nearer
     longer = table.loc["2 s closed loop"]
     assert longer["the paper's text"].startswith("supported") and "1.02 s" in longer["the paper's text"]
