@@ -166,8 +166,8 @@ def test_problem_model_is_forward_dynamics_with_damping(problem, tau_of):
 
 
 def test_nlink_gravity_variant_hangs_at_zero():
-    """"nlink:2:gravity": gravity in the arm's plane along q = 0, so q = 0 hangs and holding the straight arm
-    horizontal takes m g (l/2 + 3l/2) at joint 1 and m g l/2 at joint 2 (pinocchio's g(q))."""
+    """The variant "nlink:2:gravity": gravity in the arm's plane along q = 0, so q = 0 hangs and holding the
+    straight arm horizontal takes m g (l/2 + 3l/2) at joint 1 and m g l/2 at joint 2 (pinocchio's g(q))."""
     from ocpkit import problems
 
     p = problems.make("nlink:2:gravity")
