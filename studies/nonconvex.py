@@ -64,33 +64,24 @@ SIZES = {
 def study(size: str) -> Study:
     choice(size, tuple(SIZES), "size")
     s = SIZES[size]
-    trials = []
-    for robot in ROBOTS:
-        if s["seeds"].get(robot):
-            trials += grid(
-                robot=robot,
-                case=list(CASES),
-                controller=s["controllers"],
-                horizon=s["horizon"],
-                duration=s["duration"],
-                population=s["population"],
-                arch=s["arch"],
-                budget=s["budget"],
-                seeds=s["seeds"][robot],
-            )
     swing = s["swingup"]
-    for robot in SWING_ROBOTS:
-        if swing["seeds"].get(robot):
+    parts = [  # (robots, seeds per robot, cases, horizon, duration): the reaches, then the swing-ups
+        (ROBOTS, s["seeds"], list(CASES), s["horizon"], s["duration"]),
+        (SWING_ROBOTS, swing["seeds"], [SWINGUP], swing["horizon"], swing["duration"]),
+    ]
+    trials = []
+    for robots, seeds, cases, horizon, duration in parts:
+        for robot in [r for r in robots if seeds.get(r)]:
             trials += grid(
                 robot=robot,
-                case=[SWINGUP],
+                case=cases,
                 controller=s["controllers"],
-                horizon=swing["horizon"],
-                duration=swing["duration"],
+                horizon=horizon,
+                duration=duration,
                 population=s["population"],
                 arch=s["arch"],
                 budget=s["budget"],
-                seeds=swing["seeds"][robot],
+                seeds=seeds[robot],
             )
     return Study(NAME, trial, trials)
 
