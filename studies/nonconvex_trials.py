@@ -16,9 +16,8 @@ a cubic B-spline basis (``Parameterization.bspline``) of the same knot count as 
 
 The swing-up (:data:`~ocpkit.studies.nonconvex_cases.SWINGUP`) is the problem's own OCP (its Q, R and terminal
 weight) towards the upright state, with the case's torque limit as the input bounds and :data:`SWING_KNOTS` knots; it
-succeeds when every state of
-the last :data:`HOLD` s is within :data:`ANGLE_TOLERANCE` rad of upright (each joint, modulo 2π) and
-:data:`SPEED_TOLERANCE` rad/s of rest, every applied torque within the limit.
+succeeds when every state of the last :data:`HOLD` s is within :data:`ANGLE_TOLERANCE` rad of upright (each joint,
+modulo 2π) and :data:`SPEED_TOLERANCE` rad/s of rest, every applied torque within the limit.
 """
 
 from __future__ import annotations
