@@ -2,8 +2,9 @@
 
 A spec is one of
 
-* a registered name, with an optional argument: ``"pendulum"``, ``"pendulum:linear"``, ``"nlink:7"``,
-  ``"puma560"``, ``"baxter"``, ``"panda"``, ``"urdf:path/to/robot.urdf"``, or a name added by :func:`register`;
+* a registered name, with an optional argument: ``"pendulum"``, ``"pendulum:linear"``, ``"cartpole"``,
+  ``"nlink:7"``, ``"puma560"``, ``"baxter"``, ``"panda"``, ``"urdf:path/to/robot.urdf"``, or a name added by
+  :func:`register`;
 * ``"package.module:Name"`` — an attribute of an importable module;
 * ``"path/to/file.py:Name"`` — an attribute of a Python file (loaded once per file version).
 
@@ -23,7 +24,14 @@ from pathlib import Path
 from ocpkit.model.problem import NotAProblemError, Problem, ProblemError, _shown, describe, where_defined, where_raised
 
 # family -> module defining it (imported only when the family is used)
-_FAMILIES = {"pendulum": "pendulum", "nlink": "nlink", "puma560": "puma560", "baxter": "baxter", "panda": "panda"}
+_FAMILIES = {
+    "pendulum": "pendulum",
+    "cartpole": "cartpole",
+    "nlink": "nlink",
+    "puma560": "puma560",
+    "baxter": "baxter",
+    "panda": "panda",
+}
 # family -> factory(arg) for problems registered at run time (and the URDF route)
 _REGISTERED: dict = {}
 _FAMILY = re.compile(r"^[A-Za-z_][\w-]*$")

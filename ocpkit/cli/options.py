@@ -9,9 +9,9 @@ from ocpkit.solvers.methods import ARGUMENTS, DYNAMICS, METHODS, VARIANTS  # noq
 from ocpkit.solvers.methods import KNOTS as DEFAULT_KNOTS
 
 SPEC_HELP = (
-    "problem spec: a registered name (pendulum, pendulum:linear, pendulum:paper, nlink:N with N = 1…13, puma560, "
-    "puma560:paper (no terminal weight), baxter, panda, urdf:FILE), package.module:Name or path/to/file.py:Name (a "
-    "Problem subclass, instance or factory; ':arg' passes through)"
+    "problem spec: a registered name (pendulum, pendulum:linear, pendulum:paper, cartpole, nlink:N with N = 1…13, "
+    "puma560, puma560:paper (no terminal weight), baxter, panda, urdf:FILE), package.module:Name or "
+    "path/to/file.py:Name (a Problem subclass, instance or factory; ':arg' passes through)"
 )
 # The solvers' arguments, their meaning and defaults, and the knot count p of solve, simulate and export unless
 # --knots or --parameterization identity says otherwise (DEFAULT_KNOTS; Problem.ocp's knots=None is p = T) come from
