@@ -22,13 +22,19 @@ Every case blocks the straight path (the end effector's own sphere moving along 
 start or goal configuration is within the margin of a sphere (or, for ``limits``, whose start is beyond a limit) is
 rejected and redrawn from s + 1 000 003·k (k = 1, 2, …), deterministically, as in the reach study.
 
-``swingup`` (:data:`SWINGUP`, on :data:`SWING_ROBOTS`: the pendulum and the double pendulum "nlink:2:gravity", q = 0
-hanging): start hanging, every joint angle uniform in ±:data:`START_ANGLE` rad and velocity in ±:data:`START_SPEED`
-rad/s (``numpy.random.default_rng(s)``), goal upright at rest (q₁ = π, the other joints 0); every joint's torque
-limited to ±:data:`TORQUE_FRACTION` of the torque that holds the straight arm horizontal at joint 1
-(:func:`static_torque`), so no quasi-static path exists, nor a single push (a pendulum pushed at τ from hanging
-gains τ·π by the top, which takes 2 m g l: τ < 2/π m g l): the controller must swing back first and pump. (Pumping
-at the limit reaches upright in about 1.5 s, development draws 0–2.) No obstacles, no rejections.
+``swingup`` (:data:`SWINGUP`, on :data:`SWING_ROBOTS`: the pendulum, the double pendulum "nlink:2:gravity" and the
+cart-pole "cartpole", q = 0 hanging): start hanging, every joint angle uniform in ±:data:`START_ANGLE` rad and velocity
+in ±:data:`START_SPEED` rad/s (``numpy.random.default_rng(s)``), goal upright at rest (q₁ = π, the other joints 0);
+every joint's torque limited to ±:data:`TORQUE_FRACTION` of the torque that holds the straight arm horizontal at
+joint 1 (:func:`static_torque`), so no quasi-static path exists, nor a single push (a pendulum pushed at τ from
+hanging gains τ·π by the top, which takes 2 m g l: τ < 2/π m g l): the controller must swing back first and pump.
+(Pumping at the limit reaches upright in about 1.5 s, development draws 0–2.) No obstacles, no rejections.
+
+The cart-pole's cart starts within ±:data:`START_CART` m of the track's centre at up to :data:`START_SPEED` m/s, must
+stay on a track of ±:data:`TRACK` m (the case's ``limits``, state bounds of its OCP) and ends at its centre: goal
+(p, θ) = (0, π) at rest. Its force is limited to ±:data:`FORCE_FRACTION` of the force whose work over the longest
+one-way stroke the track allows (from −START_CART to +TRACK) lifts the pole, 2 m g l (:func:`swing_limit`): no single
+stroke gets it up, however timed, and the controller must pump it back and forth.
 """
 
 from __future__ import annotations
@@ -38,14 +44,22 @@ import numpy as np
 from ocpkit import problems
 from ocpkit._checks import choice
 from ocpkit.model.task import Sphere
+from ocpkit.problems.cartpole import CartPole
 from ocpkit.studies.reach_trials import ATTEMPTS, MARGIN, clearances
 
 ROBOTS = ("nlink:3", "nlink:7", "panda")
 CASES = ("sphere", "spheres", "passage", "limits")
 SWINGUP = "swingup"
-SWING_ROBOTS = ("pendulum", "nlink:2:gravity")
+SWING_ROBOTS = ("pendulum", "nlink:2:gravity", "cartpole")
 START_ANGLE, START_SPEED = 0.2, 0.5  # the swing-up's start: rad and rad/s about hanging at rest
 TORQUE_FRACTION = 0.6  # the swing-up's torque limit: this share of the torque holding the arm horizontal
+# The cart-pole's track [m]: ±TRACK. The single-stroke bound leaves less force the longer the track, and the swing-up
+# then takes longer than the 3 s horizon: on ±1 m (the limit would be 2.14 N) IPOPT on the open-loop swing-up (hanging
+# to upright at rest, 2 random guesses, continued from 20 N down) found none below 3.5 N in 3, 4 or 5 s; on ±0.5 m
+# (3.92 N) one at 3.36 N in 4 s, none below 4.5 N in 3 s; on ±0.3 m one at the limit, 5.89 N, in 3 s (3 guesses).
+TRACK = 0.3
+START_CART = 0.1  # the cart-pole's start: the cart within this [m] of the track's centre
+FORCE_FRACTION = 0.8  # the cart-pole's force limit: this share of the single-stroke force (see the module docstring)
 RADIUS = {"nlink:3": 0.06, "nlink:7": 0.1, "panda": 0.08}
 MIN_DISTANCE = {"nlink:3": 0.25, "nlink:7": 0.5, "panda": 0.25}
 LIMIT = 2.6  # the planar arms' joint limits [rad] in the limits case (they have none of their own)
@@ -78,28 +92,38 @@ def static_torque(pb, q) -> np.ndarray:
 
 
 def swing_limit(pb) -> float:
-    """The swing-up's torque limit [N·m], every joint: TORQUE_FRACTION of joint 1's torque holding the straight arm
-    horizontal."""
+    """The swing-up's input limit, every input: TORQUE_FRACTION of joint 1's torque [N·m] holding the straight arm
+    horizontal; on the cart-pole, FORCE_FRACTION of the force [N] doing the pole's lift 2 m g l over the stroke
+    TRACK + START_CART."""
+    if isinstance(pb, CartPole):
+        return FORCE_FRACTION * 2 * pb.m * pb.g * pb.l / (TRACK + START_CART)
     n = pb.model().nx // 2
     return TORQUE_FRACTION * abs(float(static_torque(pb, np.r_[np.pi / 2, np.zeros(n - 1)])[0]))
 
 
 def swingup(robot: str, seed: int) -> dict:
     """The drawn swing-up (see the module docstring): start state ``x0``, goal state ``x_goal`` (upright, at rest),
-    torque limit ``tau_max``; no ``obstacles``, ``limits``, ``target`` or rejections, as the reach cases have."""
+    input limit ``tau_max``, which configuration coordinates are ``angles`` (the rest, the cart's, are positions);
+    ``limits`` (q_min, q_max): the cart-pole's track, else None; no ``obstacles``, ``target`` or rejections, as the
+    reach cases have."""
     choice(robot, SWING_ROBOTS, "robot")
     pb = problems.make(robot)
     n = pb.model().nx // 2
+    angles = np.array(getattr(pb, "angles", (True,) * n))
     rng = np.random.default_rng(seed)
-    x0 = np.r_[rng.uniform(-START_ANGLE, START_ANGLE, n), rng.uniform(-START_SPEED, START_SPEED, n)]
-    x_goal = np.r_[np.pi, np.zeros(2 * n - 1)]
+    start = np.where(angles, START_ANGLE, START_CART)
+    x0 = np.r_[rng.uniform(-start, start), rng.uniform(-START_SPEED, START_SPEED, n)]
+    x_goal = np.zeros(2 * n)
+    x_goal[np.argmax(angles)] = np.pi  # the first joint upright
+    track = np.where(angles, np.inf, TRACK)
     return {
         "x0": x0,
         "x_goal": x_goal,
         "tau_max": swing_limit(pb),
+        "angles": angles,
         "target": None,
         "obstacles": [],
-        "limits": None,
+        "limits": None if angles.all() else (-track, track),
         "rejected": 0,
     }
 

@@ -24,6 +24,7 @@ from ocpkit.studies.nonconvex_trials import (
     EMPC,
     GRADIENT,
     HOLD,
+    LIMIT_TOLERANCE,
     MANY,
     MULTI,
     SAMPLERS,
@@ -199,7 +200,8 @@ def report_section(df, out_dir, title: str) -> str:
         "Per controller over every robot, case and seed (success: within 1 cm at the end, true clearance ≥ 0 at "
         f"every state, no joint beyond its limit; the swing-up: every state of the last {number(HOLD)} s within "
         f"{number(ANGLE_TOLERANCE)} rad of upright and {number(SPEED_TOLERANCE)} rad/s of rest, every torque within "
-        "its limit; [95 %]: exact Clopper–Pearson interval; collided: runs with a "
+        f"its limit, a cart-pole's cart as a joint in metres and never {number(LIMIT_TOLERANCE)} m beyond its track; "
+        "[95 %]: exact Clopper–Pearson interval; collided: runs with a "
         "state of true clearance < 0; step: the whole MPC step, wall time, median of per-run medians and the worst "
         "step of any run)": markdown_table(pooled(ok)),
         "Per robot, case and controller (cost ÷ best: actual cost over the least of any controller on that seed, "

@@ -17,7 +17,9 @@ a cubic B-spline basis (``Parameterization.bspline``) of the same knot count as 
 The swing-up (:data:`~ocpkit.studies.nonconvex_cases.SWINGUP`) is the problem's own OCP (its Q, R and terminal
 weight) towards the upright state, with the case's torque limit as the input bounds and :data:`SWING_KNOTS` knots; it
 succeeds when every state of the last :data:`HOLD` s is within :data:`ANGLE_TOLERANCE` rad of upright (each joint,
-modulo 2π) and :data:`SPEED_TOLERANCE` rad/s of rest, every applied torque within the limit.
+modulo 2π) and :data:`SPEED_TOLERANCE` rad/s of rest, every applied torque within the limit. The cart-pole's cart
+counts as a joint in metres, not wrapped: within ANGLE_TOLERANCE m of the track's centre and SPEED_TOLERANCE m/s of
+rest over the last HOLD s, and no state more than :data:`LIMIT_TOLERANCE` m beyond the track's ends.
 """
 
 from __future__ import annotations
@@ -40,7 +42,7 @@ from ocpkit.studies.reach_trials import KNOTS, MARGIN, SAMPLING, TOLERANCE, _tim
 ITERATIONS = {"max_iter": 500}
 STARTS = 8  # IPOPT multi-start's guesses per cold solve (its own cold start and 7 random plans)
 MANY = 1000  # iterations or generations a budgeted controller may run: the budget, not this, stops it
-LIMIT_TOLERANCE = 0.01  # rad beyond a joint limit a success may go (the limits case)
+LIMIT_TOLERANCE = 0.01  # rad beyond a joint limit a success may go (the limits case; m beyond the cart-pole's track)
 BUDGET = ", budget"  # the suffix of a controller at the equal budget
 HOLD, ANGLE_TOLERANCE, SPEED_TOLERANCE = 0.2, 0.1, 0.5  # the swing-up's success: s held, rad, rad/s
 # The swing-up's knots: a pump alternates every ~0.7 s. Over a 3 s horizon 5 knots (0.75 s apart) cannot say it: 24
@@ -103,16 +105,12 @@ def basis(controller: str) -> str:
 
 def task_ocp(robot: str, drawn: dict, horizon: int, parameterization: str = "linear"):
     """The OCP of a drawn case: the reach, the limits case's joint limits joining the velocity limits as state bounds;
-    for the swing-up, the problem's OCP under the case's torque limit. ``parameterization``: a kind's name, the same
-    knot count either way."""
+    for the swing-up, the problem's OCP under the case's input limit (and the cart-pole's track as state bounds).
+    ``parameterization``: a kind's name, the same knot count either way."""
     pb = problems.make(robot)
     options = {"knots": KNOTS.get(robot, 5), "horizon": horizon, "parameterization": parameterization}
-    if "x_goal" in drawn:
-        options["knots"] = min(SWING_KNOTS, horizon)  # a test's short horizon: a knot a step
-        limit = np.full(pb.model().nu, drawn["tau_max"])
-        return pb.ocp(u_min=-limit, u_max=limit, **options)
     if drawn["limits"] is not None:
-        n, defaults = pb.kinematics.n, pb.defaults()
+        n, defaults = pb.model().nx // 2, pb.defaults()
         x_min = np.array(defaults.get("x_min", np.full(2 * n, -np.inf)), dtype=float)
         x_max = np.array(defaults.get("x_max", np.full(2 * n, np.inf)), dtype=float)
         velocity = getattr(pb, "velocity_limit", None)
@@ -120,6 +118,10 @@ def task_ocp(robot: str, drawn: dict, horizon: int, parameterization: str = "lin
         x_min[:n], x_max[:n] = drawn["limits"]
         x_min[n:], x_max[n:] = np.maximum(x_min[n:], -velocity), np.minimum(x_max[n:], velocity)
         options.update(x_min=x_min, x_max=x_max)
+    if "x_goal" in drawn:
+        options["knots"] = min(SWING_KNOTS, horizon)  # a test's short horizon: a knot a step
+        limit = np.full(pb.model().nu, drawn["tau_max"])
+        return pb.ocp(u_min=-limit, u_max=limit, **options)
     return reach(pb, drawn["obstacles"], margin=MARGIN, **options)
 
 
@@ -182,10 +184,7 @@ def _reached(traj, ocp, pb, drawn) -> dict:
     d = traj.clearances(ocp)
     progress = traj.progress(pb.kinematics, pb.end_effector, drawn["target"], tolerance=TOLERANCE)
     collisions = int((d < 0).sum())
-    beyond = 0.0
-    if drawn["limits"] is not None:
-        q = traj.x[:, :n]
-        beyond = float(max(0.0, (drawn["limits"][0] - q).max(), (q - drawn["limits"][1]).max()))
+    beyond = _beyond(traj.x[:, :n], drawn["limits"])
     return {
         "success": bool(progress.verdict == REACHED and collisions == 0 and beyond <= LIMIT_TOLERANCE),
         "reached": progress.verdict == REACHED,
@@ -201,25 +200,37 @@ def _reached(traj, ocp, pb, drawn) -> dict:
     }
 
 
-def swing_errors(x: np.ndarray, x_goal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per state (rows of ``x``): the largest joint-angle error to ``x_goal``'s, modulo 2π, and the largest speed."""
+def _beyond(q: np.ndarray, limits) -> float:
+    """How far [rad or m] the configurations ``q`` (rows) go beyond ``limits`` (q_min, q_max) at most; 0 for None."""
+    if limits is None:
+        return 0.0
+    return float(max(0.0, (limits[0] - q).max(), (q - limits[1]).max()))
+
+
+def swing_errors(x: np.ndarray, x_goal: np.ndarray, angles=None) -> tuple[np.ndarray, np.ndarray]:
+    """Per state (rows of ``x``): the largest configuration error to ``x_goal``'s — modulo 2π where ``angles`` (a mask
+    over the configuration; None: all) says the coordinate is an angle, as is, in metres, where not (the cart) — and
+    the largest speed."""
     n = x.shape[1] // 2
-    angle = np.abs((x[:, :n] - x_goal[:n] + np.pi) % (2 * np.pi) - np.pi).max(axis=1)
-    return angle, np.abs(x[:, n:]).max(axis=1)
+    error = x[:, :n] - x_goal[:n]
+    wrapped = (error + np.pi) % (2 * np.pi) - np.pi
+    error = wrapped if angles is None else np.where(angles, wrapped, error)
+    return np.abs(error).max(axis=1), np.abs(x[:, n:]).max(axis=1)
 
 
 def _swung(traj, ocp, drawn) -> dict:
     """A swing-up's verdict (see the module docstring)."""
-    angle, speed = swing_errors(traj.x, drawn["x_goal"])
+    angle, speed = swing_errors(traj.x, drawn["x_goal"], drawn["angles"])
     held = traj.t >= traj.t[-1] - HOLD - 1e-9
     upright = bool((angle[held] <= ANGLE_TOLERANCE).all() and (speed[held] <= SPEED_TOLERANCE).all())
     torque = float(np.abs(traj.u).max())
+    beyond = _beyond(traj.x[:, : traj.x.shape[1] // 2], drawn["limits"])
     return {
-        "success": bool(upright and torque <= drawn["tau_max"] * (1 + 1e-9)),
+        "success": bool(upright and torque <= drawn["tau_max"] * (1 + 1e-9) and beyond <= LIMIT_TOLERANCE),
         "reached": upright,
         "verdict": "upright" if upright else "not upright",
         "collision_steps": 0,
-        "beyond_limit": 0.0,
+        "beyond_limit": beyond,
         "final_angle_error": float(angle[-1]),
         "final_speed": float(speed[-1]),
         "torque_max": torque,

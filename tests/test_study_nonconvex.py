@@ -13,14 +13,17 @@ from ocpkit.studies import NAMES, get, nonconvex, nonconvex_report, nonconvex_tr
 from ocpkit.studies.evidence import HELD, INCONCLUSIVE, NOT_HELD, median_interval
 from ocpkit.studies.nonconvex_cases import (
     CASES,
+    FORCE_FRACTION,
     LIMIT_GAP,
     ROBOTS,
     SEED_OFFSET,
     START_ANGLE,
+    START_CART,
     START_SPEED,
     SWING_ROBOTS,
     SWINGUP,
     TORQUE_FRACTION,
+    TRACK,
     case,
     joint_limits,
     static_torque,
@@ -58,7 +61,7 @@ def test_cases_block_the_straight_path(robot):
     assert joint_limits(robot, pb)[0].shape == (n,)
 
 
-@pytest.mark.parametrize("robot", SWING_ROBOTS)
+@pytest.mark.parametrize("robot", [r for r in SWING_ROBOTS if r != "cartpole"])
 def test_swingup_draws_from_its_seed_and_blocks_a_quasi_static_path(robot):
     pb = problems.make(robot)
     n = pb.model().nx // 2
@@ -74,8 +77,43 @@ def test_swingup_draws_from_its_seed_and_blocks_a_quasi_static_path(robot):
     assert ocp.parameterization.knots == nonconvex_trials.SWING_KNOTS
     if robot == "pendulum":
         assert horizontal[0] == pytest.approx(pb.m * pb.g * pb.l)
+        rng = np.random.default_rng(0)  # the draw as it was before the cart-pole joined: the same stream
+        assert np.array_equal(a["x0"], [rng.uniform(-START_ANGLE, START_ANGLE), rng.uniform(-START_SPEED, START_SPEED)])
+    assert a["limits"] is None and a["angles"].all()
     with pytest.raises(ValueError, match="robot"):
         case("nlink:3", SWINGUP, 0)
+
+
+def test_cartpole_swingup_starts_hanging_on_its_track_and_no_single_stroke_lifts_it():
+    pb = problems.make("cartpole")
+    a, again, other = case("cartpole", SWINGUP, 0), case("cartpole", SWINGUP, 1), case("cartpole", SWINGUP, 1)
+    assert np.array_equal(again["x0"], other["x0"]) and not np.array_equal(a["x0"], other["x0"])
+    for s in (case("cartpole", SWINGUP, seed) for seed in range(5)):
+        assert abs(s["x0"][0]) <= START_CART and abs(s["x0"][1]) <= START_ANGLE  # cart near 0, pole hanging
+        assert (np.abs(s["x0"][2:]) <= START_SPEED).all()
+    assert np.array_equal(a["x_goal"], [0.0, np.pi, 0.0, 0.0]) and a["angles"].tolist() == [False, True]
+    assert a["limits"][0].tolist() == [-TRACK, -np.inf] and a["limits"][1].tolist() == [TRACK, np.inf]
+    lift = 2 * pb.m * pb.g * pb.l  # hanging at rest to upright at rest
+    force = a["tau_max"]
+    assert force == pytest.approx(FORCE_FRACTION * lift / (TRACK + START_CART))
+
+    def energy(p_dot, theta, theta_dot):  # above hanging at rest
+        kinetic = (pb.M + pb.m) * p_dot**2 / 2 + pb.m * pb.l * np.cos(theta) * p_dot * theta_dot
+        return kinetic + pb.m * pb.l**2 * theta_dot**2 / 2 + pb.m * pb.g * pb.l * (1 - np.cos(theta))
+
+    corners = np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1])).reshape(3, -1).T * [
+        START_SPEED,
+        START_ANGLE,
+        START_SPEED,
+    ]
+    most = max(energy(*c) for c in corners)
+    # the force's work over the longest one-way stroke the track allows (from -START_CART to +TRACK) is less than
+    # the lift less the most energy a start brings: no single stroke gets the pole up; the controller must pump
+    assert force * (TRACK + START_CART) < lift - most
+    ocp = nonconvex_trials.task_ocp("cartpole", a, 300)
+    assert ocp.u_max.tolist() == [force] and ocp.u_min.tolist() == [-force]
+    assert ocp.x_min.tolist() == [-TRACK, -np.inf, -np.inf, -np.inf] and ocp.x_max[0] == TRACK
+    assert ocp.parameterization.knots == nonconvex_trials.SWING_KNOTS
 
 
 def test_swing_errors_wrap_angles():
@@ -83,6 +121,33 @@ def test_swing_errors_wrap_angles():
     x = np.array([[-np.pi, 2 * np.pi, 0.0, 0.0], [np.pi + 0.1, -0.2, 0.3, -0.4], [0.0, 0.0, 0.0, 0.0]])
     angle, speed = nonconvex_trials.swing_errors(x, x_goal)
     assert np.allclose(angle, [0.0, 0.2, np.pi]) and np.allclose(speed, [0.0, 0.4, 0.0])
+    # the cart-pole: the pole's angle wraps, the cart's position (metres) does not
+    x_goal, angles = np.array([0.0, np.pi, 0.0, 0.0]), np.array([False, True])
+    x = np.array([[2 * np.pi, -np.pi, 0.0, 0.0], [0.05, 3 * np.pi + 0.02, -0.3, 0.1]])
+    angle, speed = nonconvex_trials.swing_errors(x, x_goal, angles)
+    assert np.allclose(angle, [2 * np.pi, 0.05]) and np.allclose(speed, [0.0, 0.3])
+
+
+def test_cartpole_swing_verdict_on_synthetic_trajectories():
+    """Upright over the last 0.2 s with the cart within 0.1 m of the centre and on its track at every state."""
+    from types import SimpleNamespace
+
+    drawn = case("cartpole", SWINGUP, 0)
+    t = np.arange(0, 1.0 + 1e-9, 0.01)
+
+    def verdict(p, theta=np.pi, p_dot=0.0, u=1.0):
+        x = np.column_stack([np.broadcast_to(p, t.shape), np.full(t.shape, theta), np.full(t.shape, p_dot), 0 * t])
+        return nonconvex_trials._swung(SimpleNamespace(t=t, x=x, u=np.full((t.size - 1, 1), u)), None, drawn)
+
+    assert verdict(0.05)["success"] and verdict(-0.09)["success"]
+    assert not verdict(0.15)["reached"]  # upright, but the cart 0.15 m off the centre
+    assert not verdict(2 * np.pi)["reached"]  # a cart 2π m away is not wrapped onto the centre
+    assert verdict(0.0, theta=-np.pi)["success"]  # the pole's angle is
+    assert not verdict(0.0, p_dot=0.6)["reached"]  # the cart at 0.6 m/s
+    off = np.where(t < 0.5, TRACK + 0.05, 0.0)  # upright at the end, but off the track's end earlier
+    r = verdict(off)
+    assert r["reached"] and not r["success"] and r["beyond_limit"] == pytest.approx(0.05)
+    assert not verdict(0.0, u=drawn["tau_max"] * 1.01)["success"]  # beyond the force limit
 
 
 def test_swingup_trial_runs_within_its_torque_limit():
@@ -90,6 +155,12 @@ def test_swingup_trial_runs_within_its_torque_limit():
     assert r["case_seed"] == SEED_OFFSET and r["steps"] == 5 and not r["success"] and r["verdict"] == "not upright"
     assert r["torque_max"] <= r["tau_max"] and r["collision_steps"] == 0 and np.isfinite(r["actual_cost"])
     assert r["final_angle_error"] > 2.5  # still hanging after 0.05 s
+
+
+def test_cartpole_swingup_trial_runs_on_its_track():
+    r = nonconvex_trials.trial("cartpole", SWINGUP, nonconvex_trials.RTI, 10, 0.05, 32, "cpu", 0.01, 0)
+    assert r["steps"] == 5 and not r["success"] and r["verdict"] == "not upright" and np.isfinite(r["actual_cost"])
+    assert r["torque_max"] <= r["tau_max"] and r["beyond_limit"] == 0.0 and r["final_angle_error"] > 2.5
 
 
 def test_bspline_rows_run_the_same_controller_on_a_cubic_bspline_of_as_many_knots():
