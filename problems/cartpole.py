@@ -3,8 +3,8 @@ track by a force u (no friction). θ = 0 hangs, as the pendulum's q = 0 does; θ
 
 (M + m) p̈ + m l cos θ θ̈ − m l sin θ θ̇² = u,   m l cos θ p̈ + m l² θ̈ + m g l sin θ = 0
 
-— the model and parameters of the cart-pole swing-up in M. Kelly, "An Introduction to Trajectory Optimization: How to
-Do Your Own Direct Collocation", SIAM Review 59(4), 2017, Section 6 and Appendix E: M = 1 kg, m = 0.3 kg, l = 0.5 m,
+— the model and parameters of the cart-pole swing-up example in M. Kelly, "An Introduction to Trajectory
+Optimization: How to Do Your Own Direct Collocation", SIAM Review 59(4), 2017: M = 1 kg, m = 0.3 kg, l = 0.5 m,
 g = 9.81 m/s². State x = [p, θ, ṗ, θ̇] (cart position [m], pole angle [rad], their rates), input u [N]. The error
 multiplier scales M and m in the controller's model only. The track's ends are the task's (the non-convex suite's
 swing-up: :mod:`ocpkit.studies.nonconvex_cases`), not the problem's.
