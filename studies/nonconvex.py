@@ -36,14 +36,14 @@ PER_SEED = "success"
 # (the horizon's optimum cannot pump there). The double pendulum's 3 s OCP (the arm's cost: Q = I, 100 Q terminal)
 # had 6 local optima from 16 IPOPT starts on draw 0, none upright at the horizon's end, and no controller swung it up
 # on draws 0-2: the case is drawn and tested, but the full size leaves it out until a horizon or cost is shown to work.
-# The cart-pole likewise (5.89 N on a ±0.3 m track: nonconvex_cases.TRACK). On development draws 0-2 RTI and
-# LinearMPC (trajectory) pumped (the same outcome and cost) but ended 1.15, 1.47 and 0.51 rad short of upright (at
-# 10 s still swinging), RTI ×3 likewise (draws 0-1), MPPI, CEM and EMPC held it hanging; IPOPT (draw 0) fell back on
-# 264 of 600 steps (500 iterations) and left the track, 12 minutes a trial; 8 IPOPT starts at 3 s gave pumping plans,
-# none upright by the horizon's end. At ±0.5 m (3.92 N) every controller held it hanging at 3 s, RTI, RTI ×3 and
-# EMPC at 5 s too, and 8-32 IPOPT starts at 3-6 s and 8-20 knots converged to hanging or stopped at 500 iterations. A
-# quadratic cost charges a pump's growing swings before it pays for upright, and the force cannot hold the pole tilted
-# (the track).
+# The cart-pole likewise (5.89 N on a ±0.3 m track: nonconvex_cases.TRACK). On development draws 0-9 RTI and
+# LinearMPC (trajectory) (the same outcome and cost on every draw) pumped but none ended upright (0.51-3.14 rad short,
+# median 1.87; two left the track; at 10 s still swinging on draws 0-2), RTI ×3 likewise (draws 0-1); MPPI, CEM and
+# EMPC held it hanging on all 10; IPOPT (draw 0) fell back on 264 of 600 steps (500 iterations) and left the track,
+# 12 minutes a trial; 8 IPOPT starts at 3 s gave pumping plans, none upright by the horizon's end. At ±0.5 m (3.92 N)
+# every controller held it hanging at 3 s, RTI, RTI ×3 and EMPC at 5 s too, and 8-32 IPOPT starts at 3-6 s and 8-20
+# knots converged to hanging or stopped at 500 iterations. A quadratic cost charges a pump's growing swings before it
+# pays for upright, and the force cannot hold the pole tilted (the track).
 SWING_HORIZON = 300
 SIZES = {
     "quick": {
