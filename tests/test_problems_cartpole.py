@@ -52,3 +52,12 @@ def test_sample_moves_the_cart_with_the_pole_hanging():
     assert abs(x0[0]) <= 0.5 and abs(goal[0]) <= 0.5
     ocp = pb.ocp(knots=3)
     assert ocp.nx == 4 and np.array_equal(ocp.u_max, [20.0]) and np.array_equal(ocp.u_min, [-20.0])
+
+
+def test_the_benchmarks_tell_the_tutorials_cart_pole_by_its_spec_not_its_name():
+    # the tutorial's cart-pole (θ = 0 upright) is flipped to start hanging; the shipped one (θ = 0 hanging) must not be
+    from ocpkit.benchmarks.nlp import example_cartpole, is_example_cartpole
+
+    assert not is_example_cartpole("cartpole")
+    example = example_cartpole()  # None from an installed package: no examples/ beside it
+    assert example is None or is_example_cartpole(example)

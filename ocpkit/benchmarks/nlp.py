@@ -10,9 +10,10 @@ closed-loop actual cost (ocpkit.sim.metrics.actual_cost) as a ratio to IPOPT's (
 horizon); IPOPT is the reference solution of the nonlinear problem, so a ratio below 1 is luck of the
 closed loop, not a better optimizer.
 
-A problem named "cartpole" (the docs' user-declared cart-pole, x = [p, θ, ṗ, θ̇], θ = 0 upright) is run
-as a swing-up: from hanging, θ = π, to the sampled goal. By default the bench takes that cart-pole from
-examples/cartpole.py (the tutorial "Declare your own problem") when the package runs from its source tree.
+The tutorial's cart-pole (examples/cartpole.py, "Declare your own problem": x = [p, θ, ṗ, θ̇], θ = 0 upright; the
+spec :func:`example_cartpole`, a default problem when the package runs from its source tree) is run as a swing-up:
+from hanging, θ = π, to the sampled goal. It is told by its spec, not its name: the shipped problem "cartpole" (θ = 0
+hanging) runs as any other problem.
 
 The peer "crocoddyl" (Crocoddyl's FDDP, :mod:`ocpkit.benchmarks.crocoddyl_peer`; ``pip install "ocpkit[peers]"``)
 is a controller column when asked for. It solves traditional MPC (p = T) on the same horizon, and its dynamics
@@ -49,6 +50,12 @@ def example_cartpole() -> str | None:
     """The tutorial's cart-pole, examples/cartpole.py, as a problem spec, or None outside the source tree."""
     path = Path(__file__).resolve().parents[2] / "examples" / "cartpole.py"
     return f"{path}:CartPole" if path.exists() else None
+
+
+def is_example_cartpole(spec: str) -> bool:
+    """Whether the problem spec ``spec`` is the tutorial's cart-pole (:func:`example_cartpole`), run as a swing-up."""
+    example = example_cartpole()
+    return example is not None and spec == example
 
 
 def default_problems() -> list[str]:
@@ -150,7 +157,7 @@ def bench_nlp(
         )
     for name in names:
         prob = crocoddyl_peer.undamped(name) if peer else registry.make(name)
-        swing = prob.name == "cartpole"
+        swing = is_example_cartpole(name)
         p, T = (10, None) if swing else (knots, horizon)
         ocp = prob.ocp(knots=p, horizon=T, integrator=integrator, **({"compiled": True} if compiled else {}))
         if compiled:

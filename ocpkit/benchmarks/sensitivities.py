@@ -10,8 +10,8 @@ of max |F(x, u) − x⁺| with x⁺ from RK4 over 100 sub-steps.
 :func:`bench_integrators`: closed loops on the plant (RK4, never changed) of the real-time iteration
 (``RealTimeIteration(ocp)``, solver "rti", its Python step, so that the integrator measured is
 :mod:`ocpkit.model.dynamics`'s) and of IPOPT, each predicting with each integrator: actual costs
-(:func:`ocpkit.sim.metrics.actual_cost`) per seed as ratios, IPOPT with RK4 the reference. A problem named "cartpole"
-(examples/cartpole.py) swings up from hanging as in :func:`ocpkit.benchmarks.nlp.bench_nlp`.
+(:func:`ocpkit.sim.metrics.actual_cost`) per seed as ratios, IPOPT with RK4 the reference. The tutorial's cart-pole
+(:func:`ocpkit.benchmarks.nlp.example_cartpole`) swings up from hanging as in :func:`ocpkit.benchmarks.nlp.bench_nlp`.
 
 ``python -m ocpkit.benchmarks.sensitivities`` prints both tables.
 """
@@ -105,7 +105,7 @@ def bench_sensitivities(
 
 
 def bench_integrators(
-    problems=("puma560", "baxter", "nlink:13", "cartpole"),
+    problems=None,
     *,
     seeds=(0, 1, 2),
     steps: int = 50,
@@ -117,10 +117,11 @@ def bench_integrators(
     """Closed-loop actual cost, median step (ms) and final error max |x_H − x_goal| of ``methods`` (the solvers
     "rti", one iteration, and "ipopt", converged: what the integrator costs without RTI's inexactness) with each
     integrator, over ``steps`` control steps from ``problem.sample(seed)``, and the cost ratios euler/rk4 per method
-    and, with "ipopt", RTI's over IPOPT's with RK4 (the reference); one row per problem and seed. "cartpole" is the
-    tutorial's cart-pole (examples/cartpole.py) swinging up (10 knots, its own horizon, its duration + 1 s) as in
-    :func:`ocpkit.benchmarks.nlp.bench_nlp`."""
-    from ocpkit.benchmarks.nlp import example_cartpole
+    and, with "ipopt", RTI's over IPOPT's with RK4 (the reference); one row per problem and seed. ``problems``
+    (default: puma560, baxter, nlink:13 and, from the source tree, the tutorial's cart-pole): problem specs; the
+    tutorial's cart-pole (:func:`ocpkit.benchmarks.nlp.example_cartpole`) swings up (10 knots, its own horizon, its
+    duration + 1 s) as in :func:`ocpkit.benchmarks.nlp.bench_nlp`."""
+    from ocpkit.benchmarks.nlp import example_cartpole, is_example_cartpole
     from ocpkit import solvers
 
     kinds = [f"{m} {i}" for m in methods for i in INTEGRATORS]
@@ -134,10 +135,12 @@ def bench_integrators(
         + "".join(f"{k + ' err':>16}" for k in kinds)
         + "".join(f"{r:>16}" for r in ratios)
     )
+    if problems is None:
+        problems = ["puma560", "baxter", "nlink:13"] + ([example_cartpole()] if example_cartpole() else [])
     rows = []
     for name in problems:
-        swing = name == "cartpole"
-        problem = registry.make(example_cartpole() if swing else name)
+        swing = is_example_cartpole(name)
+        problem = registry.make(name)
         p, T = (10, None) if swing else (knots, horizon)
         ocps = {i: problem.ocp(knots=p, horizon=T, integrator=i, compiled=True) for i in INTEGRATORS}
         for ocp in ocps.values():
