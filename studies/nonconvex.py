@@ -2,9 +2,8 @@
 wall of three, through a narrow passage between two, to a target near the joint limits — on the planar 3- and 7-link
 arms and the Panda (full size only: its sampling kernels compile for minutes), and a torque-saturated swing-up of the
 pendulum (the double pendulum's and the cart-pole's are drawn, not run: see SWING_HORIZON), by every controller at its
-default and at an
-equal time budget per step (the B-spline rows at full size only); success with exact intervals, and EMPC against
-each baseline seed by seed.
+default and at an equal time budget per step (the B-spline rows at full size only); success with exact intervals, and
+EMPC against each baseline seed by seed.
 
 Cases: :mod:`ocpkit.studies.nonconvex_cases` (drawn from seed 490 000 + s: seeds never used in development).
 Controllers and trials: :mod:`ocpkit.studies.nonconvex_trials` (IPOPT multi-start:
