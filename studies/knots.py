@@ -8,6 +8,8 @@ over its own closed-loop duration.
 
 from __future__ import annotations
 
+import pandas as pd
+
 from ocpkit.sim import plots
 from ocpkit.problems import filename
 from ocpkit.runs.study import Study, grid
@@ -51,10 +53,12 @@ def study(size: str, problems=None) -> Study:
 
 
 def ratios(df, by: str):
-    """Each trial's actual cost over the reference (traditional, horizon 100) trial of the same problem and seed."""
+    """Each trial's actual cost over the reference (traditional, horizon 100) trial of the same problem and seed; trials
+    whose reference is not stored (not run yet, or failed) are left out."""
     ok = df[df["status"] == "ok"]
     ref = ok[ok["knots"].isna() & (ok["horizon"] == REFERENCE_HORIZON)].set_index(["problem", "seed"])["actual_cost"]
     rows = ok[ok["horizon"] == HORIZON] if by == "knots" else ok[ok["knots"].isna()]
+    rows = rows[pd.MultiIndex.from_arrays([rows["problem"], rows["seed"]]).isin(ref.index)]
     rows = rows.assign(ratio=rows["actual_cost"].values / ref.loc[list(zip(rows["problem"], rows["seed"]))].values)
     return rows
 

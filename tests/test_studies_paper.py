@@ -173,3 +173,26 @@ def test_knee_is_the_fewest_knots_from_which_every_median_is_slight():
     assert knots.knee(medians) == 10  # 6 knots is above again
     assert knots.knee(medians.drop(6)) == 3
     assert np.isnan(knots.knee(pd.Series([1.2, 1.1], index=[1, 2])))
+
+
+def test_cost_ratios_leave_out_trials_whose_reference_is_not_stored():
+    """A knots study stopped part way (or a failed reference trial) once made the horizon report raise KeyError."""
+    from ocpkit.studies import knots
+
+    def row(seed, k, horizon, cost, status="ok"):
+        return {
+            "problem": "pendulum",
+            "seed": seed,
+            "knots": k,
+            "horizon": horizon,
+            "actual_cost": cost,
+            "status": status,
+        }
+
+    ref = knots.REFERENCE_HORIZON
+    df = pd.DataFrame(
+        [row(0, None, ref, 2.0), row(0, 3, knots.HORIZON, 3.0), row(1, 3, knots.HORIZON, 5.0)]
+        + [row(2, None, ref, np.nan, "failed"), row(2, 3, knots.HORIZON, 4.0)]
+    )
+    rows = knots.ratios(df, "knots")
+    assert rows["seed"].tolist() == [0] and rows["ratio"].tolist() == [1.5]
