@@ -211,7 +211,7 @@ def test_register_makes_a_name_work_everywhere(capsys):
         ("nlink:20", "must be 1 to 13"),
         ("nlink:0", "must be 1 to 13"),
         ("puma560:2", "takes no argument"),
-        ("pendulm", "unknown problem 'pendulm'; known: baxter, nlink, panda, pendulum, puma560, urdf"),
+        ("pendulm", "unknown problem 'pendulm'; known: baxter, cartpole, nlink, panda, pendulum, puma560, urdf"),
         ("./nowhere.py:X", "no such file"),
         ("urdf:", "urdf needs a file"),
     ],
