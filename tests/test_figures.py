@@ -24,9 +24,10 @@ TOLERANCE_PX = 1.0
 
 
 class Saved:
-    """A figure as it was saved: what is wrong with it, and the x tick labels of each of its axes."""
+    """A figure as saved: what is wrong with it, its width (inches), and the x tick labels of each of its axes."""
 
     def __init__(self, fig, kwargs):
+        self.width = float(fig.get_size_inches()[0])
         fig.canvas.draw()
         renderer = fig.canvas.get_renderer()
         self.problems = []
@@ -565,3 +566,16 @@ def test_robustness_mujoco_report_legend_names_each_controller(saved, tmp_path):
     _assert_clean(saved)
     texts = [t.get_text() for t in next(iter(saved.values())).axes[0].get_legend().get_texts()]
     assert texts[:3] == [f"{c}: one seed" for c in robustness.MUJOCO_CONTROLLERS]
+
+
+def test_a_numeric_axis_keeps_a_page_width_however_many_values(saved, tmp_path):
+    """The full knots sweep (50 knot counts) was drawn 3,577 px wide: the width grew with the number of groups."""
+    rng = np.random.default_rng(2)
+    knot_counts = list(range(1, 51))
+    plots.boxes(knot_counts, [1 + rng.random(30) for _ in knot_counts], tmp_path / "knots", xlabel="p", ylabel="r")
+    plots.boxes(
+        [f"c{i}" for i in range(60)], [rng.random(30) for _ in range(60)], tmp_path / "many", xlabel="c", ylabel="y"
+    )
+    _assert_clean(saved)
+    widths = [record.width for record in saved.values()]
+    assert widths[0] <= 8.0 and widths[1] <= 16.0

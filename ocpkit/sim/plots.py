@@ -263,8 +263,9 @@ def boxes(
         raise ValueError(f"labels and data must have the same length, got {len(labels)} and {len(data)}")
     data = [np.asarray(d, dtype=float) for d in data]
     colours = list(colours) if colours is not None else ["C0"] * len(labels)
-    fig, ax = figure(figsize=(max(6, 0.5 * len(labels) + 2.5), 3.8))
     numeric = len(labels) > 0 and all(isinstance(v, (int, float, np.integer, np.floating)) for v in labels)
+    # categories get room each (up to a page's width); a numeric axis places values by scale, not by count
+    fig, ax = figure(figsize=(8.0 if numeric else min(16.0, max(6, 0.5 * len(labels) + 2.5)), 3.8))
     positions = np.asarray(labels, dtype=float) if numeric else np.arange(1, len(labels) + 1, dtype=float)
     logx = numeric and positions.min() > 0 and positions.max() / positions.min() >= 10
     half = _half_widths(positions, logx)
