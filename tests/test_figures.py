@@ -579,3 +579,6 @@ def test_a_numeric_axis_keeps_a_page_width_however_many_values(saved, tmp_path):
     _assert_clean(saved)
     widths = [record.width for record in saved.values()]
     assert widths[0] <= 8.0 and widths[1] <= 16.0
+    # each box as wide as its nearer neighbour allows: 1 and 2 knots visible beside 49 and 50
+    half = plots._half_widths(np.array([2.0, 1.0, 50.0, 49.0]), logx=True)
+    assert half[1] == half[0] == pytest.approx(0.3 * np.log10(2)) and half[2] == pytest.approx(0.3 * np.log10(50 / 49))

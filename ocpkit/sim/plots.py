@@ -334,11 +334,16 @@ def boxes(
 
 
 def _half_widths(positions, logx: bool) -> np.ndarray:
-    """Each group's half width on the x axis: 0.3 of the narrowest gap (in decades on a log axis)."""
-    where = np.log10(positions) if logx else positions
-    gaps = np.diff(np.sort(where))
-    step = gaps[gaps > 0].min() if (gaps > 0).any() else 1.0
-    return np.full(len(positions), 0.3 * step)
+    """Each group's half width on the x axis: 0.3 of the gap to its nearer neighbour (in decades on a log axis), so
+    that sparse values (1, 2, 3 knots) get visible boxes beside dense ones (40 … 50); 0.3 for a lone group."""
+    where = np.log10(positions) if logx else np.asarray(positions, dtype=float)
+    order = np.argsort(where)
+    gaps = np.diff(where[order])
+    gaps = np.where(gaps > 0, gaps, np.inf)  # equal values share a position: no gap between them
+    nearer = np.minimum(np.r_[np.inf, gaps], np.r_[gaps, np.inf])
+    half = np.empty(len(positions))
+    half[order] = 0.3 * np.where(np.isfinite(nearer), nearer, 1.0)
+    return half
 
 
 def _spread(x, offset, logx: bool):
