@@ -58,11 +58,15 @@ def is_example_cartpole(spec: str) -> bool:
     return example is not None and spec == example
 
 
+def with_example_cartpole(names) -> list[str]:
+    """``names`` and, from the source tree, the tutorial's cart-pole (:func:`example_cartpole`) after them."""
+    cartpole = example_cartpole()
+    return list(names) + ([cartpole] if cartpole else [])
+
+
 def default_problems() -> list[str]:
     known = set(registry.names())
-    chosen = [name for name in ROBOTS if name.partition(":")[0] in known]
-    cartpole = example_cartpole()
-    return chosen + ([cartpole] if cartpole else [])
+    return with_example_cartpole(name for name in ROBOTS if name.partition(":")[0] in known)
 
 
 def controller(kind: str, ocp, problem=None):

@@ -121,7 +121,7 @@ def bench_integrators(
     (default: puma560, baxter, nlink:13 and, from the source tree, the tutorial's cart-pole): problem specs; the
     tutorial's cart-pole (:func:`ocpkit.benchmarks.nlp.example_cartpole`) swings up (10 knots, its own horizon, its
     duration + 1 s) as in :func:`ocpkit.benchmarks.nlp.bench_nlp`."""
-    from ocpkit.benchmarks.nlp import example_cartpole, is_example_cartpole
+    from ocpkit.benchmarks.nlp import is_example_cartpole, with_example_cartpole
     from ocpkit import solvers
 
     kinds = [f"{m} {i}" for m in methods for i in INTEGRATORS]
@@ -136,7 +136,7 @@ def bench_integrators(
         + "".join(f"{r:>16}" for r in ratios)
     )
     if problems is None:
-        problems = ["puma560", "baxter", "nlink:13"] + ([example_cartpole()] if example_cartpole() else [])
+        problems = with_example_cartpole(["puma560", "baxter", "nlink:13"])
     rows = []
     for name in problems:
         swing = is_example_cartpole(name)
