@@ -1,5 +1,6 @@
 """One contract for every registered controller (``ocpkit.solvers.configurations()``: each solver × variant × form
-and backend × linearization), on a shipped, a user-declared and a URDF problem:
+and backend × linearization), on shipped problems (nlink:3, the cart-pole), a user-declared one (the tutorial's
+cart-pole) and a URDF arm:
 
 * it constructs and steps; every status is one of STATUSES, ``fallback`` is set exactly when it is not a success,
   u is finite and within the input bounds;
@@ -76,7 +77,7 @@ EXPORTED = [
     ExportedConfiguration("export", {"linearization": "trajectory"}),
 ]
 CONFIGS = solvers.configurations() + EXPORTED
-OTHERS = ("nlink:3", "cartpole", "arm")
+OTHERS = ("nlink:3", "cartpole", "user:cartpole", "arm")  # user:cartpole: the tutorial's declared problem
 HORIZON, KNOTS = 20, 3
 SAMPLING = ("empc", "cem", "mppi")
 
@@ -104,7 +105,7 @@ def problems(tmp_path_factory):
     def get(name):
         if name not in cache:
             cache[name] = (
-                make(f"{cartpole}:CartPole") if name == "cartpole" else _arm() if name == "arm" else make(name)
+                make(f"{cartpole}:CartPole") if name == "user:cartpole" else _arm() if name == "arm" else make(name)
             )
         return cache[name]
 
@@ -270,8 +271,8 @@ def _reference(problem, config, optimum):
 
 @pytest.mark.parametrize(
     "name, optimum",
-    [(name, "convex") for name in ("pendulum", "nlink:3", "cartpole", "arm")]
-    + [(name, "nlp") for name in ("pendulum", "nlink:3", "cartpole", "arm")],
+    [(name, "convex") for name in ("pendulum", "nlink:3", "cartpole", "user:cartpole", "arm")]
+    + [(name, "nlp") for name in ("pendulum", "nlink:3", "cartpole", "user:cartpole", "arm")],
 )
 def test_contract_configurations_agree_on_their_optimum(name, optimum, problems):
     """From a cold start, every configuration that claims an optimum finds the same knots as the reference
