@@ -26,7 +26,9 @@ def tiny(monkeypatch):
         {"problems": ["nlink:2"], "friction": [0.1], "armature": [0.5], "seeds": 1, "duration": 0.2, "arch": "cpu"},
     )
     monkeypatch.setitem(
-        get("solve_times").SIZES, "quick", {"links": [1], "states": 2, "qp": "osqp", "max_dense_vars": None}
+        get("solve_times").SIZES,
+        "quick",
+        {"links": [1], "states": 2, "qp": "osqp", "max_dense_vars": None, "time_budget": None},
     )
     monkeypatch.setitem(
         get("comparison").SIZES, "quick", {"links": [1], "seeds": 1, "duration": 0.2, "population": 32, "arch": "cpu"}

@@ -23,7 +23,11 @@ def _figures(tmp_path, *stems):
 
 
 def test_solve_times_tiny(monkeypatch, tmp_path):
-    monkeypatch.setitem(solve_times.SIZES, "quick", {"links": [1, 2], "states": 2, "qp": "osqp", "max_dense_vars": 60})
+    monkeypatch.setitem(
+        solve_times.SIZES,
+        "quick",
+        {"links": [1, 2], "states": 2, "qp": "osqp", "max_dense_vars": 60, "time_budget": None},
+    )
     df, text = _run(solve_times, tmp_path)
     # 2 robots × 2 horizons × 4 formulations, less the small matrix traditional QPs above 60 variables
     assert len(df) == 13 and (df["failures"] == 0).all()
@@ -46,6 +50,26 @@ def test_solve_times_states_are_shared_and_checked():
     assert a["failures"] == b["failures"] == 0
     with pytest.raises(ValueError, match="states must be >= 1"):
         solve_times.trial(links=1, horizon=10, form="sparse", knots=None, qp="osqp", states=0, seed=0)
+    with pytest.raises(ValueError, match="time_budget must be a positive number"):
+        solve_times.trial(links=1, horizon=10, form="sparse", knots=None, qp="osqp", states=2, seed=0, time_budget=0)
+
+
+def test_solve_times_budget_stops_a_trial_short_and_the_report_says_so(monkeypatch, tmp_path):
+    """The full size's time budget: a trial past it stops after MIN_STATES states, the first ones of the same
+    sequence, and the report names it and compares it on the states it solved."""
+    full = solve_times.trial(links=1, horizon=10, form="sparse", knots=None, qp="osqp", states=7, seed=0)
+    short = solve_times.trial(
+        links=1, horizon=10, form="sparse", knots=None, qp="osqp", states=7, seed=0, time_budget=1e-9
+    )
+    assert full["solved"] == 7 and short["solved"] == solve_times.MIN_STATES == len(short["solve_times"])
+    size = {"links": [1], "states": 7, "qp": "osqp", "max_dense_vars": None, "time_budget": 1e-9}
+    monkeypatch.setitem(solve_times.SIZES, "quick", size)
+    df, text = _run(solve_times, tmp_path)
+    assert (df["solved"] == solve_times.MIN_STATES).all()
+    assert "Stopped by the time budget (1e-09 s of solves a trial) before 7 states" in text
+    assert "small matrix (condensed), traditional at 1 links, T = 100 (5 states)" in text
+    assert "(up to 7 cold solves each)" not in text  # titles are in the figures; the tables say it
+    assert "over up to 7 cold solves" in text
     with pytest.raises(ValueError, match="size must be one of"):
         solve_times.study("medium")
 
