@@ -23,6 +23,10 @@ NAME = "knots"
 TITLE = "Actual cost ratio vs number of knot points (Fig. 3)"
 PROBLEMS = ("pendulum:linear", "pendulum", "puma560:paper")
 HORIZON, REFERENCE_HORIZON = 50, 100
+# A ratio below 1 by more than this is no round-off. It can happen: the reference re-plans 100 steps ahead at every
+# step, past the 1 s run's end, so its closed loop is not the run's optimum (on seeds 8, 10, 12 and 17 of the full
+# size, the 1 s open-loop optimum costs 0.004-0.013 % less than the reference and T = 50 falls between the two).
+BELOW = 1e-6
 SIZES = {
     "quick": {"knots": [1, 2, 3, 4, 6, 10, 25, 50], "seeds": 8, "problems": PROBLEMS},
     "full": {"knots": list(range(1, 51)), "seeds": 30, "problems": PROBLEMS},
@@ -181,11 +185,18 @@ def claims(rows, table) -> list:
         out.append(Claim(claim, "1 knot not in this grid", NOT_TESTED))
     linear = rows[rows["problem"] == "pendulum:linear"]
     if len(linear):
-        v, e = every(linear["ratio"], lambda r: r >= 1 - 1e-6, "below 1 − 1e-6")
+        v, e = every(linear["ratio"], lambda r: r >= 1 - BELOW, f"below 1 − {number(BELOW)}")
+        below = linear[linear["ratio"] < 1 - BELOW]
+        if len(below):
+            e += (
+                f" (seeds {', '.join(map(str, sorted(below['seed'].unique())))}; "
+                f"{int(below['knots'].min())}–{int(below['knots'].max())} knots)"
+            )
         out.append(
             Claim(
                 "The linear pendulum's ratio never goes below 1",
-                f"smallest ratio {number(linear['ratio'].min(), 6)}",
+                f"smallest ratio {number(linear['ratio'].min(), 6)}; a run below 1 − {number(BELOW)} refutes it "
+                "(ours: above the solvers' round-off)",
                 v,
                 e,
                 paper=QUOTES["never"],

@@ -196,3 +196,27 @@ def test_cost_ratios_leave_out_trials_whose_reference_is_not_stored():
     )
     rows = knots.ratios(df, "knots")
     assert rows["seed"].tolist() == [0] and rows["ratio"].tolist() == [1.5]
+
+
+def test_never_below_one_names_the_runs_below_and_its_threshold():
+    """Issue 51: the full size's 100 of 1,500 linear-pendulum runs below 1 − 1e-6 are named by seed and knots, and
+    the threshold says whose it is."""
+    from ocpkit.studies import knots
+
+    rows = pd.DataFrame(
+        [
+            {
+                "problem": "pendulum:linear",
+                "knots": k,
+                "seed": s,
+                "ratio": 1 - 3e-5 if (s, k) in {(4, 30), (7, 50)} else 1.0,
+            }
+            for k in (1, 30, 50)
+            for s in range(8)
+        ]
+    )
+    table = rows.pivot_table(index="knots", columns="problem", values="ratio", aggfunc="median")
+    claim = next(c for c in knots.claims(rows, table) if c.claim == "The linear pendulum's ratio never goes below 1")
+    assert claim.verdict == "not held"
+    assert claim.evidence == "2 of 24 runs below 1 − 1e-06 (seeds 4, 7; 30–50 knots)"
+    assert "ours: above the solvers' round-off" in claim.ours
