@@ -2,8 +2,8 @@
 wall of three, through a narrow passage between two, to a target near the joint limits — on the planar 3- and 7-link
 arms and the Panda (full size only: its sampling kernels compile for minutes), and a torque-saturated swing-up of the
 pendulum (the double pendulum's and the cart-pole's are drawn, not run: see SWING_HORIZON), by every controller at its
-default and at an equal time budget per step (the B-spline rows at full size only); success with exact intervals, and
-EMPC against each baseline seed by seed.
+default and at an equal time budget per step (the B-spline rows and EMPC's ablation, each of its choices changed in
+turn, at full size only); success with exact intervals, and EMPC against each baseline seed by seed.
 
 Cases: :mod:`ocpkit.studies.nonconvex_cases` (drawn from seed 490 000 + s: seeds never used in development).
 Controllers and trials: :mod:`ocpkit.studies.nonconvex_trials` (IPOPT multi-start:
@@ -19,7 +19,7 @@ from ocpkit._checks import choice
 from ocpkit.runs.study import Study, grid
 from ocpkit.studies.nonconvex_cases import CASES, ROBOTS, SWING_ROBOTS, SWINGUP
 from ocpkit.studies.nonconvex_report import report_section
-from ocpkit.studies.nonconvex_trials import BSPLINE, CONTROLLERS, IPOPT, trial
+from ocpkit.studies.nonconvex_trials import ABLATION, BSPLINE, CONTROLLERS, IPOPT, trial
 
 NAME = "nonconvex"
 TITLE = (
@@ -29,8 +29,9 @@ TITLE = (
 PER_SEED = "success"
 # A robot a size leaves out has 0 seeds. budget: seconds a step for the budgeted controllers (the control period).
 # The quick size leaves out IPOPT at its default (IPOPT ×8 starts from IPOPT's own cold start and warm-starts as it
-# does, and plain IPOPT was a fifth of the quick grid's time) and the B-spline rows. "swingup": the swing-up's
-# seeds per robot, horizon and duration (it needs a horizon that sees the whole swing, and the time to make it).
+# does, and plain IPOPT was a fifth of the quick grid's time), the B-spline rows and EMPC's ablation. "swingup": the
+# swing-up's seeds per robot, horizon and duration (it needs a horizon that sees the whole swing, and the time to make
+# it).
 # The swing-up's horizon [steps]: 3 s. At 0.5-1.5 s every controller pushed against gravity on development draws 0-1
 # (the horizon's optimum cannot pump there). The double pendulum's 3 s OCP (the arm's cost: Q = I, 100 Q terminal)
 # had 6 local optima from 16 IPOPT starts on draw 0, none upright at the horizon's end, and no controller swung it up
@@ -49,7 +50,7 @@ SWING_HORIZON = 300
 SIZES = {
     "quick": {
         "seeds": {"nlink:3": 1, "nlink:7": 0, "panda": 0},
-        "controllers": [c for c in CONTROLLERS if c != IPOPT and c not in BSPLINE],
+        "controllers": [c for c in CONTROLLERS if c != IPOPT and c not in BSPLINE and c not in ABLATION],
         "duration": 2.0,
         "horizon": 30,
         "population": 256,

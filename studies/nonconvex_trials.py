@@ -78,7 +78,16 @@ BUDGETED = {
 }
 LTV_BSPLINE, EMPC_BSPLINE = "LinearMPC (trajectory, B-spline)", "EMPC (B-spline)"
 BSPLINE = {LTV_BSPLINE: DEFAULTS[LTV], EMPC_BSPLINE: DEFAULTS[EMPC]}  # the same controllers on a cubic B-spline
-CONTROLLERS = {**DEFAULTS, **BUDGETED, **BSPLINE}
+# The ablation (issue 49: what each of EMPC's choices contributes): EMPC with one choice changed — the paper's GA
+# (a uniform cold start and N(0, σ) mutation: no Newton seed, no whitened mutation), rollouts and their violations on
+# the nonlinear model instead of the affine one about the plan, three generations a step instead of one.
+EMPC_PAPER, EMPC_NONLINEAR, EMPC_GENERATIONS = "EMPC (paper's GA)", "EMPC (nonlinear rollouts)", "EMPC ×3 generations"
+ABLATION = {
+    EMPC_PAPER: ("empc", {**SAMPLING, "variant": "paper"}),
+    EMPC_NONLINEAR: ("empc", {**SAMPLING, "dynamics": "nonlinear"}),
+    EMPC_GENERATIONS: ("empc", {**SAMPLING, "generations": 3}),
+}
+CONTROLLERS = {**DEFAULTS, **BUDGETED, **BSPLINE, **ABLATION}
 GRADIENT = (IPOPT, MULTI, RTI, RTI3, LTV, LTV_BSPLINE, IPOPT + BUDGET, MULTI + BUDGET, RTI + BUDGET)
 SAMPLERS = ("empc", "cem", "mppi")
 

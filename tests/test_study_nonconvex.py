@@ -328,6 +328,28 @@ def test_nonconvex_tiny_swingup(monkeypatch, tmp_path):
     assert "pendulum · swingup · RTI" in text and "swing-up: horizon 12" in text
 
 
+def test_ablation_rows_change_one_choice_of_empc_each_and_get_their_own_table(monkeypatch, tmp_path):
+    """Issue 49's ablation: each row is EMPC's default with one option changed, at the full size only; the report
+    pairs EMPC against them in their own table, not among the baselines."""
+    t = nonconvex_trials
+    default = t.CONTROLLERS[t.EMPC][1]
+    changed = {name: {k: v for k, v in opts.items() if default.get(k) != v} for name, (_, opts) in t.ABLATION.items()}
+    assert changed == {
+        t.EMPC_PAPER: {"variant": "paper"},
+        t.EMPC_NONLINEAR: {"dynamics": "nonlinear"},
+        t.EMPC_GENERATIONS: {"generations": 3},
+    }
+    assert all(solver == "empc" for solver, _ in t.ABLATION.values())
+    assert not set(t.ABLATION) & set(nonconvex.SIZES["quick"]["controllers"])
+    assert set(t.ABLATION) <= set(nonconvex.SIZES["full"]["controllers"])
+    df, _ = _tiny(monkeypatch, tmp_path, ("sphere",), [t.EMPC, t.RTI, t.EMPC_PAPER, t.EMPC_GENERATIONS])
+    text = nonconvex.report(df, tmp_path)
+    baselines, ablation = text.split("EMPC against each controller")[1].split("What each of EMPC's choices")
+    assert "EMPC · RTI" in baselines and f"EMPC · {t.EMPC_PAPER}" not in baselines
+    assert f"EMPC · {t.EMPC_PAPER}" in ablation and f"EMPC · {t.EMPC_GENERATIONS}" in ablation
+    assert "EMPC · RTI" not in ablation
+
+
 @pytest.mark.slow
 def test_nonconvex_tiny_every_controller_and_case(monkeypatch, tmp_path):
     _tiny(monkeypatch, tmp_path, CASES, list(nonconvex_trials.CONTROLLERS))
