@@ -348,6 +348,9 @@ def test_ablation_rows_change_one_choice_of_empc_each_and_get_their_own_table(mo
     assert "EMPC · RTI" in baselines and f"EMPC · {t.EMPC_PAPER}" not in baselines
     assert f"EMPC · {t.EMPC_PAPER}" in ablation and f"EMPC · {t.EMPC_GENERATIONS}" in ablation
     assert "EMPC · RTI" not in ablation
+    # EMPC and its ablation alone (no baseline): the report has the ablation table and no empty baseline table
+    alone = nonconvex.report(df[df["controller"] != t.RTI], tmp_path)
+    assert "What each of EMPC's choices" in alone and "EMPC against each controller" not in alone
 
 
 @pytest.mark.slow
