@@ -157,7 +157,7 @@ def report(df, out_dir) -> str:
                     log=True,
                     counts=True,
                     spread={c: (q1[c].values, q3[c].values) for c in med.columns},
-                    spread_label=f"shaded: quartiles over the {up_to}{states} states",
+                    spread_label=f"shaded: quartiles over each point's states ({up_to}{states})",
                     title=f"Median {what}, horizon {horizon} ({up_to}{states} cold solves each)",
                 )
             )
