@@ -37,6 +37,20 @@ SECONDS_PER_TRIAL = {
     # swing-ups (600 steps of a 300-step horizon: 134 s one at a time, load 3.7): 7.0 a trial
     "nonconvex": 7.0,
 }
+# Seconds per trial (mean wall time) of each study's full grid, measured on the same machine with 2 workers beside
+# other work (load 2-5), 2026-12-04, 0.14.0-0.15.0: the full size's start-up estimate. Nonconvex: EMPC and RTI
+# only (IPOPT ×8 took 2-11 min a run, so the whole grid takes longer). A study missing here counts at its quick
+# figure, and the estimate says so.
+FULL_SECONDS_PER_TRIAL = {
+    "knots": 0.94,
+    "horizon": 2.3,
+    "robustness": 0.86,
+    "robustness_mujoco": 3.1,
+    "baxter": 6.0,
+    "comparison": 25.0,
+    "solve_times": 67.0,
+    "nonconvex": 92.0,
+}
 # Studies whose claims are about time: run one trial at a time (locally), so two trials never share the 2 cores.
 TIMING_STUDIES = ("solve_times",)
 VERDICTS = (
@@ -75,7 +89,9 @@ def _run_study(name, size, out_dir, study_options=None, **options):
 
 def estimate(names, size: str, out_dir, workers=None) -> float:
     """Seconds the trials of ``names`` not yet stored in ``out_dir`` should take on ``workers`` local processes, from
-    :data:`SECONDS_PER_TRIAL` (an idle 2-core machine; a busy one takes longer)."""
+    :data:`SECONDS_PER_TRIAL` (quick: an idle 2-core machine; a busy one takes longer) or, at the full size,
+    :data:`FULL_SECONDS_PER_TRIAL` where it has the study (:func:`unmeasured` names the others)."""
+    per_trial = {**SECONDS_PER_TRIAL, **(FULL_SECONDS_PER_TRIAL if size == "full" else {})}
     parts = [(label, module, options) for label, module, options in _parts(names) if module]
     stored = {}
     if (Path(out_dir) / "results.sqlite").exists():
@@ -85,8 +101,15 @@ def estimate(names, size: str, out_dir, workers=None) -> float:
     total = 0.0
     for name, module, options in parts:
         todo = max(0, len(get(module).study(size, **options).trials) - stored.get(name, 0))
-        total += todo * SECONDS_PER_TRIAL.get(name, 5.0) / (1 if name in TIMING_STUDIES else parallel)
+        total += todo * per_trial.get(name, 5.0) / (1 if name in TIMING_STUDIES else parallel)
     return total
+
+
+def unmeasured(names, size: str) -> list:
+    """The studies of ``names`` whose per-trial time at ``size`` is not measured (counted at the quick size's)."""
+    if size != "full":
+        return []
+    return [name for name, module, _ in _parts(names) if module and name not in FULL_SECONDS_PER_TRIAL]
 
 
 def _parts(names) -> list:
@@ -147,10 +170,22 @@ def reproduce(
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     if progress and scheduler is None:
+        guessed = unmeasured(names, size)
+        basis = (
+            "the quick size's per-trial times on an idle 2-core machine; a busy one takes longer"
+            if size == "quick"
+            else "the full size's per-trial times on a busy 2-core machine with 2 workers"
+            + (
+                f"; {', '.join(guessed)} not measured at this size: counted at the quick size's, so longer"
+                if guessed
+                else ""
+            )
+        )
+        minutes = estimate(names, size, out_dir, workers) / 60
         print(
-            f"reproduce --{size}: about {estimate(names, size, out_dir, workers) / 60:.0f} min of trials to run on "
-            f"{workers or os.cpu_count()} worker(s) (the quick size's per-trial times on an idle 2-core machine; "
-            "a busy machine, or the full size's longer trials, take longer)",
+            f"reproduce --{size}: about {f'{minutes / 60:.1f} h' if minutes > 120 else f'{minutes:.0f} min'} of "
+            "trials to run on "
+            f"{workers or os.cpu_count()} worker(s) ({basis})",
             flush=True,
         )
     start, load_start = time.perf_counter(), os.getloadavg()[0]

@@ -4,7 +4,7 @@ import re
 
 from ocpkit.runs.store import Store
 from ocpkit.studies import get
-from ocpkit.studies.reproduce import SECONDS_PER_TRIAL, estimate, reproduce
+from ocpkit.studies.reproduce import FULL_SECONDS_PER_TRIAL, SECONDS_PER_TRIAL, estimate, reproduce, unmeasured
 
 
 def compute_seconds(report) -> float:
@@ -33,3 +33,16 @@ def test_compute_time_sums_runs_and_a_resume_keeps_it(monkeypatch, tmp_path):
     before = compute_seconds(report)
     report = reproduce("quick", tmp_path, names=("knots",), workers=1, progress=False, pictures=False)
     assert compute_seconds(report) == before
+
+
+def test_the_full_size_is_estimated_from_its_own_trial_times(tmp_path):
+    """Issue 51: `reproduce --full` had estimated from the quick size's per-trial times (solve_times: 2 min for a
+    study of hours). A study measured at the full size counts at its own time; one not measured is named."""
+    trials = len(get("knots").study("full").trials)
+    assert estimate(("knots",), "full", tmp_path, workers=1) == trials * FULL_SECONDS_PER_TRIAL["knots"]
+    assert (
+        estimate(("knots",), "quick", tmp_path, workers=1)
+        == len(get("knots").study("quick").trials) * SECONDS_PER_TRIAL["knots"]
+    )
+    assert unmeasured(("knots", "reach", "tracking"), "full") == ["reach", "tracking"]
+    assert unmeasured(("reach",), "quick") == []
