@@ -18,7 +18,7 @@ import pandas as pd
 
 from ocpkit import problems, solvers
 from ocpkit.sim import plots
-from ocpkit._checks import choice, integer
+from ocpkit._checks import choice, integer, positive
 from ocpkit.runs.study import Study, grid
 from ocpkit.sim.plots import number
 from ocpkit.studies.evidence import HELD, INCONCLUSIVE, NOT_HELD, combine, decide, median_interval, quartiles, timing
@@ -64,8 +64,7 @@ def trial(
     many seconds, with at least :data:`MIN_STATES` solved (None: every state).
     """
     states = integer(states, "states", 1)
-    if time_budget is not None and not (isinstance(time_budget, (int, float)) and time_budget > 0):
-        raise ValueError(f"time_budget must be a positive number of seconds or None, got {time_budget!r}")
+    time_budget = None if time_budget is None else positive(time_budget, "time_budget")
     pb = problems.make(f"nlink:{integer(links, 'links', 1)}")
     # no step budget: the slow formulations' times are what the figures show (trials have their own timeout)
     ctrl = solvers.make("qp", pb.ocp(knots=knots, horizon=horizon), form=form, qp=qp, time_limit=float("inf"))

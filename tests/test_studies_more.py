@@ -50,7 +50,7 @@ def test_solve_times_states_are_shared_and_checked():
     assert a["failures"] == b["failures"] == 0
     with pytest.raises(ValueError, match="states must be >= 1"):
         solve_times.trial(links=1, horizon=10, form="sparse", knots=None, qp="osqp", states=0, seed=0)
-    with pytest.raises(ValueError, match="time_budget must be a positive number"):
+    with pytest.raises(ValueError, match="time_budget must be finite and > 0"):
         solve_times.trial(links=1, horizon=10, form="sparse", knots=None, qp="osqp", states=2, seed=0, time_budget=0)
 
 
