@@ -17,10 +17,10 @@ from ocpkit.studies.evidence import INCONCLUSIVE, NOT_TESTED, combine, median_cl
 from ocpkit.studies.nonconvex_cases import CASES, ROBOTS, SEED_OFFSET, SWING_ROBOTS, SWINGUP
 from ocpkit.studies.nonconvex_stats import paired_interval, paired_success
 from ocpkit.studies.nonconvex_trials import (
+    ABLATION,
     ANGLE_TOLERANCE,
     BUDGET,
     BUDGETED,
-    ABLATION,
     CONTROLLERS,
     EMPC,
     GRADIENT,

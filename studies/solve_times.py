@@ -37,8 +37,8 @@ HARDLY_SOURCE = "ours: the paper gives no number for 'hardly'"
 # variables, took 35 and 33 s of the quick study's 104, a tenth of `reproduce --quick`). None: no skip.
 # "time_budget": seconds of timed solves a trial may take before it stops short of "states" (at least MIN_STATES
 # solved); None: every state. The full size runs every formulation, and its dense traditional QPs took 7, 16 and
-# an estimated 45 s a solve at 7, 10 and 13 links, T = 100 (2-core machine, load 4): 100 states each would take
-# about 5 h of the study; with 300 s a trial, the grid takes about 2 h there.
+# 48 s a solve at 7, 10 and 13 links, T = 100 (2-core machine, load 4): 100 states each would take about 5 h of the
+# study; with 300 s a trial, the grid took 2.3 h there (load 5, 14 trials stopped short).
 MIN_STATES = 5
 SIZES = {
     "quick": {"links": [1, 3, 7, 13], "states": 20, "qp": "osqp", "max_dense_vars": 600, "time_budget": None},
