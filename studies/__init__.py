@@ -16,6 +16,20 @@ NAMES = (
     "tracking",
     "nonconvex",
 )
+# The studies of the paper's own experiments (Sections VI-VII); the others go beyond it. `reproduce --only paper`.
+PAPER = ("knots", "horizon", "robustness", "solve_times", "comparison", "baxter")
+
+
+def chosen(only=None) -> tuple:
+    """The studies ``only`` names (study names, or "paper" for :data:`PAPER`) in the report's order; all if None."""
+    if only is None:
+        return NAMES
+    wanted = set()
+    for name in only:
+        if name != "paper" and name not in NAMES:
+            raise ValueError(f"unknown study {name!r}; known: {', '.join(NAMES)} or paper")
+        wanted.update(PAPER if name == "paper" else (name,))
+    return tuple(name for name in NAMES if name in wanted)
 
 
 def get(name: str):

@@ -223,7 +223,7 @@ def reproduce(
     report = out_dir / "report.md"
     loads = (load_start, os.getloadavg()[0])
     report.write_text(
-        _header(size, scheduler, workers, timings, wall, compute, len(runs), loads)
+        _header(size, names, scheduler, workers, timings, wall, compute, len(runs), loads)
         + "\n"
         + VERDICTS
         + "\n\n"
@@ -234,12 +234,15 @@ def reproduce(
     return report
 
 
-def _header(size, scheduler, workers, timings, wall, compute, n_runs, loads) -> str:
+def _header(size, names, scheduler, workers, timings, wall, compute, n_runs, loads) -> str:
     versions = ", ".join(f"{p} {_version(p)}" for p in PACKAGES)
     lines = [
         "# ocpkit: reproduction of Hyatt, Williams, Killpack — Parameterized and GPU-Parallelized Real-Time MPC",
         "",
-        f"- command: `ocpkit reproduce --{size}`" + (f" --scheduler {scheduler}" if scheduler else ""),
+        f"- command: `ocpkit reproduce --{size}"
+        + ("" if tuple(names) == NAMES else "".join(f" --only {name}" for name in names))
+        + (f" --scheduler {scheduler}" if scheduler else "")
+        + "`",
         f"- machine: {platform.node()}, {platform.machine()}, {os.cpu_count()} CPUs, Python {sys.version.split()[0]}"
         f", {platform.platform()}",
         f"- workers: {workers or ('dask ' + scheduler if scheduler else os.cpu_count())}"

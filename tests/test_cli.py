@@ -337,6 +337,24 @@ def test_study_help_names_every_registered_study(monkeypatch, capsys):
     assert cli._parser().parse_args(["study", "brand_new"]).name == "brand_new"
 
 
+def test_reproduce_only_runs_the_studies_it_names_in_the_reports_order(monkeypatch, tmp_path):
+    from ocpkit.studies import reproduce as reproduce_module
+
+    ran = []
+    monkeypatch.setattr(reproduce_module, "reproduce", lambda size, out, names, **_: ran.append(names) or out)
+    for only, expected in (
+        (["tracking", "knots"], ("knots", "tracking")),
+        (["paper", "knots"], studies.PAPER),
+        ([], studies.NAMES),
+    ):
+        flags = [arg for name in only for arg in ("--only", name)]
+        assert main(["reproduce", "--out", str(tmp_path / "r"), *flags]) == 0
+        assert ran.pop() == expected
+    assert set(studies.PAPER) < set(studies.NAMES)
+    with pytest.raises(ValueError, match="unknown study 'knot'; known: .* or paper"):
+        studies.chosen(["knot"])
+
+
 def test_an_unknown_study_is_one_line_naming_the_studies(tmp_path):
     res = run("study", "knot", cwd=tmp_path)
     assert res.returncode == 2 and "Traceback" not in res.stderr

@@ -125,6 +125,7 @@ def test_reproduce_assembles_its_report_on_two_tiny_studies(tiny, tiny_tracking,
     report = reproduce("quick", tmp_path, names=("knots", "tracking"), workers=1, progress=False, pictures=False)
     text = report.read_text()
     assert "Fig. 3" in text and "Follow a moving reference" in text
+    assert "- command: `ocpkit reproduce --quick --only knots --only tracking`" in text  # what this report holds
     _check_sections(text, 3)
     _check_knots(tmp_path)
 

@@ -168,6 +168,14 @@ def _parser() -> argparse.ArgumentParser:
     size.add_argument("--quick", dest="size", action="store_const", const="quick", help="minutes (default)")
     size.add_argument("--full", dest="size", action="store_const", const="full", help="paper scale")
     rep.set_defaults(size="quick")
+    rep.add_argument(
+        "--only",
+        action="append",
+        choices=(*studies.NAMES, "paper"),
+        metavar="NAME",
+        help=f"run and report this study only (repeatable): {', '.join(studies.NAMES)}, or paper for the paper's "
+        f"own ({', '.join(studies.PAPER)}) (default: every study)",
+    )
     add_study_args(rep, size=False)
     exp = sub.add_parser("export", help="generate, build and check a C MPC step")
     add_problem_args(exp)

@@ -73,10 +73,12 @@ def _study_problems(args, options) -> str:
 
 def reproduce_command(args):
     """`ocpkit reproduce`: every study of the paper run into --out, and the report."""
+    from ocpkit.studies import chosen
     from ocpkit.studies.reproduce import reproduce
 
     options = _study_options(args)
-    report = reproduce(args.size, args.out, workers=args.workers, scheduler=args.scheduler, **options)
+    names = chosen(args.only)
+    report = reproduce(args.size, args.out, names=names, workers=args.workers, scheduler=args.scheduler, **options)
     print(f"report: {report}")
     _export_store(args)
     return 0
