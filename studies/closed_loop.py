@@ -56,10 +56,12 @@ def trial(
 
 
 def run_record(traj, ctrl) -> dict:
-    """What every closed-loop trial stores about how its steps were answered: the fallback steps and their causes
-    (statuses), EMPC's child win rate (NaN for other controllers: see ``EvolutionaryMPC.child_win_rate``) and the
-    1-min load average at the end of the run (timing verdicts are withheld when it exceeds the CPUs)."""
+    """What every closed-loop trial stores about how its steps were answered: what answered them (the controller's
+    path: the C or the Python step, a fallback), the fallback steps and their causes (statuses), EMPC's child win rate
+    (NaN for other controllers: see ``EvolutionaryMPC.child_win_rate``) and the 1-min load average at the end of the
+    run (timing verdicts are withheld when it exceeds the CPUs)."""
     return {
+        "paths": traj.paths(),
         "fallbacks": traj.fallbacks,
         "fallback_causes": traj.fallback_causes(),
         "child_win_rate": float(getattr(ctrl, "child_win_rate", float("nan"))),

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numbers
 import os
+import re
 from dataclasses import dataclass
 
 from ocpkit.sim.plots import number
@@ -36,27 +37,38 @@ class Claim:
     paper: str = ""
 
 
-ANSWERED = "How the steps were answered (fallback steps by cause; EMPC's child win rate, median and range over runs)"
+ANSWERED = (
+    "How the steps were answered (what answered them, summed over the runs; fallback steps by cause; EMPC's child "
+    "win rate, median and range over runs)"
+)
+
+
+def _summed(tallies) -> str:
+    """Tallies as the trials store them ("C step 990, fallback (plan) 10"; a label may hold ", ") summed over the
+    trials, most frequent first; "–" when empty."""
+    counts: dict = {}
+    for text in tallies:
+        for label, n in re.findall(r"(.+?) (\d+)(?:, |$)", str(text)):
+            counts[label] = counts.get(label, 0) + int(n)
+    return ", ".join(f"{k} {v}" for k, v in sorted(counts.items(), key=lambda kv: -kv[1])) or "–"
 
 
 def answered(ok, by: str = "controller") -> str:
-    """How each controller's steps were answered, as a Markdown table: runs, fallback steps and their causes (the
+    """How each controller's steps were answered, as a Markdown table: runs, what answered the steps (each step's
+    path, summed over the runs; "not recorded" for trials stored before 0.17.0), fallback steps and their causes (the
     failed step's status, summed over the runs), and EMPC's child win rate (the share of generations whose best
     candidate was a bred child rather than a carried-over parent or seed: 0 % means the plan was the seed's)."""
     import pandas as pd
 
     rows = {}
     for name, g in ok.groupby(by, sort=False):
-        causes: dict = {}
-        for text in g.get("fallback_causes", pd.Series(dtype=object)).dropna():
-            for part in filter(None, str(text).split(", ")):
-                status, n = part.rsplit(" ", 1)
-                causes[status] = causes.get(status, 0) + int(n)
+        paths = g.get("paths", pd.Series(dtype=object)).dropna()
         wins = g["child_win_rate"].dropna() if "child_win_rate" in g else pd.Series(dtype=float)
         rows[name] = {
             "runs": len(g),
+            "steps answered by": _summed(paths) if len(paths) else "not recorded",
             "fallback steps": int(g["fallbacks"].sum()),
-            "causes": ", ".join(f"{k} {v}" for k, v in sorted(causes.items(), key=lambda kv: -kv[1])) or "–",
+            "causes": _summed(g.get("fallback_causes", pd.Series(dtype=object)).dropna()),
             "child win rate [%]": (
                 f"{number(100 * wins.median(), 3)} ({number(100 * wins.min(), 3)}–{number(100 * wins.max(), 3)})"
             )

@@ -90,6 +90,29 @@ def test_soft_steps_are_counted_apart_from_successes_and_fallbacks():
     assert _trajectory(np.zeros(3), said).soft_causes() == "clearance 1, soft 1"
 
 
+def test_what_answered_the_steps_is_tallied_per_run_and_summed_over_runs_in_the_report():
+    import pandas as pd
+
+    from ocpkit.studies.report import answered
+
+    steps = [_step() for _ in range(3)] + [_step(LIMITED, "iteration limit", fallback=True)]
+    for step, path in zip(steps, ("C step", "Python step, C step building", "C step", "fallback (plan)")):
+        step.path = path
+    traj = _trajectory(np.zeros(5), steps)
+    assert traj.paths() == "C step 2, Python step, C step building 1, fallback (plan) 1"
+    runs = pd.DataFrame(
+        {
+            "controller": ["QP", "QP", "old"],
+            "paths": [traj.paths(), "C step 10", None],  # "old": stored before runs recorded their paths
+            "fallbacks": [1, 0, 0],
+            "fallback_causes": [traj.fallback_causes(), "", ""],
+        }
+    )
+    table = answered(runs)
+    assert "| QP | 2 | C step 12, Python step, C step building 1, fallback (plan) 1 | 1 | limited 1 |" in table
+    assert "| old | 1 | not recorded | 0 | – |" in table
+
+
 def test_success_while_colliding_counts_successes_the_plant_contradicts():
     ball = Sphere((0.75, 0.0, 0.0), 0.05)  # on the tip when the arm is stretched along x (q = 0)
     ocp = reach(ARM, [ball], knots=3, horizon=5)

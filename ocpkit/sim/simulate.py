@@ -163,6 +163,10 @@ class Trajectory:
         """The fallback steps by status, most frequent first ("limited 3, infeasible 1"; "" when none)."""
         return _tally(s.status for s in self.solutions if s.fallback)
 
+    def paths(self) -> str:
+        """What answered the steps (each Solution's ``path``: "C step", "fallback (plan)", …), most frequent first."""
+        return _tally(s.path or "unnamed" for s in self.solutions)
+
     @property
     def soft_steps(self) -> int:
         """How many steps were "soft": the solver's input applied, its plan breaking a clearance or state bound."""
