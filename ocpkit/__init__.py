@@ -11,7 +11,7 @@ import os
 
 # The package version (pyproject.toml reads it from here); bumped by hand with a CHANGELOG.md entry. Study trials
 # record it, and it is what `ocpkit.runs.study.package_version()` reports even in an editable install not reinstalled.
-__version__ = "0.16.0"
+__version__ = "0.17.0"
 
 # Taichi prints a banner to stdout on import; keep stdout clean for `--json` output and reports.
 os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "False")
