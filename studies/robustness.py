@@ -426,7 +426,7 @@ def mujoco_claims(problem, g, controllers) -> list:
     """Whether MuJoCo without mismatch reproduces ocpkit's plant, and, per mismatch, which controller's normalized
     cost degrades least: the lowest median, held where its per-seed ratio to each rival's is below 1. Rivals whose
     per-seed ratios all lie within :data:`TIE` of 1 share the lead (EMPC's plan is often its Newton seed's, the
-    same as LinearMPC's)."""
+    same as LinearMPC's); where all tie, "one of them degrades least" is not held."""
     same = g[(g["plant"] == "mujoco") & (g["mismatch"] == "none")]["normalized"]
     verdict, evidence = every(np.abs(same - 1.0), lambda d: d < SAME_PLANT, f"differ by {number(SAME_PLANT)} or more")
     out = [
@@ -451,13 +451,15 @@ def mujoco_claims(problem, g, controllers) -> list:
         tied = [c for c, i in ratios.items() if decide(i, (1 / (1 + TIE), 1 + TIE), "==") == HELD]
         rivals = [c for c in ratios if c not in tied]
         leaders = " and ".join(c for c in medians if c == best or c in tied)
+        claim = f"{leaders} degrade{'s' if not tied else ''} least of {', '.join(medians)}"
+        if not rivals:  # all tied: the claim names none of them, and is not held
+            claim = f"one of {', '.join(medians)} degrades least"
         verdict = combine([decide(ratios[c], 1.0, "<") for c in rivals]) if rivals else NOT_HELD
         parts = [f"{best} / {c}: {ratios[c].text()}" + (" (tied)" if c in tied else "") for c in ratios]
         degraded = ", ".join(f"{c} {number(m, 3)}" for c, m in sorted(medians.items(), key=lambda kv: kv[1]))
         out.append(
             Claim(
-                f"{problem}, {condition}: {leaders} degrade{'s' if not tied else ''} least of "
-                f"{', '.join(medians)} (issue 34)",
+                f"{problem}, {condition}: {claim} (issue 34)",
                 f"median normalized cost {degraded}; per seed, the leader's / each other's < 1 (within "
                 f"{number(100 * TIE)} %: tied; ours)",
                 verdict,

@@ -366,6 +366,8 @@ def test_mujoco_report_names_the_controller_that_degrades_least(tmp_path):
     costs["EMPC"][("mujoco", "armature", 0.5)] = [b * 1.3 for b in base]
     costs["LinearMPC"][("mujoco", "armature", 0.5)] = [b * 1.3 * (1 + 1e-12) for b in base]  # a tie: round-off
     costs["RTI"][("mujoco", "armature", 0.5)] = [b * 1.4 for b in base]
+    for c in costs:  # all three tied: none degrades least
+        costs[c][("mujoco", "friction", 0.05)] = [b * 1.02 for b in base]
     text = mujoco_report(_mujoco_table(costs), tmp_path)
     rows = {
         row.split(" | ")[0].lstrip("| "): row.rsplit("|", 2)[-2].strip()
@@ -376,7 +378,9 @@ def test_mujoco_report_names_the_controller_that_degrades_least(tmp_path):
         "nlink:2: MuJoCo without mismatch reproduces ocpkit's plant (issue 34)": "held",
         "nlink:2, MuJoCo, friction 0.1: RTI degrades least of LinearMPC, RTI, EMPC (issue 34)": "held",
         "nlink:2, MuJoCo, armature 0.5: LinearMPC and EMPC degrade least of LinearMPC, RTI, EMPC (issue 34)": "held",
+        "nlink:2, MuJoCo, friction 0.05: one of LinearMPC, RTI, EMPC degrades least (issue 34)": "not held",
     }
+    assert "LinearMPC / RTI: 1 [1, 1] (75 %, n = 3) (tied)" in text
     assert (tmp_path / "robustness_mujoco_nlink_2.png").stat().st_size > 5000
 
 
