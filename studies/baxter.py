@@ -28,7 +28,7 @@ from ocpkit.sim.metrics import itae
 from ocpkit.problems.baxter import JOINTS
 from ocpkit.sim.simulate import Trajectory, simulate
 from ocpkit.runs.study import Study, grid
-from ocpkit.studies.closed_loop import run_record
+from ocpkit.studies.closed_loop import run_record, steady
 from ocpkit.studies.calibration import stated, within_count
 from ocpkit.studies.comparison import responses, row_arrays
 from ocpkit.sim.plots import number
@@ -90,7 +90,7 @@ def trial(command: int, controller: str, duration: float, population: int, arch:
             options = {**options, "population": population, "arch": arch, "seed": seed}
         ctrl = solvers.make(solver, ocp, **options)
     start, goal = (np.r_[q, np.zeros(len(q))] for q in COMMANDS[command])
-    ctrl.solve(start, goal)  # compiles kernels and functions outside the timed run; simulate() resets ctrl
+    steady(ctrl, start, goal)
     traj = simulate(pb.plant(), ctrl, start, goal, duration)
     solve, total = traj.times("solve"), traj.times("total")
     return {

@@ -55,6 +55,14 @@ def trial(
     }
 
 
+def steady(ctrl, x0, goal) -> None:
+    """Bring ``ctrl`` to the state a running loop is in before a timed run: one step (it compiles kernels and
+    functions; simulate() resets the controller) and its background builds waited for (the compiled model, LinearMPC's
+    C step), so that no timed step runs on a path the loop leaves after its first seconds."""
+    ctrl.solve(x0, goal)
+    ctrl.wait_compiled()
+
+
 def run_record(traj, ctrl) -> dict:
     """What every closed-loop trial stores about how its steps were answered: what answered them (the controller's
     path: the C or the Python step, a fallback), the fallback steps and their causes (statuses), EMPC's child win rate

@@ -19,23 +19,21 @@ PACKAGES = ("ocpkit", "casadi", "numpy", "proxsuite", "osqp", "pin", "taichi", "
 
 
 # Seconds per trial and worker of each study's quick grid, measured on the idle 2-core development machine
-# (`reproduce --quick` from a fresh clone and an empty cache, 2 workers, 2026-12-04, 0.11.0: 948 s in all, load
-# 1.5-3.0 with its own workers): what the start-up estimate scales. Reach: its IPOPT trials are 95 % of it (one
-# nlink:3 seed 298 s).
+# (`reproduce --quick` from a fresh clone and an empty cache, 2 workers, 2026-12-05, 0.17.0: 1,882 s in all, load
+# 1-2 from its own workers): what the start-up estimate scales. Nonconvex: one trial (IPOPT ×8 on the limits case,
+# every step refused after 8 starts of 500 iterations) took 642 s of its 768.
 SECONDS_PER_TRIAL = {
-    "knots": 0.38,
-    "horizon": 0.45,
-    "robustness": 0.33,
-    "solve_times": 1.25,
-    "comparison": 2.8,
-    "keepout": 0.91,
-    "baxter": 1.04,
-    "reach": 5.8,
-    "tracking": 0.74,
-    "robustness_mujoco": 0.36,
-    # its quick grid's 52 reaches, 2026-12-04 (162 s, 2 workers, load 2-3: 6.2 s a trial), and its 13 pendulum
-    # swing-ups (600 steps of a 300-step horizon: 134 s one at a time, load 3.7): 7.0 a trial
-    "nonconvex": 7.0,
+    "knots": 0.71,
+    "horizon": 0.92,
+    "robustness": 0.61,
+    "solve_times": 2.5,
+    "comparison": 6.8,
+    "keepout": 2.1,
+    "baxter": 2.9,
+    "reach": 11.6,
+    "tracking": 1.43,
+    "robustness_mujoco": 0.85,
+    "nonconvex": 23.6,
 }
 # Seconds per trial (mean wall time) of each study's full grid, measured on the same machine with 2 workers beside
 # other work (load 2-5), 2026-12-04, 0.14.0-0.15.0: the full size's start-up estimate. Nonconvex: EMPC and RTI
@@ -50,6 +48,7 @@ FULL_SECONDS_PER_TRIAL = {
     "comparison": 25.0,
     "solve_times": 67.0,
     "nonconvex": 92.0,
+    "keepout": 3.5,  # 2026-12-05, 0.16.0, load 4.5: 60 trials in 108 s
 }
 # Studies whose claims are about time: run one trial at a time (locally), so two trials never share the 2 cores.
 TIMING_STUDIES = ("solve_times",)
