@@ -16,7 +16,7 @@ from ocpkit.model.task import clearances as task_clearances
 from ocpkit.sim.metrics import actual_cost
 from ocpkit.sim.simulate import REACHED, simulate
 from ocpkit.studies import keepout
-from ocpkit.studies.closed_loop import run_record
+from ocpkit.studies.closed_loop import run_record, steady
 
 ROBOTS = ("nlink:3", "baxter", "panda")
 KEEPOUT = "keepout"
@@ -129,7 +129,7 @@ def reach_trial(
     goal = ocp.goal(s["x0"], position=s["target"])
     solver, options = CONTROLLERS[controller]
     ctrl = _controller(solver, options, ocp, population, arch, seed)
-    ctrl.solve(s["x0"], goal)  # compiles kernels and functions outside the timed run; simulate() resets ctrl
+    steady(ctrl, s["x0"], goal)
     traj = simulate(pb.plant(), ctrl, s["x0"], goal, duration)
     d = traj.clearances(ocp)
     ee = pb.kinematics.positions(pb.end_effector, traj.x[:, :n])
@@ -185,7 +185,7 @@ def keepout_trial(controller: str, horizon: int, duration: float, population: in
         ocp = pb.ocp(knots=keepout.KNOTS, horizon=horizon, task=Task([squared_hinge_term(centre)]))
         solver, options = {K_IPOPT: ("ipopt", {}), K_RTI: ("rti", {}), K_EMPC_SQUARED: ("empc", SAMPLING)}[controller]
         ctrl = _controller(solver, options, ocp, population, arch, seed)
-    ctrl.solve(x0, goal)
+    steady(ctrl, x0, goal)
     traj = simulate(pb.plant(), ctrl, x0, goal, duration)
     penalties = np.asarray(penalty.map(traj.x.shape[0])(traj.x.T)).ravel()
     quadratic = actual_cost(traj, plain)
