@@ -16,7 +16,7 @@ NAMES = (
     "tracking",
     "nonconvex",
 )
-# The studies of the paper's own experiments (Sections VI-VII); the others go beyond it. `reproduce --only paper`.
+# The studies of the paper's own experiments (Sections III-VII); the others go beyond it. `reproduce --only paper`.
 PAPER = ("knots", "horizon", "robustness", "solve_times", "comparison", "baxter")
 
 
