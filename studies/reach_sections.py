@@ -9,7 +9,7 @@ import pandas as pd
 from ocpkit.model.task import REACH_OBSTACLE_WEIGHT
 from ocpkit.sim import plots
 from ocpkit.sim.plots import number
-from ocpkit.sim.simulate import MOVING, STALLED
+from ocpkit.sim.simulate import MOVING, STALLED, summed_tallies
 from ocpkit.studies import keepout
 from ocpkit.studies.evidence import NOT_TESTED, Interval, combine, decide, every, median_claim, proportion
 from ocpkit.studies.reach_trials import (
@@ -66,16 +66,6 @@ def _outcome(row) -> str:
     return row["verdict"]
 
 
-def _causes(texts) -> str:
-    """Cause counts ("clearance 3, state bound 1") summed over runs, most frequent first ("–" when none)."""
-    total: dict = {}
-    for text in texts:
-        for part in filter(None, str(text).split(", ")):
-            cause, n = part.rsplit(" ", 1)
-            total[cause] = total.get(cause, 0) + int(n)
-    return ", ".join(f"{k} {v}" for k, v in sorted(total.items(), key=lambda kv: (-kv[1], kv[0]))) or "–"
-
-
 def reach_section(r, out_dir, figs, tables, notes, claims):
     """The reach trials ``r`` into the report: their figures, tables, notes and claims appended to those given."""
     r = r.copy()
@@ -102,7 +92,7 @@ def reach_section(r, out_dir, figs, tables, notes, claims):
                     "success while colliding": int(g["success_while_colliding"].sum()),
                     "success steps [%]": 100 * g["successes"].sum() / g["steps"].sum(),
                     "soft steps": int(g["soft_steps"].sum()),
-                    "soft causes": _causes(g["soft_causes"]),
+                    "soft causes": summed_tallies(g["soft_causes"]),
                     "fallbacks": int(g["fallbacks"].sum()),
                     "cost / IPOPT median": q.median() if len(q) else np.nan,
                     "cost / IPOPT worst": q.max() if len(q) else np.nan,

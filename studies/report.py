@@ -5,10 +5,10 @@ from __future__ import annotations
 
 import numbers
 import os
-import re
 from dataclasses import dataclass
 
 from ocpkit.sim.plots import number
+from ocpkit.sim.simulate import summed_tallies
 
 
 def markdown_table(df) -> str:
@@ -43,16 +43,6 @@ ANSWERED = (
 )
 
 
-def _summed(tallies) -> str:
-    """Tallies as the trials store them ("C step 990, fallback (plan) 10"; a label may hold ", ") summed over the
-    trials, most frequent first; "–" when empty."""
-    counts: dict = {}
-    for text in tallies:
-        for label, n in re.findall(r"(.+?) (\d+)(?:, |$)", str(text)):
-            counts[label] = counts.get(label, 0) + int(n)
-    return ", ".join(f"{k} {v}" for k, v in sorted(counts.items(), key=lambda kv: -kv[1])) or "–"
-
-
 def answered(ok, by: str = "controller") -> str:
     """How each controller's steps were answered, as a Markdown table: runs, what answered the steps (each step's
     path, summed over the runs; "not recorded" for trials stored before 0.17.0), fallback steps and their causes (the
@@ -66,9 +56,9 @@ def answered(ok, by: str = "controller") -> str:
         wins = g["child_win_rate"].dropna() if "child_win_rate" in g else pd.Series(dtype=float)
         rows[name] = {
             "runs": len(g),
-            "steps answered by": _summed(paths) if len(paths) else "not recorded",
+            "steps answered by": summed_tallies(paths) if len(paths) else "not recorded",
             "fallback steps": int(g["fallbacks"].sum()),
-            "causes": _summed(g.get("fallback_causes", pd.Series(dtype=object)).dropna()),
+            "causes": summed_tallies(g.get("fallback_causes", pd.Series(dtype=object)).dropna()),
             "child win rate [%]": (
                 f"{number(100 * wins.median(), 3)} ({number(100 * wins.min(), 3)}–{number(100 * wins.max(), 3)})"
             )

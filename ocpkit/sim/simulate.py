@@ -11,6 +11,7 @@ steps whose success the plant's next state contradicts.
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -87,7 +88,21 @@ def _tally(labels) -> str:
     counts: dict = {}
     for label in labels:
         counts[label] = counts.get(label, 0) + 1
+    return _tally_text(counts)
+
+
+def _tally_text(counts: dict) -> str:
     return ", ".join(f"{label} {n}" for label, n in sorted(counts.items(), key=lambda kv: (-kv[1], kv[0])))
+
+
+def summed_tallies(texts) -> str:
+    """Tallies as a Trajectory writes them ("C step 990, fallback (plan) 10"; a label may hold ", ") summed over runs,
+    most frequent first; "–" when none."""
+    counts: dict = {}
+    for text in texts:
+        for label, n in re.findall(r"(.+?) (\d+)(?:, |$)", str(text)):
+            counts[label] = counts.get(label, 0) + int(n)
+    return _tally_text(counts) or "–"
 
 
 @dataclass
